@@ -1,0 +1,144 @@
+//! The input sample (SPEC §2) and labelled recorded rows.
+
+use serde::{Deserialize, Serialize};
+
+/// Largest plausible ground speed (m/s); faster samples are invalid (SPEC §2, §4).
+pub const MAX_SPEED_MPS: f64 = 80.0;
+
+/// One telemetry sample of one vehicle: a GNSS fix plus onboard motion.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Sample {
+    /// Seconds; monotonic within a trajectory.
+    pub timestamp_s: f64,
+    pub latitude_deg: f64,
+    pub longitude_deg: f64,
+    /// Onboard (non-GNSS) ground speed.
+    pub speed_mps: f64,
+    /// Onboard heading, degrees clockwise from north.
+    pub heading_deg: f64,
+    /// Optional 1-sigma horizontal GNSS position error (m), per axis.
+    pub position_std_m: Option<f64>,
+    /// Optional 1-sigma onboard speed error (m/s).
+    pub speed_std_mps: Option<f64>,
+    /// Optional 1-sigma onboard heading error (degrees).
+    pub heading_std_deg: Option<f64>,
+}
+
+/// A field-level problem with a sample, as reported by the API (`samples[i].<field>`).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct FieldViolation {
+    pub field: &'static str,
+    pub description: String,
+}
+
+impl Sample {
+    /// A sample with the five required fields and no optional uncertainties.
+    pub fn new(
+        timestamp_s: f64,
+        latitude_deg: f64,
+        longitude_deg: f64,
+        speed_mps: f64,
+        heading_deg: f64,
+    ) -> Self {
+        Self {
+            timestamp_s,
+            latitude_deg,
+            longitude_deg,
+            speed_mps,
+            heading_deg,
+            position_std_m: None,
+            speed_std_mps: None,
+            heading_std_deg: None,
+        }
+    }
+
+    /// Every out-of-range or non-finite field. Recorded data keeps such samples (they get ν = 0);
+    /// the API rejects them with these violations (SPEC §2).
+    pub fn violations(&self) -> Vec<FieldViolation> {
+        let mut out = Vec::new();
+        let mut check = |field: &'static str, value: f64, ok: bool, expect: &str| {
+            if !value.is_finite() {
+                out.push(FieldViolation {
+                    field,
+                    description: format!("must be a finite number, got {value}"),
+                });
+            } else if !ok {
+                out.push(FieldViolation {
+                    field,
+                    description: format!("must be {expect}, got {value}"),
+                });
+            }
+        };
+        let t = self.timestamp_s;
+        check("timestamp_s", t, t >= 0.0, "non-negative seconds");
+        let lat = self.latitude_deg;
+        check("latitude_deg", lat, (-90.0..=90.0).contains(&lat), "in [-90, 90]");
+        let lon = self.longitude_deg;
+        check("longitude_deg", lon, (-180.0..=180.0).contains(&lon), "in [-180, 180]");
+        let v = self.speed_mps;
+        check("speed_mps", v, v.abs() <= MAX_SPEED_MPS, "in [-80, 80] m/s");
+        let h = self.heading_deg;
+        check("heading_deg", h, (-360.0..=360.0).contains(&h), "in [-360, 360] degrees");
+        for (field, value) in [
+            ("position_std_m", self.position_std_m),
+            ("speed_std_mps", self.speed_std_mps),
+            ("heading_std_deg", self.heading_std_deg),
+        ] {
+            if let Some(value) = value {
+                check(field, value, value >= 0.0, "non-negative");
+            }
+        }
+        out
+    }
+}
+
+/// One recorded row: a sample with its provenance and, in labelled data, its ground truth.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Record {
+    pub sample: Sample,
+    /// Ground truth: `Some(true)` = spoofed, `Some(false)` = normal, `None` = unlabelled.
+    pub label: Option<bool>,
+    /// The source's own verdict for comparison (AV-GPS `EKF Detector`), never a model input.
+    pub comparator_alarm: Option<bool>,
+    /// 1-based line in the source file (for error messages and row outputs).
+    pub line: u64,
+    /// The source says a new trajectory starts here (AV-GPS date change, Run Time/Hobbs reset).
+    /// Gaps and backward time are detected by the evidence builder itself.
+    pub trajectory_break: bool,
+}
+
+/// The chronological records of one vehicle from one source.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Track {
+    pub vehicle_id: String,
+    pub records: Vec<Record>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_plausible_sample_has_no_violations() {
+        assert!(Sample::new(12.0, 32.23, -110.9, 3.2, 359.0).violations().is_empty());
+    }
+
+    #[test]
+    fn each_bad_field_is_named() {
+        let mut s = Sample::new(-1.0, f64::NAN, 181.0, 81.0, 400.0);
+        s.position_std_m = Some(-1.0);
+        let fields: Vec<_> = s.violations().iter().map(|v| v.field).collect();
+        assert_eq!(
+            fields,
+            [
+                "timestamp_s",
+                "latitude_deg",
+                "longitude_deg",
+                "speed_mps",
+                "heading_deg",
+                "position_std_m"
+            ]
+        );
+        assert!(s.violations()[1].description.contains("finite"));
+    }
+}
