@@ -5,12 +5,17 @@
 //! `../shared/docs/SPEC.md` (in the repository's sibling `shared/`) is the specification.
 
 pub mod alarm;
+pub mod artifact;
+pub mod comparator;
 pub mod cusum;
 pub mod data;
+pub mod detector;
+pub mod evaluation;
 pub mod evidence;
 pub mod geo;
 pub mod metrics;
 pub mod model;
+pub mod pipeline;
 pub mod rng;
 pub mod sample;
 pub mod scenario;

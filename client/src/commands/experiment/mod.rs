@@ -1,0 +1,50 @@
+//! `spoofwatch experiment`: the standard experiments of SPEC §9.
+
+mod avgps;
+mod parallel;
+mod subtle;
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use spoofwatch_core::sample::Track;
+
+use crate::input::load_file;
+
+#[derive(Debug, clap::Subcommand)]
+pub enum Command {
+    /// Train on Dataset-2 (chronological 70/15/15), test on Dataset-2's test part and all of
+    /// Dataset-3; CUSUM, EKF, subtle-attack training and ablations side by side.
+    AvGps(avgps::Args),
+    /// Detection delay and ADR per subtle attack type and magnitude; false alarms per hour.
+    Subtle(subtle::Args),
+}
+
+pub fn run(cmd: Command) -> Result<()> {
+    match cmd {
+        Command::AvGps(args) => avgps::run(args),
+        Command::Subtle(args) => subtle::run(args),
+    }
+}
+
+/// The two AV-GPS recordings the experiments use.
+pub struct AvGpsData {
+    pub dataset2: Vec<Track>,
+    pub dataset3: Vec<Track>,
+}
+
+/// Reads `AV-GPS-Dataset-2.csv` and `AV-GPS-Dataset-3.csv` from `dir`.
+pub fn load_avgps(dir: &Path) -> Result<AvGpsData> {
+    let file = |name: &str| -> PathBuf { dir.join(name) };
+    Ok(AvGpsData {
+        dataset2: load_file(&file("AV-GPS-Dataset-2.csv"))
+            .context("the AV-GPS data directory must hold AV-GPS-Dataset-2.csv")?,
+        dataset3: load_file(&file("AV-GPS-Dataset-3.csv"))
+            .context("the AV-GPS data directory must hold AV-GPS-Dataset-3.csv")?,
+    })
+}
+
+/// Creates the output directory.
+pub fn prepare_out(dir: &Path) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))
+}

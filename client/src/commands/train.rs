@@ -1,0 +1,192 @@
+//! `spoofwatch train`: train an HO-LLN detector offline and write its artifact.
+
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+
+use anyhow::{Context, Result};
+use clap::ValueEnum;
+use spoofwatch_core::model::{Ablation, FeatureGroups, ModelConfig};
+use spoofwatch_core::pipeline::{
+    DetectorTrainingOptions, KAPPA_RHO_GRID, SplitFractions, TrainedDetector, split_chronologically,
+    train_detector,
+};
+use spoofwatch_core::sample::Track;
+use spoofwatch_core::train::TrainConfig;
+
+use super::{ProjectionArg, RulesArg};
+use crate::input::load_tracks;
+use crate::report::metrics_table;
+
+/// Model-shaping flags shared by `train` and the experiments.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ModelFlags {
+    /// Training seed (weights, shuffling); same seed and data give a bit-identical model.
+    #[arg(long, default_value_t = 42)]
+    pub seed: u64,
+    /// Maximum number of epochs (early stopping may end sooner).
+    #[arg(long, default_value_t = 30)]
+    pub epochs: u32,
+    /// Ablation: no symmetric exchange between evidence roles.
+    #[arg(long)]
+    pub no_exchange: bool,
+    /// Ablation: no third-order joint-activation term.
+    #[arg(long)]
+    pub no_third_order: bool,
+    /// Ablation: first-order liquid cell (no evolution state v).
+    #[arg(long)]
+    pub first_order_cell: bool,
+    /// Ablation: evidence groups given to the model.
+    #[arg(long, value_enum, default_value_t)]
+    pub features: FeaturesArg,
+    /// Select (κ, ρ) on validation from a small grid (trains one model per candidate).
+    #[arg(long)]
+    pub select_kappa_rho: bool,
+    /// Local frame for GNSS displacements.
+    #[arg(long, value_enum, default_value_t)]
+    pub projection: ProjectionArg,
+}
+
+/// Evidence groups kept (SPEC §5 ablations).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, ValueEnum)]
+pub enum FeaturesArg {
+    #[default]
+    All,
+    NoAccumulation,
+    NoEvolution,
+    NoEvolutionNoQ,
+    LowOrderOnly,
+    ValidityOnly,
+}
+
+impl From<FeaturesArg> for FeatureGroups {
+    fn from(f: FeaturesArg) -> Self {
+        match f {
+            FeaturesArg::All => FeatureGroups::All,
+            FeaturesArg::NoAccumulation => FeatureGroups::NoAccumulation,
+            FeaturesArg::NoEvolution => FeatureGroups::NoEvolution,
+            FeaturesArg::NoEvolutionNoQ => FeatureGroups::NoEvolutionNoQ,
+            FeaturesArg::LowOrderOnly => FeatureGroups::LowOrderOnly,
+            FeaturesArg::ValidityOnly => FeatureGroups::ValidityOnly,
+        }
+    }
+}
+
+impl ModelFlags {
+    /// Training options these flags describe.
+    pub fn options(&self, data_description: Vec<String>) -> DetectorTrainingOptions {
+        let model = ModelConfig {
+            ablation: Ablation {
+                no_exchange: self.no_exchange,
+                no_third_order: self.no_third_order,
+                first_order_cell: self.first_order_cell,
+                features: self.features.into(),
+            },
+            ..ModelConfig::default()
+        };
+        let train = TrainConfig {
+            seed: self.seed,
+            max_epochs: self.epochs,
+            ..TrainConfig::default()
+        };
+        DetectorTrainingOptions {
+            model,
+            train,
+            projection: self.projection.into(),
+            kappa_rho: if self.select_kappa_rho {
+                KAPPA_RHO_GRID.to_vec()
+            } else {
+                vec![(0.0, 0.98)]
+            },
+            data_description,
+            ..DetectorTrainingOptions::default()
+        }
+    }
+}
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Labelled training data (AV-GPS or telemetry CSV).
+    #[arg(long, required = true, num_args = 1..)]
+    data: Vec<PathBuf>,
+    /// Labelled validation data. Without it every trajectory of --data is split chronologically
+    /// 70/15/15 into train/validation/test parts (SPEC §9) and the test part is reported.
+    #[arg(long, num_args = 1..)]
+    val: Vec<PathBuf>,
+    /// Where to write the model artifact.
+    #[arg(long)]
+    out: PathBuf,
+    #[command(flatten)]
+    model: ModelFlags,
+    /// Event rules for the reported metrics.
+    #[arg(long, value_enum, default_value_t)]
+    rules: RulesArg,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let data = load_tracks(&args.data)?;
+    let names: Vec<String> = args.data.iter().map(|p| p.display().to_string()).collect();
+    let (train, validation, test) = if args.val.is_empty() {
+        let split = split_chronologically(&data, SplitFractions::default());
+        (split.train, split.validation, split.test)
+    } else {
+        (data, load_tracks(&args.val)?, Vec::new())
+    };
+    let options = args.model.options(names);
+    let trained = train_with_progress(&train, &validation, &options)?;
+    let file = std::fs::File::create(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    trained.artifact.write(std::io::BufWriter::new(file))?;
+
+    let op = trained.artifact.operating_point;
+    let prov = &trained.artifact.provenance;
+    println!(
+        "trained {} epochs (best {}), {:.1} s; operating point theta = {:.2}, N_p = {}; wrote {}",
+        prov.epochs_run,
+        prov.best_epoch,
+        prov.train_wall_time_s,
+        op.theta,
+        op.n_p,
+        args.out.display()
+    );
+    let mut table = vec![("validation".to_string(), &trained.validation)];
+    let test_metrics;
+    if !test.is_empty() {
+        let artifact = std::sync::Arc::new(trained.artifact.clone());
+        test_metrics =
+            spoofwatch_core::evaluation::evaluate_tracks(&artifact, &test, args.rules.into())
+                .overall;
+        table.push(("test (chronological 15%)".to_string(), &test_metrics));
+    }
+    print!("{}", metrics_table(&table));
+    Ok(())
+}
+
+/// Trains with an epoch progress bar on a terminal; Ctrl-C is left to the OS (offline runs are short).
+pub fn train_with_progress(
+    train: &[Track],
+    validation: &[Track],
+    options: &DetectorTrainingOptions,
+) -> Result<TrainedDetector> {
+    let candidates = options.kappa_rho.len() as u64;
+    let bar = crate::progress::bar(u64::from(options.train.max_epochs) * candidates, "training");
+    let cancel = AtomicBool::new(false);
+    let trained = train_detector(
+        train,
+        validation,
+        options,
+        &mut |p| {
+            bar.inc(1);
+            bar.set_message(format!(
+                "epoch {} loss {:.4} val {:.4} auroc {}",
+                p.epoch,
+                p.train_loss,
+                p.val_loss,
+                p.val_auroc.map_or("-".into(), |a| format!("{a:.4}"))
+            ));
+        },
+        &cancel,
+    )
+    .context("training the detector")?;
+    bar.finish_and_clear();
+    Ok(trained)
+}

@@ -1,0 +1,144 @@
+//! The self-contained model artifact: everything needed to serve (SPEC §5), as one JSON document
+//! with a versioned schema.
+
+use std::io::{Read, Write};
+
+use serde::{Deserialize, Serialize};
+
+use crate::alarm::OperatingPoint;
+use crate::evidence::{EvidenceParams, FEATURE_NAMES, RobustScaler};
+use crate::metrics::Metrics;
+use crate::model::Model;
+
+/// Version of the artifact schema (weights layout, evidence definition, feature order).
+/// Bump it whenever an older artifact would be served differently by this code.
+pub const ARTIFACT_SCHEMA_VERSION: u32 = 1;
+
+/// A trained detector ready to serve.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ModelArtifact {
+    pub schema_version: u32,
+    /// ξ feature order the weights expect; checked on load.
+    pub feature_names: Vec<String>,
+    pub model: Model,
+    pub evidence: EvidenceParams,
+    pub scaler: RobustScaler,
+    pub operating_point: OperatingPoint,
+    pub provenance: Provenance,
+}
+
+/// How an artifact was made.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Provenance {
+    /// Tool and version that trained it, e.g. `spoofwatch 0.1.0`.
+    pub created_by: String,
+    /// Free-form description of the training data (file names, splits, injected scenarios).
+    pub training_data: Vec<String>,
+    pub seed: u64,
+    pub training_rows: u64,
+    pub epochs_run: u32,
+    pub best_epoch: u32,
+    pub train_wall_time_s: f64,
+    /// Metrics on the validation data at the chosen operating point.
+    pub validation_metrics: Option<Metrics>,
+    pub notes: String,
+}
+
+/// Why an artifact cannot be loaded or saved.
+#[derive(Debug, thiserror::Error)]
+pub enum ArtifactError {
+    #[error("reading the model artifact: {0}")]
+    Io(#[from] std::io::Error),
+    #[error("the model artifact is not valid JSON: {0}")]
+    Json(#[from] serde_json::Error),
+    #[error("the model artifact has no schema_version field; is this a Spoofwatch model?")]
+    MissingSchemaVersion,
+    #[error(
+        "model artifact schema version {found} is not supported (this build reads version {supported}){hint}"
+    )]
+    UnsupportedSchema {
+        found: u64,
+        supported: u32,
+        hint: &'static str,
+    },
+    #[error("the model artifact's feature order {found:?} differs from this build's {expected:?}")]
+    FeatureMismatch {
+        found: Vec<String>,
+        expected: Vec<String>,
+    },
+    #[error("the model artifact is inconsistent: {0}")]
+    Invalid(String),
+}
+
+impl ModelArtifact {
+    /// The feature order of this build, as stored in artifacts.
+    pub fn current_feature_names() -> Vec<String> {
+        FEATURE_NAMES.iter().map(|s| s.to_string()).collect()
+    }
+
+    /// Reads and validates an artifact. The schema version is checked before anything else, so a
+    /// newer artifact gets a clear message instead of a field-level parse error.
+    pub fn read<R: Read>(reader: R) -> Result<Self, ArtifactError> {
+        let value: serde_json::Value = serde_json::from_reader(reader)?;
+        let found = value
+            .get("schema_version")
+            .and_then(serde_json::Value::as_u64)
+            .ok_or(ArtifactError::MissingSchemaVersion)?;
+        if found != u64::from(ARTIFACT_SCHEMA_VERSION) {
+            let hint = if found > u64::from(ARTIFACT_SCHEMA_VERSION) {
+                "; it was written by a newer Spoofwatch: upgrade to load it"
+            } else {
+                "; retrain the model with this version"
+            };
+            return Err(ArtifactError::UnsupportedSchema {
+                found,
+                supported: ARTIFACT_SCHEMA_VERSION,
+                hint,
+            });
+        }
+        let artifact: ModelArtifact = serde_json::from_value(value)?;
+        artifact.validate()?;
+        Ok(artifact)
+    }
+
+    /// Parses an artifact from bytes (e.g. a database blob).
+    pub fn from_slice(bytes: &[u8]) -> Result<Self, ArtifactError> {
+        Self::read(bytes)
+    }
+
+    /// Writes the artifact as pretty JSON.
+    pub fn write<W: Write>(&self, writer: W) -> Result<(), ArtifactError> {
+        self.validate()?;
+        serde_json::to_writer_pretty(writer, self)?;
+        Ok(())
+    }
+
+    /// The artifact as JSON bytes.
+    pub fn to_vec(&self) -> Result<Vec<u8>, ArtifactError> {
+        let mut out = Vec::new();
+        self.write(&mut out)?;
+        Ok(out)
+    }
+
+    /// Checks the parts fit together: feature order, weights against the configuration, operating point.
+    pub fn validate(&self) -> Result<(), ArtifactError> {
+        let expected = Self::current_feature_names();
+        if self.feature_names != expected {
+            return Err(ArtifactError::FeatureMismatch {
+                found: self.feature_names.clone(),
+                expected,
+            });
+        }
+        self.model
+            .validate()
+            .map_err(|e| ArtifactError::Invalid(e.to_string()))?;
+        let op = self.operating_point;
+        if !(op.theta > 0.0 && op.theta < 1.0) || op.n_p == 0 {
+            return Err(ArtifactError::Invalid(format!(
+                "operating point theta={} n_p={} (need 0 < theta < 1 and n_p >= 1)",
+                op.theta, op.n_p
+            )));
+        }
+        Ok(())
+    }
+}

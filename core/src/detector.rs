@@ -1,0 +1,102 @@
+//! The streaming per-vehicle detector: evidence → scaled ξ → HO-LLN step → persistence alarm.
+//! The offline whole-trajectory pass (`run_records`) is this same step in a loop.
+
+use std::sync::Arc;
+
+use crate::alarm::PersistenceAlarm;
+use crate::artifact::ModelArtifact;
+use crate::evidence::{Evidence, EvidenceBuilder, Features};
+use crate::model::{LiquidState, StepScratch};
+use crate::sample::{Record, Sample};
+
+/// The detector's verdict on one sample.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Decision {
+    pub evidence: Evidence,
+    /// Scaled ξ_t fed to the model.
+    pub features: Features,
+    /// Spoofing probability p̂_t.
+    pub probability: f64,
+    /// c_t = 1[p̂_t ≥ θ].
+    pub positive: bool,
+    /// Persistence-confirmed alarm c̄_t.
+    pub alarm: bool,
+    /// The confirmed alarm started at this sample (0 → 1).
+    pub alarm_onset: bool,
+    /// The confirmed alarm ended at this sample (1 → 0).
+    pub alarm_end: bool,
+}
+
+/// Per-vehicle detector state over a shared, immutable model.
+#[derive(Clone, Debug)]
+pub struct Detector {
+    artifact: Arc<ModelArtifact>,
+    evidence: EvidenceBuilder,
+    state: LiquidState,
+    scratch: StepScratch,
+    alarm: PersistenceAlarm,
+    alarm_on: bool,
+}
+
+impl Detector {
+    pub fn new(artifact: Arc<ModelArtifact>) -> Self {
+        Self {
+            evidence: EvidenceBuilder::new(artifact.evidence.clone()),
+            state: LiquidState::zeros(&artifact.model.config),
+            scratch: StepScratch::new(&artifact.model.config),
+            alarm: PersistenceAlarm::new(artifact.operating_point.n_p),
+            alarm_on: false,
+            artifact,
+        }
+    }
+
+    /// The model this detector serves.
+    pub fn artifact(&self) -> &Arc<ModelArtifact> {
+        &self.artifact
+    }
+
+    /// Forgets all history: the next sample starts a new trajectory.
+    pub fn reset(&mut self) {
+        *self = Self::new(Arc::clone(&self.artifact));
+    }
+
+    /// Advances by one sample. `trajectory_break` forces a new trajectory (recorded sources only).
+    pub fn step(&mut self, sample: &Sample, trajectory_break: bool) -> Decision {
+        let evidence = self.evidence.push(sample, trajectory_break);
+        if evidence.trajectory_start {
+            // State resets once per trajectory (SPEC §1).
+            self.state = LiquidState::zeros(&self.artifact.model.config);
+        }
+        let features = self.artifact.scaler.transform(&evidence);
+        let probability = self.artifact.model.step(
+            &mut self.state,
+            &features,
+            evidence.delta_t,
+            &mut self.scratch,
+        );
+        let positive = probability >= self.artifact.operating_point.theta;
+        let alarm = self
+            .alarm
+            .update(positive, evidence.valid, evidence.trajectory_start);
+        let decision = Decision {
+            evidence,
+            features,
+            probability,
+            positive,
+            alarm,
+            alarm_onset: alarm && !self.alarm_on,
+            alarm_end: !alarm && self.alarm_on,
+        };
+        self.alarm_on = alarm;
+        decision
+    }
+}
+
+/// Runs a fresh detector over recorded rows (one vehicle), honouring the rows' trajectory breaks.
+pub fn run_records(artifact: &Arc<ModelArtifact>, records: &[Record]) -> Vec<Decision> {
+    let mut detector = Detector::new(Arc::clone(artifact));
+    records
+        .iter()
+        .map(|r| detector.step(&r.sample, r.trajectory_break))
+        .collect()
+}

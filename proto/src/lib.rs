@@ -1,0 +1,24 @@
+//! Generated gRPC types and services of the Spoofwatch API. Modules mirror the proto packages
+//! because generated code refers across them with relative paths.
+
+#![allow(clippy::all, missing_docs, rust_2018_idioms)]
+
+pub mod spoofwatch {
+    /// `spoofwatch.v1`: detection, models, datasets, training.
+    pub mod v1 {
+        tonic::include_proto!("spoofwatch.v1");
+    }
+}
+
+pub mod google {
+    /// `google.longrunning`: the Operations service used for jobs.
+    pub mod longrunning {
+        tonic::include_proto!("google.longrunning");
+    }
+}
+
+pub use google::longrunning;
+pub use spoofwatch::v1;
+
+/// Encoded `FileDescriptorSet` of every file above, for server reflection.
+pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("spoofwatch_descriptor");
