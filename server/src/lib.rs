@@ -1,0 +1,3 @@
+//! Spoofwatch gRPC service over `spoofwatch-core`. For now: the SQLite storage layer.
+
+pub mod store;

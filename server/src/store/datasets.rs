@@ -1,0 +1,211 @@
+//! Uploaded or imported datasets: summary rows and content blobs.
+
+use super::error::is_unique_violation;
+use super::paging::PagePlan;
+use super::{Page, PageRequest, Store, StoreError, now_unix_ms};
+
+/// A dataset to store; `size_bytes` is taken from the content.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct NewDataset {
+    /// Caller-chosen unique id.
+    pub id: String,
+    /// Human-readable name.
+    pub display_name: String,
+    /// Where it came from (e.g. "upload", "avgps-import"); free text chosen by the caller.
+    pub source: String,
+    /// Content format (e.g. "telemetry-csv"); free text chosen by the caller.
+    pub format: String,
+    /// Number of samples.
+    pub rows: i64,
+    /// Number of distinct vehicles.
+    pub vehicles: i64,
+    /// Samples carrying a spoofing label.
+    pub labelled_rows: i64,
+    /// Labelled samples marked spoofed.
+    pub spoofed_rows: i64,
+    /// Hex SHA-256 of `content`, computed by the caller.
+    pub sha256: String,
+    /// The dataset bytes.
+    pub content: Vec<u8>,
+}
+
+/// A stored dataset without its content.
+#[derive(Debug, Clone, PartialEq, Eq, sqlx::FromRow)]
+pub struct DatasetRow {
+    /// Unique id.
+    pub id: String,
+    /// Human-readable name.
+    pub display_name: String,
+    /// Where it came from.
+    pub source: String,
+    /// Content format.
+    pub format: String,
+    /// Number of samples.
+    pub rows: i64,
+    /// Number of distinct vehicles.
+    pub vehicles: i64,
+    /// Samples carrying a spoofing label.
+    pub labelled_rows: i64,
+    /// Labelled samples marked spoofed.
+    pub spoofed_rows: i64,
+    /// Content length in bytes.
+    pub size_bytes: i64,
+    /// Hex SHA-256 of the content.
+    pub sha256: String,
+    /// Creation time, unix epoch milliseconds.
+    #[sqlx(rename = "created_at")]
+    pub created_at_ms: i64,
+}
+
+/// Listing name inside page tokens.
+const LISTING: &str = "datasets";
+
+impl Store {
+    /// Stores a dataset and its content atomically.
+    ///
+    /// Fails with [`StoreError::AlreadyExists`] if the id is taken and [`StoreError::InvalidValue`] for
+    /// a negative count.
+    pub async fn insert_dataset(&self, dataset: NewDataset) -> Result<DatasetRow, StoreError> {
+        self.insert_dataset_at(dataset, now_unix_ms()).await
+    }
+
+    /// [`Store::insert_dataset`] with an explicit creation time (tests pin ordering with it).
+    pub(crate) async fn insert_dataset_at(
+        &self,
+        dataset: NewDataset,
+        created_at_ms: i64,
+    ) -> Result<DatasetRow, StoreError> {
+        validate_counts(&dataset)?;
+        let size_bytes =
+            i64::try_from(dataset.content.len()).map_err(|_| StoreError::InvalidValue {
+                field: "content",
+                reason: "larger than i64::MAX bytes".to_owned(),
+            })?;
+        let mut tx = self.begin_write().await?;
+        let inserted = sqlx::query(
+            "INSERT INTO datasets (id, display_name, source, format, rows, vehicles, \
+             labelled_rows, spoofed_rows, size_bytes, sha256, created_at) \
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)",
+        )
+        .bind(&dataset.id)
+        .bind(&dataset.display_name)
+        .bind(&dataset.source)
+        .bind(&dataset.format)
+        .bind(dataset.rows)
+        .bind(dataset.vehicles)
+        .bind(dataset.labelled_rows)
+        .bind(dataset.spoofed_rows)
+        .bind(size_bytes)
+        .bind(&dataset.sha256)
+        .bind(created_at_ms)
+        .execute(&mut *tx)
+        .await;
+        if let Err(error) = inserted {
+            return Err(if is_unique_violation(&error) {
+                StoreError::AlreadyExists {
+                    kind: "dataset",
+                    id: dataset.id,
+                }
+            } else {
+                error.into()
+            });
+        }
+        sqlx::query("INSERT INTO dataset_contents (dataset_id, content) VALUES (?1, ?2)")
+            .bind(&dataset.id)
+            .bind(&dataset.content)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(DatasetRow {
+            id: dataset.id,
+            display_name: dataset.display_name,
+            source: dataset.source,
+            format: dataset.format,
+            rows: dataset.rows,
+            vehicles: dataset.vehicles,
+            labelled_rows: dataset.labelled_rows,
+            spoofed_rows: dataset.spoofed_rows,
+            size_bytes,
+            sha256: dataset.sha256,
+            created_at_ms,
+        })
+    }
+
+    /// The dataset with this id, without its content.
+    pub async fn get_dataset(&self, id: &str) -> Result<Option<DatasetRow>, StoreError> {
+        Ok(sqlx::query_as::<_, DatasetRow>(
+            "SELECT id, display_name, source, format, rows, vehicles, labelled_rows, \
+             spoofed_rows, size_bytes, sha256, created_at FROM datasets WHERE id = ?1",
+        )
+        .bind(id)
+        .fetch_optional(&self.pool)
+        .await?)
+    }
+
+    /// One page of datasets, newest first.
+    ///
+    /// Fails with [`StoreError::InvalidPageToken`] for a token not issued by this listing.
+    pub async fn list_datasets(
+        &self,
+        request: &PageRequest,
+    ) -> Result<Page<DatasetRow>, StoreError> {
+        let plan = PagePlan::new(LISTING, request)?;
+        let rows = sqlx::query_as::<_, DatasetRow>(
+            "SELECT id, display_name, source, format, rows, vehicles, labelled_rows, \
+             spoofed_rows, size_bytes, sha256, created_at FROM datasets \
+             WHERE ?1 IS NULL OR (created_at, id) < (?1, ?2) \
+             ORDER BY created_at DESC, id DESC LIMIT ?3",
+        )
+        .bind(plan.after_created_at())
+        .bind(plan.after_id())
+        .bind(plan.fetch_limit())
+        .fetch_all(&self.pool)
+        .await?;
+        Ok(plan.finish(LISTING, rows, |row| (row.created_at_ms, row.id.as_str())))
+    }
+
+    /// The dataset bytes, or `None` if no dataset has this id.
+    pub async fn dataset_content(&self, id: &str) -> Result<Option<Vec<u8>>, StoreError> {
+        Ok(sqlx::query_scalar::<_, Vec<u8>>(
+            "SELECT content FROM dataset_contents WHERE dataset_id = ?1",
+        )
+        .bind(id)
+        .fetch_optional(&self.pool)
+        .await?)
+    }
+
+    /// Deletes a dataset and its content; [`StoreError::NotFound`] for an unknown id.
+    pub async fn delete_dataset(&self, id: &str) -> Result<(), StoreError> {
+        // One statement (the content goes by ON DELETE CASCADE), so no explicit transaction.
+        let deleted = sqlx::query("DELETE FROM datasets WHERE id = ?1")
+            .bind(id)
+            .execute(&self.pool)
+            .await?;
+        if deleted.rows_affected() == 0 {
+            return Err(StoreError::NotFound {
+                kind: "dataset",
+                id: id.to_owned(),
+            });
+        }
+        Ok(())
+    }
+}
+
+/// Counts must be non-negative; checked here so the caller gets a precise error, not a CHECK failure.
+fn validate_counts(dataset: &NewDataset) -> Result<(), StoreError> {
+    let counts = [
+        ("rows", dataset.rows),
+        ("vehicles", dataset.vehicles),
+        ("labelled_rows", dataset.labelled_rows),
+        ("spoofed_rows", dataset.spoofed_rows),
+    ];
+    for (field, value) in counts {
+        if value < 0 {
+            return Err(StoreError::InvalidValue {
+                field,
+                reason: format!("must not be negative, got {value}"),
+            });
+        }
+    }
+    Ok(())
+}

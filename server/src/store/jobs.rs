@@ -1,0 +1,469 @@
+//! Training and evaluation jobs: their state machine, per-epoch history and final results.
+//!
+//! States: `queued → running → {succeeded, failed, cancelled}`, and `queued → {failed, cancelled}`.
+//! Finished states are terminal. Cancellation is cooperative: [`Store::request_cancel`] only raises a
+//! flag; the job's runner sees it and finishes the job as [`JobOutcome::Cancelled`].
+
+use serde_json::Value;
+use sqlx::types::Json;
+
+use super::error::{is_unique_violation, require_finite};
+use super::paging::PagePlan;
+use super::{ABORTED_CODE, CANCELLED_CODE, Page, PageRequest, Store, StoreError, now_unix_ms};
+
+/// What a job does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, sqlx::Type)]
+#[sqlx(rename_all = "lowercase")]
+pub enum JobKind {
+    /// Trains a new model.
+    Training,
+    /// Evaluates a model on a dataset.
+    Evaluation,
+}
+
+/// Where a job is in its life.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, sqlx::Type)]
+#[sqlx(rename_all = "lowercase")]
+pub enum JobState {
+    /// Waiting for a worker.
+    Queued,
+    /// A worker is running it.
+    Running,
+    /// Finished with a result.
+    Succeeded,
+    /// Finished with an error.
+    Failed,
+    /// Finished because cancellation was requested.
+    Cancelled,
+}
+
+impl JobState {
+    /// Whether the state is terminal (succeeded, failed or cancelled).
+    pub fn is_finished(self) -> bool {
+        matches!(
+            self,
+            JobState::Succeeded | JobState::Failed | JobState::Cancelled
+        )
+    }
+
+    /// The lowercase name stored in the database.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobState::Queued => "queued",
+            JobState::Running => "running",
+            JobState::Succeeded => "succeeded",
+            JobState::Failed => "failed",
+            JobState::Cancelled => "cancelled",
+        }
+    }
+}
+
+/// A job to enqueue; it starts `queued`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NewJob {
+    /// Caller-chosen unique id (e.g. the operation name's suffix).
+    pub id: String,
+    /// What the job does.
+    pub kind: JobKind,
+    /// The request that created it, as the caller chooses to record it.
+    pub request: Value,
+    /// Initial progress metadata.
+    pub metadata: Value,
+}
+
+/// How a job ended.
+#[derive(Debug, Clone, PartialEq)]
+pub enum JobOutcome {
+    /// Finished with a result (e.g. the trained model id and metrics).
+    Succeeded {
+        /// The result to record.
+        result: Value,
+    },
+    /// Finished with an error.
+    Failed {
+        /// gRPC status code.
+        code: i32,
+        /// Human-readable reason.
+        message: String,
+    },
+    /// Stopped on request; recorded with code CANCELLED (1).
+    Cancelled {
+        /// Human-readable reason.
+        message: String,
+    },
+}
+
+/// A stored job.
+#[derive(Debug, Clone, PartialEq, sqlx::FromRow)]
+pub struct JobRow {
+    /// Unique id.
+    pub id: String,
+    /// What the job does.
+    pub kind: JobKind,
+    /// Where the job is in its life.
+    pub state: JobState,
+    /// The request that created it.
+    #[sqlx(json, rename = "request_json")]
+    pub request: Value,
+    /// Latest progress metadata.
+    #[sqlx(json, rename = "metadata_json")]
+    pub metadata: Value,
+    /// The result, once succeeded.
+    #[sqlx(json(nullable), rename = "result_json")]
+    pub result: Option<Value>,
+    /// gRPC status code, once failed or cancelled.
+    pub error_code: Option<i32>,
+    /// Reason, once failed or cancelled.
+    pub error_message: Option<String>,
+    /// Enqueue time, unix epoch milliseconds.
+    #[sqlx(rename = "created_at")]
+    pub created_at_ms: i64,
+    /// When a worker started it, unix epoch milliseconds.
+    #[sqlx(rename = "started_at")]
+    pub started_at_ms: Option<i64>,
+    /// When it finished, unix epoch milliseconds.
+    #[sqlx(rename = "finished_at")]
+    pub finished_at_ms: Option<i64>,
+    /// Whether cancellation has been requested.
+    pub cancel_requested: bool,
+}
+
+/// One epoch of a training job's history.
+#[derive(Debug, Clone, PartialEq, sqlx::FromRow)]
+pub struct EpochRow {
+    /// Epoch number (unique per job).
+    pub epoch: u32,
+    /// Mean training loss.
+    pub train_loss: f64,
+    /// Validation loss.
+    pub val_loss: f64,
+    /// Validation AUROC, when the validation split had both classes.
+    pub val_auroc: Option<f64>,
+    /// Learning rate used in the epoch.
+    pub learning_rate: f64,
+    /// Seconds since the job started.
+    pub elapsed_s: f64,
+}
+
+/// Which jobs [`Store::list_jobs`] returns; `None` fields do not filter.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct JobFilter {
+    /// Only jobs of this kind.
+    pub kind: Option<JobKind>,
+    /// Only finished (`true`) or only queued/running (`false`) jobs.
+    pub done: Option<bool>,
+}
+
+/// Listing name inside page tokens.
+const LISTING: &str = "jobs";
+
+const JOB_COLUMNS_BY_ID: &str = "SELECT id, kind, state, request_json, metadata_json, result_json, \
+     error_code, error_message, created_at, started_at, finished_at, cancel_requested \
+     FROM jobs WHERE id = ?1";
+
+impl Store {
+    /// Enqueues a job in state `queued`; [`StoreError::AlreadyExists`] if the id is taken.
+    pub async fn insert_job(&self, job: NewJob) -> Result<JobRow, StoreError> {
+        self.insert_job_at(job, now_unix_ms()).await
+    }
+
+    /// [`Store::insert_job`] with an explicit creation time (tests pin ordering with it).
+    pub(crate) async fn insert_job_at(
+        &self,
+        job: NewJob,
+        created_at_ms: i64,
+    ) -> Result<JobRow, StoreError> {
+        let inserted = sqlx::query(
+            "INSERT INTO jobs (id, kind, state, request_json, metadata_json, created_at, \
+             cancel_requested) VALUES (?1, ?2, 'queued', ?3, ?4, ?5, 0)",
+        )
+        .bind(&job.id)
+        .bind(job.kind)
+        .bind(Json(&job.request))
+        .bind(Json(&job.metadata))
+        .bind(created_at_ms)
+        .execute(&self.pool)
+        .await;
+        match inserted {
+            Ok(_) => Ok(JobRow {
+                id: job.id,
+                kind: job.kind,
+                state: JobState::Queued,
+                request: job.request,
+                metadata: job.metadata,
+                result: None,
+                error_code: None,
+                error_message: None,
+                created_at_ms,
+                started_at_ms: None,
+                finished_at_ms: None,
+                cancel_requested: false,
+            }),
+            Err(error) if is_unique_violation(&error) => Err(StoreError::AlreadyExists {
+                kind: "job",
+                id: job.id,
+            }),
+            Err(error) => Err(error.into()),
+        }
+    }
+
+    /// The job with this id.
+    pub async fn get_job(&self, id: &str) -> Result<Option<JobRow>, StoreError> {
+        Ok(sqlx::query_as::<_, JobRow>(JOB_COLUMNS_BY_ID)
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?)
+    }
+
+    /// The job's epoch history in epoch order (empty for an unknown job or one without epochs).
+    pub async fn job_epochs(&self, id: &str) -> Result<Vec<EpochRow>, StoreError> {
+        Ok(sqlx::query_as::<_, EpochRow>(
+            "SELECT epoch, train_loss, val_loss, val_auroc, learning_rate, elapsed_s \
+             FROM job_epochs WHERE job_id = ?1 ORDER BY epoch",
+        )
+        .bind(id)
+        .fetch_all(&self.pool)
+        .await?)
+    }
+
+    /// One page of jobs matching `filter`, newest first.
+    ///
+    /// Fails with [`StoreError::InvalidPageToken`] for a token not issued by this listing.
+    pub async fn list_jobs(
+        &self,
+        filter: &JobFilter,
+        request: &PageRequest,
+    ) -> Result<Page<JobRow>, StoreError> {
+        let plan = PagePlan::new(LISTING, request)?;
+        let rows = sqlx::query_as::<_, JobRow>(
+            "SELECT id, kind, state, request_json, metadata_json, result_json, error_code, \
+             error_message, created_at, started_at, finished_at, cancel_requested FROM jobs \
+             WHERE (?1 IS NULL OR kind = ?1) \
+             AND (?2 IS NULL OR (state IN ('succeeded', 'failed', 'cancelled')) = ?2) \
+             AND (?3 IS NULL OR (created_at, id) < (?3, ?4)) \
+             ORDER BY created_at DESC, id DESC LIMIT ?5",
+        )
+        .bind(filter.kind)
+        .bind(filter.done)
+        .bind(plan.after_created_at())
+        .bind(plan.after_id())
+        .bind(plan.fetch_limit())
+        .fetch_all(&self.pool)
+        .await?;
+        Ok(plan.finish(LISTING, rows, |row| (row.created_at_ms, row.id.as_str())))
+    }
+
+    /// Moves a queued job to `running` and records its start time.
+    ///
+    /// [`StoreError::NotFound`] for an unknown id, [`StoreError::InvalidState`] unless it is queued.
+    pub async fn mark_running(&self, id: &str) -> Result<JobRow, StoreError> {
+        let mut tx = self.begin_write().await?;
+        let state = job_state(&mut tx, id).await?;
+        if state != JobState::Queued {
+            return Err(invalid_state(id, "mark running", state));
+        }
+        sqlx::query("UPDATE jobs SET state = 'running', started_at = ?2 WHERE id = ?1")
+            .bind(id)
+            .bind(now_unix_ms())
+            .execute(&mut *tx)
+            .await?;
+        let row = fetch_job(&mut tx, id).await?;
+        tx.commit().await?;
+        Ok(row)
+    }
+
+    /// Records one epoch of a running job.
+    ///
+    /// [`StoreError::NotFound`] for an unknown job, [`StoreError::InvalidState`] unless it is running,
+    /// [`StoreError::AlreadyExists`] if this epoch was recorded, [`StoreError::InvalidValue`] for a
+    /// non-finite number.
+    pub async fn append_epoch(&self, id: &str, epoch: &EpochRow) -> Result<(), StoreError> {
+        validate_epoch(epoch)?;
+        let mut tx = self.begin_write().await?;
+        let state = job_state(&mut tx, id).await?;
+        if state != JobState::Running {
+            return Err(invalid_state(id, "append an epoch to", state));
+        }
+        let inserted = sqlx::query(
+            "INSERT INTO job_epochs (job_id, epoch, train_loss, val_loss, val_auroc, \
+             learning_rate, elapsed_s) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
+        )
+        .bind(id)
+        .bind(epoch.epoch)
+        .bind(epoch.train_loss)
+        .bind(epoch.val_loss)
+        .bind(epoch.val_auroc)
+        .bind(epoch.learning_rate)
+        .bind(epoch.elapsed_s)
+        .execute(&mut *tx)
+        .await;
+        match inserted {
+            Ok(_) => {}
+            Err(error) if is_unique_violation(&error) => {
+                return Err(StoreError::AlreadyExists {
+                    kind: "epoch",
+                    id: format!("{id}/{}", epoch.epoch),
+                });
+            }
+            Err(error) => return Err(error.into()),
+        }
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// Replaces the job's progress metadata (any state); [`StoreError::NotFound`] for an unknown id.
+    pub async fn update_job_metadata(&self, id: &str, metadata: &Value) -> Result<(), StoreError> {
+        let updated = sqlx::query("UPDATE jobs SET metadata_json = ?2 WHERE id = ?1")
+            .bind(id)
+            .bind(Json(metadata))
+            .execute(&self.pool)
+            .await?;
+        if updated.rows_affected() == 0 {
+            return Err(job_not_found(id));
+        }
+        Ok(())
+    }
+
+    /// Finishes a queued or running job with `outcome` and records the finish time.
+    ///
+    /// [`StoreError::NotFound`] for an unknown id, [`StoreError::InvalidState`] if already finished.
+    pub async fn finish_job(&self, id: &str, outcome: JobOutcome) -> Result<JobRow, StoreError> {
+        let (state, result, code, message) = match outcome {
+            JobOutcome::Succeeded { result } => (JobState::Succeeded, Some(result), None, None),
+            JobOutcome::Failed { code, message } => {
+                (JobState::Failed, None, Some(code), Some(message))
+            }
+            JobOutcome::Cancelled { message } => (
+                JobState::Cancelled,
+                None,
+                Some(CANCELLED_CODE),
+                Some(message),
+            ),
+        };
+        let mut tx = self.begin_write().await?;
+        let current = job_state(&mut tx, id).await?;
+        if current.is_finished() {
+            return Err(invalid_state(id, "finish", current));
+        }
+        sqlx::query(
+            "UPDATE jobs SET state = ?2, result_json = ?3, error_code = ?4, error_message = ?5, \
+             finished_at = ?6 WHERE id = ?1",
+        )
+        .bind(id)
+        .bind(state)
+        .bind(result.as_ref().map(Json))
+        .bind(code)
+        .bind(message)
+        .bind(now_unix_ms())
+        .execute(&mut *tx)
+        .await?;
+        let row = fetch_job(&mut tx, id).await?;
+        tx.commit().await?;
+        Ok(row)
+    }
+
+    /// Flags a queued or running job for cancellation (idempotent); its runner finishes it.
+    ///
+    /// [`StoreError::NotFound`] for an unknown id, [`StoreError::InvalidState`] if already finished.
+    pub async fn request_cancel(&self, id: &str) -> Result<JobRow, StoreError> {
+        let mut tx = self.begin_write().await?;
+        let state = job_state(&mut tx, id).await?;
+        if state.is_finished() {
+            return Err(invalid_state(id, "cancel", state));
+        }
+        sqlx::query("UPDATE jobs SET cancel_requested = 1 WHERE id = ?1")
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
+        let row = fetch_job(&mut tx, id).await?;
+        tx.commit().await?;
+        Ok(row)
+    }
+
+    /// Deletes a finished job and its epochs.
+    ///
+    /// [`StoreError::NotFound`] for an unknown id, [`StoreError::JobNotFinished`] if queued or running.
+    pub async fn delete_job(&self, id: &str) -> Result<(), StoreError> {
+        let mut tx = self.begin_write().await?;
+        let state = job_state(&mut tx, id).await?;
+        if !state.is_finished() {
+            return Err(StoreError::JobNotFinished {
+                id: id.to_owned(),
+                state: state.as_str(),
+            });
+        }
+        sqlx::query("DELETE FROM jobs WHERE id = ?1")
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// Startup recovery: every queued or running job becomes `failed` with code ABORTED (10) and
+    /// `reason`, since no worker survives a restart. Returns how many jobs were failed.
+    pub async fn fail_interrupted_jobs(&self, reason: &str) -> Result<u64, StoreError> {
+        let updated = sqlx::query(
+            "UPDATE jobs SET state = 'failed', error_code = ?1, error_message = ?2, finished_at = ?3 \
+             WHERE state IN ('queued', 'running')",
+        )
+        .bind(ABORTED_CODE)
+        .bind(reason)
+        .bind(now_unix_ms())
+        .execute(&self.pool)
+        .await?;
+        Ok(updated.rows_affected())
+    }
+}
+
+/// The job's current state inside a write transaction; [`StoreError::NotFound`] if absent.
+async fn job_state(
+    tx: &mut sqlx::Transaction<'static, sqlx::Sqlite>,
+    id: &str,
+) -> Result<JobState, StoreError> {
+    sqlx::query_scalar::<_, JobState>("SELECT state FROM jobs WHERE id = ?1")
+        .bind(id)
+        .fetch_optional(&mut **tx)
+        .await?
+        .ok_or_else(|| job_not_found(id))
+}
+
+/// The full job row inside a transaction; [`StoreError::NotFound`] if absent.
+async fn fetch_job(
+    tx: &mut sqlx::Transaction<'static, sqlx::Sqlite>,
+    id: &str,
+) -> Result<JobRow, StoreError> {
+    sqlx::query_as::<_, JobRow>(JOB_COLUMNS_BY_ID)
+        .bind(id)
+        .fetch_optional(&mut **tx)
+        .await?
+        .ok_or_else(|| job_not_found(id))
+}
+
+fn job_not_found(id: &str) -> StoreError {
+    StoreError::NotFound {
+        kind: "job",
+        id: id.to_owned(),
+    }
+}
+
+fn invalid_state(id: &str, action: &'static str, state: JobState) -> StoreError {
+    StoreError::InvalidState {
+        kind: "job",
+        id: id.to_owned(),
+        action,
+        state: state.as_str(),
+    }
+}
+
+/// SQLite stores NaN as NULL; reject non-finite numbers with a precise error instead.
+fn validate_epoch(epoch: &EpochRow) -> Result<(), StoreError> {
+    require_finite("train_loss", epoch.train_loss)?;
+    require_finite("val_loss", epoch.val_loss)?;
+    if let Some(auroc) = epoch.val_auroc {
+        require_finite("val_auroc", auroc)?;
+    }
+    require_finite("learning_rate", epoch.learning_rate)?;
+    require_finite("elapsed_s", epoch.elapsed_s)?;
+    Ok(())
+}

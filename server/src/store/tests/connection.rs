@@ -1,0 +1,203 @@
+//! Opening, pragmas, persistence across reopen, and concurrent writers.
+
+use serde_json::json;
+
+use super::{count_rows, db_path, new_dataset, new_job, new_model, temp_store};
+use crate::store::{EpochRow, JobKind, JobOutcome, JobState, PageRequest, Store, StoreError};
+
+#[tokio::test]
+async fn open_creates_the_file_and_applies_the_pragmas() {
+    let (dir, store) = temp_store().await;
+    assert!(dir.path().join("spoofwatch.db").is_file());
+    let journal_mode = sqlx::query_scalar::<_, String>("PRAGMA journal_mode")
+        .fetch_one(&store.pool)
+        .await
+        .unwrap();
+    assert_eq!(journal_mode, "wal");
+    let foreign_keys = sqlx::query_scalar::<_, i64>("PRAGMA foreign_keys")
+        .fetch_one(&store.pool)
+        .await
+        .unwrap();
+    assert_eq!(foreign_keys, 1);
+    // 1 = NORMAL (0 OFF, 2 FULL, 3 EXTRA).
+    let synchronous = sqlx::query_scalar::<_, i64>("PRAGMA synchronous")
+        .fetch_one(&store.pool)
+        .await
+        .unwrap();
+    assert_eq!(synchronous, 1);
+    let busy_timeout_ms = sqlx::query_scalar::<_, i64>("PRAGMA busy_timeout")
+        .fetch_one(&store.pool)
+        .await
+        .unwrap();
+    assert_eq!(busy_timeout_ms, 5_000);
+    assert_eq!(store.model_count().await.unwrap(), 0);
+}
+
+#[tokio::test]
+async fn open_accepts_urls_bare_paths_and_memory() {
+    let dir = tempfile::tempdir().unwrap();
+    let bare = dir.path().join("bare.db").to_string_lossy().into_owned();
+    let url = format!("sqlite://{}", dir.path().join("url.db").to_string_lossy());
+    let short_url = format!("sqlite:{}", dir.path().join("short.db").to_string_lossy());
+    for target in [
+        bare.as_str(),
+        url.as_str(),
+        short_url.as_str(),
+        "sqlite::memory:",
+    ] {
+        let store = Store::open(target).await.unwrap();
+        store.insert_model(new_model("m1")).await.unwrap();
+        assert_eq!(store.model_count().await.unwrap(), 1, "{target}");
+        store.close().await;
+    }
+    for file in ["bare.db", "url.db", "short.db"] {
+        assert!(dir.path().join(file).is_file(), "{file} created");
+    }
+}
+
+#[tokio::test]
+async fn memory_databases_are_private_to_their_store() {
+    let first = Store::open("sqlite::memory:").await.unwrap();
+    let second = Store::open("sqlite::memory:").await.unwrap();
+    first.insert_model(new_model("m1")).await.unwrap();
+    assert_eq!(second.model_count().await.unwrap(), 0);
+}
+
+#[tokio::test]
+async fn opening_an_unusable_path_is_a_database_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let inside_missing_dir = dir.path().join("no-such-dir").join("db.sqlite");
+    let error = Store::open(&inside_missing_dir.to_string_lossy())
+        .await
+        .unwrap_err();
+    assert!(matches!(error, StoreError::Database(_)), "{error:?}");
+}
+
+#[tokio::test]
+async fn a_closed_store_fails_with_a_database_error() {
+    let (_dir, store) = temp_store().await;
+    store.close().await;
+    let error = store.model_count().await.unwrap_err();
+    assert!(matches!(error, StoreError::Database(_)), "{error:?}");
+    assert_eq!(error.to_string(), "database error");
+}
+
+#[tokio::test]
+async fn reopening_the_same_file_keeps_everything() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = db_path(&dir);
+    let alarm_id;
+    {
+        let store = Store::open(&path).await.unwrap();
+        store.insert_model(new_model("m1")).await.unwrap();
+        store.insert_model(new_model("m2")).await.unwrap();
+        store.set_active_model("m2").await.unwrap();
+        store.insert_dataset(new_dataset("d1")).await.unwrap();
+        store
+            .insert_job(new_job("j1", JobKind::Training))
+            .await
+            .unwrap();
+        store.mark_running("j1").await.unwrap();
+        let epoch = EpochRow {
+            epoch: 0,
+            train_loss: 0.25,
+            val_loss: 0.5,
+            val_auroc: Some(0.75),
+            learning_rate: 0.001,
+            elapsed_s: 1.5,
+        };
+        store.append_epoch("j1", &epoch).await.unwrap();
+        store
+            .finish_job(
+                "j1",
+                JobOutcome::Succeeded {
+                    result: json!({"model": "m2"}),
+                },
+            )
+            .await
+            .unwrap();
+        alarm_id = store.open_alarm("car", "m2", 9.5, 0.9).await.unwrap();
+        store.close().await;
+    }
+
+    // Migrations already applied must be recognised, not re-run or rejected.
+    let store = Store::open(&path).await.unwrap();
+    assert_eq!(store.model_count().await.unwrap(), 2);
+    assert_eq!(
+        store.active_model().await.unwrap().expect("active kept").id,
+        "m2"
+    );
+    assert_eq!(
+        store.model_artifact("m1").await.unwrap(),
+        Some(vec![1, 2, 3])
+    );
+    let dataset = store
+        .get_dataset("d1")
+        .await
+        .unwrap()
+        .expect("dataset kept");
+    assert_eq!(dataset.rows, 10);
+    assert_eq!(
+        store
+            .dataset_content("d1")
+            .await
+            .unwrap()
+            .map(|content| content.len()),
+        Some(30)
+    );
+    let job = store.get_job("j1").await.unwrap().expect("job kept");
+    assert_eq!(job.state, JobState::Succeeded);
+    assert_eq!(job.result, Some(json!({"model": "m2"})));
+    assert_eq!(
+        store.job_epochs("j1").await.unwrap()[0].val_auroc,
+        Some(0.75)
+    );
+    let alarms = store.list_alarm_events(None, 10).await.unwrap();
+    assert_eq!(alarms.len(), 1);
+    assert_eq!(alarms[0].id, alarm_id);
+    assert!(alarms[0].is_open());
+    let listed = store.list_models(&PageRequest::default()).await.unwrap();
+    assert_eq!(listed.items.len(), 2);
+
+    // New alarm ids continue after the old ones (AUTOINCREMENT never reuses ids).
+    let next = store.open_alarm("car", "m2", 20.0, 0.9).await.unwrap();
+    assert!(next > alarm_id);
+}
+
+/// Two stores (two pools, like two processes) hammer one file with read-then-write transactions;
+/// `BEGIN IMMEDIATE` plus `busy_timeout` must make every one of them wait instead of failing BUSY.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn concurrent_writers_on_one_file_never_fail_busy() {
+    const PER_WRITER: usize = 50;
+    let (dir, first) = temp_store().await;
+    let second = Store::open(&db_path(&dir)).await.unwrap();
+
+    let mut tasks = Vec::new();
+    for (writer, store) in [first.clone(), second.clone()].into_iter().enumerate() {
+        for index in 0..PER_WRITER {
+            let store = store.clone();
+            tasks.push(tokio::spawn(async move {
+                let id = format!("w{writer}-{index}");
+                store.insert_model(new_model(&id)).await?;
+                // Reads the row, then writes two updates: the deferred-transaction BUSY trap.
+                store.set_active_model(&id).await?;
+                store.open_alarm(&id, &id, 1.0, 0.5).await?;
+                Ok::<_, StoreError>(())
+            }));
+        }
+    }
+    for task in tasks {
+        task.await
+            .expect("task did not panic")
+            .expect("write succeeded");
+    }
+
+    assert_eq!(first.model_count().await.unwrap(), 2 * PER_WRITER as u64);
+    assert_eq!(count_rows(&second, "model_artifacts").await, 100);
+    assert_eq!(count_rows(&second, "alarm_events").await, 100);
+    let active: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM models WHERE active = 1")
+        .fetch_one(&first.pool)
+        .await
+        .unwrap();
+    assert_eq!(active, 1);
+}

@@ -1,0 +1,122 @@
+//! Datasets: insert/get/list/paginate/delete and content blobs.
+
+use super::{count_rows, new_dataset, temp_store};
+use crate::store::{PageRequest, StoreError};
+
+#[tokio::test]
+async fn insert_then_get_round_trips_every_field_and_the_content() {
+    let (_dir, store) = temp_store().await;
+    let inserted = store
+        .insert_dataset_at(new_dataset("d1"), 1_234)
+        .await
+        .unwrap();
+    let fetched = store
+        .get_dataset("d1")
+        .await
+        .unwrap()
+        .expect("dataset exists");
+    assert_eq!(fetched, inserted);
+    assert_eq!(fetched.display_name, "Dataset d1");
+    assert_eq!(fetched.source, "upload");
+    assert_eq!(fetched.format, "telemetry-csv");
+    assert_eq!(
+        (
+            fetched.rows,
+            fetched.vehicles,
+            fetched.labelled_rows,
+            fetched.spoofed_rows
+        ),
+        (10, 2, 8, 3)
+    );
+    let content = b"vehicle_id,timestamp_s\nv1,0.0\n".to_vec();
+    assert_eq!(fetched.size_bytes, 30);
+    assert_eq!(fetched.size_bytes, i64::try_from(content.len()).unwrap());
+    assert_eq!(fetched.sha256, "sha-d1");
+    assert_eq!(fetched.created_at_ms, 1_234);
+    assert_eq!(store.dataset_content("d1").await.unwrap(), Some(content));
+}
+
+#[tokio::test]
+async fn unknown_dataset_reads_as_none_and_deletes_as_not_found() {
+    let (_dir, store) = temp_store().await;
+    assert_eq!(store.get_dataset("nope").await.unwrap(), None);
+    assert_eq!(store.dataset_content("nope").await.unwrap(), None);
+    let error = store.delete_dataset("nope").await.unwrap_err();
+    assert!(
+        matches!(&error, StoreError::NotFound { kind: "dataset", id } if id == "nope"),
+        "{error:?}"
+    );
+}
+
+#[tokio::test]
+async fn duplicate_dataset_id_is_refused() {
+    let (_dir, store) = temp_store().await;
+    store.insert_dataset(new_dataset("d1")).await.unwrap();
+    let error = store.insert_dataset(new_dataset("d1")).await.unwrap_err();
+    assert!(
+        matches!(&error, StoreError::AlreadyExists { kind: "dataset", id } if id == "d1"),
+        "{error:?}"
+    );
+    assert_eq!(count_rows(&store, "datasets").await, 1);
+    assert_eq!(count_rows(&store, "dataset_contents").await, 1);
+}
+
+#[tokio::test]
+async fn negative_counts_are_refused_before_touching_the_database() {
+    let (_dir, store) = temp_store().await;
+    let mut dataset = new_dataset("d1");
+    dataset.spoofed_rows = -1;
+    let error = store.insert_dataset(dataset).await.unwrap_err();
+    assert!(
+        matches!(
+            error,
+            StoreError::InvalidValue {
+                field: "spoofed_rows",
+                ..
+            }
+        ),
+        "{error:?}"
+    );
+    assert_eq!(count_rows(&store, "datasets").await, 0);
+}
+
+#[tokio::test]
+async fn list_datasets_pages_newest_first() {
+    let (_dir, store) = temp_store().await;
+    for (id, created_at) in [("a", 10), ("b", 30), ("c", 20)] {
+        store
+            .insert_dataset_at(new_dataset(id), created_at)
+            .await
+            .unwrap();
+    }
+    let first = store.list_datasets(&PageRequest::first(2)).await.unwrap();
+    let ids: Vec<_> = first.items.iter().map(|d| d.id.as_str()).collect();
+    assert_eq!(ids, ["b", "c"]);
+    let token = first.next_page_token.expect("a third dataset follows");
+    let second = store
+        .list_datasets(&PageRequest::after(2, token))
+        .await
+        .unwrap();
+    let ids: Vec<_> = second.items.iter().map(|d| d.id.as_str()).collect();
+    assert_eq!(ids, ["a"]);
+    assert_eq!(second.next_page_token, None);
+
+    let error = store
+        .list_datasets(&PageRequest::after(2, "zz"))
+        .await
+        .unwrap_err();
+    assert!(matches!(error, StoreError::InvalidPageToken), "{error:?}");
+}
+
+#[tokio::test]
+async fn deleting_a_dataset_cascades_to_its_content() {
+    let (_dir, store) = temp_store().await;
+    for id in ["a", "b"] {
+        store.insert_dataset(new_dataset(id)).await.unwrap();
+    }
+    store.delete_dataset("a").await.unwrap();
+    assert_eq!(store.get_dataset("a").await.unwrap(), None);
+    assert_eq!(store.dataset_content("a").await.unwrap(), None);
+    assert_eq!(count_rows(&store, "dataset_contents").await, 1);
+    assert!(store.dataset_content("b").await.unwrap().is_some());
+}
