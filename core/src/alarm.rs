@@ -106,22 +106,42 @@ pub enum AlarmError {
     NoValidRows,
     /// The θ grid or the N_p range is empty.
     #[error("the operating-point grid is empty ({thetas} thresholds, {n_ps} persistence values)")]
-    EmptyGrid { thetas: usize, n_ps: usize },
+    EmptyGrid {
+        /// Number of thresholds given.
+        thetas: usize,
+        /// Number of N_p values given.
+        n_ps: usize,
+    },
     /// A NaN threshold compares false with every score.
     #[error("threshold {index} of the grid is NaN")]
-    NanThreshold { index: usize },
+    NanThreshold {
+        /// Position in the θ grid.
+        index: usize,
+    },
 }
 
 /// Chooses (θ, N_p) on validation rows over SPEC §7's grid (θ = k/20, N_p = 1..=10) with the SPEC §8
-/// event rules; see [`select_operating_point_on_grid`].
-pub fn select_operating_point(rows: &[ScoredRow]) -> Result<Selection, AlarmError> {
-    select_operating_point_on_grid(rows, &theta_grid(), N_P_GRID, EventRules::Spec)
+/// event rules. `None` when the rows are unusable (see [`choose_operating_point`] for the reason).
+pub fn select_operating_point(rows: &[ScoredRow]) -> Option<OperatingPoint> {
+    select_operating_point_on_grid(rows, &theta_grid(), N_P_GRID)
 }
 
-/// Chooses (θ, N_p) from `thetas` × `n_ps`: maximise F1 of c̄ on ν = 1 rows; ties go to higher ADR,
-/// lower mean delay (no detection = worst), lower FPR, higher recall, lower N_p, higher θ.
-/// `thetas` may be on any scale (the CUSUM uses its own statistic); duplicates are harmless.
+/// Like [`select_operating_point`] on another grid: `thetas` may be on any scale (the CUSUM thresholds
+/// its own statistic).
 pub fn select_operating_point_on_grid(
+    rows: &[ScoredRow],
+    thetas: &[f64],
+    n_ps: RangeInclusive<u32>,
+) -> Option<OperatingPoint> {
+    choose_operating_point(rows, thetas, n_ps, EventRules::Spec)
+        .ok()
+        .map(|selection| selection.point)
+}
+
+/// Chooses (θ, N_p) from `thetas` × `n_ps` and reports the metrics there: maximise F1 of c̄ on ν = 1
+/// rows; ties go to higher ADR, lower mean delay (no detection = worst), lower FPR, higher recall,
+/// lower N_p, higher θ. `rules` defines events (ADR, delay). Duplicate thresholds are harmless.
+pub fn choose_operating_point(
     rows: &[ScoredRow],
     thetas: &[f64],
     n_ps: RangeInclusive<u32>,
@@ -157,7 +177,7 @@ pub fn select_operating_point_on_grid(
         });
     };
     // AUROC/AUPRC do not depend on the alarms: computed once, for the winner only.
-    let metrics = metrics::evaluate(rows, &confirmed_alarms(rows, point), rules)?;
+    let metrics = metrics::evaluate(rows, &confirmed_alarms(rows, point), rules);
     Ok(Selection { point, metrics })
 }
 
@@ -285,7 +305,8 @@ mod tests {
             (1, 0.8),
             (0, 0.3),
         ]);
-        let selection = select_operating_point(&rows).expect("valid rows");
+        let selection = choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec)
+            .expect("valid rows");
         // Any θ in (0.5, 0.8] with N_p = 1 gives F1 = 1; tie-breaks: lower N_p, then higher θ → 0.8.
         assert_eq!(selection.point, OperatingPoint { theta: 0.8, n_p: 1 });
         assert_eq!(selection.metrics.f1, 1.0);
@@ -295,7 +316,7 @@ mod tests {
 
     /// Runs the selection on `rows` with an explicit grid.
     fn choose(rows: &[ScoredRow], thetas: &[f64], n_ps: RangeInclusive<u32>) -> OperatingPoint {
-        select_operating_point_on_grid(rows, thetas, n_ps, EventRules::Spec)
+        choose_operating_point(rows, thetas, n_ps, EventRules::Spec)
             .expect("valid rows")
             .point
     }
@@ -329,7 +350,7 @@ mod tests {
         // N_p = 1 strictly best; among the 19 equivalent θ the highest wins.
         let rows = one_trajectory(&[(1, 1.0), (0, 0.0), (1, 1.0), (0, 0.0)]);
         assert_eq!(
-            select_operating_point(&rows).expect("valid rows").point,
+            select_operating_point(&rows).expect("valid rows"),
             OperatingPoint {
                 theta: 0.95,
                 n_p: 1
@@ -337,7 +358,8 @@ mod tests {
         );
         // No positive score at all: every grid point gives identical (empty) alarms → N_p 1, θ 0.95.
         let rows = one_trajectory(&[(1, 0.0), (0, 0.0)]);
-        let selection = select_operating_point(&rows).expect("valid rows");
+        let selection = choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec)
+            .expect("valid rows");
         assert_eq!(
             selection.point,
             OperatingPoint {
@@ -369,7 +391,8 @@ mod tests {
             (1, 0.9),
             (1, 0.9),
         ]);
-        let selection = select_operating_point(&rows).expect("valid rows");
+        let selection = choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec)
+            .expect("valid rows");
         assert_eq!(selection.point, OperatingPoint { theta: 0.9, n_p: 2 });
         assert_eq!(selection.metrics.f1, 0.8);
         assert_eq!(selection.metrics.delays_s, vec![Some(1.0), Some(1.0)]);
@@ -446,28 +469,33 @@ mod tests {
 
     #[test]
     fn selection_rejects_unusable_input() {
+        let choose_spec = |rows: &[ScoredRow], thetas: &[f64]| {
+            choose_operating_point(rows, thetas, N_P_GRID, EventRules::Spec)
+        };
         let mut invalid = one_trajectory(&[(1, 0.9), (0, 0.1)]);
         invalid.iter_mut().for_each(|row| row.valid = false);
         assert_eq!(
-            select_operating_point(&invalid),
+            choose_spec(&invalid, &theta_grid()),
             Err(AlarmError::NoValidRows)
         );
+        assert_eq!(select_operating_point(&invalid), None);
         let good = one_trajectory(&[(1, 0.9), (0, 0.1)]);
         assert_eq!(
-            select_operating_point_on_grid(&good, &[], 1..=10, EventRules::Spec),
+            choose_spec(&good, &[]),
             Err(AlarmError::EmptyGrid {
                 thetas: 0,
                 n_ps: 10
             })
         );
+        assert_eq!(select_operating_point_on_grid(&good, &[], N_P_GRID), None);
         assert_eq!(
-            select_operating_point_on_grid(&good, &[0.5, f64::NAN], 1..=10, EventRules::Spec),
+            choose_spec(&good, &[0.5, f64::NAN]),
             Err(AlarmError::NanThreshold { index: 1 })
         );
         let mut bad_time = good.clone();
         bad_time[0].time_s = f64::INFINITY;
         assert!(matches!(
-            select_operating_point(&bad_time),
+            choose_spec(&bad_time, &theta_grid()),
             Err(AlarmError::Rows(MetricsError::NonFiniteTime { row: 0, .. }))
         ));
     }
@@ -483,13 +511,12 @@ mod tests {
             (1, 0.7),
             (0, 0.3),
         ]);
-        let selection = select_operating_point(&rows).expect("valid rows");
-        let recomputed = metrics::evaluate(
-            &rows,
-            &confirmed_alarms(&rows, selection.point),
-            EventRules::Spec,
-        )
-        .expect("valid rows");
+        let selection = choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec)
+            .expect("valid rows");
+        let alarms = confirmed_alarms(&rows, selection.point);
+        let recomputed =
+            metrics::try_evaluate(&rows, &alarms, EventRules::Spec).expect("valid rows");
         assert_eq!(selection.metrics, recomputed);
+        assert_eq!(select_operating_point(&rows), Some(selection.point));
     }
 }

@@ -88,18 +88,36 @@ pub struct Metrics {
 pub enum MetricsError {
     /// `alarms` must hold exactly one confirmed alarm per row.
     #[error("{alarms} alarms given for {rows} rows; exactly one alarm per row is needed")]
-    LengthMismatch { rows: usize, alarms: usize },
+    LengthMismatch {
+        /// Number of rows.
+        rows: usize,
+        /// Number of alarms.
+        alarms: usize,
+    },
     /// Delays need finite times.
     #[error("row {row}: time_s is not finite ({value})")]
-    NonFiniteTime { row: usize, value: f64 },
+    NonFiniteTime {
+        /// 0-based row index.
+        row: usize,
+        /// The offending time.
+        value: f64,
+    },
     /// Events and alarm runs are defined per trajectory, so a trajectory must not be split.
     #[error(
         "row {row}: trajectory {trajectory} reappears after another trajectory; the rows of one trajectory must be contiguous"
     )]
-    NonContiguousTrajectory { row: usize, trajectory: u64 },
+    NonContiguousTrajectory {
+        /// 0-based index of the row where the trajectory reappears.
+        row: usize,
+        /// The trajectory key.
+        trajectory: u64,
+    },
     /// A NaN score has no place in a ranking.
     #[error("row {row}: score is NaN on a valid (ν = 1) row")]
-    NanScore { row: usize },
+    NanScore {
+        /// 0-based row index.
+        row: usize,
+    },
 }
 
 /// Area under the ROC curve (Mann–Whitney U with average ranks for ties), as scikit-learn's
@@ -203,7 +221,34 @@ pub fn check_rows(rows: &[ScoredRow]) -> Result<(), MetricsError> {
 
 /// Scores confirmed alarms `alarms` (one per row) against the rows: row metrics on ν = 1 rows
 /// (AUROC/AUPRC from the scores before thresholding), events, delays and false alarms under `rules`.
-pub fn evaluate(
+///
+/// Never fails, for callers that build rows and alarms together: a row without an alarm (`alarms` too
+/// short) counts as not alarmed and extra alarms are ignored; every change of trajectory key starts a
+/// trajectory; non-finite times give non-finite delays; a NaN score on a valid row makes AUROC/AUPRC
+/// `None`. Use [`try_evaluate`] to have such input rejected instead.
+pub fn evaluate(rows: &[ScoredRow], alarms: &[bool], rules: EventRules) -> Metrics {
+    let padded: Vec<bool>;
+    let alarms = if alarms.len() == rows.len() {
+        alarms
+    } else {
+        padded = (0..rows.len())
+            .map(|i| alarms.get(i).copied().unwrap_or(false))
+            .collect();
+        &padded
+    };
+    let mut metrics = alarm_metrics(rows, alarms, rules);
+    let (scores, labels): (Vec<f64>, Vec<bool>) = rows
+        .iter()
+        .filter(|row| row.valid)
+        .map(|row| (row.score, row.label))
+        .unzip();
+    metrics.auroc = auroc(&scores, &labels);
+    metrics.auprc = average_precision(&scores, &labels);
+    metrics
+}
+
+/// [`evaluate`] after checking the input: one alarm per row and [`check_rows`].
+pub fn try_evaluate(
     rows: &[ScoredRow],
     alarms: &[bool],
     rules: EventRules,
@@ -215,22 +260,13 @@ pub fn evaluate(
         });
     }
     check_rows(rows)?;
-    let mut metrics = alarm_metrics(rows, alarms, rules);
-    let (scores, labels): (Vec<f64>, Vec<bool>) = rows
-        .iter()
-        .filter(|row| row.valid)
-        .map(|row| (row.score, row.label))
-        .unzip();
-    metrics.auroc = auroc(&scores, &labels);
-    metrics.auprc = average_precision(&scores, &labels);
-    Ok(metrics)
+    Ok(evaluate(rows, alarms, rules))
 }
 
 /// Every metric except AUROC/AUPRC (which need a sort and do not depend on the alarms).
-/// Callers guarantee `rows.len() == alarms.len()` and [`check_rows`]; the operating-point search calls
-/// this once per grid point.
+/// Callers guarantee `rows.len() == alarms.len()`; the operating-point search calls this once per grid
+/// point.
 pub(crate) fn alarm_metrics(rows: &[ScoredRow], alarms: &[bool], rules: EventRules) -> Metrics {
-    debug_assert_eq!(rows.len(), alarms.len());
     let confusion = Confusion::count(rows, alarms);
     let mut delays_s = Vec::new();
     let mut false_alarm_events = 0;
@@ -480,7 +516,7 @@ mod tests {
         // The last row is invalid: its alarm and label do not count.
         rows[7].valid = false;
         let alarms = bits(&[1, 1, 0, 1, 0, 0, 0, 1]);
-        let m = evaluate(&rows, &alarms, EventRules::Spec).expect("valid input");
+        let m = try_evaluate(&rows, &alarms, EventRules::Spec).expect("valid input");
         assert_eq!(
             (
                 m.true_positives,
@@ -502,7 +538,7 @@ mod tests {
     fn zero_denominators_give_zero() {
         // No alarms and no positives.
         let rows = rows_from_labels(&[0, 0, 0]);
-        let m = evaluate(&rows, &[false; 3], EventRules::Spec).expect("valid input");
+        let m = try_evaluate(&rows, &[false; 3], EventRules::Spec).expect("valid input");
         assert_eq!(
             (m.precision, m.recall, m.f1, m.fpr, m.adr),
             (0.0, 0.0, 0.0, 0.0, 0.0)
@@ -514,7 +550,7 @@ mod tests {
         // No valid rows at all.
         let mut rows = rows_from_labels(&[1, 0]);
         rows.iter_mut().for_each(|r| r.valid = false);
-        let m = evaluate(&rows, &[true, true], EventRules::Spec).expect("valid input");
+        let m = try_evaluate(&rows, &[true, true], EventRules::Spec).expect("valid input");
         assert_eq!(
             (m.valid_rows, m.precision, m.recall, m.f1, m.fpr),
             (0, 0.0, 0.0, 0.0, 0.0)
@@ -529,7 +565,7 @@ mod tests {
         }
         // The badly ranked last row is invalid and must not count.
         rows[4].valid = false;
-        let m = evaluate(&rows, &[false; 5], EventRules::Spec).expect("valid input");
+        let m = try_evaluate(&rows, &[false; 5], EventRules::Spec).expect("valid input");
         assert_eq!(m.auroc, Some(0.75));
         let auprc = m.auprc.expect("positives exist");
         assert!((auprc - 5.0 / 6.0).abs() < 1e-15);
@@ -541,7 +577,7 @@ mod tests {
         // when event 2 starts (rows 8..12) and never restarts inside it → missed.
         let rows = rows_from_labels(&[0, 0, 1, 1, 1, 1, 0, 0, 0, 1, 1, 0]);
         let alarms = bits(&[0, 0, 0, 0, 1, 1, 1, 0, 1, 1, 1, 1]);
-        let m = evaluate(&rows, &alarms, EventRules::Spec).expect("valid input");
+        let m = try_evaluate(&rows, &alarms, EventRules::Spec).expect("valid input");
         assert_eq!(m.delays_s, vec![Some(2.0), None]);
         assert_eq!((m.events, m.detected_events, m.adr), (2, 1, 0.5));
         assert_eq!(m.mean_delay_s, Some(2.0));
@@ -554,7 +590,7 @@ mod tests {
         let mut rows = rows_from_labels(&[0, 1, 1, 1]);
         rows[2].time_s += 1.0; // a 2 s step
         rows[3].time_s += 1.0;
-        let m = evaluate(&rows, &bits(&[0, 0, 0, 1]), EventRules::Spec).expect("valid input");
+        let m = try_evaluate(&rows, &bits(&[0, 0, 0, 1]), EventRules::Spec).expect("valid input");
         assert_eq!(m.delays_s, vec![Some(3.0)]);
     }
 
@@ -565,7 +601,7 @@ mod tests {
         let mut rows = rows_from_labels(&[0, 0, 1, 1]);
         rows[2].trajectory = 1;
         rows[3].trajectory = 1;
-        let m = evaluate(&rows, &bits(&[0, 1, 1, 1]), EventRules::Spec).expect("valid input");
+        let m = try_evaluate(&rows, &bits(&[0, 1, 1, 1]), EventRules::Spec).expect("valid input");
         assert_eq!(m.delays_s, vec![Some(0.0)]);
         assert_eq!(m.false_alarm_events, 1);
     }
@@ -581,7 +617,7 @@ mod tests {
             row.trajectory = 9;
         }
         let alarms = bits(&[0, 1, 0, 0, 0, 1, 1, 0]);
-        let m = evaluate(&rows, &alarms, EventRules::Spec).expect("valid input");
+        let m = try_evaluate(&rows, &alarms, EventRules::Spec).expect("valid input");
         assert_eq!(m.delays_s, vec![Some(1.0), None]);
         assert_eq!((m.false_alarm_rows, m.false_alarm_events), (2, 2));
     }
@@ -594,12 +630,12 @@ mod tests {
         rows[2].valid = false;
         rows[5].valid = false;
         let alarms = bits(&[0, 0, 0, 1, 1, 1, 1]);
-        let spec = evaluate(&rows, &alarms, EventRules::Spec).expect("valid input");
+        let spec = try_evaluate(&rows, &alarms, EventRules::Spec).expect("valid input");
         assert_eq!(spec.delays_s, vec![Some(2.0)]);
         // False-alarm rows 4 and 6 (row 5 is invalid) → two runs.
         assert_eq!((spec.false_alarm_rows, spec.false_alarm_events), (2, 2));
         // Legacy: the invalid row splits the attack into {1} (missed) and {3} (delay 0).
-        let legacy = evaluate(&rows, &alarms, EventRules::Legacy).expect("valid input");
+        let legacy = try_evaluate(&rows, &alarms, EventRules::Legacy).expect("valid input");
         assert_eq!(legacy.delays_s, vec![None, Some(0.0)]);
         assert_eq!((legacy.adr, legacy.mean_delay_s), (0.5, Some(0.0)));
         assert_eq!(legacy.false_alarm_events, 2);
@@ -609,9 +645,9 @@ mod tests {
     fn legacy_credits_an_alarm_already_on_with_zero_delay() {
         let rows = rows_from_labels(&[0, 0, 1, 1, 1]);
         let alarms = bits(&[0, 1, 1, 1, 1]);
-        let spec = evaluate(&rows, &alarms, EventRules::Spec).expect("valid input");
+        let spec = try_evaluate(&rows, &alarms, EventRules::Spec).expect("valid input");
         assert_eq!(spec.delays_s, vec![None]);
-        let legacy = evaluate(&rows, &alarms, EventRules::Legacy).expect("valid input");
+        let legacy = try_evaluate(&rows, &alarms, EventRules::Legacy).expect("valid input");
         assert_eq!(legacy.delays_s, vec![Some(0.0)]);
         assert_eq!(legacy.adr, 1.0);
     }
@@ -624,9 +660,9 @@ mod tests {
             row.time_s = t;
         }
         let alarms = bits(&[0, 0, 0, 0, 1]);
-        let legacy = evaluate(&rows, &alarms, EventRules::Legacy).expect("valid input");
+        let legacy = try_evaluate(&rows, &alarms, EventRules::Legacy).expect("valid input");
         assert_eq!(legacy.delays_s, vec![Some(4.0)]);
-        let spec = evaluate(&rows, &alarms, EventRules::Spec).expect("valid input");
+        let spec = try_evaluate(&rows, &alarms, EventRules::Spec).expect("valid input");
         assert_eq!(spec.delays_s, vec![Some(3.8)]);
     }
 
@@ -634,7 +670,7 @@ mod tests {
     fn mean_delay_averages_detected_events_only() {
         let rows = rows_from_labels(&[1, 1, 1, 0, 1, 1, 0, 1, 1, 1, 1]);
         let alarms = bits(&[0, 1, 1, 0, 0, 0, 0, 0, 0, 0, 1]);
-        let m = evaluate(&rows, &alarms, EventRules::Spec).expect("valid input");
+        let m = try_evaluate(&rows, &alarms, EventRules::Spec).expect("valid input");
         assert_eq!(m.delays_s, vec![Some(1.0), None, Some(3.0)]);
         assert_eq!(m.mean_delay_s, Some(2.0));
         assert_eq!(m.adr, 2.0 / 3.0);
@@ -644,19 +680,19 @@ mod tests {
     fn evaluate_rejects_bad_input_with_precise_errors() {
         let rows = rows_from_labels(&[0, 1, 0]);
         assert_eq!(
-            evaluate(&rows, &[false; 2], EventRules::Spec),
+            try_evaluate(&rows, &[false; 2], EventRules::Spec),
             Err(MetricsError::LengthMismatch { rows: 3, alarms: 2 })
         );
         let mut bad_time = rows.clone();
         bad_time[1].time_s = f64::NAN;
         assert!(matches!(
-            evaluate(&bad_time, &[false; 3], EventRules::Spec),
+            try_evaluate(&bad_time, &[false; 3], EventRules::Spec),
             Err(MetricsError::NonFiniteTime { row: 1, .. })
         ));
         let mut split = rows.clone();
         split[1].trajectory = 5;
         assert_eq!(
-            evaluate(&split, &[false; 3], EventRules::Spec),
+            try_evaluate(&split, &[false; 3], EventRules::Spec),
             Err(MetricsError::NonContiguousTrajectory {
                 row: 2,
                 trajectory: 0
@@ -665,18 +701,40 @@ mod tests {
         let mut nan_score = rows.clone();
         nan_score[2].score = f64::NAN;
         assert_eq!(
-            evaluate(&nan_score, &[false; 3], EventRules::Spec),
+            try_evaluate(&nan_score, &[false; 3], EventRules::Spec),
             Err(MetricsError::NanScore { row: 2 })
         );
         // A NaN score on an invalid row is fine: it never enters the ranking.
         nan_score[2].valid = false;
-        assert!(evaluate(&nan_score, &[false; 3], EventRules::Spec).is_ok());
+        assert!(try_evaluate(&nan_score, &[false; 3], EventRules::Spec).is_ok());
+    }
+
+    #[test]
+    fn lenient_evaluate_never_panics_and_agrees_on_good_input() {
+        let rows = rows_from_labels(&[0, 1, 1, 0]);
+        let alarms = bits(&[0, 0, 1, 1]);
+        let strict = try_evaluate(&rows, &alarms, EventRules::Spec).expect("valid input");
+        assert_eq!(evaluate(&rows, &alarms, EventRules::Spec), strict);
+        // Too few alarms: the missing ones count as off (same as passing them as false).
+        let short = evaluate(&rows, &alarms[..3], EventRules::Spec);
+        assert_eq!(
+            short,
+            evaluate(&rows, &bits(&[0, 0, 1, 0]), EventRules::Spec)
+        );
+        // Too many alarms: the extra ones are ignored.
+        let long = evaluate(&rows, &bits(&[0, 0, 1, 1, 1]), EventRules::Spec);
+        assert_eq!(long, strict);
+        // A NaN score on a valid row: no ranking metrics, the rest unchanged.
+        let mut nan_rows = rows.clone();
+        nan_rows[0].score = f64::NAN;
+        let m = evaluate(&nan_rows, &alarms, EventRules::Spec);
+        assert_eq!((m.auroc, m.auprc, m.f1), (None, None, strict.f1));
     }
 
     #[test]
     fn metrics_round_trip_through_json() {
         let rows = rows_from_labels(&[0, 1, 1]);
-        let m = evaluate(&rows, &bits(&[0, 0, 1]), EventRules::Spec).expect("valid input");
+        let m = try_evaluate(&rows, &bits(&[0, 0, 1]), EventRules::Spec).expect("valid input");
         let json = serde_json::to_string(&m).expect("serialisable");
         let back: Metrics = serde_json::from_str(&json).expect("deserialisable");
         assert_eq!(back, m);
