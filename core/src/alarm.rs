@@ -1,1 +1,522 @@
-//! Placeholder (being written).
+//! Confirmed alarms and the operating point (SPEC §7).
+//!
+//! c_t = 1[score_t ≥ θ]; the confirmed alarm c̄_t = 1 when the last N_p valid steps all had c = 1. A ν = 0
+//! step or a new trajectory resets the run, and c̄ = 0 on a ν = 0 step. The alarm is not latched.
+//! (θ, N_p) is chosen on validation rows by maximising F1 of c̄ with a fixed tie-break order.
+
+use std::cmp::Ordering;
+use std::ops::RangeInclusive;
+
+use serde::{Deserialize, Serialize};
+
+use crate::metrics::{self, EventRules, Metrics, MetricsError, ScoredRow};
+
+/// The alarm threshold θ on the score and the persistence N_p (consecutive valid steps).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct OperatingPoint {
+    /// c_t = 1[score_t ≥ θ].
+    pub theta: f64,
+    /// Consecutive valid steps with c = 1 needed for c̄ = 1 (0 behaves as 1).
+    pub n_p: u32,
+}
+
+/// The N_p grid of SPEC §7.
+pub const N_P_GRID: RangeInclusive<u32> = 1..=10;
+
+/// The θ grid of SPEC §7: k/20 for k = 1..=19 (0.05, 0.10, …, 0.95), computed exactly that way.
+pub fn theta_grid() -> Vec<f64> {
+    (1..=19).map(|k| f64::from(k) / 20.0).collect()
+}
+
+/// Streaming persistence confirmation of one vehicle's raw alarms c_t.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct PersistenceAlarm {
+    n_p: u32,
+    /// Consecutive valid steps with c = 1 so far in this trajectory.
+    run: u32,
+}
+
+impl PersistenceAlarm {
+    /// A confirmer needing `n_p` consecutive valid positive steps. `n_p = 0` behaves as 1: a confirmed
+    /// alarm always needs the current step to be positive.
+    pub fn new(n_p: u32) -> Self {
+        Self { n_p, run: 0 }
+    }
+
+    /// The persistence N_p this confirmer was built with.
+    pub fn n_p(&self) -> u32 {
+        self.n_p
+    }
+
+    /// Feeds one step: `positive` = c_t, `valid` = ν_t, `trajectory_start` = first step of a trajectory.
+    /// Returns c̄_t.
+    pub fn update(&mut self, positive: bool, valid: bool, trajectory_start: bool) -> bool {
+        if trajectory_start {
+            self.run = 0;
+        }
+        if !valid || !positive {
+            self.run = 0;
+            return false;
+        }
+        self.run = self.run.saturating_add(1);
+        self.run >= self.n_p.max(1)
+    }
+
+    /// Forgets the current run (as at a trajectory start).
+    pub fn reset(&mut self) {
+        self.run = 0;
+    }
+}
+
+/// Confirmed alarms c̄ of `rows` at `op`, streamed through [`PersistenceAlarm`]; a change of trajectory
+/// key starts a new trajectory. A NaN score is never positive.
+pub fn confirmed_alarms(rows: &[ScoredRow], op: OperatingPoint) -> Vec<bool> {
+    let mut alarms = Vec::with_capacity(rows.len());
+    fill_confirmed_alarms(rows, op, &mut alarms);
+    alarms
+}
+
+/// [`confirmed_alarms`] into a reused buffer (the grid search calls it 190+ times).
+fn fill_confirmed_alarms(rows: &[ScoredRow], op: OperatingPoint, alarms: &mut Vec<bool>) {
+    alarms.clear();
+    let mut persistence = PersistenceAlarm::new(op.n_p);
+    for (i, row) in rows.iter().enumerate() {
+        let trajectory_start = i == 0 || rows[i - 1].trajectory != row.trajectory;
+        alarms.push(persistence.update(row.score >= op.theta, row.valid, trajectory_start));
+    }
+}
+
+/// A chosen operating point with the validation metrics it achieves (AUROC/AUPRC included).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Selection {
+    /// The chosen (θ, N_p).
+    pub point: OperatingPoint,
+    /// Metrics of the confirmed alarms at `point` on the selection rows.
+    pub metrics: Metrics,
+}
+
+/// Why no operating point can be chosen.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum AlarmError {
+    /// The rows cannot be evaluated.
+    #[error("invalid rows: {0}")]
+    Rows(#[from] MetricsError),
+    /// F1 on ν = 1 rows is meaningless without them.
+    #[error("no valid (ν = 1) rows to choose an operating point on")]
+    NoValidRows,
+    /// The θ grid or the N_p range is empty.
+    #[error("the operating-point grid is empty ({thetas} thresholds, {n_ps} persistence values)")]
+    EmptyGrid {
+        /// Number of thresholds given.
+        thetas: usize,
+        /// Number of N_p values given.
+        n_ps: usize,
+    },
+    /// A NaN threshold compares false with every score.
+    #[error("threshold {index} of the grid is NaN")]
+    NanThreshold {
+        /// Position in the θ grid.
+        index: usize,
+    },
+}
+
+/// Chooses (θ, N_p) on validation rows over SPEC §7's grid (θ = k/20, N_p = 1..=10) with the SPEC §8
+/// event rules. `None` when the rows are unusable (see [`choose_operating_point`] for the reason).
+pub fn select_operating_point(rows: &[ScoredRow]) -> Option<OperatingPoint> {
+    select_operating_point_on_grid(rows, &theta_grid(), N_P_GRID)
+}
+
+/// Like [`select_operating_point`] on another grid: `thetas` may be on any scale (the CUSUM thresholds
+/// its own statistic).
+pub fn select_operating_point_on_grid(
+    rows: &[ScoredRow],
+    thetas: &[f64],
+    n_ps: RangeInclusive<u32>,
+) -> Option<OperatingPoint> {
+    choose_operating_point(rows, thetas, n_ps, EventRules::Spec)
+        .ok()
+        .map(|selection| selection.point)
+}
+
+/// Chooses (θ, N_p) from `thetas` × `n_ps` and reports the metrics there: maximise F1 of c̄ on ν = 1
+/// rows; ties go to higher ADR, lower mean delay (no detection = worst), lower FPR, higher recall,
+/// lower N_p, higher θ. `rules` defines events (ADR, delay). Duplicate thresholds are harmless.
+pub fn choose_operating_point(
+    rows: &[ScoredRow],
+    thetas: &[f64],
+    n_ps: RangeInclusive<u32>,
+    rules: EventRules,
+) -> Result<Selection, AlarmError> {
+    metrics::check_rows(rows)?;
+    if !rows.iter().any(|row| row.valid) {
+        return Err(AlarmError::NoValidRows);
+    }
+    if let Some(index) = thetas.iter().position(|theta| theta.is_nan()) {
+        return Err(AlarmError::NanThreshold { index });
+    }
+    let mut best: Option<(OperatingPoint, Metrics)> = None;
+    let mut alarms = Vec::with_capacity(rows.len());
+    for &theta in thetas {
+        for n_p in n_ps.clone() {
+            let point = OperatingPoint { theta, n_p };
+            fill_confirmed_alarms(rows, point, &mut alarms);
+            let candidate = metrics::alarm_metrics(rows, &alarms, rules);
+            let improves = best.as_ref().is_none_or(|(best_point, best_metrics)| {
+                compare_candidates((&point, &candidate), (best_point, best_metrics))
+                    == Ordering::Greater
+            });
+            if improves {
+                best = Some((point, candidate));
+            }
+        }
+    }
+    let Some((point, _)) = best else {
+        return Err(AlarmError::EmptyGrid {
+            thetas: thetas.len(),
+            n_ps: n_ps.count(),
+        });
+    };
+    // AUROC/AUPRC do not depend on the alarms: computed once, for the winner only.
+    let metrics = metrics::evaluate(rows, &confirmed_alarms(rows, point), rules);
+    Ok(Selection { point, metrics })
+}
+
+/// SPEC §7's objective as an ordering: `Greater` when `a` is the better operating point.
+pub(crate) fn compare_candidates(
+    a: (&OperatingPoint, &Metrics),
+    b: (&OperatingPoint, &Metrics),
+) -> Ordering {
+    let ((a_point, a_metrics), (b_point, b_metrics)) = (a, b);
+    a_metrics
+        .f1
+        .total_cmp(&b_metrics.f1)
+        .then(a_metrics.adr.total_cmp(&b_metrics.adr))
+        .then(compare_mean_delay(
+            a_metrics.mean_delay_s,
+            b_metrics.mean_delay_s,
+        ))
+        .then(b_metrics.fpr.total_cmp(&a_metrics.fpr))
+        .then(a_metrics.recall.total_cmp(&b_metrics.recall))
+        .then(b_point.n_p.cmp(&a_point.n_p))
+        .then(a_point.theta.total_cmp(&b_point.theta))
+}
+
+/// Lower delay is better; no detection at all is worst.
+fn compare_mean_delay(a: Option<f64>, b: Option<f64>) -> Ordering {
+    match (a, b) {
+        (Some(a), Some(b)) => b.total_cmp(&a),
+        (Some(_), None) => Ordering::Greater,
+        (None, Some(_)) => Ordering::Less,
+        (None, None) => Ordering::Equal,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// One trajectory at 1 Hz, all rows valid: (label, score) pairs.
+    fn one_trajectory(pairs: &[(u8, f64)]) -> Vec<ScoredRow> {
+        pairs
+            .iter()
+            .enumerate()
+            .map(|(i, &(label, score))| ScoredRow {
+                trajectory: 0,
+                time_s: i as f64,
+                valid: true,
+                label: label == 1,
+                score,
+            })
+            .collect()
+    }
+
+    fn bits(values: &[u8]) -> Vec<bool> {
+        values.iter().map(|&v| v == 1).collect()
+    }
+
+    #[test]
+    fn theta_grid_is_k_over_20() {
+        let grid = theta_grid();
+        assert_eq!(grid.len(), 19);
+        assert_eq!(grid[0], 0.05);
+        assert_eq!(grid[11], 0.6);
+        assert_eq!(grid[18], 0.95);
+        assert_eq!(N_P_GRID.count(), 10);
+    }
+
+    #[test]
+    fn persistence_needs_n_p_consecutive_valid_positives_and_is_not_latched() {
+        let mut alarm = PersistenceAlarm::new(3);
+        let positives = bits(&[1, 1, 1, 1, 0, 1, 1, 1]);
+        let confirmed: Vec<bool> = positives
+            .iter()
+            .map(|&p| alarm.update(p, true, false))
+            .collect();
+        assert_eq!(confirmed, bits(&[0, 0, 1, 1, 0, 0, 0, 1]));
+    }
+
+    #[test]
+    fn persistence_resets_on_invalid_steps_and_trajectory_starts() {
+        let mut alarm = PersistenceAlarm::new(2);
+        assert!(!alarm.update(true, true, false));
+        assert!(alarm.update(true, true, false));
+        // ν = 0: c̄ = 0 even though c = 1, and the run restarts.
+        assert!(!alarm.update(true, false, false));
+        assert!(!alarm.update(true, true, false));
+        assert!(alarm.update(true, true, false));
+        // A trajectory start resets the run; a valid start step counts as the first of the new run.
+        assert!(!alarm.update(true, true, true));
+        assert!(alarm.update(true, true, false));
+        alarm.reset();
+        assert!(!alarm.update(true, true, false));
+    }
+
+    #[test]
+    fn persistence_of_zero_behaves_as_one() {
+        let mut alarm = PersistenceAlarm::new(0);
+        assert!(!alarm.update(false, true, false));
+        assert!(alarm.update(true, true, false));
+        assert!(!alarm.update(true, false, false));
+    }
+
+    #[test]
+    fn confirmed_alarms_threshold_scores_and_restart_per_trajectory() {
+        let mut rows =
+            one_trajectory(&[(0, 0.7), (0, 0.6), (0, 0.2), (0, 0.9), (0, 0.9), (0, 0.9)]);
+        rows[4].trajectory = 1;
+        rows[5].trajectory = 1;
+        rows[5].score = f64::NAN;
+        let op = OperatingPoint { theta: 0.6, n_p: 2 };
+        // Row 1: 0.6 ≥ θ (inclusive) → second positive. Row 4 starts a new trajectory; row 5 is NaN.
+        assert_eq!(confirmed_alarms(&rows, op), bits(&[0, 1, 0, 0, 0, 0]));
+        let op1 = OperatingPoint { theta: 0.6, n_p: 1 };
+        assert_eq!(confirmed_alarms(&rows, op1), bits(&[1, 1, 0, 1, 1, 0]));
+    }
+
+    #[test]
+    fn selection_maximises_f1() {
+        // Attack rows score 0.8, normal rows 0.3 except one normal spike at 0.5.
+        let rows = one_trajectory(&[
+            (0, 0.3),
+            (0, 0.5),
+            (0, 0.3),
+            (1, 0.8),
+            (1, 0.8),
+            (1, 0.8),
+            (0, 0.3),
+        ]);
+        let selection = choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec)
+            .expect("valid rows");
+        // Any θ in (0.5, 0.8] with N_p = 1 gives F1 = 1; tie-breaks: lower N_p, then higher θ → 0.8.
+        assert_eq!(selection.point, OperatingPoint { theta: 0.8, n_p: 1 });
+        assert_eq!(selection.metrics.f1, 1.0);
+        assert_eq!(selection.metrics.auroc, Some(1.0));
+        assert_eq!(selection.metrics.delays_s, vec![Some(0.0)]);
+    }
+
+    /// Runs the selection on `rows` with an explicit grid.
+    fn choose(rows: &[ScoredRow], thetas: &[f64], n_ps: RangeInclusive<u32>) -> OperatingPoint {
+        choose_operating_point(rows, thetas, n_ps, EventRules::Spec)
+            .expect("valid rows")
+            .point
+    }
+
+    #[test]
+    fn selection_end_to_end_higher_adr_breaks_an_f1_tie() {
+        // θ = 0.7 alarms on event A only: TP 1, FN 1, FP 0 → F1 2/3, ADR 1/2.
+        // θ = 0.5 alarms on A, B and two normal rows: TP 2, FP 2 → F1 4/6 (the same double), ADR 1.
+        // FPR and higher θ would prefer 0.7; ADR comes first.
+        let rows = one_trajectory(&[(1, 0.8), (0, 0.0), (1, 0.6), (0, 0.0), (0, 0.6), (0, 0.6)]);
+        assert_eq!(
+            choose(&rows, &[0.5, 0.7], 1..=1),
+            OperatingPoint { theta: 0.5, n_p: 1 }
+        );
+    }
+
+    #[test]
+    fn selection_end_to_end_lower_delay_breaks_an_f1_and_adr_tie() {
+        // One event (rows 0, 1). θ = 0.7: onset at row 1 (delay 1 s), TP 1 FN 1 FP 0, F1 2/3.
+        // θ = 0.5: onset at row 0 (delay 0 s), TP 2 FP 2, F1 2/3. ADR 1 for both. FPR prefers 0.7.
+        let rows = one_trajectory(&[(1, 0.6), (1, 0.8), (0, 0.0), (0, 0.6), (0, 0.6)]);
+        assert_eq!(
+            choose(&rows, &[0.5, 0.7], 1..=1),
+            OperatingPoint { theta: 0.5, n_p: 1 }
+        );
+    }
+
+    #[test]
+    fn selection_end_to_end_identical_alarms_prefer_lower_n_p_then_higher_theta() {
+        // Scores are 0 or 1: every θ in the grid gives the same alarms, and runs of one positive row make
+        // N_p = 1 strictly best; among the 19 equivalent θ the highest wins.
+        let rows = one_trajectory(&[(1, 1.0), (0, 0.0), (1, 1.0), (0, 0.0)]);
+        assert_eq!(
+            select_operating_point(&rows).expect("valid rows"),
+            OperatingPoint {
+                theta: 0.95,
+                n_p: 1
+            }
+        );
+        // No positive score at all: every grid point gives identical (empty) alarms → N_p 1, θ 0.95.
+        let rows = one_trajectory(&[(1, 0.0), (0, 0.0)]);
+        let selection = choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec)
+            .expect("valid rows");
+        assert_eq!(
+            selection.point,
+            OperatingPoint {
+                theta: 0.95,
+                n_p: 1
+            }
+        );
+        assert_eq!(selection.metrics.f1, 0.0);
+    }
+
+    #[test]
+    fn selection_respects_persistence_when_it_removes_false_alarms() {
+        // Attack runs last 3 rows; the normal spikes last 1 row. N_p = 2 drops the spikes and keeps 2 of 3
+        // attack rows per event: TP 4 FN 2 FP 0 → F1 8/10, better than N_p = 1 (TP 6 FP 4 → F1 12/16).
+        let rows = one_trajectory(&[
+            (0, 0.9),
+            (0, 0.0),
+            (1, 0.9),
+            (1, 0.9),
+            (1, 0.9),
+            (0, 0.0),
+            (0, 0.9),
+            (0, 0.0),
+            (0, 0.9),
+            (0, 0.0),
+            (0, 0.9),
+            (0, 0.0),
+            (1, 0.9),
+            (1, 0.9),
+            (1, 0.9),
+        ]);
+        let selection = choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec)
+            .expect("valid rows");
+        assert_eq!(selection.point, OperatingPoint { theta: 0.9, n_p: 2 });
+        assert_eq!(selection.metrics.f1, 0.8);
+        assert_eq!(selection.metrics.delays_s, vec![Some(1.0), Some(1.0)]);
+    }
+
+    /// A candidate whose every objective component is better (+1), equal (0) or worse (−1) than a
+    /// baseline, in tie-break order: F1, ADR, mean delay, FPR, recall, N_p, θ.
+    fn candidate(quality: [i32; 7]) -> (OperatingPoint, Metrics) {
+        let q = quality.map(f64::from);
+        let point = OperatingPoint {
+            theta: 0.5 + 0.1 * q[6],
+            n_p: u32::try_from(3 - quality[5]).expect("small"),
+        };
+        let metrics = Metrics {
+            auroc: None,
+            auprc: None,
+            precision: 0.5,
+            recall: 0.5 + 0.1 * q[4],
+            f1: 0.5 + 0.1 * q[0],
+            fpr: 0.1 - 0.05 * q[3],
+            true_positives: 0,
+            false_positives: 0,
+            true_negatives: 0,
+            false_negatives: 0,
+            valid_rows: 0,
+            events: 0,
+            detected_events: 0,
+            adr: 0.5 + 0.1 * q[1],
+            delays_s: Vec::new(),
+            mean_delay_s: Some(3.0 - q[2]),
+            false_alarm_rows: 0,
+            false_alarm_events: 0,
+        };
+        (point, metrics)
+    }
+
+    #[test]
+    fn each_tie_breaker_decides_in_order() {
+        let baseline = candidate([0; 7]);
+        for level in 0..7 {
+            // Equal before `level`, better at `level`, worse at every later tie-breaker.
+            let mut quality = [0; 7];
+            quality[level] = 1;
+            quality.iter_mut().skip(level + 1).for_each(|q| *q = -1);
+            let (bp, bm) = candidate(quality);
+            assert_eq!(
+                compare_candidates((&bp, &bm), (&baseline.0, &baseline.1)),
+                Ordering::Greater,
+                "level {level}"
+            );
+            assert_eq!(
+                compare_candidates((&baseline.0, &baseline.1), (&bp, &bm)),
+                Ordering::Less,
+                "level {level}"
+            );
+        }
+        assert_eq!(
+            compare_candidates((&baseline.0, &baseline.1), (&baseline.0, &baseline.1)),
+            Ordering::Equal
+        );
+    }
+
+    #[test]
+    fn missing_mean_delay_is_the_worst_delay() {
+        let (point, mut slow) = candidate([0; 7]);
+        slow.mean_delay_s = Some(1e9);
+        let (_, mut missed) = candidate([0; 7]);
+        missed.mean_delay_s = None;
+        assert_eq!(
+            compare_candidates((&point, &slow), (&point, &missed)),
+            Ordering::Greater
+        );
+    }
+
+    #[test]
+    fn selection_rejects_unusable_input() {
+        let choose_spec = |rows: &[ScoredRow], thetas: &[f64]| {
+            choose_operating_point(rows, thetas, N_P_GRID, EventRules::Spec)
+        };
+        let mut invalid = one_trajectory(&[(1, 0.9), (0, 0.1)]);
+        invalid.iter_mut().for_each(|row| row.valid = false);
+        assert_eq!(
+            choose_spec(&invalid, &theta_grid()),
+            Err(AlarmError::NoValidRows)
+        );
+        assert_eq!(select_operating_point(&invalid), None);
+        let good = one_trajectory(&[(1, 0.9), (0, 0.1)]);
+        assert_eq!(
+            choose_spec(&good, &[]),
+            Err(AlarmError::EmptyGrid {
+                thetas: 0,
+                n_ps: 10
+            })
+        );
+        assert_eq!(select_operating_point_on_grid(&good, &[], N_P_GRID), None);
+        assert_eq!(
+            choose_spec(&good, &[0.5, f64::NAN]),
+            Err(AlarmError::NanThreshold { index: 1 })
+        );
+        let mut bad_time = good.clone();
+        bad_time[0].time_s = f64::INFINITY;
+        assert!(matches!(
+            choose_spec(&bad_time, &theta_grid()),
+            Err(AlarmError::Rows(MetricsError::NonFiniteTime { row: 0, .. }))
+        ));
+    }
+
+    #[test]
+    fn selection_agrees_with_evaluating_its_point() {
+        let rows = one_trajectory(&[
+            (0, 0.2),
+            (0, 0.55),
+            (1, 0.65),
+            (1, 0.9),
+            (1, 0.4),
+            (1, 0.7),
+            (0, 0.3),
+        ]);
+        let selection = choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec)
+            .expect("valid rows");
+        let alarms = confirmed_alarms(&rows, selection.point);
+        let recomputed =
+            metrics::try_evaluate(&rows, &alarms, EventRules::Spec).expect("valid rows");
+        assert_eq!(selection.metrics, recomputed);
+        assert_eq!(select_operating_point(&rows), Some(selection.point));
+    }
+}
