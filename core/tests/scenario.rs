@@ -678,6 +678,7 @@ fn generate_is_deterministic_and_the_seed_matters() {
         ],
         directions_deg: vec![0.0, 135.0],
         duration: AttackDuration::TrackFraction(0.2),
+        onset_s: None,
         margin_fraction: 0.1,
         repeats: 1,
         seed: 42,
@@ -701,6 +702,17 @@ fn generate_is_deterministic_and_the_seed_matters() {
         v.iter().map(|s| s.attack.onset_s).collect::<Vec<_>>()
     };
     assert_ne!(onsets(&a), onsets(&other));
+    // A fixed onset is used as given, for every base.
+    let fixed = ScenarioPlan {
+        onset_s: Some(100.0),
+        ..plan.clone()
+    };
+    let fixed = generate(&bases, &fixed).unwrap();
+    assert!(
+        fixed
+            .iter()
+            .all(|s| s.attack.onset_s == 100.0 && s.first_attack_row == 100)
+    );
     // A base's scenarios do not depend on the other bases.
     let first_only = generate(&bases[..1], &plan).unwrap();
     assert_eq!(first_only[..], a[..8]);
@@ -753,6 +765,15 @@ fn generate_reports_attacks_that_do_not_fit_and_bad_plans() {
     assert!(matches!(
         generate(&bases, &bad),
         Err(ScenarioError::InvalidPlan { field: "kinds", .. })
+    ));
+    bad.kinds = vec![ramp(1.0)];
+    bad.onset_s = Some(f64::NAN);
+    assert!(matches!(
+        generate(&bases, &bad),
+        Err(ScenarioError::InvalidPlan {
+            field: "onset_s",
+            ..
+        })
     ));
     let fraction = ScenarioPlan::ramp_sweep(&[1.0], AttackDuration::TrackFraction(0.7), 1, 0);
     assert!(matches!(

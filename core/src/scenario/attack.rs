@@ -13,13 +13,22 @@ use crate::sample::{Record, Track};
 #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
 pub enum AttackKind {
     /// The spoofed fix drifts away from the truth at a constant velocity: offset = v·τ.
-    RampDrift { velocity_mps: f64 },
+    RampDrift {
+        /// Drift velocity v (m/s, 0.05–2).
+        velocity_mps: f64,
+    },
     /// The drift itself accelerates: offset = ½·a·τ².
-    AcceleratingDrift { acceleration_mps2: f64 },
+    AcceleratingDrift {
+        /// Drift acceleration a (m/s², 0.01–0.5).
+        acceleration_mps2: f64,
+    },
     /// The true fix at onset is replayed for the whole window.
     FrozenPosition,
     /// A constant offset from the first attacked row on.
-    Jump { offset_m: f64 },
+    Jump {
+        /// Offset (m, > 0, ≤ 1000 km).
+        offset_m: f64,
+    },
 }
 
 impl AttackKind {

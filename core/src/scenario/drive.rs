@@ -1,6 +1,6 @@
 //! Simulated drives: kinematically consistent ground truth, noisy GNSS fixes and onboard motion.
 //!
-//! The truth is integrated at [`SUBSTEPS_PER_SAMPLE`] substeps per sample from a speed and a heading that
+//! The truth is integrated at `SUBSTEPS_PER_SAMPLE` (10) substeps per sample from a speed and a heading that
 //! move towards targets at bounded rates (acceleration, braking, yaw rate, lateral acceleration), so both
 //! evolve smoothly. Targets come from a seeded maneuver planner (cruise at a new speed, turn, stop).
 //! The planner and the sensor noise draw from separate streams of the seed, so changing a noise level
@@ -13,9 +13,9 @@ use crate::rng::Rng;
 use crate::sample::{MAX_SPEED_MPS, Record, Sample, Track};
 
 /// Truth integration substeps per output sample (smooth motion between fixes).
-pub const SUBSTEPS_PER_SAMPLE: usize = 10;
+const SUBSTEPS_PER_SAMPLE: usize = 10;
 /// Largest number of samples one drive may have (guards against absurd specs).
-pub const MAX_DRIVE_SAMPLES: f64 = 10_000_000.0;
+const MAX_DRIVE_SAMPLES: f64 = 10_000_000.0;
 /// Mixed into the seed for the sensor-noise stream (kept apart from the maneuver stream).
 const NOISE_STREAM: u64 = 0x6E6F_6973_655F_7631;
 /// Below this speed the vehicle does not turn (no turning on the spot).

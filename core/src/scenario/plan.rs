@@ -22,7 +22,7 @@ pub enum AttackDuration {
 /// A grid of attacks to inject into each base track (SPEC §9 "subtle" experiment).
 ///
 /// For each base track, each kind, each direction slot and each repeat, [`generate`] yields one labelled
-/// track. The onset is drawn uniformly among the rows whose time after the start lies in
+/// track. Unless fixed, the onset is drawn uniformly among the rows whose time after the start lies in
 /// [margin·span, (1 − margin)·span − duration], so normal rows remain before and after the attack and
 /// the attack starts exactly at a sample. Draws come from a stream derived from (seed, base index, kind
 /// index, direction index, repeat), so adding bases or kinds does not move the others.
@@ -36,6 +36,9 @@ pub struct ScenarioPlan {
     pub directions_deg: Vec<f64>,
     /// Attack length.
     pub duration: AttackDuration,
+    /// Fixed onset (s after each base track's start); `None` = drawn in the middle part (see above).
+    #[serde(default)]
+    pub onset_s: Option<f64>,
     /// Fraction of the span kept attack-free at each end, in [0, 0.5).
     pub margin_fraction: f64,
     /// Scenarios per (base, kind, direction), each with its own draw (≥ 1).
@@ -63,6 +66,7 @@ impl ScenarioPlan {
                 .collect(),
             directions_deg: Vec::new(),
             duration,
+            onset_s: None,
             margin_fraction: Self::DEFAULT_MARGIN_FRACTION,
             repeats,
             seed,
@@ -87,6 +91,11 @@ impl ScenarioPlan {
                 "directions_deg",
                 format!("{bad} is not a bearing in [0, 360)"),
             );
+        }
+        if let Some(onset) = self.onset_s
+            && !(onset.is_finite() && onset >= 0.0)
+        {
+            return invalid("onset_s", format!("must be finite and >= 0 s, got {onset}"));
         }
         let margin = self.margin_fraction;
         if !(margin.is_finite() && (0.0..0.5).contains(&margin)) {
@@ -184,8 +193,8 @@ pub fn generate(bases: &[Track], plan: &ScenarioPlan) -> Result<Vec<InjectedTrac
     Ok(out)
 }
 
-/// Draws (onset, duration) in seconds: the onset is a sample's time after the start, chosen uniformly
-/// among rows that leave the margins (and at least one row) free before and after the attack.
+/// (onset, duration) in seconds. Unless the plan fixes the onset, it is a sample's time after the start,
+/// drawn uniformly among rows that leave the margins (and at least one row) free before and after.
 fn place_attack(
     base: &Track,
     plan: &ScenarioPlan,
@@ -202,6 +211,9 @@ fn place_attack(
         AttackDuration::Seconds(s) => s,
         AttackDuration::TrackFraction(f) => f * span_s,
     };
+    if let Some(onset_s) = plan.onset_s {
+        return Ok((onset_s, duration_s));
+    }
     let earliest_s = plan.margin_fraction * span_s;
     let latest_s = (1.0 - plan.margin_fraction) * span_s - duration_s;
     // Row 0 is excluded so at least one normal row precedes the attack.
