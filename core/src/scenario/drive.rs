@@ -1,0 +1,696 @@
+//! Simulated drives: kinematically consistent ground truth, noisy GNSS fixes and onboard motion.
+//!
+//! The truth is integrated at `SUBSTEPS_PER_SAMPLE` (10) substeps per sample from a speed and a heading that
+//! move towards targets at bounded rates (acceleration, braking, yaw rate, lateral acceleration), so both
+//! evolve smoothly. Targets come from a seeded maneuver planner (cruise at a new speed, turn, stop).
+//! The planner and the sensor noise draw from separate streams of the seed, so changing a noise level
+//! keeps the same ground truth.
+
+use serde::{Deserialize, Serialize};
+
+use super::{ScenarioError, bearing_unit, displace_fix};
+use crate::rng::Rng;
+use crate::sample::{MAX_SPEED_MPS, Record, Sample, Track};
+
+/// Truth integration substeps per output sample (smooth motion between fixes).
+const SUBSTEPS_PER_SAMPLE: usize = 10;
+/// Largest number of samples one drive may have (guards against absurd specs).
+const MAX_DRIVE_SAMPLES: f64 = 10_000_000.0;
+/// Mixed into the seed for the sensor-noise stream (kept apart from the maneuver stream).
+const NOISE_STREAM: u64 = 0x6E6F_6973_655F_7631;
+/// Below this speed the vehicle does not turn (no turning on the spot).
+const MIN_TURNING_SPEED_MPS: f64 = 0.1;
+/// When heading home from beyond the roam radius, the aim is jittered by up to this much.
+const HOMING_JITTER_DEG: f64 = 30.0;
+
+/// Speed behaviour: log-uniform cruise speeds (slow driving dominates, like the AV-GPS test track), bounded
+/// acceleration and braking, and stops.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SpeedProfile {
+    /// Lowest cruise speed (m/s, > 0).
+    pub cruise_min_mps: f64,
+    /// Highest cruise speed (m/s, ≤ 80).
+    pub cruise_max_mps: f64,
+    /// Acceleration towards a higher target speed (m/s²).
+    pub acceleration_mps2: f64,
+    /// Deceleration towards a lower target speed (m/s²).
+    pub braking_mps2: f64,
+    /// Shortest cruise maneuver (s).
+    pub maneuver_min_s: f64,
+    /// Longest cruise maneuver (s).
+    pub maneuver_max_s: f64,
+    /// Probability that the next maneuver is a stop.
+    pub stop_probability: f64,
+    /// Shortest standstill (s, after braking).
+    pub stop_min_s: f64,
+    /// Longest standstill (s, after braking).
+    pub stop_max_s: f64,
+}
+
+impl Default for SpeedProfile {
+    fn default() -> Self {
+        Self {
+            cruise_min_mps: 0.5,
+            cruise_max_mps: 12.0,
+            acceleration_mps2: 0.8,
+            braking_mps2: 1.5,
+            maneuver_min_s: 10.0,
+            maneuver_max_s: 60.0,
+            stop_probability: 0.2,
+            stop_min_s: 5.0,
+            stop_max_s: 40.0,
+        }
+    }
+}
+
+/// Turning behaviour: random heading changes at bounded yaw rate and lateral acceleration; beyond the roam
+/// radius the vehicle turns back towards its start (a small test area like the AV-GPS track).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TurnBehaviour {
+    /// Probability that a cruise maneuver also turns.
+    pub turn_probability: f64,
+    /// Smallest heading change of a turn (degrees).
+    pub turn_min_deg: f64,
+    /// Largest heading change of a turn (degrees, ≤ 180).
+    pub turn_max_deg: f64,
+    /// Yaw-rate limit (degrees/s).
+    pub max_yaw_rate_dps: f64,
+    /// Lateral-acceleration limit (m/s²): fast vehicles turn more slowly.
+    pub max_lateral_accel_mps2: f64,
+    /// Distance from the start (m) beyond which maneuvers head back.
+    pub roam_radius_m: f64,
+}
+
+impl Default for TurnBehaviour {
+    fn default() -> Self {
+        Self {
+            turn_probability: 0.6,
+            turn_min_deg: 15.0,
+            turn_max_deg: 120.0,
+            max_yaw_rate_dps: 20.0,
+            max_lateral_accel_mps2: 2.0,
+            roam_radius_m: 300.0,
+        }
+    }
+}
+
+/// GNSS error model per axis (east, north): white noise plus a first-order Gauss–Markov bias
+/// b_k = φ·b_{k−1} + σ_b·√(1−φ²)·w, φ = exp(−δ/τ), started from its stationary distribution.
+///
+/// Defaults (0.5 m white, 1.5 m bias with τ = 120 s) give metre-level absolute errors and a median
+/// step residual of ≈0.9 m, like the AV-GPS normal rows (REFERENCE-NOTES §8.5: 0.92 m on Dataset-2).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GnssNoise {
+    /// 1-sigma white noise per axis (m).
+    pub white_std_m: f64,
+    /// Stationary 1-sigma of the slowly varying bias per axis (m).
+    pub bias_std_m: f64,
+    /// Correlation time of the bias (s, > 0).
+    pub bias_time_constant_s: f64,
+}
+
+impl Default for GnssNoise {
+    fn default() -> Self {
+        Self {
+            white_std_m: 0.5,
+            bias_std_m: 1.5,
+            bias_time_constant_s: 120.0,
+        }
+    }
+}
+
+/// Onboard sensor noise: white noise on speed (clamped at 0; exactly 0 at standstill) and heading.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct OnboardNoise {
+    /// 1-sigma speed noise (m/s).
+    pub speed_std_mps: f64,
+    /// 1-sigma heading noise (degrees).
+    pub heading_std_deg: f64,
+}
+
+impl Default for OnboardNoise {
+    fn default() -> Self {
+        Self {
+            speed_std_mps: 0.05,
+            heading_std_deg: 1.0,
+        }
+    }
+}
+
+/// Everything that defines a simulated drive. `Default` resembles the AV-GPS test track in Tucson:
+/// 30 min at 1 Hz, speeds 0–12 m/s with a median of a few m/s, staying within a few hundred metres.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DriveSpec {
+    /// Length of the drive (s); samples at 0, 1/rate, … ≤ duration.
+    pub duration_s: f64,
+    /// Output sample rate (Hz).
+    pub rate_hz: f64,
+    /// Start latitude (degrees, |lat| ≤ 85).
+    pub start_lat_deg: f64,
+    /// Start longitude (degrees).
+    pub start_lon_deg: f64,
+    /// Initial heading (degrees clockwise from north, [0, 360)).
+    pub start_heading_deg: f64,
+    /// Speed behaviour.
+    pub speed: SpeedProfile,
+    /// Turning behaviour.
+    pub turns: TurnBehaviour,
+    /// GNSS error model.
+    pub gnss_noise: GnssNoise,
+    /// Onboard sensor noise.
+    pub onboard_noise: OnboardNoise,
+    /// Seed of the maneuver and noise streams.
+    pub seed: u64,
+}
+
+impl Default for DriveSpec {
+    fn default() -> Self {
+        Self {
+            duration_s: 1800.0,
+            rate_hz: 1.0,
+            start_lat_deg: 32.23,
+            start_lon_deg: -110.91,
+            start_heading_deg: 0.0,
+            speed: SpeedProfile::default(),
+            turns: TurnBehaviour::default(),
+            gnss_noise: GnssNoise::default(),
+            onboard_noise: OnboardNoise::default(),
+            seed: 0,
+        }
+    }
+}
+
+impl DriveSpec {
+    /// Checks every field (finite, in range, min ≤ max); the first problem is reported.
+    pub fn validate(&self) -> Result<(), ScenarioError> {
+        let s = &self.speed;
+        let t = &self.turns;
+        let g = &self.gnss_noise;
+        let o = &self.onboard_noise;
+        let samples = self.duration_s * self.rate_hz;
+        let checks: [(&'static str, f64, bool, &str); 26] = [
+            (
+                "duration_s",
+                self.duration_s,
+                self.duration_s > 0.0,
+                "> 0 s",
+            ),
+            (
+                "rate_hz",
+                self.rate_hz,
+                self.rate_hz > 0.0 && self.rate_hz <= 100.0,
+                "in (0, 100] Hz",
+            ),
+            (
+                "duration_s * rate_hz",
+                samples,
+                samples <= MAX_DRIVE_SAMPLES,
+                "at most 1e7 samples",
+            ),
+            (
+                "start_lat_deg",
+                self.start_lat_deg,
+                self.start_lat_deg.abs() <= 85.0,
+                "in [-85, 85]",
+            ),
+            (
+                "start_lon_deg",
+                self.start_lon_deg,
+                self.start_lon_deg.abs() <= 180.0,
+                "in [-180, 180]",
+            ),
+            (
+                "start_heading_deg",
+                self.start_heading_deg,
+                (0.0..360.0).contains(&self.start_heading_deg),
+                "in [0, 360)",
+            ),
+            (
+                "speed.cruise_min_mps",
+                s.cruise_min_mps,
+                s.cruise_min_mps > 0.0,
+                "> 0 m/s",
+            ),
+            (
+                "speed.cruise_max_mps",
+                s.cruise_max_mps,
+                s.cruise_max_mps >= s.cruise_min_mps && s.cruise_max_mps <= MAX_SPEED_MPS,
+                "in [cruise_min_mps, 80] m/s",
+            ),
+            (
+                "speed.acceleration_mps2",
+                s.acceleration_mps2,
+                s.acceleration_mps2 > 0.0,
+                "> 0 m/s²",
+            ),
+            (
+                "speed.braking_mps2",
+                s.braking_mps2,
+                s.braking_mps2 > 0.0,
+                "> 0 m/s²",
+            ),
+            (
+                "speed.maneuver_min_s",
+                s.maneuver_min_s,
+                s.maneuver_min_s > 0.0,
+                "> 0 s",
+            ),
+            (
+                "speed.maneuver_max_s",
+                s.maneuver_max_s,
+                s.maneuver_max_s >= s.maneuver_min_s,
+                ">= maneuver_min_s",
+            ),
+            (
+                "speed.stop_probability",
+                s.stop_probability,
+                (0.0..=1.0).contains(&s.stop_probability),
+                "in [0, 1]",
+            ),
+            (
+                "speed.stop_min_s",
+                s.stop_min_s,
+                s.stop_min_s >= 0.0,
+                ">= 0 s",
+            ),
+            (
+                "speed.stop_max_s",
+                s.stop_max_s,
+                s.stop_max_s >= s.stop_min_s,
+                ">= stop_min_s",
+            ),
+            (
+                "turns.turn_probability",
+                t.turn_probability,
+                (0.0..=1.0).contains(&t.turn_probability),
+                "in [0, 1]",
+            ),
+            (
+                "turns.turn_min_deg",
+                t.turn_min_deg,
+                t.turn_min_deg >= 0.0,
+                ">= 0 degrees",
+            ),
+            (
+                "turns.turn_max_deg",
+                t.turn_max_deg,
+                t.turn_max_deg >= t.turn_min_deg && t.turn_max_deg <= 180.0,
+                "in [turn_min_deg, 180] degrees",
+            ),
+            (
+                "turns.max_yaw_rate_dps",
+                t.max_yaw_rate_dps,
+                t.max_yaw_rate_dps > 0.0,
+                "> 0 degrees/s",
+            ),
+            (
+                "turns.max_lateral_accel_mps2",
+                t.max_lateral_accel_mps2,
+                t.max_lateral_accel_mps2 > 0.0,
+                "> 0 m/s²",
+            ),
+            (
+                "turns.roam_radius_m",
+                t.roam_radius_m,
+                t.roam_radius_m > 0.0,
+                "> 0 m",
+            ),
+            (
+                "gnss_noise.white_std_m",
+                g.white_std_m,
+                g.white_std_m >= 0.0,
+                ">= 0 m",
+            ),
+            (
+                "gnss_noise.bias_std_m",
+                g.bias_std_m,
+                g.bias_std_m >= 0.0,
+                ">= 0 m",
+            ),
+            (
+                "gnss_noise.bias_time_constant_s",
+                g.bias_time_constant_s,
+                g.bias_time_constant_s > 0.0,
+                "> 0 s",
+            ),
+            (
+                "onboard_noise.speed_std_mps",
+                o.speed_std_mps,
+                o.speed_std_mps >= 0.0,
+                ">= 0 m/s",
+            ),
+            (
+                "onboard_noise.heading_std_deg",
+                o.heading_std_deg,
+                o.heading_std_deg >= 0.0,
+                ">= 0 degrees",
+            ),
+        ];
+        for (field, value, ok, expected) in checks {
+            if !value.is_finite() || !ok {
+                return Err(ScenarioError::InvalidDrive {
+                    field,
+                    expected: format!("a finite number {expected}"),
+                    value,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// Number of output samples: 1 + ⌊duration·rate⌋.
+    pub fn sample_count(&self) -> usize {
+        // The small epsilon keeps e.g. 0.3 s at 10 Hz at 4 samples despite rounding.
+        (self.duration_s * self.rate_hz + 1e-9).floor() as usize + 1
+    }
+}
+
+/// The true vehicle state at one output sample.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrueState {
+    /// Seconds from the drive start.
+    pub timestamp_s: f64,
+    /// True latitude (degrees).
+    pub latitude_deg: f64,
+    /// True longitude (degrees).
+    pub longitude_deg: f64,
+    /// True ground speed (m/s).
+    pub speed_mps: f64,
+    /// True heading (degrees clockwise from north, [0, 360)).
+    pub heading_deg: f64,
+}
+
+/// A simulated drive: the measured track and the ground truth behind each of its rows.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SimulatedDrive {
+    /// Measured samples, labelled normal.
+    pub track: Track,
+    /// Ground truth, one per record.
+    pub truth: Vec<TrueState>,
+}
+
+/// Simulates a drive (see [`simulate_drive_with_truth`]) and returns the measured track only.
+pub fn simulate_drive(spec: &DriveSpec, vehicle_id: &str) -> Result<Track, ScenarioError> {
+    simulate_drive_with_truth(spec, vehicle_id).map(|drive| drive.track)
+}
+
+/// Simulates a drive: timestamps 0, 1/rate, …; GNSS fix = truth + [`GnssNoise`]; onboard speed/heading =
+/// truth + [`OnboardNoise`]; every label `Some(false)`; `line` = 1-based sample number. Deterministic
+/// for a spec (including its seed).
+pub fn simulate_drive_with_truth(
+    spec: &DriveSpec,
+    vehicle_id: &str,
+) -> Result<SimulatedDrive, ScenarioError> {
+    spec.validate()?;
+    let sample_interval_s = 1.0 / spec.rate_hz;
+    let substep_s = sample_interval_s / SUBSTEPS_PER_SAMPLE as f64;
+    let mut vehicle = Vehicle::at_start(spec);
+    let mut planner = Planner::new(spec);
+    let mut sensors = Sensors::new(spec);
+    let count = spec.sample_count();
+    let mut records = Vec::with_capacity(count);
+    let mut truth = Vec::with_capacity(count);
+    for index in 0..count {
+        if index > 0 {
+            for _ in 0..SUBSTEPS_PER_SAMPLE {
+                planner.update(&mut vehicle);
+                vehicle.advance(substep_s, &spec.speed, &spec.turns);
+            }
+        }
+        let state = TrueState {
+            timestamp_s: index as f64 * sample_interval_s,
+            latitude_deg: vehicle.latitude_deg,
+            longitude_deg: vehicle.longitude_deg,
+            speed_mps: vehicle.speed_mps,
+            heading_deg: vehicle.heading_deg,
+        };
+        records.push(Record {
+            sample: sensors.measure(&state, index > 0),
+            label: Some(false),
+            comparator_alarm: None,
+            line: index as u64 + 1,
+            trajectory_break: false,
+        });
+        truth.push(state);
+    }
+    Ok(SimulatedDrive {
+        track: Track {
+            vehicle_id: vehicle_id.to_owned(),
+            records,
+        },
+        truth,
+    })
+}
+
+/// True kinematic state, advanced in substeps.
+struct Vehicle {
+    time_s: f64,
+    latitude_deg: f64,
+    longitude_deg: f64,
+    /// Position relative to the start in a flat local frame, only for the roam radius.
+    east_m: f64,
+    north_m: f64,
+    speed_mps: f64,
+    heading_deg: f64,
+    target_speed_mps: f64,
+    target_heading_deg: f64,
+}
+
+impl Vehicle {
+    fn at_start(spec: &DriveSpec) -> Self {
+        Self {
+            time_s: 0.0,
+            latitude_deg: spec.start_lat_deg,
+            longitude_deg: spec.start_lon_deg,
+            east_m: 0.0,
+            north_m: 0.0,
+            speed_mps: 0.0,
+            heading_deg: spec.start_heading_deg,
+            target_speed_mps: 0.0,
+            target_heading_deg: spec.start_heading_deg,
+        }
+    }
+
+    /// One substep: speed and heading move towards their targets at bounded rates; the position moves by
+    /// the mean speed along the mean heading (second-order accurate).
+    fn advance(&mut self, dt_s: f64, speed: &SpeedProfile, turns: &TurnBehaviour) {
+        let old_speed = self.speed_mps;
+        self.speed_mps = if self.target_speed_mps > old_speed {
+            (old_speed + speed.acceleration_mps2 * dt_s).min(self.target_speed_mps)
+        } else {
+            (old_speed - speed.braking_mps2 * dt_s).max(self.target_speed_mps)
+        };
+        let mut heading_change_deg = 0.0;
+        if self.speed_mps > MIN_TURNING_SPEED_MPS {
+            let rate_limit_dps = turns
+                .max_yaw_rate_dps
+                .min((turns.max_lateral_accel_mps2 / self.speed_mps).to_degrees());
+            let max_change = rate_limit_dps * dt_s;
+            let wanted = signed_angle_deg(self.target_heading_deg - self.heading_deg);
+            heading_change_deg = wanted.clamp(-max_change, max_change);
+        }
+        let mean_heading_deg = self.heading_deg + 0.5 * heading_change_deg;
+        let distance_m = 0.5 * (old_speed + self.speed_mps) * dt_s;
+        let (unit_e, unit_n) = bearing_unit(mean_heading_deg);
+        let (east_m, north_m) = (distance_m * unit_e, distance_m * unit_n);
+        (self.latitude_deg, self.longitude_deg) =
+            displace_fix(self.latitude_deg, self.longitude_deg, east_m, north_m);
+        self.east_m += east_m;
+        self.north_m += north_m;
+        self.heading_deg = wrap_degrees(self.heading_deg + heading_change_deg);
+        self.time_s += dt_s;
+    }
+}
+
+/// Draws maneuvers (new speed/heading targets) from the seeded maneuver stream.
+struct Planner {
+    rng: Rng,
+    speed: SpeedProfile,
+    turns: TurnBehaviour,
+    maneuver_end_s: f64,
+}
+
+impl Planner {
+    fn new(spec: &DriveSpec) -> Self {
+        Self {
+            rng: Rng::seed_from_u64(spec.seed),
+            speed: spec.speed,
+            turns: spec.turns,
+            maneuver_end_s: 0.0,
+        }
+    }
+
+    /// Starts the next maneuver when the current one has ended.
+    fn update(&mut self, vehicle: &mut Vehicle) {
+        if vehicle.time_s < self.maneuver_end_s {
+            return;
+        }
+        let s = self.speed;
+        if self.rng.uniform() < s.stop_probability {
+            vehicle.target_speed_mps = 0.0;
+            let braking_s = vehicle.speed_mps / s.braking_mps2;
+            self.maneuver_end_s =
+                vehicle.time_s + braking_s + self.rng.uniform_range(s.stop_min_s, s.stop_max_s);
+            return;
+        }
+        // Log-uniform: slow driving dominates while fast stretches still occur.
+        let log_speed = self
+            .rng
+            .uniform_range(s.cruise_min_mps.ln(), s.cruise_max_mps.ln());
+        vehicle.target_speed_mps = log_speed.exp().clamp(s.cruise_min_mps, s.cruise_max_mps);
+        vehicle.target_heading_deg = self.next_heading(vehicle);
+        self.maneuver_end_s =
+            vehicle.time_s + self.rng.uniform_range(s.maneuver_min_s, s.maneuver_max_s);
+    }
+
+    fn next_heading(&mut self, vehicle: &Vehicle) -> f64 {
+        let t = self.turns;
+        let distance_from_start_m = vehicle.east_m.hypot(vehicle.north_m);
+        if distance_from_start_m > t.roam_radius_m {
+            let home_bearing_deg = (-vehicle.east_m).atan2(-vehicle.north_m).to_degrees();
+            let jitter = self
+                .rng
+                .uniform_range(-HOMING_JITTER_DEG, HOMING_JITTER_DEG);
+            return wrap_degrees(home_bearing_deg + jitter);
+        }
+        if self.rng.uniform() >= t.turn_probability {
+            return vehicle.heading_deg;
+        }
+        let angle = self.rng.uniform_range(t.turn_min_deg, t.turn_max_deg);
+        let sign = if self.rng.uniform() < 0.5 { -1.0 } else { 1.0 };
+        wrap_degrees(vehicle.heading_deg + sign * angle)
+    }
+}
+
+/// GNSS and onboard measurement models, drawing from the seeded noise stream.
+struct Sensors {
+    rng: Rng,
+    gnss: GnssNoise,
+    onboard: OnboardNoise,
+    /// Gauss–Markov factor φ per sample.
+    bias_decay: f64,
+    bias_east_m: f64,
+    bias_north_m: f64,
+}
+
+impl Sensors {
+    fn new(spec: &DriveSpec) -> Self {
+        let mut rng = Rng::seed_from_u64(spec.seed ^ NOISE_STREAM);
+        let gnss = spec.gnss_noise;
+        let bias_east_m = gnss.bias_std_m * rng.normal();
+        let bias_north_m = gnss.bias_std_m * rng.normal();
+        Self {
+            rng,
+            gnss,
+            onboard: spec.onboard_noise,
+            bias_decay: (-1.0 / (spec.rate_hz * gnss.bias_time_constant_s)).exp(),
+            bias_east_m,
+            bias_north_m,
+        }
+    }
+
+    /// Measures one truth state; `advance_bias` is false for the first sample (bias already stationary).
+    /// Always draws the same count of deviates, so noise levels only scale the same stream.
+    fn measure(&mut self, truth: &TrueState, advance_bias: bool) -> Sample {
+        if advance_bias {
+            let innovation_std = self.gnss.bias_std_m * (1.0 - self.bias_decay.powi(2)).sqrt();
+            self.bias_east_m =
+                self.bias_decay * self.bias_east_m + innovation_std * self.rng.normal();
+            self.bias_north_m =
+                self.bias_decay * self.bias_north_m + innovation_std * self.rng.normal();
+        }
+        let error_east_m = self.bias_east_m + self.gnss.white_std_m * self.rng.normal();
+        let error_north_m = self.bias_north_m + self.gnss.white_std_m * self.rng.normal();
+        let (latitude_deg, longitude_deg) = displace_fix(
+            truth.latitude_deg,
+            truth.longitude_deg,
+            error_east_m,
+            error_north_m,
+        );
+        let speed_noise = self.onboard.speed_std_mps * self.rng.normal();
+        let heading_noise = self.onboard.heading_std_deg * self.rng.normal();
+        // A wheel-speed sensor reads exactly zero at standstill.
+        let speed_mps = if truth.speed_mps > 0.0 {
+            (truth.speed_mps + speed_noise).max(0.0)
+        } else {
+            0.0
+        };
+        Sample::new(
+            truth.timestamp_s,
+            latitude_deg,
+            longitude_deg,
+            speed_mps,
+            wrap_degrees(truth.heading_deg + heading_noise),
+        )
+    }
+}
+
+/// Angle wrapped into [0, 360).
+fn wrap_degrees(angle_deg: f64) -> f64 {
+    let wrapped = angle_deg.rem_euclid(360.0);
+    // rem_euclid can round up to exactly 360 for tiny negative inputs.
+    if wrapped >= 360.0 { 0.0 } else { wrapped }
+}
+
+/// Angle wrapped into [-180, 180).
+fn signed_angle_deg(angle_deg: f64) -> f64 {
+    (angle_deg + 180.0).rem_euclid(360.0) - 180.0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn angles_wrap_into_their_ranges() {
+        assert_eq!(wrap_degrees(-90.0), 270.0);
+        assert_eq!(wrap_degrees(720.5), 0.5);
+        assert_eq!(wrap_degrees(-1e-20), 0.0);
+        assert_eq!(signed_angle_deg(350.0), -10.0);
+        assert_eq!(signed_angle_deg(-190.0), 170.0);
+    }
+
+    #[test]
+    fn sample_count_covers_the_duration_inclusive() {
+        let spec = |duration_s, rate_hz| DriveSpec {
+            duration_s,
+            rate_hz,
+            ..DriveSpec::default()
+        };
+        assert_eq!(spec(10.0, 1.0).sample_count(), 11);
+        assert_eq!(spec(0.3, 10.0).sample_count(), 4);
+        assert_eq!(spec(10.5, 1.0).sample_count(), 11);
+    }
+
+    #[test]
+    fn the_default_spec_is_valid_and_bad_fields_are_named() {
+        assert_eq!(DriveSpec::default().validate(), Ok(()));
+        let bad = DriveSpec {
+            rate_hz: 0.0,
+            ..DriveSpec::default()
+        };
+        let err = bad.validate().unwrap_err();
+        assert!(err.to_string().contains("rate_hz"), "{err}");
+        let mut bad = DriveSpec::default();
+        bad.gnss_noise.white_std_m = f64::NAN;
+        let err = bad.validate().unwrap_err().to_string();
+        assert!(
+            err.contains("gnss_noise.white_std_m") && err.contains("NaN"),
+            "{err}"
+        );
+        let mut bad = DriveSpec::default();
+        bad.speed.cruise_max_mps = 0.1;
+        assert!(matches!(
+            bad.validate(),
+            Err(ScenarioError::InvalidDrive {
+                field: "speed.cruise_max_mps",
+                ..
+            })
+        ));
+    }
+}

@@ -1,0 +1,208 @@
+//! Labelled subtle-attack scenarios (SPEC §9).
+//!
+//! The AV-GPS attacks are not subtle (frozen fixes while stopped, jumps of hundreds of km), so the detector
+//! is trained and judged on attacks injected here: into real normal trajectories ([`inject`], [`generate`])
+//! and into simulated drives ([`simulate_drive`]). Everything is deterministic from seeds.
+//!
+//! Geodesy: offsets in metres east/north become latitude/longitude through the WGS-84 meridian and
+//! prime-vertical radii at the fix being displaced (`displace_fix`, a private copy until `core::geo`
+//! lands). Converting back with the same radii at the same fix recovers the metres to rounding; against
+//! a true geodesic the error grows with the offset squared (a few cm at 1 km, far below GNSS noise).
+
+mod attack;
+mod drive;
+mod plan;
+
+pub use attack::{AttackKind, AttackSpec, InjectedTrack, inject};
+pub use drive::{
+    DriveSpec, GnssNoise, OnboardNoise, SimulatedDrive, SpeedProfile, TrueState, TurnBehaviour,
+    simulate_drive, simulate_drive_with_truth,
+};
+pub use plan::{AttackDuration, RAMP_SWEEP_VELOCITIES_MPS, ScenarioPlan, generate};
+
+/// Ramp drift velocities accepted by [`AttackKind::RampDrift`] (m/s, inclusive; SPEC §9).
+pub const RAMP_VELOCITY_RANGE_MPS: (f64, f64) = (0.05, 2.0);
+/// Accelerations accepted by [`AttackKind::AcceleratingDrift`] (m/s², inclusive; SPEC §9).
+pub const DRIFT_ACCELERATION_RANGE_MPS2: (f64, f64) = (0.01, 0.5);
+/// Offsets accepted by [`AttackKind::Jump`] (m; lower bound exclusive). The upper bound keeps the
+/// local-radii conversion meaningful while still covering the AV-GPS-style teleports of hundreds of km.
+pub const JUMP_OFFSET_RANGE_M: (f64, f64) = (0.0, 1_000_000.0);
+/// A step longer than this starts a new trajectory (SPEC §3); an attack must not span one.
+pub const MAX_STEP_S: f64 = 5.0;
+
+/// Everything that can go wrong when building scenarios.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ScenarioError {
+    /// A field of an [`AttackSpec`] is non-finite or out of range.
+    #[error("attack {field} must be {expected}, got {value}")]
+    InvalidAttack {
+        field: &'static str,
+        expected: String,
+        value: f64,
+    },
+    /// A field of a [`DriveSpec`] is non-finite or out of range.
+    #[error("drive spec {field} must be {expected}, got {value}")]
+    InvalidDrive {
+        field: &'static str,
+        expected: String,
+        value: f64,
+    },
+    /// A [`ScenarioPlan`] is unusable.
+    #[error("scenario plan {field}: {problem}")]
+    InvalidPlan {
+        field: &'static str,
+        problem: String,
+    },
+    /// The base track has no records.
+    #[error("track `{vehicle_id}` has no records")]
+    EmptyTrack { vehicle_id: String },
+    /// The first timestamp, from which the onset is measured, is not finite.
+    #[error("track `{vehicle_id}` starts with a non-finite timestamp {timestamp_s}")]
+    InvalidStartTime {
+        vehicle_id: String,
+        timestamp_s: f64,
+    },
+    /// The attack window does not lie inside the track's time span.
+    #[error(
+        "attack window [{start_s}, {end_s}) s after the first sample does not fit inside track `{vehicle_id}`, \
+         which spans {span_s} s"
+    )]
+    AttackOutsideTrack {
+        vehicle_id: String,
+        start_s: f64,
+        end_s: f64,
+        span_s: f64,
+    },
+    /// No row has a timestamp inside the attack window (e.g. the window falls in a gap).
+    #[error("attack window [{start_s}, {end_s}) s of track `{vehicle_id}` contains no rows")]
+    NoRowsInWindow {
+        vehicle_id: String,
+        start_s: f64,
+        end_s: f64,
+    },
+    /// Rows inside the window are not one contiguous run (time is not monotonic around the window).
+    #[error(
+        "attack window of track `{vehicle_id}` is not a contiguous run of rows: row {row} lies outside it \
+         between attacked rows (timestamps must increase; split the track into trajectories first)"
+    )]
+    NonContiguousWindow { vehicle_id: String, row: usize },
+    /// The attack would straddle a trajectory start (gap > 5 s, or a source break flag).
+    #[error(
+        "attack window of track `{vehicle_id}` spans a trajectory break at row {row}; an attack event must lie \
+         inside one trajectory"
+    )]
+    SpansTrajectoryBreak { vehicle_id: String, row: usize },
+    /// A row inside the window is already spoofed: injection is for normal data only.
+    #[error(
+        "row {row} of track `{vehicle_id}` inside the attack window is already labelled spoofed; inject only \
+         into normal data"
+    )]
+    OverlapsSpoofed { vehicle_id: String, row: usize },
+    /// A frozen-position attack needs a valid fix to hold.
+    #[error(
+        "frozen attack on track `{vehicle_id}`: the fix at onset row {row} is not a valid position"
+    )]
+    InvalidOnsetFix { vehicle_id: String, row: usize },
+    /// The displaced fix leaves the valid latitude range.
+    #[error(
+        "attack on track `{vehicle_id}` moves row {row} to latitude {latitude_deg}, outside [-90, 90]"
+    )]
+    DisplacedOutOfRange {
+        vehicle_id: String,
+        row: usize,
+        latitude_deg: f64,
+    },
+    /// The plan's attack cannot be placed in the middle part of a base track.
+    #[error(
+        "cannot place a {duration_s} s attack in the middle part (margins {margin_fraction} of the span) of track \
+         `{vehicle_id}`, which spans {span_s} s"
+    )]
+    AttackDoesNotFit {
+        vehicle_id: String,
+        duration_s: f64,
+        span_s: f64,
+        margin_fraction: f64,
+    },
+}
+
+/// WGS-84 semi-major axis (m).
+const WGS84_A_M: f64 = 6_378_137.0;
+/// WGS-84 first eccentricity squared.
+const WGS84_E2: f64 = 6.694_379_990_141_316e-3;
+
+/// WGS-84 (meridian, prime-vertical) radii of curvature in metres at a latitude.
+pub(crate) fn wgs84_local_radii_m(latitude_deg: f64) -> (f64, f64) {
+    let sin_lat = latitude_deg.to_radians().sin();
+    let w2 = 1.0 - WGS84_E2 * sin_lat * sin_lat;
+    let meridian = WGS84_A_M * (1.0 - WGS84_E2) / (w2 * w2.sqrt());
+    let prime_vertical = WGS84_A_M / w2.sqrt();
+    (meridian, prime_vertical)
+}
+
+/// Moves a fix by `east_m`/`north_m` using the WGS-84 local radii at the fix; returns (lat, lon) in
+/// degrees, longitude wrapped into [-180, 180). The latitude is NOT clamped: callers check it.
+pub(crate) fn displace_fix(
+    latitude_deg: f64,
+    longitude_deg: f64,
+    east_m: f64,
+    north_m: f64,
+) -> (f64, f64) {
+    let (meridian, prime_vertical) = wgs84_local_radii_m(latitude_deg);
+    let d_lat = (north_m / meridian).to_degrees();
+    let d_lon = (east_m / (prime_vertical * latitude_deg.to_radians().cos())).to_degrees();
+    (
+        latitude_deg + d_lat,
+        wrap_longitude_deg(longitude_deg + d_lon),
+    )
+}
+
+/// Wraps a longitude into [-180, 180); values already inside are returned bit-identical.
+fn wrap_longitude_deg(longitude_deg: f64) -> f64 {
+    if (-180.0..180.0).contains(&longitude_deg) {
+        longitude_deg
+    } else {
+        (longitude_deg + 180.0).rem_euclid(360.0) - 180.0
+    }
+}
+
+/// Unit vector (east, north) of a bearing in degrees clockwise from north.
+fn bearing_unit(direction_deg: f64) -> (f64, f64) {
+    let rad = direction_deg.to_radians();
+    (rad.sin(), rad.cos())
+}
+
+/// Formats a number compactly for names: shortest round-trip form (`0.25`, `90`, `1000`).
+fn compact(value: f64) -> String {
+    format!("{value}")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn radii_at_the_equator_and_pole_match_the_closed_forms() {
+        // Equator: M = a(1-e²), N = a. Pole: M = N = a/sqrt(1-e²).
+        let (m, n) = wgs84_local_radii_m(0.0);
+        assert!((m - 6_335_439.327_083).abs() < 1e-3, "{m}");
+        assert!((n - 6_378_137.0).abs() < 1e-6, "{n}");
+        let (m, n) = wgs84_local_radii_m(90.0);
+        assert!((m - 6_399_593.625_864).abs() < 1e-3, "{m}");
+        assert!((n - 6_399_593.625_864).abs() < 1e-3, "{n}");
+    }
+
+    #[test]
+    fn displacing_at_the_equator_moves_by_the_hand_computed_angles() {
+        let (lat, lon) = displace_fix(0.0, 10.0, 100.0, 200.0);
+        assert!((lat - (200.0 / 6_335_439.327_083_f64).to_degrees()).abs() < 1e-12);
+        assert!((lon - 10.0 - (100.0 / 6_378_137.0_f64).to_degrees()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn longitude_wraps_across_the_antimeridian() {
+        let (_, lon) = displace_fix(0.0, 179.9999, 50.0, 0.0);
+        assert!(lon < -179.999, "{lon}");
+        assert_eq!(wrap_longitude_deg(-110.91), -110.91);
+        assert!((wrap_longitude_deg(190.0) + 170.0).abs() < 1e-12);
+    }
+}
