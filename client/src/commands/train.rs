@@ -72,6 +72,20 @@ impl From<FeaturesArg> for FeatureGroups {
 }
 
 impl ModelFlags {
+    /// The flags' defaults (full model, seed 42, 30 epochs).
+    pub fn defaults() -> Self {
+        Self {
+            seed: 42,
+            epochs: 30,
+            no_exchange: false,
+            no_third_order: false,
+            first_order_cell: false,
+            features: FeaturesArg::All,
+            select_kappa_rho: false,
+            projection: ProjectionArg::Wgs84,
+        }
+    }
+
     /// Training options these flags describe.
     pub fn options(&self, data_description: Vec<String>) -> DetectorTrainingOptions {
         let model = ModelConfig {

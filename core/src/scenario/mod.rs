@@ -206,3 +206,29 @@ mod tests {
         assert!((wrap_longitude_deg(190.0) + 170.0).abs() < 1e-12);
     }
 }
+
+/// The normal (not spoofed) stretches of a labelled track as separate tracks
+/// (`<vehicle>/normal<k>`, each starting a trajectory), ready to be injection bases.
+pub fn normal_runs(track: &Track) -> Vec<Track> {
+    let mut out: Vec<Track> = Vec::new();
+    let mut current: Vec<crate::sample::Record> = Vec::new();
+    let mut flush = |records: Vec<crate::sample::Record>, out: &mut Vec<Track>| {
+        let mut records = records;
+        if let Some(first) = records.first_mut() {
+            first.trajectory_break = true;
+            out.push(Track {
+                vehicle_id: format!("{}/normal{}", track.vehicle_id, out.len()),
+                records,
+            });
+        }
+    };
+    for record in &track.records {
+        if record.label == Some(true) {
+            flush(std::mem::take(&mut current), &mut out);
+        } else {
+            current.push(record.clone());
+        }
+    }
+    flush(current, &mut out);
+    out
+}

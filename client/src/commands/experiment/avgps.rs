@@ -16,8 +16,8 @@ use spoofwatch_core::sample::Track;
 
 use super::parallel::{default_threads, map_parallel};
 use super::{load_avgps, prepare_out};
-use crate::commands::train::{FeaturesArg, ModelFlags, train_with_progress};
-use crate::commands::{ProjectionArg, write_json};
+use crate::commands::train::{ModelFlags, train_with_progress};
+use crate::commands::write_json;
 use crate::report::{delays, metrics_table};
 
 #[derive(Debug, clap::Args)]
@@ -145,19 +145,6 @@ fn variants(ablations: bool, headline_subtle: bool) -> Vec<Variant> {
     list
 }
 
-fn flags_for(variant: &Variant, args: &Args) -> ModelFlags {
-    ModelFlags {
-        seed: args.seed,
-        epochs: args.epochs,
-        no_exchange: variant.ablation.no_exchange,
-        no_third_order: variant.ablation.no_third_order,
-        first_order_cell: variant.ablation.first_order_cell,
-        features: FeaturesArg::from(variant.ablation.features),
-        select_kappa_rho: false,
-        projection: ProjectionArg::Wgs84,
-    }
-}
-
 /// The EKF Detector column of Dataset-3 scored as a confirmed alarm (SPEC §8 fixed check).
 fn ekf_metrics(dataset3: &[Track]) -> Metrics {
     let mut rows = Vec::new();
@@ -204,9 +191,20 @@ pub fn run(args: Args) -> Result<()> {
         } else {
             &split.train
         };
-        let options = flags_for(variant, &args).options(vec![
+        let flags = ModelFlags {
+            seed: args.seed,
+            epochs: args.epochs,
+            ..ModelFlags::defaults()
+        };
+        let mut options = flags.options(vec![
             "AV-GPS-Dataset-2.csv chronological 70% (train) / 15% (validation)".into(),
         ]);
+        if variant.subtle_training {
+            options
+                .data_description
+                .push("plus injected subtle attacks in the training part".into());
+        }
+        options.model.ablation = variant.ablation.clone();
         let trained = train_with_progress(train, &split.validation, &options)
             .with_context(|| format!("training variant {}", variant.name))?;
         let artifact = Arc::new(trained.artifact);

@@ -1,0 +1,132 @@
+//! Request validation for samples and vehicle ids: every problem becomes a field violation, and
+//! nothing is applied unless the whole batch is valid.
+
+use spoofwatch_core::sample::Sample;
+use spoofwatch_proto::v1;
+
+use crate::convert::sample_from_proto;
+
+/// Largest backward time step tolerated inside a session (SPEC §3: beyond it time "goes backwards").
+pub const BACKWARD_TOLERANCE_S: f64 = 0.5;
+/// Longest vehicle id.
+pub const MAX_VEHICLE_ID_LEN: usize = 128;
+
+/// Checks a vehicle id: 1–128 characters of `[A-Za-z0-9._:-]`.
+pub fn vehicle_id_violation(id: &str) -> Option<String> {
+    if id.is_empty() {
+        return Some("required".into());
+    }
+    if id.len() > MAX_VEHICLE_ID_LEN {
+        return Some(format!("at most {MAX_VEHICLE_ID_LEN} characters"));
+    }
+    if !id
+        .chars()
+        .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | ':' | '-'))
+    {
+        return Some("only letters, digits and . _ : - are allowed".into());
+    }
+    None
+}
+
+/// Validates a batch that follows `last_timestamp_s` (the session's last accepted sample).
+/// `prefix` names the repeated field, e.g. `batch.samples`.
+pub fn validate_batch(
+    samples: &[v1::Sample],
+    last_timestamp_s: Option<f64>,
+    max_samples: usize,
+    prefix: &str,
+) -> Result<Vec<Sample>, Vec<(String, String)>> {
+    if samples.is_empty() || samples.len() > max_samples {
+        return Err(vec![(
+            prefix.to_string(),
+            format!(
+                "must hold 1 to {max_samples} samples, got {}",
+                samples.len()
+            ),
+        )]);
+    }
+    let mut violations = Vec::new();
+    let mut previous = last_timestamp_s;
+    let converted: Vec<Sample> = samples.iter().map(sample_from_proto).collect();
+    for (i, sample) in converted.iter().enumerate() {
+        for v in sample.violations() {
+            violations.push((format!("{prefix}[{i}].{}", v.field), v.description));
+        }
+        let t = sample.timestamp_s;
+        if let Some(prev) = previous
+            && t.is_finite()
+            && t < prev - BACKWARD_TOLERANCE_S
+        {
+            violations.push((
+                format!("{prefix}[{i}].timestamp_s"),
+                format!("goes backwards from {prev} to {t} (more than {BACKWARD_TOLERANCE_S} s)"),
+            ));
+        }
+        if t.is_finite() {
+            previous = Some(previous.map_or(t, |p| p.max(t)));
+        }
+    }
+    if violations.is_empty() {
+        Ok(converted)
+    } else {
+        Err(violations)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample(t: f64, lat: f64) -> v1::Sample {
+        v1::Sample {
+            timestamp_s: t,
+            latitude_deg: lat,
+            longitude_deg: -110.9,
+            speed_mps: 2.0,
+            heading_deg: 90.0,
+            ..v1::Sample::default()
+        }
+    }
+
+    #[test]
+    fn a_good_batch_passes() {
+        let batch = [sample(10.0, 32.0), sample(11.0, 32.0), sample(10.8, 32.0)];
+        assert_eq!(validate_batch(&batch, Some(9.0), 10, "s").map(|v| v.len()), Ok(3));
+    }
+
+    #[test]
+    fn every_bad_field_and_backward_time_is_named() {
+        let batch = [sample(10.0, f64::NAN), sample(12.0, 95.0), sample(11.0, 32.0)];
+        let errors = validate_batch(&batch, Some(10.2), 10, "batch.samples").unwrap_err();
+        let fields: Vec<&str> = errors.iter().map(|(f, _)| f.as_str()).collect();
+        assert_eq!(
+            fields,
+            [
+                "batch.samples[0].latitude_deg",
+                "batch.samples[1].latitude_deg",
+                "batch.samples[2].timestamp_s"
+            ]
+        );
+    }
+
+    #[test]
+    fn time_before_the_session_is_rejected() {
+        let errors = validate_batch(&[sample(5.0, 32.0)], Some(10.0), 10, "s").unwrap_err();
+        assert_eq!(errors[0].0, "s[0].timestamp_s");
+    }
+
+    #[test]
+    fn batch_size_is_bounded() {
+        assert!(validate_batch(&[], None, 10, "s").is_err());
+        let big: Vec<_> = (0..11).map(|i| sample(f64::from(i), 32.0)).collect();
+        assert_eq!(validate_batch(&big, None, 10, "s").unwrap_err()[0].0, "s");
+    }
+
+    #[test]
+    fn vehicle_ids_are_checked() {
+        assert_eq!(vehicle_id_violation("truck-7.a:b_c"), None);
+        assert!(vehicle_id_violation("").is_some());
+        assert!(vehicle_id_violation("has space").is_some());
+        assert!(vehicle_id_violation(&"x".repeat(129)).is_some());
+    }
+}

@@ -1,0 +1,131 @@
+//! Deliberate mapping of every failure to a gRPC status, with google.rpc error details.
+//! Internal errors are logged and answered with a generic INTERNAL message (no leaked internals).
+
+use prost::Message;
+use tonic::{Code, Status};
+use tonic_types::{ErrorDetails, FieldViolation, StatusExt};
+
+use crate::store::StoreError;
+
+/// INVALID_ARGUMENT with one BadRequest field violation per problem.
+pub fn invalid_argument(violations: Vec<(String, String)>) -> Status {
+    let summary = violations
+        .iter()
+        .map(|(field, description)| format!("{field}: {description}"))
+        .collect::<Vec<_>>()
+        .join("; ");
+    let details = ErrorDetails::with_bad_request(
+        violations
+            .into_iter()
+            .map(|(field, description)| FieldViolation::new(field, description))
+            .collect::<Vec<_>>(),
+    );
+    Status::with_error_details(Code::InvalidArgument, summary, details)
+}
+
+/// INVALID_ARGUMENT for a single field.
+pub fn invalid_field(field: impl Into<String>, description: impl Into<String>) -> Status {
+    invalid_argument(vec![(field.into(), description.into())])
+}
+
+/// NOT_FOUND with ResourceInfo naming the resource.
+pub fn not_found(kind: &str, name: &str) -> Status {
+    let details = ErrorDetails::with_resource_info(kind, name, "", format!("no such {kind}"));
+    Status::with_error_details(Code::NotFound, format!("{kind} {name:?} not found"), details)
+}
+
+/// FAILED_PRECONDITION with an ErrorInfo reason (machine-readable, UPPER_SNAKE_CASE).
+pub fn failed_precondition(reason: &str, message: impl Into<String>) -> Status {
+    let details = ErrorDetails::with_error_info(
+        reason,
+        "spoofwatch",
+        std::collections::HashMap::<String, String>::new(),
+    );
+    Status::with_error_details(Code::FailedPrecondition, message, details)
+}
+
+/// RESOURCE_EXHAUSTED with a retry hint.
+pub fn resource_exhausted(message: impl Into<String>) -> Status {
+    let details = ErrorDetails::with_retry_info(Some(std::time::Duration::from_secs(5)));
+    Status::with_error_details(Code::ResourceExhausted, message, details)
+}
+
+/// UNAVAILABLE while the server drains.
+pub fn shutting_down() -> Status {
+    let details = ErrorDetails::with_retry_info(Some(std::time::Duration::from_secs(1)));
+    Status::with_error_details(
+        Code::Unavailable,
+        "server is shutting down; reconnect to another replica or retry",
+        details,
+    )
+}
+
+/// INTERNAL for an unexpected failure, logged with its cause.
+pub fn internal(context: &str, error: &dyn std::fmt::Display) -> Status {
+    tracing::error!(%error, "{context}");
+    Status::internal(format!("internal error while {context}"))
+}
+
+/// A tonic status as the google.rpc.Status message (for ItemError).
+pub fn to_rpc_status(status: &Status) -> tonic_types::Status {
+    tonic_types::Status::decode(status.details()).unwrap_or_else(|_| tonic_types::Status {
+        code: status.code() as i32,
+        message: status.message().to_string(),
+        details: Vec::new(),
+    })
+}
+
+impl From<StoreError> for Status {
+    fn from(error: StoreError) -> Self {
+        match &error {
+            StoreError::NotFound { kind, id } => not_found(kind, id),
+            StoreError::AlreadyExists { .. } => Status::already_exists(error.to_string()),
+            StoreError::ModelActive { .. } => failed_precondition("MODEL_ACTIVE", error.to_string()),
+            StoreError::JobNotFinished { .. } => {
+                failed_precondition("JOB_NOT_FINISHED", error.to_string())
+            }
+            StoreError::InvalidState { .. } => {
+                failed_precondition("INVALID_STATE", error.to_string())
+            }
+            StoreError::InvalidPageToken => invalid_field("page_token", "invalid page token"),
+            StoreError::InvalidValue { field, reason } => invalid_field(field.to_string(), reason),
+            StoreError::Database(_) | StoreError::Migration(_) => internal("accessing the database", &error),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn field_violations_travel_in_the_status_details() {
+        let status = invalid_argument(vec![
+            ("batch.samples[2].latitude_deg".into(), "must be finite".into()),
+            ("batch.samples[3].speed_mps".into(), "too fast".into()),
+        ]);
+        assert_eq!(status.code(), Code::InvalidArgument);
+        let bad = status.get_details_bad_request().expect("BadRequest details");
+        assert_eq!(bad.field_violations.len(), 2);
+        assert_eq!(bad.field_violations[0].field, "batch.samples[2].latitude_deg");
+        let rpc = to_rpc_status(&status);
+        assert_eq!(rpc.code, Code::InvalidArgument as i32);
+        assert_eq!(rpc.details.len(), 1);
+    }
+
+    #[test]
+    fn store_errors_map_to_deliberate_codes() {
+        let active: Status = StoreError::ModelActive { id: "m".into() }.into();
+        assert_eq!(active.code(), Code::FailedPrecondition);
+        let missing: Status = StoreError::NotFound {
+            kind: "model",
+            id: "x".into(),
+        }
+        .into();
+        assert_eq!(missing.code(), Code::NotFound);
+        assert_eq!(
+            Status::from(StoreError::InvalidPageToken).code(),
+            Code::InvalidArgument
+        );
+    }
+}
