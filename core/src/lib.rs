@@ -14,4 +14,5 @@ pub mod model;
 pub mod rng;
 pub mod sample;
 pub mod scenario;
+pub mod testdata;
 pub mod train;
