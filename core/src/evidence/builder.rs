@@ -163,13 +163,14 @@ impl EvidenceBuilder {
             accum_log: 0.0,
         };
 
-        match (&self.previous, self.reference) {
-            (Some(previous), Some(reference))
-                if usable && previous.usable && delta_t > 0.0 && delta_t <= MAX_GAP_S =>
-            {
-                self.fill_valid(&mut evidence, previous, reference, sample, fix, velocity);
-            }
-            _ => {}
+        // ν needs both samples usable and 0 < δ ≤ 5 s (never true at a start: no previous sample).
+        if let (Some(previous), Some(reference)) = (&self.previous, self.reference)
+            && usable
+            && previous.usable
+            && delta_t > 0.0
+            && delta_t <= MAX_GAP_S
+        {
+            self.fill_valid(&mut evidence, previous, reference, sample, fix, velocity);
         }
         self.fill_accumulator(&mut evidence);
 
