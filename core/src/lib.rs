@@ -19,4 +19,5 @@ pub mod pipeline;
 pub mod rng;
 pub mod sample;
 pub mod scenario;
+pub mod testdata;
 pub mod train;

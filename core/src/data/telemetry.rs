@@ -1,8 +1,10 @@
 //! The plain telemetry CSV: `vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg[,label]`.
 
-use std::io::Write;
+use std::collections::HashMap;
+use std::io::{Read, Write};
 
-use crate::sample::Track;
+use super::{DataError, Table, parse_flag, parse_measurement};
+use crate::sample::{Record, Sample, Track};
 
 /// Required columns, in the order the writer emits them.
 pub const REQUIRED_COLUMNS: [&str; 6] = [
@@ -13,6 +15,105 @@ pub const REQUIRED_COLUMNS: [&str; 6] = [
     "speed_mps",
     "heading_deg",
 ];
+
+/// Optional columns the reader recognises (others are ignored).
+pub const OPTIONAL_COLUMNS: [&str; 4] = [
+    "label",
+    "position_std_m",
+    "speed_std_mps",
+    "heading_std_deg",
+];
+
+/// Column indices of the fields we read.
+struct Columns {
+    vehicle_id: usize,
+    measurements: [usize; 5],
+    label: Option<usize>,
+    stds: [Option<usize>; 3],
+}
+
+/// Reads all vehicles of a telemetry CSV, grouped by vehicle in order of first appearance, each in
+/// row order. Empty or `nan` numeric fields become NaN (the sample is then invalid, ν = 0); empty
+/// uncertainty fields are absent.
+pub(super) fn read_tracks<R: Read>(
+    csv: &mut csv::Reader<R>,
+    table: &Table<'_>,
+) -> Result<Vec<Track>, DataError> {
+    let find = |name: &str| {
+        table.column(name).ok_or_else(|| DataError::UnknownFormat {
+            file: table.source.to_string(),
+            detail: format!("missing column \"{name}\""),
+        })
+    };
+    let columns = Columns {
+        vehicle_id: find("vehicle_id")?,
+        measurements: [
+            find("timestamp")?,
+            find("latitude")?,
+            find("longitude")?,
+            find("speed_mps")?,
+            find("heading_deg")?,
+        ],
+        label: table.column("label"),
+        stds: [
+            table.column("position_std_m"),
+            table.column("speed_std_mps"),
+            table.column("heading_std_deg"),
+        ],
+    };
+    let mut tracks: Vec<Track> = Vec::new();
+    let mut track_of_vehicle: HashMap<String, usize> = HashMap::new();
+    let mut row = csv::StringRecord::new();
+    while let Some(line) = table.next_row(csv, &mut row)? {
+        let field = |index: usize| row.get(index).unwrap_or("");
+        let err = |index: usize, problem: String| table.field_error(line, index, problem);
+
+        let vehicle_id = field(columns.vehicle_id).trim();
+        if vehicle_id.is_empty() {
+            return Err(err(columns.vehicle_id, "empty vehicle id".into()));
+        }
+        let mut values = [0.0; 5];
+        for (value, &index) in values.iter_mut().zip(&columns.measurements) {
+            *value = parse_measurement(field(index)).map_err(|p| err(index, p))?;
+        }
+        let [timestamp, latitude, longitude, speed, heading] = values;
+        let mut sample = Sample::new(timestamp, latitude, longitude, speed, heading);
+        let mut stds = [None; 3];
+        for (std, index) in stds.iter_mut().zip(columns.stds) {
+            if let Some(index) = index {
+                let value = parse_measurement(field(index)).map_err(|p| err(index, p))?;
+                *std = (!value.is_nan()).then_some(value);
+            }
+        }
+        [
+            sample.position_std_m,
+            sample.speed_std_mps,
+            sample.heading_std_deg,
+        ] = stds;
+        let label = match columns.label {
+            Some(index) => parse_flag(field(index)).map_err(|p| err(index, p))?,
+            None => None,
+        };
+
+        let track = *track_of_vehicle
+            .entry(vehicle_id.to_string())
+            .or_insert_with(|| {
+                tracks.push(Track {
+                    vehicle_id: vehicle_id.to_string(),
+                    records: Vec::new(),
+                });
+                tracks.len() - 1
+            });
+        tracks[track].records.push(Record {
+            sample,
+            label,
+            comparator_alarm: None,
+            line,
+            trajectory_break: false,
+        });
+    }
+    Ok(tracks)
+}
 
 /// Writes tracks in the telemetry format (with a `label` column when any record is labelled).
 /// Vehicles are written one after another; floats use Rust's shortest round-trip form.

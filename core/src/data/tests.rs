@@ -1,0 +1,260 @@
+//! Reader checks on small hand-written files.
+
+use super::telemetry::write_tracks;
+use super::*;
+use crate::sample::{Record, Sample};
+
+const AVGPS_HEADER: &str = "Heading (deg),Yaw (deg),Velocity (m/s),Run Time,Hobbs,Clock Time,Clock Date,\
+GPS Latitude,GPS Longitude,Data Type,EKF Detector";
+
+fn avgps(rows: &[&str]) -> String {
+    let mut text = String::from(AVGPS_HEADER);
+    for row in rows {
+        text.push_str("\r\n");
+        text.push_str(row);
+    }
+    text.push_str("\r\n");
+    text
+}
+
+fn read_str(text: &str, source: &str) -> Result<Recording, DataError> {
+    read(text.as_bytes(), source)
+}
+
+#[test]
+fn avgps_times_breaks_and_fields() {
+    let text = avgps(&[
+        // 0: no clock → δ NaN; first row is a break.
+        "10,-170,1.5,0:00:00,15:03:55,,,32.23,-110.9,0,",
+        // 1: clock missing on the previous row → Run Time fallback: δ = 1.
+        "11,-169,1.6,0:00:01,15:03:55,10:55:59,5/24/2022,32.2301,-110.9,0,1",
+        // 2: Δclock = 2 → δ = 2. Empty speed → NaN.
+        "12,-168,,0:00:02,15:03:55,10:56:01,5/24/2022,32.2302,-110.9,1,1",
+        // 3: Δclock = 0, ΔRunTime = 1 → δ = 1 (fallback).
+        "13,-167,1.7,0:00:03,15:03:55,10:56:01,5/24/2022,nan,-110.9,1,0",
+        // 4: Δclock = 7 → gap break, δ = 7.
+        "14,-166,1.8,0:00:10,15:03:55,10:56:08,5/24/2022,32.2303,-110.9,1,0",
+        // 5: Δclock 1, Run Time reset → break, δ = 1.
+        "15,-165,1.9,0:00:00,15:03:55,10:56:09,5/24/2022,32.2304,-110.9,0,0",
+        // 6: date change (clock goes back 3 days) → break, δ NaN (Δclock < 0, ΔRunTime 1 → 1!).
+        "16,-164,2.0,0:00:01,15:03:55,10:56:10,5/21/2022,32.2305,-110.9,0,0",
+        // 7: nothing changes in Run Time and the clock repeats → δ NaN, no break.
+        "17,-163,2.1,0:00:01,15:03:55,10:56:10,5/21/2022,32.2306,-110.9,0,0",
+        // 8: Hobbs goes back → break.
+        "18,-162,2.2,0:00:02,15:03:50,10:56:11,5/21/2022,32.2307,-110.9,0,0",
+    ]);
+    let rec = read_str(&text, "D").expect("valid file");
+    assert_eq!(rec.format, Format::AvGps);
+    assert_eq!(rec.source, "D");
+    assert_eq!(rec.tracks.len(), 1);
+    let track = &rec.tracks[0];
+    assert_eq!(track.vehicle_id, "D");
+    let breaks: Vec<bool> = track.records.iter().map(|r| r.trajectory_break).collect();
+    assert_eq!(
+        breaks,
+        [true, false, false, false, true, true, true, false, true]
+    );
+    // Cumulative δ with NaN as 0: 0, 1, 3, 4, 11, 12, 13 (ΔRunTime fallback), 13, 14.
+    let times: Vec<f64> = track.records.iter().map(|r| r.sample.timestamp_s).collect();
+    assert_eq!(times, [0.0, 1.0, 3.0, 4.0, 11.0, 12.0, 13.0, 13.0, 14.0]);
+    let lines: Vec<u64> = track.records.iter().map(|r| r.line).collect();
+    assert_eq!(lines, (2..=10).collect::<Vec<u64>>());
+    let first = &track.records[0];
+    assert_eq!(first.sample.heading_deg, 10.0, "Heading, not Yaw");
+    assert_eq!(first.sample.speed_mps, 1.5);
+    assert_eq!(
+        (first.sample.latitude_deg, first.sample.longitude_deg),
+        (32.23, -110.9)
+    );
+    assert_eq!((first.label, first.comparator_alarm), (Some(false), None));
+    assert!(track.records[2].sample.speed_mps.is_nan());
+    assert!(track.records[3].sample.latitude_deg.is_nan());
+    assert_eq!(track.records[2].label, Some(true));
+    assert_eq!(track.records[2].comparator_alarm, Some(true));
+}
+
+fn error_of(text: &str) -> String {
+    read_str(text, "AV-GPS-Dataset-3.csv")
+        .expect_err("malformed")
+        .to_string()
+}
+
+#[test]
+fn avgps_errors_name_file_line_and_column() {
+    let ok = "10,-170,1.5,0:00:00,15:03:55,10:55:59,5/24/2022,32.23,-110.9,0,0";
+    let msg = error_of(&avgps(&[
+        ok,
+        "10,-170,1.5,0:00:01,15:03:55,10:56:00,5/24/2022,abc,-110.9,0,0",
+    ]));
+    assert_eq!(
+        msg,
+        "AV-GPS-Dataset-3.csv:3: column \"GPS Latitude\": expected a number, got \"abc\""
+    );
+    let msg = error_of(&avgps(&[
+        ok,
+        ok,
+        "10,-170,1.5,0:00:01,15:03:55,10:5x:00,5/24/2022,32.23,-110.9,0,0",
+    ]));
+    assert!(
+        msg.starts_with("AV-GPS-Dataset-3.csv:4: column \"Clock Time\": expected a 24-hour time"),
+        "{msg}"
+    );
+    let msg = error_of(&avgps(&[
+        "10,-170,1.5,0:00:01,15:03:55,10:56:00,24/5/2022,32.23,-110.9,0,0",
+    ]));
+    assert!(
+        msg.starts_with("AV-GPS-Dataset-3.csv:2: column \"Clock Date\""),
+        "{msg}"
+    );
+    let msg = error_of(&avgps(&[
+        "10,-170,1.5,1:00,15:03:55,10:56:00,5/24/2022,32.23,-110.9,0,0",
+    ]));
+    assert!(
+        msg.starts_with("AV-GPS-Dataset-3.csv:2: column \"Run Time\""),
+        "{msg}"
+    );
+    let msg = error_of(&avgps(&[
+        "10,-170,1.5,0:00:01,15:03:55,10:56:00,5/24/2022,32.23,-110.9,2,0",
+    ]));
+    assert!(
+        msg.starts_with("AV-GPS-Dataset-3.csv:2: column \"Data Type\""),
+        "{msg}"
+    );
+    // A short row names the first missing column; a long one the last header column.
+    let msg = error_of(&avgps(&[
+        ok,
+        "10,-170,1.5,0:00:01,15:03:55,10:56:00,5/24/2022",
+    ]));
+    assert_eq!(
+        msg,
+        "AV-GPS-Dataset-3.csv:3: column \"GPS Latitude\": missing: the row has 7 fields, the header 11"
+    );
+    let msg = error_of(&avgps(&[&format!("{ok},9")]));
+    assert!(
+        msg.starts_with("AV-GPS-Dataset-3.csv:2: the row has 12 fields")
+            && msg.contains("\"EKF Detector\""),
+        "{msg}"
+    );
+}
+
+#[test]
+fn unknown_and_empty_headers_are_errors() {
+    let msg = read_str("a,b,latitude\n1,2,3\n", "x.csv")
+        .expect_err("unknown")
+        .to_string();
+    assert!(
+        msg.starts_with("x.csv: unrecognised header: not AV-GPS (missing \"GPS Latitude\""),
+        "{msg}"
+    );
+    assert!(
+        msg.contains("not telemetry (missing \"vehicle_id\", \"timestamp\""),
+        "{msg}"
+    );
+    assert!(!msg.contains("\"latitude\""), "{msg}");
+    let msg = read_str("", "empty.csv").expect_err("empty").to_string();
+    assert_eq!(msg, "empty.csv: empty file (no header row)");
+}
+
+#[test]
+fn io_errors_name_the_file() {
+    let missing = std::path::Path::new("/nonexistent/dir/AV-GPS-Dataset-9.csv");
+    let msg = read_path(missing).expect_err("missing file").to_string();
+    assert!(
+        msg.starts_with("/nonexistent/dir/AV-GPS-Dataset-9.csv: "),
+        "{msg}"
+    );
+}
+
+#[test]
+fn read_path_names_the_avgps_vehicle_after_the_file_stem() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let path = dir.path().join("AV-GPS-Dataset-7.csv");
+    let ok = "10,-170,1.5,0:00:00,15:03:55,10:55:59,5/24/2022,32.23,-110.9,0,0";
+    std::fs::write(&path, avgps(&[ok])).expect("write");
+    let rec = read_path(&path).expect("valid");
+    assert_eq!(rec.tracks[0].vehicle_id, "AV-GPS-Dataset-7");
+    assert_eq!(rec.source, path.display().to_string());
+}
+
+#[test]
+fn telemetry_interleaved_vehicles_any_column_order() {
+    let text = "extra,heading_deg,speed_mps,label,longitude,latitude,timestamp,vehicle_id,position_std_m\n\
+                x,90,1.5,0,-110.9,32.23,0,car-b,\n\
+                y,91,1.6,1,-110.8,32.24,0,car-a,2.5\n\
+                z,92,,,-110.9,32.23,1,car-b,nan\n\
+                w,93,NaN,0,-110.8,32.24,1,car-a,\n";
+    let rec = read_str(text, "fleet.csv").expect("valid");
+    assert_eq!(rec.format, Format::Telemetry);
+    let ids: Vec<&str> = rec.tracks.iter().map(|t| t.vehicle_id.as_str()).collect();
+    assert_eq!(ids, ["car-b", "car-a"]);
+    let b = &rec.tracks[0].records;
+    assert_eq!(b.len(), 2);
+    assert_eq!((b[0].line, b[1].line), (2, 4));
+    assert_eq!(b[0].sample, Sample::new(0.0, 32.23, -110.9, 1.5, 90.0));
+    assert!(b[1].sample.speed_mps.is_nan());
+    assert_eq!((b[0].label, b[1].label), (Some(false), None));
+    assert_eq!(b[1].sample.position_std_m, None);
+    let a = &rec.tracks[1].records;
+    assert_eq!(a[0].sample.position_std_m, Some(2.5));
+    assert_eq!(a[0].sample.speed_std_mps, None);
+    assert_eq!((a[0].label, a[0].line, a[1].line), (Some(true), 3, 5));
+    assert!(a[1].sample.speed_mps.is_nan());
+}
+
+#[test]
+fn telemetry_errors_name_line_and_column() {
+    let text = "vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg\n\
+                v,0,32.23,-110.9,1.0,90\n\
+                v,1,32.23,-110.9,fast,90\n";
+    let msg = read_str(text, "t.csv").expect_err("bad").to_string();
+    assert_eq!(
+        msg,
+        "t.csv:3: column \"speed_mps\": expected a number, got \"fast\""
+    );
+    let text = "vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg,label\n\
+                v,0,32.23,-110.9,1.0,90,yes\n";
+    let msg = read_str(text, "t.csv").expect_err("bad label").to_string();
+    assert!(msg.starts_with("t.csv:2: column \"label\""), "{msg}");
+    let text = "vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg\n\
+                ,0,32.23,-110.9,1.0,90\n";
+    let msg = read_str(text, "t.csv").expect_err("no id").to_string();
+    assert_eq!(msg, "t.csv:2: column \"vehicle_id\": empty vehicle id");
+}
+
+#[test]
+fn telemetry_round_trips_through_write_tracks() {
+    let record = |t: f64, speed: f64, label: Option<bool>, line: u64| Record {
+        sample: Sample::new(t, 32.231_495_4 + t * 1e-5, -110.907_963_1, speed, 359.5),
+        label,
+        comparator_alarm: None,
+        line,
+        trajectory_break: false,
+    };
+    let tracks = vec![
+        Track {
+            vehicle_id: "alpha".into(),
+            records: vec![
+                record(0.0, 1.25, Some(false), 2),
+                record(1.0, 0.1 + 0.2, Some(true), 3),
+            ],
+        },
+        Track {
+            vehicle_id: "beta".into(),
+            records: vec![record(0.5, 3.0, None, 4)],
+        },
+    ];
+    let mut bytes = Vec::new();
+    write_tracks(&mut bytes, &tracks).expect("write");
+    let rec = read(bytes.as_slice(), "round-trip").expect("read back");
+    assert_eq!(rec.format, Format::Telemetry);
+    assert_eq!(rec.tracks, tracks);
+    // NaN survives as NaN.
+    let nan_track = vec![Track {
+        vehicle_id: "n".into(),
+        records: vec![record(0.0, f64::NAN, None, 2)],
+    }];
+    let mut bytes = Vec::new();
+    write_tracks(&mut bytes, &nan_track).expect("write");
+    let rec = read(bytes.as_slice(), "nan").expect("read back");
+    assert!(rec.tracks[0].records[0].sample.speed_mps.is_nan());
+}

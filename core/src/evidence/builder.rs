@@ -1,0 +1,333 @@
+//! The streaming, per-vehicle evidence builder (SPEC §3–4, REFERENCE-NOTES §2.2–2.8).
+
+use serde::{Deserialize, Serialize};
+
+use super::linalg::{Mat2, inverse_sqrt_positive_definite, inverse_sqrt_symmetric, mul_vec};
+use super::params::{EvidenceParams, SIGMA_EPSILON};
+use super::{FEATURE_COUNT, Features};
+use crate::geo::LatLon;
+use crate::sample::{MAX_SPEED_MPS, Record, Sample};
+
+/// A gap longer than this (s) starts a new trajectory (SPEC §3).
+pub const MAX_GAP_S: f64 = 5.0;
+/// Time going backwards by more than this (s) starts a new trajectory (SPEC §3).
+pub const MAX_BACKWARD_S: f64 = 0.5;
+
+/// The causal evidence of one sample (unscaled). Fields that are undefined are NaN (`delta_t` at a
+/// trajectory start, `residual` when ν = 0); the ξ components are 0 when they cannot be computed.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Evidence {
+    /// 0-based index of the trajectory within this builder's stream.
+    pub trajectory: u32,
+    /// This sample starts a trajectory (all sequential state was reset here).
+    pub trajectory_start: bool,
+    /// δ_t = t_t − t_{t−1} (s); NaN at a trajectory start.
+    pub delta_t: f64,
+    /// ν_t: the residual is usable.
+    pub valid: bool,
+    /// Σ_t came from the samples' own uncertainties (paper's first branch) rather than Σ̂.
+    pub sigma_per_step: bool,
+    /// r_t = Δp^g − Δp^u, east/north metres; NaN when ν = 0.
+    pub residual: [f64; 2],
+    /// η_t = Σ_t^{-1/2} r_t; 0 when ν = 0.
+    pub eta: [f64; 2],
+    /// η̇_t = (η_t − η_{t−1})/δ_t when ν_t = ν_{t−1} = 1, else 0.
+    pub eta_dot: [f64; 2],
+    /// η̈_t = (η̇_t − η̇_{t−1})/((δ_t + δ_{t−1})/2) when both η̇ were computed, else 0.
+    pub eta_ddot: [f64; 2],
+    /// e_t = ‖η_t‖²; 0 when ν = 0.
+    pub energy: f64,
+    /// q_t = e_t − μ_e − κ; 0 when ν = 0.
+    pub q: f64,
+    /// a_t = max(0, ρ a_{t−1} + q_t) when ν = 1, else ρ a_{t−1}.
+    pub accum: f64,
+    /// ã_t = ln(1 + a_t).
+    pub accum_log: f64,
+}
+
+impl Evidence {
+    /// Unscaled ξ_t in the locked order of `FEATURE_NAMES`, ν as 0/1 last.
+    pub fn raw_features(&self) -> Features {
+        let features: Features = [
+            self.eta[0],
+            self.eta[1],
+            self.eta_dot[0],
+            self.eta_dot[1],
+            self.eta_ddot[0],
+            self.eta_ddot[1],
+            self.q,
+            self.accum_log,
+            if self.valid { 1.0 } else { 0.0 },
+        ];
+        debug_assert_eq!(features.len(), FEATURE_COUNT);
+        features
+    }
+}
+
+/// What the builder remembers about the previous sample of the current trajectory.
+#[derive(Clone, Copy, Debug)]
+struct Previous {
+    sample: Sample,
+    fix: LatLon,
+    velocity: [f64; 2],
+    usable: bool,
+    valid: bool,
+    eta: [f64; 2],
+    eta_dot: [f64; 2],
+    eta_dot_computed: bool,
+    delta_t: f64,
+}
+
+/// Streaming per-vehicle builder of ξ_t. `push` never allocates; the same builder serves a live
+/// stream and a recorded track ([`build_track`]).
+#[derive(Clone, Debug)]
+pub struct EvidenceBuilder {
+    params: EvidenceParams,
+    /// (Σ̂ + εI)^{-1/2}, computed once.
+    sigma_hat_inv_sqrt: Mat2,
+    previous: Option<Previous>,
+    /// First valid fix of the current trajectory (the equirectangular origin).
+    reference: Option<LatLon>,
+    accum: f64,
+    trajectory: u32,
+}
+
+impl EvidenceBuilder {
+    /// A builder at the start of a stream.
+    pub fn new(params: EvidenceParams) -> Self {
+        Self {
+            sigma_hat_inv_sqrt: inverse_sqrt_symmetric(&params.regularised_sigma()),
+            params,
+            previous: None,
+            reference: None,
+            accum: 0.0,
+            trajectory: 0,
+        }
+    }
+
+    /// The parameters this builder uses.
+    pub fn params(&self) -> &EvidenceParams {
+        &self.params
+    }
+
+    /// Forgets the stream: the next sample starts trajectory 0.
+    pub fn reset(&mut self) {
+        self.previous = None;
+        self.reference = None;
+        self.accum = 0.0;
+        self.trajectory = 0;
+    }
+
+    /// Evidence for the next sample. `trajectory_break` is the source's own "new trajectory here" flag;
+    /// the builder also starts one at the first sample, after a gap > 5 s and when time goes
+    /// backwards by more than 0.5 s.
+    pub fn push(&mut self, sample: &Sample, trajectory_break: bool) -> Evidence {
+        let delta_t = match &self.previous {
+            Some(previous) => sample.timestamp_s - previous.sample.timestamp_s,
+            None => f64::NAN,
+        };
+        // Two separate comparisons, so that a NaN δ (non-finite timestamps) is neither a gap nor
+        // time going backwards: it never starts a trajectory by itself, as in the reference.
+        let gap = delta_t > MAX_GAP_S;
+        let backwards = delta_t < -MAX_BACKWARD_S;
+        let start = self.previous.is_none() || trajectory_break || gap || backwards;
+        if start {
+            if self.previous.is_some() {
+                self.trajectory = self.trajectory.saturating_add(1);
+            }
+            self.previous = None;
+            self.reference = None;
+            self.accum = 0.0;
+        }
+
+        let fix = LatLon::new(sample.latitude_deg, sample.longitude_deg);
+        if self.reference.is_none() && fix.is_valid() {
+            self.reference = Some(fix);
+        }
+        let velocity = velocity_vector(sample);
+        let usable = is_usable(sample, fix);
+
+        let mut evidence = Evidence {
+            trajectory: self.trajectory,
+            trajectory_start: start,
+            delta_t: if start { f64::NAN } else { delta_t },
+            valid: false,
+            sigma_per_step: false,
+            residual: [f64::NAN; 2],
+            eta: [0.0; 2],
+            eta_dot: [0.0; 2],
+            eta_ddot: [0.0; 2],
+            energy: 0.0,
+            q: 0.0,
+            accum: 0.0,
+            accum_log: 0.0,
+        };
+
+        // ν needs both samples usable and 0 < δ ≤ 5 s (never true at a start: no previous sample).
+        if let (Some(previous), Some(reference)) = (&self.previous, self.reference)
+            && usable
+            && previous.usable
+            && delta_t > 0.0
+            && delta_t <= MAX_GAP_S
+        {
+            self.fill_valid(&mut evidence, previous, reference, sample, fix, velocity);
+        }
+        self.fill_accumulator(&mut evidence);
+
+        self.previous = Some(Previous {
+            sample: *sample,
+            fix,
+            velocity,
+            usable,
+            valid: evidence.valid,
+            eta: evidence.eta,
+            eta_dot: evidence.eta_dot,
+            eta_dot_computed: evidence.valid && self.previous_valid(),
+            delta_t,
+        });
+        evidence
+    }
+
+    /// ν_{t−1} (before `previous` is overwritten).
+    fn previous_valid(&self) -> bool {
+        self.previous.is_some_and(|p| p.valid)
+    }
+
+    /// Residual, η and its finite differences for a sample whose ν_t is 1 unless r is not finite.
+    fn fill_valid(
+        &self,
+        evidence: &mut Evidence,
+        previous: &Previous,
+        reference: LatLon,
+        sample: &Sample,
+        fix: LatLon,
+        velocity: [f64; 2],
+    ) {
+        let delta_t = evidence.delta_t;
+        let gnss = self
+            .params
+            .projection
+            .displacement(reference, previous.fix, fix);
+        // Causal trapezoid on the velocity vector.
+        let motion = [
+            0.5 * (velocity[0] + previous.velocity[0]) * delta_t,
+            0.5 * (velocity[1] + previous.velocity[1]) * delta_t,
+        ];
+        let residual = [gnss[0] - motion[0], gnss[1] - motion[1]];
+        if !(residual[0].is_finite() && residual[1].is_finite()) {
+            return;
+        }
+        let per_step = per_step_sigma(&previous.sample, sample, delta_t);
+        let inv_sqrt = match &per_step {
+            Some(sigma) => inverse_sqrt_positive_definite(sigma),
+            None => self.sigma_hat_inv_sqrt,
+        };
+        let eta = mul_vec(&inv_sqrt, residual);
+        let energy = eta[0] * eta[0] + eta[1] * eta[1];
+
+        evidence.valid = true;
+        evidence.sigma_per_step = per_step.is_some();
+        evidence.residual = residual;
+        evidence.eta = eta;
+        evidence.energy = energy;
+        evidence.q = energy - self.params.mu_e - self.params.kappa;
+
+        if previous.valid {
+            evidence.eta_dot = [
+                (eta[0] - previous.eta[0]) / delta_t,
+                (eta[1] - previous.eta[1]) / delta_t,
+            ];
+            if previous.eta_dot_computed && previous.delta_t > 0.0 && previous.delta_t <= MAX_GAP_S
+            {
+                let mean_delta = 0.5 * (delta_t + previous.delta_t);
+                evidence.eta_ddot = [
+                    (evidence.eta_dot[0] - previous.eta_dot[0]) / mean_delta,
+                    (evidence.eta_dot[1] - previous.eta_dot[1]) / mean_delta,
+                ];
+            }
+        }
+    }
+
+    /// a_t and ã_t; a_{t−1} was reset to 0 at a trajectory start.
+    fn fill_accumulator(&mut self, evidence: &mut Evidence) {
+        let decayed = self.params.rho * self.accum;
+        let accum = if evidence.valid {
+            (decayed + evidence.q).max(0.0)
+        } else {
+            decayed
+        };
+        // The reference maps a non-finite accumulator to 0.
+        self.accum = if accum.is_finite() { accum } else { 0.0 };
+        evidence.accum = self.accum;
+        evidence.accum_log = self.accum.max(0.0).ln_1p();
+    }
+}
+
+/// Runs one fresh builder over a recorded track, honouring each record's `trajectory_break`.
+pub fn build_track(params: &EvidenceParams, records: &[Record]) -> Vec<Evidence> {
+    let mut builder = EvidenceBuilder::new(*params);
+    records
+        .iter()
+        .map(|record| builder.push(&record.sample, record.trajectory_break))
+        .collect()
+}
+
+/// v = speed·(sin ψ, cos ψ), ψ clockwise from north.
+fn velocity_vector(sample: &Sample) -> [f64; 2] {
+    let (sin, cos) = sample.heading_deg.to_radians().sin_cos();
+    [sample.speed_mps * sin, sample.speed_mps * cos]
+}
+
+/// Every field the residual needs is finite and in range (SPEC §2, §4); present uncertainties too.
+fn is_usable(sample: &Sample, fix: LatLon) -> bool {
+    let speed_ok = sample.speed_mps.is_finite() && sample.speed_mps.abs() <= MAX_SPEED_MPS;
+    let heading_ok = sample.heading_deg.is_finite() && sample.heading_deg.abs() <= 360.0;
+    let std_ok = |std: Option<f64>| std.is_none_or(|s| s.is_finite() && s >= 0.0);
+    fix.is_valid()
+        && speed_ok
+        && heading_ok
+        && std_ok(sample.position_std_m)
+        && std_ok(sample.speed_std_mps)
+        && std_ok(sample.heading_std_deg)
+}
+
+/// Σ_t = Σ^Δg + Σ^Δu + εI when BOTH samples carry position, speed and heading std, else `None`.
+///
+/// Derivation (errors independent between samples and between fields):
+/// - Δp^g = p_t − p_{t−1} with isotropic per-axis std σ_p at each fix → Σ^Δg = (σ_{p,t}² + σ_{p,t−1}²)·I
+///   (= 2σ_p²I for equal stds).
+/// - v = s·u(ψ) with u = (sin ψ, cos ψ); first order: ∂v/∂s = u, ∂v/∂ψ = s·w with w = (cos ψ, −sin ψ)
+///   (ψ in radians), so Cov(v) = σ_s²·uuᵀ + s²σ_ψ²·wwᵀ.
+/// - Δp^u = (δ/2)(v_t + v_{t−1}) → Σ^Δu = (δ/2)²·(Cov(v_t) + Cov(v_{t−1})).
+fn per_step_sigma(previous: &Sample, current: &Sample, delta_t: f64) -> Option<Mat2> {
+    let (prev_pos, prev_vel) = (previous.position_std_m?, velocity_covariance(previous)?);
+    let (cur_pos, cur_vel) = (current.position_std_m?, velocity_covariance(current)?);
+    let gnss = prev_pos * prev_pos + cur_pos * cur_pos;
+    let k = 0.25 * delta_t * delta_t;
+    let mut sigma = [[0.0; 2]; 2];
+    for (i, row) in sigma.iter_mut().enumerate() {
+        for (j, cell) in row.iter_mut().enumerate() {
+            *cell = k * (prev_vel[i][j] + cur_vel[i][j]);
+        }
+    }
+    sigma[0][0] += gnss + SIGMA_EPSILON;
+    sigma[1][1] += gnss + SIGMA_EPSILON;
+    Some(sigma)
+}
+
+/// Cov(v) = σ_s²·uuᵀ + s²σ_ψ²·wwᵀ (see [`per_step_sigma`]); `None` without speed and heading std.
+fn velocity_covariance(sample: &Sample) -> Option<Mat2> {
+    let speed_var = sample.speed_std_mps?.powi(2);
+    let heading_std = sample.heading_std_deg?.to_radians();
+    let cross_var = (sample.speed_mps * heading_std).powi(2);
+    let (sin, cos) = sample.heading_deg.to_radians().sin_cos();
+    let u = [sin, cos];
+    let w = [cos, -sin];
+    let mut cov = [[0.0; 2]; 2];
+    for (i, row) in cov.iter_mut().enumerate() {
+        for (j, cell) in row.iter_mut().enumerate() {
+            *cell = speed_var * u[i] * u[j] + cross_var * w[i] * w[j];
+        }
+    }
+    Some(cov)
+}
