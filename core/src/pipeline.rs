@@ -37,7 +37,7 @@ pub struct ChronologicalSplit {
 /// Row ranges of the trajectories the evidence builder finds in `records` (gaps, backward time,
 /// source breaks). The statistics do not influence segmentation, so any parameters do.
 pub fn trajectory_ranges(records: &[Record]) -> Vec<Range<usize>> {
-    let mut builder = EvidenceBuilder::new(EvidenceParams::segmentation_only());
+    let mut builder = EvidenceBuilder::new(segmentation_params());
     let mut ranges: Vec<Range<usize>> = Vec::new();
     for (i, record) in records.iter().enumerate() {
         if builder.push(&record.sample, record.trajectory_break).trajectory_start {
@@ -47,6 +47,17 @@ pub fn trajectory_ranges(records: &[Record]) -> Vec<Range<usize>> {
         }
     }
     ranges
+}
+
+/// Parameters for passes that only need trajectory boundaries, ν and residuals.
+fn segmentation_params() -> EvidenceParams {
+    EvidenceParams {
+        sigma_hat: [[1.0, 0.0], [0.0, 1.0]],
+        mu_e: 0.0,
+        kappa: 0.0,
+        rho: 0.98,
+        projection: Projection::default(),
+    }
 }
 
 /// Splits every trajectory of every track chronologically into train/validation/test sub-trajectories.
@@ -108,7 +119,8 @@ pub fn fit_evidence(
     rho: f64,
 ) -> Result<EvidenceFit, PipelineError> {
     let stats = fit_normal_stats(train, projection)?;
-    let params = EvidenceParams::new(stats.sigma_hat, stats.mu_e, kappa, rho, projection)?;
+    let params =
+        EvidenceParams::with_accumulator(stats.sigma_hat, stats.mu_e, kappa, rho, projection)?;
     let evidence: Vec<_> = train
         .iter()
         .flat_map(|t| build_track(&params, &t.records))
@@ -117,7 +129,7 @@ pub fn fit_evidence(
         return Err(PipelineError::NoTrainingRows);
     }
     Ok(EvidenceFit {
-        scaler: RobustScaler::fit(&evidence),
+        scaler: RobustScaler::fit(&evidence)?,
         params,
         normal_rows: stats.rows,
     })

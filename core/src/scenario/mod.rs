@@ -209,7 +209,8 @@ mod tests {
 
 /// The normal (not spoofed) stretches of a labelled track as separate tracks
 /// (`<vehicle>/normal<k>`, each starting a trajectory), ready to be injection bases.
-pub fn normal_runs(track: &Track) -> Vec<Track> {
+pub fn normal_runs(track: &crate::sample::Track) -> Vec<crate::sample::Track> {
+    use crate::sample::Track;
     let mut out: Vec<Track> = Vec::new();
     let mut current: Vec<crate::sample::Record> = Vec::new();
     let mut flush = |records: Vec<crate::sample::Record>, out: &mut Vec<Track>| {
