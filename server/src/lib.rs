@@ -1,3 +1,244 @@
-//! Spoofwatch gRPC service over `spoofwatch-core`. For now: the SQLite storage layer.
+//! Spoofwatch gRPC service over `spoofwatch-core`: detection sessions, the model registry, datasets,
+//! training/evaluation jobs as long-running operations, health and reflection.
+//!
+//! [`serve`] is the whole server; the `spoofwatch-server` binary only parses the configuration, sets
+//! up logging, binds and waits for a signal.
 
+pub mod config;
+mod convert;
+mod datasets;
+mod detection;
+mod error;
+mod jobs;
+pub mod registry;
 pub mod store;
+
+use std::future::Future;
+use std::sync::Arc;
+use std::time::Duration;
+
+use spoofwatch_proto::longrunning::operations_server::OperationsServer;
+use spoofwatch_proto::v1::dataset_service_server::DatasetServiceServer;
+use spoofwatch_proto::v1::detection_service_server::DetectionServiceServer;
+use spoofwatch_proto::v1::model_service_server::ModelServiceServer;
+use spoofwatch_proto::v1::training_service_server::TrainingServiceServer;
+use tokio::net::TcpListener;
+use tokio_util::sync::CancellationToken;
+use tonic::service::Interceptor;
+use tonic::transport::Server;
+use tonic::transport::server::TcpIncoming;
+use tonic::{Request, Status};
+
+pub use config::Config;
+
+use crate::datasets::DatasetApi;
+use crate::detection::{DetectionApi, SessionLimits, SessionManager};
+use crate::jobs::{JobManager, JobSettings, OperationsApi, TrainingApi};
+use crate::registry::{ModelApi, Registry};
+use crate::store::{Store, StoreError};
+
+/// Why the server could not start or run.
+#[derive(Debug, thiserror::Error)]
+pub enum ServerError {
+    #[error("opening the database: {0}")]
+    Store(#[from] StoreError),
+    #[error("preparing the model registry: {0}")]
+    Registry(String),
+    #[error("reflection service: {0}")]
+    Reflection(#[from] tonic_reflection::server::Error),
+    #[error("serving: {0}")]
+    Transport(#[from] tonic::transport::Error),
+}
+
+/// Checks `authorization: Bearer <token>` when a token is configured.
+#[derive(Clone)]
+struct BearerAuth {
+    expected: Option<Arc<str>>,
+}
+
+impl Interceptor for BearerAuth {
+    fn call(&mut self, request: Request<()>) -> Result<Request<()>, Status> {
+        let Some(expected) = &self.expected else {
+            return Ok(request);
+        };
+        let presented = request
+            .metadata()
+            .get("authorization")
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "));
+        match presented {
+            Some(token) if token == &**expected => Ok(request),
+            _ => Err(Status::unauthenticated("missing or wrong bearer token")),
+        }
+    }
+}
+
+/// Runs the server on `listener` until `shutdown` resolves, then drains: health turns NOT_SERVING,
+/// streams end with UNAVAILABLE, running jobs are cancelled and recorded, open alarms are closed, and
+/// the whole drain is bounded by `config.shutdown_grace_secs`.
+pub async fn serve(
+    config: Config,
+    listener: TcpListener,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), ServerError> {
+    let store = Store::open(&config.database).await?;
+    let interrupted = store
+        .fail_interrupted_jobs("server restarted while the job was queued or running")
+        .await?;
+    if interrupted > 0 {
+        tracing::warn!(interrupted, "marked jobs left over by a previous run as failed");
+    }
+    store.close_open_alarms(store::now_unix_ms()).await?;
+    let registry = Arc::new(Registry::new(store.clone()));
+    registry
+        .ensure_default_model()
+        .await
+        .map_err(|s| ServerError::Registry(s.message().to_string()))?;
+
+    let draining = CancellationToken::new();
+    let sessions = Arc::new(SessionManager::new(
+        Arc::clone(&registry),
+        store.clone(),
+        SessionLimits {
+            max_sessions: config.max_sessions,
+            idle: config.session_idle(),
+            max_batch_samples: config.max_batch_samples,
+        },
+    ));
+    let jobs = JobManager::new(
+        store.clone(),
+        Arc::clone(&registry),
+        JobSettings {
+            max_running: config.max_running_jobs,
+            max_pending: config.max_pending_jobs,
+        },
+    );
+    let job_services = jobs::Jobs {
+        manager: Arc::clone(&jobs),
+        store: store.clone(),
+        registry: Arc::clone(&registry),
+    };
+
+    let (health_reporter, health_service) = tonic_health::server::health_reporter();
+    let reflection_v1 = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(spoofwatch_proto::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()?;
+    let reflection_v1alpha = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(spoofwatch_proto::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1alpha()?;
+
+    let auth = BearerAuth {
+        expected: config.auth_token.as_deref().map(Arc::from),
+    };
+    let limit = config.max_message_bytes;
+    let detection = DetectionServiceServer::new(DetectionApi {
+        sessions: Arc::clone(&sessions),
+        shutdown: draining.clone(),
+    })
+    .max_decoding_message_size(limit);
+    let models = ModelServiceServer::new(ModelApi {
+        registry: Arc::clone(&registry),
+    })
+    .max_decoding_message_size(limit);
+    let datasets = DatasetServiceServer::new(DatasetApi {
+        store: store.clone(),
+        data_dir: config.data_dir.clone(),
+    })
+    .max_decoding_message_size(limit);
+    let training = TrainingServiceServer::new(TrainingApi::new(job_services.clone()))
+        .max_decoding_message_size(limit);
+    let operations =
+        OperationsServer::new(OperationsApi { jobs: job_services }).max_decoding_message_size(limit);
+
+    health_reporter
+        .set_serving::<DetectionServiceServer<DetectionApi>>()
+        .await;
+    health_reporter
+        .set_serving::<ModelServiceServer<ModelApi>>()
+        .await;
+    health_reporter
+        .set_serving::<DatasetServiceServer<DatasetApi>>()
+        .await;
+    health_reporter
+        .set_serving::<TrainingServiceServer<TrainingApi>>()
+        .await;
+    health_reporter
+        .set_serving::<OperationsServer<OperationsApi>>()
+        .await;
+
+    // Idle sessions without a stream are evicted in the background.
+    let evictor = {
+        let sessions = Arc::clone(&sessions);
+        let draining = draining.clone();
+        let period = (config.session_idle() / 4).clamp(Duration::from_secs(1), Duration::from_secs(30));
+        tokio::spawn(async move {
+            let mut tick = tokio::time::interval(period);
+            loop {
+                tokio::select! {
+                    _ = draining.cancelled() => break,
+                    _ = tick.tick() => {
+                        let evicted = sessions.evict_idle().await;
+                        if evicted > 0 {
+                            tracing::info!(evicted, "evicted idle sessions");
+                        }
+                    }
+                }
+            }
+        })
+    };
+
+    // The drain: health first, then streams, then jobs; tonic stops accepting after this resolves.
+    let grace = config.shutdown_grace();
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    {
+        let draining = draining.clone();
+        let health = health_reporter.clone();
+        let jobs = Arc::clone(&jobs);
+        let sessions = Arc::clone(&sessions);
+        tokio::spawn(async move {
+            shutdown.await;
+            tracing::info!("shutting down: health NOT_SERVING, draining streams and jobs");
+            health
+                .set_service_status("", tonic_health::ServingStatus::NotServing)
+                .await;
+            health
+                .set_not_serving::<DetectionServiceServer<DetectionApi>>()
+                .await;
+            draining.cancel();
+            jobs.shutdown(grace).await;
+            sessions.close_all_alarms().await;
+            let _ = stop_tx.send(());
+        });
+    }
+
+    let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
+    let router = Server::builder()
+        .http2_keepalive_interval(Some(Duration::from_secs(30)))
+        .http2_keepalive_timeout(Some(Duration::from_secs(10)))
+        .add_service(health_service)
+        .add_service(reflection_v1)
+        .add_service(reflection_v1alpha)
+        .add_service(tonic::service::interceptor::InterceptedService::new(detection, auth.clone()))
+        .add_service(tonic::service::interceptor::InterceptedService::new(models, auth.clone()))
+        .add_service(tonic::service::interceptor::InterceptedService::new(datasets, auth.clone()))
+        .add_service(tonic::service::interceptor::InterceptedService::new(training, auth.clone()))
+        .add_service(tonic::service::interceptor::InterceptedService::new(operations, auth));
+    let server = router.serve_with_incoming_shutdown(incoming, async {
+        let _ = stop_rx.await;
+    });
+    tokio::pin!(server);
+    // Bounded drain: once draining starts, connections get `grace` to close.
+    let result = tokio::select! {
+        result = &mut server => result.map_err(ServerError::from),
+        _ = async { draining.cancelled().await; tokio::time::sleep(grace + Duration::from_secs(1)).await } => {
+            tracing::warn!("drain timed out; closing remaining connections");
+            Ok(())
+        }
+    };
+    evictor.abort();
+    store.close().await;
+    tracing::info!("server stopped");
+    result
+}
