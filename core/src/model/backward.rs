@@ -4,8 +4,9 @@
 //! rows, `L = Σ_masked w_t·ℓ(z_t, y_t) / N_masked`. The incoming state of a window is a constant:
 //! gradients stop at window boundaries (truncated BPTT).
 
+use super::fastmath::sigmoid;
 use super::forward::{PAIRS, StepScratch};
-use super::linalg::{affine_backward, axpy, sigmoid, sign};
+use super::linalg::{affine_backward, axpy, sign};
 use super::{LiquidState, Model, ModelConfig, ModelError, Params};
 use crate::evidence::Features;
 

@@ -3,7 +3,8 @@
 //! Serving and training run this same function: `Model::step` keeps one `StepScratch` per caller and
 //! overwrites it, training keeps one per time step of a window (its tape).
 
-use super::linalg::{affine, dot, sigmoid};
+use super::fastmath::{exp_in_place, expm1_in_place, sigmoid, sigmoid_in_place, tanh_in_place};
+use super::linalg::{affine, dot};
 use super::{
     EVOLUTION_INPUTS, INSTANT_INPUTS, LiquidState, Model, ModelConfig, PERSISTENCE_INPUTS,
     clamp_delta,
@@ -150,8 +151,8 @@ impl Model {
             &rec.x_persistence,
             s_p,
         );
-        for value in rec.s.iter_mut().flatten() {
-            *value = sigmoid(*value);
+        for role in &mut rec.s {
+            sigmoid_in_place(role);
         }
     }
 
@@ -194,9 +195,7 @@ impl Model {
             &rec.fusion_in,
             &mut rec.zeta,
         );
-        for value in &mut rec.zeta {
-            *value = value.tanh();
-        }
+        tanh_in_place(&mut rec.zeta);
     }
 
     /// h̃, τ^h, τ^v, γ, β and the state update.
@@ -212,28 +211,33 @@ impl Model {
             &rec.zeta,
             &mut rec.candidate,
         );
-        for value in &mut rec.candidate {
-            *value = value.tanh();
-        }
+        tanh_in_place(&mut rec.candidate);
+        // Each transcendental runs over a whole buffer so that it vectorises.
         affine(
             p.w_tau_h.data(),
             p.b_tau_h.data(),
             &rec.zeta,
             &mut rec.sig_tau_h,
         );
+        sigmoid_in_place(&mut rec.sig_tau_h);
         for k in 0..config.d_h {
-            let sig = sigmoid(rec.sig_tau_h[k]);
-            rec.sig_tau_h[k] = sig;
-            rec.tau_h[k] = config.tau_min + tau_range * sig;
-            rec.gamma[k] = 1.0 - (-rec.delta / rec.tau_h[k]).exp();
+            rec.tau_h[k] = config.tau_min + tau_range * rec.sig_tau_h[k];
+            rec.gamma[k] = -rec.delta / rec.tau_h[k];
+        }
+        // γ = 1 − exp(−δ/τ^h) = −expm1(−δ/τ^h) (accurate for small δ/τ).
+        expm1_in_place(&mut rec.gamma);
+        for gamma in &mut rec.gamma {
+            *gamma = -*gamma;
         }
         if let (Some(w_tv), Some(b_tv)) = (&p.w_tau_v, &p.b_tau_v) {
             affine(w_tv.data(), b_tv.data(), &rec.zeta, &mut rec.sig_tau_v);
+            sigmoid_in_place(&mut rec.sig_tau_v);
             for k in 0..config.d_h {
-                let sig = sigmoid(rec.sig_tau_v[k]);
-                rec.sig_tau_v[k] = sig;
-                rec.tau_v[k] = config.tau_min + tau_range * sig;
-                rec.beta[k] = (-rec.delta / rec.tau_v[k]).exp();
+                rec.tau_v[k] = config.tau_min + tau_range * rec.sig_tau_v[k];
+                rec.beta[k] = -rec.delta / rec.tau_v[k];
+            }
+            exp_in_place(&mut rec.beta);
+            for k in 0..config.d_h {
                 let pull = rec.candidate[k] - rec.h_prev[k];
                 rec.v[k] = rec.beta[k] * rec.v_prev[k] + (1.0 - rec.beta[k]) * pull;
                 rec.h[k] = rec.h_prev[k] + rec.gamma[k] * rec.v[k];

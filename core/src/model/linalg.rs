@@ -4,17 +4,6 @@
 //! keeps eight independent partial sums; the summation order is fixed, hence results are reproducible.
 //! `axpy`-shaped loops (`y[i] += a * x[i]`) vectorise as they are.
 
-/// Logistic sigmoid, stable for large |x| (never NaN for finite or infinite x).
-#[inline]
-pub(crate) fn sigmoid(x: f64) -> f64 {
-    if x >= 0.0 {
-        1.0 / (1.0 + (-x).exp())
-    } else {
-        let e = x.exp();
-        e / (1.0 + e)
-    }
-}
-
 /// Sign with `sign(0) = 0`: the subgradient we use for `|x|` at 0.
 #[inline]
 pub(crate) fn sign(x: f64) -> f64 {
@@ -27,31 +16,94 @@ pub(crate) fn sign(x: f64) -> f64 {
     }
 }
 
+/// Lane width of the dot-product kernels: each row keeps this many partial sums, one per column
+/// residue, combined as `((l0 + l1) + (l2 + l3)) + tail` (a fixed order, so results are reproducible).
+const LANES: usize = 4;
+
+#[inline]
+fn combine(lanes: [f64; LANES], tail: f64) -> f64 {
+    ((lanes[0] + lanes[1]) + (lanes[2] + lanes[3])) + tail
+}
+
 /// Dot product over the common length with a fixed summation order.
 #[inline]
 pub(crate) fn dot(a: &[f64], b: &[f64]) -> f64 {
     let n = a.len().min(b.len());
-    let (a, b) = (&a[..n], &b[..n]);
-    let mut acc = [0.0f64; 8];
-    let mut a_chunks = a.chunks_exact(8);
-    let mut b_chunks = b.chunks_exact(8);
-    for (x, y) in (&mut a_chunks).zip(&mut b_chunks) {
-        for k in 0..8 {
-            acc[k] += x[k] * y[k];
+    let body = n - n % LANES;
+    let mut lanes = [0.0f64; LANES];
+    for (x, y) in a[..body]
+        .chunks_exact(LANES)
+        .zip(b[..body].chunks_exact(LANES))
+    {
+        for l in 0..LANES {
+            lanes[l] += x[l] * y[l];
         }
     }
     let mut tail = 0.0;
-    for (x, y) in a_chunks.remainder().iter().zip(b_chunks.remainder()) {
+    for (x, y) in a[body..n].iter().zip(&b[body..n]) {
         tail += x * y;
     }
-    ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7])) + tail
+    combine(lanes, tail)
+}
+
+/// Four dot products `rows[r] · x` at once: each load of `x` serves four rows (the single-row kernel
+/// is load-bound). Same per-row summation order as [`dot`], so results are identical to it.
+#[inline]
+fn dot4(rows: [&[f64]; 4], x: &[f64]) -> [f64; 4] {
+    let n = x.len();
+    let body = n - n % LANES;
+    let [w0, w1, w2, w3] = rows.map(|row| &row[..body]);
+    let mut lanes = [[0.0f64; LANES]; 4];
+    let columns = x[..body]
+        .chunks_exact(LANES)
+        .zip(w0.chunks_exact(LANES))
+        .zip(w1.chunks_exact(LANES))
+        .zip(w2.chunks_exact(LANES))
+        .zip(w3.chunks_exact(LANES));
+    for ((((xs, a), b), c), d) in columns {
+        for l in 0..LANES {
+            lanes[0][l] += a[l] * xs[l];
+            lanes[1][l] += b[l] * xs[l];
+            lanes[2][l] += c[l] * xs[l];
+            lanes[3][l] += d[l] * xs[l];
+        }
+    }
+    let mut out = [0.0; 4];
+    for (r, row) in rows.iter().enumerate() {
+        let mut tail = 0.0;
+        for (w, v) in row[body..n].iter().zip(&x[body..n]) {
+            tail += w * v;
+        }
+        out[r] = combine(lanes[r], tail);
+    }
+    out
 }
 
 /// `out = W x + b` for a row-major `W` with `out.len()` rows and `x.len()` columns.
 #[inline]
 pub(crate) fn affine(w: &[f64], b: &[f64], x: &[f64], out: &mut [f64]) {
     let cols = x.len();
-    for ((row, bias), y) in w.chunks_exact(cols).zip(b).zip(out.iter_mut()) {
+    if cols == 0 {
+        for (y, bias) in out.iter_mut().zip(b) {
+            *y = *bias;
+        }
+        return;
+    }
+    let rows = out.len().min(b.len()).min(w.len() / cols);
+    let blocked = rows - rows % 4;
+    let w_blocks = w[..blocked * cols].chunks_exact(4 * cols);
+    let out_blocks = out[..blocked].chunks_exact_mut(4);
+    for ((block, ys), bs) in w_blocks.zip(out_blocks).zip(b[..blocked].chunks_exact(4)) {
+        let (r0, rest) = block.split_at(cols);
+        let (r1, rest) = rest.split_at(cols);
+        let (r2, r3) = rest.split_at(cols);
+        let sums = dot4([r0, r1, r2, r3], x);
+        for ((y, bias), sum) in ys.iter_mut().zip(bs).zip(sums) {
+            *y = bias + sum;
+        }
+    }
+    let w_rest = w[blocked * cols..rows * cols].chunks_exact(cols);
+    for ((row, bias), y) in w_rest.zip(&b[blocked..rows]).zip(&mut out[blocked..rows]) {
         *y = bias + dot(row, x);
     }
 }
@@ -110,6 +162,28 @@ mod tests {
     }
 
     #[test]
+    fn blocked_rows_equal_single_row_dots_bitwise() {
+        let mut rng = crate::rng::Rng::seed_from_u64(4);
+        for (rows, cols) in [(9, 13), (4, 4), (5, 3), (8, 128), (3, 1)] {
+            let w: Vec<f64> = (0..rows * cols).map(|_| rng.normal()).collect();
+            let b: Vec<f64> = (0..rows).map(|_| rng.normal()).collect();
+            let x: Vec<f64> = (0..cols).map(|_| rng.normal()).collect();
+            let mut out = vec![0.0; rows];
+            affine(&w, &b, &x, &mut out);
+            for r in 0..rows {
+                let expected = b[r] + dot(&w[r * cols..(r + 1) * cols], &x);
+                assert_eq!(
+                    out[r].to_bits(),
+                    expected.to_bits(),
+                    "{rows}x{cols} row {r}"
+                );
+                let naive: f64 = b[r] + (0..cols).map(|c| w[r * cols + c] * x[c]).sum::<f64>();
+                assert!((out[r] - naive).abs() < 1e-12);
+            }
+        }
+    }
+
+    #[test]
     fn affine_backward_is_outer_product_and_transpose() {
         let w = [1.0, 2.0, 3.0, 4.0];
         let (mut gw, mut gb, mut dx) = ([0.0; 4], [0.0; 2], [0.0; 2]);
@@ -127,11 +201,7 @@ mod tests {
     }
 
     #[test]
-    fn sigmoid_is_stable_and_sign_of_zero_is_zero() {
-        assert_eq!(sigmoid(0.0), 0.5);
-        assert_eq!(sigmoid(-1000.0), 0.0);
-        assert_eq!(sigmoid(1000.0), 1.0);
-        assert!((sigmoid(2.0) + sigmoid(-2.0) - 1.0).abs() < 1e-15);
+    fn sign_of_zero_is_zero() {
         assert_eq!(sign(0.0), 0.0);
         assert_eq!(sign(-0.0), 0.0);
         assert_eq!(sign(-3.0), -1.0);

@@ -6,6 +6,7 @@
 //! the time step δ_t in seconds.
 
 mod backward;
+mod fastmath;
 mod forward;
 mod linalg;
 mod params;
@@ -364,7 +365,7 @@ impl Model {
             *state = LiquidState::zeros(&self.config);
         }
         let logit = self.forward_step(state, x, delta_t, scratch);
-        linalg::sigmoid(logit)
+        fastmath::sigmoid(logit)
     }
 
     /// p̂ for every step of a sequence, continuing from `state` (left at the final state). Built on
@@ -389,6 +390,11 @@ impl Model {
             .map(|(x, &delta)| self.step(state, x, delta, &mut scratch))
             .collect())
     }
+}
+
+/// p̂ = σ(logit), exactly as [`Model::step`] computes it from the head logit.
+pub fn probability_from_logit(logit: f64) -> f64 {
+    fastmath::sigmoid(logit)
 }
 
 /// δ_t as the liquid cell sees it: NaN → 0, then clamped to `[0, MAX_DELTA_S]`.
