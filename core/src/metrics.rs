@@ -35,18 +35,9 @@ mod tests {
     #[test]
     fn auroc_matches_hand_computed_values() {
         // Perfect ranking, reversed ranking, and sklearn's documented example (0.75).
-        assert_eq!(
-            auroc(&[0.1, 0.2, 0.8, 0.9], &[false, false, true, true]),
-            Some(1.0)
-        );
-        assert_eq!(
-            auroc(&[0.9, 0.8, 0.2, 0.1], &[false, false, true, true]),
-            Some(0.0)
-        );
-        assert_eq!(
-            auroc(&[0.1, 0.4, 0.35, 0.8], &[false, false, true, true]),
-            Some(0.75)
-        );
+        assert_eq!(auroc(&[0.1, 0.2, 0.8, 0.9], &[false, false, true, true]), Some(1.0));
+        assert_eq!(auroc(&[0.9, 0.8, 0.2, 0.1], &[false, false, true, true]), Some(0.0));
+        assert_eq!(auroc(&[0.1, 0.4, 0.35, 0.8], &[false, false, true, true]), Some(0.75));
         // All tied: 0.5.
         assert_eq!(auroc(&[0.5; 4], &[false, true, false, true]), Some(0.5));
         assert_eq!(auroc(&[0.5, 0.6], &[true, true]), None);
