@@ -129,9 +129,7 @@ impl ModelArtifact {
                 expected,
             });
         }
-        self.model
-            .validate()
-            .map_err(|e| ArtifactError::Invalid(e.to_string()))?;
+        // The model's weights were checked against its configuration when it was built or parsed.
         let op = self.operating_point;
         if !(op.theta > 0.0 && op.theta < 1.0) || op.n_p == 0 {
             return Err(ArtifactError::Invalid(format!(

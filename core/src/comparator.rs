@@ -22,7 +22,9 @@ pub struct CusumComparator {
 pub enum ComparatorError {
     #[error(transparent)]
     Pipeline(#[from] PipelineError),
-    #[error("no CUSUM operating point: the validation data needs both normal and spoofed valid rows")]
+    #[error(
+        "no CUSUM operating point: the validation data needs both normal and spoofed valid rows"
+    )]
     NoOperatingPoint,
 }
 
@@ -30,7 +32,10 @@ pub enum ComparatorError {
 fn cusum_rows(evidence: &EvidenceParams, tracks: &[Track]) -> Vec<CusumRow> {
     let mut rows = Vec::new();
     for (index, track) in tracks.iter().enumerate() {
-        for (e, r) in build_track(evidence, &track.records).iter().zip(&track.records) {
+        for (e, r) in build_track(evidence, &track.records)
+            .iter()
+            .zip(&track.records)
+        {
             rows.push(CusumRow {
                 trajectory: ((index as u64) << 32) | u64::from(e.trajectory),
                 time_s: r.sample.timestamp_s,

@@ -42,8 +42,8 @@ impl Detector {
     pub fn new(artifact: Arc<ModelArtifact>) -> Self {
         Self {
             evidence: EvidenceBuilder::new(artifact.evidence.clone()),
-            state: LiquidState::zeros(&artifact.model.config),
-            scratch: StepScratch::new(&artifact.model.config),
+            state: LiquidState::zeros(artifact.model.config()),
+            scratch: StepScratch::new(artifact.model.config()),
             alarm: PersistenceAlarm::new(artifact.operating_point.n_p),
             alarm_on: false,
             artifact,
@@ -65,7 +65,7 @@ impl Detector {
         let evidence = self.evidence.push(sample, trajectory_break);
         if evidence.trajectory_start {
             // State resets once per trajectory (SPEC §1).
-            self.state = LiquidState::zeros(&self.artifact.model.config);
+            self.state = LiquidState::zeros(self.artifact.model.config());
         }
         let features = self.artifact.scaler.transform(&evidence);
         let probability = self.artifact.model.step(

@@ -29,7 +29,11 @@ pub struct Evaluation {
 }
 
 /// The rows of one track as metric inputs. Trajectory keys are unique per (track, trajectory).
-pub fn scored_rows(track_index: usize, records: &[Record], decisions: &[Decision]) -> Vec<ScoredRow> {
+pub fn scored_rows(
+    track_index: usize,
+    records: &[Record],
+    decisions: &[Decision],
+) -> Vec<ScoredRow> {
     records
         .iter()
         .zip(decisions)
@@ -64,13 +68,19 @@ pub fn evaluate_tracks(
                 evaluate(&track_scored, &track_alarms, rules),
             ));
         }
-        rows.extend(track.records.iter().zip(&decisions).map(|(r, d)| RowResult {
-            vehicle_id: track.vehicle_id.clone(),
-            line: r.line,
-            time_s: r.sample.timestamp_s,
-            label: r.label,
-            decision: *d,
-        }));
+        rows.extend(
+            track
+                .records
+                .iter()
+                .zip(&decisions)
+                .map(|(r, d)| RowResult {
+                    vehicle_id: track.vehicle_id.clone(),
+                    line: r.line,
+                    time_s: r.sample.timestamp_s,
+                    label: r.label,
+                    decision: *d,
+                }),
+        );
         scored.extend(track_scored);
         alarms.extend(track_alarms);
     }

@@ -40,7 +40,10 @@ pub fn trajectory_ranges(records: &[Record]) -> Vec<Range<usize>> {
     let mut builder = EvidenceBuilder::new(segmentation_params());
     let mut ranges: Vec<Range<usize>> = Vec::new();
     for (i, record) in records.iter().enumerate() {
-        if builder.push(&record.sample, record.trajectory_break).trajectory_start {
+        if builder
+            .push(&record.sample, record.trajectory_break)
+            .trajectory_start
+        {
             ranges.push(i..i + 1);
         } else if let Some(last) = ranges.last_mut() {
             last.end = i + 1;
@@ -74,7 +77,11 @@ pub fn split_chronologically(tracks: &[Track], fractions: SplitFractions) -> Chr
             let n_val = n_val.min(n - n_train);
             let parts = [
                 (&mut split.train, &rows[..n_train], "train"),
-                (&mut split.validation, &rows[n_train..n_train + n_val], "val"),
+                (
+                    &mut split.validation,
+                    &rows[n_train..n_train + n_val],
+                    "val",
+                ),
                 (&mut split.test, &rows[n_train + n_val..], "test"),
             ];
             for (out, part, name) in parts {
@@ -293,7 +300,7 @@ fn train_candidate(
             seed: options.train.seed,
             training_rows: train_seqs.iter().map(|s| s.features.len() as u64).sum(),
             epochs_run: outcome.history.len() as u32,
-            best_epoch: outcome.best_epoch,
+            best_epoch: outcome.best_epoch as u32,
             train_wall_time_s: 0.0,
             validation_metrics: None,
             notes: format!(

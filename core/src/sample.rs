@@ -72,13 +72,28 @@ impl Sample {
         let t = self.timestamp_s;
         check("timestamp_s", t, t >= 0.0, "non-negative seconds");
         let lat = self.latitude_deg;
-        check("latitude_deg", lat, (-90.0..=90.0).contains(&lat), "in [-90, 90]");
+        check(
+            "latitude_deg",
+            lat,
+            (-90.0..=90.0).contains(&lat),
+            "in [-90, 90]",
+        );
         let lon = self.longitude_deg;
-        check("longitude_deg", lon, (-180.0..=180.0).contains(&lon), "in [-180, 180]");
+        check(
+            "longitude_deg",
+            lon,
+            (-180.0..=180.0).contains(&lon),
+            "in [-180, 180]",
+        );
         let v = self.speed_mps;
         check("speed_mps", v, v.abs() <= MAX_SPEED_MPS, "in [-80, 80] m/s");
         let h = self.heading_deg;
-        check("heading_deg", h, (-360.0..=360.0).contains(&h), "in [-360, 360] degrees");
+        check(
+            "heading_deg",
+            h,
+            (-360.0..=360.0).contains(&h),
+            "in [-360, 360] degrees",
+        );
         for (field, value) in [
             ("position_std_m", self.position_std_m),
             ("speed_std_mps", self.speed_std_mps),
@@ -120,7 +135,11 @@ mod tests {
 
     #[test]
     fn a_plausible_sample_has_no_violations() {
-        assert!(Sample::new(12.0, 32.23, -110.9, 3.2, 359.0).violations().is_empty());
+        assert!(
+            Sample::new(12.0, 32.23, -110.9, 3.2, 359.0)
+                .violations()
+                .is_empty()
+        );
     }
 
     #[test]

@@ -7,7 +7,11 @@ use std::time::Duration;
 
 /// Everything the server needs to start.
 #[derive(Clone, Debug, clap::Parser)]
-#[command(name = "spoofwatch-server", version, about = "Spoofwatch GNSS-spoofing detection gRPC service")]
+#[command(
+    name = "spoofwatch-server",
+    version,
+    about = "Spoofwatch GNSS-spoofing detection gRPC service"
+)]
 pub struct Config {
     /// Address to listen on.
     #[arg(long, env = "SPOOFWATCH_LISTEN", default_value = "127.0.0.1:50051")]

@@ -22,6 +22,7 @@ pub fn sample_from_proto(s: &v1::Sample) -> Sample {
 }
 
 /// A core sample on the wire.
+#[cfg(test)]
 pub fn sample_to_proto(s: &Sample) -> v1::Sample {
     v1::Sample {
         timestamp_s: s.timestamp_s,
@@ -47,7 +48,11 @@ pub fn detection_to_proto(timestamp_s: f64, d: &Decision, model: &str) -> v1::De
         alarm_end: d.alarm_end,
         evidence: Some(v1::Evidence {
             valid: e.valid,
-            delta_t_s: if e.delta_t.is_finite() { e.delta_t } else { 0.0 },
+            delta_t_s: if e.delta_t.is_finite() {
+                e.delta_t
+            } else {
+                0.0
+            },
             trajectory: e.trajectory,
             eta_east: e.eta[0],
             eta_north: e.eta[1],
@@ -114,7 +119,10 @@ mod tests {
         let t = timestamp_from_ms(1_700_000_000_123);
         assert_eq!((t.seconds, t.nanos), (1_700_000_000, 123_000_000));
         let before_epoch = timestamp_from_ms(-1);
-        assert_eq!((before_epoch.seconds, before_epoch.nanos), (-1, 999_000_000));
+        assert_eq!(
+            (before_epoch.seconds, before_epoch.nanos),
+            (-1, 999_000_000)
+        );
     }
 
     #[test]

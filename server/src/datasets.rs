@@ -35,11 +35,16 @@ pub async fn load_dataset(store: &Store, name: &str) -> Result<Vec<Track>, Statu
         .dataset_content(id)
         .await?
         .ok_or_else(|| not_found("dataset", &format!("datasets/{id}")))?;
-    Ok(parse_dataset(Arc::new(content), id.to_string()).await?.tracks)
+    Ok(parse_dataset(Arc::new(content), id.to_string())
+        .await?
+        .tracks)
 }
 
 fn sha256_hex(bytes: &[u8]) -> String {
-    Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
 }
 
 fn to_proto(row: &DatasetRow) -> v1::Dataset {
@@ -146,7 +151,10 @@ fn tracks_from_records(records: Vec<v1::LabelledSample>) -> Result<Vec<Track>, S
             .map(sample_from_proto)
             .ok_or_else(|| invalid_field(format!("records[{i}].sample"), "required"))?;
         if r.vehicle_id.is_empty() {
-            return Err(invalid_field(format!("records[{i}].vehicle_id"), "required"));
+            return Err(invalid_field(
+                format!("records[{i}].vehicle_id"),
+                "required",
+            ));
         }
         let record = Record {
             sample,
@@ -187,7 +195,12 @@ impl DatasetService for DatasetApi {
             Some(v1::UploadDatasetRequest {
                 kind: Some(Kind::Header(h)),
             }) => h,
-            _ => return Err(invalid_field("header", "the first message must be a header")),
+            _ => {
+                return Err(invalid_field(
+                    "header",
+                    "the first message must be a header",
+                ));
+            }
         };
         let mut csv = Vec::new();
         let mut structured = Vec::new();
@@ -206,7 +219,10 @@ impl DatasetService for DatasetApi {
                     structured.extend(batch.records);
                 }
                 Some(Kind::Header(_)) => {
-                    return Err(invalid_field("header", "only the first message may be a header"));
+                    return Err(invalid_field(
+                        "header",
+                        "only the first message may be a header",
+                    ));
                 }
                 _ => {
                     return Err(invalid_field(
@@ -254,7 +270,10 @@ impl DatasetService for DatasetApi {
             .await
             .map_err(|e| internal("reading an import file", &e))?;
         if content.len() > MAX_DATASET_BYTES {
-            return Err(invalid_field("path", format!("file exceeds {MAX_DATASET_BYTES} bytes")));
+            return Err(invalid_field(
+                "path",
+                format!("file exceeds {MAX_DATASET_BYTES} bytes"),
+            ));
         }
         let stem = path
             .file_stem()
@@ -263,10 +282,19 @@ impl DatasetService for DatasetApi {
         let recording = parse_dataset(Arc::clone(&content), stem.clone())
             .await
             .map_err(|s| invalid_field("path", s.message().to_string()))?;
-        let display_name = if r.display_name.is_empty() { stem } else { r.display_name };
+        let display_name = if r.display_name.is_empty() {
+            stem
+        } else {
+            r.display_name
+        };
         let content = Arc::try_unwrap(content).unwrap_or_else(|shared| (*shared).clone());
         let dataset = self
-            .store_recording(display_name, format!("import:{}", r.path), content, &recording)
+            .store_recording(
+                display_name,
+                format!("import:{}", r.path),
+                content,
+                &recording,
+            )
             .await?;
         Ok(Response::new(dataset))
     }
@@ -329,7 +357,15 @@ mod tests {
         assert_eq!(outside.code(), tonic::Code::PermissionDenied);
         let absolute = resolve_inside(root.path(), "/etc/passwd").unwrap_err();
         assert_eq!(absolute.code(), tonic::Code::PermissionDenied);
-        assert_eq!(resolve_inside(root.path(), "sub").unwrap_err().code(), tonic::Code::InvalidArgument);
-        assert_eq!(resolve_inside(root.path(), "missing.csv").unwrap_err().code(), tonic::Code::NotFound);
+        assert_eq!(
+            resolve_inside(root.path(), "sub").unwrap_err().code(),
+            tonic::Code::InvalidArgument
+        );
+        assert_eq!(
+            resolve_inside(root.path(), "missing.csv")
+                .unwrap_err()
+                .code(),
+            tonic::Code::NotFound
+        );
     }
 }

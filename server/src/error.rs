@@ -31,7 +31,11 @@ pub fn invalid_field(field: impl Into<String>, description: impl Into<String>) -
 /// NOT_FOUND with ResourceInfo naming the resource.
 pub fn not_found(kind: &str, name: &str) -> Status {
     let details = ErrorDetails::with_resource_info(kind, name, "", format!("no such {kind}"));
-    Status::with_error_details(Code::NotFound, format!("{kind} {name:?} not found"), details)
+    Status::with_error_details(
+        Code::NotFound,
+        format!("{kind} {name:?} not found"),
+        details,
+    )
 }
 
 /// FAILED_PRECONDITION with an ErrorInfo reason (machine-readable, UPPER_SNAKE_CASE).
@@ -80,7 +84,9 @@ impl From<StoreError> for Status {
         match &error {
             StoreError::NotFound { kind, id } => not_found(kind, id),
             StoreError::AlreadyExists { .. } => Status::already_exists(error.to_string()),
-            StoreError::ModelActive { .. } => failed_precondition("MODEL_ACTIVE", error.to_string()),
+            StoreError::ModelActive { .. } => {
+                failed_precondition("MODEL_ACTIVE", error.to_string())
+            }
             StoreError::JobNotFinished { .. } => {
                 failed_precondition("JOB_NOT_FINISHED", error.to_string())
             }
@@ -89,7 +95,9 @@ impl From<StoreError> for Status {
             }
             StoreError::InvalidPageToken => invalid_field("page_token", "invalid page token"),
             StoreError::InvalidValue { field, reason } => invalid_field(field.to_string(), reason),
-            StoreError::Database(_) | StoreError::Migration(_) => internal("accessing the database", &error),
+            StoreError::Database(_) | StoreError::Migration(_) => {
+                internal("accessing the database", &error)
+            }
         }
     }
 }
@@ -101,13 +109,21 @@ mod tests {
     #[test]
     fn field_violations_travel_in_the_status_details() {
         let status = invalid_argument(vec![
-            ("batch.samples[2].latitude_deg".into(), "must be finite".into()),
+            (
+                "batch.samples[2].latitude_deg".into(),
+                "must be finite".into(),
+            ),
             ("batch.samples[3].speed_mps".into(), "too fast".into()),
         ]);
         assert_eq!(status.code(), Code::InvalidArgument);
-        let bad = status.get_details_bad_request().expect("BadRequest details");
+        let bad = status
+            .get_details_bad_request()
+            .expect("BadRequest details");
         assert_eq!(bad.field_violations.len(), 2);
-        assert_eq!(bad.field_violations[0].field, "batch.samples[2].latitude_deg");
+        assert_eq!(
+            bad.field_violations[0].field,
+            "batch.samples[2].latitude_deg"
+        );
         let rpc = to_rpc_status(&status);
         assert_eq!(rpc.code, Code::InvalidArgument as i32);
         assert_eq!(rpc.details.len(), 1);

@@ -86,7 +86,10 @@ pub async fn serve(
         .fail_interrupted_jobs("server restarted while the job was queued or running")
         .await?;
     if interrupted > 0 {
-        tracing::warn!(interrupted, "marked jobs left over by a previous run as failed");
+        tracing::warn!(
+            interrupted,
+            "marked jobs left over by a previous run as failed"
+        );
     }
     store.close_open_alarms(store::now_unix_ms()).await?;
     let registry = Arc::new(Registry::new(store.clone()));
@@ -149,8 +152,8 @@ pub async fn serve(
     .max_decoding_message_size(limit);
     let training = TrainingServiceServer::new(TrainingApi::new(job_services.clone()))
         .max_decoding_message_size(limit);
-    let operations =
-        OperationsServer::new(OperationsApi { jobs: job_services }).max_decoding_message_size(limit);
+    let operations = OperationsServer::new(OperationsApi { jobs: job_services })
+        .max_decoding_message_size(limit);
 
     health_reporter
         .set_serving::<DetectionServiceServer<DetectionApi>>()
@@ -172,7 +175,8 @@ pub async fn serve(
     let evictor = {
         let sessions = Arc::clone(&sessions);
         let draining = draining.clone();
-        let period = (config.session_idle() / 4).clamp(Duration::from_secs(1), Duration::from_secs(30));
+        let period =
+            (config.session_idle() / 4).clamp(Duration::from_secs(1), Duration::from_secs(30));
         tokio::spawn(async move {
             let mut tick = tokio::time::interval(period);
             loop {
@@ -220,11 +224,25 @@ pub async fn serve(
         .add_service(health_service)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)
-        .add_service(tonic::service::interceptor::InterceptedService::new(detection, auth.clone()))
-        .add_service(tonic::service::interceptor::InterceptedService::new(models, auth.clone()))
-        .add_service(tonic::service::interceptor::InterceptedService::new(datasets, auth.clone()))
-        .add_service(tonic::service::interceptor::InterceptedService::new(training, auth.clone()))
-        .add_service(tonic::service::interceptor::InterceptedService::new(operations, auth));
+        .add_service(tonic::service::interceptor::InterceptedService::new(
+            detection,
+            auth.clone(),
+        ))
+        .add_service(tonic::service::interceptor::InterceptedService::new(
+            models,
+            auth.clone(),
+        ))
+        .add_service(tonic::service::interceptor::InterceptedService::new(
+            datasets,
+            auth.clone(),
+        ))
+        .add_service(tonic::service::interceptor::InterceptedService::new(
+            training,
+            auth.clone(),
+        ))
+        .add_service(tonic::service::interceptor::InterceptedService::new(
+            operations, auth,
+        ));
     let server = router.serve_with_incoming_shutdown(incoming, async {
         let _ = stop_rx.await;
     });

@@ -43,7 +43,9 @@ async fn main() -> std::process::ExitCode {
         }
     };
     match listener.local_addr() {
-        Ok(addr) => tracing::info!(%addr, database = %config.database, "spoofwatch-server listening"),
+        Ok(addr) => {
+            tracing::info!(%addr, database = %config.database, "spoofwatch-server listening")
+        }
         Err(error) => tracing::warn!(%error, "listening (address unknown)"),
     }
     match serve(config, listener, shutdown_signal()).await {

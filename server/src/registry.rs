@@ -15,7 +15,9 @@ use spoofwatch_proto::v1::model_service_server::ModelService;
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 
-use crate::convert::{metrics_to_proto, operating_point_to_proto, strip_collection, timestamp_from_ms};
+use crate::convert::{
+    metrics_to_proto, operating_point_to_proto, strip_collection, timestamp_from_ms,
+};
 use crate::error::{failed_precondition, internal, invalid_field, not_found};
 use crate::store::{ModelRow, ModelSource, NewModel, PageRequest, Store};
 
@@ -199,7 +201,8 @@ impl Registry {
             .await?
             .ok_or_else(|| not_found("model", &format!("models/{id}")))?;
         let artifact = Arc::new(
-            ModelArtifact::from_slice(&bytes).map_err(|e| internal("loading a stored model", &e))?,
+            ModelArtifact::from_slice(&bytes)
+                .map_err(|e| internal("loading a stored model", &e))?,
         );
         self.cache_insert(&id, Arc::clone(&artifact));
         Ok(LoadedModel { id, artifact })
@@ -359,7 +362,12 @@ impl ModelService for ModelApi {
             Some(v1::ImportModelRequest {
                 kind: Some(Kind::Header(h)),
             }) => h,
-            _ => return Err(invalid_field("header", "the first message must be a header")),
+            _ => {
+                return Err(invalid_field(
+                    "header",
+                    "the first message must be a header",
+                ));
+            }
         };
         let mut bytes = Vec::new();
         while let Some(message) = stream.message().await? {
@@ -373,7 +381,12 @@ impl ModelService for ModelApi {
                     }
                     bytes.extend_from_slice(&chunk);
                 }
-                _ => return Err(invalid_field("header", "only the first message may be a header")),
+                _ => {
+                    return Err(invalid_field(
+                        "header",
+                        "only the first message may be a header",
+                    ));
+                }
             }
         }
         let artifact = ModelArtifact::from_slice(&bytes)

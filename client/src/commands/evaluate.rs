@@ -68,7 +68,8 @@ pub fn run(args: Args) -> Result<()> {
 }
 
 fn write_rows(path: &PathBuf, evaluation: &Evaluation) -> Result<()> {
-    let mut out = csv::Writer::from_path(path).with_context(|| format!("creating {}", path.display()))?;
+    let mut out =
+        csv::Writer::from_path(path).with_context(|| format!("creating {}", path.display()))?;
     out.write_record([
         "vehicle_id",
         "line",

@@ -72,7 +72,10 @@ pub fn run(args: Args) -> Result<()> {
     let mut out = csv::Writer::from_writer(std::io::BufWriter::new(sink));
     out.write_record(HEADER)?;
     for track in &tracks {
-        for (e, r) in build_track(&params, &track.records).iter().zip(&track.records) {
+        for (e, r) in build_track(&params, &track.records)
+            .iter()
+            .zip(&track.records)
+        {
             let numbers = [
                 e.delta_t,
                 f64::from(u8::from(e.valid)),

@@ -90,7 +90,8 @@ impl From<RulesArg> for EventRules {
 /// Writes pretty JSON to a file.
 fn write_json<T: serde::Serialize>(path: &std::path::Path, value: &T) -> anyhow::Result<()> {
     use anyhow::Context;
-    let file = std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    let file =
+        std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
     serde_json::to_writer_pretty(std::io::BufWriter::new(file), value)
         .with_context(|| format!("writing {}", path.display()))
 }

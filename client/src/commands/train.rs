@@ -7,8 +7,8 @@ use anyhow::{Context, Result};
 use clap::ValueEnum;
 use spoofwatch_core::model::{Ablation, FeatureGroups, ModelConfig};
 use spoofwatch_core::pipeline::{
-    DetectorTrainingOptions, KAPPA_RHO_GRID, SplitFractions, TrainedDetector, split_chronologically,
-    train_detector,
+    DetectorTrainingOptions, KAPPA_RHO_GRID, SplitFractions, TrainedDetector,
+    split_chronologically, train_detector,
 };
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::train::TrainConfig;
@@ -99,7 +99,7 @@ impl ModelFlags {
         };
         let train = TrainConfig {
             seed: self.seed,
-            max_epochs: self.epochs,
+            max_epochs: self.epochs as usize,
             ..TrainConfig::default()
         };
         DetectorTrainingOptions {
@@ -182,7 +182,7 @@ pub fn train_with_progress(
     options: &DetectorTrainingOptions,
 ) -> Result<TrainedDetector> {
     let candidates = options.kappa_rho.len() as u64;
-    let bar = crate::progress::bar(u64::from(options.train.max_epochs) * candidates, "training");
+    let bar = crate::progress::bar(options.train.max_epochs as u64 * candidates, "training");
     let cancel = AtomicBool::new(false);
     let trained = train_detector(
         train,

@@ -213,7 +213,7 @@ pub fn normal_runs(track: &crate::sample::Track) -> Vec<crate::sample::Track> {
     use crate::sample::Track;
     let mut out: Vec<Track> = Vec::new();
     let mut current: Vec<crate::sample::Record> = Vec::new();
-    let mut flush = |records: Vec<crate::sample::Record>, out: &mut Vec<Track>| {
+    let flush = |records: Vec<crate::sample::Record>, out: &mut Vec<Track>| {
         let mut records = records;
         if let Some(first) = records.first_mut() {
             first.trajectory_break = true;

@@ -193,7 +193,9 @@ impl DetectionService for DetectionApi {
         request: Request<v1::ResetSessionRequest>,
     ) -> Result<Response<v1::Session>, Status> {
         Ok(Response::new(
-            self.sessions.reset(&request.into_inner().vehicle_id).await?,
+            self.sessions
+                .reset(&request.into_inner().vehicle_id)
+                .await?,
         ))
     }
 }

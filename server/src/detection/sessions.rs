@@ -82,7 +82,8 @@ pub struct SessionSlot {
 
 impl SessionSlot {
     fn touch(&self) {
-        self.last_activity_ms.store(now_unix_ms(), Ordering::Relaxed);
+        self.last_activity_ms
+            .store(now_unix_ms(), Ordering::Relaxed);
     }
 
     fn connected(&self) -> bool {
@@ -121,10 +122,6 @@ impl SessionManager {
         }
     }
 
-    pub fn limits(&self) -> SessionLimits {
-        self.limits
-    }
-
     fn slots(&self) -> std::sync::MutexGuard<'_, HashMap<String, Arc<SessionSlot>>> {
         // A panic while holding this lock cannot leave the map inconsistent (single inserts/removes).
         self.slots.lock().unwrap_or_else(|p| p.into_inner())
@@ -134,13 +131,12 @@ impl SessionManager {
         self.slots().get(vehicle_id).cloned()
     }
 
-    /// Number of sessions in memory.
-    pub fn len(&self) -> usize {
-        self.slots().len()
-    }
-
     /// Finds or creates the slot of a vehicle, within the session limit.
-    fn slot_for(&self, vehicle_id: &str, model: &LoadedModel) -> Result<(Arc<SessionSlot>, bool), Status> {
+    fn slot_for(
+        &self,
+        vehicle_id: &str,
+        model: &LoadedModel,
+    ) -> Result<(Arc<SessionSlot>, bool), Status> {
         let mut slots = self.slots();
         if let Some(slot) = slots.get(vehicle_id) {
             return Ok((Arc::clone(slot), true));
@@ -247,8 +243,13 @@ impl SessionManager {
             );
             if decision.alarm_onset {
                 state.alarms_raised += 1;
-                self.open_alarm(&mut state, &slot.vehicle_id, sample.timestamp_s, decision.probability)
-                    .await;
+                self.open_alarm(
+                    &mut state,
+                    &slot.vehicle_id,
+                    sample.timestamp_s,
+                    decision.probability,
+                )
+                .await;
             } else if decision.alarm {
                 if let Some(open) = state.open_alarm.as_mut() {
                     open.peak = open.peak.max(decision.probability);
@@ -258,7 +259,11 @@ impl SessionManager {
                 self.close_alarm(&mut state, Some(sample.timestamp_s)).await;
             }
             state.alarm_active = decision.alarm;
-            detections.push(detection_to_proto(sample.timestamp_s, &decision, &model_name));
+            detections.push(detection_to_proto(
+                sample.timestamp_s,
+                &decision,
+                &model_name,
+            ));
         }
         state.last_seq = seq;
         slot.touch();
@@ -289,7 +294,9 @@ impl SessionManager {
         let Some(open) = state.open_alarm.take() else {
             return;
         };
-        let end = end_timestamp_s.or(state.last_timestamp_s).unwrap_or(f64::NAN);
+        let end = end_timestamp_s
+            .or(state.last_timestamp_s)
+            .unwrap_or(f64::NAN);
         let result = if end.is_finite() {
             self.store
                 .close_alarm(open.id, end, open.peak, open.samples)
@@ -304,11 +311,19 @@ impl SessionManager {
 
     /// Runs a batch for a vehicle without a stream (creating the session if needed), or on a
     /// throw-away detector when `vehicle_id` is empty.
-    pub async fn detect_unary(&self, request: &v1::DetectRequest) -> Result<v1::DetectResponse, Status> {
+    pub async fn detect_unary(
+        &self,
+        request: &v1::DetectRequest,
+    ) -> Result<v1::DetectResponse, Status> {
         if request.vehicle_id.is_empty() {
             let model = self.registry.resolve(&request.model).await?;
-            let batch = validate_batch(&request.samples, None, self.limits.max_batch_samples, "samples")
-                .map_err(invalid_argument)?;
+            let batch = validate_batch(
+                &request.samples,
+                None,
+                self.limits.max_batch_samples,
+                "samples",
+            )
+            .map_err(invalid_argument)?;
             let mut detector = Detector::new(Arc::clone(&model.artifact));
             let name = model.name();
             let detections = batch
@@ -367,7 +382,11 @@ impl SessionManager {
     }
 
     /// Sessions ordered by vehicle id; the page token is the last vehicle id returned.
-    pub async fn list(&self, page_size: i32, page_token: &str) -> Result<v1::ListSessionsResponse, Status> {
+    pub async fn list(
+        &self,
+        page_size: i32,
+        page_token: &str,
+    ) -> Result<v1::ListSessionsResponse, Status> {
         if page_size < 0 {
             return Err(invalid_field("page_size", "must not be negative"));
         }

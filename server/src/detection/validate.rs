@@ -91,12 +91,19 @@ mod tests {
     #[test]
     fn a_good_batch_passes() {
         let batch = [sample(10.0, 32.0), sample(11.0, 32.0), sample(10.8, 32.0)];
-        assert_eq!(validate_batch(&batch, Some(9.0), 10, "s").map(|v| v.len()), Ok(3));
+        assert_eq!(
+            validate_batch(&batch, Some(9.0), 10, "s").map(|v| v.len()),
+            Ok(3)
+        );
     }
 
     #[test]
     fn every_bad_field_and_backward_time_is_named() {
-        let batch = [sample(10.0, f64::NAN), sample(12.0, 95.0), sample(11.0, 32.0)];
+        let batch = [
+            sample(10.0, f64::NAN),
+            sample(12.0, 95.0),
+            sample(11.0, 32.0),
+        ];
         let errors = validate_batch(&batch, Some(10.2), 10, "batch.samples").unwrap_err();
         let fields: Vec<&str> = errors.iter().map(|(f, _)| f.as_str()).collect();
         assert_eq!(

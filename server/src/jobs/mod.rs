@@ -5,4 +5,4 @@ mod runner;
 mod service;
 
 pub use runner::{JobManager, JobSettings};
-pub use service::{OperationsApi, TrainingApi};
+pub use service::{Jobs, OperationsApi, TrainingApi};

@@ -23,9 +23,7 @@ use crate::convert::timestamp_from_ms;
 use crate::datasets::load_dataset;
 use crate::error::{invalid_field, not_found, resource_exhausted};
 use crate::registry::{Registry, new_id};
-use crate::store::{
-    EpochRow, JobKind, JobOutcome, JobRow, JobState, ModelSource, NewJob, Store,
-};
+use crate::store::{EpochRow, JobKind, JobOutcome, JobRow, JobState, ModelSource, NewJob, Store};
 
 /// Limits of the job manager.
 #[derive(Clone, Copy, Debug)]
@@ -140,10 +138,17 @@ impl JobManager {
         request: v1::CreateTrainingJobRequest,
     ) -> Result<JobRow, Status> {
         if request.datasets.is_empty() {
-            return Err(invalid_field("datasets", "at least one dataset is required"));
+            return Err(invalid_field(
+                "datasets",
+                "at least one dataset is required",
+            ));
         }
         let spec = request.spec.unwrap_or_default();
-        let max_epochs = if spec.max_epochs == 0 { 30 } else { spec.max_epochs };
+        let max_epochs = if spec.max_epochs == 0 {
+            30
+        } else {
+            spec.max_epochs
+        };
         if max_epochs > 200 {
             return Err(invalid_field("spec.max_epochs", "must be 1 to 200"));
         }
@@ -161,7 +166,8 @@ impl JobManager {
                 let id = crate::convert::strip_collection("datasets", name);
                 if self.store.get_dataset(id).await?.is_none() {
                     let mut status = not_found("dataset", name);
-                    status = Status::new(status.code(), format!("{field}[{i}]: {}", status.message()));
+                    status =
+                        Status::new(status.code(), format!("{field}[{i}]: {}", status.message()));
                     return Err(status);
                 }
             }
@@ -194,7 +200,10 @@ impl JobManager {
         request: v1::CreateEvaluationJobRequest,
     ) -> Result<JobRow, Status> {
         if request.datasets.is_empty() {
-            return Err(invalid_field("datasets", "at least one dataset is required"));
+            return Err(invalid_field(
+                "datasets",
+                "at least one dataset is required",
+            ));
         }
         let model = self.registry.resolve(&request.model).await?;
         for name in &request.datasets {
@@ -310,7 +319,10 @@ impl JobManager {
         request: JobRequest,
         live: &Arc<LiveJob>,
     ) -> Result<JobResult, JobFailure> {
-        self.store.mark_running(id).await.map_err(JobFailure::from_status)?;
+        self.store
+            .mark_running(id)
+            .await
+            .map_err(JobFailure::from_status)?;
         Self::notify(live);
         match request {
             JobRequest::Training {
@@ -328,7 +340,11 @@ impl JobManager {
                     let split = split_chronologically(&train_data, SplitFractions::default());
                     (split.train, split.validation, split.test)
                 } else {
-                    (train_data, self.load(&validation_datasets).await?, Vec::new())
+                    (
+                        train_data,
+                        self.load(&validation_datasets).await?,
+                        Vec::new(),
+                    )
                 };
                 let options = DetectorTrainingOptions {
                     model: ModelConfig {
@@ -337,7 +353,7 @@ impl JobManager {
                     },
                     train: TrainConfig {
                         seed,
-                        max_epochs,
+                        max_epochs: max_epochs as usize,
                         ..TrainConfig::default()
                     },
                     kappa_rho: if select_kappa_rho {
@@ -547,7 +563,11 @@ pub fn job_metadata(row: &JobRow, epochs: &[EpochRow]) -> v1::JobMetadata {
         train_loss: progress.train_loss,
         val_loss: progress.val_loss,
         val_auroc: progress.val_auroc,
-        eta_s: if row.state.is_finished() { None } else { progress.eta_s },
+        eta_s: if row.state.is_finished() {
+            None
+        } else {
+            progress.eta_s
+        },
         history: epochs
             .iter()
             .map(|e| v1::EpochRecord {

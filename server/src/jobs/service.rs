@@ -58,8 +58,10 @@ impl Jobs {
         let metadata = self.metadata(row).await?;
         let result = match row.state {
             JobState::Succeeded => {
-                let result: Option<JobResult> =
-                    row.result.clone().and_then(|v| serde_json::from_value(v).ok());
+                let result: Option<JobResult> = row
+                    .result
+                    .clone()
+                    .and_then(|v| serde_json::from_value(v).ok());
                 match result {
                     Some(JobResult::Training {
                         model_id,
@@ -220,7 +222,11 @@ impl TrainingService for TrainingApi {
 
 fn parse_filter(filter: &str) -> Result<JobFilter, Status> {
     let mut parsed = JobFilter::default();
-    for term in filter.split(" AND ").map(str::trim).filter(|t| !t.is_empty()) {
+    for term in filter
+        .split(" AND ")
+        .map(str::trim)
+        .filter(|t| !t.is_empty())
+    {
         match term.split_once('=').map(|(k, v)| (k.trim(), v.trim())) {
             Some(("kind", "training")) => parsed.kind = Some(JobKind::Training),
             Some(("kind", "evaluation")) => parsed.kind = Some(JobKind::Evaluation),
@@ -229,7 +235,9 @@ fn parse_filter(filter: &str) -> Result<JobFilter, Status> {
             _ => {
                 return Err(invalid_field(
                     "filter",
-                    format!("unsupported term {term:?} (use kind=training|evaluation, done=true|false)"),
+                    format!(
+                        "unsupported term {term:?} (use kind=training|evaluation, done=true|false)"
+                    ),
                 ));
             }
         }

@@ -135,10 +135,19 @@ fn variants(ablations: bool, headline_subtle: bool) -> Vec<Variant> {
                     ..full.clone()
                 },
             ),
-            with("accumulation removed", features(FeatureGroups::NoAccumulation)),
+            with(
+                "accumulation removed",
+                features(FeatureGroups::NoAccumulation),
+            ),
             with("evolution removed", features(FeatureGroups::NoEvolution)),
-            with("evolution and q removed", features(FeatureGroups::NoEvolutionNoQ)),
-            with("low-order evidence only", features(FeatureGroups::LowOrderOnly)),
+            with(
+                "evolution and q removed",
+                features(FeatureGroups::NoEvolutionNoQ),
+            ),
+            with(
+                "low-order evidence only",
+                features(FeatureGroups::LowOrderOnly),
+            ),
             with("validity only", features(FeatureGroups::ValidityOnly)),
         ]);
     }
@@ -291,7 +300,10 @@ fn render_markdown(report: &Report) -> String {
         report.experiment_wall_time_s
     );
     let table = metrics_table(&[
-        ("HO-LLN, Dataset-2 test (ours)".into(), &report.dataset2_test),
+        (
+            "HO-LLN, Dataset-2 test (ours)".into(),
+            &report.dataset2_test,
+        ),
         ("HO-LLN, Dataset-3 (ours)".into(), &report.dataset3),
         ("EKF Detector, Dataset-3".into(), &report.ekf_dataset3),
     ]);

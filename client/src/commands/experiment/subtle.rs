@@ -181,7 +181,11 @@ fn median(values: &mut [f64]) -> Option<f64> {
 fn attack_rows(scenarios: &[InjectedTrack], delays: &[Option<f64>]) -> Vec<AttackRow> {
     let mut groups: BTreeMap<String, (AttackKind, Vec<Option<f64>>)> = BTreeMap::new();
     for (s, d) in scenarios.iter().zip(delays) {
-        let key = format!("{:>10}{:>12.4}", s.attack.kind.family(), s.attack.kind.magnitude().unwrap_or(0.0));
+        let key = format!(
+            "{:>10}{:>12.4}",
+            s.attack.kind.family(),
+            s.attack.kind.magnitude().unwrap_or(0.0)
+        );
         groups
             .entry(key)
             .or_insert_with(|| (s.attack.kind, Vec::new()))
@@ -193,7 +197,10 @@ fn attack_rows(scenarios: &[InjectedTrack], delays: &[Option<f64>]) -> Vec<Attac
         .map(|(kind, delays)| {
             let events = delays.len();
             let mut detected: Vec<f64> = delays.iter().flatten().copied().collect();
-            let fast = detected.iter().filter(|&&d| d <= DETECTION_WINDOW_S).count();
+            let fast = detected
+                .iter()
+                .filter(|&&d| d <= DETECTION_WINDOW_S)
+                .count();
             AttackRow {
                 family: kind.family().to_string(),
                 magnitude: kind.magnitude(),
@@ -216,7 +223,9 @@ fn smallest_ramp(rows: &[AttackRow]) -> Option<f64> {
 fn hours(tracks: &[Track]) -> f64 {
     tracks
         .iter()
-        .filter_map(|t| Some(t.records.last()?.sample.timestamp_s - t.records.first()?.sample.timestamp_s))
+        .filter_map(|t| {
+            Some(t.records.last()?.sample.timestamp_s - t.records.first()?.sample.timestamp_s)
+        })
         .sum::<f64>()
         / 3600.0
 }
@@ -245,14 +254,23 @@ pub fn run(args: Args) -> Result<()> {
     prepare_out(&args.out)?;
     let split = split_chronologically(&data.dataset2, SplitFractions::default());
     // Injected attacks in training and validation: the operating point is chosen for subtle attacks.
-    let train = [split.train.clone(), training_injections(&split.train, args.seed)?].concat();
+    let train = [
+        split.train.clone(),
+        training_injections(&split.train, args.seed)?,
+    ]
+    .concat();
     let validation = [
         split.validation.clone(),
         training_injections(&split.validation, args.seed ^ 0x5EED)?,
     ]
     .concat();
 
-    let mut bases: Vec<Track> = split.test.iter().filter(|t| is_normal(t)).cloned().collect();
+    let mut bases: Vec<Track> = split
+        .test
+        .iter()
+        .filter(|t| is_normal(t))
+        .cloned()
+        .collect();
     for track in &data.dataset3 {
         bases.extend(normal_runs(track));
     }
@@ -300,7 +318,9 @@ pub fn run(args: Args) -> Result<()> {
     let threads = args.threads.unwrap_or_else(default_threads);
     let first_delay = |m: Metrics| m.delays_s.first().copied().flatten();
     let model_delays = map_parallel(&scenarios, threads, |s| {
-        first_delay(evaluate_tracks(&artifact, std::slice::from_ref(&s.track), EventRules::Spec).overall)
+        first_delay(
+            evaluate_tracks(&artifact, std::slice::from_ref(&s.track), EventRules::Spec).overall,
+        )
     });
     let cusum_delays = map_parallel(&scenarios, threads, |s| {
         let (rows, alarms) = score_cusum(&comparator, std::slice::from_ref(&s.track));

@@ -1,0 +1,410 @@
+//! The HO-LLN model (SPEC §5): role encoders → symmetric exchange → third-order fusion → second-order
+//! liquid cell → logistic head, with a streaming `step`, a sequence forward built on it, and a
+//! hand-derived BPTT backward (`backward.rs`).
+//!
+//! Input: already-scaled ξ vectors ([`Features`], order [`crate::evidence::FEATURE_NAMES`], ν last) and
+//! the time step δ_t in seconds.
+
+mod backward;
+mod fastmath;
+mod forward;
+mod linalg;
+mod params;
+
+use serde::{Deserialize, Serialize};
+
+use crate::evidence::{FEATURE_COUNT, Features};
+use crate::rng::Rng;
+
+pub use backward::{Tape, TrainingWindow, WindowGradient, WindowLoss, bce_with_logits};
+pub use forward::StepScratch;
+pub use params::{Params, Tensor};
+
+/// Default smallest liquid time constant (s).
+pub const DEFAULT_TAU_MIN_S: f64 = 0.05;
+/// Default largest liquid time constant (s).
+pub const DEFAULT_TAU_MAX_S: f64 = 10.0;
+/// δ_t is clamped to `[0, MAX_DELTA_S]` (NaN → 0) before it reaches the liquid cell.
+pub const MAX_DELTA_S: f64 = 5.0;
+/// Largest accepted width of any layer (guards against absurd allocations from a bad config).
+pub const MAX_DIMENSION: usize = 4096;
+
+/// ξ indices feeding the instantaneous role I = [η_E, η_N, q].
+pub const INSTANT_INPUTS: [usize; 3] = [0, 1, 6];
+/// ξ indices feeding the evolution role E = [η̇_E, η̇_N, η̈_E, η̈_N].
+pub const EVOLUTION_INPUTS: [usize; 4] = [2, 3, 4, 5];
+/// ξ indices feeding the persistence role P = [ã, ν].
+pub const PERSISTENCE_INPUTS: [usize; 2] = [7, 8];
+
+/// Errors of the model module.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ModelError {
+    /// A layer width is zero or larger than [`MAX_DIMENSION`].
+    #[error("model dimension {name} = {value} is outside 1..={MAX_DIMENSION}")]
+    InvalidDimension {
+        /// Which width (`d_s`, `d_zeta`, `d_h`).
+        name: &'static str,
+        /// The rejected value.
+        value: usize,
+    },
+    /// The time-constant range is not `0 < tau_min < tau_max < ∞`.
+    #[error(
+        "liquid time constants must satisfy 0 < tau_min < tau_max (finite); got tau_min = {tau_min}, tau_max = {tau_max}"
+    )]
+    InvalidTimeConstants {
+        /// Configured τ_min.
+        tau_min: f64,
+        /// Configured τ_max.
+        tau_max: f64,
+    },
+    /// A tensor's data length does not match its shape.
+    #[error("tensor {name}: data has {found} values but its shape needs {expected}")]
+    TensorLength {
+        /// Tensor name (`<tensor>` for an unnamed one).
+        name: String,
+        /// Product of the shape.
+        expected: usize,
+        /// Actual data length.
+        found: usize,
+    },
+    /// A tensor the configuration needs is absent.
+    #[error("parameter tensor {name} is missing for this model configuration")]
+    MissingParameter {
+        /// Tensor name.
+        name: &'static str,
+    },
+    /// A tensor is present that the configuration does not use (e.g. `w_tau_v` with a first-order cell).
+    #[error("parameter tensor {name} is not used by this model configuration")]
+    UnexpectedParameter {
+        /// Tensor name.
+        name: &'static str,
+    },
+    /// A tensor has the wrong shape for the configuration.
+    #[error("parameter tensor {name} has shape {found:?}, expected {expected:?}")]
+    ShapeMismatch {
+        /// Tensor name.
+        name: &'static str,
+        /// Shape the configuration needs.
+        expected: Vec<usize>,
+        /// Shape found.
+        found: Vec<usize>,
+    },
+    /// A tensor holds NaN or ±∞.
+    #[error("parameter tensor {name} has a non-finite value at flat index {index}")]
+    NonFiniteParameter {
+        /// Tensor name.
+        name: &'static str,
+        /// Flat row-major index of the first bad value.
+        index: usize,
+    },
+    /// Per-step inputs of a sequence or window do not have the same length.
+    #[error("{field} has {found} entries but the sequence has {expected} steps")]
+    LengthMismatch {
+        /// Which input (`deltas`, `labels`, `mask`, `weights`).
+        field: &'static str,
+        /// Number of feature rows.
+        expected: usize,
+        /// Length of `field`.
+        found: usize,
+    },
+    /// A liquid state does not match the model width.
+    #[error("liquid state has width {found}, the model needs d_h = {expected}")]
+    StateWidth {
+        /// The model's d_h.
+        expected: usize,
+        /// The state's width.
+        found: usize,
+    },
+}
+
+/// Which evidence groups reach the encoders (SPEC §5 ablations). Removed inputs are set to 0 before the
+/// encoders, so shapes stay fixed; a role whose inputs are all removed has the constant state σ(b).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FeatureGroups {
+    /// Every ξ entry.
+    #[default]
+    All,
+    /// Drop the accumulated persistence ã.
+    NoAccumulation,
+    /// Drop the residual evolution η̇, η̈ (the E role sees nothing).
+    NoEvolution,
+    /// Drop η̇, η̈ and the excess q.
+    NoEvolutionNoQ,
+    /// Keep only η and ν.
+    LowOrderOnly,
+    /// Keep only ν.
+    ValidityOnly,
+}
+
+impl FeatureGroups {
+    /// For each ξ index (order of `FEATURE_NAMES`), whether the input is kept.
+    pub fn kept(self) -> [bool; FEATURE_COUNT] {
+        // η_E η_N η̇_E η̇_N η̈_E η̈_N q ã ν
+        match self {
+            Self::All => [true; FEATURE_COUNT],
+            Self::NoAccumulation => [true, true, true, true, true, true, true, false, true],
+            Self::NoEvolution => [true, true, false, false, false, false, true, true, true],
+            Self::NoEvolutionNoQ => [true, true, false, false, false, false, false, true, true],
+            Self::LowOrderOnly => [true, true, false, false, false, false, false, false, true],
+            Self::ValidityOnly => [false, false, false, false, false, false, false, false, true],
+        }
+    }
+}
+
+/// Architecture switches for honest ablations (each variant is retrained by the caller).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Ablation {
+    /// s̄ = s: no conductance layer at all.
+    pub no_exchange: bool,
+    /// The product j is left out of the fusion input (W_H has 3·d_s columns).
+    pub no_third_order: bool,
+    /// v ≡ 0: h_t = h_{t−1} + γ(h̃ − h_{t−1}); no τ^v head; the head reads `[h]` only (a `[h; 0]` head
+    /// would carry d_h weights that can never receive a gradient).
+    pub first_order_cell: bool,
+    /// Evidence groups fed to the encoders.
+    pub features: FeatureGroups,
+}
+
+/// Model widths, time-constant range and ablation switches. `Default` = SPEC §5.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ModelConfig {
+    /// Role-state width d_s.
+    pub d_s: usize,
+    /// Fusion width d_ζ.
+    pub d_zeta: usize,
+    /// Liquid state width d_h (h and v).
+    pub d_h: usize,
+    /// Smallest time constant τ_min (s), for both τ^h and τ^v.
+    pub tau_min: f64,
+    /// Largest time constant τ_max (s).
+    pub tau_max: f64,
+    /// Ablation switches.
+    pub ablation: Ablation,
+}
+
+impl Default for ModelConfig {
+    fn default() -> Self {
+        Self {
+            d_s: 32,
+            d_zeta: 64,
+            d_h: 64,
+            tau_min: DEFAULT_TAU_MIN_S,
+            tau_max: DEFAULT_TAU_MAX_S,
+            ablation: Ablation::default(),
+        }
+    }
+}
+
+impl ModelConfig {
+    /// Checks the widths and the time-constant range.
+    pub fn validate(&self) -> Result<(), ModelError> {
+        for (name, value) in [
+            ("d_s", self.d_s),
+            ("d_zeta", self.d_zeta),
+            ("d_h", self.d_h),
+        ] {
+            if value == 0 || value > MAX_DIMENSION {
+                return Err(ModelError::InvalidDimension { name, value });
+            }
+        }
+        let ordered = self.tau_min > 0.0 && self.tau_max > self.tau_min;
+        if !(ordered && self.tau_max.is_finite()) {
+            return Err(ModelError::InvalidTimeConstants {
+                tau_min: self.tau_min,
+                tau_max: self.tau_max,
+            });
+        }
+        Ok(())
+    }
+
+    /// Width of the fusion input `[s̄^I; s̄^E; s̄^P; j]` (without `j` under `no_third_order`).
+    pub fn fusion_input_len(&self) -> usize {
+        if self.ablation.no_third_order {
+            3 * self.d_s
+        } else {
+            4 * self.d_s
+        }
+    }
+
+    /// Width of the head input: `[h; v]`, or `[h]` for the first-order cell.
+    pub fn head_input_len(&self) -> usize {
+        if self.ablation.first_order_cell {
+            self.d_h
+        } else {
+            2 * self.d_h
+        }
+    }
+}
+
+/// The liquid state (h, v) of one trajectory. Zero at a trajectory start.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LiquidState {
+    h: Vec<f64>,
+    v: Vec<f64>,
+}
+
+impl LiquidState {
+    /// The zero state for a model of this configuration.
+    pub fn zeros(config: &ModelConfig) -> Self {
+        Self {
+            h: vec![0.0; config.d_h],
+            v: vec![0.0; config.d_h],
+        }
+    }
+
+    /// A state from explicit vectors (both of the model width d_h).
+    pub fn from_parts(h: Vec<f64>, v: Vec<f64>) -> Result<Self, ModelError> {
+        if h.len() != v.len() {
+            return Err(ModelError::StateWidth {
+                expected: h.len(),
+                found: v.len(),
+            });
+        }
+        Ok(Self { h, v })
+    }
+
+    /// Memory state h.
+    pub fn h(&self) -> &[f64] {
+        &self.h
+    }
+
+    /// Evolution state v (identically 0 for the first-order cell).
+    pub fn v(&self) -> &[f64] {
+        &self.v
+    }
+
+    /// Whether this state has the width `config` needs.
+    pub fn fits(&self, config: &ModelConfig) -> bool {
+        self.h.len() == config.d_h && self.v.len() == config.d_h
+    }
+
+    /// Resets to zero (a new trajectory), keeping the allocation.
+    pub fn reset(&mut self) {
+        self.h.fill(0.0);
+        self.v.fill(0.0);
+    }
+}
+
+/// A trained (or initialised) HO-LLN model: configuration plus validated parameters.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "ModelParts")]
+pub struct Model {
+    config: ModelConfig,
+    params: Params,
+}
+
+/// Unvalidated serde form of [`Model`].
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ModelParts {
+    config: ModelConfig,
+    params: Params,
+}
+
+impl TryFrom<ModelParts> for Model {
+    type Error = ModelError;
+
+    fn try_from(parts: ModelParts) -> Result<Self, Self::Error> {
+        Model::from_parts(parts.config, parts.params)
+    }
+}
+
+impl Model {
+    /// A fresh model: Xavier-uniform weights and zero biases drawn from `seed`.
+    pub fn init(config: ModelConfig, seed: u64) -> Result<Self, ModelError> {
+        config.validate()?;
+        let params = Params::xavier(&config, &mut Rng::seed_from_u64(seed));
+        Ok(Self { config, params })
+    }
+
+    /// A model from stored parameters, checked against the configuration (names, shapes, finiteness).
+    pub fn from_parts(config: ModelConfig, params: Params) -> Result<Self, ModelError> {
+        config.validate()?;
+        params.validate(&config)?;
+        Ok(Self { config, params })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &ModelConfig {
+        &self.config
+    }
+
+    /// The parameter tensors.
+    pub fn params(&self) -> &Params {
+        &self.params
+    }
+
+    /// Mutable parameters for the optimiser (shapes are fixed; values must stay finite).
+    pub(crate) fn params_mut(&mut self) -> &mut Params {
+        &mut self.params
+    }
+
+    /// Number of trainable scalars.
+    pub fn parameter_count(&self) -> usize {
+        self.params.scalar_count()
+    }
+
+    /// Advances one vehicle by one sample and returns p̂_t.
+    ///
+    /// `x` is the scaled ξ_t; non-finite entries are read as 0 (the scaler's NaN convention), so a bad
+    /// value can never poison the state for the rest of the trajectory. `delta_t` is clamped to
+    /// `[0, MAX_DELTA_S]` (NaN → 0); pass 0 at a trajectory start so the state does not move.
+    /// A state of the wrong width (built for another model) is reset to zeros first, as a new
+    /// trajectory. `scratch` holds the intermediate activations so that no step allocates.
+    pub fn step(
+        &self,
+        state: &mut LiquidState,
+        x: &Features,
+        delta_t: f64,
+        scratch: &mut StepScratch,
+    ) -> f64 {
+        if !state.fits(&self.config) {
+            *state = LiquidState::zeros(&self.config);
+        }
+        let logit = self.forward_step(state, x, delta_t, scratch);
+        fastmath::sigmoid(logit)
+    }
+
+    /// p̂ for every step of a sequence, continuing from `state` (left at the final state). Built on
+    /// [`Model::step`], so both give bit-identical outputs.
+    pub fn forward_sequence(
+        &self,
+        xs: &[Features],
+        deltas: &[f64],
+        state: &mut LiquidState,
+    ) -> Result<Vec<f64>, ModelError> {
+        if deltas.len() != xs.len() {
+            return Err(ModelError::LengthMismatch {
+                field: "deltas",
+                expected: xs.len(),
+                found: deltas.len(),
+            });
+        }
+        let mut scratch = StepScratch::new(&self.config);
+        Ok(xs
+            .iter()
+            .zip(deltas)
+            .map(|(x, &delta)| self.step(state, x, delta, &mut scratch))
+            .collect())
+    }
+}
+
+/// p̂ = σ(logit), exactly as [`Model::step`] computes it from the head logit.
+pub fn probability_from_logit(logit: f64) -> f64 {
+    fastmath::sigmoid(logit)
+}
+
+/// δ_t as the liquid cell sees it: NaN → 0, then clamped to `[0, MAX_DELTA_S]`.
+pub fn clamp_delta(delta_t: f64) -> f64 {
+    if delta_t.is_nan() {
+        0.0
+    } else {
+        delta_t.clamp(0.0, MAX_DELTA_S)
+    }
+}
+
+#[cfg(test)]
+mod tests;
