@@ -41,7 +41,7 @@ pub struct Detector {
 impl Detector {
     pub fn new(artifact: Arc<ModelArtifact>) -> Self {
         Self {
-            evidence: EvidenceBuilder::new(artifact.evidence.clone()),
+            evidence: EvidenceBuilder::new(artifact.evidence),
             state: LiquidState::zeros(artifact.model.config()),
             scratch: StepScratch::new(artifact.model.config()),
             alarm: PersistenceAlarm::new(artifact.operating_point.n_p),

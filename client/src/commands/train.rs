@@ -7,7 +7,7 @@ use anyhow::{Context, Result};
 use clap::ValueEnum;
 use spoofwatch_core::model::{Ablation, FeatureGroups, ModelConfig};
 use spoofwatch_core::pipeline::{
-    DetectorTrainingOptions, KAPPA_RHO_GRID, SplitFractions, TrainedDetector,
+    DetectorTrainingOptions, KAPPA_RHO_GRID, Recipe, SplitFractions, TrainedDetector,
     split_chronologically, train_detector,
 };
 use spoofwatch_core::sample::Track;
@@ -44,6 +44,35 @@ pub struct ModelFlags {
     /// Local frame for GNSS displacements.
     #[arg(long, value_enum, default_value_t)]
     pub projection: ProjectionArg,
+    /// Optimiser recipe: `auto` uses the small-data recipe (batches of 2 windows, learning rate
+    /// 3e-3) when the training data holds fewer than 256 windows of 256 steps, else SPEC §6.
+    #[arg(long, value_enum, default_value_t)]
+    pub recipe: RecipeArg,
+    /// Print one line per epoch on stderr.
+    #[arg(long)]
+    pub verbose: bool,
+}
+
+/// Optimiser recipe.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, ValueEnum)]
+pub enum RecipeArg {
+    /// Small-data recipe below 256 training windows, SPEC §6 above.
+    #[default]
+    Auto,
+    /// SPEC §6 exactly (batches of 16 windows, learning rate 1e-3).
+    Spec,
+    /// Batches of 2 windows, learning rate 3e-3.
+    SmallData,
+}
+
+impl From<RecipeArg> for Recipe {
+    fn from(r: RecipeArg) -> Self {
+        match r {
+            RecipeArg::Auto => Recipe::Auto,
+            RecipeArg::Spec => Recipe::Spec,
+            RecipeArg::SmallData => Recipe::SmallData,
+        }
+    }
 }
 
 /// Evidence groups kept (SPEC §5 ablations).
@@ -83,6 +112,8 @@ impl ModelFlags {
             features: FeaturesArg::All,
             select_kappa_rho: false,
             projection: ProjectionArg::Wgs84,
+            recipe: RecipeArg::Auto,
+            verbose: false,
         }
     }
 
@@ -106,6 +137,7 @@ impl ModelFlags {
             model,
             train,
             projection: self.projection.into(),
+            recipe: self.recipe.into(),
             kappa_rho: if self.select_kappa_rho {
                 KAPPA_RHO_GRID.to_vec()
             } else {
@@ -146,7 +178,7 @@ pub fn run(args: Args) -> Result<()> {
         (data, load_tracks(&args.val)?, Vec::new())
     };
     let options = args.model.options(names);
-    let trained = train_with_progress(&train, &validation, &options)?;
+    let trained = train_with_progress(&train, &validation, &options, args.model.verbose)?;
     let file = std::fs::File::create(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     trained.artifact.write(std::io::BufWriter::new(file))?;
@@ -180,6 +212,7 @@ pub fn train_with_progress(
     train: &[Track],
     validation: &[Track],
     options: &DetectorTrainingOptions,
+    verbose: bool,
 ) -> Result<TrainedDetector> {
     let candidates = options.kappa_rho.len() as u64;
     let bar = crate::progress::bar(options.train.max_epochs as u64 * candidates, "training");
@@ -189,14 +222,19 @@ pub fn train_with_progress(
         validation,
         options,
         &mut |p| {
-            bar.inc(1);
-            bar.set_message(format!(
-                "epoch {} loss {:.4} val {:.4} auroc {}",
+            let line = format!(
+                "epoch {} loss {:.4} val {:.4} auroc {} lr {:.1e}",
                 p.epoch,
                 p.train_loss,
                 p.val_loss,
-                p.val_auroc.map_or("-".into(), |a| format!("{a:.4}"))
-            ));
+                p.val_auroc.map_or("-".into(), |a| format!("{a:.4}")),
+                p.learning_rate
+            );
+            if verbose {
+                eprintln!("{line}");
+            }
+            bar.inc(1);
+            bar.set_message(line);
         },
         &cancel,
     )

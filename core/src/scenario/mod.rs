@@ -176,6 +176,33 @@ fn compact(value: f64) -> String {
     format!("{value}")
 }
 
+/// The normal (not spoofed) stretches of a labelled track as separate tracks
+/// (`<vehicle>/normal<k>`, each starting a trajectory), ready to be injection bases.
+pub fn normal_runs(track: &crate::sample::Track) -> Vec<crate::sample::Track> {
+    use crate::sample::Track;
+    let mut out: Vec<Track> = Vec::new();
+    let mut current: Vec<crate::sample::Record> = Vec::new();
+    let flush = |records: Vec<crate::sample::Record>, out: &mut Vec<Track>| {
+        let mut records = records;
+        if let Some(first) = records.first_mut() {
+            first.trajectory_break = true;
+            out.push(Track {
+                vehicle_id: format!("{}/normal{}", track.vehicle_id, out.len()),
+                records,
+            });
+        }
+    };
+    for record in &track.records {
+        if record.label == Some(true) {
+            flush(std::mem::take(&mut current), &mut out);
+        } else {
+            current.push(record.clone());
+        }
+    }
+    flush(current, &mut out);
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -205,31 +232,40 @@ mod tests {
         assert_eq!(wrap_longitude_deg(-110.91), -110.91);
         assert!((wrap_longitude_deg(190.0) + 170.0).abs() < 1e-12);
     }
-}
 
-/// The normal (not spoofed) stretches of a labelled track as separate tracks
-/// (`<vehicle>/normal<k>`, each starting a trajectory), ready to be injection bases.
-pub fn normal_runs(track: &crate::sample::Track) -> Vec<crate::sample::Track> {
-    use crate::sample::Track;
-    let mut out: Vec<Track> = Vec::new();
-    let mut current: Vec<crate::sample::Record> = Vec::new();
-    let flush = |records: Vec<crate::sample::Record>, out: &mut Vec<Track>| {
-        let mut records = records;
-        if let Some(first) = records.first_mut() {
-            first.trajectory_break = true;
-            out.push(Track {
-                vehicle_id: format!("{}/normal{}", track.vehicle_id, out.len()),
-                records,
-            });
-        }
-    };
-    for record in &track.records {
-        if record.label == Some(true) {
-            flush(std::mem::take(&mut current), &mut out);
-        } else {
-            current.push(record.clone());
-        }
+    #[test]
+    fn normal_runs_split_at_spoofed_rows_and_start_trajectories() {
+        use crate::sample::{Record, Sample, Track};
+        let labels = [
+            Some(false),
+            None,
+            Some(true),
+            Some(true),
+            Some(false),
+            Some(false),
+        ];
+        let records = labels
+            .iter()
+            .enumerate()
+            .map(|(i, &label)| Record {
+                sample: Sample::new(i as f64, 32.0, -110.0, 1.0, 0.0),
+                label,
+                comparator_alarm: None,
+                line: i as u64 + 2,
+                trajectory_break: false,
+            })
+            .collect();
+        let track = Track {
+            vehicle_id: "v".into(),
+            records,
+        };
+        let runs = normal_runs(&track);
+        let lines: Vec<Vec<u64>> = runs
+            .iter()
+            .map(|t| t.records.iter().map(|r| r.line).collect())
+            .collect();
+        assert_eq!(lines, vec![vec![2, 3], vec![6, 7]]);
+        assert_eq!(runs[1].vehicle_id, "v/normal1");
+        assert!(runs.iter().all(|t| t.records[0].trajectory_break));
     }
-    flush(current, &mut out);
-    out
 }

@@ -68,14 +68,15 @@ fn is_normal(track: &Track) -> bool {
     track.records.iter().all(|r| r.label != Some(true))
 }
 
-/// Labelled copies of the normal tracks' pieces, one injected attack each (kinds cycle), for training.
+/// Labelled copies of the normal tracks' pieces, every training attack kind injected into each piece
+/// (random onset and direction), for training.
 pub fn training_injections(tracks: &[Track], seed: u64) -> Result<Vec<Track>> {
     let normal: Vec<Track> = tracks.iter().filter(|t| is_normal(t)).cloned().collect();
     let bases = pieces(&normal, TRAINING_PIECE_S);
     let mut out = Vec::new();
     for (i, base) in bases.iter().enumerate() {
         let plan = ScenarioPlan {
-            kinds: vec![TRAINING_KINDS[i % TRAINING_KINDS.len()]],
+            kinds: TRAINING_KINDS.to_vec(),
             directions_deg: Vec::new(),
             duration: AttackDuration::Seconds(TRAINING_ATTACK_S),
             onset_s: None,
@@ -214,8 +215,9 @@ fn attack_rows(scenarios: &[InjectedTrack], delays: &[Option<f64>]) -> Vec<Attac
 }
 
 fn smallest_ramp(rows: &[AttackRow]) -> Option<f64> {
+    let ramp = AttackKind::RampDrift { velocity_mps: 1.0 }.family();
     rows.iter()
-        .filter(|r| r.family == "ramp" && r.adr_30s >= 0.9)
+        .filter(|r| r.family == ramp && r.adr_30s >= 0.9)
         .filter_map(|r| r.magnitude)
         .reduce(f64::min)
 }
@@ -307,7 +309,7 @@ pub fn run(args: Args) -> Result<()> {
     let options = flags.options(vec![
         "AV-GPS-Dataset-2.csv chronological 70/15 + injected subtle attacks in both".into(),
     ]);
-    let trained = train_with_progress(&train, &validation, &options)?;
+    let trained = train_with_progress(&train, &validation, &options, false)?;
     let artifact = Arc::new(trained.artifact);
     artifact.write(std::io::BufWriter::new(
         std::fs::File::create(args.out.join("model.json")).context("creating model.json")?,
