@@ -1,0 +1,198 @@
+//! The offline `spoofwatch` commands, run as a user would (the real binary, real files).
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+use spoofwatch_core::testdata::{AVGPS_DIR_VAR, data_file};
+
+fn spoofwatch(args: &[&str]) -> Output {
+    let output = Command::new(env!("CARGO_BIN_EXE_spoofwatch"))
+        .args(args)
+        .env_remove("CI")
+        .output()
+        .expect("the spoofwatch binary runs");
+    assert!(
+        output.status.success(),
+        "spoofwatch {args:?} failed:\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    output
+}
+
+fn stdout(output: &Output) -> String {
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+fn path(dir: &Path, name: &str) -> String {
+    dir.join(name).display().to_string()
+}
+
+#[test]
+fn simulate_train_evaluate_and_evidence_work_together() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (train, val, test, model) = (
+        path(dir.path(), "train.csv"),
+        path(dir.path(), "val.csv"),
+        path(dir.path(), "test.csv"),
+        path(dir.path(), "model.json"),
+    );
+    for (file, seed) in [(&train, "1"), (&val, "50"), (&test, "90")] {
+        spoofwatch(&[
+            "scenario",
+            "simulate",
+            "--out",
+            file,
+            "--vehicles",
+            "2",
+            "--duration",
+            "400",
+            "--seed",
+            seed,
+            "--attack",
+            "frozen",
+            "--onset",
+            "150",
+            "--attack-duration",
+            "120",
+        ]);
+    }
+    let csv = std::fs::read_to_string(&train).expect("written");
+    assert!(csv.starts_with("vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg,label"));
+    assert_eq!(csv.lines().count(), 1 + 2 * 401);
+
+    let trained = stdout(&spoofwatch(&[
+        "train", "--data", &train, "--val", &val, "--out", &model, "--epochs", "3",
+    ]));
+    assert!(trained.contains("operating point"), "{trained}");
+    assert!(trained.contains("| validation |"), "{trained}");
+
+    let json = path(dir.path(), "metrics.json");
+    let rows = path(dir.path(), "rows.csv");
+    let evaluated = stdout(&spoofwatch(&[
+        "evaluate", "--model", &model, "--data", &test, "--json", &json, "--rows", &rows,
+    ]));
+    assert!(evaluated.contains("| overall |"), "{evaluated}");
+    // One row per (attacked) vehicle besides the overall one.
+    assert!(
+        evaluated.contains("| sim0#frozen") && evaluated.contains("| sim1#frozen"),
+        "{evaluated}"
+    );
+    let metrics: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).expect("json")).expect("valid json");
+    assert_eq!(metrics["overall"]["events"], 2);
+    assert_eq!(
+        std::fs::read_to_string(&rows)
+            .expect("rows")
+            .lines()
+            .count(),
+        1 + 2 * 401
+    );
+
+    // Evidence with the model's statistics: one row per input row, ν = 0 on each trajectory start.
+    let evidence = stdout(&spoofwatch(&[
+        "evidence", "--data", &test, "--stats", &model,
+    ]));
+    let lines: Vec<&str> = evidence.lines().collect();
+    assert_eq!(lines.len(), 1 + 2 * 401);
+    assert!(lines[0].starts_with("vehicle_id,line,trajectory,delta_t,nu,r_e,r_n,eta_e"));
+    let first: Vec<&str> = lines[1].split(',').collect();
+    assert!(first[0].starts_with("sim0#frozen"), "{}", lines[1]);
+    assert_eq!(&first[1..5], ["2", "0", "NaN", "0"], "{}", lines[1]);
+}
+
+#[test]
+fn bad_input_names_file_line_and_column() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let file = path(dir.path(), "bad.csv");
+    std::fs::write(
+        &file,
+        "vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg\nv,0,32.2,-110.9,1,0\nv,1,abc,-110.9,1,0\n",
+    )
+    .expect("write");
+    let output = Command::new(env!("CARGO_BIN_EXE_spoofwatch"))
+        .args(["evidence", "--data", &file])
+        .output()
+        .expect("runs");
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("bad.csv:3"), "{stderr}");
+    assert!(stderr.contains("latitude"), "{stderr}");
+}
+
+#[test]
+fn cusum_and_the_bundled_model_on_the_av_gps_data() {
+    let (Some(d2), Some(d3)) = (
+        data_file(AVGPS_DIR_VAR, "AV-GPS-Dataset-2.csv"),
+        data_file(AVGPS_DIR_VAR, "AV-GPS-Dataset-3.csv"),
+    ) else {
+        return;
+    };
+    let (d2, d3) = (d2.display().to_string(), d3.display().to_string());
+    let cusum = stdout(&spoofwatch(&["cusum", "--train", &d2, "--data", &d3]));
+    assert!(cusum.contains("CUSUM: mu_e ="), "{cusum}");
+    assert!(cusum.contains("| data |"), "{cusum}");
+
+    // The committed default model reproduces its documented Dataset-3 scores (README).
+    let bundled = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/default.json");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let json = path(dir.path(), "d3.json");
+    spoofwatch(&[
+        "evaluate", "--model", bundled, "--data", &d3, "--json", &json,
+    ]);
+    let metrics: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).expect("json")).expect("valid");
+    let overall = &metrics["overall"];
+    assert_eq!(overall["events"], 2);
+    assert_eq!(overall["detected_events"], 2);
+    assert_eq!(overall["false_alarm_rows"], 29);
+    assert_eq!(overall["false_alarm_events"], 2);
+    assert_eq!(overall["delays_s"], serde_json::json!([33.0, 50.0]));
+}
+
+#[test]
+fn the_av_gps_experiment_runs_end_to_end() {
+    let Some(d2) = data_file(AVGPS_DIR_VAR, "AV-GPS-Dataset-2.csv") else {
+        return;
+    };
+    let data_dir = d2.parent().expect("a directory").display().to_string();
+    let out = tempfile::tempdir().expect("tempdir");
+    let out_dir = out.path().display().to_string();
+    spoofwatch(&[
+        "experiment",
+        "av-gps",
+        "--data-dir",
+        &data_dir,
+        "--out",
+        &out_dir,
+        "--epochs",
+        "1",
+        "--no-ablations",
+    ]);
+    let report: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.path().join("report.json")).expect("report.json"),
+    )
+    .expect("valid json");
+    for key in ["dataset2_test", "dataset3", "ekf_dataset3"] {
+        for field in [
+            "auroc",
+            "auprc",
+            "f1",
+            "precision",
+            "recall",
+            "fpr",
+            "adr",
+            "mean_delay_s",
+            "false_alarm_rows",
+            "false_alarm_events",
+        ] {
+            assert!(report[key].get(field).is_some(), "{key}.{field} missing");
+        }
+    }
+    assert_eq!(
+        report["ekf_dataset3"]["delays_s"],
+        serde_json::json!([22.0, 29.0])
+    );
+    assert!(report["operating_point"]["theta"].is_number());
+    assert_eq!(report["seed"], 42);
+    assert!(out.path().join("report.md").is_file() && out.path().join("model.json").is_file());
+}

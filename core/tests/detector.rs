@@ -1,0 +1,220 @@
+//! The serving path end to end on simulated data: the streaming detector equals the whole-trajectory
+//! pass and the model's sequence forward; artifacts round-trip and refuse other schema versions;
+//! chronological splitting and a small training job work together.
+
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
+
+use spoofwatch_core::alarm::{OperatingPoint, PersistenceAlarm};
+use spoofwatch_core::artifact::{
+    ARTIFACT_SCHEMA_VERSION, ArtifactError, ModelArtifact, Provenance,
+};
+use spoofwatch_core::detector::{Detector, run_records};
+use spoofwatch_core::geo::Projection;
+use spoofwatch_core::model::{LiquidState, Model, ModelConfig};
+use spoofwatch_core::pipeline::{
+    DetectorTrainingOptions, SplitFractions, fit_evidence, sequences, split_chronologically,
+    train_detector, trajectory_ranges,
+};
+use spoofwatch_core::sample::Track;
+use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
+use spoofwatch_core::train::TrainConfig;
+
+fn drive(seed: u64, seconds: f64) -> Track {
+    let spec = DriveSpec {
+        duration_s: seconds,
+        seed,
+        ..DriveSpec::default()
+    };
+    simulate_drive(&spec, &format!("sim{seed}")).expect("valid drive")
+}
+
+fn attacked(seed: u64) -> Track {
+    attacked_with(seed, AttackKind::RampDrift { velocity_mps: 2.0 })
+}
+
+fn attacked_with(seed: u64, kind: AttackKind) -> Track {
+    let attack = AttackSpec {
+        kind,
+        direction_deg: 45.0,
+        onset_s: 200.0,
+        duration_s: 150.0,
+        seed: None,
+    };
+    inject(&drive(seed, 500.0), &attack).expect("fits").track
+}
+
+/// An untrained (but valid) artifact: evidence fitted on normal drives, random weights.
+fn artifact(op: OperatingPoint) -> Arc<ModelArtifact> {
+    let normal: Vec<Track> = (0..2).map(|s| drive(s, 400.0)).collect();
+    let fit = fit_evidence(&normal, Projection::Wgs84Local, 0.0, 0.98).expect("enough rows");
+    Arc::new(ModelArtifact {
+        schema_version: ARTIFACT_SCHEMA_VERSION,
+        feature_names: ModelArtifact::current_feature_names(),
+        model: Model::init(ModelConfig::default(), 7).expect("valid config"),
+        evidence: fit.params,
+        scaler: fit.scaler,
+        operating_point: op,
+        provenance: Provenance::default(),
+    })
+}
+
+#[test]
+fn streaming_detector_equals_the_whole_trajectory_pass_and_the_model_forward() {
+    let op = OperatingPoint { theta: 0.5, n_p: 3 };
+    let artifact = artifact(op);
+    let mut track = attacked(11);
+    // A source break in the middle: a second trajectory inside the same recording.
+    track.records[300].trajectory_break = true;
+
+    let offline = run_records(&artifact, &track.records);
+    let mut detector = Detector::new(Arc::clone(&artifact));
+    for (record, expected) in track.records.iter().zip(&offline) {
+        let live = detector.step(&record.sample, record.trajectory_break);
+        assert_eq!(live.probability.to_bits(), expected.probability.to_bits());
+        assert_eq!(live.alarm, expected.alarm);
+    }
+
+    // The same probabilities from the model's sequence pass over the scaled features, trajectory by
+    // trajectory from a zero state, and the same alarms from the persistence rule.
+    let mut alarm = PersistenceAlarm::new(op.n_p);
+    for range in trajectory_ranges(&track.records) {
+        let decisions = &offline[range];
+        let xs: Vec<_> = decisions.iter().map(|d| d.features).collect();
+        let deltas: Vec<f64> = decisions.iter().map(|d| d.evidence.delta_t).collect();
+        let mut state = LiquidState::zeros(artifact.model.config());
+        let probabilities = artifact
+            .model
+            .forward_sequence(&xs, &deltas, &mut state)
+            .expect("lengths match");
+        for (d, p) in decisions.iter().zip(probabilities) {
+            assert_eq!(d.probability.to_bits(), p.to_bits());
+            let expected =
+                alarm.update(p >= op.theta, d.evidence.valid, d.evidence.trajectory_start);
+            assert_eq!(d.alarm, expected);
+        }
+    }
+    assert_eq!(offline[300].evidence.trajectory, 1);
+}
+
+#[test]
+fn alarm_onsets_and_ends_pair_up() {
+    let artifact = artifact(OperatingPoint { theta: 0.5, n_p: 1 });
+    let decisions = run_records(&artifact, &attacked(3).records);
+    let onsets = decisions.iter().filter(|d| d.alarm_onset).count();
+    let ends = decisions.iter().filter(|d| d.alarm_end).count();
+    let still_on = usize::from(decisions.last().is_some_and(|d| d.alarm));
+    assert_eq!(onsets, ends + still_on);
+    for pair in decisions.windows(2) {
+        assert_eq!(pair[1].alarm_onset, pair[1].alarm && !pair[0].alarm);
+    }
+}
+
+#[test]
+fn artifacts_round_trip_and_serve_identically() {
+    let artifact = artifact(OperatingPoint {
+        theta: 0.35,
+        n_p: 2,
+    });
+    let bytes = artifact.to_vec().expect("serialises");
+    let loaded = Arc::new(ModelArtifact::from_slice(&bytes).expect("parses"));
+    assert_eq!(*loaded, *artifact);
+    let track = attacked(5);
+    let a = run_records(&artifact, &track.records);
+    let b = run_records(&loaded, &track.records);
+    for (x, y) in a.iter().zip(&b) {
+        assert_eq!(x.probability.to_bits(), y.probability.to_bits());
+    }
+}
+
+#[test]
+fn other_schema_versions_and_foreign_documents_fail_clearly() {
+    let artifact = artifact(OperatingPoint { theta: 0.5, n_p: 1 });
+    let mut value: serde_json::Value =
+        serde_json::from_slice(&artifact.to_vec().expect("serialises")).expect("json");
+    value["schema_version"] = serde_json::json!(ARTIFACT_SCHEMA_VERSION + 1);
+    let newer = ModelArtifact::from_slice(value.to_string().as_bytes()).unwrap_err();
+    assert!(matches!(newer, ArtifactError::UnsupportedSchema { .. }));
+    assert!(newer.to_string().contains("newer Spoofwatch"), "{newer}");
+
+    value["schema_version"] = serde_json::json!(0);
+    let older = ModelArtifact::from_slice(value.to_string().as_bytes()).unwrap_err();
+    assert!(older.to_string().contains("retrain"), "{older}");
+
+    let foreign = ModelArtifact::from_slice(br#"{"weights": [1, 2, 3]}"#).unwrap_err();
+    assert!(matches!(foreign, ArtifactError::MissingSchemaVersion));
+    assert!(matches!(
+        ModelArtifact::from_slice(b"not json").unwrap_err(),
+        ArtifactError::Json(_)
+    ));
+
+    value["schema_version"] = serde_json::json!(ARTIFACT_SCHEMA_VERSION);
+    value["feature_names"][0] = serde_json::json!("something_else");
+    assert!(matches!(
+        ModelArtifact::from_slice(value.to_string().as_bytes()).unwrap_err(),
+        ArtifactError::FeatureMismatch { .. }
+    ));
+}
+
+#[test]
+fn chronological_split_keeps_order_and_fractions_per_trajectory() {
+    let mut track = drive(1, 999.0); // 1000 rows
+    track.records[600].trajectory_break = true; // two trajectories: 600 + 400 rows
+    let split = split_chronologically(std::slice::from_ref(&track), SplitFractions::default());
+    let lens = |ts: &[Track]| ts.iter().map(|t| t.records.len()).collect::<Vec<_>>();
+    assert_eq!(lens(&split.train), [420, 280]);
+    assert_eq!(lens(&split.validation), [90, 60]);
+    assert_eq!(lens(&split.test), [90, 60]);
+    assert_eq!(split.train[0].records[0].line, track.records[0].line);
+    assert_eq!(split.validation[0].records[0].line, track.records[420].line);
+    assert_eq!(split.test[1].records[59].line, track.records[999].line);
+    let all = [&split.train[..], &split.validation[..], &split.test[..]].concat();
+    assert!(all.iter().all(|t| t.records[0].trajectory_break));
+}
+
+#[test]
+fn a_small_training_job_learns_a_frozen_position_attack_and_calibrates_an_operating_point() {
+    let frozen = |seed| attacked_with(seed, AttackKind::FrozenPosition);
+    let train: Vec<Track> = (20..24).map(frozen).collect();
+    let validation: Vec<Track> = (30..32).map(frozen).collect();
+    let options = DetectorTrainingOptions {
+        model: ModelConfig {
+            d_s: 8,
+            d_zeta: 8,
+            d_h: 8,
+            ..ModelConfig::default()
+        },
+        train: TrainConfig {
+            max_epochs: 30,
+            ..TrainConfig::default()
+        },
+        ..DetectorTrainingOptions::default()
+    };
+    let mut epochs = 0;
+    let trained = train_detector(
+        &train,
+        &validation,
+        &options,
+        &mut |_| epochs += 1,
+        &AtomicBool::new(false),
+    )
+    .expect("trains");
+    assert_eq!(epochs, trained.history.len());
+    assert!(!trained.cancelled);
+    let auroc = trained.validation.auroc.expect("both classes");
+    assert!(auroc > 0.8, "validation AUROC {auroc}");
+    let op = trained.artifact.operating_point;
+    assert!(op.theta > 0.0 && op.theta < 1.0 && (1..=10).contains(&op.n_p));
+    // The whole fit is reproducible.
+    let again = train_detector(
+        &train,
+        &validation,
+        &options,
+        &mut |_| {},
+        &AtomicBool::new(false),
+    )
+    .expect("trains");
+    assert_eq!(again.artifact.model, trained.artifact.model);
+    let fit = fit_evidence(&train, Projection::Wgs84Local, 0.0, 0.98).expect("fits");
+    assert_eq!(sequences(&fit, &train).len(), train.len());
+}
