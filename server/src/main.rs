@@ -33,6 +33,7 @@ async fn main() -> std::process::ExitCode {
             EnvFilter::try_from_env("SPOOFWATCH_LOG").unwrap_or_else(|_| EnvFilter::new("info")),
         )
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .init();
     let config = Config::parse();
     let listener = match tokio::net::TcpListener::bind(config.listen).await {

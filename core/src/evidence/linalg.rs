@@ -159,4 +159,40 @@ mod tests {
         ]));
         assert!(!is_symmetric_positive_definite(&[[0.0, 0.0], [0.0, 0.0]]));
     }
+
+    /// Independent check with nalgebra's symmetric eigen-decomposition on a spread of matrices.
+    #[test]
+    fn closed_form_matches_nalgebra_symmetric_eigen() {
+        use nalgebra::{Matrix2, SymmetricEigen};
+        let cases: [Mat2; 4] = [
+            [
+                [3.9358913556405484, 0.1832531432589464],
+                [0.1832531432589464, 2.1495387906372634],
+            ],
+            [[1e-3, 0.0], [0.0, 4e2]],
+            [[2.0, 1.999], [1.999, 2.0]],
+            [[5.0, -2.5], [-2.5, 3.0]],
+        ];
+        for m in cases {
+            let eig = SymmetricEigen::new(Matrix2::new(m[0][0], m[0][1], m[1][0], m[1][1]));
+            let inv_sqrt_diag = eig.eigenvalues.map(|l| 1.0 / l.sqrt());
+            let expected = eig.eigenvectors
+                * Matrix2::from_diagonal(&inv_sqrt_diag)
+                * eig.eigenvectors.transpose();
+            for got in [
+                inverse_sqrt_symmetric(&m),
+                inverse_sqrt_positive_definite(&m),
+            ] {
+                for i in 0..2 {
+                    for j in 0..2 {
+                        let (a, b) = (got[i][j], expected[(i, j)]);
+                        assert!(
+                            (a - b).abs() <= 1e-9 * b.abs().max(1.0),
+                            "{m:?}: {a} vs {b}"
+                        );
+                    }
+                }
+            }
+        }
+    }
 }
