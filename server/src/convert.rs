@@ -96,6 +96,29 @@ pub fn timestamp_from_ms(ms: i64) -> Timestamp {
     }
 }
 
+/// A List* request's paging fields as a store page request.
+pub fn page_request(size: i32, token: &str) -> Result<crate::store::PageRequest, tonic::Status> {
+    if size < 0 {
+        return Err(crate::error::invalid_field(
+            "page_size",
+            "must not be negative",
+        ));
+    }
+    Ok(crate::store::PageRequest {
+        page_size: size as u32,
+        page_token: (!token.is_empty()).then(|| token.to_string()),
+    })
+}
+
+/// Lower-case hex SHA-256 of stored blobs (models, datasets).
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    use sha2::{Digest, Sha256};
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
 /// `models/{id}` → `{id}` (a bare id is accepted too).
 pub fn strip_collection<'a>(collection: &str, name: &'a str) -> &'a str {
     name.strip_prefix(collection)

@@ -4,7 +4,6 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use sha2::{Digest, Sha256};
 use spoofwatch_core::data::{Format, Recording, read};
 use spoofwatch_core::sample::{Record, Sample, Track};
 use spoofwatch_proto::v1;
@@ -12,10 +11,12 @@ use spoofwatch_proto::v1::dataset_service_server::DatasetService;
 use spoofwatch_proto::v1::upload_dataset_request::Kind;
 use tonic::{Request, Response, Status, Streaming};
 
-use crate::convert::{sample_from_proto, strip_collection, timestamp_from_ms};
+use crate::convert::{
+    page_request, sample_from_proto, sha256_hex, strip_collection, timestamp_from_ms,
+};
 use crate::error::{failed_precondition, internal, invalid_field, not_found};
 use crate::registry::new_id;
-use crate::store::{DatasetRow, NewDataset, PageRequest, Store};
+use crate::store::{DatasetRow, NewDataset, Store};
 
 /// Largest dataset accepted (bytes of CSV).
 pub const MAX_DATASET_BYTES: usize = 256 << 20;
@@ -38,13 +39,6 @@ pub async fn load_dataset(store: &Store, name: &str) -> Result<Vec<Track>, Statu
     Ok(parse_dataset(Arc::new(content), id.to_string())
         .await?
         .tracks)
-}
-
-fn sha256_hex(bytes: &[u8]) -> String {
-    Sha256::digest(bytes)
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect()
 }
 
 fn to_proto(row: &DatasetRow) -> v1::Dataset {
@@ -172,16 +166,6 @@ fn tracks_from_records(records: Vec<v1::LabelledSample>) -> Result<Vec<Track>, S
         }
     }
     Ok(tracks)
-}
-
-fn page_request(size: i32, token: &str) -> Result<PageRequest, Status> {
-    if size < 0 {
-        return Err(invalid_field("page_size", "must not be negative"));
-    }
-    Ok(PageRequest {
-        page_size: size as u32,
-        page_token: (!token.is_empty()).then(|| token.to_string()),
-    })
 }
 
 #[tonic::async_trait]

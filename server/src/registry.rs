@@ -6,7 +6,6 @@ use std::pin::Pin;
 use std::sync::{Arc, Mutex};
 
 use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
 use spoofwatch_core::alarm::OperatingPoint;
 use spoofwatch_core::artifact::{ARTIFACT_SCHEMA_VERSION, ModelArtifact};
 use spoofwatch_core::metrics::Metrics;
@@ -16,10 +15,11 @@ use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::convert::{
-    metrics_to_proto, operating_point_to_proto, strip_collection, timestamp_from_ms,
+    metrics_to_proto, operating_point_to_proto, page_request, sha256_hex, strip_collection,
+    timestamp_from_ms,
 };
 use crate::error::{failed_precondition, internal, invalid_field, not_found};
-use crate::store::{ModelRow, ModelSource, NewModel, PageRequest, Store};
+use crate::store::{ModelRow, ModelSource, NewModel, Store};
 
 /// The artifact bundled into the binary: trained by `spoofwatch experiment av-gps` (see README).
 pub const BUNDLED_MODEL: &[u8] = include_bytes!("../../models/default.json");
@@ -98,13 +98,6 @@ impl LoadedModel {
 pub struct Registry {
     store: Store,
     cache: Mutex<HashMap<String, Arc<ModelArtifact>>>,
-}
-
-fn sha256_hex(bytes: &[u8]) -> String {
-    Sha256::digest(bytes)
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect()
 }
 
 /// A fresh short random id (48 bits of a v4 UUID, hex).
@@ -258,16 +251,6 @@ impl Registry {
         tracing::info!(model = id, "activated model");
         Ok(Self::to_proto(&row))
     }
-}
-
-fn page_request(size: i32, token: &str) -> Result<PageRequest, Status> {
-    if size < 0 {
-        return Err(invalid_field("page_size", "must not be negative"));
-    }
-    Ok(PageRequest {
-        page_size: size as u32,
-        page_token: (!token.is_empty()).then(|| token.to_string()),
-    })
 }
 
 /// The ModelService RPCs.
