@@ -11,8 +11,8 @@ use spoofwatch_proto::longrunning::{self, operation};
 use spoofwatch_proto::v1;
 use spoofwatch_server::store::Store;
 use spoofwatch_tests::{
-    Clients, DetectStream, TestServer, active_model, attacked_drive, database_path, normal_drive,
-    test_config, track_samples,
+    Clients, DetectStream, TestServer, active_model, attacked_drive, database_path, export_model,
+    normal_drive, test_config, track_samples,
 };
 use tonic::Code;
 use tonic::transport::Channel;
@@ -139,6 +139,27 @@ fn trained_model(operation: &longrunning::Operation) -> v1::Model {
     result.model.expect("the result names the registered model")
 }
 
+/// Uploads an artifact in two chunks (not activated).
+async fn import_model(clients: &mut Clients, artifact: Vec<u8>) -> v1::Model {
+    use v1::import_model_request::Kind;
+    let (head, tail) = artifact.split_at(artifact.len() / 2);
+    let messages = [
+        Kind::Header(v1::ImportModelHeader {
+            display_name: "re-imported".into(),
+            activate: false,
+        }),
+        Kind::Chunk(head.to_vec()),
+        Kind::Chunk(tail.to_vec()),
+    ]
+    .map(|kind| v1::ImportModelRequest { kind: Some(kind) });
+    clients
+        .models
+        .import_model(tokio_stream::iter(messages))
+        .await
+        .expect("ImportModel accepts an exported artifact")
+        .into_inner()
+}
+
 /// Reads a WatchJob stream to its end.
 async fn watch_to_end(clients: &mut Clients, name: &str) -> Vec<v1::JobMetadata> {
     let mut stream = clients
@@ -262,6 +283,19 @@ async fn a_trained_model_serves_new_sessions_and_a_second_job_can_be_cancelled()
     assert!(!model.active, "not activated by the job (activate = false)");
     assert!(model.operating_point.is_some() && model.validation_metrics.is_some());
 
+    // Export and re-import give the same artifact under a new name.
+    let artifact = export_model(&mut clients.models, &model.name).await;
+    let imported = import_model(&mut clients, artifact).await;
+    assert_ne!(imported.name, model.name);
+    assert_eq!(
+        (imported.source.as_str(), imported.active),
+        ("import", false)
+    );
+    assert_eq!(
+        imported.sha256, model.sha256,
+        "the artifact survives export/import bit for bit"
+    );
+
     let activated = clients
         .models
         .set_active_model(v1::SetActiveModelRequest {
@@ -306,19 +340,42 @@ async fn a_trained_model_serves_new_sessions_and_a_second_job_can_be_cancelled()
     server.stop().await;
 }
 
-/// Streams a drive with a 300 m jump through the bundled model and counts its alarm onsets.
-async fn stream_attacked_drive(clients: &mut Clients, vehicle_id: &str) -> usize {
+/// One confirmed alarm as the detections show it: onset time, last alarming sample's time, peak
+/// probability and number of alarming samples.
+#[derive(Debug, PartialEq)]
+struct Episode {
+    onset_s: f64,
+    last_s: f64,
+    peak: f64,
+    samples: i64,
+}
+
+/// Streams a drive with a 300 m jump through the bundled model; returns its alarm episodes.
+async fn stream_attacked_drive(clients: &mut Clients, vehicle_id: &str) -> Vec<Episode> {
     let jump = AttackKind::Jump { offset_m: 300.0 };
     let track = attacked_drive(vehicle_id, 240.0, 21, jump, 100.0, 60.0);
     let (mut stream, _) =
         DetectStream::start(&mut clients.detection, vehicle_id, "models/default").await;
-    let mut onsets = 0;
+    let mut episodes: Vec<Episode> = Vec::new();
     for (seq, batch) in track_samples(&track).chunks(20).enumerate() {
-        let detections = stream.detect(seq as u64 + 1, batch.to_vec()).await;
-        onsets += detections.iter().filter(|d| d.alarm_onset).count();
+        for d in stream.detect(seq as u64 + 1, batch.to_vec()).await {
+            if d.alarm_onset {
+                episodes.push(Episode {
+                    onset_s: d.timestamp_s,
+                    last_s: d.timestamp_s,
+                    peak: d.probability,
+                    samples: 1,
+                });
+            } else if d.alarm {
+                let open = episodes.last_mut().expect("an alarm follows its onset");
+                open.last_s = d.timestamp_s;
+                open.peak = open.peak.max(d.probability);
+                open.samples += 1;
+            }
+        }
     }
     drop(stream.close());
-    onsets
+    episodes
 }
 
 /// What a restart must preserve, as seen through the API.
@@ -389,8 +446,11 @@ async fn a_restart_on_the_same_database_keeps_models_datasets_jobs_and_alarms() 
         .into_inner();
     let done = wait_done(&mut clients.operations, &job.name).await;
     let trained = trained_model(&done);
-    let onsets = stream_attacked_drive(&mut clients, "jumpy").await;
-    assert!(onsets >= 1, "a 300 m jump raises a confirmed alarm");
+    let episodes = stream_attacked_drive(&mut clients, "jumpy").await;
+    assert!(
+        !episodes.is_empty(),
+        "a 300 m jump raises a confirmed alarm"
+    );
     let before = snapshot(&mut clients).await;
     assert_eq!(
         before.models,
@@ -420,16 +480,27 @@ async fn a_restart_on_the_same_database_keeps_models_datasets_jobs_and_alarms() 
         .await
         .expect("alarm events");
     store.close().await;
-    assert_eq!(events.len(), onsets, "one event per confirmed alarm onset");
     assert!(
         events
             .iter()
             .all(|e| e.model_id == "default" && !e.is_open())
     );
-    assert!(
-        events
-            .iter()
-            .all(|e| e.peak_probability > 0.0 && e.samples >= 1)
+    // Newest first in the store; each event matches its episode (end = last alarming sample).
+    let recorded: Vec<Episode> = events
+        .iter()
+        .rev()
+        .map(|e| Episode {
+            onset_s: e.onset_timestamp_s,
+            last_s: e
+                .end_timestamp_s
+                .expect("the alarm ended with a sample time"),
+            peak: e.peak_probability,
+            samples: e.samples,
+        })
+        .collect();
+    assert_eq!(
+        recorded, episodes,
+        "one stored event per confirmed alarm episode"
     );
 
     let server = TestServer::start(test_config(dir.path())).await;
