@@ -33,6 +33,9 @@ async fn main() -> std::process::ExitCode {
             EnvFilter::try_from_env("SPOOFWATCH_LOG").unwrap_or_else(|_| EnvFilter::new("info")),
         )
         .with_writer(std::io::stderr)
+        // With a closed stderr, reporting a failed log write would itself panic (eprintln!) and
+        // kill the server; a lost log line must not.
+        .log_internal_errors(false)
         .init();
     let config = Config::parse();
     let listener = match tokio::net::TcpListener::bind(config.listen).await {
