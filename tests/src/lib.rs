@@ -9,6 +9,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use spoofwatch_core::data::telemetry::write_tracks;
 use spoofwatch_core::sample::{Sample, Track};
 use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
 use spoofwatch_proto::longrunning::operations_client::OperationsClient;
@@ -242,6 +243,42 @@ pub fn attacked_drive(
     // Keep the plain vehicle id (the injected one carries `#<attack>`, fine for CSV but long).
     injected.vehicle_id = vehicle_id.to_string();
     injected
+}
+
+/// Bytes per uploaded CSV chunk (a ~2,000-row dataset spans several).
+const UPLOAD_CHUNK_BYTES: usize = 16 * 1024;
+
+/// `tracks` as a labelled telemetry CSV.
+pub fn telemetry_csv(tracks: &[Track]) -> Vec<u8> {
+    let mut csv = Vec::new();
+    write_tracks(&mut csv, tracks).expect("the tracks serialise");
+    csv
+}
+
+/// Uploads `tracks` as a telemetry CSV in chunks through `DatasetService.UploadDataset`.
+pub async fn upload_tracks(
+    clients: &mut Clients,
+    display_name: &str,
+    tracks: &[Track],
+) -> v1::Dataset {
+    use v1::upload_dataset_request::Kind;
+    let csv = telemetry_csv(tracks);
+    let header = Kind::Header(v1::UploadDatasetHeader {
+        display_name: display_name.to_string(),
+    });
+    let messages: Vec<v1::UploadDatasetRequest> = std::iter::once(header)
+        .chain(
+            csv.chunks(UPLOAD_CHUNK_BYTES)
+                .map(|c| Kind::CsvChunk(c.to_vec())),
+        )
+        .map(|kind| v1::UploadDatasetRequest { kind: Some(kind) })
+        .collect();
+    clients
+        .datasets
+        .upload_dataset(tokio_stream::iter(messages))
+        .await
+        .expect("the upload is accepted")
+        .into_inner()
 }
 
 /// An open `StreamDetect` call: requests go in through a channel, replies are read with a bound.

@@ -131,3 +131,123 @@ fn samples_after(samples: &[v1::Sample], by: f64) -> Vec<v1::Sample> {
         })
         .collect()
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idle_sessions_without_a_stream_are_evicted() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut config = test_config(dir.path());
+    config.session_idle_secs = 1;
+    let server = TestServer::start(config).await;
+    let mut clients = Clients::of(&server).await;
+    let samples = track_samples(&normal_drive("idle", 9.0, 4));
+
+    // "streaming" keeps a stream attached; "parked" only had a unary call.
+    let (mut streaming, _) = DetectStream::start(&mut clients.detection, "streaming", "").await;
+    streaming.detect(1, samples.clone()).await;
+    for vehicle in ["parked", "another"] {
+        clients
+            .detection
+            .detect(v1::DetectRequest {
+                vehicle_id: vehicle.into(),
+                samples: samples.clone(),
+                ..v1::DetectRequest::default()
+            })
+            .await
+            .expect("Detect creates the session");
+    }
+    // Poll (bounded) until the idle, stream-less sessions are gone.
+    let deadline = tokio::time::Instant::now() + std::time::Duration::from_secs(30);
+    loop {
+        let listed = clients
+            .detection
+            .list_sessions(v1::ListSessionsRequest::default())
+            .await
+            .expect("ListSessions")
+            .into_inner()
+            .sessions;
+        let names: Vec<String> = listed.into_iter().map(|s| s.vehicle_id).collect();
+        if names == ["streaming"] {
+            break;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "idle sessions were not evicted: {names:?}"
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+    }
+    let status = clients
+        .detection
+        .get_session(v1::GetSessionRequest {
+            vehicle_id: "parked".into(),
+        })
+        .await
+        .expect_err("the evicted session is gone");
+    assert_eq!(status.code(), Code::NotFound);
+    // The attached session survived its idleness and goes on.
+    streaming.detect(2, samples_after(&samples, 10.0)).await;
+    drop((streaming.close(), clients));
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sessions_are_listed_in_pages_and_can_be_reset() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let server = TestServer::start(test_config(dir.path())).await;
+    let mut clients = Clients::of(&server).await;
+    let samples = track_samples(&normal_drive("paged", 9.0, 4));
+    for vehicle in ["streaming", "parked", "another"] {
+        clients
+            .detection
+            .detect(v1::DetectRequest {
+                vehicle_id: vehicle.into(),
+                samples: samples.clone(),
+                ..v1::DetectRequest::default()
+            })
+            .await
+            .expect("Detect creates the session");
+    }
+    let first_page = clients
+        .detection
+        .list_sessions(v1::ListSessionsRequest {
+            page_size: 2,
+            page_token: String::new(),
+        })
+        .await
+        .expect("ListSessions")
+        .into_inner();
+    let names: Vec<&str> = first_page
+        .sessions
+        .iter()
+        .map(|s| s.vehicle_id.as_str())
+        .collect();
+    assert_eq!(names, ["another", "parked"]);
+    let second_page = clients
+        .detection
+        .list_sessions(v1::ListSessionsRequest {
+            page_size: 2,
+            page_token: first_page.next_page_token.clone(),
+        })
+        .await
+        .expect("ListSessions")
+        .into_inner();
+    let names: Vec<&str> = second_page
+        .sessions
+        .iter()
+        .map(|s| s.vehicle_id.as_str())
+        .collect();
+    assert_eq!(names, ["streaming"]);
+    assert!(second_page.next_page_token.is_empty());
+
+    let reset = clients
+        .detection
+        .reset_session(v1::ResetSessionRequest {
+            vehicle_id: "another".into(),
+        })
+        .await
+        .expect("ResetSession")
+        .into_inner();
+    assert_eq!((reset.samples, reset.trajectories), (0, 0));
+
+    drop(clients);
+    server.stop().await;
+}

@@ -4,7 +4,6 @@
 use std::time::Duration;
 
 use prost::Message;
-use spoofwatch_core::data::telemetry::write_tracks;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::longrunning::{self, operation};
@@ -12,13 +11,10 @@ use spoofwatch_proto::v1;
 use spoofwatch_server::store::Store;
 use spoofwatch_tests::{
     Clients, DetectStream, TestServer, active_model, attacked_drive, database_path, export_model,
-    normal_drive, test_config, track_samples,
+    normal_drive, test_config, track_samples, upload_tracks,
 };
 use tonic::Code;
 use tonic::transport::Channel;
-
-/// Bytes per uploaded CSV chunk (several chunks for the ~2,000-row dataset).
-const CHUNK_BYTES: usize = 16 * 1024;
 
 /// Five 400 s drives (2,005 rows): two normal, three with ramp attacks placed so that the
 /// chronological 70/15/15 split has both classes in training and in validation.
@@ -37,31 +33,6 @@ fn rows_and_spoofed(tracks: &[Track]) -> (u64, u64) {
     let records = || tracks.iter().flat_map(|t| &t.records);
     let spoofed = records().filter(|r| r.label == Some(true)).count();
     (records().count() as u64, spoofed as u64)
-}
-
-/// Uploads `tracks` as a telemetry CSV in chunks.
-async fn upload(clients: &mut Clients, display_name: &str, tracks: &[Track]) -> v1::Dataset {
-    use v1::upload_dataset_request::Kind;
-    let mut csv = Vec::new();
-    write_tracks(&mut csv, tracks).expect("the tracks serialise");
-    let mut messages = vec![v1::UploadDatasetRequest {
-        kind: Some(Kind::Header(v1::UploadDatasetHeader {
-            display_name: display_name.to_string(),
-        })),
-    }];
-    messages.extend(
-        csv.chunks(CHUNK_BYTES)
-            .map(|chunk| v1::UploadDatasetRequest {
-                kind: Some(Kind::CsvChunk(chunk.to_vec())),
-            }),
-    );
-    assert!(messages.len() > 2, "the upload spans several chunks");
-    clients
-        .datasets
-        .upload_dataset(tokio_stream::iter(messages))
-        .await
-        .expect("the upload is accepted")
-        .into_inner()
 }
 
 fn training_request(
@@ -216,7 +187,7 @@ async fn a_trained_model_serves_new_sessions_and_a_second_job_can_be_cancelled()
 
     let fleet = training_fleet();
     let (rows, spoofed) = rows_and_spoofed(&fleet);
-    let dataset = upload(&mut clients, "simulated fleet", &fleet).await;
+    let dataset = upload_tracks(&mut clients, "simulated fleet", &fleet).await;
     assert_eq!(dataset.format, "telemetry");
     assert_eq!(dataset.source, "upload");
     assert_eq!((dataset.rows, dataset.vehicles), (rows, 5));
@@ -437,7 +408,7 @@ async fn a_restart_on_the_same_database_keeps_models_datasets_jobs_and_alarms() 
     let dir = tempfile::tempdir().expect("temp dir");
     let server = TestServer::start(test_config(dir.path())).await;
     let mut clients = Clients::of(&server).await;
-    let dataset = upload(&mut clients, "fleet to keep", &training_fleet()).await;
+    let dataset = upload_tracks(&mut clients, "fleet to keep", &training_fleet()).await;
     let job = clients
         .training
         .create_training_job(training_request(&dataset.name, 1, true))
