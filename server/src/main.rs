@@ -34,6 +34,9 @@ async fn main() -> std::process::ExitCode {
         )
         .with_writer(std::io::stderr)
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        // With a closed stderr, reporting a failed log write would itself panic (eprintln!) and
+        // kill the server; a lost log line must not.
+        .log_internal_errors(false)
         .init();
     let config = Config::parse();
     let listener = match tokio::net::TcpListener::bind(config.listen).await {

@@ -33,6 +33,8 @@ struct OpenAlarm {
     id: i64,
     peak: f64,
     samples: u32,
+    /// Sample time of the latest alarming sample: the event's end time (`alarm_events` semantics).
+    last_timestamp_s: f64,
 }
 
 /// Everything a session knows; guarded by the slot's async mutex (batches of a vehicle serialise).
@@ -184,7 +186,7 @@ impl SessionManager {
         let mut state = slot.state.lock().await;
         let resumed = existed && !start.reset && state.model.id == model.id;
         if !resumed {
-            self.close_alarm(&mut state, None).await;
+            self.close_alarm(&mut state).await;
             *state = SessionState::new(model);
         }
         let accepted = v1::SessionAccepted {
@@ -254,9 +256,11 @@ impl SessionManager {
                 if let Some(open) = state.open_alarm.as_mut() {
                     open.peak = open.peak.max(decision.probability);
                     open.samples += 1;
+                    open.last_timestamp_s = sample.timestamp_s;
                 }
             } else if decision.alarm_end {
-                self.close_alarm(&mut state, Some(sample.timestamp_s)).await;
+                // This sample is the first non-alarming one; the event ends at the previous sample.
+                self.close_alarm(&mut state).await;
             }
             state.alarm_active = decision.alarm;
             detections.push(detection_to_proto(
@@ -283,28 +287,24 @@ impl SessionManager {
                     id,
                     peak: p,
                     samples: 1,
+                    last_timestamp_s: timestamp_s,
                 })
             }
             Err(error) => tracing::error!(%error, vehicle, "could not record an alarm onset"),
         }
     }
 
-    /// Records the end of the current alarm (`None`: the session ended while alarming).
-    async fn close_alarm(&self, state: &mut SessionState, end_timestamp_s: Option<f64>) {
+    /// Records the end of the current alarm at its last alarming sample (also when the session
+    /// ends, resets or changes model while alarming).
+    async fn close_alarm(&self, state: &mut SessionState) {
         let Some(open) = state.open_alarm.take() else {
             return;
         };
-        let end = end_timestamp_s
-            .or(state.last_timestamp_s)
-            .unwrap_or(f64::NAN);
-        let result = if end.is_finite() {
-            self.store
-                .close_alarm(open.id, end, open.peak, open.samples)
-                .await
-        } else {
-            Ok(())
-        };
-        if let Err(error) = result {
+        if let Err(error) = self
+            .store
+            .close_alarm(open.id, open.last_timestamp_s, open.peak, open.samples)
+            .await
+        {
             tracing::error!(%error, alarm = open.id, "could not record an alarm end");
         }
     }
@@ -344,7 +344,7 @@ impl SessionManager {
                 let model = self.registry.resolve(&request.model).await?;
                 let mut state = slot.state.lock().await;
                 if state.model.id != model.id {
-                    self.close_alarm(&mut state, None).await;
+                    self.close_alarm(&mut state).await;
                     *state = SessionState::new(model);
                 }
                 drop(state);
@@ -432,7 +432,7 @@ impl SessionManager {
             .ok_or_else(|| not_found("session", vehicle_id))?;
         {
             let mut state = slot.state.lock().await;
-            self.close_alarm(&mut state, None).await;
+            self.close_alarm(&mut state).await;
             let model = state.model.clone();
             *state = SessionState::new(model);
         }
@@ -454,7 +454,7 @@ impl SessionManager {
         };
         for slot in &idle {
             let mut state = slot.state.lock().await;
-            self.close_alarm(&mut state, None).await;
+            self.close_alarm(&mut state).await;
         }
         idle.len()
     }
@@ -464,7 +464,7 @@ impl SessionManager {
         let slots: Vec<Arc<SessionSlot>> = self.slots().values().cloned().collect();
         for slot in slots {
             let mut state = slot.state.lock().await;
-            self.close_alarm(&mut state, None).await;
+            self.close_alarm(&mut state).await;
         }
     }
 }

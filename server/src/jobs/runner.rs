@@ -10,10 +10,11 @@ use spoofwatch_core::evaluation::evaluate_tracks;
 use spoofwatch_core::metrics::{EventRules, Metrics};
 use spoofwatch_core::model::{Ablation, FeatureGroups, ModelConfig};
 use spoofwatch_core::pipeline::{
-    DetectorTrainingOptions, KAPPA_RHO_GRID, SplitFractions, split_chronologically, train_detector,
+    DetectorTrainingOptions, KAPPA_RHO_GRID, SplitFractions, TrainDetectorError,
+    split_chronologically, train_detector,
 };
 use spoofwatch_core::sample::Track;
-use spoofwatch_core::train::{EpochProgress, TrainConfig};
+use spoofwatch_core::train::{EpochProgress, TrainConfig, TrainError};
 use spoofwatch_proto::v1;
 use tokio::sync::{Semaphore, mpsc, watch};
 use tokio_util::sync::CancellationToken;
@@ -514,7 +515,11 @@ impl JobManager {
         let trained = worker
             .await
             .map_err(|e| JobFailure::Failed(format!("training thread failed: {e}")))?;
-        trained.map_err(|e| JobFailure::Failed(e.to_string()))
+        trained.map_err(|e| match e {
+            // Cancelled before the first epoch completed: still a cancellation, not a failure.
+            TrainDetectorError::Train(TrainError::Cancelled) => JobFailure::Cancelled,
+            other => JobFailure::Failed(other.to_string()),
+        })
     }
 }
 
