@@ -94,12 +94,12 @@ fn variants(ablations: bool, headline_subtle: bool) -> Vec<Variant> {
     let mut list = vec![
         Variant {
             name: "HO-LLN",
-            ablation: full.clone(),
+            ablation: full,
             subtle_training: false,
         },
         Variant {
             name: "HO-LLN + subtle training",
-            ablation: full.clone(),
+            ablation: full,
             subtle_training: true,
         },
     ];
@@ -111,28 +111,28 @@ fn variants(ablations: bool, headline_subtle: bool) -> Vec<Variant> {
         };
         let features = |f| Ablation {
             features: f,
-            ..full.clone()
+            ..full
         };
         list.extend([
             with(
                 "no exchange",
                 Ablation {
                     no_exchange: true,
-                    ..full.clone()
+                    ..full
                 },
             ),
             with(
                 "no third-order term",
                 Ablation {
                     no_third_order: true,
-                    ..full.clone()
+                    ..full
                 },
             ),
             with(
                 "first-order cell",
                 Ablation {
                     first_order_cell: true,
-                    ..full.clone()
+                    ..full
                 },
             ),
             with(
@@ -213,7 +213,7 @@ pub fn run(args: Args) -> Result<()> {
                 .data_description
                 .push("plus injected subtle attacks in the training part".into());
         }
-        options.model.ablation = variant.ablation.clone();
+        options.model.ablation = variant.ablation;
         let trained = train_with_progress(train, &split.validation, &options)
             .with_context(|| format!("training variant {}", variant.name))?;
         let artifact = Arc::new(trained.artifact);
