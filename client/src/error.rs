@@ -120,6 +120,16 @@ pub fn describe_rpc_status(status: &tonic_types::Status) -> String {
 fn describe(code: Code, message: &str, details: &ErrorDetails) -> String {
     let mut out = format!("{}: {message}", code_name(code));
     if let Some(bad_request) = details.bad_request() {
+        // The Spoofwatch server's message is already `field: problem; …`: list each once.
+        let summary = bad_request
+            .field_violations
+            .iter()
+            .map(|v| format!("{}: {}", v.field, v.description))
+            .collect::<Vec<_>>()
+            .join("; ");
+        if summary == message {
+            out = format!("{}: invalid request", code_name(code));
+        }
         for violation in &bad_request.field_violations {
             out.push_str(&format!(
                 "\n    - {}: {}",
@@ -198,6 +208,23 @@ mod tests {
             error
                 .to_string()
                 .starts_with("streaming detections: INVALID_ARGUMENT: 2 problems\n")
+        );
+    }
+
+    #[test]
+    fn a_message_that_only_repeats_the_violations_is_not_printed_twice() {
+        let details = ErrorDetails::with_bad_request(vec![FieldViolation::new(
+            "spec.max_epochs",
+            "must be 1 to 200",
+        )]);
+        let status = tonic::Status::with_error_details(
+            Code::InvalidArgument,
+            "spec.max_epochs: must be 1 to 200",
+            details,
+        );
+        assert_eq!(
+            describe_status(&status),
+            "INVALID_ARGUMENT: invalid request\n    - spec.max_epochs: must be 1 to 200"
         );
     }
 

@@ -6,6 +6,7 @@
 //! evaluation does, while every δ inside a trajectory stays as recorded.
 
 use std::collections::VecDeque;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use spoofwatch_core::evidence::MAX_BACKWARD_S;
@@ -14,7 +15,7 @@ use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::detection_service_client::DetectionServiceClient;
 use spoofwatch_proto::v1::stream_detect_request::Kind as RequestKind;
 use spoofwatch_proto::v1::stream_detect_response::Kind as ResponseKind;
-use tokio::sync::mpsc;
+use tokio::sync::{Semaphore, mpsc};
 use tokio_stream::wrappers::ReceiverStream;
 
 use crate::connection::AuthenticatedChannel;
@@ -25,6 +26,9 @@ use crate::error::{ClientError, rpc};
 pub const REPLAY_BREAK_GAP_S: f64 = 10.0;
 /// Most samples in one `SampleBatch` (the server's default limit).
 pub const MAX_BATCH_SAMPLES: usize = 1000;
+/// Batches sent but not yet answered, per stream. Without a window, "as fast as possible" would
+/// queue the whole recording in buffers and the measured latency would be mostly queueing.
+pub const MAX_IN_FLIGHT_BATCHES: usize = 4;
 /// Longest vehicle id the server accepts.
 const MAX_VEHICLE_ID_LEN: usize = 128;
 
@@ -272,7 +276,14 @@ pub async fn replay_track(
     };
     let (in_flight_tx, mut in_flight_rx) = mpsc::unbounded_channel::<InFlight>();
     let pace = pace_per_batch(options);
-    let sender = tokio::spawn(send_batches(batches, pace, requests, in_flight_tx));
+    let window = Arc::new(Semaphore::new(MAX_IN_FLIGHT_BATCHES));
+    let sender = tokio::spawn(send_batches(
+        batches,
+        pace,
+        Arc::clone(&window),
+        requests,
+        in_flight_tx,
+    ));
 
     let mut pending: VecDeque<InFlight> = VecDeque::new();
     let outcome = loop {
@@ -289,6 +300,7 @@ pub async fn replay_track(
                 "{vehicle_id}: a reply arrived for a batch that was not sent"
             )));
         };
+        window.add_permits(1);
         match message.kind {
             Some(ResponseKind::Detections(reply)) => {
                 if let Err(e) = check_reply(&vehicle_id, &batch, reply.seq, reply.detections.len())
@@ -388,11 +400,13 @@ fn pace_per_batch(options: &ReplayOptions) -> Option<Duration> {
         .then(|| Duration::from_secs_f64(options.batch_size as f64 / options.rate_hz))
 }
 
-/// Sends the batches (on a fixed schedule when paced) and announces each to the reader first, so a
-/// reply always finds its batch. Dropping `requests` at the end closes our side of the stream.
+/// Sends the batches (on a fixed schedule when paced, at most [`MAX_IN_FLIGHT_BATCHES`]
+/// unanswered) and announces each to the reader first, so a reply always finds its batch. Dropping
+/// `requests` at the end closes our side of the stream.
 async fn send_batches(
     batches: Vec<(u64, usize, v1::SampleBatch)>,
     pace: Option<Duration>,
+    window: Arc<Semaphore>,
     requests: mpsc::Sender<v1::StreamDetectRequest>,
     in_flight: mpsc::UnboundedSender<InFlight>,
 ) {
@@ -400,6 +414,11 @@ async fn send_batches(
     for (k, (seq, first_index, batch)) in batches.into_iter().enumerate() {
         if let Some(pace) = pace {
             tokio::time::sleep_until(started + pace * k as u32).await;
+        }
+        // The reader returns the permit when the batch's reply arrives.
+        match window.acquire().await {
+            Ok(permit) => permit.forget(),
+            Err(_) => return,
         }
         let len = batch.samples.len();
         let announced = in_flight.send(InFlight {

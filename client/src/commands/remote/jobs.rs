@@ -122,7 +122,10 @@ pub fn describe_result(operation: &longrunning::Operation) -> Option<String> {
 /// The registered model and its metrics.
 pub fn describe_training_result(result: &v1::TrainingJobResult) -> String {
     let mut out = match &result.model {
-        Some(model) => format!("registered model:\n{}", super::models::describe(model)),
+        Some(model) => format!(
+            "registered model:\n{}",
+            super::models::describe_without_metrics(model)
+        ),
         None => "the trained model is no longer registered\n".to_string(),
     };
     let mut rows = Vec::new();

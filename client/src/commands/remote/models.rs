@@ -85,8 +85,17 @@ pub fn import_requests(
         .collect()
 }
 
-/// A model's details, several lines.
+/// A model's details with its validation metrics, several lines.
 pub fn describe(m: &v1::Model) -> String {
+    let mut out = describe_without_metrics(m);
+    if let Some(metrics) = &m.validation_metrics {
+        out.push_str(&metrics_table(&[("validation", metrics)]));
+    }
+    out
+}
+
+/// A model's details without the metrics table, several lines.
+pub fn describe_without_metrics(m: &v1::Model) -> String {
     let mut out = format!(
         "{}{}\n  display name   {}\n  source         {}\n  created        {}\n",
         m.name,
@@ -123,9 +132,6 @@ pub fn describe(m: &v1::Model) -> String {
     ));
     if !m.notes.is_empty() {
         out.push_str(&format!("  notes          {}\n", m.notes));
-    }
-    if let Some(metrics) = &m.validation_metrics {
-        out.push_str(&metrics_table(&[("validation", metrics)]));
     }
     out
 }

@@ -170,7 +170,7 @@ async fn follow(connection: &Connection, name: &str, max_epochs: u32) -> Result<
                     bar.set_length(u64::from(m.max_epochs.max(1)));
                     bar.set_position(u64::from(m.epoch));
                     let line = progress_line(&m);
-                    bar.set_message(line.clone());
+                    bar.set_message(bar_message(&m));
                     // Without a bar (CI, pipes), one line per change keeps logs informative.
                     if !interactive && line != last_line {
                         eprintln!("{name}: {line}");
@@ -188,6 +188,20 @@ async fn follow(connection: &Connection, name: &str, max_epochs: u32) -> Result<
             }
         }
     }
+}
+
+/// The bar's short message (the bar itself shows the epoch): `loss 0.681 val 0.732 AUROC - ETA 21 s`.
+fn bar_message(m: &v1::JobMetadata) -> String {
+    let mut text = format!(
+        "loss {:.3} val {:.3} AUROC {}",
+        m.train_loss,
+        m.val_loss,
+        super::opt(m.val_auroc, 3)
+    );
+    if let Some(eta) = m.eta_s {
+        text.push_str(&format!(" ETA {eta:.0} s"));
+    }
+    text
 }
 
 /// Ctrl-C while following: on a terminal ask whether to cancel; otherwise cancel.
