@@ -23,7 +23,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use super::detect::parse_batch;
 
 /// Streams sharing one HTTP/2 connection (more connections spread the server's per-connection work).
-const STREAMS_PER_CONNECTION: usize = 250;
+const STREAMS_PER_CONNECTION: usize = 50;
 /// Sessions opened at once in the memory phase.
 const MEMORY_PHASE_CONCURRENCY: usize = 64;
 /// Extra time a phase may take beyond its nominal length before it is abandoned.
