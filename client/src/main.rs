@@ -1,13 +1,12 @@
-//! `spoofwatch`: the Spoofwatch command-line client.
+//! `spoofwatch`: the Spoofwatch command-line client (offline experiments and the gRPC commands).
 
 mod commands;
-mod input;
-mod progress;
-mod report;
 
 use std::process::ExitCode;
 
 use clap::Parser;
+// The offline commands refer to these as `crate::input` etc.; they live in the library.
+use spoofwatch_client::{input, progress, report};
 
 fn main() -> ExitCode {
     let cli = commands::Cli::parse();

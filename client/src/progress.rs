@@ -15,10 +15,11 @@ pub fn bar(len: u64, what: &str) -> ProgressBar {
         return ProgressBar::hidden();
     }
     let bar = ProgressBar::new(len);
-    let style = ProgressStyle::with_template("{msg:>14} [{bar:32}] {pos}/{len} {wide_msg}")
+    // The label is the prefix, so that `set_message` (progress details) does not replace it.
+    let style = ProgressStyle::with_template("{prefix:>14} [{bar:32}] {pos}/{len} {wide_msg}")
         .unwrap_or_else(|_| ProgressStyle::default_bar())
         .progress_chars("=> ");
     bar.set_style(style);
-    bar.set_message(what.to_string());
+    bar.set_prefix(what.to_string());
     bar
 }

@@ -1,11 +1,16 @@
-//! The CLI's commands (offline ones call `spoofwatch-core` directly).
+//! The CLI's commands: offline ones call `spoofwatch-core` directly, the remote ones (`remote/`)
+//! talk gRPC to a server through the `spoofwatch_client` library.
 
 mod cusum;
 mod evaluate;
 mod evidence;
 mod experiment;
+mod remote;
 mod scenario;
 mod train;
+
+#[cfg(test)]
+mod tests;
 
 use clap::{Parser, Subcommand, ValueEnum};
 use spoofwatch_core::geo::Projection;
@@ -35,6 +40,20 @@ enum Command {
     /// Reproducible experiments (reports in an output directory).
     #[command(subcommand)]
     Experiment(experiment::Command),
+    /// Check that a server is serving (grpc.health.v1; exit status 0 when SERVING).
+    Health(remote::health::Args),
+    /// Replay recorded data to a server over StreamDetect, one stream per vehicle.
+    Detect(remote::detect::Args),
+    /// Manage datasets on a server.
+    Datasets(remote::datasets::Args),
+    /// Manage training and evaluation jobs on a server.
+    Jobs(remote::jobs::Args),
+    /// Manage the models on a server.
+    Models(remote::models::Args),
+    /// Live demo: an in-process server detecting a simulated drive with a GNSS drift attack.
+    Demo(remote::demo::Args),
+    /// Load benchmark over loopback: throughput, batch latency and per-session memory.
+    Bench(remote::bench::Args),
 }
 
 /// Runs the parsed command.
@@ -46,6 +65,13 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Train(args) => train::run(args),
         Command::Evaluate(args) => evaluate::run(args),
         Command::Experiment(cmd) => experiment::run(cmd),
+        Command::Health(args) => remote::block_on(remote::health::run(args)),
+        Command::Detect(args) => remote::block_on(remote::detect::run(args)),
+        Command::Datasets(args) => remote::block_on(remote::datasets::run(args)),
+        Command::Jobs(args) => remote::block_on(remote::jobs::run(args)),
+        Command::Models(args) => remote::block_on(remote::models::run(args)),
+        Command::Demo(args) => remote::block_on(remote::demo::run(args)),
+        Command::Bench(args) => remote::block_on(remote::bench::run(args)),
     }
 }
 

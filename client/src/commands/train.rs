@@ -13,6 +13,7 @@ use spoofwatch_core::pipeline::{
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::train::TrainConfig;
 
+use super::remote::train::RemoteArgs;
 use super::{ProjectionArg, RulesArg};
 use crate::input::load_tracks;
 use crate::report::metrics_table;
@@ -152,23 +153,42 @@ impl ModelFlags {
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// Labelled training data (AV-GPS or telemetry CSV).
-    #[arg(long, required = true, num_args = 1..)]
+    #[arg(long, num_args = 1.., required_unless_present = "server", conflicts_with = "server")]
     data: Vec<PathBuf>,
     /// Labelled validation data. Without it every trajectory of --data is split chronologically
     /// 70/15/15 into train/validation/test parts (SPEC §9) and the test part is reported.
-    #[arg(long, num_args = 1..)]
+    #[arg(long, num_args = 1.., conflicts_with = "server")]
     val: Vec<PathBuf>,
     /// Where to write the model artifact.
-    #[arg(long)]
-    out: PathBuf,
+    #[arg(long, required_unless_present = "server", conflicts_with = "server")]
+    out: Option<PathBuf>,
     #[command(flatten)]
     model: ModelFlags,
-    /// Event rules for the reported metrics.
+    /// Event rules for the reported metrics (offline mode).
     #[arg(long, value_enum, default_value_t)]
     rules: RulesArg,
+    #[command(flatten)]
+    remote: RemoteArgs,
 }
 
 pub fn run(args: Args) -> Result<()> {
+    if args.remote.server.is_some() {
+        return super::remote::block_on(super::remote::train::run(args.remote, args.model));
+    }
+    let remote_only = args.remote.remote_only_flags_given();
+    if !remote_only.is_empty() {
+        anyhow::bail!(
+            "remote-training flags need --server: {}",
+            remote_only.join(", ")
+        );
+    }
+    let Some(out) = args.out.clone() else {
+        anyhow::bail!("--out is required for offline training");
+    };
+    run_offline(args, out)
+}
+
+fn run_offline(args: Args, out: PathBuf) -> Result<()> {
     let data = load_tracks(&args.data)?;
     let names: Vec<String> = args.data.iter().map(|p| p.display().to_string()).collect();
     let (train, validation, test) = if args.val.is_empty() {
@@ -179,8 +199,8 @@ pub fn run(args: Args) -> Result<()> {
     };
     let options = args.model.options(names);
     let trained = train_with_progress(&train, &validation, &options, args.model.verbose)?;
-    let file = std::fs::File::create(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
+    let file =
+        std::fs::File::create(&out).with_context(|| format!("creating {}", out.display()))?;
     trained.artifact.write(std::io::BufWriter::new(file))?;
 
     let op = trained.artifact.operating_point;
@@ -192,7 +212,7 @@ pub fn run(args: Args) -> Result<()> {
         prov.train_wall_time_s,
         op.theta,
         op.n_p,
-        args.out.display()
+        out.display()
     );
     let mut table = vec![("validation".to_string(), &trained.validation)];
     let test_metrics;

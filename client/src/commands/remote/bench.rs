@@ -1,0 +1,515 @@
+//! `spoofwatch bench`: a load benchmark over loopback.
+//!
+//! Throughput phase, per stream count S: S concurrent vehicle streams, each sending a batch of
+//! synthetic samples as soon as the previous batch's detections are back (one outstanding batch per
+//! stream), for a fixed time; reports samples/s and the per-batch round trip (p50/p99/max).
+//! Memory phase: opens many short sessions (start + one batch, then the stream closes; the session
+//! stays in memory until idle eviction) and reports the server's resident memory before and after.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use spoofwatch_client::Connection;
+use spoofwatch_client::error::{ClientError, rpc};
+use spoofwatch_client::inprocess::InProcessServer;
+use spoofwatch_client::synthetic::LoopDriver;
+use spoofwatch_proto::v1;
+use spoofwatch_proto::v1::stream_detect_request::Kind as RequestKind;
+use spoofwatch_proto::v1::stream_detect_response::Kind as ResponseKind;
+use tokio::sync::{Barrier, Semaphore, mpsc};
+use tokio_stream::wrappers::ReceiverStream;
+
+use super::detect::parse_batch;
+
+/// Streams sharing one HTTP/2 connection (more connections spread the server's per-connection work).
+const STREAMS_PER_CONNECTION: usize = 50;
+/// Sessions opened at once in the memory phase.
+const MEMORY_PHASE_CONCURRENCY: usize = 64;
+/// Extra time a phase may take beyond its nominal length before it is abandoned.
+const PHASE_SLACK: Duration = Duration::from_secs(60);
+/// Most concurrent streams in a phase, and most sessions in the memory phase.
+const MAX_STREAMS: u32 = 10_000;
+const MAX_SESSIONS: u32 = 100_000;
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Benchmark this server; without it a server is started in-process (temporary database).
+    /// Deliberately not read from SPOOFWATCH_SERVER.
+    #[arg(long)]
+    pub server: Option<String>,
+    /// Bearer token for --server.
+    #[arg(long, env = "SPOOFWATCH_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    /// Concurrent stream counts, one throughput phase each.
+    #[arg(long, value_delimiter = ',', default_value = "1,100,1000",
+          value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_STREAMS)))]
+    pub streams: Vec<u32>,
+    /// Samples per batch (1 to 1000).
+    #[arg(long, default_value_t = 10, value_parser = parse_batch)]
+    pub batch: usize,
+    /// Length of each throughput phase in seconds (up to 600).
+    #[arg(long, default_value_t = 5.0, value_parser = parse_seconds)]
+    pub seconds: f64,
+    /// Sessions opened in the memory phase (0 skips it).
+    #[arg(long, default_value_t = 10_000,
+          value_parser = clap::value_parser!(u32).range(0..=i64::from(MAX_SESSIONS)))]
+    pub sessions: u32,
+    /// Process id of the external --server, to read its resident memory from /proc.
+    #[arg(long, requires = "server")]
+    pub server_pid: Option<u32>,
+}
+
+/// A phase length: finite, > 0 and at most 600 s.
+pub fn parse_seconds(text: &str) -> Result<f64, String> {
+    let seconds: f64 = text
+        .parse()
+        .map_err(|_| format!("{text:?} is not a number of seconds"))?;
+    if !(seconds.is_finite() && seconds > 0.0 && seconds <= 600.0) {
+        return Err(format!(
+            "must be more than 0 and at most 600 seconds, got {text}"
+        ));
+    }
+    Ok(seconds)
+}
+
+/// The `q`-quantile (0–1) of sorted values by the nearest-rank method.
+pub fn percentile(sorted: &[Duration], q: f64) -> Option<Duration> {
+    if sorted.is_empty() {
+        return None;
+    }
+    let rank = (q * sorted.len() as f64).ceil() as usize;
+    Some(sorted[rank.clamp(1, sorted.len()) - 1])
+}
+
+/// VmRSS in kB from a `/proc/<pid>/status` text.
+pub fn parse_vm_rss_kb(status: &str) -> Option<u64> {
+    status
+        .lines()
+        .find_map(|line| line.strip_prefix("VmRSS:"))
+        .and_then(|rest| rest.split_whitespace().next())
+        .and_then(|kb| kb.parse().ok())
+}
+
+/// Resident memory of a process in kB.
+fn resident_kb(pid: u32) -> Result<u64> {
+    let path = format!("/proc/{pid}/status");
+    let status = std::fs::read_to_string(&path).with_context(|| format!("reading {path}"))?;
+    parse_vm_rss_kb(&status).with_context(|| format!("no VmRSS line in {path}"))
+}
+
+/// What one stream of a throughput phase measured.
+#[derive(Debug, Default)]
+struct StreamResult {
+    samples: u64,
+    latencies: Vec<Duration>,
+    error: Option<String>,
+}
+
+/// One row of the results table.
+#[derive(Debug)]
+struct PhaseResult {
+    streams: u32,
+    samples_per_s: f64,
+    batches: usize,
+    p50: Option<Duration>,
+    p99: Option<Duration>,
+    max: Option<Duration>,
+    errors: usize,
+}
+
+pub async fn run(args: Args) -> Result<()> {
+    let (server, url, pid) = match &args.server {
+        Some(url) => (None, url.clone(), args.server_pid),
+        None => {
+            let server = InProcessServer::start().await?;
+            let url = server.url();
+            println!(
+                "in-process server on {url} (temporary database); client and server share this \
+                 process, so its CPU and memory numbers include the client"
+            );
+            (Some(server), url, Some(std::process::id()))
+        }
+    };
+    let token = if server.is_some() {
+        None
+    } else {
+        args.token.clone()
+    };
+    let result = bench(&args, &url, token, pid).await;
+    if let Some(server) = server {
+        server.shutdown().await?;
+    }
+    result
+}
+
+async fn bench(args: &Args, url: &str, token: Option<String>, pid: Option<u32>) -> Result<()> {
+    // Fail early and readably when the server is not there.
+    Connection::connect(url, token.clone()).await?;
+    println!(
+        "throughput: {} s per phase, batches of {} samples, one outstanding batch per stream",
+        args.seconds, args.batch
+    );
+    let mut results = Vec::new();
+    for &streams in &args.streams {
+        let phase = throughput_phase(url, token.clone(), streams, args.batch, args.seconds);
+        let limit = Duration::from_secs_f64(args.seconds) + PHASE_SLACK;
+        let result = tokio::time::timeout(limit, phase)
+            .await
+            .with_context(|| format!("the {streams}-stream phase did not finish in {limit:?}"))??;
+        results.push(result);
+    }
+    print!("{}", results_table(&results, args.batch));
+
+    if args.sessions > 0 {
+        memory_phase(url, token, args.sessions, args.batch, pid).await?;
+    }
+    Ok(())
+}
+
+fn ms(d: Option<Duration>) -> String {
+    d.map_or_else(|| "-".into(), |d| format!("{:.2}", d.as_secs_f64() * 1e3))
+}
+
+fn results_table(results: &[PhaseResult], batch: usize) -> String {
+    let mut out = String::from(
+        "| streams | batch | samples/s | batches | p50 (ms) | p99 (ms) | max (ms) | errors |\n\
+         |---:|---:|---:|---:|---:|---:|---:|---:|\n",
+    );
+    for r in results {
+        out.push_str(&format!(
+            "| {} | {batch} | {:.0} | {} | {} | {} | {} | {} |\n",
+            r.streams,
+            r.samples_per_s,
+            r.batches,
+            ms(r.p50),
+            ms(r.p99),
+            ms(r.max),
+            r.errors
+        ));
+    }
+    out
+}
+
+/// Connections for `streams` streams (one per [`STREAMS_PER_CONNECTION`]).
+async fn connections(url: &str, token: Option<String>, streams: usize) -> Result<Vec<Connection>> {
+    let count = streams.div_ceil(STREAMS_PER_CONNECTION).max(1);
+    let mut out = Vec::with_capacity(count);
+    for _ in 0..count {
+        out.push(Connection::connect(url, token.clone()).await?);
+    }
+    Ok(out)
+}
+
+async fn throughput_phase(
+    url: &str,
+    token: Option<String>,
+    streams: u32,
+    batch: usize,
+    seconds: f64,
+) -> Result<PhaseResult> {
+    let count = streams as usize;
+    let pool = connections(url, token, count).await?;
+    // Everyone (and this task) starts measuring once all streams are open.
+    let barrier = Arc::new(Barrier::new(count + 1));
+    let length = Duration::from_secs_f64(seconds);
+    let tasks: Vec<_> = (0..count)
+        .map(|i| {
+            let connection = pool[i % pool.len()].clone();
+            let barrier = Arc::clone(&barrier);
+            let vehicle = format!("bench-s{streams}-{i}");
+            tokio::spawn(async move {
+                drive_stream(connection, vehicle, i as u64, batch, length, barrier).await
+            })
+        })
+        .collect();
+    barrier.wait().await;
+    let started = Instant::now();
+    let mut all = Vec::new();
+    let mut samples = 0u64;
+    let mut errors = 0usize;
+    for task in tasks {
+        let result = task.await.unwrap_or_else(|e| StreamResult {
+            error: Some(format!("stream task failed: {e}")),
+            ..StreamResult::default()
+        });
+        samples += result.samples;
+        all.extend(result.latencies);
+        if let Some(error) = result.error {
+            if errors == 0 {
+                eprintln!("{streams} streams: {error}");
+            }
+            errors += 1;
+        }
+    }
+    let elapsed = started.elapsed().as_secs_f64();
+    all.sort_unstable();
+    Ok(PhaseResult {
+        streams,
+        samples_per_s: samples as f64 / elapsed,
+        batches: all.len(),
+        p50: percentile(&all, 0.50),
+        p99: percentile(&all, 0.99),
+        max: all.last().copied(),
+        errors,
+    })
+}
+
+fn start_request(vehicle_id: String) -> v1::StreamDetectRequest {
+    v1::StreamDetectRequest {
+        kind: Some(RequestKind::Start(v1::SessionStart {
+            vehicle_id,
+            model: String::new(),
+            reset: true,
+        })),
+    }
+}
+
+fn batch_request(seq: u64, samples: Vec<v1::Sample>) -> v1::StreamDetectRequest {
+    v1::StreamDetectRequest {
+        kind: Some(RequestKind::Batch(v1::SampleBatch { seq, samples })),
+    }
+}
+
+/// An open StreamDetect call after its SessionAccepted.
+struct OpenStream {
+    requests: mpsc::Sender<v1::StreamDetectRequest>,
+    replies: tonic::Streaming<v1::StreamDetectResponse>,
+}
+
+async fn open_stream(
+    connection: &Connection,
+    vehicle_id: String,
+) -> Result<OpenStream, ClientError> {
+    let (requests, outbound) = mpsc::channel(2);
+    let context = format!("opening a stream for {vehicle_id}");
+    requests
+        .send(start_request(vehicle_id))
+        .await
+        .map_err(|_| ClientError::Protocol("request channel closed".into()))?;
+    let mut replies = connection
+        .detection()
+        .stream_detect(ReceiverStream::new(outbound))
+        .await
+        .map_err(rpc(context.clone()))?
+        .into_inner();
+    match replies.message().await.map_err(rpc(context.clone()))? {
+        Some(v1::StreamDetectResponse {
+            kind: Some(ResponseKind::Accepted(_)),
+        }) => Ok(OpenStream { requests, replies }),
+        other => Err(ClientError::Protocol(format!(
+            "{context}: expected SessionAccepted, got {other:?}"
+        ))),
+    }
+}
+
+/// Sends one batch and waits for its detections.
+async fn round_trip(
+    stream: &mut OpenStream,
+    seq: u64,
+    samples: Vec<v1::Sample>,
+) -> Result<(), ClientError> {
+    let expected = samples.len();
+    stream
+        .requests
+        .send(batch_request(seq, samples))
+        .await
+        .map_err(|_| ClientError::Protocol("the stream closed".into()))?;
+    match stream
+        .replies
+        .message()
+        .await
+        .map_err(rpc("waiting for detections"))?
+    {
+        Some(v1::StreamDetectResponse {
+            kind: Some(ResponseKind::Detections(batch)),
+        }) if batch.seq == seq && batch.detections.len() == expected => Ok(()),
+        other => Err(ClientError::Protocol(format!(
+            "expected {expected} detections for batch {seq}, got {other:?}"
+        ))),
+    }
+}
+
+/// Closes our side and reads the stream to its end (the server then detaches the session).
+async fn close_stream(stream: OpenStream) -> Result<(), ClientError> {
+    let OpenStream {
+        requests,
+        mut replies,
+    } = stream;
+    drop(requests);
+    while replies
+        .message()
+        .await
+        .map_err(rpc("closing the stream"))?
+        .is_some()
+    {}
+    Ok(())
+}
+
+async fn drive_stream(
+    connection: Connection,
+    vehicle_id: String,
+    seed: u64,
+    batch: usize,
+    length: Duration,
+    barrier: Arc<Barrier>,
+) -> StreamResult {
+    let opened = open_stream(&connection, vehicle_id).await;
+    // Every task passes the barrier exactly once, even when its stream failed to open.
+    barrier.wait().await;
+    let mut result = StreamResult::default();
+    let mut stream = match opened {
+        Ok(stream) => stream,
+        Err(error) => {
+            result.error = Some(error.to_string());
+            return result;
+        }
+    };
+    let mut driver = LoopDriver::new(seed);
+    let deadline = Instant::now() + length;
+    let mut seq = 0;
+    while Instant::now() < deadline {
+        seq += 1;
+        let samples = driver.next_batch(batch);
+        let sent = Instant::now();
+        if let Err(error) = round_trip(&mut stream, seq, samples).await {
+            result.error = Some(error.to_string());
+            return result;
+        }
+        result.latencies.push(sent.elapsed());
+        result.samples += batch as u64;
+    }
+    if let Err(error) = close_stream(stream).await {
+        result.error = Some(error.to_string());
+    }
+    result
+}
+
+/// One short session: start, one batch, close.
+async fn open_session(
+    connection: Connection,
+    vehicle_id: String,
+    seed: u64,
+    batch: usize,
+) -> Result<(), ClientError> {
+    let mut stream = open_stream(&connection, vehicle_id).await?;
+    round_trip(&mut stream, 1, LoopDriver::new(seed).next_batch(batch)).await?;
+    close_stream(stream).await
+}
+
+async fn memory_phase(
+    url: &str,
+    token: Option<String>,
+    sessions: u32,
+    batch: usize,
+    pid: Option<u32>,
+) -> Result<()> {
+    let before = pid.map(resident_kb).transpose()?;
+    let pool = connections(url, token, MEMORY_PHASE_CONCURRENCY).await?;
+    let permits = Arc::new(Semaphore::new(MEMORY_PHASE_CONCURRENCY));
+    let started = Instant::now();
+    let work = async {
+        let mut tasks = Vec::with_capacity(sessions as usize);
+        for i in 0..sessions {
+            let permit = Arc::clone(&permits)
+                .acquire_owned()
+                .await
+                .context("the session semaphore closed")?;
+            let connection = pool[i as usize % pool.len()].clone();
+            tasks.push(tokio::spawn(async move {
+                let outcome =
+                    open_session(connection, format!("bench-mem-{i}"), u64::from(i), batch).await;
+                drop(permit);
+                outcome
+            }));
+        }
+        let mut failed = 0usize;
+        let mut first_error = None;
+        for task in tasks {
+            let outcome = task
+                .await
+                .map_err(|e| ClientError::Protocol(format!("session task failed: {e}")))
+                .and_then(|r| r);
+            if let Err(error) = outcome {
+                failed += 1;
+                first_error.get_or_insert(error.to_string());
+            }
+        }
+        Ok::<_, anyhow::Error>((failed, first_error))
+    };
+    let limit = Duration::from_secs(sessions as u64 / 10 + 1) + PHASE_SLACK;
+    let (failed, first_error) = tokio::time::timeout(limit, work)
+        .await
+        .with_context(|| format!("the memory phase did not finish in {limit:?}"))??;
+    let elapsed = started.elapsed();
+    let after = pid.map(resident_kb).transpose()?;
+    let opened = u64::from(sessions) - failed as u64;
+    println!(
+        "memory: opened {opened} sessions (start + one batch of {batch}, then closed) in {:.1} s",
+        elapsed.as_secs_f64()
+    );
+    if let Some(error) = first_error {
+        eprintln!("{failed} sessions failed; first error: {error}");
+    }
+    match (before, after, pid) {
+        (Some(before), Some(after), Some(pid)) => {
+            let growth = after.saturating_sub(before);
+            println!(
+                "server resident memory (VmRSS of pid {pid}): {:.1} MiB before, {:.1} MiB after, \
+                 +{:.1} MiB = {:.2} KiB per session",
+                before as f64 / 1024.0,
+                after as f64 / 1024.0,
+                growth as f64 / 1024.0,
+                if opened > 0 {
+                    growth as f64 / opened as f64
+                } else {
+                    0.0
+                }
+            );
+        }
+        _ => println!("server memory: not measured (pass --server-pid PID of the external server)"),
+    }
+    if failed > 0 && opened == 0 {
+        bail!("no session could be opened");
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percentiles_use_the_nearest_rank() {
+        let values: Vec<Duration> = (1..=100).map(Duration::from_millis).collect();
+        assert_eq!(percentile(&values, 0.50), Some(Duration::from_millis(50)));
+        assert_eq!(percentile(&values, 0.99), Some(Duration::from_millis(99)));
+        assert_eq!(percentile(&values, 1.0), Some(Duration::from_millis(100)));
+        assert_eq!(
+            percentile(&values[..1], 0.99),
+            Some(Duration::from_millis(1))
+        );
+        assert_eq!(percentile(&[], 0.5), None);
+    }
+
+    #[test]
+    fn vm_rss_is_read_from_proc_status() {
+        let status = "Name:\tspoofwatch\nVmPeak:\t  200000 kB\nVmRSS:\t   51234 kB\nThreads:\t4\n";
+        assert_eq!(parse_vm_rss_kb(status), Some(51_234));
+        assert_eq!(parse_vm_rss_kb("Name:\tx\n"), None);
+    }
+
+    #[test]
+    fn this_process_has_a_resident_size() {
+        let kb = resident_kb(std::process::id()).expect("/proc is readable on Linux");
+        assert!(kb > 0);
+    }
+
+    #[test]
+    fn phase_lengths_are_bounded() {
+        assert_eq!(parse_seconds("5"), Ok(5.0));
+        assert!(parse_seconds("0").is_err());
+        assert!(parse_seconds("601").is_err());
+        assert!(parse_seconds("NaN").is_err());
+    }
+}
