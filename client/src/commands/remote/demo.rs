@@ -16,6 +16,11 @@ use super::detect::parse_rate;
 /// Width of the probability bar in characters.
 const BAR_WIDTH: usize = 40;
 
+/// The model the demo serves: the `spoofwatch experiment subtle` model (trained with injected drifts),
+/// imported into the demo server. The server's own default (the av-gps model) is trained on AV-GPS
+/// attacks, which look nothing like a slow drift, and misses it (README, "subtle").
+const DRIFT_MODEL: &[u8] = include_bytes!("../../../../models/subtle-drift.json");
+
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// Samples streamed per second (the drive is recorded at 1 Hz; 20 plays it 20× faster).
@@ -25,7 +30,7 @@ pub struct Args {
     #[arg(long, default_value_t = 7)]
     pub seed: u64,
     /// Drift velocity of the attack (m/s, 0.05–2).
-    #[arg(long, default_value_t = 1.5)]
+    #[arg(long, default_value_t = 2.0)]
     pub drift: f64,
 }
 
@@ -114,8 +119,25 @@ pub async fn run(args: Args) -> Result<()> {
     result
 }
 
+/// Imports the drift model into the demo server; returns its name.
+async fn import_drift_model(connection: &Connection) -> Result<String> {
+    let requests = super::models::import_requests(
+        "subtle-drift (spoofwatch experiment subtle)".into(),
+        false,
+        DRIFT_MODEL,
+    );
+    let model = connection
+        .models()
+        .import_model(tokio_stream::iter(requests))
+        .await
+        .map_err(rpc("importing the drift model".to_string()))?
+        .into_inner();
+    Ok(model.name)
+}
+
 async fn stream_drive(url: &str, track: &Track, attack: &AttackSpec, rate: f64) -> Result<()> {
     let connection = Connection::connect(url, None).await?;
+    let model = import_drift_model(&connection).await?;
     println!(
         "drive: {} samples at 1 Hz streamed at {rate} samples/s; attack: {} (ground truth marked ATTACK)",
         track.records.len(),
@@ -124,7 +146,7 @@ async fn stream_drive(url: &str, track: &Track, attack: &AttackSpec, rate: f64) 
     let options = ReplayOptions {
         rate_hz: rate,
         batch_size: 1,
-        model: String::new(),
+        model,
     };
     let (events_tx, mut events) = mpsc::channel(256);
     let replay = {
