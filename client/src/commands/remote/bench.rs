@@ -51,6 +51,10 @@ pub struct Args {
     /// Length of each throughput phase in seconds (up to 600).
     #[arg(long, default_value_t = 5.0, value_parser = parse_seconds)]
     pub seconds: f64,
+    /// Offered load in samples/s over all streams, spread evenly (0: as fast as replies come back,
+    /// i.e. saturation). Latency at a given load needs a rate; saturation measures capacity.
+    #[arg(long, default_value_t = 0.0)]
+    pub rate: f64,
     /// Sessions opened in the memory phase (0 skips it).
     #[arg(long, default_value_t = 10_000,
           value_parser = clap::value_parser!(u32).range(0..=i64::from(MAX_SESSIONS)))]
@@ -146,13 +150,24 @@ pub async fn run(args: Args) -> Result<()> {
 async fn bench(args: &Args, url: &str, token: Option<String>, pid: Option<u32>) -> Result<()> {
     // Fail early and readably when the server is not there.
     Connection::connect(url, token.clone()).await?;
+    if !(args.rate.is_finite() && args.rate >= 0.0) {
+        anyhow::bail!("--rate must be a non-negative number of samples per second");
+    }
+    let load = if args.rate > 0.0 {
+        format!("offered load {} samples/s", args.rate)
+    } else {
+        "saturation (each stream sends as soon as its reply is back)".to_string()
+    };
     println!(
-        "throughput: {} s per phase, batches of {} samples, one outstanding batch per stream",
+        "throughput: {} s per phase, batches of {} samples, one outstanding batch per stream, {load}",
         args.seconds, args.batch
     );
     let mut results = Vec::new();
     for &streams in &args.streams {
-        let phase = throughput_phase(url, token.clone(), streams, args.batch, args.seconds);
+        // Each stream sends one batch per `pace` when a rate is given.
+        let pace = (args.rate > 0.0)
+            .then(|| Duration::from_secs_f64(f64::from(streams) * args.batch as f64 / args.rate));
+        let phase = throughput_phase(url, token.clone(), streams, args.batch, args.seconds, pace);
         let limit = Duration::from_secs_f64(args.seconds) + PHASE_SLACK;
         let result = tokio::time::timeout(limit, phase)
             .await
@@ -207,6 +222,7 @@ async fn throughput_phase(
     streams: u32,
     batch: usize,
     seconds: f64,
+    pace: Option<Duration>,
 ) -> Result<PhaseResult> {
     let count = streams as usize;
     let pool = connections(url, token, count).await?;
@@ -218,8 +234,14 @@ async fn throughput_phase(
             let connection = pool[i % pool.len()].clone();
             let barrier = Arc::clone(&barrier);
             let vehicle = format!("bench-s{streams}-{i}");
+            // Paced streams start spread over one period so their batches do not arrive in lockstep.
+            let offset = pace.map(|p| p.mul_f64(i as f64 / count as f64));
+            let schedule = pace.zip(offset);
             tokio::spawn(async move {
-                drive_stream(connection, vehicle, i as u64, batch, length, barrier).await
+                drive_stream(
+                    connection, vehicle, i as u64, batch, length, barrier, schedule,
+                )
+                .await
             })
         })
         .collect();
@@ -353,6 +375,7 @@ async fn drive_stream(
     batch: usize,
     length: Duration,
     barrier: Arc<Barrier>,
+    schedule: Option<(Duration, Duration)>,
 ) -> StreamResult {
     let opened = open_stream(&connection, vehicle_id).await;
     // Every task passes the barrier exactly once, even when its stream failed to open.
@@ -367,8 +390,13 @@ async fn drive_stream(
     };
     let mut driver = LoopDriver::new(seed);
     let deadline = Instant::now() + length;
+    let mut next_send = schedule.map(|(_, offset)| tokio::time::Instant::now() + offset);
     let mut seq = 0;
     while Instant::now() < deadline {
+        if let (Some(at), Some((pace, _))) = (next_send.as_mut(), schedule) {
+            tokio::time::sleep_until(*at).await;
+            *at += pace;
+        }
         seq += 1;
         let samples = driver.next_batch(batch);
         let sent = Instant::now();
