@@ -1,6 +1,5 @@
 //! The "av-gps" experiment of SPEC §9.
 
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -15,25 +14,15 @@ use spoofwatch_core::pipeline::{Recipe, SplitFractions, split_chronologically};
 use spoofwatch_core::sample::Track;
 
 use super::parallel::{default_threads, map_parallel};
-use super::{load_avgps, prepare_out};
+use super::{CommonArgs, load_avgps, prepare_out};
 use crate::commands::train::{ModelFlags, train_with_progress};
 use crate::commands::write_json;
 use crate::report::{delays, metrics_table};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Directory holding AV-GPS-Dataset-2.csv and AV-GPS-Dataset-3.csv.
-    #[arg(long, env = "SPOOFWATCH_AVGPS_DIR")]
-    data_dir: PathBuf,
-    /// Output directory (model.json, report.md, report.json).
-    #[arg(long)]
-    out: PathBuf,
-    /// Training seed.
-    #[arg(long, default_value_t = 42)]
-    seed: u64,
-    /// Maximum epochs per model.
-    #[arg(long, default_value_t = 30)]
-    epochs: u32,
+    #[command(flatten)]
+    common: CommonArgs,
     /// Headline model: train with injected subtle attacks added to the training part (SPEC §9 switch;
     /// off by default because it lowers the AV-GPS scores, see README).
     #[arg(long)]
@@ -41,9 +30,6 @@ pub struct Args {
     /// Skip the retrained ablations (faster).
     #[arg(long)]
     no_ablations: bool,
-    /// Worker threads for independent trainings (default: all cores).
-    #[arg(long)]
-    threads: Option<usize>,
 }
 
 /// One trained configuration.
@@ -199,17 +185,17 @@ fn ekf_metrics(dataset3: &[Track]) -> Metrics {
 
 pub fn run(args: Args) -> Result<()> {
     let started = Instant::now();
-    let data = load_avgps(&args.data_dir)?;
-    prepare_out(&args.out)?;
+    let data = load_avgps(&args.common.data_dir)?;
+    prepare_out(&args.common.out)?;
     let split = split_chronologically(&data.dataset2, SplitFractions::default());
     let subtle_train = [
         split.train.clone(),
-        super::subtle::training_injections(&split.train, args.seed)?,
+        super::subtle::training_injections(&split.train, args.common.seed)?,
     ]
     .concat();
     let headline_subtle = args.subtle_training;
     let variants = variants(!args.no_ablations, headline_subtle);
-    let threads = args.threads.unwrap_or_else(default_threads);
+    let threads = args.common.threads.unwrap_or_else(default_threads);
     eprintln!(
         "av-gps: training {} models on {} threads ({} D2 training rows, {} with injected attacks)",
         variants.len(),
@@ -224,8 +210,8 @@ pub fn run(args: Args) -> Result<()> {
             &split.train
         };
         let flags = ModelFlags {
-            seed: args.seed,
-            epochs: args.epochs,
+            seed: args.common.seed,
+            epochs: args.common.epochs,
             select_kappa_rho: variant.select_kappa_rho,
             ..ModelFlags::defaults()
         };
@@ -256,7 +242,7 @@ pub fn run(args: Args) -> Result<()> {
     let results = results.into_iter().collect::<Result<Vec<_>>>()?;
     let headline_index = usize::from(headline_subtle);
     let (headline, artifact) = &results[headline_index];
-    let model_path = args.out.join("model.json");
+    let model_path = args.common.out.join("model.json");
     let file = std::fs::File::create(&model_path)
         .with_context(|| format!("creating {}", model_path.display()))?;
     artifact.write(std::io::BufWriter::new(file))?;
@@ -279,7 +265,7 @@ pub fn run(args: Args) -> Result<()> {
     let report = Report {
         protocol: "av-gps",
         event_rules: "spec",
-        seed: args.seed,
+        seed: args.common.seed,
         headline: headline.name.clone(),
         operating_point: headline.operating_point,
         train_wall_time_s: headline.train_wall_time_s,
@@ -291,10 +277,10 @@ pub fn run(args: Args) -> Result<()> {
         cusum,
         variants: results.into_iter().map(|(r, _)| r).collect(),
     };
-    write_json(&args.out.join("report.json"), &report)?;
+    write_json(&args.common.out.join("report.json"), &report)?;
     let markdown = render_markdown(&report);
-    std::fs::write(args.out.join("report.md"), &markdown)
-        .with_context(|| format!("writing {}", args.out.join("report.md").display()))?;
+    std::fs::write(args.common.out.join("report.md"), &markdown)
+        .with_context(|| format!("writing {}", args.common.out.join("report.md").display()))?;
     print!("{markdown}");
     Ok(())
 }
@@ -325,12 +311,9 @@ fn render_markdown(report: &Report) -> String {
         report.experiment_wall_time_s
     );
     let table = metrics_table(&[
-        (
-            "HO-LLN, Dataset-2 test (ours)".into(),
-            &report.dataset2_test,
-        ),
-        ("HO-LLN, Dataset-3 (ours)".into(), &report.dataset3),
-        ("EKF Detector, Dataset-3".into(), &report.ekf_dataset3),
+        ("HO-LLN, Dataset-2 test (ours)", &report.dataset2_test),
+        ("HO-LLN, Dataset-3 (ours)", &report.dataset3),
+        ("EKF Detector, Dataset-3", &report.ekf_dataset3),
     ]);
     md.push_str(&table);
     md.push_str(PAPER_ROWS);
@@ -345,8 +328,8 @@ fn render_markdown(report: &Report) -> String {
         c.drift_k, c.threshold_h, c.n_p
     ));
     md.push_str(&metrics_table(&[
-        ("CUSUM, Dataset-2 test".into(), &report.cusum.dataset2_test),
-        ("CUSUM, Dataset-3".into(), &report.cusum.dataset3),
+        ("CUSUM, Dataset-2 test", &report.cusum.dataset2_test),
+        ("CUSUM, Dataset-3", &report.cusum.dataset3),
     ]));
     md.push_str("\n## Variants (each retrained; subtle = injected subtle attacks in training)\n\n");
     let mut rows = Vec::new();

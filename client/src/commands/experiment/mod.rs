@@ -27,6 +27,26 @@ pub fn run(cmd: Command) -> Result<()> {
     }
 }
 
+/// Arguments every experiment takes.
+#[derive(Debug, clap::Args)]
+pub struct CommonArgs {
+    /// Directory holding AV-GPS-Dataset-2.csv and AV-GPS-Dataset-3.csv.
+    #[arg(long, env = "SPOOFWATCH_AVGPS_DIR")]
+    pub data_dir: PathBuf,
+    /// Output directory (model.json, report.md, report.json).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Training seed.
+    #[arg(long, default_value_t = 42)]
+    pub seed: u64,
+    /// Maximum epochs per model.
+    #[arg(long, default_value_t = 30)]
+    pub epochs: u32,
+    /// Worker threads for independent work (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+}
+
 /// The two AV-GPS recordings the experiments use.
 pub struct AvGpsData {
     pub dataset2: Vec<Track>,

@@ -1,7 +1,6 @@
 //! The "subtle" experiment of SPEC §9, and the injected subtle attacks used for training.
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -19,7 +18,7 @@ use spoofwatch_core::scenario::{
 };
 
 use super::parallel::{default_threads, map_parallel};
-use super::{load_avgps, prepare_out};
+use super::{CommonArgs, load_avgps, prepare_out};
 use crate::commands::train::{ModelFlags, train_with_progress};
 use crate::commands::write_json;
 
@@ -93,24 +92,14 @@ pub fn training_injections(tracks: &[Track], seed: u64) -> Result<Vec<Track>> {
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Directory holding AV-GPS-Dataset-2.csv and AV-GPS-Dataset-3.csv.
-    #[arg(long, env = "SPOOFWATCH_AVGPS_DIR")]
-    data_dir: PathBuf,
-    /// Output directory (model.json, report.md, report.json).
-    #[arg(long)]
-    out: PathBuf,
-    #[arg(long, default_value_t = 42)]
-    seed: u64,
-    #[arg(long, default_value_t = 30)]
-    epochs: u32,
+    #[command(flatten)]
+    common: CommonArgs,
     /// Simulated drives used as extra attack-free bases (10 minutes each).
     #[arg(long, default_value_t = 6)]
     drives: u64,
     /// Scenarios per (base, attack) with random onsets and directions.
     #[arg(long, default_value_t = 3)]
     repeats: usize,
-    #[arg(long)]
-    threads: Option<usize>,
 }
 
 /// Test grid: every attack family over its SPEC §9 magnitude range.
@@ -252,18 +241,18 @@ fn detector_report(
 
 pub fn run(args: Args) -> Result<()> {
     let started = Instant::now();
-    let data = load_avgps(&args.data_dir)?;
-    prepare_out(&args.out)?;
+    let data = load_avgps(&args.common.data_dir)?;
+    prepare_out(&args.common.out)?;
     let split = split_chronologically(&data.dataset2, SplitFractions::default());
     // Injected attacks in training and validation: the operating point is chosen for subtle attacks.
     let train = [
         split.train.clone(),
-        training_injections(&split.train, args.seed)?,
+        training_injections(&split.train, args.common.seed)?,
     ]
     .concat();
     let validation = [
         split.validation.clone(),
-        training_injections(&split.validation, args.seed ^ 0x5EED)?,
+        training_injections(&split.validation, args.common.seed ^ 0x5EED)?,
     ]
     .concat();
 
@@ -279,7 +268,7 @@ pub fn run(args: Args) -> Result<()> {
     for k in 0..args.drives {
         let spec = DriveSpec {
             duration_s: DRIVE_S,
-            seed: args.seed.wrapping_mul(1000).wrapping_add(k),
+            seed: args.common.seed.wrapping_mul(1000).wrapping_add(k),
             ..DriveSpec::default()
         };
         bases.push(simulate_drive(&spec, &format!("sim{k}")).context("simulating a drive")?);
@@ -291,7 +280,7 @@ pub fn run(args: Args) -> Result<()> {
         onset_s: None,
         margin_fraction: 0.1,
         repeats: args.repeats,
-        seed: args.seed.wrapping_add(7),
+        seed: args.common.seed.wrapping_add(7),
     };
     let scenarios = generate(&bases, &plan).context("generating the test scenarios")?;
     eprintln!(
@@ -302,8 +291,8 @@ pub fn run(args: Args) -> Result<()> {
     );
 
     let flags = ModelFlags {
-        seed: args.seed,
-        epochs: args.epochs,
+        seed: args.common.seed,
+        epochs: args.common.epochs,
         ..ModelFlags::defaults()
     };
     let options = flags.options(vec![
@@ -312,12 +301,12 @@ pub fn run(args: Args) -> Result<()> {
     let trained = train_with_progress(&train, &validation, &options, false)?;
     let artifact = Arc::new(trained.artifact);
     artifact.write(std::io::BufWriter::new(
-        std::fs::File::create(args.out.join("model.json")).context("creating model.json")?,
+        std::fs::File::create(args.common.out.join("model.json")).context("creating model.json")?,
     ))?;
     let comparator: CusumComparator = fit_cusum_comparator(&train, &validation, options.projection)
         .context("fitting the CUSUM comparator")?;
 
-    let threads = args.threads.unwrap_or_else(default_threads);
+    let threads = args.common.threads.unwrap_or_else(default_threads);
     let first_delay = |m: Metrics| m.delays_s.first().copied().flatten();
     let model_delays = map_parallel(&scenarios, threads, |s| {
         first_delay(
@@ -335,7 +324,7 @@ pub fn run(args: Args) -> Result<()> {
     let op: OperatingPoint = artifact.operating_point;
     let report = Report {
         protocol: "subtle",
-        seed: args.seed,
+        seed: args.common.seed,
         scenarios: scenarios.len(),
         bases: bases.iter().map(|b| b.vehicle_id.clone()).collect(),
         ho_lln: detector_report(
@@ -354,9 +343,9 @@ pub fn run(args: Args) -> Result<()> {
         ),
         experiment_wall_time_s: started.elapsed().as_secs_f64(),
     };
-    write_json(&args.out.join("report.json"), &report)?;
+    write_json(&args.common.out.join("report.json"), &report)?;
     let markdown = render_markdown(&report);
-    std::fs::write(args.out.join("report.md"), &markdown).context("writing report.md")?;
+    std::fs::write(args.common.out.join("report.md"), &markdown).context("writing report.md")?;
     print!("{markdown}");
     Ok(())
 }

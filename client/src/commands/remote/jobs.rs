@@ -10,7 +10,8 @@ use spoofwatch_proto::longrunning;
 use spoofwatch_proto::longrunning::operation::Result as OperationResult;
 use spoofwatch_proto::v1;
 
-use super::{ServerArgs, metrics_table, opt, text_table, time};
+use super::{ServerArgs, opt, text_table, time};
+use crate::report::metrics_table;
 
 /// The server's longest single WaitOperation.
 const MAX_WAIT_PER_CALL: Duration = Duration::from_secs(60);

@@ -16,7 +16,6 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use spoofwatch_client::Connection;
 use spoofwatch_client::connection::DEFAULT_SERVER_URL;
-use spoofwatch_proto::v1;
 
 /// Upload chunk size for datasets and model artifacts (the server's documented chunk size).
 pub const UPLOAD_CHUNK_BYTES: usize = 1 << 20;
@@ -92,30 +91,6 @@ pub fn bytes(n: u64) -> String {
         n if n >= 1 << 10 => format!("{:.1} KiB", n as f64 / 1024.0),
         n => format!("{n} B"),
     }
-}
-
-/// A markdown table of wire metrics, one row per named set (the offline report's columns).
-pub fn metrics_table(rows: &[(&str, &v1::Metrics)]) -> String {
-    let mut out = String::from(
-        "| data | AUROC | AUPRC | F1 | Prec. | Recall | FPR | ADR | delay (s) | FA rows | FA events |\n\
-         |---|---|---|---|---|---|---|---|---|---|---|\n",
-    );
-    for (name, m) in rows {
-        out.push_str(&format!(
-            "| {name} | {} | {} | {:.4} | {:.4} | {:.4} | {:.4} | {:.2} | {} | {} | {} |\n",
-            opt(m.auroc, 4),
-            opt(m.auprc, 4),
-            m.f1,
-            m.precision,
-            m.recall,
-            m.fpr,
-            m.adr,
-            opt(m.mean_delay_s, 1),
-            m.false_alarm_rows,
-            m.false_alarm_events,
-        ));
-    }
-    out
 }
 
 /// Left-aligned text columns, two spaces apart, for listings.

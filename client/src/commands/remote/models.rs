@@ -8,10 +8,8 @@ use spoofwatch_client::error::rpc;
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::import_model_request::Kind as ImportKind;
 
-use super::{
-    ServerArgs, UPLOAD_CHUNK_BYTES, bytes, display_name, metrics_table, read_upload, text_table,
-    time,
-};
+use super::{ServerArgs, UPLOAD_CHUNK_BYTES, bytes, display_name, read_upload, text_table, time};
+use crate::report::metrics_table;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
