@@ -1,6 +1,6 @@
 //! Uploaded or imported datasets: summary rows and content blobs.
 
-use super::error::is_unique_violation;
+use super::error::insert_error;
 use super::paging::PagePlan;
 use super::{Page, PageRequest, Store, StoreError, now_unix_ms};
 
@@ -100,16 +100,7 @@ impl Store {
         .bind(created_at_ms)
         .execute(&mut *tx)
         .await;
-        if let Err(error) = inserted {
-            return Err(if is_unique_violation(&error) {
-                StoreError::AlreadyExists {
-                    kind: "dataset",
-                    id: dataset.id,
-                }
-            } else {
-                error.into()
-            });
-        }
+        inserted.map_err(|error| insert_error(error, "dataset", &dataset.id))?;
         sqlx::query("INSERT INTO dataset_contents (dataset_id, content) VALUES (?1, ?2)")
             .bind(&dataset.id)
             .bind(&dataset.content)

@@ -79,11 +79,20 @@ impl From<sqlx::migrate::MigrateError> for StoreError {
     }
 }
 
-/// Whether `error` is a UNIQUE or PRIMARY KEY constraint violation.
-pub(crate) fn is_unique_violation(error: &sqlx::Error) -> bool {
-    error
+/// An INSERT's failure: a UNIQUE or PRIMARY KEY clash is `AlreadyExists` for `kind`/`id`, anything
+/// else a database error.
+pub(crate) fn insert_error(error: sqlx::Error, kind: &'static str, id: &str) -> StoreError {
+    if error
         .as_database_error()
         .is_some_and(|db_error| db_error.is_unique_violation())
+    {
+        StoreError::AlreadyExists {
+            kind,
+            id: id.to_string(),
+        }
+    } else {
+        error.into()
+    }
 }
 
 /// Rejects NaN and infinities, which SQLite would silently store as NULL (or reject as NOT NULL).

@@ -7,7 +7,7 @@
 use serde_json::Value;
 use sqlx::types::Json;
 
-use super::error::{is_unique_violation, require_finite};
+use super::error::{insert_error, require_finite};
 use super::paging::PagePlan;
 use super::{ABORTED_CODE, CANCELLED_CODE, Page, PageRequest, Store, StoreError, now_unix_ms};
 
@@ -199,11 +199,7 @@ impl Store {
                 finished_at_ms: None,
                 cancel_requested: false,
             }),
-            Err(error) if is_unique_violation(&error) => Err(StoreError::AlreadyExists {
-                kind: "job",
-                id: job.id,
-            }),
-            Err(error) => Err(error.into()),
+            Err(error) => Err(insert_error(error, "job", &job.id)),
         }
     }
 
@@ -297,16 +293,7 @@ impl Store {
         .bind(epoch.elapsed_s)
         .execute(&mut *tx)
         .await;
-        match inserted {
-            Ok(_) => {}
-            Err(error) if is_unique_violation(&error) => {
-                return Err(StoreError::AlreadyExists {
-                    kind: "epoch",
-                    id: format!("{id}/{}", epoch.epoch),
-                });
-            }
-            Err(error) => return Err(error.into()),
-        }
+        inserted.map_err(|error| insert_error(error, "epoch", &format!("{id}/{}", epoch.epoch)))?;
         tx.commit().await?;
         Ok(())
     }

@@ -3,7 +3,7 @@
 use serde_json::Value;
 use sqlx::types::Json;
 
-use super::error::is_unique_violation;
+use super::error::insert_error;
 use super::paging::PagePlan;
 use super::{Page, PageRequest, Store, StoreError, now_unix_ms};
 
@@ -109,16 +109,7 @@ impl Store {
         .bind(Json(&model.metadata))
         .execute(&mut *tx)
         .await;
-        if let Err(error) = inserted {
-            return Err(if is_unique_violation(&error) {
-                StoreError::AlreadyExists {
-                    kind: "model",
-                    id: model.id,
-                }
-            } else {
-                error.into()
-            });
-        }
+        inserted.map_err(|error| insert_error(error, "model", &model.id))?;
         sqlx::query("INSERT INTO model_artifacts (model_id, artifact) VALUES (?1, ?2)")
             .bind(&model.id)
             .bind(&model.artifact)

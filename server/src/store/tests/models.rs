@@ -213,7 +213,13 @@ async fn schema_forbids_two_active_models_even_for_raw_updates() {
         .execute(&store.pool)
         .await
         .unwrap_err();
-    assert!(crate::store::error::is_unique_violation(&raw), "{raw:?}");
+    assert!(
+        matches!(
+            crate::store::error::insert_error(raw, "model", "b"),
+            StoreError::AlreadyExists { .. }
+        ),
+        "a raw second active row must hit the unique index"
+    );
     assert_eq!(active_ids(&store).await, ["a"]);
 }
 
