@@ -1,8 +1,10 @@
 //! The few dense kernels the model needs, written so LLVM vectorises them without fast-math.
 //!
 //! A plain `sum += a[i] * b[i]` loop cannot be vectorised (f64 addition is not associative), so `dot`
-//! keeps eight independent partial sums; the summation order is fixed, hence results are reproducible.
+//! keeps `LANES` independent partial sums per row; the summation order is fixed, hence results are reproducible.
 //! `axpy`-shaped loops (`y[i] += a * x[i]`) vectorise as they are.
+
+use wide::f64x4;
 
 /// Sign with `sign(0) = 0`: the subgradient we use for `|x|` at 0.
 #[inline]
@@ -48,33 +50,31 @@ pub(crate) fn dot(a: &[f64], b: &[f64]) -> f64 {
 
 /// Four dot products `rows[r] · x` at once: each load of `x` serves four rows (the single-row kernel
 /// is load-bound). Same per-row summation order as [`dot`], so results are identical to it.
+///
+/// The four lanes of a row are one `f64x4` (exact IEEE multiply then add, as in `dot`): left to
+/// itself, LLVM vectorises this loop across rows and pays a shuffle for every multiply.
 #[inline]
 fn dot4(rows: [&[f64]; 4], x: &[f64]) -> [f64; 4] {
     let n = x.len();
-    let body = n - n % LANES;
-    let [w0, w1, w2, w3] = rows.map(|row| &row[..body]);
-    let mut lanes = [[0.0f64; LANES]; 4];
-    let columns = x[..body]
-        .chunks_exact(LANES)
-        .zip(w0.chunks_exact(LANES))
-        .zip(w1.chunks_exact(LANES))
-        .zip(w2.chunks_exact(LANES))
-        .zip(w3.chunks_exact(LANES));
-    for ((((xs, a), b), c), d) in columns {
-        for l in 0..LANES {
-            lanes[0][l] += a[l] * xs[l];
-            lanes[1][l] += b[l] * xs[l];
-            lanes[2][l] += c[l] * xs[l];
-            lanes[3][l] += d[l] * xs[l];
-        }
+    let (x_chunks, _) = x.as_chunks::<LANES>();
+    let [w0, w1, w2, w3] = rows.map(|row| row[..n].as_chunks::<LANES>().0);
+    let mut lanes = [f64x4::ZERO; 4];
+    let columns = x_chunks.iter().zip(w0).zip(w1).zip(w2).zip(w3);
+    for ((((&xs, &a), &b), &c), &d) in columns {
+        let xs = f64x4::from(xs);
+        lanes[0] += f64x4::from(a) * xs;
+        lanes[1] += f64x4::from(b) * xs;
+        lanes[2] += f64x4::from(c) * xs;
+        lanes[3] += f64x4::from(d) * xs;
     }
+    let body = n - n % LANES;
     let mut out = [0.0; 4];
     for (r, row) in rows.iter().enumerate() {
         let mut tail = 0.0;
         for (w, v) in row[body..n].iter().zip(&x[body..n]) {
             tail += w * v;
         }
-        out[r] = combine(lanes[r], tail);
+        out[r] = combine(lanes[r].to_array(), tail);
     }
     out
 }
