@@ -196,3 +196,40 @@ fn the_av_gps_experiment_runs_end_to_end() {
     assert_eq!(report["seed"], 42);
     assert!(out.path().join("report.md").is_file() && out.path().join("model.json").is_file());
 }
+
+#[test]
+fn the_subtle_experiment_reports_both_operating_points() {
+    let Some(d2) = data_file(AVGPS_DIR_VAR, "AV-GPS-Dataset-2.csv") else {
+        return;
+    };
+    let data_dir = d2.parent().expect("a directory").display().to_string();
+    let out = tempfile::tempdir().expect("tempdir");
+    let out_dir = out.path().display().to_string();
+    let args = ["--epochs", "1", "--drives", "1", "--repeats", "1"];
+    let mut command = vec![
+        "experiment",
+        "subtle",
+        "--data-dir",
+        &data_dir,
+        "--out",
+        &out_dir,
+    ];
+    command.extend(args);
+    spoofwatch(&command);
+    let report: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.path().join("report.json")).expect("report.json"),
+    )
+    .expect("valid json");
+    assert_eq!(report["false_alarm_budget_per_hour"], 1.0);
+    for rule in ["validation_f1", "within_budget"] {
+        for detector in ["ho_lln", "cusum"] {
+            let d = &report[rule][detector];
+            assert!(d["false_alarms_per_hour"].is_number(), "{rule}.{detector}");
+            assert!(d.get("smallest_ramp_mps_adr90_within_30s").is_some());
+            let attacks = d["attacks"].as_array().expect("attack rows");
+            assert!(attacks.iter().any(|a| a["family"] == "ramp_drift"));
+        }
+    }
+    let markdown = std::fs::read_to_string(out.path().join("report.md")).expect("report.md");
+    assert!(markdown.contains("within the false-alarm budget"));
+}

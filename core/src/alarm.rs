@@ -112,6 +112,16 @@ pub enum AlarmError {
         /// Number of N_p values given.
         n_ps: usize,
     },
+    /// Every point of the grid raises more false alarms than the budget allows.
+    #[error(
+        "no operating point stays within {per_hour} false alarms per hour ({normal_hours:.2} attack-free hours)"
+    )]
+    OverBudget {
+        /// The budget, false-alarm events per attack-free hour.
+        per_hour: f64,
+        /// Attack-free hours of the selection rows.
+        normal_hours: f64,
+    },
     /// A NaN threshold compares false with every score.
     #[error("threshold {index} of the grid is NaN")]
     NanThreshold {
@@ -147,6 +157,30 @@ pub fn choose_operating_point(
     n_ps: RangeInclusive<u32>,
     rules: EventRules,
 ) -> Result<Selection, AlarmError> {
+    search(rows, thetas, n_ps, rules, None)
+}
+
+/// [`choose_operating_point`] among the points that raise at most `max_per_hour` false-alarm events
+/// per hour of attack-free time on the rows ([`metrics::normal_hours`]): the operating point of a
+/// detector that must stay within a false-alarm budget.
+pub fn choose_operating_point_within_budget(
+    rows: &[ScoredRow],
+    thetas: &[f64],
+    n_ps: RangeInclusive<u32>,
+    rules: EventRules,
+    max_per_hour: f64,
+) -> Result<Selection, AlarmError> {
+    search(rows, thetas, n_ps, rules, Some(max_per_hour))
+}
+
+/// The grid search behind both choosers; `budget` is a false-alarm rate per attack-free hour.
+pub(crate) fn search(
+    rows: &[ScoredRow],
+    thetas: &[f64],
+    n_ps: RangeInclusive<u32>,
+    rules: EventRules,
+    budget: Option<f64>,
+) -> Result<Selection, AlarmError> {
     metrics::check_rows(rows)?;
     if !rows.iter().any(|row| row.valid) {
         return Err(AlarmError::NoValidRows);
@@ -154,6 +188,13 @@ pub fn choose_operating_point(
     if let Some(index) = thetas.iter().position(|theta| theta.is_nan()) {
         return Err(AlarmError::NanThreshold { index });
     }
+    if thetas.is_empty() || n_ps.is_empty() {
+        return Err(AlarmError::EmptyGrid {
+            thetas: thetas.len(),
+            n_ps: n_ps.count(),
+        });
+    }
+    let normal_hours = metrics::normal_hours(rows);
     let mut best: Option<(OperatingPoint, Metrics)> = None;
     let mut alarms = Vec::with_capacity(rows.len());
     for &theta in thetas {
@@ -161,19 +202,22 @@ pub fn choose_operating_point(
             let point = OperatingPoint { theta, n_p };
             fill_confirmed_alarms(rows, point, &mut alarms);
             let candidate = metrics::alarm_metrics(rows, &alarms, rules);
+            let within_budget = budget.is_none_or(|per_hour| {
+                candidate.false_alarm_events as f64 <= per_hour * normal_hours
+            });
             let improves = best.as_ref().is_none_or(|(best_point, best_metrics)| {
                 compare_candidates((&point, &candidate), (best_point, best_metrics))
                     == Ordering::Greater
             });
-            if improves {
+            if within_budget && improves {
                 best = Some((point, candidate));
             }
         }
     }
     let Some((point, _)) = best else {
-        return Err(AlarmError::EmptyGrid {
-            thetas: thetas.len(),
-            n_ps: n_ps.count(),
+        return Err(AlarmError::OverBudget {
+            per_hour: budget.unwrap_or(f64::INFINITY),
+            normal_hours,
         });
     };
     // AUROC/AUPRC do not depend on the alarms: computed once, for the winner only.
@@ -518,5 +562,63 @@ mod tests {
             metrics::try_evaluate(&rows, &alarms, EventRules::Spec).expect("valid rows");
         assert_eq!(selection.metrics, recomputed);
         assert_eq!(select_operating_point(&rows), Some(selection.point));
+    }
+
+    /// 1,900 s at 1 Hz: a 100 s attack scored 0.7 and a 12 s normal stretch scored 0.75 (too long for
+    /// any N_p to hide), so every point that detects the attack raises one false alarm.
+    fn attack_and_one_false_alarm() -> Vec<ScoredRow> {
+        let pairs: Vec<(u8, f64)> = (0..1900)
+            .map(|i| match i {
+                500..600 => (1, 0.7),
+                1200..1212 => (0, 0.75),
+                _ => (0, 0.1),
+            })
+            .collect();
+        one_trajectory(&pairs)
+    }
+
+    #[test]
+    fn a_false_alarm_budget_excludes_points_that_exceed_it() {
+        let rows = attack_and_one_false_alarm();
+        let normal_hours = metrics::normal_hours(&rows);
+        assert!((normal_hours - 1799.0 / 3600.0).abs() < 1e-12);
+        let free = choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec)
+            .expect("valid rows");
+        assert_eq!(free.point.theta, 0.7);
+        assert_eq!(free.metrics.false_alarm_events, 1);
+        // One event in ~0.5 h is 2 per hour: allowed by a budget of 2/h, not by 1/h.
+        let within = |per_hour| {
+            choose_operating_point_within_budget(
+                &rows,
+                &theta_grid(),
+                N_P_GRID,
+                EventRules::Spec,
+                per_hour,
+            )
+        };
+        assert_eq!(within(2.1).expect("within budget").point, free.point);
+        let strict = within(1.0).expect("a quiet point exists");
+        assert_eq!(strict.metrics.false_alarm_events, 0);
+        assert!(strict.point.theta > 0.75);
+        assert_eq!(strict.metrics.detected_events, 0);
+    }
+
+    #[test]
+    fn an_unreachable_budget_is_an_error() {
+        let mut rows = attack_and_one_false_alarm();
+        for row in &mut rows[1200..1212] {
+            row.score = 0.99; // above every θ of the grid
+        }
+        let result = choose_operating_point_within_budget(
+            &rows,
+            &theta_grid(),
+            N_P_GRID,
+            EventRules::Spec,
+            0.0,
+        );
+        assert!(matches!(
+            result,
+            Err(AlarmError::OverBudget { per_hour, .. }) if per_hour == 0.0
+        ));
     }
 }

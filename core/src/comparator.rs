@@ -3,9 +3,13 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::cusum::{CusumDetector, CusumParams, CusumRow, fit_cusum};
+use crate::alarm::N_P_GRID;
+use crate::cusum::{
+    CusumDetector, CusumError, CusumParams, CusumRow, DRIFT_GRID, fit_cusum_on_grid,
+};
 use crate::evidence::{EvidenceParams, build_track};
 use crate::geo::Projection;
+use crate::metrics::EventRules;
 use crate::metrics::ScoredRow;
 use crate::pipeline::{PipelineError, fit_evidence};
 use crate::sample::Track;
@@ -22,10 +26,8 @@ pub struct CusumComparator {
 pub enum ComparatorError {
     #[error(transparent)]
     Pipeline(#[from] PipelineError),
-    #[error(
-        "no CUSUM operating point: the validation data needs both normal and spoofed valid rows"
-    )]
-    NoOperatingPoint,
+    #[error("no CUSUM operating point: {0}")]
+    NoOperatingPoint(#[from] CusumError),
 }
 
 /// Energy rows of tracks under fixed evidence parameters (trajectory keys unique per track).
@@ -49,15 +51,25 @@ fn cusum_rows(evidence: &EvidenceParams, tracks: &[Track]) -> Vec<CusumRow> {
     rows
 }
 
-/// Fits Σ̂, μ_e on `train` and the CUSUM drift, threshold and persistence on `validation`.
+/// Fits Σ̂, μ_e on `train` and the CUSUM drift, threshold and persistence on `validation`, within a
+/// false-alarm `budget` (events per attack-free hour of `validation`) when one is given.
 pub fn fit_cusum_comparator(
     train: &[Track],
     validation: &[Track],
     projection: Projection,
+    budget: Option<f64>,
 ) -> Result<CusumComparator, ComparatorError> {
     let fit = fit_evidence(train, projection, 0.0, 0.98)?;
     let rows = cusum_rows(&fit.params, validation);
-    let cusum = fit_cusum(&rows, fit.params.mu_e).ok_or(ComparatorError::NoOperatingPoint)?;
+    let cusum = fit_cusum_on_grid(
+        &rows,
+        fit.params.mu_e,
+        &DRIFT_GRID,
+        N_P_GRID,
+        EventRules::Spec,
+        budget,
+    )?
+    .params;
     Ok(CusumComparator {
         evidence: fit.params,
         cusum,

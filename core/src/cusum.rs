@@ -180,20 +180,30 @@ pub enum CusumError {
 /// Fits k, h, N_p on validation rows with the default grids ([`DRIFT_GRID`], N_p = 1..=10) and SPEC §8
 /// event rules. `None` when the rows are unusable (see [`fit_cusum_on_grid`] for the reason).
 pub fn fit_cusum(validation: &[CusumRow], mu_e: f64) -> Option<CusumParams> {
-    fit_cusum_on_grid(validation, mu_e, &DRIFT_GRID, N_P_GRID, EventRules::Spec)
-        .ok()
-        .map(|fit| fit.params)
+    fit_cusum_on_grid(
+        validation,
+        mu_e,
+        &DRIFT_GRID,
+        N_P_GRID,
+        EventRules::Spec,
+        None,
+    )
+    .ok()
+    .map(|fit| fit.params)
 }
 
 /// For each drift k: S on the validation rows, thresholds h from [`threshold_grid`], then the
 /// operating-point search of SPEC §7 (F1, ADR, delay, FPR, recall, lower N_p, higher h) with S as the
-/// score. Across drifts the same objective decides; remaining ties go to the smaller k.
+/// score. Across drifts the same objective decides; remaining ties go to the smaller k. With a
+/// `budget` (false alarms per attack-free hour), only points within it compete, as in
+/// [`alarm::choose_operating_point_within_budget`].
 pub fn fit_cusum_on_grid(
     validation: &[CusumRow],
     mu_e: f64,
     drifts: &[f64],
     n_ps: RangeInclusive<u32>,
     rules: EventRules,
+    budget: Option<f64>,
 ) -> Result<CusumFit, CusumError> {
     if !mu_e.is_finite() {
         return Err(CusumError::NonFiniteMean(mu_e));
@@ -209,6 +219,7 @@ pub fn fit_cusum_on_grid(
     }
     check_trajectory_starts(validation)?;
     let mut best: Option<CusumFit> = None;
+    let mut over_budget = None;
     for &drift_k in drifts {
         let unthresholded = CusumParams {
             mu_e,
@@ -223,7 +234,15 @@ pub fn fit_cusum_on_grid(
         if thresholds.is_empty() {
             continue;
         }
-        let selection = alarm::choose_operating_point(&scored, &thresholds, n_ps.clone(), rules)?;
+        let selection = match alarm::search(&scored, &thresholds, n_ps.clone(), rules, budget) {
+            Ok(selection) => selection,
+            // Another drift may fit the budget.
+            Err(error @ AlarmError::OverBudget { .. }) => {
+                over_budget = Some(error);
+                continue;
+            }
+            Err(error) => return Err(error.into()),
+        };
         let candidate = CusumFit {
             params: CusumParams {
                 mu_e,
@@ -245,7 +264,11 @@ pub fn fit_cusum_on_grid(
             best = Some(candidate);
         }
     }
-    best.ok_or(CusumError::NoThresholds)
+    match (best, over_budget) {
+        (Some(fit), _) => Ok(fit),
+        (None, Some(error)) => Err(error.into()),
+        (None, None) => Err(CusumError::NoThresholds),
+    }
 }
 
 /// (h, N_p) as an operating point on the S scale.
@@ -415,7 +438,7 @@ mod tests {
         // k = 4, 8: S ≡ 0 → no threshold. Among h ∈ (0, 0.6] (identical alarms) the highest wins: the
         // first attack statistic itself.
         let rows = shifted_sequence();
-        let fit = fit_cusum_on_grid(&rows, 0.4, &DRIFT_GRID, N_P_GRID, EventRules::Spec)
+        let fit = fit_cusum_on_grid(&rows, 0.4, &DRIFT_GRID, N_P_GRID, EventRules::Spec, None)
             .expect("fittable");
         assert_eq!(fit.params.drift_k, 2.0);
         assert_eq!(fit.params.n_p, 1);
@@ -435,9 +458,31 @@ mod tests {
     }
 
     #[test]
+    fn a_zero_false_alarm_budget_trades_recall_for_silence() {
+        // The best-F1 fit above raises one false-alarm event (S decays for 5 s after the attack). With
+        // no false alarm allowed, only thresholds above that tail (S ≤ 9.9 there) remain for k = 2.
+        let rows = shifted_sequence();
+        let free = fit_cusum_on_grid(&rows, 0.4, &DRIFT_GRID, N_P_GRID, EventRules::Spec, None)
+            .expect("fittable");
+        let quiet = fit_cusum_on_grid(
+            &rows,
+            0.4,
+            &DRIFT_GRID,
+            N_P_GRID,
+            EventRules::Spec,
+            Some(0.0),
+        )
+        .expect("a quiet threshold exists");
+        assert_eq!(quiet.metrics.false_alarm_events, 0);
+        assert_eq!(quiet.metrics.detected_events, 1);
+        assert!(quiet.metrics.f1 < free.metrics.f1);
+        assert!(quiet.params.threshold_h > 9.9);
+    }
+
+    #[test]
     fn fitted_detector_agrees_with_thresholding_its_statistic_and_scores_with_evaluate() {
         let rows = shifted_sequence();
-        let fit = fit_cusum_on_grid(&rows, 0.4, &DRIFT_GRID, N_P_GRID, EventRules::Spec)
+        let fit = fit_cusum_on_grid(&rows, 0.4, &DRIFT_GRID, N_P_GRID, EventRules::Spec, None)
             .expect("fittable");
         let steps = run_cusum(&fit.params, &rows);
         let scored = scored_rows(&rows, &steps);
@@ -470,7 +515,7 @@ mod tests {
     fn fitting_rejects_unusable_input() {
         let rows = shifted_sequence();
         let fit = |rows: &[CusumRow], mu_e: f64, drifts: &[f64]| {
-            fit_cusum_on_grid(rows, mu_e, drifts, N_P_GRID, EventRules::Spec)
+            fit_cusum_on_grid(rows, mu_e, drifts, N_P_GRID, EventRules::Spec, None)
         };
         assert!(matches!(
             fit(&rows, f64::NAN, &DRIFT_GRID),

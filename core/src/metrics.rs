@@ -263,6 +263,22 @@ pub fn try_evaluate(
     Ok(evaluate(rows, alarms, rules))
 }
 
+/// Attack-free time of the rows in hours: the time steps (t_i − t_{i−1}, inside one trajectory, finite
+/// and positive) that end on a label-0 row. The denominator of a false-alarm rate.
+pub fn normal_hours(rows: &[ScoredRow]) -> f64 {
+    let seconds: f64 = trajectory_ranges(rows)
+        .map(|range| {
+            rows[range]
+                .windows(2)
+                .filter(|pair| !pair[1].label)
+                .map(|pair| pair[1].time_s - pair[0].time_s)
+                .filter(|step| step.is_finite() && *step > 0.0)
+                .sum::<f64>()
+        })
+        .sum();
+    seconds / 3600.0
+}
+
 /// Every metric except AUROC/AUPRC (which need a sort and do not depend on the alarms).
 /// Callers guarantee `rows.len() == alarms.len()`; the operating-point search calls this once per grid
 /// point.
@@ -423,6 +439,28 @@ fn count_false_alarm_events(rows: &[ScoredRow], alarms: &[bool]) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn normal_hours_count_steps_that_end_on_normal_rows_inside_trajectories() {
+        let row = |trajectory, time_s, label| ScoredRow {
+            trajectory,
+            time_s,
+            valid: true,
+            label,
+            score: 0.0,
+        };
+        let rows = [
+            row(0, 0.0, false),
+            row(0, 10.0, false),   // +10
+            row(0, 20.0, true),    // spoofed: not counted
+            row(0, 3600.0, false), // +3580
+            row(1, 9000.0, false), // new trajectory: the gap is not counted
+            row(1, 9001.0, false), // +1
+            row(1, 9001.0, false), // zero step
+        ];
+        assert_eq!(normal_hours(&rows), 3591.0 / 3600.0);
+        assert_eq!(normal_hours(&[]), 0.0);
+    }
 
     /// One trajectory (key 0) at 1 Hz from t = 100 s, all rows valid, score 0.
     fn rows_from_labels(labels: &[u8]) -> Vec<ScoredRow> {

@@ -40,7 +40,7 @@ pub fn run(args: Args) -> Result<()> {
     } else {
         (train, load_tracks(&args.val)?)
     };
-    let comparator = fit_cusum_comparator(&fit_tracks, &val_tracks, args.projection.into())
+    let comparator = fit_cusum_comparator(&fit_tracks, &val_tracks, args.projection.into(), None)
         .context("fitting the CUSUM comparator")?;
     let data = load_tracks(&args.data)?;
     let (rows, alarms) = score_cusum(&comparator, &data);

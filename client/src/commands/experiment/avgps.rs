@@ -251,6 +251,7 @@ pub fn run(args: Args) -> Result<()> {
         &split.train,
         &split.validation,
         spoofwatch_core::geo::Projection::Wgs84Local,
+        None,
     )
     .context("fitting the CUSUM comparator")?;
     let cusum_on = |tracks: &[Track]| {
