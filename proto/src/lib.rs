@@ -1,8 +1,10 @@
-//! Generated gRPC types and services of the Spoofwatch API. Modules mirror the proto packages
-//! because generated code refers across them with relative paths.
+//! Generated gRPC types and services of the Spoofwatch API, plus [`wire`]: the one hand-written layer
+//! between them and the core's types (conversions, resource names, limits). The generated modules
+//! mirror the proto packages because generated code refers across them with relative paths.
 
-#![allow(clippy::all, missing_docs, rust_2018_idioms)]
+pub mod wire;
 
+#[allow(clippy::all, missing_docs, rust_2018_idioms)]
 pub mod spoofwatch {
     /// `spoofwatch.v1`: detection, models, datasets, training.
     pub mod v1 {
@@ -10,6 +12,7 @@ pub mod spoofwatch {
     }
 }
 
+#[allow(clippy::all, missing_docs, rust_2018_idioms)]
 pub mod google {
     /// `google.longrunning`: the Operations service used for jobs.
     pub mod longrunning {

@@ -1,9 +1,27 @@
-//! Server configuration: flags with `SPOOFWATCH_*` environment fallbacks, defaults that work on a
-//! fresh machine.
+//! Server configuration: flags with `SPOOFWATCH_*` environment fallbacks, and [`Config::default`]
+//! with the same defaults but no environment. Each default value is written once, in [`defaults`].
+//! This module only describes configuration; it must not act on it.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
+
+/// The default of every setting, shared by clap's `default_value_t` and [`Config::default`].
+pub mod defaults {
+    use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4};
+
+    use spoofwatch_proto::wire::limits;
+
+    pub const LISTEN: SocketAddr = SocketAddr::V4(SocketAddrV4::new(Ipv4Addr::LOCALHOST, 50051));
+    pub const DATABASE: &str = "spoofwatch.db";
+    pub const MAX_SESSIONS: usize = 100_000;
+    pub const SESSION_IDLE_SECS: u64 = 900;
+    pub const MAX_BATCH_SAMPLES: usize = limits::MAX_BATCH_SAMPLES;
+    pub const MAX_MESSAGE_BYTES: usize = limits::MAX_MESSAGE_BYTES;
+    pub const MAX_RUNNING_JOBS: usize = 1;
+    pub const MAX_PENDING_JOBS: usize = 16;
+    pub const SHUTDOWN_GRACE_SECS: u64 = 10;
+}
 
 /// Everything the server needs to start.
 #[derive(Clone, Debug, clap::Parser)]
@@ -14,47 +32,66 @@ use std::time::Duration;
 )]
 pub struct Config {
     /// Address to listen on.
-    #[arg(long, env = "SPOOFWATCH_LISTEN", default_value = "127.0.0.1:50051")]
+    #[arg(long, env = "SPOOFWATCH_LISTEN", default_value_t = defaults::LISTEN)]
     pub listen: SocketAddr,
     /// SQLite database (file path or sqlite:// URL); created and migrated on first start.
-    #[arg(long, env = "SPOOFWATCH_DATABASE", default_value = "spoofwatch.db")]
+    #[arg(long, env = "SPOOFWATCH_DATABASE", default_value = defaults::DATABASE)]
     pub database: String,
     /// Directory ImportDataset may read CSV files from (nothing outside it). Unset: imports refused.
     #[arg(long, env = "SPOOFWATCH_DATA_DIR")]
     pub data_dir: Option<PathBuf>,
     /// Most vehicle sessions held in memory.
-    #[arg(long, env = "SPOOFWATCH_MAX_SESSIONS", default_value_t = 100_000)]
+    #[arg(long, env = "SPOOFWATCH_MAX_SESSIONS", default_value_t = defaults::MAX_SESSIONS)]
     pub max_sessions: usize,
     /// Seconds after which a session without a stream is evicted.
-    #[arg(long, env = "SPOOFWATCH_SESSION_IDLE_SECS", default_value_t = 900)]
+    #[arg(long, env = "SPOOFWATCH_SESSION_IDLE_SECS", default_value_t = defaults::SESSION_IDLE_SECS)]
     pub session_idle_secs: u64,
     /// Most samples in one batch.
-    #[arg(long, env = "SPOOFWATCH_MAX_BATCH_SAMPLES", default_value_t = 1000)]
+    #[arg(long, env = "SPOOFWATCH_MAX_BATCH_SAMPLES", default_value_t = defaults::MAX_BATCH_SAMPLES)]
     pub max_batch_samples: usize,
     /// Largest gRPC message accepted (bytes).
-    #[arg(long, env = "SPOOFWATCH_MAX_MESSAGE_BYTES", default_value_t = 4 << 20)]
+    #[arg(long, env = "SPOOFWATCH_MAX_MESSAGE_BYTES", default_value_t = defaults::MAX_MESSAGE_BYTES)]
     pub max_message_bytes: usize,
     /// Training/evaluation jobs running at once (the rest queue).
-    #[arg(long, env = "SPOOFWATCH_MAX_RUNNING_JOBS", default_value_t = 1)]
+    #[arg(long, env = "SPOOFWATCH_MAX_RUNNING_JOBS", default_value_t = defaults::MAX_RUNNING_JOBS)]
     pub max_running_jobs: usize,
     /// Jobs queued or running at once; more are refused.
-    #[arg(long, env = "SPOOFWATCH_MAX_PENDING_JOBS", default_value_t = 16)]
+    #[arg(long, env = "SPOOFWATCH_MAX_PENDING_JOBS", default_value_t = defaults::MAX_PENDING_JOBS)]
     pub max_pending_jobs: usize,
     /// Seconds the shutdown waits for streams and jobs before closing anyway.
-    #[arg(long, env = "SPOOFWATCH_SHUTDOWN_GRACE_SECS", default_value_t = 10)]
+    #[arg(long, env = "SPOOFWATCH_SHUTDOWN_GRACE_SECS", default_value_t = defaults::SHUTDOWN_GRACE_SECS)]
     pub shutdown_grace_secs: u64,
     /// Require `authorization: Bearer <token>` on every call except health checks.
     #[arg(long, env = "SPOOFWATCH_AUTH_TOKEN", hide_env_values = true)]
     pub auth_token: Option<String>,
 }
 
+/// The defaults, without reading the environment (no data directory, no auth token).
+impl Default for Config {
+    fn default() -> Self {
+        Self {
+            listen: defaults::LISTEN,
+            database: defaults::DATABASE.to_string(),
+            data_dir: None,
+            max_sessions: defaults::MAX_SESSIONS,
+            session_idle_secs: defaults::SESSION_IDLE_SECS,
+            max_batch_samples: defaults::MAX_BATCH_SAMPLES,
+            max_message_bytes: defaults::MAX_MESSAGE_BYTES,
+            max_running_jobs: defaults::MAX_RUNNING_JOBS,
+            max_pending_jobs: defaults::MAX_PENDING_JOBS,
+            shutdown_grace_secs: defaults::SHUTDOWN_GRACE_SECS,
+            auth_token: None,
+        }
+    }
+}
+
 impl Config {
-    /// Defaults for a database path (tests, the demo).
+    /// The defaults with this database (tests, the demo).
     pub fn with_database(database: impl Into<String>) -> Self {
-        use clap::Parser;
-        let mut config = Self::parse_from(["spoofwatch-server"]);
-        config.database = database.into();
-        config
+        Self {
+            database: database.into(),
+            ..Self::default()
+        }
     }
 
     pub fn session_idle(&self) -> Duration {
@@ -63,5 +100,23 @@ impl Config {
 
     pub fn shutdown_grace(&self) -> Duration {
         Duration::from_secs(self.shutdown_grace_secs)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use super::*;
+
+    #[test]
+    fn default_matches_the_command_line_defaults() {
+        let parsed = Config::try_parse_from(["spoofwatch-server"]).expect("no flags");
+        let default = Config::default();
+        // Environment fallbacks may set these on a developer machine; the rest must agree.
+        if std::env::vars().all(|(k, _)| !k.starts_with("SPOOFWATCH_")) {
+            assert_eq!(format!("{parsed:?}"), format!("{default:?}"));
+        }
+        assert_eq!(default.listen.to_string(), "127.0.0.1:50051");
     }
 }

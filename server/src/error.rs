@@ -1,10 +1,18 @@
-//! Deliberate mapping of every failure to a gRPC status, with google.rpc error details.
-//! Internal errors are logged and answered with a generic INTERNAL message (no leaked internals).
+//! The one deliberate mapping of every subsystem's error to a gRPC status, with google.rpc error
+//! details: status builders, then one `impl From<XError> for Status` per subsystem. Internal errors
+//! are logged and answered with a generic INTERNAL message (no leaked internals). Nothing else in
+//! the server chooses codes for subsystem errors; this module must not hold any logic.
 
 use prost::Message;
+use spoofwatch_core::pipeline::TrainDetectorError;
+use spoofwatch_core::train::TrainError;
 use tonic::{Code, Status};
 use tonic_types::{ErrorDetails, FieldViolation, StatusExt};
 
+use crate::datasets::DatasetError;
+use crate::detection::SessionError;
+use crate::jobs::{JobError, JobFailure};
+use crate::models::RegistryError;
 use crate::store::StoreError;
 
 /// INVALID_ARGUMENT with one BadRequest field violation per problem.
@@ -70,6 +78,16 @@ pub fn internal(context: &str, error: &dyn std::fmt::Display) -> Status {
     Status::internal(format!("internal error while {context}"))
 }
 
+/// INVALID_ARGUMENT for a streamed upload whose first message is not its header.
+pub fn header_first() -> Status {
+    invalid_field("header", "the first message must be a header")
+}
+
+/// INVALID_ARGUMENT for a streamed upload with a second header.
+pub fn header_not_first() -> Status {
+    invalid_field("header", "only the first message may be a header")
+}
+
 /// A tonic status as the google.rpc.Status message (for ItemError).
 pub fn to_rpc_status(status: &Status) -> tonic_types::Status {
     tonic_types::Status::decode(status.details()).unwrap_or_else(|_| tonic_types::Status {
@@ -98,6 +116,101 @@ impl From<StoreError> for Status {
             StoreError::Database(_) | StoreError::Migration(_) => {
                 internal("accessing the database", &error)
             }
+        }
+    }
+}
+
+impl From<RegistryError> for Status {
+    fn from(error: RegistryError) -> Self {
+        match error {
+            RegistryError::NotFound(name) => not_found("model", &name.to_string()),
+            RegistryError::NoActiveModel => {
+                failed_precondition("NO_ACTIVE_MODEL", error.to_string())
+            }
+            RegistryError::InvalidArtifact(_) => invalid_field("chunk", error.to_string()),
+            RegistryError::Internal { context, .. } => internal(context, &error),
+            RegistryError::Store(store) => store.into(),
+        }
+    }
+}
+
+impl From<DatasetError> for Status {
+    fn from(error: DatasetError) -> Self {
+        match error {
+            DatasetError::NotFound(name) => not_found("dataset", &name.to_string()),
+            DatasetError::Invalid { field, reason } => invalid_field(field, reason),
+            DatasetError::NoDataDir => failed_precondition("NO_DATA_DIR", error.to_string()),
+            DatasetError::PathDenied { .. } => Status::permission_denied(error.to_string()),
+            DatasetError::FileNotFound(path) => not_found("file", &path),
+            DatasetError::Internal { context, .. } => internal(context, &error),
+            DatasetError::Store(store) => store.into(),
+        }
+    }
+}
+
+impl From<SessionError> for Status {
+    fn from(error: SessionError) -> Self {
+        match error {
+            SessionError::InvalidBatch(violations) => invalid_argument(violations),
+            SessionError::NotFound(vehicle) => not_found("session", &vehicle),
+            SessionError::Full(_) => resource_exhausted(error.to_string()),
+            SessionError::Model(model) => model.into(),
+        }
+    }
+}
+
+impl From<JobError> for Status {
+    fn from(error: JobError) -> Self {
+        match error {
+            JobError::DatasetNotFound {
+                ref field,
+                ref name,
+            } => {
+                let status = not_found("dataset", &name.to_string());
+                Status::with_details(
+                    status.code(),
+                    format!("{field}: {}", status.message()),
+                    status.details().to_vec().into(),
+                )
+            }
+            JobError::QueueFull(_) => resource_exhausted(error.to_string()),
+            JobError::NotFound(name) => not_found("operation", &name.to_string()),
+            JobError::Model(model) => model.into(),
+            JobError::Dataset(dataset) => dataset.into(),
+            JobError::Store(store) => store.into(),
+        }
+    }
+}
+
+/// A failed job's operation error: the code of its real cause (missing data NOT_FOUND, bad data
+/// INVALID_ARGUMENT, no operating point FAILED_PRECONDITION, store faults INTERNAL...).
+impl From<JobFailure> for Status {
+    fn from(failure: JobFailure) -> Self {
+        match failure {
+            JobFailure::Cancelled => Status::cancelled("cancelled"),
+            JobFailure::Dataset(error) => error.into(),
+            JobFailure::Model(error) => error.into(),
+            JobFailure::Store(error) => error.into(),
+            JobFailure::Training(error) => training_status(error),
+            JobFailure::Worker { context, .. } => internal(context, &failure),
+        }
+    }
+}
+
+/// Training's own failures: the data's fault, a missing precondition, or ours.
+fn training_status(error: TrainDetectorError) -> Status {
+    match &error {
+        TrainDetectorError::NoOperatingPoint => {
+            failed_precondition("NO_OPERATING_POINT", error.to_string())
+        }
+        TrainDetectorError::Train(TrainError::Diverged { .. }) => {
+            failed_precondition("TRAINING_DIVERGED", error.to_string())
+        }
+        TrainDetectorError::Train(TrainError::Model(_)) | TrainDetectorError::NoCandidates => {
+            internal("training a model", &error)
+        }
+        TrainDetectorError::Pipeline(_) | TrainDetectorError::Train(_) => {
+            invalid_field("datasets", error.to_string())
         }
     }
 }
@@ -143,5 +256,26 @@ mod tests {
             Status::from(StoreError::InvalidPageToken).code(),
             Code::InvalidArgument
         );
+    }
+
+    #[test]
+    fn job_failures_keep_the_code_of_their_cause() {
+        use spoofwatch_proto::wire::DatasetName;
+        let code = |failure: JobFailure| Status::from(failure).code();
+        let missing = DatasetError::NotFound(DatasetName::from_id("d"));
+        assert_eq!(code(JobFailure::Dataset(missing)), Code::NotFound);
+        let no_op = JobFailure::Training(TrainDetectorError::NoOperatingPoint);
+        assert_eq!(code(no_op), Code::FailedPrecondition);
+        let empty = TrainDetectorError::Train(TrainError::EmptySplit { split: "training" });
+        assert_eq!(code(JobFailure::Training(empty)), Code::InvalidArgument);
+        let store = StoreError::InvalidState {
+            kind: "job",
+            id: "j".into(),
+            action: "finish",
+            state: "succeeded",
+        };
+        assert_eq!(code(JobFailure::Store(store)), Code::FailedPrecondition);
+        let database = StoreError::Database(sqlx::Error::PoolClosed);
+        assert_eq!(code(JobFailure::Store(database)), Code::Internal);
     }
 }

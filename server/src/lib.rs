@@ -2,15 +2,22 @@
 //! training/evaluation jobs as long-running operations, health and reflection.
 //!
 //! [`serve`] is the whole server; the `spoofwatch-server` binary only parses the configuration, sets
-//! up logging, binds and waits for a signal.
+//! up logging, binds and waits for a signal; [`inprocess`] runs it inside another process.
+//!
+//! Layout, one home per concept: `models` (registry + ModelService), `datasets` (catalog +
+//! DatasetService), `detection` (sessions + DetectionService), `jobs` (service → manager → runner),
+//! `store` (the only SQL), `error` (the one error → status mapping), `edge` (request decoding shared
+//! by the services), `identity` (ids and digests). Wire conversions live in `spoofwatch_proto::wire`.
 
 pub mod config;
-mod convert;
 mod datasets;
 mod detection;
+mod edge;
 mod error;
+mod identity;
+pub mod inprocess;
 mod jobs;
-pub mod registry;
+pub mod models;
 pub mod store;
 
 use std::future::Future;
@@ -31,10 +38,10 @@ use tonic::{Request, Status};
 
 pub use config::Config;
 
-use crate::datasets::DatasetApi;
+use crate::datasets::{Catalog, DatasetApi};
 use crate::detection::{DetectionApi, SessionLimits, SessionManager};
-use crate::jobs::{JobManager, JobSettings, OperationsApi, TrainingApi};
-use crate::registry::{ModelApi, Registry};
+use crate::jobs::{JobManager, JobSettings, OperationsApi, Runner, TrainingApi};
+use crate::models::{ModelApi, Registry, RegistryError};
 use crate::store::{Store, StoreError};
 
 /// Why the server could not start or run.
@@ -43,7 +50,7 @@ pub enum ServerError {
     #[error("opening the database: {0}")]
     Store(#[from] StoreError),
     #[error("preparing the model registry: {0}")]
-    Registry(String),
+    Registry(#[from] RegistryError),
     #[error("reflection service: {0}")]
     Reflection(#[from] tonic_reflection::server::Error),
     #[error("serving: {0}")]
@@ -93,10 +100,8 @@ pub async fn serve(
     }
     store.close_open_alarms(store::now_unix_ms()).await?;
     let registry = Arc::new(Registry::new(store.clone()));
-    registry
-        .ensure_default_model()
-        .await
-        .map_err(|s| ServerError::Registry(s.message().to_string()))?;
+    registry.ensure_default_model().await?;
+    let catalog = Catalog::new(store.clone(), config.data_dir.clone());
 
     let draining = CancellationToken::new();
     let sessions = Arc::new(SessionManager::new(
@@ -109,8 +114,11 @@ pub async fn serve(
         },
     ));
     let jobs = JobManager::new(
-        store.clone(),
-        Arc::clone(&registry),
+        Runner {
+            store: store.clone(),
+            registry: Arc::clone(&registry),
+            catalog: catalog.clone(),
+        },
         JobSettings {
             max_running: config.max_running_jobs,
             max_pending: config.max_pending_jobs,
@@ -118,7 +126,6 @@ pub async fn serve(
     );
     let job_services = jobs::Jobs {
         manager: Arc::clone(&jobs),
-        store: store.clone(),
         registry: Arc::clone(&registry),
     };
 
@@ -148,13 +155,12 @@ pub async fn serve(
         registry: Arc::clone(&registry),
     })
     .max_decoding_message_size(limit);
-    let datasets = DatasetServiceServer::new(DatasetApi {
-        store: store.clone(),
-        data_dir: config.data_dir.clone(),
+    let datasets =
+        DatasetServiceServer::new(DatasetApi { catalog }).max_decoding_message_size(limit);
+    let training = TrainingServiceServer::new(TrainingApi {
+        jobs: job_services.clone(),
     })
     .max_decoding_message_size(limit);
-    let training = TrainingServiceServer::new(TrainingApi::new(job_services.clone()))
-        .max_decoding_message_size(limit);
     let operations = OperationsServer::new(OperationsApi { jobs: job_services })
         .max_decoding_message_size(limit);
 

@@ -1,8 +1,10 @@
-//! Detection: per-vehicle in-memory sessions and the DetectionService RPCs.
+//! Detection: per-vehicle in-memory sessions ([`sessions`], the logic), request validation declared
+//! once ([`validate`]) and the DetectionService RPCs ([`service`], the edge). Models come from
+//! `models`; alarm persistence goes through `store`.
 
 mod service;
 mod sessions;
 mod validate;
 
 pub use service::DetectionApi;
-pub use sessions::{SessionLimits, SessionManager};
+pub use sessions::{SessionError, SessionLimits, SessionManager};

@@ -1,19 +1,27 @@
-//! The DetectionService RPCs. Each StreamDetect call runs in its own task that reads the inbound
-//! stream and writes replies into a small bounded channel: a slow client fills only its own
-//! channel, which pauses only its own task.
+//! The DetectionService RPCs: the edge between the wire and the [`SessionManager`]. Validates
+//! vehicle ids and paging, converts wire samples to core samples and decisions back to wire
+//! detections, and maps [`super::SessionError`] once (through `crate::error`); it must not hold
+//! session state. Each StreamDetect call runs in its own task that reads the inbound stream and
+//! writes replies into a small bounded channel: a slow client fills only its own channel, which
+//! pauses only its own task.
 
 use std::sync::Arc;
 
+use spoofwatch_core::sample::Sample;
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::detection_service_server::DetectionService;
 use spoofwatch_proto::v1::stream_detect_request::Kind as RequestKind;
 use spoofwatch_proto::v1::stream_detect_response::Kind as ResponseKind;
+use spoofwatch_proto::wire::convert::{detection_to_proto, sample_from_proto, timestamp_from_ms};
+use spoofwatch_proto::wire::limits::{DEFAULT_SESSION_PAGE_SIZE, MAX_SESSION_PAGE_SIZE};
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
-use super::sessions::SessionManager;
+use super::sessions::{Decisions, SessionManager, SessionSummary};
+use super::validate::vehicle_id_violation;
+use crate::edge::optional_model_name;
 use crate::error::{invalid_field, shutting_down, to_rpc_status};
 
 /// Replies buffered per stream before the stream's reader waits for the client.
@@ -31,6 +39,44 @@ pub struct DetectionApi {
 
 fn reply(kind: ResponseKind) -> Reply {
     Ok(v1::StreamDetectResponse { kind: Some(kind) })
+}
+
+/// A vehicle id that passed [`vehicle_id_violation`].
+fn vehicle_id<'a>(field: &str, id: &'a str) -> Result<&'a str, Status> {
+    match vehicle_id_violation(id) {
+        Some(problem) => Err(invalid_field(field, problem)),
+        None => Ok(id),
+    }
+}
+
+/// Wire samples as core samples (validated later, against the session).
+fn samples_from_proto(samples: &[v1::Sample]) -> Vec<Sample> {
+    samples.iter().map(sample_from_proto).collect()
+}
+
+/// A processed batch on the wire: each decision paired with its sample's time.
+fn detections_to_proto(samples: &[Sample], batch: &Decisions) -> Vec<v1::Detection> {
+    let model = batch.model.to_string();
+    samples
+        .iter()
+        .zip(&batch.decisions)
+        .map(|(s, d)| detection_to_proto(s.timestamp_s, d, &model))
+        .collect()
+}
+
+fn session_to_proto(s: SessionSummary) -> v1::Session {
+    v1::Session {
+        vehicle_id: s.vehicle_id,
+        model: s.model.to_string(),
+        connected: s.connected,
+        samples: s.samples,
+        trajectories: s.trajectories,
+        alarm_active: s.alarm_active,
+        alarms_raised: s.alarms_raised,
+        last_seq: s.last_seq,
+        last_timestamp_s: s.last_timestamp_s.unwrap_or(0.0),
+        last_activity: Some(timestamp_from_ms(s.last_activity_ms)),
+    }
 }
 
 fn item_error(seq: u64, status: &Status) -> Reply {
@@ -70,16 +116,33 @@ async fn run_stream(
             return;
         }
     };
-    let attachment = match sessions.attach(&start).await {
+    let attached = async {
+        let vehicle = vehicle_id("start.vehicle_id", &start.vehicle_id)?;
+        let model = optional_model_name("start.model", &start.model)?;
+        Ok::<_, Status>(
+            sessions
+                .attach(vehicle, model.as_ref(), start.reset)
+                .await?,
+        )
+    };
+    let attachment = match attached.await {
         Ok(a) => a,
         Err(status) => {
             let _ = tx.send(Err(status)).await;
             return;
         }
     };
-    tracing::debug!(vehicle = %start.vehicle_id, resumed = attachment.accepted.resumed, "stream attached");
+    let accepted = &attachment.accepted;
+    let accepted = v1::SessionAccepted {
+        vehicle_id: accepted.vehicle_id.clone(),
+        model: accepted.model.to_string(),
+        resumed: accepted.resumed,
+        samples_seen: accepted.samples_seen,
+        last_seq: accepted.last_seq,
+    };
+    tracing::debug!(vehicle = %start.vehicle_id, resumed = accepted.resumed, "stream attached");
     if tx
-        .send(reply(ResponseKind::Accepted(attachment.accepted.clone())))
+        .send(reply(ResponseKind::Accepted(accepted)))
         .await
         .is_ok()
     {
@@ -101,16 +164,19 @@ async fn run_stream(
             let outcome = match message {
                 Ok(Some(v1::StreamDetectRequest {
                     kind: Some(RequestKind::Batch(batch)),
-                })) => match sessions
-                    .process(&attachment.slot, batch.seq, &batch.samples, "batch.samples")
-                    .await
-                {
-                    Ok(detections) => reply(ResponseKind::Detections(v1::DetectionBatch {
-                        seq: batch.seq,
-                        detections,
-                    })),
-                    Err(status) => item_error(batch.seq, &status),
-                },
+                })) => {
+                    let samples = samples_from_proto(&batch.samples);
+                    match sessions
+                        .process(&attachment.slot, batch.seq, &samples, "batch.samples")
+                        .await
+                    {
+                        Ok(decisions) => reply(ResponseKind::Detections(v1::DetectionBatch {
+                            seq: batch.seq,
+                            detections: detections_to_proto(&samples, &decisions),
+                        })),
+                        Err(error) => item_error(batch.seq, &error.into()),
+                    }
+                }
                 Ok(Some(v1::StreamDetectRequest {
                     kind: Some(RequestKind::Start(_)),
                 })) => item_error(
@@ -165,8 +231,22 @@ impl DetectionService for DetectionApi {
         if self.shutdown.is_cancelled() {
             return Err(shutting_down());
         }
-        let response = self.sessions.detect_unary(request.get_ref()).await?;
-        Ok(Response::new(response))
+        let r = request.into_inner();
+        let vehicle = if r.vehicle_id.is_empty() {
+            None
+        } else {
+            Some(vehicle_id("vehicle_id", &r.vehicle_id)?)
+        };
+        let model = optional_model_name("model", &r.model)?;
+        let samples = samples_from_proto(&r.samples);
+        let decisions = self
+            .sessions
+            .detect_unary(vehicle, model.as_ref(), &samples, "samples")
+            .await?;
+        Ok(Response::new(v1::DetectResponse {
+            detections: detections_to_proto(&samples, &decisions),
+            model: decisions.model.to_string(),
+        }))
     }
 
     async fn list_sessions(
@@ -174,28 +254,34 @@ impl DetectionService for DetectionApi {
         request: Request<v1::ListSessionsRequest>,
     ) -> Result<Response<v1::ListSessionsResponse>, Status> {
         let r = request.into_inner();
-        Ok(Response::new(
-            self.sessions.list(r.page_size, &r.page_token).await?,
-        ))
+        let size = match usize::try_from(r.page_size) {
+            Err(_) => return Err(invalid_field("page_size", "must not be negative")),
+            Ok(0) => DEFAULT_SESSION_PAGE_SIZE,
+            Ok(n) => n.min(MAX_SESSION_PAGE_SIZE),
+        };
+        let (sessions, next_page_token) = self.sessions.list(size, &r.page_token).await;
+        Ok(Response::new(v1::ListSessionsResponse {
+            sessions: sessions.into_iter().map(session_to_proto).collect(),
+            next_page_token,
+        }))
     }
 
     async fn get_session(
         &self,
         request: Request<v1::GetSessionRequest>,
     ) -> Result<Response<v1::Session>, Status> {
-        Ok(Response::new(
-            self.sessions.get(&request.into_inner().vehicle_id).await?,
-        ))
+        let session = self.sessions.get(&request.into_inner().vehicle_id).await?;
+        Ok(Response::new(session_to_proto(session)))
     }
 
     async fn reset_session(
         &self,
         request: Request<v1::ResetSessionRequest>,
     ) -> Result<Response<v1::Session>, Status> {
-        Ok(Response::new(
-            self.sessions
-                .reset(&request.into_inner().vehicle_id)
-                .await?,
-        ))
+        let session = self
+            .sessions
+            .reset(&request.into_inner().vehicle_id)
+            .await?;
+        Ok(Response::new(session_to_proto(session)))
     }
 }

@@ -1,21 +1,70 @@
 //! Per-vehicle sessions: a detector each, ownership by at most one stream (a newer stream takes
-//! over), a bounded count, idle eviction, and alarm onsets/ends persisted to SQLite.
+//! over), a bounded count, idle eviction, and alarm onsets/ends persisted through the store.
+//! Speaks core types ([`Sample`], [`Decision`]) and [`SessionError`]; it must not know about gRPC
+//! messages or statuses (the edge is `detection::service`).
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use spoofwatch_core::detector::Detector;
-use spoofwatch_proto::v1;
+use spoofwatch_core::detector::{Decision, Detector};
+use spoofwatch_core::sample::Sample;
+use spoofwatch_proto::wire::ModelName;
 use tokio_util::sync::CancellationToken;
-use tonic::Status;
 
-use super::validate::{validate_batch, vehicle_id_violation};
-use crate::convert::{detection_to_proto, timestamp_from_ms};
-use crate::error::{invalid_argument, invalid_field, not_found, resource_exhausted};
-use crate::registry::{LoadedModel, Registry};
+use super::validate::validate_batch;
+use crate::models::{LoadedModel, Registry, RegistryError};
 use crate::store::{Store, now_unix_ms};
+
+/// Everything a session operation can fail with.
+#[derive(Debug, thiserror::Error)]
+pub enum SessionError {
+    /// The batch is invalid; one `(field, problem)` per violation. Nothing was applied.
+    #[error("invalid batch")]
+    InvalidBatch(Vec<(String, String)>),
+    /// No session for this vehicle.
+    #[error("session {0:?} not found")]
+    NotFound(String),
+    /// The session table is full.
+    #[error("the server holds its maximum of {0} vehicle sessions")]
+    Full(usize),
+    /// The requested model cannot be served.
+    #[error(transparent)]
+    Model(#[from] RegistryError),
+}
+
+/// What a stream learns when it attaches.
+#[derive(Clone, Debug)]
+pub struct Accepted {
+    pub vehicle_id: String,
+    pub model: ModelName,
+    pub resumed: bool,
+    pub samples_seen: u64,
+    pub last_seq: u64,
+}
+
+/// A processed batch: one decision per sample, in order, by `model`.
+#[derive(Clone, Debug)]
+pub struct Decisions {
+    pub model: ModelName,
+    pub decisions: Vec<Decision>,
+}
+
+/// A session as reported by ListSessions/GetSession.
+#[derive(Clone, Debug)]
+pub struct SessionSummary {
+    pub vehicle_id: String,
+    pub model: ModelName,
+    pub connected: bool,
+    pub samples: u64,
+    pub trajectories: u32,
+    pub alarm_active: bool,
+    pub alarms_raised: u64,
+    pub last_seq: u64,
+    pub last_timestamp_s: Option<f64>,
+    pub last_activity_ms: i64,
+}
 
 /// Bounds on the in-memory session table.
 #[derive(Clone, Copy, Debug)]
@@ -100,7 +149,7 @@ pub struct Attachment {
     pub stream_id: u64,
     /// Cancelled when a newer stream takes the session over.
     pub evicted: CancellationToken,
-    pub accepted: v1::SessionAccepted,
+    pub accepted: Accepted,
 }
 
 /// The session table.
@@ -138,16 +187,13 @@ impl SessionManager {
         &self,
         vehicle_id: &str,
         model: &LoadedModel,
-    ) -> Result<(Arc<SessionSlot>, bool), Status> {
+    ) -> Result<(Arc<SessionSlot>, bool), SessionError> {
         let mut slots = self.slots();
         if let Some(slot) = slots.get(vehicle_id) {
             return Ok((Arc::clone(slot), true));
         }
         if slots.len() >= self.limits.max_sessions {
-            return Err(resource_exhausted(format!(
-                "the server holds its maximum of {} vehicle sessions",
-                self.limits.max_sessions
-            )));
+            return Err(SessionError::Full(self.limits.max_sessions));
         }
         let slot = Arc::new(SessionSlot {
             vehicle_id: vehicle_id.to_string(),
@@ -160,17 +206,20 @@ impl SessionManager {
     }
 
     /// Attaches a stream to a vehicle's session (creating or resuming it); an older stream on the same
-    /// session is told to end (ABORTED).
-    pub async fn attach(&self, start: &v1::SessionStart) -> Result<Attachment, Status> {
-        if let Some(problem) = vehicle_id_violation(&start.vehicle_id) {
-            return Err(invalid_field("start.vehicle_id", problem));
-        }
-        let existing = self.lookup(&start.vehicle_id);
-        let model = match (&existing, start.model.is_empty()) {
-            (Some(slot), true) => slot.state.lock().await.model.clone(),
-            _ => self.registry.resolve(&start.model).await?,
+    /// session is told to end. `vehicle_id` must be valid (checked at the edge); `model` `None`
+    /// keeps the session's model (or serves the active one for a new session).
+    pub async fn attach(
+        &self,
+        vehicle_id: &str,
+        model: Option<&ModelName>,
+        reset: bool,
+    ) -> Result<Attachment, SessionError> {
+        let existing = self.lookup(vehicle_id);
+        let model = match (&existing, model) {
+            (Some(slot), None) => slot.state.lock().await.model.clone(),
+            (_, requested) => self.registry.resolve(requested).await?,
         };
-        let (slot, existed) = self.slot_for(&start.vehicle_id, &model)?;
+        let (slot, existed) = self.slot_for(vehicle_id, &model)?;
         let evicted = CancellationToken::new();
         let stream_id = self.next_stream_id.fetch_add(1, Ordering::Relaxed);
         if let Ok(mut owner) = slot.owner.lock()
@@ -180,18 +229,18 @@ impl SessionManager {
             })
         {
             previous.evicted.cancel();
-            tracing::info!(vehicle = %start.vehicle_id, "a newer stream took the session over");
+            tracing::info!(vehicle = %vehicle_id, "a newer stream took the session over");
         }
         slot.touch();
         let mut state = slot.state.lock().await;
-        let resumed = existed && !start.reset && state.model.id == model.id;
+        let resumed = existed && !reset && state.model.name == model.name;
         if !resumed {
             self.close_alarm(&mut state).await;
             *state = SessionState::new(model);
         }
-        let accepted = v1::SessionAccepted {
-            vehicle_id: start.vehicle_id.clone(),
-            model: state.model.name(),
+        let accepted = Accepted {
+            vehicle_id: vehicle_id.to_string(),
+            model: state.model.name.clone(),
             resumed,
             samples_seen: state.samples,
             last_seq: state.last_seq,
@@ -221,20 +270,19 @@ impl SessionManager {
         &self,
         slot: &SessionSlot,
         seq: u64,
-        samples: &[v1::Sample],
+        samples: &[Sample],
         field: &str,
-    ) -> Result<Vec<v1::Detection>, Status> {
+    ) -> Result<Decisions, SessionError> {
         let mut state = slot.state.lock().await;
-        let batch = validate_batch(
+        validate_batch(
             samples,
             state.last_timestamp_s,
             self.limits.max_batch_samples,
             field,
         )
-        .map_err(invalid_argument)?;
-        let model_name = state.model.name();
-        let mut detections = Vec::with_capacity(batch.len());
-        for sample in &batch {
+        .map_err(SessionError::InvalidBatch)?;
+        let mut decisions = Vec::with_capacity(samples.len());
+        for sample in samples {
             let decision = state.detector.step(sample, false);
             state.samples += 1;
             state.trajectories = decision.evidence.trajectory + 1;
@@ -263,15 +311,14 @@ impl SessionManager {
                 self.close_alarm(&mut state).await;
             }
             state.alarm_active = decision.alarm;
-            detections.push(detection_to_proto(
-                sample.timestamp_s,
-                &decision,
-                &model_name,
-            ));
+            decisions.push(decision);
         }
         state.last_seq = seq;
         slot.touch();
-        Ok(detections)
+        Ok(Decisions {
+            model: state.model.name.clone(),
+            decisions,
+        })
     }
 
     /// Records an alarm onset. A failed write is logged and retried at the alarm's end (as a closed
@@ -279,7 +326,7 @@ impl SessionManager {
     async fn open_alarm(&self, state: &mut SessionState, vehicle: &str, timestamp_s: f64, p: f64) {
         match self
             .store
-            .open_alarm(vehicle, &state.model.id, timestamp_s, p)
+            .open_alarm(vehicle, state.model.name.id(), timestamp_s, p)
             .await
         {
             Ok(id) => {
@@ -310,90 +357,65 @@ impl SessionManager {
     }
 
     /// Runs a batch for a vehicle without a stream (creating the session if needed), or on a
-    /// throw-away detector when `vehicle_id` is empty.
+    /// throw-away detector when `vehicle_id` is `None`. `vehicle_id` must be valid (checked at the
+    /// edge); `field` names the samples in violations.
     pub async fn detect_unary(
         &self,
-        request: &v1::DetectRequest,
-    ) -> Result<v1::DetectResponse, Status> {
-        if request.vehicle_id.is_empty() {
-            let model = self.registry.resolve(&request.model).await?;
-            let batch = validate_batch(
-                &request.samples,
-                None,
-                self.limits.max_batch_samples,
-                "samples",
-            )
-            .map_err(invalid_argument)?;
+        vehicle_id: Option<&str>,
+        model: Option<&ModelName>,
+        samples: &[Sample],
+        field: &str,
+    ) -> Result<Decisions, SessionError> {
+        let Some(vehicle_id) = vehicle_id else {
+            let model = self.registry.resolve(model).await?;
+            validate_batch(samples, None, self.limits.max_batch_samples, field)
+                .map_err(SessionError::InvalidBatch)?;
             let mut detector = Detector::new(Arc::clone(&model.artifact));
-            let name = model.name();
-            let detections = batch
-                .iter()
-                .map(|s| detection_to_proto(s.timestamp_s, &detector.step(s, false), &name))
-                .collect();
-            return Ok(v1::DetectResponse {
-                detections,
-                model: name,
+            return Ok(Decisions {
+                model: model.name,
+                decisions: samples.iter().map(|s| detector.step(s, false)).collect(),
             });
-        }
-        if let Some(problem) = vehicle_id_violation(&request.vehicle_id) {
-            return Err(invalid_field("vehicle_id", problem));
-        }
-        let slot = match self.lookup(&request.vehicle_id) {
-            Some(slot) if request.model.is_empty() => slot,
-            Some(slot) => {
-                let model = self.registry.resolve(&request.model).await?;
+        };
+        let slot = match (self.lookup(vehicle_id), model) {
+            (Some(slot), None) => slot,
+            (Some(slot), Some(requested)) => {
+                let model = self.registry.resolve(Some(requested)).await?;
                 let mut state = slot.state.lock().await;
-                if state.model.id != model.id {
+                if state.model.name != model.name {
                     self.close_alarm(&mut state).await;
                     *state = SessionState::new(model);
                 }
                 drop(state);
                 slot
             }
-            None => {
-                let model = self.registry.resolve(&request.model).await?;
-                self.slot_for(&request.vehicle_id, &model)?.0
+            (None, requested) => {
+                let model = self.registry.resolve(requested).await?;
+                self.slot_for(vehicle_id, &model)?.0
             }
         };
         let last_seq = slot.state.lock().await.last_seq;
-        let detections = self
-            .process(&slot, last_seq, &request.samples, "samples")
-            .await?;
-        let model = slot.state.lock().await.model.name();
-        Ok(v1::DetectResponse { detections, model })
+        self.process(&slot, last_seq, samples, field).await
     }
 
-    async fn describe(&self, slot: &SessionSlot) -> v1::Session {
+    async fn describe(&self, slot: &SessionSlot) -> SessionSummary {
         let state = slot.state.lock().await;
-        v1::Session {
+        SessionSummary {
             vehicle_id: slot.vehicle_id.clone(),
-            model: state.model.name(),
+            model: state.model.name.clone(),
             connected: slot.connected(),
             samples: state.samples,
             trajectories: state.trajectories,
             alarm_active: state.alarm_active,
             alarms_raised: state.alarms_raised,
             last_seq: state.last_seq,
-            last_timestamp_s: state.last_timestamp_s.unwrap_or(0.0),
-            last_activity: Some(timestamp_from_ms(
-                slot.last_activity_ms.load(Ordering::Relaxed),
-            )),
+            last_timestamp_s: state.last_timestamp_s,
+            last_activity_ms: slot.last_activity_ms.load(Ordering::Relaxed),
         }
     }
 
-    /// Sessions ordered by vehicle id; the page token is the last vehicle id returned.
-    pub async fn list(
-        &self,
-        page_size: i32,
-        page_token: &str,
-    ) -> Result<v1::ListSessionsResponse, Status> {
-        if page_size < 0 {
-            return Err(invalid_field("page_size", "must not be negative"));
-        }
-        let size = match page_size {
-            0 => 100,
-            n => (n as usize).min(1000),
-        };
+    /// Up to `size` sessions ordered by vehicle id, after `page_token` (the last vehicle id of the
+    /// previous page, or empty); the second value is the next page's token (empty on the last).
+    pub async fn list(&self, size: usize, page_token: &str) -> (Vec<SessionSummary>, String) {
         let mut slots: Vec<Arc<SessionSlot>> = self
             .slots()
             .values()
@@ -411,25 +433,22 @@ impl SessionManager {
             (true, Some(last)) => last.vehicle_id.clone(),
             _ => String::new(),
         };
-        Ok(v1::ListSessionsResponse {
-            sessions,
-            next_page_token,
-        })
+        (sessions, next_page_token)
     }
 
     /// One vehicle's session.
-    pub async fn get(&self, vehicle_id: &str) -> Result<v1::Session, Status> {
+    pub async fn get(&self, vehicle_id: &str) -> Result<SessionSummary, SessionError> {
         let slot = self
             .lookup(vehicle_id)
-            .ok_or_else(|| not_found("session", vehicle_id))?;
+            .ok_or_else(|| SessionError::NotFound(vehicle_id.to_string()))?;
         Ok(self.describe(&slot).await)
     }
 
     /// Forgets a session's history but keeps its model.
-    pub async fn reset(&self, vehicle_id: &str) -> Result<v1::Session, Status> {
+    pub async fn reset(&self, vehicle_id: &str) -> Result<SessionSummary, SessionError> {
         let slot = self
             .lookup(vehicle_id)
-            .ok_or_else(|| not_found("session", vehicle_id))?;
+            .ok_or_else(|| SessionError::NotFound(vehicle_id.to_string()))?;
         {
             let mut state = slot.state.lock().await;
             self.close_alarm(&mut state).await;

@@ -1,15 +1,9 @@
-//! Request validation for samples and vehicle ids: every problem becomes a field violation, and
-//! nothing is applied unless the whole batch is valid.
+//! Validation of detection input, declared once: vehicle ids (checked at the edge) and sample
+//! batches (checked by the session against its last timestamp). Every problem becomes a field
+//! violation, and nothing is applied unless the whole batch is valid. Owns no session state.
 
 use spoofwatch_core::sample::Sample;
-use spoofwatch_proto::v1;
-
-use crate::convert::sample_from_proto;
-
-/// Largest backward time step tolerated inside a session (SPEC §3: beyond it time "goes backwards").
-pub const BACKWARD_TOLERANCE_S: f64 = 0.5;
-/// Longest vehicle id.
-pub const MAX_VEHICLE_ID_LEN: usize = 128;
+use spoofwatch_proto::wire::limits::{BACKWARD_TOLERANCE_S, MAX_VEHICLE_ID_LEN};
 
 /// Checks a vehicle id: 1–128 characters of `[A-Za-z0-9._:-]`.
 pub fn vehicle_id_violation(id: &str) -> Option<String> {
@@ -31,11 +25,11 @@ pub fn vehicle_id_violation(id: &str) -> Option<String> {
 /// Validates a batch that follows `last_timestamp_s` (the session's last accepted sample).
 /// `prefix` names the repeated field, e.g. `batch.samples`.
 pub fn validate_batch(
-    samples: &[v1::Sample],
+    samples: &[Sample],
     last_timestamp_s: Option<f64>,
     max_samples: usize,
     prefix: &str,
-) -> Result<Vec<Sample>, Vec<(String, String)>> {
+) -> Result<(), Vec<(String, String)>> {
     if samples.is_empty() || samples.len() > max_samples {
         return Err(vec![(
             prefix.to_string(),
@@ -47,8 +41,7 @@ pub fn validate_batch(
     }
     let mut violations = Vec::new();
     let mut previous = last_timestamp_s;
-    let converted: Vec<Sample> = samples.iter().map(sample_from_proto).collect();
-    for (i, sample) in converted.iter().enumerate() {
+    for (i, sample) in samples.iter().enumerate() {
         for v in sample.violations() {
             violations.push((format!("{prefix}[{i}].{}", v.field), v.description));
         }
@@ -67,7 +60,7 @@ pub fn validate_batch(
         }
     }
     if violations.is_empty() {
-        Ok(converted)
+        Ok(())
     } else {
         Err(violations)
     }
@@ -77,24 +70,14 @@ pub fn validate_batch(
 mod tests {
     use super::*;
 
-    fn sample(t: f64, lat: f64) -> v1::Sample {
-        v1::Sample {
-            timestamp_s: t,
-            latitude_deg: lat,
-            longitude_deg: -110.9,
-            speed_mps: 2.0,
-            heading_deg: 90.0,
-            ..v1::Sample::default()
-        }
+    fn sample(t: f64, lat: f64) -> Sample {
+        Sample::new(t, lat, -110.9, 2.0, 90.0)
     }
 
     #[test]
     fn a_good_batch_passes() {
         let batch = [sample(10.0, 32.0), sample(11.0, 32.0), sample(10.8, 32.0)];
-        assert_eq!(
-            validate_batch(&batch, Some(9.0), 10, "s").map(|v| v.len()),
-            Ok(3)
-        );
+        assert_eq!(validate_batch(&batch, Some(9.0), 10, "s"), Ok(()));
     }
 
     #[test]

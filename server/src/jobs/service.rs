@@ -1,4 +1,7 @@
-//! TrainingService and google.longrunning.Operations over the job manager.
+//! TrainingService and google.longrunning.Operations: the edge between the wire and the
+//! [`JobManager`]. Validates requests and fills the training defaults, converts job rows to
+//! operations, and maps [`super::JobError`] once (through `crate::error`); it must not run jobs nor
+//! touch the store.
 
 use std::pin::Pin;
 use std::sync::Arc;
@@ -6,23 +9,31 @@ use std::time::Duration;
 
 use prost::Message;
 use prost_types::Any;
+use spoofwatch_core::model::{Ablation, FeatureGroups};
 use spoofwatch_proto::longrunning;
 use spoofwatch_proto::longrunning::operations_server::Operations;
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::training_service_server::TrainingService;
+use spoofwatch_proto::wire::convert::{metrics_to_proto, timestamp_from_ms};
+use spoofwatch_proto::wire::limits::{MAX_OPERATION_WAIT, MAX_TRAINING_EPOCHS};
+use spoofwatch_proto::wire::{ModelName, OperationName};
 use tokio::sync::mpsc;
 use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
 
-use super::runner::{JobManager, JobResult, job_metadata};
-use crate::convert::{metrics_to_proto, strip_collection};
+use super::manager::JobManager;
+use super::records::{JobRequest, JobResult, Progress, TrainingRequest};
+use crate::edge::{dataset_names, operation_name, optional_model_name, page_request};
 use crate::error::invalid_field;
-use crate::registry::Registry;
-use crate::store::{JobFilter, JobKind, JobRow, JobState, PageRequest, Store};
+use crate::models::service::model_to_proto;
+use crate::models::{Registry, RegistryError};
+use crate::store::{EpochRow, JobFilter, JobKind, JobRow, JobState};
 
-/// Longest WaitOperation wait.
-const MAX_WAIT: Duration = Duration::from_secs(60);
+/// Epochs of a training job that asks for 0.
+const DEFAULT_MAX_EPOCHS: u32 = 30;
+/// Seed of a training job that asks for 0.
+const DEFAULT_SEED: u64 = 42;
 
 fn pack<M: Message>(type_name: &str, message: &M) -> Any {
     Any {
@@ -31,26 +42,134 @@ fn pack<M: Message>(type_name: &str, message: &M) -> Any {
     }
 }
 
+fn features_from_name(name: &str) -> Option<FeatureGroups> {
+    Some(match name {
+        "" | "all" => FeatureGroups::All,
+        "no-accumulation" => FeatureGroups::NoAccumulation,
+        "no-evolution" => FeatureGroups::NoEvolution,
+        "no-evolution-no-q" => FeatureGroups::NoEvolutionNoQ,
+        "low-order-only" => FeatureGroups::LowOrderOnly,
+        "validity-only" => FeatureGroups::ValidityOnly,
+        _ => return None,
+    })
+}
+
+/// A CreateTrainingJob request, validated and with its defaults filled in.
+fn training_request(request: v1::CreateTrainingJobRequest) -> Result<TrainingRequest, Status> {
+    if request.datasets.is_empty() {
+        return Err(invalid_field(
+            "datasets",
+            "at least one dataset is required",
+        ));
+    }
+    let spec = request.spec.unwrap_or_default();
+    let max_epochs = if spec.max_epochs == 0 {
+        DEFAULT_MAX_EPOCHS
+    } else {
+        spec.max_epochs
+    };
+    if max_epochs > MAX_TRAINING_EPOCHS {
+        return Err(invalid_field(
+            "spec.max_epochs",
+            format!("must be 1 to {MAX_TRAINING_EPOCHS}"),
+        ));
+    }
+    let features = features_from_name(&spec.features).ok_or_else(|| {
+        invalid_field(
+            "spec.features",
+            "one of all, no-accumulation, no-evolution, no-evolution-no-q, low-order-only, validity-only",
+        )
+    })?;
+    Ok(TrainingRequest {
+        datasets: dataset_names("datasets", &request.datasets)?,
+        validation_datasets: dataset_names("validation_datasets", &request.validation_datasets)?,
+        seed: if spec.seed == 0 {
+            DEFAULT_SEED
+        } else {
+            spec.seed
+        },
+        max_epochs,
+        ablation: Ablation {
+            no_exchange: spec.no_exchange,
+            no_third_order: spec.no_third_order,
+            first_order_cell: spec.first_order_cell,
+            features,
+        },
+        select_kappa_rho: spec.select_kappa_rho,
+        display_name: request.display_name,
+        activate: request.activate,
+    })
+}
+
+/// The wire metadata of a job.
+fn job_metadata(row: &JobRow, epochs: &[EpochRow]) -> v1::JobMetadata {
+    // Progress is informational: an unreadable value (never written by this version) shows as none.
+    let progress: Progress = serde_json::from_value(row.metadata.clone())
+        .inspect_err(|error| tracing::warn!(%error, job = %row.id, "unreadable job progress"))
+        .unwrap_or_default();
+    let state = match row.state {
+        JobState::Queued => v1::JobState::Queued,
+        JobState::Running => v1::JobState::Running,
+        JobState::Succeeded => v1::JobState::Succeeded,
+        JobState::Failed => v1::JobState::Failed,
+        JobState::Cancelled => v1::JobState::Cancelled,
+    };
+    v1::JobMetadata {
+        name: OperationName::from_id(row.id.as_str()).to_string(),
+        kind: match row.kind {
+            JobKind::Training => "training",
+            JobKind::Evaluation => "evaluation",
+        }
+        .to_string(),
+        state: state as i32,
+        create_time: Some(timestamp_from_ms(row.created_at_ms)),
+        start_time: row.started_at_ms.map(timestamp_from_ms),
+        end_time: row.finished_at_ms.map(timestamp_from_ms),
+        epoch: progress.epoch,
+        max_epochs: progress.max_epochs,
+        train_loss: progress.train_loss,
+        val_loss: progress.val_loss,
+        val_auroc: progress.val_auroc,
+        eta_s: if row.state.is_finished() {
+            None
+        } else {
+            progress.eta_s
+        },
+        history: epochs
+            .iter()
+            .map(|e| v1::EpochRecord {
+                epoch: e.epoch,
+                train_loss: e.train_loss,
+                val_loss: e.val_loss,
+                val_auroc: e.val_auroc,
+                learning_rate: e.learning_rate,
+                elapsed_s: e.elapsed_s,
+            })
+            .collect(),
+        message: row.error_message.clone().unwrap_or(progress.message),
+    }
+}
+
 /// Shared by both services: turning job rows into operations.
 #[derive(Debug, Clone)]
 pub struct Jobs {
     pub manager: Arc<JobManager>,
-    pub store: Store,
     pub registry: Arc<Registry>,
 }
 
 impl Jobs {
-    async fn row(&self, name: &str) -> Result<JobRow, Status> {
-        let id = strip_collection("operations", name);
-        self.store
-            .get_job(id)
-            .await?
-            .ok_or_else(|| crate::error::not_found("operation", &format!("operations/{id}")))
+    async fn metadata(&self, row: &JobRow) -> Result<v1::JobMetadata, Status> {
+        let epochs = self.manager.epochs(row).await?;
+        Ok(job_metadata(row, &epochs))
     }
 
-    async fn metadata(&self, row: &JobRow) -> Result<v1::JobMetadata, Status> {
-        let epochs = self.store.job_epochs(&row.id).await?;
-        Ok(job_metadata(row, &epochs))
+    /// The model a training job produced, if it still exists.
+    async fn trained_model(&self, model_id: &str) -> Result<Option<v1::Model>, Status> {
+        match self.registry.get(&ModelName::from_id(model_id)).await {
+            Ok(row) => Ok(Some(model_to_proto(&row))),
+            Err(RegistryError::NotFound(_)) => Ok(None), // deleted since: the result still shows
+            Err(other) => Err(other.into()),
+        }
     }
 
     async fn operation(&self, row: &JobRow) -> Result<longrunning::Operation, Status> {
@@ -58,17 +177,21 @@ impl Jobs {
         let metadata = self.metadata(row).await?;
         let result = match row.state {
             JobState::Succeeded => {
-                let result: Option<JobResult> = row
-                    .result
-                    .clone()
-                    .and_then(|v| serde_json::from_value(v).ok());
+                // An unreadable result (never written by this version) leaves the response empty.
+                let result: Option<JobResult> = row.result.clone().and_then(|v| {
+                    serde_json::from_value(v)
+                        .inspect_err(
+                            |error| tracing::warn!(%error, job = %row.id, "unreadable job result"),
+                        )
+                        .ok()
+                });
                 match result {
                     Some(JobResult::Training {
                         model_id,
                         validation,
                         test,
                     }) => {
-                        let model = self.registry.get_proto(&model_id).await.ok();
+                        let model = self.trained_model(&model_id).await?;
                         Some(OpResult::Response(pack(
                             "spoofwatch.v1.TrainingJobResult",
                             &v1::TrainingJobResult {
@@ -104,32 +227,11 @@ impl Jobs {
             JobState::Queued | JobState::Running => None,
         };
         Ok(longrunning::Operation {
-            name: format!("operations/{}", row.id),
+            name: OperationName::from_id(row.id.as_str()).to_string(),
             metadata: Some(pack("spoofwatch.v1.JobMetadata", &metadata)),
             done: row.state.is_finished(),
             result,
         })
-    }
-
-    /// Waits until the job finishes or `timeout` passes; returns its latest row.
-    async fn wait(&self, name: &str, timeout: Duration) -> Result<JobRow, Status> {
-        let deadline = tokio::time::Instant::now() + timeout;
-        let id = strip_collection("operations", name).to_string();
-        let mut changes = self.manager.subscribe(&id);
-        loop {
-            let row = self.row(&id).await?;
-            if row.state.is_finished() {
-                return Ok(row);
-            }
-            let Some(rx) = changes.as_mut() else {
-                return Ok(row);
-            };
-            match tokio::time::timeout_at(deadline, rx.changed()).await {
-                Ok(Ok(())) => {}
-                Ok(Err(_)) => changes = None, // the job left the live set: read the final row
-                Err(_) => return Ok(row),
-            }
-        }
     }
 }
 
@@ -145,12 +247,6 @@ pub struct OperationsApi {
     pub jobs: Jobs,
 }
 
-impl TrainingApi {
-    pub fn new(jobs: Jobs) -> Self {
-        Self { jobs }
-    }
-}
-
 type WatchStream = Pin<Box<dyn Stream<Item = Result<v1::JobMetadata, Status>> + Send>>;
 
 #[tonic::async_trait]
@@ -159,10 +255,11 @@ impl TrainingService for TrainingApi {
         &self,
         request: Request<v1::CreateTrainingJobRequest>,
     ) -> Result<Response<longrunning::Operation>, Status> {
+        let training = training_request(request.into_inner())?;
         let row = self
             .jobs
             .manager
-            .create_training(request.into_inner())
+            .create(JobRequest::Training(training))
             .await?;
         tracing::info!(job = %row.id, "training job queued");
         Ok(Response::new(self.jobs.operation(&row).await?))
@@ -172,10 +269,19 @@ impl TrainingService for TrainingApi {
         &self,
         request: Request<v1::CreateEvaluationJobRequest>,
     ) -> Result<Response<longrunning::Operation>, Status> {
+        let r = request.into_inner();
+        if r.datasets.is_empty() {
+            return Err(invalid_field(
+                "datasets",
+                "at least one dataset is required",
+            ));
+        }
+        let model = optional_model_name("model", &r.model)?;
+        let datasets = dataset_names("datasets", &r.datasets)?;
         let row = self
             .jobs
             .manager
-            .create_evaluation(request.into_inner())
+            .create_evaluation(model.as_ref(), datasets)
             .await?;
         Ok(Response::new(self.jobs.operation(&row).await?))
     }
@@ -186,12 +292,12 @@ impl TrainingService for TrainingApi {
         &self,
         request: Request<v1::WatchJobRequest>,
     ) -> Result<Response<Self::WatchJobStream>, Status> {
-        let name = request.into_inner().name;
-        let first = self.jobs.row(&name).await?;
+        let name = operation_name("name", &request.into_inner().name)?;
+        let first = self.jobs.manager.get(&name).await?;
         let jobs = self.jobs.clone();
         let (tx, rx) = mpsc::channel(8);
         tokio::spawn(async move {
-            let mut changes = jobs.manager.subscribe(&first.id);
+            let mut changes = jobs.manager.subscribe(&name);
             let mut row = first;
             loop {
                 let metadata = jobs.metadata(&row).await;
@@ -207,10 +313,11 @@ impl TrainingService for TrainingApi {
                     }
                     None => tokio::time::sleep(Duration::from_millis(200)).await,
                 }
-                match jobs.row(&row.id).await {
+                match jobs.manager.get(&name).await {
                     Ok(r) => row = r,
-                    Err(status) => {
-                        let _ = tx.send(Err(status)).await;
+                    Err(error) => {
+                        // The stream ends here either way; a gone client just misses the error.
+                        let _ = tx.send(Err(error.into())).await;
                         break;
                     }
                 }
@@ -252,19 +359,11 @@ impl Operations for OperationsApi {
         request: Request<longrunning::ListOperationsRequest>,
     ) -> Result<Response<longrunning::ListOperationsResponse>, Status> {
         let r = request.into_inner();
-        if r.page_size < 0 {
-            return Err(invalid_field("page_size", "must not be negative"));
-        }
+        let page = page_request(r.page_size, &r.page_token)?;
         let page = self
             .jobs
-            .store
-            .list_jobs(
-                &parse_filter(&r.filter)?,
-                &PageRequest {
-                    page_size: r.page_size as u32,
-                    page_token: (!r.page_token.is_empty()).then_some(r.page_token),
-                },
-            )
+            .manager
+            .list(&parse_filter(&r.filter)?, &page)
             .await?;
         let mut operations = Vec::with_capacity(page.items.len());
         for row in &page.items {
@@ -280,7 +379,8 @@ impl Operations for OperationsApi {
         &self,
         request: Request<longrunning::GetOperationRequest>,
     ) -> Result<Response<longrunning::Operation>, Status> {
-        let row = self.jobs.row(&request.into_inner().name).await?;
+        let name = operation_name("name", &request.into_inner().name)?;
+        let row = self.jobs.manager.get(&name).await?;
         Ok(Response::new(self.jobs.operation(&row).await?))
     }
 
@@ -288,11 +388,8 @@ impl Operations for OperationsApi {
         &self,
         request: Request<longrunning::DeleteOperationRequest>,
     ) -> Result<Response<()>, Status> {
-        let name = request.into_inner().name;
-        self.jobs
-            .store
-            .delete_job(strip_collection("operations", &name))
-            .await?;
+        let name = operation_name("name", &request.into_inner().name)?;
+        self.jobs.manager.delete(&name).await?;
         Ok(Response::new(()))
     }
 
@@ -300,11 +397,8 @@ impl Operations for OperationsApi {
         &self,
         request: Request<longrunning::CancelOperationRequest>,
     ) -> Result<Response<()>, Status> {
-        let name = request.into_inner().name;
-        self.jobs
-            .manager
-            .cancel(strip_collection("operations", &name))
-            .await?;
+        let name = operation_name("name", &request.into_inner().name)?;
+        self.jobs.manager.cancel(&name).await?;
         Ok(Response::new(()))
     }
 
@@ -313,14 +407,15 @@ impl Operations for OperationsApi {
         request: Request<longrunning::WaitOperationRequest>,
     ) -> Result<Response<longrunning::Operation>, Status> {
         let r = request.into_inner();
+        let name = operation_name("name", &r.name)?;
         let timeout = match r.timeout {
             Some(d) if d.seconds < 0 || d.nanos < 0 => {
                 return Err(invalid_field("timeout", "must not be negative"));
             }
-            Some(d) => Duration::new(d.seconds as u64, d.nanos as u32).min(MAX_WAIT),
-            None => MAX_WAIT,
+            Some(d) => Duration::new(d.seconds as u64, d.nanos as u32).min(MAX_OPERATION_WAIT),
+            None => MAX_OPERATION_WAIT,
         };
-        let row = self.jobs.wait(&r.name, timeout).await?;
+        let row = self.jobs.manager.wait(&name, timeout).await?;
         Ok(Response::new(self.jobs.operation(&row).await?))
     }
 }

@@ -1,0 +1,15 @@
+//! The wire layer: everything that translates between `spoofwatch.v1` messages and the rest of the
+//! code base, in one place.
+//!
+//! - [`convert`]: core types (samples, decisions, metrics, operating points) to and from messages.
+//! - [`names`]: resource names (`models/{id}`, `datasets/{id}`, `operations/{id}`) as newtypes.
+//! - [`limits`]: the bounds both the server's validation and well-behaved clients respect.
+//!
+//! It owns no behaviour of its own: no I/O, no validation policy beyond the shared limits, and it must
+//! not depend on the server or the client (both depend on it).
+
+pub mod convert;
+pub mod limits;
+pub mod names;
+
+pub use names::{DatasetName, ModelName, NameError, OperationName};

@@ -1,0 +1,305 @@
+//! The dataset catalog: labelled recordings parsed, summarised and stored, imported from the
+//! operator's data directory (and nowhere else), and loaded back as tracks for jobs. It speaks domain
+//! types and [`DatasetError`]; it must not know about gRPC (the edge is `datasets::service`) nor
+//! write SQL (that is `store`).
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use spoofwatch_core::data::{Format, Recording, read};
+use spoofwatch_core::sample::Track;
+use spoofwatch_proto::wire::DatasetName;
+use spoofwatch_proto::wire::limits::MAX_DATASET_BYTES;
+
+use crate::identity::{new_id, sha256_hex};
+use crate::store::{DatasetRow, NewDataset, Page, PageRequest, Store, StoreError};
+
+/// Everything the catalog can fail with.
+#[derive(Debug, thiserror::Error)]
+pub enum DatasetError {
+    /// No dataset has this name.
+    #[error("dataset {0} not found")]
+    NotFound(DatasetName),
+    /// The data given is unusable (unparseable CSV, too large, not a file...).
+    #[error("{field}: {reason}")]
+    Invalid {
+        /// The request field the data came from.
+        field: &'static str,
+        /// What is wrong.
+        reason: String,
+    },
+    /// Imports need a data directory and this server has none.
+    #[error("this server has no data directory (start it with --data-dir)")]
+    NoDataDir,
+    /// An import path escapes the data directory.
+    #[error("path {path:?} {why}")]
+    PathDenied {
+        /// The path as requested.
+        path: String,
+        /// Why it is refused.
+        why: &'static str,
+    },
+    /// An import path names no file.
+    #[error("file {0:?} not found")]
+    FileNotFound(String),
+    /// A server-side fault (I/O on the data directory, a crashed parser thread).
+    #[error("{context}: {reason}")]
+    Internal {
+        /// What the catalog was doing.
+        context: &'static str,
+        /// The underlying error's text.
+        reason: String,
+    },
+    /// The store failed.
+    #[error(transparent)]
+    Store(#[from] StoreError),
+}
+
+impl DatasetError {
+    fn internal(context: &'static str, error: impl std::fmt::Display) -> Self {
+        DatasetError::Internal {
+            context,
+            reason: error.to_string(),
+        }
+    }
+}
+
+/// Parses CSV bytes (either format) off the async runtime; a parse error names `field`.
+async fn parse(
+    bytes: Arc<Vec<u8>>,
+    source: String,
+    field: &'static str,
+) -> Result<Recording, DatasetError> {
+    tokio::task::spawn_blocking(move || read(bytes.as_slice(), &source))
+        .await
+        .map_err(|e| DatasetError::internal("parsing a dataset", e))?
+        .map_err(|e| DatasetError::Invalid {
+            field,
+            reason: e.to_string(),
+        })
+}
+
+/// Resolves `relative` inside `data_dir`, refusing anything that escapes it (`..`, absolute paths,
+/// symlinks pointing outside).
+pub fn resolve_inside(data_dir: &Path, relative: &str) -> Result<PathBuf, DatasetError> {
+    let denied = |why: &'static str| DatasetError::PathDenied {
+        path: relative.to_string(),
+        why,
+    };
+    if relative.is_empty() {
+        return Err(DatasetError::Invalid {
+            field: "path",
+            reason: "required".into(),
+        });
+    }
+    if Path::new(relative).is_absolute() {
+        return Err(denied("must be relative to the server's data directory"));
+    }
+    // Lexical check first, so nothing outside is even looked at.
+    let mut depth: i64 = 0;
+    for component in Path::new(relative).components() {
+        match component {
+            std::path::Component::ParentDir => depth -= 1,
+            std::path::Component::Normal(_) => depth += 1,
+            _ => {}
+        }
+        if depth < 0 {
+            return Err(denied("is outside the server's data directory"));
+        }
+    }
+    let root = data_dir
+        .canonicalize()
+        .map_err(|e| DatasetError::internal("opening the data directory", e))?;
+    let resolved = root
+        .join(relative)
+        .canonicalize()
+        .map_err(|_| DatasetError::FileNotFound(relative.to_string()))?;
+    if !resolved.starts_with(&root) {
+        return Err(denied("is outside the server's data directory"));
+    }
+    if !resolved.is_file() {
+        return Err(DatasetError::Invalid {
+            field: "path",
+            reason: "is not a file".into(),
+        });
+    }
+    Ok(resolved)
+}
+
+/// Datasets in the store, plus the directory imports may read from.
+#[derive(Debug, Clone)]
+pub struct Catalog {
+    store: Store,
+    data_dir: Option<PathBuf>,
+}
+
+impl Catalog {
+    pub fn new(store: Store, data_dir: Option<PathBuf>) -> Self {
+        Self { store, data_dir }
+    }
+
+    /// Parses uploaded CSV and stores it (`field` names the request field it came in).
+    pub async fn upload(
+        &self,
+        display_name: &str,
+        csv: Vec<u8>,
+        field: &'static str,
+    ) -> Result<DatasetRow, DatasetError> {
+        let name = if display_name.is_empty() {
+            "upload"
+        } else {
+            display_name
+        };
+        self.parse_and_store(name.to_string(), "upload".into(), csv, field)
+            .await
+    }
+
+    /// Uploaded structured records: written as telemetry CSV, then stored like any upload.
+    pub async fn upload_tracks(
+        &self,
+        display_name: &str,
+        tracks: &[Track],
+    ) -> Result<DatasetRow, DatasetError> {
+        let mut csv = Vec::new();
+        spoofwatch_core::data::telemetry::write_tracks(&mut csv, tracks)
+            .map_err(|e| DatasetError::internal("encoding uploaded records", e))?;
+        self.upload(display_name, csv, "records").await
+    }
+
+    /// Imports a CSV file from the data directory.
+    pub async fn import(
+        &self,
+        relative_path: &str,
+        display_name: &str,
+    ) -> Result<DatasetRow, DatasetError> {
+        let data_dir = self.data_dir.as_deref().ok_or(DatasetError::NoDataDir)?;
+        let path = resolve_inside(data_dir, relative_path)?;
+        let content = tokio::fs::read(&path)
+            .await
+            .map_err(|e| DatasetError::internal("reading an import file", e))?;
+        if content.len() > MAX_DATASET_BYTES {
+            return Err(DatasetError::Invalid {
+                field: "path",
+                reason: format!("file exceeds {MAX_DATASET_BYTES} bytes"),
+            });
+        }
+        let stem = path.file_stem().map_or_else(
+            || relative_path.to_string(),
+            |s| s.to_string_lossy().to_string(),
+        );
+        let display_name = if display_name.is_empty() {
+            stem
+        } else {
+            display_name.to_string()
+        };
+        self.parse_and_store(
+            display_name,
+            format!("import:{relative_path}"),
+            content,
+            "path",
+        )
+        .await
+    }
+
+    async fn parse_and_store(
+        &self,
+        display_name: String,
+        source: String,
+        content: Vec<u8>,
+        field: &'static str,
+    ) -> Result<DatasetRow, DatasetError> {
+        if content.is_empty() {
+            return Err(DatasetError::Invalid {
+                field,
+                reason: "the upload holds no data".into(),
+            });
+        }
+        let content = Arc::new(content);
+        let recording = parse(Arc::clone(&content), display_name.clone(), field).await?;
+        let content = Arc::try_unwrap(content).unwrap_or_else(|shared| (*shared).clone());
+        let records = || recording.tracks.iter().flat_map(|t| &t.records);
+        let row = self
+            .store
+            .insert_dataset(NewDataset {
+                id: new_id(),
+                display_name,
+                source,
+                format: match recording.format {
+                    Format::AvGps => "av-gps",
+                    Format::Telemetry => "telemetry",
+                }
+                .to_string(),
+                rows: records().count() as i64,
+                vehicles: recording.tracks.len() as i64,
+                labelled_rows: records().filter(|r| r.label.is_some()).count() as i64,
+                spoofed_rows: records().filter(|r| r.label == Some(true)).count() as i64,
+                sha256: sha256_hex(&content),
+                content,
+            })
+            .await?;
+        tracing::info!(dataset = %row.id, rows = row.rows, "stored dataset");
+        Ok(row)
+    }
+
+    /// A stored dataset's row.
+    pub async fn get(&self, name: &DatasetName) -> Result<DatasetRow, DatasetError> {
+        self.store
+            .get_dataset(name.id())
+            .await?
+            .ok_or_else(|| DatasetError::NotFound(name.clone()))
+    }
+
+    /// One page of datasets, newest first.
+    pub async fn list(&self, page: &PageRequest) -> Result<Page<DatasetRow>, DatasetError> {
+        Ok(self.store.list_datasets(page).await?)
+    }
+
+    /// Deletes a dataset.
+    pub async fn delete(&self, name: &DatasetName) -> Result<(), DatasetError> {
+        Ok(self.store.delete_dataset(name.id()).await?)
+    }
+
+    /// Loads the tracks of every named dataset, in order.
+    pub async fn load_tracks(&self, names: &[DatasetName]) -> Result<Vec<Track>, DatasetError> {
+        let mut tracks = Vec::new();
+        for name in names {
+            let content = self
+                .store
+                .dataset_content(name.id())
+                .await?
+                .ok_or_else(|| DatasetError::NotFound(name.clone()))?;
+            let recording = parse(Arc::new(content), name.id().to_string(), "datasets").await?;
+            tracks.extend(recording.tracks);
+        }
+        Ok(tracks)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn paths_must_stay_inside_the_data_directory() {
+        let root = tempfile::tempdir().expect("tempdir");
+        std::fs::write(root.path().join("a.csv"), "x").expect("write");
+        std::fs::create_dir(root.path().join("sub")).expect("mkdir");
+        std::fs::write(root.path().join("sub/b.csv"), "x").expect("write");
+        assert!(resolve_inside(root.path(), "a.csv").is_ok());
+        assert!(resolve_inside(root.path(), "sub/../a.csv").is_ok());
+        assert!(resolve_inside(root.path(), "sub/b.csv").is_ok());
+        let code = |e: DatasetError| tonic::Status::from(e).code();
+        let outside = resolve_inside(root.path(), "../../etc/passwd").unwrap_err();
+        assert_eq!(code(outside), tonic::Code::PermissionDenied);
+        let absolute = resolve_inside(root.path(), "/etc/passwd").unwrap_err();
+        assert_eq!(code(absolute), tonic::Code::PermissionDenied);
+        assert_eq!(
+            code(resolve_inside(root.path(), "sub").unwrap_err()),
+            tonic::Code::InvalidArgument
+        );
+        assert_eq!(
+            code(resolve_inside(root.path(), "missing.csv").unwrap_err()),
+            tonic::Code::NotFound
+        );
+    }
+}

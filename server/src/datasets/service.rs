@@ -1,0 +1,168 @@
+//! The DatasetService RPCs: the edge between the wire and the [`Catalog`]. Decodes the upload
+//! stream protocol, converts wire records to core tracks, validates names and paging, and maps
+//! [`super::DatasetError`] once (through `crate::error`); it must not parse CSV or touch the store.
+
+use spoofwatch_core::sample::{Record, Track};
+use spoofwatch_proto::v1;
+use spoofwatch_proto::v1::dataset_service_server::DatasetService;
+use spoofwatch_proto::v1::upload_dataset_request::Kind;
+use spoofwatch_proto::wire::DatasetName;
+use spoofwatch_proto::wire::convert::{sample_from_proto, timestamp_from_ms};
+use spoofwatch_proto::wire::limits::MAX_DATASET_BYTES;
+use tonic::{Request, Response, Status, Streaming};
+
+use super::catalog::Catalog;
+use crate::edge::{dataset_name, page_request};
+use crate::error::{header_first, header_not_first, invalid_field};
+use crate::store::DatasetRow;
+
+/// The wire form of a stored dataset.
+pub fn dataset_to_proto(row: &DatasetRow) -> v1::Dataset {
+    v1::Dataset {
+        name: DatasetName::from_id(row.id.as_str()).to_string(),
+        display_name: row.display_name.clone(),
+        source: row.source.clone(),
+        format: row.format.clone(),
+        rows: row.rows as u64,
+        vehicles: row.vehicles as u32,
+        labelled_rows: row.labelled_rows as u64,
+        spoofed_rows: row.spoofed_rows as u64,
+        size_bytes: row.size_bytes as u64,
+        sha256: row.sha256.clone(),
+        create_time: Some(timestamp_from_ms(row.created_at_ms)),
+    }
+}
+
+/// Structured upload records as tracks (vehicles in first-appearance order).
+fn tracks_from_records(records: Vec<v1::LabelledSample>) -> Result<Vec<Track>, Status> {
+    let mut tracks: Vec<Track> = Vec::new();
+    for (i, r) in records.into_iter().enumerate() {
+        let sample = r
+            .sample
+            .as_ref()
+            .map(sample_from_proto)
+            .ok_or_else(|| invalid_field(format!("records[{i}].sample"), "required"))?;
+        if r.vehicle_id.is_empty() {
+            return Err(invalid_field(
+                format!("records[{i}].vehicle_id"),
+                "required",
+            ));
+        }
+        let record = Record {
+            sample,
+            label: r.spoofed,
+            comparator_alarm: None,
+            line: i as u64 + 2,
+            trajectory_break: false,
+        };
+        match tracks.iter_mut().find(|t| t.vehicle_id == r.vehicle_id) {
+            Some(track) => track.records.push(record),
+            None => tracks.push(Track {
+                vehicle_id: r.vehicle_id,
+                records: vec![record],
+            }),
+        }
+    }
+    Ok(tracks)
+}
+
+/// The DatasetService implementation.
+#[derive(Debug, Clone)]
+pub struct DatasetApi {
+    pub catalog: Catalog,
+}
+
+#[tonic::async_trait]
+impl DatasetService for DatasetApi {
+    async fn upload_dataset(
+        &self,
+        request: Request<Streaming<v1::UploadDatasetRequest>>,
+    ) -> Result<Response<v1::Dataset>, Status> {
+        let mut stream = request.into_inner();
+        let header = match stream.message().await? {
+            Some(v1::UploadDatasetRequest {
+                kind: Some(Kind::Header(h)),
+            }) => h,
+            _ => return Err(header_first()),
+        };
+        let mut csv = Vec::new();
+        let mut structured = Vec::new();
+        while let Some(message) = stream.message().await? {
+            match message.kind {
+                Some(Kind::CsvChunk(chunk)) if structured.is_empty() => {
+                    if csv.len() + chunk.len() > MAX_DATASET_BYTES {
+                        return Err(invalid_field(
+                            "csv_chunk",
+                            format!("dataset exceeds {MAX_DATASET_BYTES} bytes"),
+                        ));
+                    }
+                    csv.extend_from_slice(&chunk);
+                }
+                Some(Kind::Records(batch)) if csv.is_empty() => {
+                    structured.extend(batch.records);
+                }
+                Some(Kind::Header(_)) => return Err(header_not_first()),
+                _ => {
+                    return Err(invalid_field(
+                        "kind",
+                        "send either csv_chunk messages or records messages, not both",
+                    ));
+                }
+            }
+        }
+        let row = if structured.is_empty() {
+            self.catalog
+                .upload(&header.display_name, csv, "csv_chunk")
+                .await?
+        } else {
+            let tracks = tracks_from_records(structured)?;
+            self.catalog
+                .upload_tracks(&header.display_name, &tracks)
+                .await?
+        };
+        Ok(Response::new(dataset_to_proto(&row)))
+    }
+
+    async fn import_dataset(
+        &self,
+        request: Request<v1::ImportDatasetRequest>,
+    ) -> Result<Response<v1::Dataset>, Status> {
+        let r = request.into_inner();
+        let row = self.catalog.import(&r.path, &r.display_name).await?;
+        Ok(Response::new(dataset_to_proto(&row)))
+    }
+
+    async fn list_datasets(
+        &self,
+        request: Request<v1::ListDatasetsRequest>,
+    ) -> Result<Response<v1::ListDatasetsResponse>, Status> {
+        let r = request.into_inner();
+        let page = self
+            .catalog
+            .list(&page_request(r.page_size, &r.page_token)?)
+            .await?;
+        Ok(Response::new(v1::ListDatasetsResponse {
+            datasets: page.items.iter().map(dataset_to_proto).collect(),
+            next_page_token: page.next_page_token.unwrap_or_default(),
+        }))
+    }
+
+    async fn get_dataset(
+        &self,
+        request: Request<v1::GetDatasetRequest>,
+    ) -> Result<Response<v1::Dataset>, Status> {
+        let name = dataset_name("name", &request.into_inner().name)?;
+        Ok(Response::new(dataset_to_proto(
+            &self.catalog.get(&name).await?,
+        )))
+    }
+
+    async fn delete_dataset(
+        &self,
+        request: Request<v1::DeleteDatasetRequest>,
+    ) -> Result<Response<()>, Status> {
+        let name = dataset_name("name", &request.into_inner().name)?;
+        self.catalog.delete(&name).await?;
+        Ok(Response::new(()))
+    }
+}

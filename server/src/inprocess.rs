@@ -1,0 +1,138 @@
+//! A Spoofwatch server running inside this process, on a loopback port with a database in a
+//! temporary directory: for the CLI's `demo`/`bench` and end-to-end tests. It only starts and stops
+//! [`crate::serve`]; it must not configure anything beyond what its caller's tweak asks.
+
+use std::net::SocketAddr;
+
+use tokio::net::TcpListener;
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+
+use crate::{Config, ServerError, serve};
+
+/// Seconds the in-process server waits for streams and jobs when shutting down.
+const SHUTDOWN_GRACE_SECS: u64 = 2;
+
+/// Why an in-process server could not start or stopped with an error.
+#[derive(Debug, thiserror::Error)]
+pub enum InProcessError {
+    /// Creating the temporary directory or binding the loopback port failed.
+    #[error("{context}: {source}")]
+    Io {
+        /// What was being done.
+        context: &'static str,
+        /// The I/O error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The server failed.
+    #[error(transparent)]
+    Server(#[from] ServerError),
+    /// The server task panicked or was aborted.
+    #[error("server task failed: {0}")]
+    Task(#[from] tokio::task::JoinError),
+}
+
+/// A running in-process server. Call [`InProcessServer::shutdown`] to stop it cleanly; dropping it
+/// only signals the shutdown.
+#[derive(Debug)]
+pub struct InProcessServer {
+    addr: SocketAddr,
+    stop: Option<oneshot::Sender<()>>,
+    task: Option<JoinHandle<Result<(), ServerError>>>,
+    // Held so the database outlives the server; removed on drop.
+    database_dir: tempfile::TempDir,
+}
+
+impl InProcessServer {
+    /// Starts a server on 127.0.0.1 (an ephemeral port) with a fresh database in a temporary
+    /// directory, from [`Config::default`] (no environment, no auth token, no data directory) as
+    /// changed by `config_tweak`.
+    pub async fn start(config_tweak: impl FnOnce(&mut Config)) -> Result<Self, InProcessError> {
+        let database_dir = tempfile::Builder::new()
+            .prefix("spoofwatch-")
+            .tempdir()
+            .map_err(|source| InProcessError::Io {
+                context: "creating a temporary database directory",
+                source,
+            })?;
+        let database = database_dir.path().join("spoofwatch.db");
+        let mut config = Config::with_database(database.to_string_lossy().into_owned());
+        config.shutdown_grace_secs = SHUTDOWN_GRACE_SECS;
+        config_tweak(&mut config);
+        let listener = TcpListener::bind(("127.0.0.1", 0))
+            .await
+            .map_err(|source| InProcessError::Io {
+                context: "binding 127.0.0.1:0",
+                source,
+            })?;
+        let addr = listener.local_addr().map_err(|source| InProcessError::Io {
+            context: "reading the listening address",
+            source,
+        })?;
+        let (stop, stopped) = oneshot::channel::<()>();
+        let task = tokio::spawn(serve(config, listener, async {
+            // A dropped sender also means "stop".
+            let _ = stopped.await;
+        }));
+        Ok(Self {
+            addr,
+            stop: Some(stop),
+            task: Some(task),
+            database_dir,
+        })
+    }
+
+    /// The server's URL, e.g. `http://127.0.0.1:40123`.
+    pub fn url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    /// Where the server listens.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// The temporary directory holding the database.
+    pub fn database_dir(&self) -> &std::path::Path {
+        self.database_dir.path()
+    }
+
+    /// Signals the shutdown and waits for the server's drain to finish.
+    pub async fn shutdown(mut self) -> Result<(), InProcessError> {
+        self.signal_stop();
+        match self.task.take() {
+            Some(task) => Ok(task.await??),
+            None => Ok(()),
+        }
+    }
+
+    fn signal_stop(&mut self) {
+        if let Some(stop) = self.stop.take() {
+            // The server may already have stopped on its own; then there is nobody to tell.
+            let _ = stop.send(());
+        }
+    }
+}
+
+impl Drop for InProcessServer {
+    fn drop(&mut self) {
+        self.signal_stop();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn starts_on_loopback_and_shuts_down_cleanly() {
+        let server = InProcessServer::start(|config| config.max_sessions = 10)
+            .await
+            .expect("the server starts");
+        assert!(server.addr().ip().is_loopback());
+        assert_eq!(server.url(), format!("http://{}", server.addr()));
+        assert!(server.database_dir().exists());
+        server.shutdown().await.expect("a clean shutdown");
+    }
+}

@@ -1,0 +1,288 @@
+//! The model registry: models in the store, parsed artifacts cached in memory, the bundled default
+//! model registered on first start. It speaks domain types ([`ModelName`], [`ModelArtifact`], store
+//! rows) and [`RegistryError`]; it must not know about gRPC (the edge is `models::service`) nor
+//! write SQL (that is `store`).
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+
+use serde::{Deserialize, Serialize};
+use spoofwatch_core::alarm::OperatingPoint;
+use spoofwatch_core::artifact::{ARTIFACT_SCHEMA_VERSION, ModelArtifact};
+use spoofwatch_core::metrics::Metrics;
+use spoofwatch_proto::wire::{ModelName, OperationName};
+
+use crate::identity::{new_id, sha256_hex};
+use crate::store::{ModelRow, ModelSource, NewModel, Page, PageRequest, Store, StoreError};
+
+/// The artifact bundled into the binary: trained by `spoofwatch experiment av-gps` (see README).
+pub const BUNDLED_MODEL: &[u8] = include_bytes!("../../../models/default.json");
+/// Id of the bundled model in the registry.
+pub const BUNDLED_MODEL_ID: &str = "default";
+
+/// Everything the registry can fail with.
+#[derive(Debug, thiserror::Error)]
+pub enum RegistryError {
+    /// No model has this name.
+    #[error("model {0} not found")]
+    NotFound(ModelName),
+    /// A request asked for the active model and none is set.
+    #[error("no model is active")]
+    NoActiveModel,
+    /// Uploaded bytes are not a model artifact this server can load.
+    #[error("not a usable model artifact: {0}")]
+    InvalidArtifact(String),
+    /// A stored or bundled artifact could not be (de)serialised: a server-side fault.
+    #[error("{context}: {reason}")]
+    Internal {
+        /// What the registry was doing.
+        context: &'static str,
+        /// The underlying error's text.
+        reason: String,
+    },
+    /// The store failed or refused (e.g. deleting the active model).
+    #[error(transparent)]
+    Store(#[from] StoreError),
+}
+
+impl RegistryError {
+    fn internal(context: &'static str, error: impl std::fmt::Display) -> Self {
+        RegistryError::Internal {
+            context,
+            reason: error.to_string(),
+        }
+    }
+}
+
+/// What the registry stores beside an artifact (the `metadata_json` column).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ModelMetadata {
+    pub operating_point: OperatingPoint,
+    pub validation_metrics: Option<Metrics>,
+    pub architecture: String,
+    pub parameter_count: u64,
+    pub seed: u64,
+    pub training_data: Vec<String>,
+    pub train_wall_time_s: f64,
+    pub epochs_run: u32,
+    pub notes: String,
+}
+
+impl ModelMetadata {
+    fn of(artifact: &ModelArtifact) -> Self {
+        let config = artifact.model.config();
+        let a = &config.ablation;
+        let mut ablations = Vec::new();
+        if a.no_exchange {
+            ablations.push("no-exchange".to_string());
+        }
+        if a.no_third_order {
+            ablations.push("no-third-order".to_string());
+        }
+        if a.first_order_cell {
+            ablations.push("first-order-cell".to_string());
+        }
+        ablations.push(format!("features={:?}", a.features));
+        let p = &artifact.provenance;
+        Self {
+            operating_point: artifact.operating_point,
+            validation_metrics: p.validation_metrics.clone(),
+            architecture: format!(
+                "d_s={} d_zeta={} d_h={} {}",
+                config.d_s,
+                config.d_zeta,
+                config.d_h,
+                ablations.join(" ")
+            ),
+            parameter_count: artifact.model.parameter_count() as u64,
+            seed: p.seed,
+            training_data: p.training_data.clone(),
+            train_wall_time_s: p.train_wall_time_s,
+            epochs_run: p.epochs_run,
+            notes: p.notes.clone(),
+        }
+    }
+
+    /// The metadata of a stored model; `None` (logged) for a row written by an older, different
+    /// format, so the model still lists without its details.
+    pub fn of_row(row: &ModelRow) -> Option<Self> {
+        serde_json::from_value(row.metadata.clone())
+            .inspect_err(|error| {
+                tracing::warn!(%error, model = %row.id, "unreadable model metadata");
+            })
+            .ok()
+    }
+}
+
+/// A parsed model ready to serve.
+#[derive(Clone, Debug)]
+pub struct LoadedModel {
+    pub name: ModelName,
+    pub artifact: Arc<ModelArtifact>,
+}
+
+/// Models in the store plus a cache of parsed artifacts.
+#[derive(Debug)]
+pub struct Registry {
+    store: Store,
+    cache: Mutex<HashMap<String, Arc<ModelArtifact>>>,
+}
+
+impl Registry {
+    pub fn new(store: Store) -> Self {
+        Self {
+            store,
+            cache: Mutex::new(HashMap::new()),
+        }
+    }
+
+    fn cache(&self) -> std::sync::MutexGuard<'_, HashMap<String, Arc<ModelArtifact>>> {
+        // Single inserts/removes cannot leave the map inconsistent, so a poisoned lock is usable.
+        self.cache.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// On an empty registry, registers and activates the bundled default model.
+    pub async fn ensure_default_model(&self) -> Result<(), RegistryError> {
+        if self.store.model_count().await? > 0 {
+            return Ok(());
+        }
+        let artifact = ModelArtifact::from_slice(BUNDLED_MODEL)
+            .map_err(|e| RegistryError::internal("loading the bundled default model", e))?;
+        self.register(
+            BUNDLED_MODEL_ID,
+            "bundled default (av-gps experiment)",
+            ModelSource::Bundled,
+            None,
+            &artifact,
+        )
+        .await?;
+        self.store.set_active_model(BUNDLED_MODEL_ID).await?;
+        tracing::info!("registered and activated the bundled default model");
+        Ok(())
+    }
+
+    /// Stores an artifact under `id`.
+    pub async fn register(
+        &self,
+        id: &str,
+        display_name: &str,
+        source: ModelSource,
+        training_operation: Option<&OperationName>,
+        artifact: &ModelArtifact,
+    ) -> Result<ModelRow, RegistryError> {
+        let bytes = artifact
+            .to_vec()
+            .map_err(|e| RegistryError::internal("serialising a model artifact", e))?;
+        let metadata = serde_json::to_value(ModelMetadata::of(artifact))
+            .map_err(|e| RegistryError::internal("serialising model metadata", e))?;
+        let row = self
+            .store
+            .insert_model(NewModel {
+                id: id.to_string(),
+                display_name: display_name.to_string(),
+                source,
+                training_operation: training_operation.map(ToString::to_string),
+                schema_version: i64::from(ARTIFACT_SCHEMA_VERSION),
+                sha256: sha256_hex(&bytes),
+                metadata,
+                artifact: bytes,
+            })
+            .await?;
+        self.cache()
+            .insert(id.to_string(), Arc::new(artifact.clone()));
+        Ok(row)
+    }
+
+    /// Registers uploaded artifact bytes under a fresh id (activating them if asked).
+    pub async fn import(
+        &self,
+        bytes: &[u8],
+        display_name: &str,
+        activate: bool,
+    ) -> Result<ModelRow, RegistryError> {
+        let artifact = ModelArtifact::from_slice(bytes)
+            .map_err(|e| RegistryError::InvalidArtifact(e.to_string()))?;
+        let id = new_id();
+        let display_name = if display_name.is_empty() {
+            format!("imported {id}")
+        } else {
+            display_name.to_string()
+        };
+        let row = self
+            .register(&id, &display_name, ModelSource::Import, None, &artifact)
+            .await?;
+        let row = if activate {
+            self.activate(&ModelName::from_id(id.as_str())).await?
+        } else {
+            row
+        };
+        tracing::info!(model = %id, "imported model");
+        Ok(row)
+    }
+
+    /// The model to serve: the named one, or the active model for `None`.
+    pub async fn resolve(
+        &self,
+        requested: Option<&ModelName>,
+    ) -> Result<LoadedModel, RegistryError> {
+        let name = match requested {
+            Some(name) => name.clone(),
+            None => {
+                let active = self
+                    .store
+                    .active_model()
+                    .await?
+                    .ok_or(RegistryError::NoActiveModel)?;
+                ModelName::from_id(active.id)
+            }
+        };
+        if let Some(artifact) = self.cache().get(name.id()).cloned() {
+            return Ok(LoadedModel { name, artifact });
+        }
+        let bytes = self.artifact_bytes(&name).await?;
+        let artifact = Arc::new(
+            ModelArtifact::from_slice(&bytes)
+                .map_err(|e| RegistryError::internal("loading a stored model", e))?,
+        );
+        self.cache()
+            .insert(name.id().to_string(), Arc::clone(&artifact));
+        Ok(LoadedModel { name, artifact })
+    }
+
+    /// A stored model's row.
+    pub async fn get(&self, name: &ModelName) -> Result<ModelRow, RegistryError> {
+        self.store
+            .get_model(name.id())
+            .await?
+            .ok_or_else(|| RegistryError::NotFound(name.clone()))
+    }
+
+    /// One page of models, newest first.
+    pub async fn list(&self, page: &PageRequest) -> Result<Page<ModelRow>, RegistryError> {
+        Ok(self.store.list_models(page).await?)
+    }
+
+    /// A stored model's serialised artifact.
+    pub async fn artifact_bytes(&self, name: &ModelName) -> Result<Vec<u8>, RegistryError> {
+        self.store
+            .model_artifact(name.id())
+            .await?
+            .ok_or_else(|| RegistryError::NotFound(name.clone()))
+    }
+
+    /// Makes a model active (it must load).
+    pub async fn activate(&self, name: &ModelName) -> Result<ModelRow, RegistryError> {
+        self.resolve(Some(name)).await?;
+        let row = self.store.set_active_model(name.id()).await?;
+        tracing::info!(model = %name, "activated model");
+        Ok(row)
+    }
+
+    /// Deletes a model that is not active.
+    pub async fn delete(&self, name: &ModelName) -> Result<(), RegistryError> {
+        self.store.delete_model(name.id()).await?;
+        self.cache().remove(name.id());
+        tracing::info!(model = %name, "deleted model");
+        Ok(())
+    }
+}

@@ -1,0 +1,158 @@
+//! The ModelService RPCs: the edge between the wire and the [`Registry`]. Decodes and validates
+//! requests, calls the registry and maps its errors once (through `crate::error`); it must not hold
+//! registry logic or touch the store directly.
+
+use std::pin::Pin;
+use std::sync::Arc;
+
+use spoofwatch_proto::v1;
+use spoofwatch_proto::v1::model_service_server::ModelService;
+use spoofwatch_proto::wire::ModelName;
+use spoofwatch_proto::wire::convert::{
+    metrics_to_proto, operating_point_to_proto, timestamp_from_ms,
+};
+use spoofwatch_proto::wire::limits::{EXPORT_CHUNK_BYTES, MAX_ARTIFACT_BYTES};
+use tokio_stream::Stream;
+use tonic::{Request, Response, Status, Streaming};
+
+use super::registry::{ModelMetadata, Registry};
+use crate::edge::{model_name, page_request};
+use crate::error::invalid_field;
+use crate::store::{ModelRow, ModelSource};
+
+/// The wire form of a stored model.
+pub fn model_to_proto(row: &ModelRow) -> v1::Model {
+    let source = match row.source {
+        ModelSource::Bundled => "bundled",
+        ModelSource::Training => "training",
+        ModelSource::Import => "import",
+    };
+    let mut model = v1::Model {
+        name: ModelName::from_id(row.id.as_str()).to_string(),
+        display_name: row.display_name.clone(),
+        active: row.active,
+        create_time: Some(timestamp_from_ms(row.created_at_ms)),
+        source: source.to_string(),
+        training_operation: row.training_operation.clone().unwrap_or_default(),
+        schema_version: row.schema_version as u32,
+        size_bytes: row.size_bytes as u64,
+        sha256: row.sha256.clone(),
+        ..v1::Model::default()
+    };
+    if let Some(m) = ModelMetadata::of_row(row) {
+        model.operating_point = Some(operating_point_to_proto(m.operating_point));
+        model.validation_metrics = m.validation_metrics.as_ref().map(metrics_to_proto);
+        model.architecture = m.architecture;
+        model.parameter_count = m.parameter_count;
+        model.seed = m.seed;
+        model.training_data = m.training_data;
+        model.train_wall_time_s = m.train_wall_time_s;
+        model.epochs_run = m.epochs_run;
+        model.notes = m.notes;
+    }
+    model
+}
+
+/// The ModelService implementation.
+#[derive(Debug, Clone)]
+pub struct ModelApi {
+    pub registry: Arc<Registry>,
+}
+
+type ChunkStream = Pin<Box<dyn Stream<Item = Result<v1::ModelChunk, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl ModelService for ModelApi {
+    async fn list_models(
+        &self,
+        request: Request<v1::ListModelsRequest>,
+    ) -> Result<Response<v1::ListModelsResponse>, Status> {
+        let r = request.into_inner();
+        let page = self
+            .registry
+            .list(&page_request(r.page_size, &r.page_token)?)
+            .await?;
+        Ok(Response::new(v1::ListModelsResponse {
+            models: page.items.iter().map(model_to_proto).collect(),
+            next_page_token: page.next_page_token.unwrap_or_default(),
+        }))
+    }
+
+    async fn get_model(
+        &self,
+        request: Request<v1::GetModelRequest>,
+    ) -> Result<Response<v1::Model>, Status> {
+        let name = model_name("name", &request.into_inner().name)?;
+        Ok(Response::new(model_to_proto(
+            &self.registry.get(&name).await?,
+        )))
+    }
+
+    async fn set_active_model(
+        &self,
+        request: Request<v1::SetActiveModelRequest>,
+    ) -> Result<Response<v1::Model>, Status> {
+        let name = model_name("name", &request.into_inner().name)?;
+        Ok(Response::new(model_to_proto(
+            &self.registry.activate(&name).await?,
+        )))
+    }
+
+    async fn delete_model(
+        &self,
+        request: Request<v1::DeleteModelRequest>,
+    ) -> Result<Response<()>, Status> {
+        let name = model_name("name", &request.into_inner().name)?;
+        self.registry.delete(&name).await?;
+        Ok(Response::new(()))
+    }
+
+    type ExportModelStream = ChunkStream;
+
+    async fn export_model(
+        &self,
+        request: Request<v1::ExportModelRequest>,
+    ) -> Result<Response<Self::ExportModelStream>, Status> {
+        let name = model_name("name", &request.into_inner().name)?;
+        let bytes = self.registry.artifact_bytes(&name).await?;
+        let chunks: Vec<Result<v1::ModelChunk, Status>> = bytes
+            .chunks(EXPORT_CHUNK_BYTES)
+            .map(|c| Ok(v1::ModelChunk { data: c.to_vec() }))
+            .collect();
+        Ok(Response::new(Box::pin(tokio_stream::iter(chunks))))
+    }
+
+    async fn import_model(
+        &self,
+        request: Request<Streaming<v1::ImportModelRequest>>,
+    ) -> Result<Response<v1::Model>, Status> {
+        use v1::import_model_request::Kind;
+        let mut stream = request.into_inner();
+        let header = match stream.message().await? {
+            Some(v1::ImportModelRequest {
+                kind: Some(Kind::Header(h)),
+            }) => h,
+            _ => return Err(crate::error::header_first()),
+        };
+        let mut bytes = Vec::new();
+        while let Some(message) = stream.message().await? {
+            match message.kind {
+                Some(Kind::Chunk(chunk)) => {
+                    if bytes.len() + chunk.len() > MAX_ARTIFACT_BYTES {
+                        return Err(invalid_field(
+                            "chunk",
+                            format!("artifact exceeds {MAX_ARTIFACT_BYTES} bytes"),
+                        ));
+                    }
+                    bytes.extend_from_slice(&chunk);
+                }
+                _ => return Err(crate::error::header_not_first()),
+            }
+        }
+        let row = self
+            .registry
+            .import(&bytes, &header.display_name, header.activate)
+            .await?;
+        Ok(Response::new(model_to_proto(&row)))
+    }
+}
