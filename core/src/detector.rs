@@ -4,8 +4,8 @@
 use std::sync::Arc;
 
 use crate::alarm::PersistenceAlarm;
-use crate::artifact::ModelArtifact;
 use crate::evidence::{Evidence, EvidenceBuilder, Features};
+use crate::model::artifact::ModelArtifact;
 use crate::model::{LiquidState, StepScratch};
 use crate::sample::{Record, Sample};
 

@@ -3,6 +3,9 @@
 //! Tests that need them call [`data_file`]. When the environment variable is unset they are skipped
 //! (a line on stderr says so); when it is set, a missing file fails the test. A relative directory is
 //! resolved against the workspace root, because cargo runs tests with the crate directory as cwd.
+//!
+//! Compiled only with the `test-support` feature (tests' dev-dependencies); must not be used by
+//! production code.
 
 use std::path::PathBuf;
 

@@ -6,8 +6,8 @@
 
 use std::sync::atomic::AtomicBool;
 
-use spoofwatch_core::artifact::ModelArtifact;
 use spoofwatch_core::evidence::{FEATURE_COUNT, Features};
+use spoofwatch_core::model::artifact::ModelArtifact;
 use spoofwatch_core::model::{LiquidState, ModelConfig};
 use spoofwatch_core::rng::Rng;
 use spoofwatch_core::train::{Sequence, TrainConfig, train};

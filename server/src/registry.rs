@@ -7,8 +7,8 @@ use std::sync::{Arc, Mutex};
 
 use serde::{Deserialize, Serialize};
 use spoofwatch_core::alarm::OperatingPoint;
-use spoofwatch_core::artifact::{ARTIFACT_SCHEMA_VERSION, ModelArtifact};
 use spoofwatch_core::metrics::Metrics;
+use spoofwatch_core::model::artifact::{ARTIFACT_SCHEMA_VERSION, ModelArtifact};
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::model_service_server::ModelService;
 use tokio_stream::Stream;

@@ -5,6 +5,7 @@
 //! Input: already-scaled ξ vectors ([`Features`], order [`crate::evidence::FEATURE_NAMES`], ν last) and
 //! the time step δ_t in seconds.
 
+pub mod artifact;
 mod backward;
 mod fastmath;
 mod forward;
@@ -138,6 +139,32 @@ pub enum FeatureGroups {
 }
 
 impl FeatureGroups {
+    /// Every variant with its name on the command line and on the wire (`TrainingSpec.features`).
+    pub const NAMED: [(&'static str, FeatureGroups); 6] = [
+        ("all", Self::All),
+        ("no-accumulation", Self::NoAccumulation),
+        ("no-evolution", Self::NoEvolution),
+        ("no-evolution-no-q", Self::NoEvolutionNoQ),
+        ("low-order-only", Self::LowOrderOnly),
+        ("validity-only", Self::ValidityOnly),
+    ];
+
+    /// The variant's name in [`Self::NAMED`].
+    pub fn name(self) -> &'static str {
+        Self::NAMED
+            .iter()
+            .find(|(_, groups)| *groups == self)
+            .map_or("all", |(name, _)| name)
+    }
+
+    /// The variant named `name` in [`Self::NAMED`].
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::NAMED
+            .iter()
+            .find(|(n, _)| *n == name)
+            .map(|(_, groups)| *groups)
+    }
+
     /// For each ξ index (order of `FEATURE_NAMES`), whether the input is kept.
     pub fn kept(self) -> [bool; FEATURE_COUNT] {
         // η_E η_N η̇_E η̇_N η̈_E η̈_N q ã ν

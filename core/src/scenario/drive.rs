@@ -8,7 +8,8 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{ScenarioError, bearing_unit, displace_fix};
+use super::{ScenarioError, bearing_unit};
+use crate::geo::displace_fix;
 use crate::rng::Rng;
 use crate::sample::{MAX_SPEED_MPS, Record, Sample, Track};
 

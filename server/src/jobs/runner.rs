@@ -8,13 +8,15 @@ use std::time::{Duration, Instant};
 use serde::{Deserialize, Serialize};
 use spoofwatch_core::evaluation::evaluate_tracks;
 use spoofwatch_core::metrics::{EventRules, Metrics};
-use spoofwatch_core::model::{Ablation, FeatureGroups, ModelConfig};
-use spoofwatch_core::pipeline::{
-    DetectorTrainingOptions, KAPPA_RHO_GRID, SplitFractions, TrainDetectorError,
-    split_chronologically, train_detector,
-};
+use spoofwatch_core::model::{Ablation, FeatureGroups};
 use spoofwatch_core::sample::Track;
-use spoofwatch_core::train::{EpochProgress, TrainConfig, TrainError};
+use spoofwatch_core::train::detector::{
+    TrainDetectorError, TrainedDetector, TrainingData, train_detector,
+};
+use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
+use spoofwatch_core::train::{
+    DEFAULT_MAX_EPOCHS, DEFAULT_SEED, EpochProgress, MAX_EPOCHS, TrainError,
+};
 use spoofwatch_proto::v1;
 use tokio::sync::{Semaphore, mpsc, watch};
 use tokio_util::sync::CancellationToken;
@@ -101,16 +103,13 @@ pub struct JobManager {
     live: Mutex<HashMap<String, Arc<LiveJob>>>,
 }
 
+/// The wire's feature-group name; empty means the default.
 fn features_from_name(name: &str) -> Option<FeatureGroups> {
-    Some(match name {
-        "" | "all" => FeatureGroups::All,
-        "no-accumulation" => FeatureGroups::NoAccumulation,
-        "no-evolution" => FeatureGroups::NoEvolution,
-        "no-evolution-no-q" => FeatureGroups::NoEvolutionNoQ,
-        "low-order-only" => FeatureGroups::LowOrderOnly,
-        "validity-only" => FeatureGroups::ValidityOnly,
-        _ => return None,
-    })
+    if name.is_empty() {
+        Some(FeatureGroups::default())
+    } else {
+        FeatureGroups::from_name(name)
+    }
 }
 
 impl JobManager {
@@ -146,12 +145,15 @@ impl JobManager {
         }
         let spec = request.spec.unwrap_or_default();
         let max_epochs = if spec.max_epochs == 0 {
-            30
+            DEFAULT_MAX_EPOCHS
         } else {
             spec.max_epochs
         };
-        if max_epochs > 200 {
-            return Err(invalid_field("spec.max_epochs", "must be 1 to 200"));
+        if max_epochs > MAX_EPOCHS {
+            return Err(invalid_field(
+                "spec.max_epochs",
+                format!("must be 1 to {MAX_EPOCHS}"),
+            ));
         }
         let features = features_from_name(&spec.features).ok_or_else(|| {
             invalid_field(
@@ -176,7 +178,11 @@ impl JobManager {
         let job = JobRequest::Training {
             datasets: request.datasets,
             validation_datasets: request.validation_datasets,
-            seed: if spec.seed == 0 { 42 } else { spec.seed },
+            seed: if spec.seed == 0 {
+                DEFAULT_SEED
+            } else {
+                spec.seed
+            },
             max_epochs,
             ablation: Ablation {
                 no_exchange: spec.no_exchange,
@@ -336,51 +342,28 @@ impl JobManager {
                 display_name,
                 activate,
             } => {
-                let train_data = self.load(&datasets).await?;
-                let (train, validation, test) = if validation_datasets.is_empty() {
-                    let split = split_chronologically(&train_data, SplitFractions::default());
-                    (split.train, split.validation, split.test)
-                } else {
-                    (
-                        train_data,
-                        self.load(&validation_datasets).await?,
-                        Vec::new(),
+                let data = TrainingData::split_unless_validation(
+                    self.load(&datasets).await?,
+                    self.load(&validation_datasets).await?,
+                );
+                let spec = TrainingSpec {
+                    data_description: datasets.clone(),
+                    ..TrainingSpec::with(
+                        seed,
+                        max_epochs,
+                        ablation,
+                        KappaRho::selected_if(select_kappa_rho),
                     )
                 };
-                let options = DetectorTrainingOptions {
-                    model: ModelConfig {
-                        ablation,
-                        ..ModelConfig::default()
-                    },
-                    train: TrainConfig {
-                        seed,
-                        max_epochs: max_epochs as usize,
-                        ..TrainConfig::default()
-                    },
-                    kappa_rho: if select_kappa_rho {
-                        KAPPA_RHO_GRID.to_vec()
-                    } else {
-                        vec![(0.0, 0.98)]
-                    },
-                    data_description: datasets.clone(),
-                    ..DetectorTrainingOptions::default()
-                };
-                let trained = self.train(id, live, train, validation, options).await?;
+                let trained = Arc::new(self.train(id, live, spec, data).await?);
                 if trained.cancelled {
                     return Err(JobFailure::Cancelled);
                 }
-                let artifact = Arc::new(trained.artifact.clone());
-                let test_metrics = if test.is_empty() {
-                    None
-                } else {
-                    let artifact = Arc::clone(&artifact);
-                    Some(
-                        tokio::task::spawn_blocking(move || {
-                            evaluate_tracks(&artifact, &test, EventRules::Spec).overall
-                        })
+                let test_metrics = {
+                    let trained = Arc::clone(&trained);
+                    tokio::task::spawn_blocking(move || trained.held_out_metrics(EventRules::Spec))
                         .await
-                        .map_err(|e| JobFailure::Failed(e.to_string()))?,
-                    )
+                        .map_err(|e| JobFailure::Failed(e.to_string()))?
                 };
                 let model_id = new_id();
                 let name = if display_name.is_empty() {
@@ -406,7 +389,7 @@ impl JobManager {
                 }
                 Ok(JobResult::Training {
                     model_id,
-                    validation: trained.validation,
+                    validation: trained.validation.clone(),
                     test: test_metrics,
                 })
             }
@@ -449,18 +432,16 @@ impl JobManager {
         &self,
         id: &str,
         live: &Arc<LiveJob>,
-        train: Vec<Track>,
-        validation: Vec<Track>,
-        options: DetectorTrainingOptions,
-    ) -> Result<spoofwatch_core::pipeline::TrainedDetector, JobFailure> {
+        spec: TrainingSpec,
+        data: TrainingData,
+    ) -> Result<TrainedDetector, JobFailure> {
         let cancel_flag = Arc::new(AtomicBool::new(false));
         let (epochs_tx, mut epochs_rx) = mpsc::unbounded_channel::<EpochProgress>();
         let flag = Arc::clone(&cancel_flag);
         let worker = tokio::task::spawn_blocking(move || {
             train_detector(
-                &train,
-                &validation,
-                &options,
+                &spec,
+                data,
                 &mut |p| {
                     let _ = epochs_tx.send(p.clone());
                 },
