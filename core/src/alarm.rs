@@ -3,6 +3,9 @@
 //! c_t = 1[score_t ≥ θ]; the confirmed alarm c̄_t = 1 when the last N_p valid steps all had c = 1. A ν = 0
 //! step or a new trajectory resets the run, and c̄ = 0 on a ν = 0 step. The alarm is not latched.
 //! (θ, N_p) is chosen on validation rows by maximising F1 of c̄ with a fixed tie-break order.
+//!
+//! Owns thresholds, persistence and the operating-point search for every detector. Must not run a
+//! detector or build evidence (it sees only [`ScoredRow`]s).
 
 use std::cmp::Ordering;
 use std::ops::RangeInclusive;

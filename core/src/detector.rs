@@ -1,5 +1,8 @@
 //! The streaming per-vehicle detector: evidence → scaled ξ → HO-LLN step → persistence alarm.
 //! The offline whole-trajectory pass (`run_records`) is this same step in a loop.
+//!
+//! Owns running a model artifact on a stream (one vehicle, one sample at a time). Must not train, score
+//! metrics or choose operating points.
 
 use std::sync::Arc;
 

@@ -45,3 +45,23 @@ pub fn data_file(var: &str, name: &str) -> Option<PathBuf> {
     );
     Some(path)
 }
+
+/// `count` synthetic ξ rows for model tests and benchmarks: the first 8 entries `scale` × N(0, 1) from
+/// `rng`, ν = 1.
+pub fn random_features(
+    rng: &mut crate::rng::Rng,
+    count: usize,
+    scale: f64,
+) -> Vec<crate::evidence::Features> {
+    use crate::evidence::FEATURE_COUNT;
+    (0..count)
+        .map(|_| {
+            let mut x = [0.0; FEATURE_COUNT];
+            for value in &mut x[..FEATURE_COUNT - 1] {
+                *value = scale * rng.normal();
+            }
+            x[FEATURE_COUNT - 1] = 1.0;
+            x
+        })
+        .collect()
+}

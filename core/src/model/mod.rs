@@ -4,6 +4,9 @@
 //!
 //! Input: already-scaled ξ vectors ([`Features`], order [`crate::evidence::FEATURE_NAMES`], ν last) and
 //! the time step δ_t in seconds.
+//!
+//! Owns the model: configuration, parameters, forward/backward and the artifact ([`artifact`]). Must
+//! not know about tracks, evidence building, training loops or alarms.
 
 pub mod artifact;
 mod backward;
@@ -116,6 +119,18 @@ pub enum ModelError {
         /// The state's width.
         found: usize,
     },
+}
+
+/// Every per-step input of a sequence has one entry per feature row (`expected` of them).
+fn check_lengths(expected: usize, inputs: &[(&'static str, usize)]) -> Result<(), ModelError> {
+    match inputs.iter().find(|(_, found)| *found != expected) {
+        Some(&(field, found)) => Err(ModelError::LengthMismatch {
+            field,
+            expected,
+            found,
+        }),
+        None => Ok(()),
+    }
 }
 
 /// Which evidence groups reach the encoders (SPEC §5 ablations). Removed inputs are set to 0 before the
@@ -403,13 +418,7 @@ impl Model {
         deltas: &[f64],
         state: &mut LiquidState,
     ) -> Result<Vec<f64>, ModelError> {
-        if deltas.len() != xs.len() {
-            return Err(ModelError::LengthMismatch {
-                field: "deltas",
-                expected: xs.len(),
-                found: deltas.len(),
-            });
-        }
+        check_lengths(xs.len(), &[("deltas", deltas.len())])?;
         let mut scratch = StepScratch::new(&self.config);
         Ok(xs
             .iter()

@@ -1,4 +1,6 @@
 //! Attack kinds, attack specs and injection into a normal track.
+//!
+//! Owns attack kinds and their injection. Must not plan scenario sets (that is `plan.rs`).
 
 use serde::{Deserialize, Serialize};
 

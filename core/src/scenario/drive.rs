@@ -5,6 +5,8 @@
 //! evolve smoothly. Targets come from a seeded maneuver planner (cruise at a new speed, turn, stop).
 //! The planner and the sensor noise draw from separate streams of the seed, so changing a noise level
 //! keeps the same ground truth.
+//!
+//! Owns simulated drives. Must not inject attacks (that is `attack.rs`).
 
 use serde::{Deserialize, Serialize};
 
