@@ -6,22 +6,13 @@ use std::hint::black_box;
 use std::sync::atomic::AtomicBool;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use spoofwatch_core::evidence::{FEATURE_COUNT, Features};
+use spoofwatch_core::evidence::Features;
 use spoofwatch_core::model::{LiquidState, Model, ModelConfig, StepScratch};
 use spoofwatch_core::rng::Rng;
 use spoofwatch_core::train::{Sequence, TrainConfig, train};
 
 fn random_features(rng: &mut Rng, count: usize) -> Vec<Features> {
-    (0..count)
-        .map(|_| {
-            let mut x = [0.0; FEATURE_COUNT];
-            for value in &mut x[..FEATURE_COUNT - 1] {
-                *value = rng.normal();
-            }
-            x[FEATURE_COUNT - 1] = 1.0;
-            x
-        })
-        .collect()
+    spoofwatch_core::testdata::random_features(rng, count, 1.0)
 }
 
 /// Trajectories with one attack interval each (large η and q inside it).

@@ -3,6 +3,9 @@
 //! c_t = 1[score_t ≥ θ]; the confirmed alarm c̄_t = 1 when the last N_p valid steps all had c = 1. A ν = 0
 //! step or a new trajectory resets the run, and c̄ = 0 on a ν = 0 step. The alarm is not latched.
 //! (θ, N_p) is chosen on validation rows by maximising F1 of c̄ with a fixed tie-break order.
+//!
+//! Owns thresholds, persistence and the operating-point search for every detector. Must not run a
+//! detector or build evidence (it sees only [`ScoredRow`]s).
 
 use std::cmp::Ordering;
 use std::ops::RangeInclusive;
@@ -130,57 +133,42 @@ pub enum AlarmError {
     },
 }
 
-/// Chooses (θ, N_p) on validation rows over SPEC §7's grid (θ = k/20, N_p = 1..=10) with the SPEC §8
-/// event rules. `None` when the rows are unusable (see [`choose_operating_point`] for the reason).
-pub fn select_operating_point(rows: &[ScoredRow]) -> Option<OperatingPoint> {
-    select_operating_point_on_grid(rows, &theta_grid(), N_P_GRID)
+/// How (θ, N_p) is chosen on validation rows (SPEC §7 and the false-alarm budget of the subtle
+/// experiment). Used for the HO-LLN threshold and the CUSUM comparator's alike.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "rule", rename_all = "snake_case")]
+pub enum OperatingPointRule {
+    /// Best F1 of c̄ on ν = 1 rows, then the tie-breaks of [`choose_operating_point`].
+    #[default]
+    BestValidationF1,
+    /// Best F1 among the points raising at most `per_hour` false-alarm events per hour of
+    /// attack-free time on the rows ([`metrics::normal_hours`]).
+    WithinFalseAlarmBudget { per_hour: f64 },
 }
 
-/// Like [`select_operating_point`] on another grid: `thetas` may be on any scale (the CUSUM thresholds
-/// its own statistic).
-pub fn select_operating_point_on_grid(
-    rows: &[ScoredRow],
-    thetas: &[f64],
-    n_ps: RangeInclusive<u32>,
-) -> Option<OperatingPoint> {
-    choose_operating_point(rows, thetas, n_ps, EventRules::Spec)
-        .ok()
-        .map(|selection| selection.point)
+impl OperatingPointRule {
+    /// The false-alarm budget, if any.
+    pub fn budget(self) -> Option<f64> {
+        match self {
+            Self::BestValidationF1 => None,
+            Self::WithinFalseAlarmBudget { per_hour } => Some(per_hour),
+        }
+    }
 }
 
-/// Chooses (θ, N_p) from `thetas` × `n_ps` and reports the metrics there: maximise F1 of c̄ on ν = 1
-/// rows; ties go to higher ADR, lower mean delay (no detection = worst), lower FPR, higher recall,
-/// lower N_p, higher θ. `rules` defines events (ADR, delay). Duplicate thresholds are harmless.
+/// Chooses (θ, N_p) from `thetas` × `n_ps` by `rule` and reports the metrics there: maximise F1 of c̄
+/// on ν = 1 rows; ties go to higher ADR, lower mean delay (no detection = worst), lower FPR, higher
+/// recall, lower N_p, higher θ. `thetas` may be on any scale (the CUSUM thresholds its own
+/// statistic); SPEC §7's grid is [`theta_grid`] × [`N_P_GRID`]. `rules` defines events (ADR, delay).
+/// Duplicate thresholds are harmless.
 pub fn choose_operating_point(
     rows: &[ScoredRow],
     thetas: &[f64],
     n_ps: RangeInclusive<u32>,
     rules: EventRules,
+    rule: OperatingPointRule,
 ) -> Result<Selection, AlarmError> {
-    search(rows, thetas, n_ps, rules, None)
-}
-
-/// [`choose_operating_point`] among the points that raise at most `max_per_hour` false-alarm events
-/// per hour of attack-free time on the rows ([`metrics::normal_hours`]): the operating point of a
-/// detector that must stay within a false-alarm budget.
-pub fn choose_operating_point_within_budget(
-    rows: &[ScoredRow],
-    thetas: &[f64],
-    n_ps: RangeInclusive<u32>,
-    rules: EventRules,
-    max_per_hour: f64,
-) -> Result<Selection, AlarmError> {
-    search(rows, thetas, n_ps, rules, Some(max_per_hour))
-}
-
-/// The grid search behind both choosers; `budget` is a false-alarm rate per attack-free hour.
-pub(crate) fn search(
-    rows: &[ScoredRow],
-    thetas: &[f64],
-    n_ps: RangeInclusive<u32>,
-    rules: EventRules,
-    budget: Option<f64>,
-) -> Result<Selection, AlarmError> {
+    let budget = rule.budget();
     metrics::check_rows(rows)?;
     if !rows.iter().any(|row| row.valid) {
         return Err(AlarmError::NoValidRows);
@@ -258,6 +246,8 @@ fn compare_mean_delay(a: Option<f64>, b: Option<f64>) -> Ordering {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    const BEST_F1: OperatingPointRule = OperatingPointRule::BestValidationF1;
 
     /// One trajectory at 1 Hz, all rows valid: (label, score) pairs.
     fn one_trajectory(pairs: &[(u8, f64)]) -> Vec<ScoredRow> {
@@ -349,8 +339,9 @@ mod tests {
             (1, 0.8),
             (0, 0.3),
         ]);
-        let selection = choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec)
-            .expect("valid rows");
+        let selection =
+            choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec, BEST_F1)
+                .expect("valid rows");
         // Any θ in (0.5, 0.8] with N_p = 1 gives F1 = 1; tie-breaks: lower N_p, then higher θ → 0.8.
         assert_eq!(selection.point, OperatingPoint { theta: 0.8, n_p: 1 });
         assert_eq!(selection.metrics.f1, 1.0);
@@ -360,7 +351,7 @@ mod tests {
 
     /// Runs the selection on `rows` with an explicit grid.
     fn choose(rows: &[ScoredRow], thetas: &[f64], n_ps: RangeInclusive<u32>) -> OperatingPoint {
-        choose_operating_point(rows, thetas, n_ps, EventRules::Spec)
+        choose_operating_point(rows, thetas, n_ps, EventRules::Spec, BEST_F1)
             .expect("valid rows")
             .point
     }
@@ -394,7 +385,7 @@ mod tests {
         // N_p = 1 strictly best; among the 19 equivalent θ the highest wins.
         let rows = one_trajectory(&[(1, 1.0), (0, 0.0), (1, 1.0), (0, 0.0)]);
         assert_eq!(
-            select_operating_point(&rows).expect("valid rows"),
+            choose(&rows, &theta_grid(), N_P_GRID),
             OperatingPoint {
                 theta: 0.95,
                 n_p: 1
@@ -402,8 +393,9 @@ mod tests {
         );
         // No positive score at all: every grid point gives identical (empty) alarms → N_p 1, θ 0.95.
         let rows = one_trajectory(&[(1, 0.0), (0, 0.0)]);
-        let selection = choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec)
-            .expect("valid rows");
+        let selection =
+            choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec, BEST_F1)
+                .expect("valid rows");
         assert_eq!(
             selection.point,
             OperatingPoint {
@@ -435,8 +427,9 @@ mod tests {
             (1, 0.9),
             (1, 0.9),
         ]);
-        let selection = choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec)
-            .expect("valid rows");
+        let selection =
+            choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec, BEST_F1)
+                .expect("valid rows");
         assert_eq!(selection.point, OperatingPoint { theta: 0.9, n_p: 2 });
         assert_eq!(selection.metrics.f1, 0.8);
         assert_eq!(selection.metrics.delays_s, vec![Some(1.0), Some(1.0)]);
@@ -514,7 +507,7 @@ mod tests {
     #[test]
     fn selection_rejects_unusable_input() {
         let choose_spec = |rows: &[ScoredRow], thetas: &[f64]| {
-            choose_operating_point(rows, thetas, N_P_GRID, EventRules::Spec)
+            choose_operating_point(rows, thetas, N_P_GRID, EventRules::Spec, BEST_F1)
         };
         let mut invalid = one_trajectory(&[(1, 0.9), (0, 0.1)]);
         invalid.iter_mut().for_each(|row| row.valid = false);
@@ -522,7 +515,7 @@ mod tests {
             choose_spec(&invalid, &theta_grid()),
             Err(AlarmError::NoValidRows)
         );
-        assert_eq!(select_operating_point(&invalid), None);
+        assert!(choose_spec(&invalid, &theta_grid()).is_err());
         let good = one_trajectory(&[(1, 0.9), (0, 0.1)]);
         assert_eq!(
             choose_spec(&good, &[]),
@@ -531,7 +524,7 @@ mod tests {
                 n_ps: 10
             })
         );
-        assert_eq!(select_operating_point_on_grid(&good, &[], N_P_GRID), None);
+        assert!(choose_spec(&good, &[]).is_err());
         assert_eq!(
             choose_spec(&good, &[0.5, f64::NAN]),
             Err(AlarmError::NanThreshold { index: 1 })
@@ -555,13 +548,14 @@ mod tests {
             (1, 0.7),
             (0, 0.3),
         ]);
-        let selection = choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec)
-            .expect("valid rows");
+        let selection =
+            choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec, BEST_F1)
+                .expect("valid rows");
         let alarms = confirmed_alarms(&rows, selection.point);
         let recomputed =
             metrics::try_evaluate(&rows, &alarms, EventRules::Spec).expect("valid rows");
         assert_eq!(selection.metrics, recomputed);
-        assert_eq!(select_operating_point(&rows), Some(selection.point));
+        assert_eq!(choose(&rows, &theta_grid(), N_P_GRID), selection.point);
     }
 
     /// 1,900 s at 1 Hz: a 100 s attack scored 0.7 and a 12 s normal stretch scored 0.75 (too long for
@@ -582,18 +576,19 @@ mod tests {
         let rows = attack_and_one_false_alarm();
         let normal_hours = metrics::normal_hours(&rows);
         assert!((normal_hours - 1799.0 / 3600.0).abs() < 1e-12);
-        let free = choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec)
-            .expect("valid rows");
+        let free =
+            choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec, BEST_F1)
+                .expect("valid rows");
         assert_eq!(free.point.theta, 0.7);
         assert_eq!(free.metrics.false_alarm_events, 1);
         // One event in ~0.5 h is 2 per hour: allowed by a budget of 2/h, not by 1/h.
         let within = |per_hour| {
-            choose_operating_point_within_budget(
+            choose_operating_point(
                 &rows,
                 &theta_grid(),
                 N_P_GRID,
                 EventRules::Spec,
-                per_hour,
+                OperatingPointRule::WithinFalseAlarmBudget { per_hour },
             )
         };
         assert_eq!(within(2.1).expect("within budget").point, free.point);
@@ -609,12 +604,12 @@ mod tests {
         for row in &mut rows[1200..1212] {
             row.score = 0.99; // above every θ of the grid
         }
-        let result = choose_operating_point_within_budget(
+        let result = choose_operating_point(
             &rows,
             &theta_grid(),
             N_P_GRID,
             EventRules::Spec,
-            0.0,
+            OperatingPointRule::WithinFalseAlarmBudget { per_hour: 0.0 },
         );
         assert!(matches!(
             result,

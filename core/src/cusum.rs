@@ -1,15 +1,28 @@
-//! The classical χ²/CUSUM comparator (SPEC §9) on the normalised residual energy e_t = ‖η_t‖².
+//! The classical χ²/CUSUM comparator (SPEC §9) on the normalised residual energy e_t = ‖η_t‖²: the
+//! streaming statistic, its fit on validation rows, and the comparator wired to the evidence builder
+//! (Σ̂ and μ_e from the training normal rows, scored through the same [`Scored`] path as HO-LLN).
 //!
 //! S_t = max(0, S_{t−1} + e_t − μ_e − k) on ν = 1 steps, held on ν = 0 steps, reset to 0 at trajectory
 //! starts; c_t = 1[S_t ≥ h], then the same persistence confirmation N_p as the learned detector.
 //! (k, h, N_p) are chosen on validation data with the operating-point objective of SPEC §7.
+//!
+//! Must not score or threshold HO-LLN probabilities, nor define metrics (it reuses [`crate::alarm`]
+//! and [`crate::evaluation`]).
 
 use std::ops::RangeInclusive;
 
 use serde::{Deserialize, Serialize};
 
-use crate::alarm::{self, AlarmError, N_P_GRID, OperatingPoint, PersistenceAlarm};
+use crate::alarm::{
+    self, AlarmError, N_P_GRID, OperatingPoint, OperatingPointRule, PersistenceAlarm,
+};
+use crate::evaluation::{Scored, trajectory_key};
+use crate::evidence::{EvidenceParams, build_track};
+use crate::geo::Projection;
 use crate::metrics::{EventRules, Metrics, ScoredRow};
+use crate::sample::Track;
+use crate::train::data::{DataError, fit_evidence};
+use crate::train::spec::DEFAULT_KAPPA_RHO;
 
 /// The fitted comparator's parameters.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -123,7 +136,7 @@ pub fn scored_rows(rows: &[CusumRow], steps: &[CusumStep]) -> Vec<ScoredRow> {
         .collect()
 }
 
-/// The drift grid k (energy units) searched by [`fit_cusum`].
+/// The drift grid k (energy units) the comparator searches.
 pub const DRIFT_GRID: [f64; 6] = [0.0, 0.5, 1.0, 2.0, 4.0, 8.0];
 /// Number of evenly spaced quantile levels of S in the threshold grid.
 pub const THRESHOLD_QUANTILES: usize = 40;
@@ -177,33 +190,17 @@ pub enum CusumError {
     Selection(#[from] AlarmError),
 }
 
-/// Fits k, h, N_p on validation rows with the default grids ([`DRIFT_GRID`], N_p = 1..=10) and SPEC §8
-/// event rules. `None` when the rows are unusable (see [`fit_cusum_on_grid`] for the reason).
-pub fn fit_cusum(validation: &[CusumRow], mu_e: f64) -> Option<CusumParams> {
-    fit_cusum_on_grid(
-        validation,
-        mu_e,
-        &DRIFT_GRID,
-        N_P_GRID,
-        EventRules::Spec,
-        None,
-    )
-    .ok()
-    .map(|fit| fit.params)
-}
-
 /// For each drift k: S on the validation rows, thresholds h from [`threshold_grid`], then the
 /// operating-point search of SPEC §7 (F1, ADR, delay, FPR, recall, lower N_p, higher h) with S as the
 /// score. Across drifts the same objective decides; remaining ties go to the smaller k. With a
-/// `budget` (false alarms per attack-free hour), only points within it compete, as in
-/// [`alarm::choose_operating_point_within_budget`].
-pub fn fit_cusum_on_grid(
+/// false-alarm budget `rule`, only points within it compete, as for HO-LLN.
+pub fn fit_cusum(
     validation: &[CusumRow],
     mu_e: f64,
     drifts: &[f64],
     n_ps: RangeInclusive<u32>,
     rules: EventRules,
-    budget: Option<f64>,
+    rule: OperatingPointRule,
 ) -> Result<CusumFit, CusumError> {
     if !mu_e.is_finite() {
         return Err(CusumError::NonFiniteMean(mu_e));
@@ -234,15 +231,16 @@ pub fn fit_cusum_on_grid(
         if thresholds.is_empty() {
             continue;
         }
-        let selection = match alarm::search(&scored, &thresholds, n_ps.clone(), rules, budget) {
-            Ok(selection) => selection,
-            // Another drift may fit the budget.
-            Err(error @ AlarmError::OverBudget { .. }) => {
-                over_budget = Some(error);
-                continue;
-            }
-            Err(error) => return Err(error.into()),
-        };
+        let selection =
+            match alarm::choose_operating_point(&scored, &thresholds, n_ps.clone(), rules, rule) {
+                Ok(selection) => selection,
+                // Another drift may fit the budget.
+                Err(error @ AlarmError::OverBudget { .. }) => {
+                    over_budget = Some(error);
+                    continue;
+                }
+                Err(error) => return Err(error.into()),
+            };
         let candidate = CusumFit {
             params: CusumParams {
                 mu_e,
@@ -331,10 +329,95 @@ fn quantile_sorted(sorted: &[f64], level: f64) -> f64 {
     sorted[lower] + fraction * (sorted[upper] - sorted[lower])
 }
 
+/// A fitted comparator.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CusumComparator {
+    pub evidence: EvidenceParams,
+    pub cusum: CusumParams,
+}
+
+/// Why the comparator could not be fitted.
+#[derive(Debug, thiserror::Error)]
+pub enum ComparatorError {
+    #[error(transparent)]
+    Data(#[from] DataError),
+    #[error("no CUSUM operating point: {0}")]
+    NoOperatingPoint(#[from] CusumError),
+}
+
+/// Energy rows of the `track_index`-th track under fixed evidence parameters.
+fn track_rows(evidence: &EvidenceParams, track_index: usize, track: &Track) -> Vec<CusumRow> {
+    build_track(evidence, &track.records)
+        .iter()
+        .zip(&track.records)
+        .map(|(e, r)| CusumRow {
+            trajectory: trajectory_key(track_index, e.trajectory),
+            time_s: r.sample.timestamp_s,
+            valid: e.valid,
+            label: r.label.unwrap_or(false),
+            energy: e.energy,
+            trajectory_start: e.trajectory_start,
+        })
+        .collect()
+}
+
+/// Energy rows of tracks under fixed evidence parameters.
+fn cusum_rows(evidence: &EvidenceParams, tracks: &[Track]) -> Vec<CusumRow> {
+    tracks
+        .iter()
+        .enumerate()
+        .flat_map(|(index, track)| track_rows(evidence, index, track))
+        .collect()
+}
+
+/// Fits Σ̂, μ_e on `train` (at the default κ, ρ) and the CUSUM drift, threshold and persistence on
+/// `validation` by `rule` (a false-alarm budget counts events per attack-free hour of `validation`).
+pub fn fit_cusum_comparator(
+    train: &[Track],
+    validation: &[Track],
+    projection: Projection,
+    rule: OperatingPointRule,
+) -> Result<CusumComparator, ComparatorError> {
+    let (kappa, rho) = DEFAULT_KAPPA_RHO;
+    let fit = fit_evidence(train, projection, kappa, rho)?;
+    let rows = cusum_rows(&fit.params, validation);
+    let cusum = fit_cusum(
+        &rows,
+        fit.params.mu_e,
+        &DRIFT_GRID,
+        N_P_GRID,
+        EventRules::Spec,
+        rule,
+    )?
+    .params;
+    Ok(CusumComparator {
+        evidence: fit.params,
+        cusum,
+    })
+}
+
+impl CusumComparator {
+    /// The comparator's scores (S) and confirmed alarms over tracks, a fresh detector per track.
+    pub fn score_tracks(&self, tracks: &[Track]) -> Scored {
+        let mut scored = Scored::default();
+        for (index, track) in tracks.iter().enumerate() {
+            let rows = track_rows(&self.evidence, index, track);
+            let steps = run_cusum(&self.cusum, &rows);
+            scored.append(Scored {
+                rows: scored_rows(&rows, &steps),
+                alarms: steps.iter().map(|s| s.alarm).collect(),
+            });
+        }
+        scored
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::metrics::try_evaluate;
+
+    const BEST_F1: OperatingPointRule = OperatingPointRule::BestValidationF1;
 
     fn params(mu_e: f64, drift_k: f64, threshold_h: f64, n_p: u32) -> CusumParams {
         CusumParams {
@@ -438,7 +521,7 @@ mod tests {
         // k = 4, 8: S ≡ 0 → no threshold. Among h ∈ (0, 0.6] (identical alarms) the highest wins: the
         // first attack statistic itself.
         let rows = shifted_sequence();
-        let fit = fit_cusum_on_grid(&rows, 0.4, &DRIFT_GRID, N_P_GRID, EventRules::Spec, None)
+        let fit = fit_cusum(&rows, 0.4, &DRIFT_GRID, N_P_GRID, EventRules::Spec, BEST_F1)
             .expect("fittable");
         assert_eq!(fit.params.drift_k, 2.0);
         assert_eq!(fit.params.n_p, 1);
@@ -454,7 +537,8 @@ mod tests {
         assert_eq!(m.f1, 8.0 / 9.0);
         assert_eq!(m.delays_s, vec![Some(0.0)]);
         assert_eq!((m.false_alarm_rows, m.false_alarm_events), (5, 1));
-        assert_eq!(fit_cusum(&rows, 0.4), Some(fit.params));
+        let default_grids = fit_cusum(&rows, 0.4, &DRIFT_GRID, N_P_GRID, EventRules::Spec, BEST_F1);
+        assert_eq!(default_grids.map(|f| f.params), Ok(fit.params));
     }
 
     #[test]
@@ -462,15 +546,15 @@ mod tests {
         // The best-F1 fit above raises one false-alarm event (S decays for 5 s after the attack). With
         // no false alarm allowed, only thresholds above that tail (S ≤ 9.9 there) remain for k = 2.
         let rows = shifted_sequence();
-        let free = fit_cusum_on_grid(&rows, 0.4, &DRIFT_GRID, N_P_GRID, EventRules::Spec, None)
+        let free = fit_cusum(&rows, 0.4, &DRIFT_GRID, N_P_GRID, EventRules::Spec, BEST_F1)
             .expect("fittable");
-        let quiet = fit_cusum_on_grid(
+        let quiet = fit_cusum(
             &rows,
             0.4,
             &DRIFT_GRID,
             N_P_GRID,
             EventRules::Spec,
-            Some(0.0),
+            OperatingPointRule::WithinFalseAlarmBudget { per_hour: 0.0 },
         )
         .expect("a quiet threshold exists");
         assert_eq!(quiet.metrics.false_alarm_events, 0);
@@ -482,7 +566,7 @@ mod tests {
     #[test]
     fn fitted_detector_agrees_with_thresholding_its_statistic_and_scores_with_evaluate() {
         let rows = shifted_sequence();
-        let fit = fit_cusum_on_grid(&rows, 0.4, &DRIFT_GRID, N_P_GRID, EventRules::Spec, None)
+        let fit = fit_cusum(&rows, 0.4, &DRIFT_GRID, N_P_GRID, EventRules::Spec, BEST_F1)
             .expect("fittable");
         let steps = run_cusum(&fit.params, &rows);
         let scored = scored_rows(&rows, &steps);
@@ -515,7 +599,7 @@ mod tests {
     fn fitting_rejects_unusable_input() {
         let rows = shifted_sequence();
         let fit = |rows: &[CusumRow], mu_e: f64, drifts: &[f64]| {
-            fit_cusum_on_grid(rows, mu_e, drifts, N_P_GRID, EventRules::Spec, None)
+            fit_cusum(rows, mu_e, drifts, N_P_GRID, EventRules::Spec, BEST_F1)
         };
         assert!(matches!(
             fit(&rows, f64::NAN, &DRIFT_GRID),
@@ -528,7 +612,7 @@ mod tests {
         assert_eq!(fit(&rows, 0.4, &[]), Err(CusumError::EmptyDriftGrid));
         // Drift so large that S never leaves 0.
         assert_eq!(fit(&rows, 0.4, &[100.0]), Err(CusumError::NoThresholds));
-        assert_eq!(fit_cusum(&rows, f64::NAN), None);
+        assert!(fit(&rows, f64::NAN, &DRIFT_GRID).is_err());
         // A trajectory start without a key change, and a key change without a start flag.
         let mut extra_start = rows.clone();
         extra_start[10].trajectory_start = true;

@@ -1,11 +1,14 @@
 //! The streaming per-vehicle detector: evidence → scaled ξ → HO-LLN step → persistence alarm.
 //! The offline whole-trajectory pass (`run_records`) is this same step in a loop.
+//!
+//! Owns running a model artifact on a stream (one vehicle, one sample at a time). Must not train, score
+//! metrics or choose operating points.
 
 use std::sync::Arc;
 
 use crate::alarm::PersistenceAlarm;
-use crate::artifact::ModelArtifact;
 use crate::evidence::{Evidence, EvidenceBuilder, Features};
+use crate::model::artifact::ModelArtifact;
 use crate::model::{LiquidState, StepScratch};
 use crate::sample::{Record, Sample};
 

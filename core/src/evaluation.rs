@@ -1,12 +1,42 @@
-//! Scoring a trained detector on labelled tracks: per-row decisions and the metrics of SPEC §8.
+//! The one scoring path of every detector (SPEC §8): tracks → per-row scores and confirmed alarms
+//! ([`Scored`]) → metrics. HO-LLN is scored here ([`score_tracks`], [`evaluate_tracks`]); the CUSUM
+//! comparator produces the same [`Scored`] shape in [`crate::cusum`], and both use
+//! [`trajectory_key`], so the metrics see both detectors identically.
+//!
+//! Must not choose operating points (that is [`crate::alarm`]) or train anything.
 
 use std::sync::Arc;
 
-use crate::alarm::OperatingPoint;
-use crate::artifact::ModelArtifact;
 use crate::detector::{Decision, run_records};
 use crate::metrics::{EventRules, Metrics, ScoredRow, evaluate};
+use crate::model::artifact::ModelArtifact;
 use crate::sample::{Record, Track};
+
+/// The metrics' trajectory key of trajectory `trajectory` of the `track_index`-th track: unique per
+/// (track, trajectory), so trajectories of different tracks never merge.
+pub fn trajectory_key(track_index: usize, trajectory: u32) -> u64 {
+    ((track_index as u64) << 32) | u64::from(trajectory)
+}
+
+/// A detector's per-row scores and confirmed alarms over some tracks, row for row.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Scored {
+    pub rows: Vec<ScoredRow>,
+    pub alarms: Vec<bool>,
+}
+
+impl Scored {
+    /// The SPEC §8 metrics of these alarms.
+    pub fn metrics(&self, rules: EventRules) -> Metrics {
+        evaluate(&self.rows, &self.alarms, rules)
+    }
+
+    /// Appends `other`'s rows and alarms.
+    pub fn append(&mut self, other: Scored) {
+        self.rows.extend(other.rows);
+        self.alarms.extend(other.alarms);
+    }
+}
 
 /// One evaluated row.
 #[derive(Clone, Debug, PartialEq)]
@@ -28,23 +58,23 @@ pub struct Evaluation {
     pub rows: Vec<RowResult>,
 }
 
-/// The rows of one track as metric inputs. Trajectory keys are unique per (track, trajectory).
-pub fn scored_rows(
-    track_index: usize,
-    records: &[Record],
-    decisions: &[Decision],
-) -> Vec<ScoredRow> {
-    records
+/// The HO-LLN decisions of one track as scores (p̂) and alarms. Unlabelled rows count as normal.
+fn scored_track(track_index: usize, records: &[Record], decisions: &[Decision]) -> Scored {
+    let rows = records
         .iter()
         .zip(decisions)
         .map(|(record, d)| ScoredRow {
-            trajectory: ((track_index as u64) << 32) | u64::from(d.evidence.trajectory),
+            trajectory: trajectory_key(track_index, d.evidence.trajectory),
             time_s: record.sample.timestamp_s,
             valid: d.evidence.valid,
             label: record.label.unwrap_or(false),
             score: d.probability,
         })
-        .collect()
+        .collect();
+    Scored {
+        rows,
+        alarms: decisions.iter().map(|d| d.alarm).collect(),
+    }
 }
 
 /// Runs the detector over every track (a fresh session each) and scores it with `rules`.
@@ -55,18 +85,13 @@ pub fn evaluate_tracks(
     rules: EventRules,
 ) -> Evaluation {
     let mut rows = Vec::new();
-    let mut scored = Vec::new();
-    let mut alarms = Vec::new();
+    let mut scored = Scored::default();
     let mut per_vehicle = Vec::new();
     for (index, track) in tracks.iter().enumerate() {
         let decisions = run_records(artifact, &track.records);
-        let track_scored = scored_rows(index, &track.records, &decisions);
-        let track_alarms: Vec<bool> = decisions.iter().map(|d| d.alarm).collect();
+        let track_scored = scored_track(index, &track.records, &decisions);
         if tracks.len() > 1 {
-            per_vehicle.push((
-                track.vehicle_id.clone(),
-                evaluate(&track_scored, &track_alarms, rules),
-            ));
+            per_vehicle.push((track.vehicle_id.clone(), track_scored.metrics(rules)));
         }
         rows.extend(
             track
@@ -81,27 +106,21 @@ pub fn evaluate_tracks(
                     decision: *d,
                 }),
         );
-        scored.extend(track_scored);
-        alarms.extend(track_alarms);
+        scored.append(track_scored);
     }
     Evaluation {
-        overall: evaluate(&scored, &alarms, rules),
+        overall: scored.metrics(rules),
         per_vehicle,
         rows,
     }
 }
 
-/// Probabilities of a detector over tracks as metric rows (the operating point does not matter).
-pub fn score_tracks(artifact: &Arc<ModelArtifact>, tracks: &[Track]) -> Vec<ScoredRow> {
-    tracks
-        .iter()
-        .enumerate()
-        .flat_map(|(i, t)| scored_rows(i, &t.records, &run_records(artifact, &t.records)))
-        .collect()
-}
-
-/// Metrics of already-scored rows at an operating point.
-pub fn metrics_at(rows: &[ScoredRow], op: OperatingPoint, rules: EventRules) -> Metrics {
-    let alarms = crate::alarm::confirmed_alarms(rows, op);
-    evaluate(rows, &alarms, rules)
+/// The detector's scores (p̂) and alarms (at the artifact's operating point) over tracks.
+pub fn score_tracks(artifact: &Arc<ModelArtifact>, tracks: &[Track]) -> Scored {
+    let mut scored = Scored::default();
+    for (index, track) in tracks.iter().enumerate() {
+        let decisions = run_records(artifact, &track.records);
+        scored.append(scored_track(index, &track.records, &decisions));
+    }
+    scored
 }

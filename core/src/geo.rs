@@ -1,8 +1,9 @@
-//! Local east/north displacements between GNSS fixes (SPEC §4).
+//! All geodesy of the crate: local east/north displacements between GNSS fixes (SPEC §4) and the
+//! inverse, moving a fix by metres (used by the scenarios).
 //!
 //! Two projections: the default WGS-84 local form (meridian and prime-vertical radii at the previous
 //! fix) and the reference code's spherical equirectangular form (REFERENCE-NOTES §2.1), which the
-//! parity tests use.
+//! parity tests use. Must not know about samples, evidence or tracks.
 
 use serde::{Deserialize, Serialize};
 
@@ -97,6 +98,34 @@ pub fn wgs84_radii(lat_deg: f64) -> (f64, f64) {
     (meridian, prime_vertical)
 }
 
+/// Moves a fix by `east_m`/`north_m` using the WGS-84 radii at the fix (the inverse of
+/// [`wgs84_local_displacement`] to rounding); returns (lat, lon) in degrees, longitude wrapped into
+/// [-180, 180). The latitude is NOT clamped: callers check it. Against a true geodesic the error grows
+/// with the offset squared (a few cm at 1 km, far below GNSS noise).
+pub fn displace_fix(
+    latitude_deg: f64,
+    longitude_deg: f64,
+    east_m: f64,
+    north_m: f64,
+) -> (f64, f64) {
+    let (meridian, prime_vertical) = wgs84_radii(latitude_deg);
+    let d_lat = (north_m / meridian).to_degrees();
+    let d_lon = (east_m / (prime_vertical * latitude_deg.to_radians().cos())).to_degrees();
+    (
+        latitude_deg + d_lat,
+        wrap_longitude_deg(longitude_deg + d_lon),
+    )
+}
+
+/// Wraps a longitude into [-180, 180); values already inside are returned bit-identical.
+fn wrap_longitude_deg(longitude_deg: f64) -> f64 {
+    if (-180.0..180.0).contains(&longitude_deg) {
+        longitude_deg
+    } else {
+        (longitude_deg + 180.0).rem_euclid(360.0) - 180.0
+    }
+}
+
 /// An angle difference in degrees, wrapped into (−180, 180] so the antimeridian is not a jump.
 fn wrap_degrees(d: f64) -> f64 {
     if (-180.0..=180.0).contains(&d) {
@@ -188,5 +217,31 @@ mod tests {
         assert_eq!(json, "\"equirectangular\"");
         let back: Projection = serde_json::from_str("\"wgs84_local\"").expect("deserialise");
         assert_eq!(back, Projection::Wgs84Local);
+    }
+
+    #[test]
+    fn radii_at_the_equator_and_pole_match_the_closed_forms() {
+        // Equator: M = a(1-e²), N = a. Pole: M = N = a/sqrt(1-e²).
+        let (m, n) = wgs84_radii(0.0);
+        assert!((m - 6_335_439.327_083).abs() < 1e-3, "{m}");
+        assert!((n - 6_378_137.0).abs() < 1e-6, "{n}");
+        let (m, n) = wgs84_radii(90.0);
+        assert!((m - 6_399_593.625_864).abs() < 1e-3, "{m}");
+        assert!((n - 6_399_593.625_864).abs() < 1e-3, "{n}");
+    }
+
+    #[test]
+    fn displacing_at_the_equator_moves_by_the_hand_computed_angles() {
+        let (lat, lon) = displace_fix(0.0, 10.0, 100.0, 200.0);
+        assert!((lat - (200.0 / 6_335_439.327_083_f64).to_degrees()).abs() < 1e-12);
+        assert!((lon - 10.0 - (100.0 / 6_378_137.0_f64).to_degrees()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn longitude_wraps_across_the_antimeridian() {
+        let (_, lon) = displace_fix(0.0, 179.9999, 50.0, 0.0);
+        assert!(lon < -179.999, "{lon}");
+        assert_eq!(wrap_longitude_deg(-110.91), -110.91);
+        assert!((wrap_longitude_deg(190.0) + 170.0).abs() < 1e-12);
     }
 }

@@ -2,11 +2,17 @@
 //!
 //! Everything here is streaming-first: per-vehicle builders are fed one sample at a time, and whole
 //! recorded trajectories go through the very same code. No async, no I/O beyond readers handed in.
-//! `../shared/docs/SPEC.md` (in the repository's sibling `shared/`) is the specification.
+//!
+//! "SPEC §n" in this crate refers to section n of the detector specification, `docs/detector.md` in
+//! this repository.
+//!
+//! Where things live: samples and their parsing ([`sample`], [`data`]) → evidence ([`evidence`],
+//! [`geo`]) → the model and its artifact ([`model`], [`model::artifact`]) → running it on a stream
+//! ([`detector`]) → alarms and operating points ([`alarm`]) → scoring and metrics ([`evaluation`],
+//! [`metrics`]). Training is one use case ([`train::detector::train_detector`]); the classical
+//! comparator is [`cusum`]; labelled attack scenarios are [`scenario`].
 
 pub mod alarm;
-pub mod artifact;
-pub mod comparator;
 pub mod cusum;
 pub mod data;
 pub mod detector;
@@ -15,9 +21,9 @@ pub mod evidence;
 pub mod geo;
 pub mod metrics;
 pub mod model;
-pub mod pipeline;
 pub mod rng;
 pub mod sample;
 pub mod scenario;
+#[cfg(feature = "test-support")]
 pub mod testdata;
 pub mod train;

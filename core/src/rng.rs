@@ -2,6 +2,9 @@
 //!
 //! Hand-written on purpose: training and scenarios must be bit-for-bit reproducible from a seed,
 //! independent of any dependency's stream-stability policy across versions.
+//!
+//! Owns the seeded random streams every reproducible result draws from. Must not read the clock or
+//! the OS (results depend only on seeds).
 
 /// Deterministic pseudo-random generator.
 #[derive(Clone, Debug)]

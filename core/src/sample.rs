@@ -1,4 +1,7 @@
 //! The input sample (SPEC §2) and labelled recorded rows.
+//!
+//! Owns the sample/record/track types and their validity checks. Must not depend on any other module of
+//! the crate.
 
 use serde::{Deserialize, Serialize};
 

@@ -3,6 +3,9 @@
 //! Tests that need them call [`data_file`]. When the environment variable is unset they are skipped
 //! (a line on stderr says so); when it is set, a missing file fails the test. A relative directory is
 //! resolved against the workspace root, because cargo runs tests with the crate directory as cwd.
+//!
+//! Compiled only with the `test-support` feature (tests' dev-dependencies); must not be used by
+//! production code.
 
 use std::path::PathBuf;
 
@@ -41,4 +44,24 @@ pub fn data_file(var: &str, name: &str) -> Option<PathBuf> {
         path.display()
     );
     Some(path)
+}
+
+/// `count` synthetic ξ rows for model tests and benchmarks: the first 8 entries `scale` × N(0, 1) from
+/// `rng`, ν = 1.
+pub fn random_features(
+    rng: &mut crate::rng::Rng,
+    count: usize,
+    scale: f64,
+) -> Vec<crate::evidence::Features> {
+    use crate::evidence::FEATURE_COUNT;
+    (0..count)
+        .map(|_| {
+            let mut x = [0.0; FEATURE_COUNT];
+            for value in &mut x[..FEATURE_COUNT - 1] {
+                *value = scale * rng.normal();
+            }
+            x[FEATURE_COUNT - 1] = 1.0;
+            x
+        })
+        .collect()
 }

@@ -6,19 +6,20 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
 use spoofwatch_core::alarm::{OperatingPoint, PersistenceAlarm};
-use spoofwatch_core::artifact::{
-    ARTIFACT_SCHEMA_VERSION, ArtifactError, ModelArtifact, Provenance,
-};
 use spoofwatch_core::detector::{Detector, run_records};
 use spoofwatch_core::geo::Projection;
-use spoofwatch_core::model::{LiquidState, Model, ModelConfig};
-use spoofwatch_core::pipeline::{
-    DetectorTrainingOptions, SplitFractions, fit_evidence, sequences, split_chronologically,
-    train_detector, trajectory_ranges,
+use spoofwatch_core::model::artifact::{
+    ARTIFACT_SCHEMA_VERSION, ArtifactError, ModelArtifact, Provenance,
 };
+use spoofwatch_core::model::{LiquidState, Model, ModelConfig};
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
 use spoofwatch_core::train::TrainConfig;
+use spoofwatch_core::train::data::{
+    fit_evidence, sequences, split_chronologically, trajectory_ranges,
+};
+use spoofwatch_core::train::detector::{TrainingData, train_detector};
+use spoofwatch_core::train::spec::{SplitFractions, TrainingSpec};
 
 fn drive(seed: u64, seconds: f64) -> Track {
     let spec = DriveSpec {
@@ -177,7 +178,7 @@ fn a_small_training_job_learns_a_frozen_position_attack_and_calibrates_an_operat
     let frozen = |seed| attacked_with(seed, AttackKind::FrozenPosition);
     let train: Vec<Track> = (20..24).map(frozen).collect();
     let validation: Vec<Track> = (30..32).map(frozen).collect();
-    let options = DetectorTrainingOptions {
+    let spec = TrainingSpec {
         model: ModelConfig {
             d_s: 8,
             d_zeta: 8,
@@ -188,17 +189,15 @@ fn a_small_training_job_learns_a_frozen_position_attack_and_calibrates_an_operat
             max_epochs: 30,
             ..TrainConfig::default()
         },
-        ..DetectorTrainingOptions::default()
+        ..TrainingSpec::default()
+    };
+    let data = || TrainingData::Explicit {
+        train: train.clone(),
+        validation: validation.clone(),
     };
     let mut epochs = 0;
-    let trained = train_detector(
-        &train,
-        &validation,
-        &options,
-        &mut |_| epochs += 1,
-        &AtomicBool::new(false),
-    )
-    .expect("trains");
+    let trained = train_detector(&spec, data(), &mut |_| epochs += 1, &AtomicBool::new(false))
+        .expect("trains");
     assert_eq!(epochs, trained.history.len());
     assert!(!trained.cancelled);
     let auroc = trained.validation.auroc.expect("both classes");
@@ -206,14 +205,8 @@ fn a_small_training_job_learns_a_frozen_position_attack_and_calibrates_an_operat
     let op = trained.artifact.operating_point;
     assert!(op.theta > 0.0 && op.theta < 1.0 && (1..=10).contains(&op.n_p));
     // The whole fit is reproducible.
-    let again = train_detector(
-        &train,
-        &validation,
-        &options,
-        &mut |_| {},
-        &AtomicBool::new(false),
-    )
-    .expect("trains");
+    let again =
+        train_detector(&spec, data(), &mut |_| {}, &AtomicBool::new(false)).expect("trains");
     assert_eq!(again.artifact.model, trained.artifact.model);
     let fit = fit_evidence(&train, Projection::Wgs84Local, 0.0, 0.98).expect("fits");
     assert_eq!(sequences(&fit, &train).len(), train.len());

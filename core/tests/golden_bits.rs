@@ -6,8 +6,8 @@
 
 use std::sync::atomic::AtomicBool;
 
-use spoofwatch_core::artifact::ModelArtifact;
-use spoofwatch_core::evidence::{FEATURE_COUNT, Features};
+use spoofwatch_core::evidence::Features;
+use spoofwatch_core::model::artifact::ModelArtifact;
 use spoofwatch_core::model::{LiquidState, ModelConfig};
 use spoofwatch_core::rng::Rng;
 use spoofwatch_core::train::{Sequence, TrainConfig, train};
@@ -25,16 +25,7 @@ fn fingerprint(values: impl IntoIterator<Item = f64>) -> u64 {
 }
 
 fn seeded_features(rng: &mut Rng, count: usize) -> Vec<Features> {
-    (0..count)
-        .map(|_| {
-            let mut x = [0.0; FEATURE_COUNT];
-            for value in &mut x[..FEATURE_COUNT - 1] {
-                *value = 2.0 * rng.normal();
-            }
-            x[FEATURE_COUNT - 1] = 1.0;
-            x
-        })
-        .collect()
+    spoofwatch_core::testdata::random_features(rng, count, 2.0)
 }
 
 #[test]

@@ -4,8 +4,8 @@
 //! the server chooses codes for subsystem errors; this module must not hold any logic.
 
 use prost::Message;
-use spoofwatch_core::pipeline::TrainDetectorError;
 use spoofwatch_core::train::TrainError;
+use spoofwatch_core::train::detector::TrainDetectorError;
 use tonic::{Code, Status};
 use tonic_types::{ErrorDetails, FieldViolation, StatusExt};
 
@@ -200,16 +200,14 @@ impl From<JobFailure> for Status {
 /// Training's own failures: the data's fault, a missing precondition, or ours.
 fn training_status(error: TrainDetectorError) -> Status {
     match &error {
-        TrainDetectorError::NoOperatingPoint => {
+        TrainDetectorError::NoOperatingPoint | TrainDetectorError::OverBudget(_) => {
             failed_precondition("NO_OPERATING_POINT", error.to_string())
         }
         TrainDetectorError::Train(TrainError::Diverged { .. }) => {
             failed_precondition("TRAINING_DIVERGED", error.to_string())
         }
-        TrainDetectorError::Train(TrainError::Model(_)) | TrainDetectorError::NoCandidates => {
-            internal("training a model", &error)
-        }
-        TrainDetectorError::Pipeline(_) | TrainDetectorError::Train(_) => {
+        TrainDetectorError::Train(TrainError::Model(_)) => internal("training a model", &error),
+        TrainDetectorError::Data(_) | TrainDetectorError::Train(_) => {
             invalid_field("datasets", error.to_string())
         }
     }

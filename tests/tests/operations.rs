@@ -4,10 +4,10 @@
 use std::sync::Arc;
 
 use prost::Message;
-use spoofwatch_core::artifact::ModelArtifact;
 use spoofwatch_core::data::read;
 use spoofwatch_core::evaluation::evaluate_tracks;
 use spoofwatch_core::metrics::EventRules;
+use spoofwatch_core::model::artifact::ModelArtifact;
 use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::longrunning::{self, operation};
 use spoofwatch_proto::v1;

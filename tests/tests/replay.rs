@@ -3,11 +3,11 @@
 
 use std::sync::Arc;
 
-use spoofwatch_core::artifact::ModelArtifact;
 use spoofwatch_core::data::read_path;
 use spoofwatch_core::detector::run_records;
 use spoofwatch_core::evaluation::evaluate_tracks;
 use spoofwatch_core::metrics::EventRules;
+use spoofwatch_core::model::artifact::ModelArtifact;
 use spoofwatch_core::testdata::{AVGPS_DIR_VAR, data_file};
 use spoofwatch_tests::{
     Clients, DetectStream, TestServer, active_model, export_model, test_config, track_samples,

@@ -3,9 +3,10 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
-use spoofwatch_core::comparator::{fit_cusum_comparator, score_cusum};
-use spoofwatch_core::metrics::evaluate;
-use spoofwatch_core::pipeline::{SplitFractions, split_chronologically};
+use spoofwatch_core::alarm::OperatingPointRule;
+use spoofwatch_core::cusum::fit_cusum_comparator;
+use spoofwatch_core::train::data::split_chronologically;
+use spoofwatch_core::train::spec::SplitFractions;
 
 use super::{ProjectionArg, RulesArg, write_json};
 use crate::input::load_tracks;
@@ -40,11 +41,15 @@ pub fn run(args: Args) -> Result<()> {
     } else {
         (train, load_tracks(&args.val)?)
     };
-    let comparator = fit_cusum_comparator(&fit_tracks, &val_tracks, args.projection.into(), None)
-        .context("fitting the CUSUM comparator")?;
+    let comparator = fit_cusum_comparator(
+        &fit_tracks,
+        &val_tracks,
+        args.projection.into(),
+        OperatingPointRule::BestValidationF1,
+    )
+    .context("fitting the CUSUM comparator")?;
     let data = load_tracks(&args.data)?;
-    let (rows, alarms) = score_cusum(&comparator, &data);
-    let metrics = evaluate(&rows, &alarms, args.rules.into());
+    let metrics = comparator.score_tracks(&data).metrics(args.rules.into());
     let c = &comparator.cusum;
     println!(
         "CUSUM: mu_e = {:.4}, drift k = {}, threshold h = {:.4}, N_p = {}",

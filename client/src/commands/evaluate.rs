@@ -4,8 +4,8 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
-use spoofwatch_core::artifact::ModelArtifact;
 use spoofwatch_core::evaluation::{Evaluation, evaluate_tracks};
+use spoofwatch_core::model::artifact::ModelArtifact;
 
 use super::{RulesArg, write_json};
 use crate::input::load_tracks;

@@ -4,9 +4,9 @@ use std::io::Write;
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
-use spoofwatch_core::artifact::ModelArtifact;
 use spoofwatch_core::evidence::{EvidenceParams, build_track};
-use spoofwatch_core::pipeline::fit_evidence;
+use spoofwatch_core::model::artifact::ModelArtifact;
+use spoofwatch_core::train::data::fit_evidence;
 
 use super::ProjectionArg;
 use crate::input::load_tracks;

@@ -8,6 +8,7 @@ mod experiment;
 mod remote;
 mod scenario;
 mod train;
+mod training_flags;
 
 #[cfg(test)]
 mod tests;

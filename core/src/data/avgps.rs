@@ -1,5 +1,7 @@
 //! AV-GPS dataset files (REFERENCE-NOTES §1.2–1.5, §8): one vehicle per file, time from the clock
 //! with a Run Time fallback, trajectory breaks by the reference's boundary rule.
+//!
+//! Owns the AV-GPS column mapping. Must not validate samples beyond parsing (that is `sample.rs`).
 
 use std::io::Read;
 

@@ -1,4 +1,7 @@
 //! Recorded data: AV-GPS CSVs and the plain telemetry CSV, told apart by their header (SPEC §2–3).
+//!
+//! Owns reading recorded files into tracks. Must not compute evidence or labels beyond what the files
+//! say.
 
 pub mod avgps;
 pub mod telemetry;

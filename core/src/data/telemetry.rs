@@ -1,4 +1,6 @@
 //! The plain telemetry CSV: `vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg[,label]`.
+//!
+//! Owns the telemetry CSV column mapping. Must not validate samples beyond parsing.
 
 use std::collections::HashMap;
 use std::io::{Read, Write};

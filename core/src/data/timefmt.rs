@@ -1,5 +1,7 @@
 //! The AV-GPS time formats (REFERENCE-NOTES §1.4): `H:MM:SS` durations (hours may exceed 24),
 //! `H:MM:SS` 24-hour clock times and month-first `M/D/YYYY` dates. Empty text is `None`.
+//!
+//! Owns timestamp parsing. Must not know about file formats.
 
 /// Seconds of an `H:MM:SS[.fff]` duration.
 pub fn parse_duration(text: &str) -> Result<Option<f64>, String> {

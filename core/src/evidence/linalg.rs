@@ -1,4 +1,6 @@
 //! 2×2 symmetric matrix helpers for Σ and Σ^{-1/2} (closed form: no allocation, no iteration).
+//!
+//! Owns the 2×2 linear algebra of the evidence. Must not know about samples.
 
 /// A 2×2 matrix, row-major: `m[row][column]`.
 pub type Mat2 = [[f64; 2]; 2];

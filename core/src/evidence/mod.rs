@@ -1,4 +1,7 @@
 //! Causal evidence ξ_t (SPEC §4): the streaming builder, training statistics and the robust scaler.
+//!
+//! Owns evidence ξ_t (SPEC §4): builder, parameters, statistics, scaler. Must not know about models,
+//! alarms or training.
 
 mod builder;
 pub mod linalg;

@@ -1,4 +1,6 @@
 //! Evidence parameters: the training statistics Σ̂ and μ_e, κ, ρ and the projection (SPEC §4).
+//!
+//! Owns the evidence parameters and their validation. Must not build evidence.
 
 use serde::{Deserialize, Serialize};
 

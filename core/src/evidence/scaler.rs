@@ -1,4 +1,6 @@
 //! The label-free robust scaler of ξ's first 8 components (SPEC §4, REFERENCE-NOTES §2.9).
+//!
+//! Owns the robust feature scaler. Must not build evidence.
 
 use serde::{Deserialize, Serialize};
 

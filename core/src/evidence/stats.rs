@@ -1,5 +1,7 @@
 //! Training statistics Σ̂ and μ_e from normal rows (SPEC §4, REFERENCE-NOTES §2.5), and the numpy/pandas
 //! order statistics they and the scaler need.
+//!
+//! Owns the normal-row statistics Σ̂ and μ_e. Must not scale features (that is `scaler.rs`).
 
 use serde::{Deserialize, Serialize};
 

@@ -3,11 +3,13 @@
 //! Loss (SPEC §6, as the reference): weighted binary cross-entropy in logit form on the masked (ν = 1)
 //! rows, `L = Σ_masked w_t·ℓ(z_t, y_t) / N_masked`. The incoming state of a window is a constant:
 //! gradients stop at window boundaries (truncated BPTT).
+//!
+//! Owns the gradients of one training window. Must not update parameters (that is `train/optim.rs`).
 
 use super::fastmath::sigmoid;
 use super::forward::{PAIRS, StepScratch};
 use super::linalg::{affine_backward, axpy, sign};
-use super::{LiquidState, Model, ModelConfig, ModelError, Params};
+use super::{LiquidState, Model, ModelConfig, ModelError, Params, check_lengths};
 use crate::evidence::Features;
 
 /// Weighted BCE with logits, `w·(max(z,0) − z·y + ln(1 + e^{−|z|}))` (log-sum-exp stable).
@@ -39,22 +41,15 @@ pub struct TrainingWindow<'a> {
 
 impl TrainingWindow<'_> {
     fn validate(&self) -> Result<(), ModelError> {
-        let expected = self.features.len();
-        for (field, found) in [
-            ("deltas", self.deltas.len()),
-            ("labels", self.labels.len()),
-            ("mask", self.mask.len()),
-            ("weights", self.weights.len()),
-        ] {
-            if found != expected {
-                return Err(ModelError::LengthMismatch {
-                    field,
-                    expected,
-                    found,
-                });
-            }
-        }
-        Ok(())
+        check_lengths(
+            self.features.len(),
+            &[
+                ("deltas", self.deltas.len()),
+                ("labels", self.labels.len()),
+                ("mask", self.mask.len()),
+                ("weights", self.weights.len()),
+            ],
+        )
     }
 }
 
@@ -134,13 +129,7 @@ impl Model {
         deltas: &[f64],
         state: &mut LiquidState,
     ) -> Result<Vec<f64>, ModelError> {
-        if deltas.len() != xs.len() {
-            return Err(ModelError::LengthMismatch {
-                field: "deltas",
-                expected: xs.len(),
-                found: deltas.len(),
-            });
-        }
+        check_lengths(xs.len(), &[("deltas", deltas.len())])?;
         self.check_state(state)?;
         let mut scratch = StepScratch::new(&self.config);
         Ok(xs

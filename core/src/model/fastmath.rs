@@ -6,6 +6,8 @@
 //! break bit-for-bit reproducibility of training across machines. These use Cody–Waite range reduction
 //! and a degree-13 Taylor polynomial (truncation < 1e-17 on |r| ≤ ln2/2); accuracy is within a few ulp
 //! of the correctly rounded result (tests bound it against std). Results below e^−708 flush to 0.
+//!
+//! Owns the scalar/lane math functions the kernels use. Must not depend on the model types.
 
 const LOG2_E: f64 = std::f64::consts::LOG2_E;
 /// ln 2 split so that `k · LN2_HI` is exact for |k| < 2^11 (fdlibm constants).

@@ -2,6 +2,9 @@
 //!
 //! Serving and training run this same function: `Model::step` keeps one `StepScratch` per caller and
 //! overwrites it, training keeps one per time step of a window (its tape).
+//!
+//! Owns the forward arithmetic of one step. Must not allocate per step or keep gradients (that is
+//! `backward.rs`).
 
 use super::fastmath::{exp_in_place, expm1_in_place, sigmoid, sigmoid_in_place, tanh_in_place};
 use super::linalg::{affine, dot};

@@ -3,6 +3,8 @@
 //! A plain `sum += a[i] * b[i]` loop cannot be vectorised (f64 addition is not associative), so `dot`
 //! keeps `LANES` independent partial sums per row; the summation order is fixed, hence results are reproducible.
 //! `axpy`-shaped loops (`y[i] += a * x[i]`) vectorise as they are.
+//!
+//! Owns the dense kernels of the model. Must not change their operation order: golden-bit tests pin it.
 
 use wide::f64x4;
 

@@ -4,7 +4,11 @@
 //!
 //! Input: already-scaled ξ vectors ([`Features`], order [`crate::evidence::FEATURE_NAMES`], ν last) and
 //! the time step δ_t in seconds.
+//!
+//! Owns the model: configuration, parameters, forward/backward and the artifact ([`artifact`]). Must
+//! not know about tracks, evidence building, training loops or alarms.
 
+pub mod artifact;
 mod backward;
 mod fastmath;
 mod forward;
@@ -117,6 +121,18 @@ pub enum ModelError {
     },
 }
 
+/// Every per-step input of a sequence has one entry per feature row (`expected` of them).
+fn check_lengths(expected: usize, inputs: &[(&'static str, usize)]) -> Result<(), ModelError> {
+    match inputs.iter().find(|(_, found)| *found != expected) {
+        Some(&(field, found)) => Err(ModelError::LengthMismatch {
+            field,
+            expected,
+            found,
+        }),
+        None => Ok(()),
+    }
+}
+
 /// Which evidence groups reach the encoders (SPEC §5 ablations). Removed inputs are set to 0 before the
 /// encoders, so shapes stay fixed; a role whose inputs are all removed has the constant state σ(b).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -138,6 +154,32 @@ pub enum FeatureGroups {
 }
 
 impl FeatureGroups {
+    /// Every variant with its name on the command line and on the wire (`TrainingSpec.features`).
+    pub const NAMED: [(&'static str, FeatureGroups); 6] = [
+        ("all", Self::All),
+        ("no-accumulation", Self::NoAccumulation),
+        ("no-evolution", Self::NoEvolution),
+        ("no-evolution-no-q", Self::NoEvolutionNoQ),
+        ("low-order-only", Self::LowOrderOnly),
+        ("validity-only", Self::ValidityOnly),
+    ];
+
+    /// The variant's name in [`Self::NAMED`].
+    pub fn name(self) -> &'static str {
+        Self::NAMED
+            .iter()
+            .find(|(_, groups)| *groups == self)
+            .map_or("all", |(name, _)| name)
+    }
+
+    /// The variant named `name` in [`Self::NAMED`].
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::NAMED
+            .iter()
+            .find(|(n, _)| *n == name)
+            .map(|(_, groups)| *groups)
+    }
+
     /// For each ξ index (order of `FEATURE_NAMES`), whether the input is kept.
     pub fn kept(self) -> [bool; FEATURE_COUNT] {
         // η_E η_N η̇_E η̇_N η̈_E η̈_N q ã ν
@@ -376,13 +418,7 @@ impl Model {
         deltas: &[f64],
         state: &mut LiquidState,
     ) -> Result<Vec<f64>, ModelError> {
-        if deltas.len() != xs.len() {
-            return Err(ModelError::LengthMismatch {
-                field: "deltas",
-                expected: xs.len(),
-                found: deltas.len(),
-            });
-        }
+        check_lengths(xs.len(), &[("deltas", deltas.len())])?;
         let mut scratch = StepScratch::new(&self.config);
         Ok(xs
             .iter()

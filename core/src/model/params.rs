@@ -3,6 +3,9 @@
 //! Storage is plain row-major `Vec<f64>`: at these sizes (≤ 64×128) hand-written loops are simpler than
 //! nalgebra views, allocation-free in the serving path, and give a summation order we control (which keeps
 //! training bit-for-bit reproducible).
+//!
+//! Owns the parameter tensors, their layout and initialisation. Must not compute forward or backward
+//! passes.
 
 use serde::{Deserialize, Serialize};
 

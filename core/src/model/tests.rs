@@ -1,3 +1,5 @@
+//! Unit tests of the model: shapes, the step/sequence equivalence and the hand-derived gradients.
+
 use super::*;
 use crate::evidence::FEATURE_COUNT;
 

@@ -1,11 +1,14 @@
 //! Attack kinds, attack specs and injection into a normal track.
+//!
+//! Owns attack kinds and their injection. Must not plan scenario sets (that is `plan.rs`).
 
 use serde::{Deserialize, Serialize};
 
 use super::{
     DRIFT_ACCELERATION_RANGE_MPS2, JUMP_OFFSET_RANGE_M, MAX_STEP_S, RAMP_VELOCITY_RANGE_MPS,
-    ScenarioError, bearing_unit, compact, displace_fix,
+    ScenarioError, bearing_unit, compact,
 };
+use crate::geo::displace_fix;
 use crate::sample::{Record, Track};
 
 /// What the spoofer does to the GNSS position during the attack window (SPEC §9).

@@ -5,10 +5,13 @@
 //! evolve smoothly. Targets come from a seeded maneuver planner (cruise at a new speed, turn, stop).
 //! The planner and the sensor noise draw from separate streams of the seed, so changing a noise level
 //! keeps the same ground truth.
+//!
+//! Owns simulated drives. Must not inject attacks (that is `attack.rs`).
 
 use serde::{Deserialize, Serialize};
 
-use super::{ScenarioError, bearing_unit, displace_fix};
+use super::{ScenarioError, bearing_unit};
+use crate::geo::displace_fix;
 use crate::rng::Rng;
 use crate::sample::{MAX_SPEED_MPS, Record, Sample, Track};
 

@@ -4,10 +4,9 @@
 //! is trained and judged on attacks injected here: into real normal trajectories ([`inject`], [`generate`])
 //! and into simulated drives ([`simulate_drive`]). Everything is deterministic from seeds.
 //!
-//! Geodesy: offsets in metres east/north become latitude/longitude through the WGS-84 meridian and
-//! prime-vertical radii at the fix being displaced (`displace_fix`, a private copy until `core::geo`
-//! lands). Converting back with the same radii at the same fix recovers the metres to rounding; against
-//! a true geodesic the error grows with the offset squared (a few cm at 1 km, far below GNSS noise).
+//! Geodesy (metres east/north → latitude/longitude) is [`crate::geo::displace_fix`]. This module owns
+//! attack kinds, injection, scenario plans and simulated drives; it must not compute evidence or run a
+//! detector (tests and experiments do that with the scenarios it returns).
 
 mod attack;
 mod drive;
@@ -125,46 +124,6 @@ pub enum ScenarioError {
     },
 }
 
-/// WGS-84 semi-major axis (m).
-const WGS84_A_M: f64 = 6_378_137.0;
-/// WGS-84 first eccentricity squared.
-const WGS84_E2: f64 = 6.694_379_990_141_316e-3;
-
-/// WGS-84 (meridian, prime-vertical) radii of curvature in metres at a latitude.
-pub(crate) fn wgs84_local_radii_m(latitude_deg: f64) -> (f64, f64) {
-    let sin_lat = latitude_deg.to_radians().sin();
-    let w2 = 1.0 - WGS84_E2 * sin_lat * sin_lat;
-    let meridian = WGS84_A_M * (1.0 - WGS84_E2) / (w2 * w2.sqrt());
-    let prime_vertical = WGS84_A_M / w2.sqrt();
-    (meridian, prime_vertical)
-}
-
-/// Moves a fix by `east_m`/`north_m` using the WGS-84 local radii at the fix; returns (lat, lon) in
-/// degrees, longitude wrapped into [-180, 180). The latitude is NOT clamped: callers check it.
-pub(crate) fn displace_fix(
-    latitude_deg: f64,
-    longitude_deg: f64,
-    east_m: f64,
-    north_m: f64,
-) -> (f64, f64) {
-    let (meridian, prime_vertical) = wgs84_local_radii_m(latitude_deg);
-    let d_lat = (north_m / meridian).to_degrees();
-    let d_lon = (east_m / (prime_vertical * latitude_deg.to_radians().cos())).to_degrees();
-    (
-        latitude_deg + d_lat,
-        wrap_longitude_deg(longitude_deg + d_lon),
-    )
-}
-
-/// Wraps a longitude into [-180, 180); values already inside are returned bit-identical.
-fn wrap_longitude_deg(longitude_deg: f64) -> f64 {
-    if (-180.0..180.0).contains(&longitude_deg) {
-        longitude_deg
-    } else {
-        (longitude_deg + 180.0).rem_euclid(360.0) - 180.0
-    }
-}
-
 /// Unit vector (east, north) of a bearing in degrees clockwise from north.
 fn bearing_unit(direction_deg: f64) -> (f64, f64) {
     let rad = direction_deg.to_radians();
@@ -206,32 +165,6 @@ pub fn normal_runs(track: &crate::sample::Track) -> Vec<crate::sample::Track> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn radii_at_the_equator_and_pole_match_the_closed_forms() {
-        // Equator: M = a(1-e²), N = a. Pole: M = N = a/sqrt(1-e²).
-        let (m, n) = wgs84_local_radii_m(0.0);
-        assert!((m - 6_335_439.327_083).abs() < 1e-3, "{m}");
-        assert!((n - 6_378_137.0).abs() < 1e-6, "{n}");
-        let (m, n) = wgs84_local_radii_m(90.0);
-        assert!((m - 6_399_593.625_864).abs() < 1e-3, "{m}");
-        assert!((n - 6_399_593.625_864).abs() < 1e-3, "{n}");
-    }
-
-    #[test]
-    fn displacing_at_the_equator_moves_by_the_hand_computed_angles() {
-        let (lat, lon) = displace_fix(0.0, 10.0, 100.0, 200.0);
-        assert!((lat - (200.0 / 6_335_439.327_083_f64).to_degrees()).abs() < 1e-12);
-        assert!((lon - 10.0 - (100.0 / 6_378_137.0_f64).to_degrees()).abs() < 1e-12);
-    }
-
-    #[test]
-    fn longitude_wraps_across_the_antimeridian() {
-        let (_, lon) = displace_fix(0.0, 179.9999, 50.0, 0.0);
-        assert!(lon < -179.999, "{lon}");
-        assert_eq!(wrap_longitude_deg(-110.91), -110.91);
-        assert!((wrap_longitude_deg(190.0) + 170.0).abs() < 1e-12);
-    }
 
     #[test]
     fn normal_runs_split_at_spoofed_rows_and_start_trajectories() {

@@ -1,4 +1,6 @@
 //! Scenario sets: a grid of attacks injected into every base track, placed from a seed.
+//!
+//! Owns scenario grids and their seeded placement. Must not alter samples itself (it calls `inject`).
 
 use serde::{Deserialize, Serialize};
 

@@ -1,3 +1,11 @@
+//! Training: the use case and the HO-LLN optimiser behind it.
+//!
+//! - [`spec`]: what a training job is asked to do ([`spec::TrainingSpec`], its defaults).
+//! - [`data`]: from labelled tracks to model-ready sequences (split, evidence fit, sequences).
+//! - [`detector`]: the one use case, [`detector::train_detector`]: spec + data → calibrated artifact.
+//! - this module: the optimiser loop over sequences ([`train`]), which must not know about tracks,
+//!   evidence or artifacts (the submodules build on it, never the other way round).
+//!
 //! Training of the HO-LLN model (SPEC §6): weighted BCE on ν = 1 rows, truncated BPTT over windows
 //! with the state carried between the windows of a trajectory, AdamW, gradient clipping,
 //! ReduceLROnPlateau, early stopping and a best-validation checkpoint. Seeded and bit-reproducible.
@@ -9,8 +17,11 @@
 //! constants: gradients stop at window boundaries). Windows tile a trajectory without overlap
 //! (overlapping windows, as in the reference, would make "the carried state" ambiguous).
 
+pub mod data;
+pub mod detector;
 mod optim;
 mod parallel;
+pub mod spec;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
@@ -43,7 +54,14 @@ pub struct Sequence {
     pub valid: Vec<bool>,
 }
 
-/// Training hyper-parameters. `Default` = SPEC §6.
+/// Seed of the weights and of the window shuffling when none is given.
+pub const DEFAULT_SEED: u64 = 42;
+/// Maximum epochs when none is given (early stopping may end sooner).
+pub const DEFAULT_MAX_EPOCHS: u32 = 30;
+/// Most epochs a remote training job may ask for (bounds a job's run time on a shared server).
+pub const MAX_EPOCHS: u32 = 200;
+
+/// Training hyper-parameters. `Default` = SPEC §6 with [`DEFAULT_SEED`] and [`DEFAULT_MAX_EPOCHS`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct TrainConfig {
@@ -90,8 +108,8 @@ pub struct TrainConfig {
 impl Default for TrainConfig {
     fn default() -> Self {
         Self {
-            seed: 42,
-            max_epochs: 30,
+            seed: DEFAULT_SEED,
+            max_epochs: DEFAULT_MAX_EPOCHS as usize,
             window: 256,
             batch_size: 16,
             learning_rate: 1e-3,

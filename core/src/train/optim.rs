@@ -1,5 +1,8 @@
 //! AdamW, global gradient-norm clipping, ReduceLROnPlateau and early stopping (SPEC §6), written to
 //! follow PyTorch's definitions so the reference's hyper-parameters mean the same thing here.
+//!
+//! Owns AdamW, clipping, the plateau scheduler and early stopping. Must not know about sequences or
+//! models beyond their parameter tensors.
 
 use crate::model::Params;
 

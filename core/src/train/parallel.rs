@@ -1,4 +1,7 @@
 //! A tiny deterministic parallel map over scoped threads.
+//!
+//! Owns the deterministic thread fan-out of the trainer. Must not make results depend on the thread
+//! count.
 
 /// `f(workspace, item)` for every item, spread over one contiguous chunk per workspace (one thread
 /// each; the first chunk runs on the calling thread). Results come back in item order and each one

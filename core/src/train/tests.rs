@@ -1,3 +1,5 @@
+//! Unit tests of the optimiser loop: configuration checks, windows, reproducibility, cancellation.
+
 use super::*;
 use crate::evidence::FEATURE_COUNT;
 

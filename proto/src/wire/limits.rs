@@ -43,4 +43,4 @@ pub const MAX_SESSION_PAGE_SIZE: usize = 1000;
 pub const MAX_OPERATION_WAIT: Duration = Duration::from_secs(60);
 
 /// Most epochs a training job may ask for.
-pub const MAX_TRAINING_EPOCHS: u32 = 200;
+pub const MAX_TRAINING_EPOCHS: u32 = spoofwatch_core::train::MAX_EPOCHS;

@@ -9,13 +9,11 @@ use std::time::Instant;
 
 use spoofwatch_core::evaluation::evaluate_tracks;
 use spoofwatch_core::metrics::EventRules;
-use spoofwatch_core::model::ModelConfig;
-use spoofwatch_core::pipeline::{
-    DetectorTrainingOptions, KAPPA_RHO_GRID, SplitFractions, TrainDetectorError, TrainedDetector,
-    split_chronologically, train_detector,
+use spoofwatch_core::train::detector::{
+    TrainDetectorError, TrainedDetector, TrainingData, train_detector,
 };
-use spoofwatch_core::sample::Track;
-use spoofwatch_core::train::{EpochProgress, TrainConfig, TrainError};
+use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
+use spoofwatch_core::train::{EpochProgress, TrainError};
 use spoofwatch_proto::wire::{ModelName, OperationName};
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
@@ -152,53 +150,28 @@ impl Runner {
             display_name,
             activate,
         } = request;
-        let train_data = self.catalog.load_tracks(&datasets).await?;
-        let (train, validation, test) = if validation_datasets.is_empty() {
-            let split = split_chronologically(&train_data, SplitFractions::default());
-            (split.train, split.validation, split.test)
-        } else {
-            (
-                train_data,
-                self.catalog.load_tracks(&validation_datasets).await?,
-                Vec::new(),
+        let data = TrainingData::split_unless_validation(
+            self.catalog.load_tracks(&datasets).await?,
+            self.catalog.load_tracks(&validation_datasets).await?,
+        );
+        let spec = TrainingSpec {
+            data_description: datasets.iter().map(ToString::to_string).collect(),
+            ..TrainingSpec::with(
+                seed,
+                max_epochs,
+                ablation,
+                KappaRho::selected_if(select_kappa_rho),
             )
         };
-        let options = DetectorTrainingOptions {
-            model: ModelConfig {
-                ablation,
-                ..ModelConfig::default()
-            },
-            train: TrainConfig {
-                seed,
-                max_epochs: max_epochs as usize,
-                ..TrainConfig::default()
-            },
-            kappa_rho: if select_kappa_rho {
-                KAPPA_RHO_GRID.to_vec()
-            } else {
-                vec![(0.0, 0.98)]
-            },
-            data_description: datasets.iter().map(ToString::to_string).collect(),
-            ..DetectorTrainingOptions::default()
-        };
-        let trained = self
-            .train(id, live, train, validation, options, max_epochs)
-            .await?;
+        let trained = Arc::new(self.train(id, live, spec, data, max_epochs).await?);
         if trained.cancelled {
             return Err(JobFailure::Cancelled);
         }
-        let artifact = Arc::new(trained.artifact.clone());
-        let test_metrics = if test.is_empty() {
-            None
-        } else {
-            let artifact = Arc::clone(&artifact);
-            Some(
-                tokio::task::spawn_blocking(move || {
-                    evaluate_tracks(&artifact, &test, EventRules::Spec).overall
-                })
+        let test_metrics = {
+            let trained = Arc::clone(&trained);
+            tokio::task::spawn_blocking(move || trained.held_out_metrics(EventRules::Spec))
                 .await
-                .map_err(|e| JobFailure::worker("evaluating the test split", e))?,
-            )
+                .map_err(|e| JobFailure::worker("evaluating the test split", e))?
         };
         let model_id = new_id();
         let name = if display_name.is_empty() {
@@ -222,7 +195,7 @@ impl Runner {
         }
         Ok(JobResult::Training {
             model_id,
-            validation: trained.validation,
+            validation: trained.validation.clone(),
             test: test_metrics,
         })
     }
@@ -249,9 +222,8 @@ impl Runner {
         &self,
         id: &OperationName,
         live: &LiveJob,
-        train: Vec<Track>,
-        validation: Vec<Track>,
-        options: DetectorTrainingOptions,
+        spec: TrainingSpec,
+        data: TrainingData,
         max_epochs: u32,
     ) -> Result<TrainedDetector, JobFailure> {
         let cancel_flag = Arc::new(AtomicBool::new(false));
@@ -259,9 +231,8 @@ impl Runner {
         let flag = Arc::clone(&cancel_flag);
         let worker = tokio::task::spawn_blocking(move || {
             train_detector(
-                &train,
-                &validation,
-                &options,
+                &spec,
+                data,
                 &mut |p| {
                     // The receiver lives until the worker ends; a send can only fail after that.
                     let _ = epochs_tx.send(p.clone());

@@ -10,6 +10,7 @@ use std::time::Duration;
 use prost::Message;
 use prost_types::Any;
 use spoofwatch_core::model::{Ablation, FeatureGroups};
+use spoofwatch_core::train::{DEFAULT_MAX_EPOCHS, DEFAULT_SEED};
 use spoofwatch_proto::longrunning;
 use spoofwatch_proto::longrunning::operations_server::Operations;
 use spoofwatch_proto::v1;
@@ -30,11 +31,6 @@ use crate::models::service::model_to_proto;
 use crate::models::{Registry, RegistryError};
 use crate::store::{EpochRow, JobFilter, JobKind, JobRow, JobState};
 
-/// Epochs of a training job that asks for 0.
-const DEFAULT_MAX_EPOCHS: u32 = 30;
-/// Seed of a training job that asks for 0.
-const DEFAULT_SEED: u64 = 42;
-
 fn pack<M: Message>(type_name: &str, message: &M) -> Any {
     Any {
         type_url: format!("type.googleapis.com/{type_name}"),
@@ -42,16 +38,13 @@ fn pack<M: Message>(type_name: &str, message: &M) -> Any {
     }
 }
 
+/// The wire's feature-group name; empty means the default.
 fn features_from_name(name: &str) -> Option<FeatureGroups> {
-    Some(match name {
-        "" | "all" => FeatureGroups::All,
-        "no-accumulation" => FeatureGroups::NoAccumulation,
-        "no-evolution" => FeatureGroups::NoEvolution,
-        "no-evolution-no-q" => FeatureGroups::NoEvolutionNoQ,
-        "low-order-only" => FeatureGroups::LowOrderOnly,
-        "validity-only" => FeatureGroups::ValidityOnly,
-        _ => return None,
-    })
+    if name.is_empty() {
+        Some(FeatureGroups::default())
+    } else {
+        FeatureGroups::from_name(name)
+    }
 }
 
 /// A CreateTrainingJob request, validated and with its defaults filled in.
@@ -77,7 +70,10 @@ fn training_request(request: v1::CreateTrainingJobRequest) -> Result<TrainingReq
     let features = features_from_name(&spec.features).ok_or_else(|| {
         invalid_field(
             "spec.features",
-            "one of all, no-accumulation, no-evolution, no-evolution-no-q, low-order-only, validity-only",
+            format!(
+                "one of {}",
+                FeatureGroups::NAMED.map(|(name, _)| name).join(", ")
+            ),
         )
     })?;
     Ok(TrainingRequest {

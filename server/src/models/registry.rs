@@ -8,8 +8,8 @@ use std::sync::{Arc, Mutex};
 
 use serde::{Deserialize, Serialize};
 use spoofwatch_core::alarm::OperatingPoint;
-use spoofwatch_core::artifact::{ARTIFACT_SCHEMA_VERSION, ModelArtifact};
 use spoofwatch_core::metrics::Metrics;
+use spoofwatch_core::model::artifact::{ARTIFACT_SCHEMA_VERSION, ModelArtifact};
 use spoofwatch_proto::wire::{ModelName, OperationName};
 
 use crate::identity::{new_id, sha256_hex};

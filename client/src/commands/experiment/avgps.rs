@@ -5,17 +5,18 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use serde::Serialize;
-use spoofwatch_core::alarm::OperatingPoint;
-use spoofwatch_core::comparator::{CusumComparator, fit_cusum_comparator, score_cusum};
-use spoofwatch_core::evaluation::evaluate_tracks;
-use spoofwatch_core::metrics::{EventRules, Metrics, ScoredRow, evaluate};
+use spoofwatch_core::alarm::{OperatingPoint, OperatingPointRule};
+use spoofwatch_core::cusum::{CusumComparator, fit_cusum_comparator};
+use spoofwatch_core::evaluation::{Scored, evaluate_tracks, trajectory_key};
+use spoofwatch_core::metrics::{EventRules, Metrics, ScoredRow};
 use spoofwatch_core::model::{Ablation, FeatureGroups};
-use spoofwatch_core::pipeline::{Recipe, SplitFractions, split_chronologically};
 use spoofwatch_core::sample::Track;
+use spoofwatch_core::train::detector::TrainingData;
+use spoofwatch_core::train::spec::{KappaRho, Recipe, TrainingSpec};
 
 use super::parallel::{default_threads, map_parallel};
-use super::{CommonArgs, load_avgps, prepare_out};
-use crate::commands::train::{ModelFlags, train_with_progress};
+use super::{CommonArgs, prepare, with_injections};
+use crate::commands::train::train_with_progress;
 use crate::commands::write_json;
 use crate::report::{delays, metrics_table};
 
@@ -165,34 +166,27 @@ fn variants(ablations: bool, headline_subtle: bool) -> Vec<Variant> {
 
 /// The EKF Detector column of Dataset-3 scored as a confirmed alarm (SPEC §8 fixed check).
 fn ekf_metrics(dataset3: &[Track]) -> Metrics {
-    let mut rows = Vec::new();
-    let mut alarms = Vec::new();
+    let mut scored = Scored::default();
     for (i, track) in dataset3.iter().enumerate() {
         for r in &track.records {
             let alarm = r.comparator_alarm.unwrap_or(false);
-            rows.push(ScoredRow {
-                trajectory: i as u64,
+            scored.rows.push(ScoredRow {
+                trajectory: trajectory_key(i, 0),
                 time_s: r.sample.timestamp_s,
                 valid: true,
                 label: r.label.unwrap_or(false),
                 score: f64::from(u8::from(alarm)),
             });
-            alarms.push(alarm);
+            scored.alarms.push(alarm);
         }
     }
-    evaluate(&rows, &alarms, EventRules::Spec)
+    scored.metrics(EventRules::Spec)
 }
 
 pub fn run(args: Args) -> Result<()> {
     let started = Instant::now();
-    let data = load_avgps(&args.common.data_dir)?;
-    prepare_out(&args.common.out)?;
-    let split = split_chronologically(&data.dataset2, SplitFractions::default());
-    let subtle_train = [
-        split.train.clone(),
-        super::subtle::training_injections(&split.train, args.common.seed)?,
-    ]
-    .concat();
+    let (data, split) = prepare(&args.common)?;
+    let subtle_train = with_injections(&split.train, args.common.seed)?;
     let headline_subtle = args.subtle_training;
     let variants = variants(!args.no_ablations, headline_subtle);
     let threads = args.common.threads.unwrap_or_else(default_threads);
@@ -209,23 +203,26 @@ pub fn run(args: Args) -> Result<()> {
         } else {
             &split.train
         };
-        let flags = ModelFlags {
-            seed: args.common.seed,
-            epochs: args.common.epochs,
-            select_kappa_rho: variant.select_kappa_rho,
-            ..ModelFlags::defaults()
-        };
-        let mut options = flags.options(vec![
-            "AV-GPS-Dataset-2.csv chronological 70% (train) / 15% (validation)".into(),
-        ]);
+        let mut data_description =
+            vec!["AV-GPS-Dataset-2.csv chronological 70% (train) / 15% (validation)".into()];
         if variant.subtle_training {
-            options
-                .data_description
-                .push("plus injected subtle attacks in the training part".into());
+            data_description.push("plus injected subtle attacks in the training part".into());
         }
-        options.model.ablation = variant.ablation;
-        options.recipe = variant.recipe;
-        let trained = train_with_progress(train, &split.validation, &options, false)
+        let spec = TrainingSpec {
+            recipe: variant.recipe,
+            data_description,
+            ..TrainingSpec::with(
+                args.common.seed,
+                args.common.epochs,
+                variant.ablation,
+                KappaRho::selected_if(variant.select_kappa_rho),
+            )
+        };
+        let training_data = TrainingData::Explicit {
+            train: train.clone(),
+            validation: split.validation.clone(),
+        };
+        let trained = train_with_progress(&spec, training_data, false)
             .with_context(|| format!("training variant {}", variant.name))?;
         let artifact = Arc::new(trained.artifact);
         let report = VariantReport {
@@ -251,13 +248,10 @@ pub fn run(args: Args) -> Result<()> {
         &split.train,
         &split.validation,
         spoofwatch_core::geo::Projection::Wgs84Local,
-        None,
+        OperatingPointRule::BestValidationF1,
     )
     .context("fitting the CUSUM comparator")?;
-    let cusum_on = |tracks: &[Track]| {
-        let (rows, alarms) = score_cusum(&comparator, tracks);
-        evaluate(&rows, &alarms, EventRules::Spec)
-    };
+    let cusum_on = |tracks: &[Track]| comparator.score_tracks(tracks).metrics(EventRules::Spec);
     let cusum = CusumReport {
         dataset2_test: cusum_on(&split.test),
         dataset3: cusum_on(&data.dataset3),

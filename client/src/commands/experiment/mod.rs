@@ -1,4 +1,6 @@
-//! `spoofwatch experiment`: the standard experiments of SPEC §9.
+//! `spoofwatch experiment`: the standard experiments of SPEC §9, and what they share (data loading,
+//! the chronological split, injected training attacks). Training goes through core's
+//! `train_detector` like every other caller; this module must not fit or score detectors itself.
 
 mod avgps;
 mod parallel;
@@ -8,6 +10,9 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use spoofwatch_core::sample::Track;
+use spoofwatch_core::train::data::{ChronologicalSplit, split_chronologically};
+use spoofwatch_core::train::spec::SplitFractions;
+use spoofwatch_core::train::{DEFAULT_MAX_EPOCHS, DEFAULT_SEED};
 
 use crate::input::load_file;
 
@@ -37,10 +42,10 @@ pub struct CommonArgs {
     #[arg(long)]
     pub out: PathBuf,
     /// Training seed.
-    #[arg(long, default_value_t = 42)]
+    #[arg(long, default_value_t = DEFAULT_SEED)]
     pub seed: u64,
     /// Maximum epochs per model.
-    #[arg(long, default_value_t = 30)]
+    #[arg(long, default_value_t = DEFAULT_MAX_EPOCHS)]
     pub epochs: u32,
     /// Worker threads for independent work (default: all cores).
     #[arg(long)]
@@ -65,6 +70,20 @@ pub fn load_avgps(dir: &Path) -> Result<AvGpsData> {
 }
 
 /// Creates the output directory.
-pub fn prepare_out(dir: &Path) -> Result<()> {
+fn prepare_out(dir: &Path) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))
+}
+
+/// What every experiment starts from: both recordings (the output directory created) and Dataset-2
+/// split chronologically 70/15/15 (SPEC §9).
+pub fn prepare(common: &CommonArgs) -> Result<(AvGpsData, ChronologicalSplit)> {
+    let data = load_avgps(&common.data_dir)?;
+    prepare_out(&common.out)?;
+    let split = split_chronologically(&data.dataset2, SplitFractions::default());
+    Ok((data, split))
+}
+
+/// `tracks` followed by copies of their normal pieces with injected subtle attacks.
+pub fn with_injections(tracks: &[Track], seed: u64) -> Result<Vec<Track>> {
+    Ok([tracks.to_vec(), subtle::training_injections(tracks, seed)?].concat())
 }

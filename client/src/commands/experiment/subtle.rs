@@ -6,21 +6,22 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use serde::Serialize;
-use spoofwatch_core::alarm::{N_P_GRID, choose_operating_point_within_budget, theta_grid};
-use spoofwatch_core::artifact::ModelArtifact;
-use spoofwatch_core::comparator::{CusumComparator, fit_cusum_comparator, score_cusum};
+use spoofwatch_core::alarm::{N_P_GRID, OperatingPointRule, choose_operating_point, theta_grid};
+use spoofwatch_core::cusum::{CusumComparator, fit_cusum_comparator};
 use spoofwatch_core::evaluation::{evaluate_tracks, score_tracks};
-use spoofwatch_core::metrics::{EventRules, Metrics, evaluate};
-use spoofwatch_core::pipeline::{SplitFractions, split_chronologically};
+use spoofwatch_core::metrics::{EventRules, Metrics};
+use spoofwatch_core::model::artifact::ModelArtifact;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{
     AttackDuration, AttackKind, DriveSpec, InjectedTrack, RAMP_SWEEP_VELOCITIES_MPS, ScenarioPlan,
     generate, normal_runs, simulate_drive,
 };
+use spoofwatch_core::train::detector::TrainingData;
+use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
 
 use super::parallel::{default_threads, map_parallel};
-use super::{CommonArgs, load_avgps, prepare_out};
-use crate::commands::train::{ModelFlags, train_with_progress};
+use super::{CommonArgs, prepare, with_injections};
+use crate::commands::train::train_with_progress;
 use crate::commands::write_json;
 
 /// Attacks injected into training (and, in the subtle experiment, validation) data: magnitudes a
@@ -277,11 +278,12 @@ impl TestSet<'_> {
 
     fn cusum(&self, comparator: &CusumComparator) -> Result<DetectorReport> {
         let delays = map_parallel(self.scenarios, self.threads, |s| {
-            let (rows, alarms) = score_cusum(comparator, std::slice::from_ref(&s.track));
-            first_delay(evaluate(&rows, &alarms, EventRules::Spec))
+            let scored = comparator.score_tracks(std::slice::from_ref(&s.track));
+            first_delay(scored.metrics(EventRules::Spec))
         });
-        let (rows, alarms) = score_cusum(comparator, self.bases);
-        let attack_free = evaluate(&rows, &alarms, EventRules::Spec);
+        let attack_free = comparator
+            .score_tracks(self.bases)
+            .metrics(EventRules::Spec);
         Ok(self.report(
             serde_json::to_value(&comparator.cusum)?,
             &delays,
@@ -297,20 +299,10 @@ fn first_delay(metrics: Metrics) -> Option<f64> {
 
 pub fn run(args: Args) -> Result<()> {
     let started = Instant::now();
-    let data = load_avgps(&args.common.data_dir)?;
-    prepare_out(&args.common.out)?;
-    let split = split_chronologically(&data.dataset2, SplitFractions::default());
+    let (data, split) = prepare(&args.common)?;
     // Injected attacks in training and validation: the operating point is chosen for subtle attacks.
-    let train = [
-        split.train.clone(),
-        training_injections(&split.train, args.common.seed)?,
-    ]
-    .concat();
-    let validation = [
-        split.validation.clone(),
-        training_injections(&split.validation, args.common.seed ^ 0x5EED)?,
-    ]
-    .concat();
+    let train = with_injections(&split.train, args.common.seed)?;
+    let validation = with_injections(&split.validation, args.common.seed ^ 0x5EED)?;
 
     let mut bases: Vec<Track> = split
         .test
@@ -346,29 +338,44 @@ pub fn run(args: Args) -> Result<()> {
         hours(&bases)
     );
 
-    let flags = ModelFlags {
-        seed: args.common.seed,
-        epochs: args.common.epochs,
-        ..ModelFlags::defaults()
+    let spec = TrainingSpec {
+        data_description: vec![
+            "AV-GPS-Dataset-2.csv chronological 70/15 + injected subtle attacks in both".into(),
+        ],
+        ..TrainingSpec::with(
+            args.common.seed,
+            args.common.epochs,
+            Default::default(),
+            KappaRho::default(),
+        )
     };
-    let options = flags.options(vec![
-        "AV-GPS-Dataset-2.csv chronological 70/15 + injected subtle attacks in both".into(),
-    ]);
-    let trained = train_with_progress(&train, &validation, &options, false)?;
+    let data = TrainingData::Explicit {
+        train: train.clone(),
+        validation: validation.clone(),
+    };
+    let trained = train_with_progress(&spec, data, false)?;
     let artifact = Arc::new(trained.artifact);
     artifact.write(std::io::BufWriter::new(
         std::fs::File::create(args.common.out.join("model.json")).context("creating model.json")?,
     ))?;
-    let comparator = fit_cusum_comparator(&train, &validation, options.projection, None)
-        .context("fitting the CUSUM comparator")?;
+    let comparator = fit_cusum_comparator(
+        &train,
+        &validation,
+        spec.projection,
+        OperatingPointRule::BestValidationF1,
+    )
+    .context("fitting the CUSUM comparator")?;
+    let budget = OperatingPointRule::WithinFalseAlarmBudget {
+        per_hour: FALSE_ALARM_BUDGET_PER_HOUR,
+    };
 
     let threads = args.common.threads.unwrap_or_else(default_threads);
-    let within_budget_point = choose_operating_point_within_budget(
-        &score_tracks(&artifact, &validation),
+    let within_budget_point = choose_operating_point(
+        &score_tracks(&artifact, &validation).rows,
         &theta_grid(),
         N_P_GRID,
         EventRules::Spec,
-        FALSE_ALARM_BUDGET_PER_HOUR,
+        budget,
     )
     .context("choosing the HO-LLN operating point within the false-alarm budget")?
     .point;
@@ -376,13 +383,8 @@ pub fn run(args: Args) -> Result<()> {
         operating_point: within_budget_point,
         ..(*artifact).clone()
     });
-    let budgeted_comparator = fit_cusum_comparator(
-        &train,
-        &validation,
-        options.projection,
-        Some(FALSE_ALARM_BUDGET_PER_HOUR),
-    )
-    .context("fitting the CUSUM comparator within the false-alarm budget")?;
+    let budgeted_comparator = fit_cusum_comparator(&train, &validation, spec.projection, budget)
+        .context("fitting the CUSUM comparator within the false-alarm budget")?;
     let test = TestSet {
         scenarios: &scenarios,
         bases: &bases,

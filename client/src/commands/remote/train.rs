@@ -5,7 +5,6 @@ use std::io::{IsTerminal, Write};
 use std::time::Duration;
 
 use anyhow::{Result, bail};
-use clap::ValueEnum;
 use spoofwatch_client::Connection;
 use spoofwatch_client::error::rpc;
 use spoofwatch_client::progress;
@@ -14,60 +13,15 @@ use spoofwatch_proto::v1;
 
 use super::jobs::{describe_result, ensure_succeeded, progress_line, wait_until_done};
 use crate::commands::ProjectionArg;
-use crate::commands::train::ModelFlags;
+use crate::commands::training_flags::{RemoteTrainingFlags, TrainingFlags};
 
 /// How long to wait for a cancelled job to stop before giving up on showing its final state.
 const CANCEL_WAIT: Duration = Duration::from_secs(30);
 
-/// Remote-mode flags of `spoofwatch train`.
-#[derive(Debug, Clone, clap::Args)]
-pub struct RemoteArgs {
-    /// Train on this Spoofwatch server instead of locally (remote mode; --data/--val/--out are then
-    /// not used). Deliberately not read from SPOOFWATCH_SERVER, so offline training stays offline.
-    #[arg(long)]
-    pub server: Option<String>,
-    /// Bearer token for the server.
-    #[arg(long, env = "SPOOFWATCH_TOKEN", hide_env_values = true)]
-    pub token: Option<String>,
-    /// Remote mode: datasets to train on (`datasets/{id}` or `{id}`).
-    #[arg(long = "dataset", num_args = 1..)]
-    pub datasets: Vec<String>,
-    /// Remote mode: validation datasets; without them every trajectory is split 70/15/15.
-    #[arg(long = "val-dataset", num_args = 1..)]
-    pub val_datasets: Vec<String>,
-    /// Remote mode: make the trained model the active one when the job succeeds.
-    #[arg(long)]
-    pub activate: bool,
-    /// Remote mode: display name of the job and its model.
-    #[arg(long)]
-    pub name: Option<String>,
-}
-
-impl RemoteArgs {
-    /// Remote-mode flags given without `--server` (clap cannot require `--server` for them: it
-    /// conflicts with `--data`, which waives the requirement).
-    pub fn remote_only_flags_given(&self) -> Vec<&'static str> {
-        let mut given = Vec::new();
-        if !self.datasets.is_empty() {
-            given.push("--dataset");
-        }
-        if !self.val_datasets.is_empty() {
-            given.push("--val-dataset");
-        }
-        if self.activate {
-            given.push("--activate");
-        }
-        if self.name.is_some() {
-            given.push("--name");
-        }
-        given
-    }
-}
-
 /// The job request these flags describe.
 pub fn job_request(
-    remote: &RemoteArgs,
-    flags: &ModelFlags,
+    remote: &RemoteTrainingFlags,
+    flags: &TrainingFlags,
 ) -> Result<v1::CreateTrainingJobRequest> {
     if remote.datasets.is_empty() {
         bail!("remote training needs at least one --dataset");
@@ -75,11 +29,6 @@ pub fn job_request(
     if !matches!(flags.projection, ProjectionArg::Wgs84) {
         bail!("--projection is not supported by remote training (the server uses wgs84)");
     }
-    let features = flags
-        .features
-        .to_possible_value()
-        .map(|v| v.get_name().to_string())
-        .unwrap_or_default();
     Ok(v1::CreateTrainingJobRequest {
         datasets: remote.datasets.clone(),
         validation_datasets: remote.val_datasets.clone(),
@@ -89,7 +38,7 @@ pub fn job_request(
             no_exchange: flags.no_exchange,
             no_third_order: flags.no_third_order,
             first_order_cell: flags.first_order_cell,
-            features,
+            features: flags.features.name().to_string(),
             select_kappa_rho: flags.select_kappa_rho,
         }),
         display_name: remote.name.clone().unwrap_or_default(),
@@ -98,7 +47,7 @@ pub fn job_request(
 }
 
 /// Creates the job, follows it to the end and prints the registered model and its metrics.
-pub async fn run(remote: RemoteArgs, flags: ModelFlags) -> Result<()> {
+pub async fn run(remote: RemoteTrainingFlags, flags: TrainingFlags) -> Result<()> {
     let request = job_request(&remote, &flags)?;
     let Some(server) = remote.server.clone() else {
         bail!("remote training needs --server");
@@ -246,10 +195,10 @@ fn is_yes(answer: &str) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::commands::train::FeaturesArg;
+    use spoofwatch_core::model::FeatureGroups;
 
-    fn remote(datasets: &[&str]) -> RemoteArgs {
-        RemoteArgs {
+    fn remote(datasets: &[&str]) -> RemoteTrainingFlags {
+        RemoteTrainingFlags {
             server: Some("http://127.0.0.1:1".into()),
             token: None,
             datasets: datasets.iter().map(|s| s.to_string()).collect(),
@@ -261,11 +210,11 @@ mod tests {
 
     #[test]
     fn the_job_request_carries_the_model_flags() {
-        let mut flags = ModelFlags::defaults();
+        let mut flags = TrainingFlags::defaults();
         flags.seed = 7;
         flags.epochs = 5;
         flags.no_third_order = true;
-        flags.features = FeaturesArg::NoEvolutionNoQ;
+        flags.features = FeatureGroups::NoEvolutionNoQ;
         let request = job_request(&remote(&["datasets/a"]), &flags).expect("valid");
         let spec = request.spec.expect("spec");
         assert_eq!(
@@ -286,30 +235,11 @@ mod tests {
 
     #[test]
     fn remote_training_needs_a_dataset_and_the_default_projection() {
-        let flags = ModelFlags::defaults();
+        let flags = TrainingFlags::defaults();
         assert!(job_request(&remote(&[]), &flags).is_err());
-        let mut equirect = ModelFlags::defaults();
+        let mut equirect = TrainingFlags::defaults();
         equirect.projection = ProjectionArg::Equirectangular;
         assert!(job_request(&remote(&["d"]), &equirect).is_err());
-    }
-
-    #[test]
-    fn remote_only_flags_are_named() {
-        let mut args = remote(&["d"]);
-        args.server = None;
-        assert_eq!(
-            args.remote_only_flags_given(),
-            vec!["--dataset", "--val-dataset", "--activate", "--name"]
-        );
-        let none = RemoteArgs {
-            server: None,
-            token: None,
-            datasets: Vec::new(),
-            val_datasets: Vec::new(),
-            activate: false,
-            name: None,
-        };
-        assert!(none.remote_only_flags_given().is_empty());
     }
 
     #[test]

@@ -1,14 +1,18 @@
 //! The self-contained model artifact: everything needed to serve (SPEC §5), as one JSON document
-//! with a versioned schema.
+//! with a versioned schema — the trained model plus its evidence statistics, scaler, operating point
+//! and provenance.
+//!
+//! Owns the artifact's schema, (de)serialisation and validation. Must not run the model on data
+//! (that is [`crate::detector`]) nor produce artifacts (that is [`crate::train::detector`]).
 
 use std::io::{Read, Write};
 
 use serde::{Deserialize, Serialize};
 
+use super::Model;
 use crate::alarm::OperatingPoint;
 use crate::evidence::{EvidenceParams, FEATURE_NAMES, RobustScaler};
 use crate::metrics::Metrics;
-use crate::model::Model;
 
 /// Version of the artifact schema (weights layout, evidence definition, feature order).
 /// Bump it whenever an older artifact would be served differently by this code.

@@ -1,0 +1,154 @@
+//! From labelled tracks to model-ready sequences (SPEC §4, §9): chronological splitting, trajectory
+//! boundaries, the evidence fit (Σ̂, μ_e, scaler) and the per-trajectory [`Sequence`]s.
+//!
+//! Everything here reuses the streaming evidence builder, so training sees exactly what serving
+//! computes. Must not train, score or choose anything (that is [`super::detector`]).
+
+use std::ops::Range;
+
+use crate::evidence::{
+    EvidenceBuilder, EvidenceParams, Features, RobustScaler, build_track, fit_normal_stats,
+};
+use crate::geo::Projection;
+use crate::sample::{Record, Track};
+use crate::train::Sequence;
+use crate::train::spec::SplitFractions;
+
+/// Chronological train/validation/test parts of a set of tracks.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ChronologicalSplit {
+    pub train: Vec<Track>,
+    pub validation: Vec<Track>,
+    pub test: Vec<Track>,
+}
+
+/// Row ranges of the trajectories the evidence builder finds in `records` (gaps, backward time,
+/// source breaks). The statistics do not influence segmentation, so any parameters do.
+pub fn trajectory_ranges(records: &[Record]) -> Vec<Range<usize>> {
+    let mut builder = EvidenceBuilder::new(segmentation_params());
+    let mut ranges: Vec<Range<usize>> = Vec::new();
+    for (i, record) in records.iter().enumerate() {
+        if builder
+            .push(&record.sample, record.trajectory_break)
+            .trajectory_start
+        {
+            ranges.push(i..i + 1);
+        } else if let Some(last) = ranges.last_mut() {
+            last.end = i + 1;
+        }
+    }
+    ranges
+}
+
+/// Parameters for passes that only need trajectory boundaries, ν and residuals.
+fn segmentation_params() -> EvidenceParams {
+    EvidenceParams {
+        sigma_hat: [[1.0, 0.0], [0.0, 1.0]],
+        mu_e: 0.0,
+        kappa: 0.0,
+        rho: 0.98,
+        projection: Projection::default(),
+    }
+}
+
+/// Splits every trajectory of every track chronologically into train/validation/test sub-trajectories.
+/// Each part becomes its own track (`<vehicle>/t<k>/<part>`), so its first row starts a trajectory.
+pub fn split_chronologically(tracks: &[Track], fractions: SplitFractions) -> ChronologicalSplit {
+    let mut split = ChronologicalSplit::default();
+    for track in tracks {
+        for (k, range) in trajectory_ranges(&track.records).into_iter().enumerate() {
+            let rows = &track.records[range];
+            let n = rows.len();
+            let n_train = ((n as f64) * fractions.train).round() as usize;
+            let n_val = ((n as f64) * fractions.validation).round() as usize;
+            let n_train = n_train.min(n);
+            let n_val = n_val.min(n - n_train);
+            let parts = [
+                (&mut split.train, &rows[..n_train], "train"),
+                (
+                    &mut split.validation,
+                    &rows[n_train..n_train + n_val],
+                    "val",
+                ),
+                (&mut split.test, &rows[n_train + n_val..], "test"),
+            ];
+            for (out, part, name) in parts {
+                if part.is_empty() {
+                    continue;
+                }
+                let mut records = part.to_vec();
+                records[0].trajectory_break = true;
+                out.push(Track {
+                    vehicle_id: format!("{}/t{k}/{name}", track.vehicle_id),
+                    records,
+                });
+            }
+        }
+    }
+    split
+}
+
+/// Evidence settings chosen for a model: statistics from training normal rows plus κ, ρ.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EvidenceFit {
+    pub params: EvidenceParams,
+    pub scaler: RobustScaler,
+    /// Normal ν = 1 training rows behind Σ̂ and μ_e.
+    pub normal_rows: usize,
+}
+
+/// Errors while preparing training data.
+#[derive(Debug, thiserror::Error)]
+pub enum DataError {
+    #[error("fitting the evidence statistics: {0}")]
+    Evidence(#[from] crate::evidence::EvidenceError),
+    #[error("no training rows")]
+    NoTrainingRows,
+}
+
+/// Fits Σ̂, μ_e on the training tracks' normal rows and the robust scaler on all their rows.
+pub fn fit_evidence(
+    train: &[Track],
+    projection: Projection,
+    kappa: f64,
+    rho: f64,
+) -> Result<EvidenceFit, DataError> {
+    let stats = fit_normal_stats(train, projection)?;
+    let params =
+        EvidenceParams::with_accumulator(stats.sigma_hat, stats.mu_e, kappa, rho, projection)?;
+    let evidence: Vec<_> = train
+        .iter()
+        .flat_map(|t| build_track(&params, &t.records))
+        .collect();
+    if evidence.is_empty() {
+        return Err(DataError::NoTrainingRows);
+    }
+    Ok(EvidenceFit {
+        scaler: RobustScaler::fit(&evidence)?,
+        params,
+        normal_rows: stats.rows,
+    })
+}
+
+/// Model-ready sequences, one per trajectory (unlabelled rows count as normal only if labelled;
+/// callers pass labelled data for training).
+pub fn sequences(fit: &EvidenceFit, tracks: &[Track]) -> Vec<Sequence> {
+    let mut out = Vec::new();
+    for track in tracks {
+        let evidence = build_track(&fit.params, &track.records);
+        let mut current: Option<Sequence> = None;
+        for (e, record) in evidence.iter().zip(&track.records) {
+            if e.trajectory_start {
+                out.extend(current.take());
+            }
+            let seq = current.get_or_insert_with(Sequence::default);
+            let features: Features = fit.scaler.transform(e);
+            seq.features.push(features);
+            seq.deltas.push(e.delta_t);
+            seq.labels.push(record.label.unwrap_or(false));
+            seq.valid.push(e.valid);
+        }
+        out.extend(current);
+    }
+    out
+}
