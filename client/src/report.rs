@@ -1,68 +1,41 @@
-//! Plain-text/markdown tables of metrics.
+//! Plain-text/markdown tables of metrics, for offline (core) and remote (wire) results alike.
+//! Owns only formatting; converting wire metrics is `spoofwatch_proto::wire::convert`'s job.
+
+use std::borrow::Cow;
 
 use spoofwatch_core::metrics::Metrics;
+use spoofwatch_proto::wire::convert::metrics_from_proto;
 
 fn opt(x: Option<f64>, digits: usize) -> String {
     x.map_or_else(|| "-".to_string(), |v| format!("{v:.digits$}"))
 }
 
-/// The columns of a metrics table, from offline (`core`) or wire (`v1`) metrics.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct TableRow {
-    pub auroc: Option<f64>,
-    pub auprc: Option<f64>,
-    pub f1: f64,
-    pub precision: f64,
-    pub recall: f64,
-    pub fpr: f64,
-    pub adr: f64,
-    pub mean_delay_s: Option<f64>,
-    pub false_alarm_rows: u64,
-    pub false_alarm_events: u64,
+/// Metrics a table can show: the core's own, or wire metrics read through the one wire-to-core
+/// conversion (so the table has a single column mapping).
+pub trait TableMetrics {
+    fn table_metrics(&self) -> Cow<'_, Metrics>;
 }
 
-impl From<&Metrics> for TableRow {
-    fn from(m: &Metrics) -> Self {
-        Self {
-            auroc: m.auroc,
-            auprc: m.auprc,
-            f1: m.f1,
-            precision: m.precision,
-            recall: m.recall,
-            fpr: m.fpr,
-            adr: m.adr,
-            mean_delay_s: m.mean_delay_s,
-            false_alarm_rows: m.false_alarm_rows,
-            false_alarm_events: m.false_alarm_events,
-        }
+impl TableMetrics for Metrics {
+    fn table_metrics(&self) -> Cow<'_, Metrics> {
+        Cow::Borrowed(self)
     }
 }
 
-impl From<&spoofwatch_proto::v1::Metrics> for TableRow {
-    fn from(m: &spoofwatch_proto::v1::Metrics) -> Self {
-        Self {
-            auroc: m.auroc,
-            auprc: m.auprc,
-            f1: m.f1,
-            precision: m.precision,
-            recall: m.recall,
-            fpr: m.fpr,
-            adr: m.adr,
-            mean_delay_s: m.mean_delay_s,
-            false_alarm_rows: m.false_alarm_rows,
-            false_alarm_events: m.false_alarm_events,
-        }
+impl TableMetrics for spoofwatch_proto::v1::Metrics {
+    fn table_metrics(&self) -> Cow<'_, Metrics> {
+        Cow::Owned(metrics_from_proto(self))
     }
 }
 
 /// A markdown table, one row per named metrics set (SPEC §8 columns).
-pub fn metrics_table<N: AsRef<str>, M: Copy + Into<TableRow>>(rows: &[(N, M)]) -> String {
+pub fn metrics_table<N: AsRef<str>, M: TableMetrics>(rows: &[(N, &M)]) -> String {
     let mut out = String::from(
         "| data | AUROC | AUPRC | F1 | Prec. | Recall | FPR | ADR | delay (s) | FA rows | FA events |\n\
          |---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for (name, m) in rows {
-        let m: TableRow = (*m).into();
+        let m = m.table_metrics();
         out.push_str(&format!(
             "| {} | {} | {} | {:.4} | {:.4} | {:.4} | {:.4} | {:.2} | {} | {} | {} |\n",
             name.as_ref(),

@@ -1,10 +1,11 @@
-//! `spoofwatch evidence`: the causal evidence of recorded data, row by row.
+//! `spoofwatch evidence`: the causal evidence of recorded data, row by row, as CSV.
+//! Owns the CSV column layout only; the evidence itself is computed by `spoofwatch_core::evidence`.
 
 use std::io::Write;
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
-use spoofwatch_core::evidence::{EvidenceParams, build_track};
+use spoofwatch_core::evidence::{Evidence, EvidenceParams, build_track};
 use spoofwatch_core::model::artifact::ModelArtifact;
 use spoofwatch_core::train::data::fit_evidence;
 
@@ -28,24 +29,28 @@ pub struct Args {
     projection: ProjectionArg,
 }
 
-const HEADER: [&str; 17] = [
-    "vehicle_id",
-    "line",
-    "trajectory",
-    "delta_t",
-    "nu",
-    "r_e",
-    "r_n",
-    "eta_e",
-    "eta_n",
-    "eta_dot_e",
-    "eta_dot_n",
-    "eta_ddot_e",
-    "eta_ddot_n",
-    "energy",
-    "q",
-    "a",
-    "a_log",
+/// The columns before the evidence values: who, where in the input, which trajectory.
+const KEY_COLUMNS: [&str; 3] = ["vehicle_id", "line", "trajectory"];
+
+/// Reads one column's value from a row's evidence.
+type ColumnValue = fn(&Evidence) -> f64;
+
+/// The evidence columns, each name with how to read it, so header and values cannot drift.
+const EVIDENCE_COLUMNS: [(&str, ColumnValue); 14] = [
+    ("delta_t", |e| e.delta_t),
+    ("nu", |e| f64::from(u8::from(e.valid))),
+    ("r_e", |e| e.residual[0]),
+    ("r_n", |e| e.residual[1]),
+    ("eta_e", |e| e.eta[0]),
+    ("eta_n", |e| e.eta[1]),
+    ("eta_dot_e", |e| e.eta_dot[0]),
+    ("eta_dot_n", |e| e.eta_dot[1]),
+    ("eta_ddot_e", |e| e.eta_ddot[0]),
+    ("eta_ddot_n", |e| e.eta_ddot[1]),
+    ("energy", |e| e.energy),
+    ("q", |e| e.q),
+    ("a", |e| e.accum),
+    ("a_log", |e| e.accum_log),
 ];
 
 pub fn run(args: Args) -> Result<()> {
@@ -70,34 +75,23 @@ pub fn run(args: Args) -> Result<()> {
         None => Box::new(std::io::stdout().lock()),
     };
     let mut out = csv::Writer::from_writer(std::io::BufWriter::new(sink));
-    out.write_record(HEADER)?;
+    let value_names = EVIDENCE_COLUMNS.map(|(name, _)| name);
+    out.write_record(KEY_COLUMNS.iter().chain(&value_names))?;
     for track in &tracks {
         for (e, r) in build_track(&params, &track.records)
             .iter()
             .zip(&track.records)
         {
-            let numbers = [
-                e.delta_t,
-                f64::from(u8::from(e.valid)),
-                e.residual[0],
-                e.residual[1],
-                e.eta[0],
-                e.eta[1],
-                e.eta_dot[0],
-                e.eta_dot[1],
-                e.eta_ddot[0],
-                e.eta_ddot[1],
-                e.energy,
-                e.q,
-                e.accum,
-                e.accum_log,
-            ];
             let mut row = vec![
                 track.vehicle_id.clone(),
                 r.line.to_string(),
                 e.trajectory.to_string(),
             ];
-            row.extend(numbers.iter().map(|x| x.to_string()));
+            row.extend(
+                EVIDENCE_COLUMNS
+                    .iter()
+                    .map(|(_, value)| value(e).to_string()),
+            );
             out.write_record(&row)?;
         }
     }

@@ -20,12 +20,7 @@ pub fn parse_date(text: &str) -> Result<Option<i64>, String> {
         return Ok(None);
     }
     let bad = || format!("expected a date M/D/YYYY, got \"{text}\"");
-    let mut parts = text.split('/');
-    let (Some(m), Some(d), Some(y), None) =
-        (parts.next(), parts.next(), parts.next(), parts.next())
-    else {
-        return Err(bad());
-    };
+    let [m, d, y] = three_parts(text, '/').ok_or_else(bad)?;
     let (Some(month), Some(day), Some(year)) = (digits(m, 2), digits(d, 2), digits(y, 4)) else {
         return Err(bad());
     };
@@ -35,18 +30,22 @@ pub fn parse_date(text: &str) -> Result<Option<i64>, String> {
     Ok(Some(days_from_civil(year as i64, month, day)))
 }
 
+/// The three `sep`-separated fields of `text`, or `None` when there are more or fewer.
+fn three_parts(text: &str, sep: char) -> Option<[&str; 3]> {
+    let mut parts = text.split(sep);
+    match (parts.next(), parts.next(), parts.next(), parts.next()) {
+        (Some(a), Some(b), Some(c), None) => Some([a, b, c]),
+        _ => None,
+    }
+}
+
 fn parse_hms(text: &str, max_hour: Option<u64>, what: &str) -> Result<Option<f64>, String> {
     let text = text.trim();
     if text.is_empty() {
         return Ok(None);
     }
     let bad = || format!("expected {what}, got \"{text}\"");
-    let mut parts = text.split(':');
-    let (Some(h), Some(m), Some(s), None) =
-        (parts.next(), parts.next(), parts.next(), parts.next())
-    else {
-        return Err(bad());
-    };
+    let [h, m, s] = three_parts(text, ':').ok_or_else(bad)?;
     let (Some(hours), Some(minutes)) = (digits(h, 9), digits(m, 2)) else {
         return Err(bad());
     };

@@ -131,12 +131,7 @@ impl Model {
     ) -> Result<Vec<f64>, ModelError> {
         check_lengths(xs.len(), &[("deltas", deltas.len())])?;
         self.check_state(state)?;
-        let mut scratch = StepScratch::new(&self.config);
-        Ok(xs
-            .iter()
-            .zip(deltas)
-            .map(|(x, &delta)| self.forward_step(state, x, delta, &mut scratch))
-            .collect())
+        Ok(self.map_sequence(xs, deltas, state, Self::forward_step))
     }
 
     /// Loss, gradient and outgoing state of one window starting from `state_in` (a constant).
@@ -314,29 +309,34 @@ impl Model {
     ) {
         let p = &self.params;
         back.d_zeta.fill(0.0);
-        affine_backward(
-            p.w_candidate.data(),
-            &rec.zeta,
-            &back.d_pre_candidate,
-            grad.w_candidate.data_mut(),
-            grad.b_candidate.data_mut(),
-            Some(&mut back.d_zeta),
-        );
-        affine_backward(
-            p.w_tau_h.data(),
-            &rec.zeta,
-            &back.d_pre_tau_h,
-            grad.w_tau_h.data_mut(),
-            grad.b_tau_h.data_mut(),
-            Some(&mut back.d_zeta),
-        );
-        if let (Some(w), Some(gw), Some(gb)) = (&p.w_tau_v, &mut grad.w_tau_v, &mut grad.b_tau_v) {
+        // The τ^v layer is absent in the first-order cell; the order of accumulation into dL/dζ is
+        // fixed (h̃, τ^h, τ^v) so training stays bit-reproducible.
+        let tau_v = match (&p.w_tau_v, &mut grad.w_tau_v, &mut grad.b_tau_v) {
+            (Some(w), Some(gw), Some(gb)) => Some((w, &back.d_pre_tau_v, gw, gb)),
+            _ => None,
+        };
+        let layers = [
+            Some((
+                &p.w_candidate,
+                &back.d_pre_candidate,
+                &mut grad.w_candidate,
+                &mut grad.b_candidate,
+            )),
+            Some((
+                &p.w_tau_h,
+                &back.d_pre_tau_h,
+                &mut grad.w_tau_h,
+                &mut grad.b_tau_h,
+            )),
+            tau_v,
+        ];
+        for (w, d_pre, grad_w, grad_b) in layers.into_iter().flatten() {
             affine_backward(
                 w.data(),
                 &rec.zeta,
-                &back.d_pre_tau_v,
-                gw.data_mut(),
-                gb.data_mut(),
+                d_pre,
+                grad_w.data_mut(),
+                grad_b.data_mut(),
                 Some(&mut back.d_zeta),
             );
         }
@@ -427,29 +427,38 @@ impl Model {
         }
         let p = &self.params;
         let [d_i, d_e, d_p] = &back.d_s;
-        affine_backward(
-            p.w_instant.data(),
-            &rec.x_instant,
-            d_i,
-            grad.w_instant.data_mut(),
-            grad.b_instant.data_mut(),
-            None,
-        );
-        affine_backward(
-            p.w_evolution.data(),
-            &rec.x_evolution,
-            d_e,
-            grad.w_evolution.data_mut(),
-            grad.b_evolution.data_mut(),
-            None,
-        );
-        affine_backward(
-            p.w_persistence.data(),
-            &rec.x_persistence,
-            d_p,
-            grad.w_persistence.data_mut(),
-            grad.b_persistence.data_mut(),
-            None,
-        );
+        let roles = [
+            (
+                &p.w_instant,
+                &rec.x_instant[..],
+                d_i,
+                &mut grad.w_instant,
+                &mut grad.b_instant,
+            ),
+            (
+                &p.w_evolution,
+                &rec.x_evolution[..],
+                d_e,
+                &mut grad.w_evolution,
+                &mut grad.b_evolution,
+            ),
+            (
+                &p.w_persistence,
+                &rec.x_persistence[..],
+                d_p,
+                &mut grad.w_persistence,
+                &mut grad.b_persistence,
+            ),
+        ];
+        for (w, x, d_out, grad_w, grad_b) in roles {
+            affine_backward(
+                w.data(),
+                x,
+                d_out,
+                grad_w.data_mut(),
+                grad_b.data_mut(),
+                None,
+            );
+        }
     }
 }

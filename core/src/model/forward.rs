@@ -6,7 +6,7 @@
 //! Owns the forward arithmetic of one step. Must not allocate per step or keep gradients (that is
 //! `backward.rs`).
 
-use super::fastmath::{exp_in_place, expm1_in_place, sigmoid, sigmoid_in_place, tanh_in_place};
+use super::fastmath::{exp, expm1, map_in_place, sigmoid, tanh};
 use super::linalg::{affine, dot};
 use super::{
     EVOLUTION_INPUTS, INSTANT_INPUTS, LiquidState, Model, ModelConfig, PERSISTENCE_INPUTS,
@@ -155,7 +155,7 @@ impl Model {
             s_p,
         );
         for role in &mut rec.s {
-            sigmoid_in_place(role);
+            map_in_place(role, sigmoid);
         }
     }
 
@@ -198,7 +198,7 @@ impl Model {
             &rec.fusion_in,
             &mut rec.zeta,
         );
-        tanh_in_place(&mut rec.zeta);
+        map_in_place(&mut rec.zeta, tanh);
     }
 
     /// h̃, τ^h, τ^v, γ, β and the state update.
@@ -214,7 +214,7 @@ impl Model {
             &rec.zeta,
             &mut rec.candidate,
         );
-        tanh_in_place(&mut rec.candidate);
+        map_in_place(&mut rec.candidate, tanh);
         // Each transcendental runs over a whole buffer so that it vectorises.
         affine(
             p.w_tau_h.data(),
@@ -222,24 +222,24 @@ impl Model {
             &rec.zeta,
             &mut rec.sig_tau_h,
         );
-        sigmoid_in_place(&mut rec.sig_tau_h);
+        map_in_place(&mut rec.sig_tau_h, sigmoid);
         for k in 0..config.d_h {
             rec.tau_h[k] = config.tau_min + tau_range * rec.sig_tau_h[k];
             rec.gamma[k] = -rec.delta / rec.tau_h[k];
         }
         // γ = 1 − exp(−δ/τ^h) = −expm1(−δ/τ^h) (accurate for small δ/τ).
-        expm1_in_place(&mut rec.gamma);
+        map_in_place(&mut rec.gamma, expm1);
         for gamma in &mut rec.gamma {
             *gamma = -*gamma;
         }
         if let (Some(w_tv), Some(b_tv)) = (&p.w_tau_v, &p.b_tau_v) {
             affine(w_tv.data(), b_tv.data(), &rec.zeta, &mut rec.sig_tau_v);
-            sigmoid_in_place(&mut rec.sig_tau_v);
+            map_in_place(&mut rec.sig_tau_v, sigmoid);
             for k in 0..config.d_h {
                 rec.tau_v[k] = config.tau_min + tau_range * rec.sig_tau_v[k];
                 rec.beta[k] = -rec.delta / rec.tau_v[k];
             }
-            exp_in_place(&mut rec.beta);
+            map_in_place(&mut rec.beta, exp);
             for k in 0..config.d_h {
                 let pull = rec.candidate[k] - rec.h_prev[k];
                 rec.v[k] = rec.beta[k] * rec.v_prev[k] + (1.0 - rec.beta[k]) * pull;

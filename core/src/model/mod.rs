@@ -419,12 +419,23 @@ impl Model {
         state: &mut LiquidState,
     ) -> Result<Vec<f64>, ModelError> {
         check_lengths(xs.len(), &[("deltas", deltas.len())])?;
+        Ok(self.map_sequence(xs, deltas, state, Self::step))
+    }
+
+    /// Runs `step` over a sequence whose lengths the caller has checked, with one scratch for all
+    /// steps: the loop shared by [`Model::forward_sequence`] and [`Model::forward_logits`].
+    pub(crate) fn map_sequence(
+        &self,
+        xs: &[Features],
+        deltas: &[f64],
+        state: &mut LiquidState,
+        step: fn(&Self, &mut LiquidState, &Features, f64, &mut StepScratch) -> f64,
+    ) -> Vec<f64> {
         let mut scratch = StepScratch::new(&self.config);
-        Ok(xs
-            .iter()
+        xs.iter()
             .zip(deltas)
-            .map(|(x, &delta)| self.step(state, x, delta, &mut scratch))
-            .collect())
+            .map(|(x, &delta)| step(self, state, x, delta, &mut scratch))
+            .collect()
     }
 }
 

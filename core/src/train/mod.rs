@@ -140,43 +140,35 @@ impl TrainConfig {
             ("batch_size", self.batch_size),
             ("threads", self.threads),
         ];
-        for (field, value) in positive_counts {
-            if value == 0 {
-                return Err(invalid(field, "must be at least 1"));
-            }
-        }
+        check_all(&positive_counts, |n| n > 0, "must be at least 1")?;
         let positive = [
             ("learning_rate", self.learning_rate),
             ("eps", self.eps),
             ("grad_clip_norm", self.grad_clip_norm),
             ("class_weight_min", self.class_weight_min),
         ];
-        for (field, value) in positive {
-            if !(value.is_finite() && value > 0.0) {
-                return Err(invalid(field, "must be finite and > 0"));
-            }
-        }
+        check_all(
+            &positive,
+            |v| v.is_finite() && v > 0.0,
+            "must be finite and > 0",
+        )?;
         let non_negative = [
             ("weight_decay", self.weight_decay),
             ("plateau_threshold", self.plateau_threshold),
             ("min_learning_rate", self.min_learning_rate),
             ("early_stop_min_delta", self.early_stop_min_delta),
         ];
-        for (field, value) in non_negative {
-            if !(value.is_finite() && value >= 0.0) {
-                return Err(invalid(field, "must be finite and >= 0"));
-            }
-        }
+        check_all(
+            &non_negative,
+            |v| v.is_finite() && v >= 0.0,
+            "must be finite and >= 0",
+        )?;
         let unit_open = [
             ("beta1", self.beta1),
             ("beta2", self.beta2),
             ("plateau_factor", self.plateau_factor),
         ];
-        for (field, value) in unit_open {
-            if !(0.0..1.0).contains(&value) {
-                return Err(invalid(field, "must be in [0, 1)"));
-            }
-        }
+        check_all(&unit_open, |v| (0.0..1.0).contains(&v), "must be in [0, 1)")?;
         if !(self.class_weight_max.is_finite() && self.class_weight_max >= self.class_weight_min) {
             return Err(invalid(
                 "class_weight_max",
@@ -190,6 +182,18 @@ impl TrainConfig {
             ));
         }
         Ok(())
+    }
+}
+
+/// The first of `fields` that fails `ok`, as an invalid-config error with `reason`.
+fn check_all<T: Copy>(
+    fields: &[(&'static str, T)],
+    ok: impl Fn(T) -> bool,
+    reason: &str,
+) -> Result<(), TrainError> {
+    match fields.iter().find(|(_, value)| !ok(*value)) {
+        Some((field, _)) => Err(invalid(field, reason)),
+        None => Ok(()),
     }
 }
 
