@@ -1,4 +1,9 @@
-//! The commands that talk gRPC to a Spoofwatch server (or start one in-process: `demo`, `bench`).
+//! The commands that talk gRPC to a Spoofwatch server (or start one in-process: `demo`, `bench`),
+//! and what they share: server flags, the runtime, uploads, paging and listing output.
+//!
+//! They reach the server only through the `spoofwatch_client` library (`Connection`,
+//! `DetectStream`); nothing here may depend on the server crate except through
+//! `spoofwatch_client::inprocess` (feature `inprocess`).
 
 pub mod bench;
 pub mod datasets;
@@ -37,6 +42,15 @@ impl ServerArgs {
     pub async fn connect(&self) -> Result<Connection> {
         Ok(Connection::connect(self.server.clone(), self.token.clone()).await?)
     }
+}
+
+/// Why a command that needs an in-process server cannot run in a build without one.
+#[cfg(not(feature = "inprocess"))]
+pub fn no_in_process_server(command: &str) -> anyhow::Error {
+    anyhow::anyhow!(
+        "`spoofwatch {command}` starts a server inside this process, and this build has none: \
+         rebuild with the `inprocess` feature (on by default)"
+    )
 }
 
 /// Runs a future on a fresh multi-threaded runtime. A short shutdown timeout keeps a pending
