@@ -46,7 +46,7 @@ fn samples(t0: f64, n: usize) -> Vec<v1::Sample> {
 }
 
 async fn bad_samples_are_refused_per_batch_and_the_stream_goes_on(clients: &mut Clients) {
-    let (mut stream, _) = start_stream(&clients, "bad-samples", "").await;
+    let (mut stream, _) = start_stream(clients, "bad-samples", "").await;
     let good = samples(0.0, 30);
     stream
         .detect(1, good[..10].to_vec())
@@ -112,7 +112,7 @@ async fn bad_samples_are_refused_per_batch_and_the_stream_goes_on(clients: &mut 
 }
 
 async fn a_stream_must_start_with_session_start(clients: &mut Clients) {
-    let result = open_stream(&clients, batch_request(1, samples(0.0, 3))).await;
+    let result = open_stream(clients, batch_request(1, samples(0.0, 3))).await;
     let code = match result {
         Ok(mut stream) => final_code(&mut stream).await,
         Err(error) => code_of(&error),
@@ -121,7 +121,7 @@ async fn a_stream_must_start_with_session_start(clients: &mut Clients) {
 }
 
 async fn unknown_models_are_not_found(clients: &mut Clients) {
-    let result = open_stream(&clients, start_request("ghost-car", "models/nope", false)).await;
+    let result = open_stream(clients, start_request("ghost-car", "models/nope", false)).await;
     let status = match result {
         Ok(mut stream) => stream.next().await.expect_err("the call fails"),
         Err(error) => error,

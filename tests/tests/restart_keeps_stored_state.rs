@@ -24,7 +24,7 @@ struct Episode {
 async fn stream_attacked_drive(clients: &mut Clients, vehicle_id: &str) -> Vec<Episode> {
     let jump = AttackKind::Jump { offset_m: 300.0 };
     let track = attacked_drive(vehicle_id, 240.0, 21, jump, 100.0, 60.0);
-    let (mut stream, _) = start_stream(&clients, vehicle_id, "models/default").await;
+    let (mut stream, _) = start_stream(clients, vehicle_id, "models/default").await;
     let mut episodes: Vec<Episode> = Vec::new();
     for (seq, batch) in track_samples(&track).chunks(20).enumerate() {
         for d in stream
