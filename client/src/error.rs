@@ -1,5 +1,7 @@
 //! Client-side errors, and readable renderings of gRPC statuses (code, message, BadRequest field
 //! violations and the other google.rpc error details the server attaches).
+//!
+//! It must not decide what to do about an error (retry, exit codes): callers do.
 
 use std::fmt;
 

@@ -107,6 +107,31 @@ pub fn bytes(n: u64) -> String {
     }
 }
 
+/// Every item of a paged listing: `fetch(page_token)` returns one page and the next page token,
+/// empty after the last page.
+pub async fn all_pages<T, F, Fut>(mut fetch: F) -> Result<Vec<T>>
+where
+    F: FnMut(String) -> Fut,
+    Fut: Future<Output = Result<(Vec<T>, String)>>,
+{
+    let mut items = Vec::new();
+    let mut page_token = String::new();
+    loop {
+        let (page, next_page_token) = fetch(page_token).await?;
+        items.extend(page);
+        if next_page_token.is_empty() {
+            return Ok(items);
+        }
+        page_token = next_page_token;
+    }
+}
+
+/// Prints a listing: one row per item under `header`.
+pub fn print_table<T>(header: &[&str], items: &[T], row: impl Fn(&T) -> Vec<String>) {
+    let rows: Vec<Vec<String>> = items.iter().map(row).collect();
+    print!("{}", text_table(header, &rows));
+}
+
 /// Left-aligned text columns, two spaces apart, for listings.
 pub fn text_table(header: &[&str], rows: &[Vec<String>]) -> String {
     let mut widths: Vec<usize> = header.iter().map(|h| h.chars().count()).collect();
