@@ -13,19 +13,14 @@ use spoofwatch_proto::longrunning;
 use spoofwatch_proto::longrunning::operation::Result as OperationResult;
 use spoofwatch_proto::v1;
 
-use super::{ServerArgs, all_pages, opt, print_table, time};
+use super::{ResourceArgs, all_pages, opt, print_table, time};
 use crate::report::metrics_table;
 
 /// The server's longest single WaitOperation.
 const MAX_WAIT_PER_CALL: Duration = Duration::from_secs(60);
 
-#[derive(Debug, clap::Args)]
-pub struct Args {
-    #[command(flatten)]
-    pub server: ServerArgs,
-    #[command(subcommand)]
-    pub command: Command,
-}
+/// `spoofwatch {resource} <command>` with the server flags.
+pub type Args = ResourceArgs<Command>;
 
 #[derive(Debug, clap::Subcommand)]
 pub enum Command {

@@ -37,6 +37,15 @@ pub struct ServerArgs {
     pub token: Option<String>,
 }
 
+/// A resource command (`datasets`, `jobs`, `models`): the server flags and one subcommand.
+#[derive(Debug, clap::Args)]
+pub struct ResourceArgs<C: clap::Subcommand> {
+    #[command(flatten)]
+    pub server: ServerArgs,
+    #[command(subcommand)]
+    pub command: C,
+}
+
 impl ServerArgs {
     /// Connects (within the connect timeout).
     pub async fn connect(&self) -> Result<Connection> {

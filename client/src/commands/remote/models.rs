@@ -11,17 +11,13 @@ use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::import_model_request::Kind as ImportKind;
 
 use super::{
-    ServerArgs, UPLOAD_CHUNK_BYTES, all_pages, bytes, display_name, print_table, read_upload, time,
+    ResourceArgs, UPLOAD_CHUNK_BYTES, all_pages, bytes, display_name, print_table, read_upload,
+    time,
 };
 use crate::report::metrics_table;
 
-#[derive(Debug, clap::Args)]
-pub struct Args {
-    #[command(flatten)]
-    pub server: ServerArgs,
-    #[command(subcommand)]
-    pub command: Command,
-}
+/// `spoofwatch {resource} <command>` with the server flags.
+pub type Args = ResourceArgs<Command>;
 
 #[derive(Debug, clap::Subcommand)]
 pub enum Command {
