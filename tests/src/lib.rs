@@ -50,6 +50,19 @@ pub fn test_config(dir: &Path) -> Config {
     config
 }
 
+/// A fresh server on a database in a new temporary directory, its [`test_config`] adjusted by
+/// `configure`, and clients connected to it. The directory must outlive the server.
+pub async fn start_server(
+    configure: impl FnOnce(&mut Config),
+) -> (tempfile::TempDir, TestServer, Clients) {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut config = test_config(dir.path());
+    configure(&mut config);
+    let server = TestServer::start(config).await;
+    let clients = Clients::of(&server).await;
+    (dir, server, clients)
+}
+
 /// Where [`test_config`] puts the database inside `dir`.
 pub fn database_path(dir: &Path) -> PathBuf {
     dir.join("spoofwatch.db")

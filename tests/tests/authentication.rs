@@ -2,18 +2,15 @@
 //! UNAUTHENTICATED, the right one works.
 
 use spoofwatch_proto::v1;
-use spoofwatch_tests::{Clients, TestServer, test_config};
+use spoofwatch_tests::start_server;
 use tonic::Code;
 use tonic_health::pb::HealthCheckRequest;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_configured_token_guards_every_service_but_health() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = test_config(dir.path());
-    config.auth_token = Some("s3cret".into());
     // start() polls health without a token: health stays open.
-    let server = TestServer::start(config).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, server, mut clients) =
+        start_server(|config| config.auth_token = Some("s3cret".into())).await;
 
     let status = clients
         .models

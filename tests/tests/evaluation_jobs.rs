@@ -12,8 +12,7 @@ use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::longrunning::{self, operation};
 use spoofwatch_proto::v1;
 use spoofwatch_tests::{
-    Clients, TestServer, attacked_drive, export_model, normal_drive, telemetry_csv, test_config,
-    upload_tracks,
+    attacked_drive, export_model, normal_drive, start_server, telemetry_csv, upload_tracks,
 };
 use tonic::Code;
 
@@ -25,9 +24,7 @@ fn close(a: f64, b: f64) -> bool {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_evaluation_job_matches_the_offline_evaluation() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let server = TestServer::start(test_config(dir.path())).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, server, mut clients) = start_server(|_| {}).await;
     let ramp = AttackKind::RampDrift { velocity_mps: 2.0 };
     let fleet = vec![
         normal_drive("eval-0", 200.0, 31),

@@ -4,7 +4,8 @@
 use spoofwatch_proto::v1;
 use spoofwatch_tests::{
     Clients, TestServer, active_model, batch_request, code_of, expect_item_error, field_violations,
-    final_code, normal_drive, open_stream, start_request, start_stream, test_config, track_samples,
+    final_code, normal_drive, open_stream, start_request, start_server, start_stream, test_config,
+    track_samples,
 };
 use tokio::task::JoinHandle;
 use tonic::Code;
@@ -293,11 +294,7 @@ async fn bad_input_gets_its_code_without_harming_other_streams_or_data() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn oversized_messages_are_refused_and_the_server_keeps_serving() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = test_config(dir.path());
-    config.max_message_bytes = 2048;
-    let server = TestServer::start(config).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, server, mut clients) = start_server(|config| config.max_message_bytes = 2048).await;
     let big = samples(0.0, 200); // ~10 KB encoded
 
     let status = clients

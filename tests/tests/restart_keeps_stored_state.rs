@@ -6,8 +6,9 @@ use spoofwatch_proto::longrunning;
 use spoofwatch_proto::v1;
 use spoofwatch_server::store::Store;
 use spoofwatch_tests::{
-    Clients, TestServer, attacked_drive, database_path, metadata_of, start_stream, test_config,
-    track_samples, trained_model, training_fleet, training_request, upload_tracks, wait_done,
+    Clients, TestServer, attacked_drive, database_path, metadata_of, start_server, start_stream,
+    test_config, track_samples, trained_model, training_fleet, training_request, upload_tracks,
+    wait_done,
 };
 
 /// One confirmed alarm as the detections show it: onset time, last alarming sample's time, peak
@@ -107,9 +108,7 @@ async fn snapshot(clients: &mut Clients) -> Snapshot {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_restart_on_the_same_database_keeps_models_datasets_jobs_and_alarms() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let server = TestServer::start(test_config(dir.path())).await;
-    let mut clients = Clients::of(&server).await;
+    let (dir, server, mut clients) = start_server(|_| {}).await;
     let dataset = upload_tracks(&mut clients, "fleet to keep", &training_fleet()).await;
     let job = clients
         .training

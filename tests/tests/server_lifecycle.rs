@@ -5,7 +5,7 @@ use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
 use spoofwatch_tests::{
-    Clients, TestServer, code_of, normal_drive, start_stream, test_config, track_samples,
+    TestServer, code_of, normal_drive, start_server, start_stream, test_config, track_samples,
 };
 use tonic::Code;
 use tonic::transport::Channel;
@@ -114,11 +114,8 @@ async fn reflection_lists_every_service_in_both_versions() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shutdown_turns_health_not_serving_and_ends_open_streams_within_the_bound() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = test_config(dir.path());
-    config.shutdown_grace_secs = GRACE_SECS;
-    let mut server = TestServer::start(config).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, mut server, mut clients) =
+        start_server(|config| config.shutdown_grace_secs = GRACE_SECS).await;
 
     for service in [
         "",

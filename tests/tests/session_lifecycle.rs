@@ -4,16 +4,14 @@
 
 use spoofwatch_proto::v1;
 use spoofwatch_tests::{
-    Clients, TestServer, code_of, final_code, normal_drive, open_stream, start_request,
-    start_stream, test_config, track_samples,
+    Clients, code_of, final_code, normal_drive, open_stream, start_request, start_server,
+    start_stream, track_samples,
 };
 use tonic::Code;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_second_stream_takes_the_session_over_and_resumes_it() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let server = TestServer::start(test_config(dir.path())).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, server, mut clients) = start_server(|_| {}).await;
     let samples = track_samples(&normal_drive("truck-7", 39.0, 8));
 
     let (mut older, accepted) = start_stream(&clients, "truck-7", "").await;
@@ -76,11 +74,7 @@ async fn a_second_stream_takes_the_session_over_and_resumes_it() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn beyond_the_session_limit_new_vehicles_are_refused() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = test_config(dir.path());
-    config.max_sessions = 2;
-    let server = TestServer::start(config).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, server, mut clients) = start_server(|config| config.max_sessions = 2).await;
     let samples = track_samples(&normal_drive("fleet", 4.0, 2));
 
     let (mut first, _) = start_stream(&clients, "car-1", "").await;
@@ -152,11 +146,7 @@ fn samples_after(samples: &[v1::Sample], by: f64) -> Vec<v1::Sample> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn idle_sessions_without_a_stream_are_evicted() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = test_config(dir.path());
-    config.session_idle_secs = 1;
-    let server = TestServer::start(config).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, server, mut clients) = start_server(|config| config.session_idle_secs = 1).await;
     let samples = track_samples(&normal_drive("idle", 9.0, 4));
 
     // "streaming" keeps a stream attached; "parked" only had a unary call.
@@ -215,9 +205,7 @@ async fn idle_sessions_without_a_stream_are_evicted() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sessions_are_listed_in_pages_and_can_be_reset() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let server = TestServer::start(test_config(dir.path())).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, server, mut clients) = start_server(|_| {}).await;
     let samples = track_samples(&normal_drive("paged", 9.0, 4));
     for vehicle in ["streaming", "parked", "another"] {
         clients

@@ -9,9 +9,7 @@ use spoofwatch_core::detector::run_records;
 use spoofwatch_core::evaluation::evaluate_tracks;
 use spoofwatch_core::metrics::EventRules;
 use spoofwatch_core::testdata::{AVGPS_DIR_VAR, data_file};
-use spoofwatch_tests::{
-    Clients, TestServer, active_model, export_model, start_stream, test_config, track_samples,
-};
+use spoofwatch_tests::{active_model, export_model, start_server, start_stream, track_samples};
 
 /// Samples per streamed batch: deliberately not a divisor of anything in the data.
 const BATCH: usize = 7;
@@ -30,9 +28,7 @@ async fn streaming_dataset_3_matches_the_offline_pass_sample_by_sample() {
     let breaks = track.records.iter().filter(|r| r.trajectory_break).count();
     assert_eq!(breaks, 1, "Dataset-3 is a single segment");
 
-    let dir = tempfile::tempdir().expect("temp dir");
-    let server = TestServer::start(test_config(dir.path())).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, server, mut clients) = start_server(|_| {}).await;
     let model = active_model(&mut clients.models).await;
     assert_eq!(
         model.name, "models/default",

@@ -7,9 +7,8 @@ use spoofwatch_core::sample::Track;
 use spoofwatch_proto::longrunning::{self, operation};
 use spoofwatch_proto::v1;
 use spoofwatch_tests::{
-    Clients, TestServer, active_model, export_model, metadata_of, normal_drive, start_stream,
-    test_config, track_samples, trained_model, training_fleet, training_request, upload_tracks,
-    wait_done,
+    Clients, active_model, export_model, metadata_of, normal_drive, start_server, start_stream,
+    track_samples, trained_model, training_fleet, training_request, upload_tracks, wait_done,
 };
 use tonic::Code;
 
@@ -92,11 +91,7 @@ async fn watch_until_running(clients: &mut Clients, name: &str) -> v1::JobState 
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_trained_model_serves_new_sessions_and_a_second_job_can_be_cancelled() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = test_config(dir.path());
-    config.max_running_jobs = 1;
-    let server = TestServer::start(config).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, server, mut clients) = start_server(|config| config.max_running_jobs = 1).await;
 
     let fleet = training_fleet();
     let (rows, spoofed) = rows_and_spoofed(&fleet);
