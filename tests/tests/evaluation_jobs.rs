@@ -13,6 +13,7 @@ use spoofwatch_proto::longrunning::{self, operation};
 use spoofwatch_proto::v1;
 use spoofwatch_tests::{
     attacked_drive, export_model, normal_drive, start_server, telemetry_csv, upload_tracks,
+    wait_done,
 };
 use tonic::Code;
 
@@ -42,15 +43,7 @@ async fn an_evaluation_job_matches_the_offline_evaluation() {
         .await
         .expect("the evaluation job is accepted")
         .into_inner();
-    let done = clients
-        .operations
-        .wait_operation(longrunning::WaitOperationRequest {
-            name: job.name.clone(),
-            timeout: None,
-        })
-        .await
-        .expect("WaitOperation")
-        .into_inner();
+    let done = wait_done(&mut clients.operations, &job.name).await;
     assert!(done.done);
     let Some(operation::Result::Response(any)) = &done.result else {
         panic!("the evaluation succeeded: {done:?}");

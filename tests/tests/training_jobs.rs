@@ -43,16 +43,21 @@ async fn import_model(clients: &mut Clients, artifact: Vec<u8>) -> v1::Model {
         .into_inner()
 }
 
-/// Reads a WatchJob stream to its end.
-async fn watch_to_end(clients: &mut Clients, name: &str) -> Vec<v1::JobMetadata> {
-    let mut stream = clients
+/// Opens a WatchJob stream.
+async fn watch_job(clients: &mut Clients, name: &str) -> tonic::Streaming<v1::JobMetadata> {
+    clients
         .training
         .watch_job(v1::WatchJobRequest {
             name: name.to_string(),
         })
         .await
         .expect("WatchJob is accepted")
-        .into_inner();
+        .into_inner()
+}
+
+/// Reads a WatchJob stream to its end.
+async fn watch_to_end(clients: &mut Clients, name: &str) -> Vec<v1::JobMetadata> {
+    let mut stream = watch_job(clients, name).await;
     let mut updates = Vec::new();
     loop {
         let next = tokio::time::timeout(Duration::from_secs(300), stream.message())
@@ -68,14 +73,7 @@ async fn watch_to_end(clients: &mut Clients, name: &str) -> Vec<v1::JobMetadata>
 
 /// Reads a WatchJob stream until the job reports RUNNING (or ends).
 async fn watch_until_running(clients: &mut Clients, name: &str) -> v1::JobState {
-    let mut stream = clients
-        .training
-        .watch_job(v1::WatchJobRequest {
-            name: name.to_string(),
-        })
-        .await
-        .expect("WatchJob is accepted")
-        .into_inner();
+    let mut stream = watch_job(clients, name).await;
     loop {
         let update = tokio::time::timeout(Duration::from_secs(300), stream.message())
             .await
