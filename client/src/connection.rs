@@ -1,5 +1,6 @@
 //! A typed connection to a Spoofwatch server: one HTTP/2 channel, an optional bearer token on every
-//! request, and accessors for each service's generated client.
+//! request, and accessors for each service's generated client. It must not know what the calls
+//! mean: streams live in `detect_stream`, commands in the binary.
 
 use std::time::Duration;
 
@@ -105,33 +106,54 @@ impl Connection {
         InterceptedService::new(self.channel.clone(), self.auth.clone())
     }
 
+    /// A generated client over this connection that accepts replies up to
+    /// [`MAX_DECODING_MESSAGE_BYTES`].
+    fn limited<C>(
+        &self,
+        new: impl FnOnce(AuthenticatedChannel) -> C,
+        max_decoding_message_size: impl FnOnce(C, usize) -> C,
+    ) -> C {
+        max_decoding_message_size(new(self.channel()), MAX_DECODING_MESSAGE_BYTES)
+    }
+
     /// The DetectionService client (streaming and unary detection, sessions).
     pub fn detection(&self) -> DetectionServiceClient<AuthenticatedChannel> {
-        DetectionServiceClient::new(self.channel())
-            .max_decoding_message_size(MAX_DECODING_MESSAGE_BYTES)
+        self.limited(
+            DetectionServiceClient::new,
+            DetectionServiceClient::max_decoding_message_size,
+        )
     }
 
     /// The ModelService client (registry, export/import).
     pub fn models(&self) -> ModelServiceClient<AuthenticatedChannel> {
-        ModelServiceClient::new(self.channel())
-            .max_decoding_message_size(MAX_DECODING_MESSAGE_BYTES)
+        self.limited(
+            ModelServiceClient::new,
+            ModelServiceClient::max_decoding_message_size,
+        )
     }
 
     /// The DatasetService client (upload, import, list, delete).
     pub fn datasets(&self) -> DatasetServiceClient<AuthenticatedChannel> {
-        DatasetServiceClient::new(self.channel())
-            .max_decoding_message_size(MAX_DECODING_MESSAGE_BYTES)
+        self.limited(
+            DatasetServiceClient::new,
+            DatasetServiceClient::max_decoding_message_size,
+        )
     }
 
     /// The TrainingService client (create jobs, watch their progress).
     pub fn training(&self) -> TrainingServiceClient<AuthenticatedChannel> {
-        TrainingServiceClient::new(self.channel())
-            .max_decoding_message_size(MAX_DECODING_MESSAGE_BYTES)
+        self.limited(
+            TrainingServiceClient::new,
+            TrainingServiceClient::max_decoding_message_size,
+        )
     }
 
     /// The google.longrunning.Operations client (get, list, cancel, delete, wait for jobs).
     pub fn operations(&self) -> OperationsClient<AuthenticatedChannel> {
-        OperationsClient::new(self.channel()).max_decoding_message_size(MAX_DECODING_MESSAGE_BYTES)
+        self.limited(
+            OperationsClient::new,
+            OperationsClient::max_decoding_message_size,
+        )
     }
 
     /// The grpc.health.v1 client.

@@ -1,5 +1,7 @@
 //! Client-side errors, and readable renderings of gRPC statuses (code, message, BadRequest field
 //! violations and the other google.rpc error details the server attaches).
+//!
+//! It must not decide what to do about an error (retry, exit codes): callers do.
 
 use std::fmt;
 
@@ -24,6 +26,12 @@ pub enum ClientError {
     /// The server answered something the protocol does not allow (e.g. a detection count mismatch).
     #[error("protocol violation from the server: {0}")]
     Protocol(String),
+    /// No reply arrived in time.
+    #[error("{context}: no reply within {after:?}")]
+    Timeout {
+        context: String,
+        after: std::time::Duration,
+    },
     /// Options given to a client helper are out of range.
     #[error("invalid option {option}: {reason}")]
     InvalidOption {
@@ -39,6 +47,16 @@ pub enum ClientError {
     /// The in-process server failed.
     #[error("in-process server: {0}")]
     Server(String),
+}
+
+impl ClientError {
+    /// The gRPC status a failed call returned, if this is one.
+    pub fn status(&self) -> Option<&tonic::Status> {
+        match self {
+            ClientError::Rpc(error) => Some(&error.status),
+            _ => None,
+        }
+    }
 }
 
 /// A failed call: what the client was doing and the status the server returned.

@@ -1,4 +1,6 @@
 //! `spoofwatch`: the Spoofwatch command-line client (offline experiments and the gRPC commands).
+//!
+//! It only parses the command line and maps errors to exit codes; commands live in `commands`.
 
 mod commands;
 

@@ -1,4 +1,6 @@
 //! Progress bars for long runs: shown on an interactive terminal, silent in CI and pipes.
+//!
+//! It must not know what is being measured; callers label and advance the bars.
 
 use std::io::IsTerminal;
 

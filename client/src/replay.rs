@@ -1,34 +1,28 @@
-//! Replaying recorded tracks over `StreamDetect`, one stream per vehicle.
+//! Replaying recorded tracks over `StreamDetect`, one [`DetectStream`] per vehicle: batching,
+//! pacing, replay timestamps and tying each detection back to its recorded row. The stream
+//! protocol itself lives in [`crate::detect_stream`]; printing belongs to the commands.
 //!
 //! The server sees only timestamps: it cannot see a recording's own trajectory breaks, and it rejects
 //! time going backwards. [`replay_timestamps`] therefore shifts later timestamps so that each break
 //! becomes a 10 s forward gap, which makes the server start a new trajectory exactly where offline
 //! evaluation does, while every δ inside a trajectory stays as recorded.
 
-use std::collections::VecDeque;
-use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use spoofwatch_core::evidence::MAX_BACKWARD_S;
 use spoofwatch_core::sample::{Record, Sample, Track};
 use spoofwatch_proto::v1;
-use spoofwatch_proto::v1::detection_service_client::DetectionServiceClient;
-use spoofwatch_proto::v1::stream_detect_request::Kind as RequestKind;
-use spoofwatch_proto::v1::stream_detect_response::Kind as ResponseKind;
-use tokio::sync::{Semaphore, mpsc};
-use tokio_stream::wrappers::ReceiverStream;
+use tokio::sync::mpsc;
 
-use crate::connection::AuthenticatedChannel;
-use crate::error::{ClientError, rpc};
+use crate::connection::Connection;
+use crate::detect_stream::{BatchOutcome, DetectStream};
+use crate::error::ClientError;
 
 /// The forward gap (s) a recorded trajectory break becomes in a replay; anything above the 5 s
 /// gap rule of SPEC §3 starts a new trajectory on the server.
 pub const REPLAY_BREAK_GAP_S: f64 = 10.0;
 /// Most samples in one `SampleBatch` (the server's default limit).
 pub const MAX_BATCH_SAMPLES: usize = 1000;
-/// Batches sent but not yet answered, per stream. Without a window, "as fast as possible" would
-/// queue the whole recording in buffers and the measured latency would be mostly queueing.
-pub const MAX_IN_FLIGHT_BATCHES: usize = 4;
 /// Longest vehicle id the server accepts.
 const MAX_VEHICLE_ID_LEN: usize = 128;
 
@@ -211,20 +205,13 @@ impl ReplaySummary {
     }
 }
 
-/// A batch on its way: where its samples come from and when it left.
-#[derive(Debug)]
-struct InFlight {
-    seq: u64,
-    first_index: usize,
-    len: usize,
-    sent_at: Instant,
-}
-
 /// Replays one track over its own `StreamDetect` call: `SessionStart{reset: true}`, then the
-/// records in batches (paced by `options.rate_hz`) with [`replay_timestamps`]. Every reply is
-/// forwarded to `events` as it arrives; the call ends when all batches are answered.
+/// records in batches (paced by `options.rate_hz`, at most
+/// [`crate::detect_stream::MAX_IN_FLIGHT_BATCHES`] unanswered)
+/// with [`replay_timestamps`]. Every reply is forwarded to `events` as it arrives; the call ends
+/// when all batches are answered.
 pub async fn replay_track(
-    mut client: DetectionServiceClient<AuthenticatedChannel>,
+    connection: &Connection,
     track: &Track,
     options: &ReplayOptions,
     events: mpsc::Sender<ReplayEvent>,
@@ -232,35 +219,8 @@ pub async fn replay_track(
     options.validate()?;
     let vehicle_id = server_vehicle_id(&track.vehicle_id);
     let timestamps = replay_timestamps(&track.records);
-    let (requests, outbound) = mpsc::channel::<v1::StreamDetectRequest>(8);
-    let start = v1::StreamDetectRequest {
-        kind: Some(RequestKind::Start(v1::SessionStart {
-            vehicle_id: vehicle_id.clone(),
-            model: options.model.clone(),
-            reset: true,
-        })),
-    };
-    // The channel was just created with room for this message.
-    requests
-        .try_send(start)
-        .map_err(|_| ClientError::Protocol("request channel closed before the start".into()))?;
-    let context = format!("streaming detections for {vehicle_id}");
-    let mut inbound = client
-        .stream_detect(ReceiverStream::new(outbound))
-        .await
-        .map_err(rpc(context.clone()))?
-        .into_inner();
-
-    let accepted = match inbound.message().await.map_err(rpc(context.clone()))? {
-        Some(v1::StreamDetectResponse {
-            kind: Some(ResponseKind::Accepted(accepted)),
-        }) => accepted,
-        other => {
-            return Err(ClientError::Protocol(format!(
-                "expected SessionAccepted as the first reply for {vehicle_id}, got {other:?}"
-            )));
-        }
-    };
+    let (mut stream, accepted) =
+        DetectStream::start(connection, &vehicle_id, &options.model, true).await?;
     let _ = events
         .send(ReplayEvent::Accepted {
             vehicle_id: vehicle_id.clone(),
@@ -268,108 +228,75 @@ pub async fn replay_track(
         })
         .await;
 
-    let batches = batch_requests(&track.records, &timestamps, options.batch_size);
+    let mut batches = batch_requests(&track.records, &timestamps, options.batch_size).into_iter();
+    let mut next_batch = batches.next();
     let mut summary = ReplaySummary {
         vehicle_id: vehicle_id.clone(),
         samples_sent: track.records.len() as u64,
         ..ReplaySummary::default()
     };
-    let (in_flight_tx, mut in_flight_rx) = mpsc::unbounded_channel::<InFlight>();
     let pace = pace_per_batch(options);
-    let window = Arc::new(Semaphore::new(MAX_IN_FLIGHT_BATCHES));
-    let sender = tokio::spawn(send_batches(
-        batches,
-        pace,
-        Arc::clone(&window),
-        requests,
-        in_flight_tx,
-    ));
-
-    let mut pending: VecDeque<InFlight> = VecDeque::new();
-    let outcome = loop {
-        let message = match inbound.message().await {
-            Ok(Some(message)) => message,
-            Ok(None) => break Ok(()),
-            Err(status) => break Err(rpc(context.clone())(status)),
-        };
-        while let Ok(batch) = in_flight_rx.try_recv() {
-            pending.push_back(batch);
+    let started = tokio::time::Instant::now();
+    let mut sent: u32 = 0;
+    loop {
+        let can_send = next_batch.is_some() && stream.has_room();
+        let awaiting = stream.in_flight() > 0;
+        if !can_send && !awaiting {
+            break;
         }
-        let Some(batch) = pending.pop_front() else {
-            break Err(ClientError::Protocol(format!(
-                "{vehicle_id}: a reply arrived for a batch that was not sent"
-            )));
-        };
-        window.add_permits(1);
-        match message.kind {
-            Some(ResponseKind::Detections(reply)) => {
-                if let Err(e) = check_reply(&vehicle_id, &batch, reply.seq, reply.detections.len())
-                {
-                    break Err(e);
-                }
-                summary.batch_latencies.push(batch.sent_at.elapsed());
-                for (offset, detection) in reply.detections.into_iter().enumerate() {
-                    let index = batch.first_index + offset;
-                    let record = &track.records[index];
-                    summary.detections += 1;
-                    summary.alarm_onsets += u64::from(detection.alarm_onset);
-                    let _ = events
-                        .send(ReplayEvent::Detection(ReplayedDetection {
-                            vehicle_id: vehicle_id.clone(),
-                            index,
-                            line: record.line,
-                            recorded_timestamp_s: record.sample.timestamp_s,
-                            detection,
-                        }))
-                        .await;
+        // Paced: batch k leaves at k × pace; otherwise as soon as the window has room.
+        let send_at = pace.map_or(started, |pace| started + pace * sent);
+        tokio::select! {
+            // A reply that is already there is taken before more is sent, so latencies stay true.
+            biased;
+            reply = stream.recv(), if awaiting => {
+                let reply = reply?;
+                summary.batch_latencies.push(reply.latency);
+                let first_index = (reply.batch.seq - 1) as usize * options.batch_size;
+                match reply.outcome {
+                    BatchOutcome::Detections(detections) => {
+                        for (offset, detection) in detections.into_iter().enumerate() {
+                            let index = first_index + offset;
+                            let record = &track.records[index];
+                            summary.detections += 1;
+                            summary.alarm_onsets += u64::from(detection.alarm_onset);
+                            let _ = events
+                                .send(ReplayEvent::Detection(ReplayedDetection {
+                                    vehicle_id: vehicle_id.clone(),
+                                    index,
+                                    line: record.line,
+                                    recorded_timestamp_s: record.sample.timestamp_s,
+                                    detection,
+                                }))
+                                .await;
+                        }
+                    }
+                    BatchOutcome::Rejected(status) => {
+                        summary.rejected_batches += 1;
+                        let first = &track.records[first_index];
+                        let last = &track.records[first_index + reply.batch.len - 1];
+                        let _ = events
+                            .send(ReplayEvent::ItemError {
+                                vehicle_id: vehicle_id.clone(),
+                                seq: reply.batch.seq,
+                                lines: (first.line, last.line),
+                                status,
+                            })
+                            .await;
+                    }
                 }
             }
-            Some(ResponseKind::ItemError(item)) => {
-                summary.batch_latencies.push(batch.sent_at.elapsed());
-                summary.rejected_batches += 1;
-                let first = &track.records[batch.first_index];
-                let last = &track.records[batch.first_index + batch.len - 1];
-                let _ = events
-                    .send(ReplayEvent::ItemError {
-                        vehicle_id: vehicle_id.clone(),
-                        seq: item.seq,
-                        lines: (first.line, last.line),
-                        status: item.status.unwrap_or_default(),
-                    })
-                    .await;
-            }
-            other => {
-                break Err(ClientError::Protocol(format!(
-                    "{vehicle_id}: unexpected reply {other:?}"
-                )));
+            () = tokio::time::sleep_until(send_at), if can_send => {
+                if let Some((seq, _, batch)) = next_batch.take() {
+                    stream.send_batch(seq, batch.samples).await?;
+                    sent += 1;
+                    next_batch = batches.next();
+                }
             }
         }
-    };
-    sender.abort();
-    outcome?;
-    let unanswered = pending.len() + std::iter::from_fn(|| in_flight_rx.try_recv().ok()).count();
-    if unanswered > 0 {
-        return Err(ClientError::Protocol(format!(
-            "{vehicle_id}: the stream ended with {unanswered} batches unanswered"
-        )));
     }
+    stream.finish().await?;
     Ok(summary)
-}
-
-/// The replies must come in order, one per batch, one detection per sample.
-fn check_reply(
-    vehicle_id: &str,
-    batch: &InFlight,
-    seq: u64,
-    detections: usize,
-) -> Result<(), ClientError> {
-    if seq != batch.seq || detections != batch.len {
-        return Err(ClientError::Protocol(format!(
-            "{vehicle_id}: expected {} detections for batch {}, got {detections} for batch {seq}",
-            batch.len, batch.seq
-        )));
-    }
-    Ok(())
 }
 
 /// The records as `(seq, first index, batch)`, seq counting from 1.
@@ -400,46 +327,10 @@ fn pace_per_batch(options: &ReplayOptions) -> Option<Duration> {
         .then(|| Duration::from_secs_f64(options.batch_size as f64 / options.rate_hz))
 }
 
-/// Sends the batches (on a fixed schedule when paced, at most [`MAX_IN_FLIGHT_BATCHES`]
-/// unanswered) and announces each to the reader first, so a reply always finds its batch. Dropping
-/// `requests` at the end closes our side of the stream.
-async fn send_batches(
-    batches: Vec<(u64, usize, v1::SampleBatch)>,
-    pace: Option<Duration>,
-    window: Arc<Semaphore>,
-    requests: mpsc::Sender<v1::StreamDetectRequest>,
-    in_flight: mpsc::UnboundedSender<InFlight>,
-) {
-    let started = tokio::time::Instant::now();
-    for (k, (seq, first_index, batch)) in batches.into_iter().enumerate() {
-        if let Some(pace) = pace {
-            tokio::time::sleep_until(started + pace * k as u32).await;
-        }
-        // The reader returns the permit when the batch's reply arrives.
-        match window.acquire().await {
-            Ok(permit) => permit.forget(),
-            Err(_) => return,
-        }
-        let len = batch.samples.len();
-        let announced = in_flight.send(InFlight {
-            seq,
-            first_index,
-            len,
-            sent_at: Instant::now(),
-        });
-        let request = v1::StreamDetectRequest {
-            kind: Some(RequestKind::Batch(batch)),
-        };
-        if announced.is_err() || requests.send(request).await.is_err() {
-            return; // the reader stopped
-        }
-    }
-}
-
 /// Replays every track concurrently (one task and stream per vehicle). Events of all vehicles are
 /// interleaved on `events`; the summaries come back in track order.
 pub async fn replay_tracks(
-    connection: &crate::Connection,
+    connection: &Connection,
     tracks: Vec<Track>,
     options: &ReplayOptions,
     events: mpsc::Sender<ReplayEvent>,
@@ -447,10 +338,10 @@ pub async fn replay_tracks(
     let handles: Vec<_> = tracks
         .into_iter()
         .map(|track| {
-            let client = connection.detection();
+            let connection = connection.clone();
             let options = options.clone();
             let events = events.clone();
-            tokio::spawn(async move { replay_track(client, &track, &options, events).await })
+            tokio::spawn(async move { replay_track(&connection, &track, &options, events).await })
         })
         .collect();
     drop(events);

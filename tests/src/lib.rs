@@ -1,31 +1,39 @@
-//! Support for the black-box tests: start the real server in-process on a loopback port, connect
-//! gRPC clients, build test inputs with `spoofwatch-core`, and read replies with a bound on waiting.
+//! What the black-box tests share: start the real server in-process on a loopback port, connect
+//! the client library's `Connection` to it, open `DetectStream`s whose replies are awaited with a
+//! bound, and build test inputs (drives, attacks, uploads) with `spoofwatch-core`.
 //!
 //! Tests talk to the server only through gRPC. The recipe follows tonic's own tests: bind
 //! `127.0.0.1:0`, spawn `serve` with a oneshot shutdown, poll health instead of sleeping, and drop
 //! clients before triggering shutdown (an open stream holds the connection and delays the drain).
+//! Test-specific assertions stay in the test files (one per behaviour under `tests/`); this crate
+//! must not grow a second implementation of anything the client library already has.
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use prost::Message;
+pub use spoofwatch_client::detect_stream::{
+    BatchOutcome, BatchReply, batch_request, start_request,
+};
+use spoofwatch_client::replay::sample_to_proto;
+pub use spoofwatch_client::{AuthenticatedChannel, ClientError, Connection, DetectStream};
 use spoofwatch_core::data::telemetry::write_tracks;
-use spoofwatch_core::sample::{Sample, Track};
+use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
+use spoofwatch_proto::longrunning;
+use spoofwatch_proto::longrunning::operation;
 use spoofwatch_proto::longrunning::operations_client::OperationsClient;
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::dataset_service_client::DatasetServiceClient;
 use spoofwatch_proto::v1::detection_service_client::DetectionServiceClient;
 use spoofwatch_proto::v1::model_service_client::ModelServiceClient;
-use spoofwatch_proto::v1::stream_detect_request::Kind as RequestKind;
-use spoofwatch_proto::v1::stream_detect_response::Kind as ResponseKind;
 use spoofwatch_proto::v1::training_service_client::TrainingServiceClient;
 use spoofwatch_server::{Config, ServerError, serve};
-use tokio::sync::{mpsc, oneshot};
+use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
-use tokio_stream::wrappers::ReceiverStream;
+use tonic::Code;
 use tonic::transport::Channel;
-use tonic::{Code, Status, Streaming};
 use tonic_health::pb::HealthCheckRequest;
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
@@ -40,6 +48,19 @@ pub fn test_config(dir: &Path) -> Config {
     let mut config = Config::with_database(database_path(dir).display().to_string());
     config.shutdown_grace_secs = 2;
     config
+}
+
+/// A fresh server on a database in a new temporary directory, its [`test_config`] adjusted by
+/// `configure`, and clients connected to it. The directory must outlive the server.
+pub async fn start_server(
+    configure: impl FnOnce(&mut Config),
+) -> (tempfile::TempDir, TestServer, Clients) {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut config = test_config(dir.path());
+    configure(&mut config);
+    let server = TestServer::start(config).await;
+    let clients = Clients::of(&server).await;
+    (dir, server, clients)
 }
 
 /// Where [`test_config`] puts the database inside `dir`.
@@ -75,9 +96,25 @@ impl TestServer {
         server
     }
 
-    /// A new connection to the server.
+    /// The server's URL.
+    pub fn url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    /// A new plain channel to the server (for services the client library does not cover).
     pub async fn channel(&self) -> Channel {
-        connect(self.addr).await
+        Channel::from_shared(self.url())
+            .expect("a valid URI")
+            .connect()
+            .await
+            .expect("connect to the test server")
+    }
+
+    /// A new client connection to the server, sending `token` when given.
+    pub async fn connection(&self, token: Option<&str>) -> Connection {
+        Connection::connect(self.url(), token.map(str::to_string))
+            .await
+            .expect("connect to the test server")
     }
 
     /// Polls `grpc.health.v1.Health/Check` (overall status) until SERVING.
@@ -123,15 +160,6 @@ impl Drop for TestServer {
     }
 }
 
-/// Connects a channel to `addr` (plaintext HTTP/2).
-pub async fn connect(addr: SocketAddr) -> Channel {
-    Channel::from_shared(format!("http://{addr}"))
-        .expect("a valid URI")
-        .connect()
-        .await
-        .expect("connect to the test server")
-}
-
 /// Polls health `Check("")` until SERVING or `bound` passes (then panics).
 pub async fn wait_until_serving(addr: SocketAddr, bound: Duration) {
     let deadline = tokio::time::Instant::now() + bound;
@@ -159,47 +187,35 @@ pub async fn wait_until_serving(addr: SocketAddr, bound: Duration) {
     }
 }
 
-/// Typed clients over one channel.
+/// Typed clients over one [`Connection`].
 #[derive(Clone)]
 pub struct Clients {
-    pub detection: DetectionServiceClient<Channel>,
-    pub models: ModelServiceClient<Channel>,
-    pub datasets: DatasetServiceClient<Channel>,
-    pub training: TrainingServiceClient<Channel>,
-    pub operations: OperationsClient<Channel>,
-    pub health: HealthClient<Channel>,
+    pub connection: Connection,
+    pub detection: DetectionServiceClient<AuthenticatedChannel>,
+    pub models: ModelServiceClient<AuthenticatedChannel>,
+    pub datasets: DatasetServiceClient<AuthenticatedChannel>,
+    pub training: TrainingServiceClient<AuthenticatedChannel>,
+    pub operations: OperationsClient<AuthenticatedChannel>,
+    pub health: HealthClient<AuthenticatedChannel>,
 }
 
 impl Clients {
-    /// Clients of every service over `channel`.
-    pub fn new(channel: Channel) -> Self {
+    /// Clients of every service over `connection`.
+    pub fn new(connection: Connection) -> Self {
         Self {
-            detection: DetectionServiceClient::new(channel.clone()),
-            models: ModelServiceClient::new(channel.clone()),
-            datasets: DatasetServiceClient::new(channel.clone()),
-            training: TrainingServiceClient::new(channel.clone()),
-            operations: OperationsClient::new(channel.clone()),
-            health: HealthClient::new(channel),
+            detection: connection.detection(),
+            models: connection.models(),
+            datasets: connection.datasets(),
+            training: connection.training(),
+            operations: connection.operations(),
+            health: connection.health(),
+            connection,
         }
     }
 
-    /// Clients connected to `server`.
+    /// Clients connected to `server` (no token).
     pub async fn of(server: &TestServer) -> Self {
-        Self::new(server.channel().await)
-    }
-}
-
-/// A core sample on the wire.
-pub fn sample_to_proto(s: &Sample) -> v1::Sample {
-    v1::Sample {
-        timestamp_s: s.timestamp_s,
-        latitude_deg: s.latitude_deg,
-        longitude_deg: s.longitude_deg,
-        speed_mps: s.speed_mps,
-        heading_deg: s.heading_deg,
-        position_std_m: s.position_std_m,
-        speed_std_mps: s.speed_std_mps,
-        heading_std_deg: s.heading_std_deg,
+        Self::new(server.connection(None).await)
     }
 }
 
@@ -208,7 +224,7 @@ pub fn track_samples(track: &Track) -> Vec<v1::Sample> {
     track
         .records
         .iter()
-        .map(|r| sample_to_proto(&r.sample))
+        .map(|r| sample_to_proto(&r.sample, r.sample.timestamp_s))
         .collect()
 }
 
@@ -281,120 +297,40 @@ pub async fn upload_tracks(
         .into_inner()
 }
 
-/// An open `StreamDetect` call: requests go in through a channel, replies are read with a bound.
-pub struct DetectStream {
-    requests: mpsc::Sender<v1::StreamDetectRequest>,
-    replies: Streaming<v1::StreamDetectResponse>,
+/// Opens a session stream for `vehicle_id` (reset = false) whose replies must each arrive within
+/// [`REPLY_TIMEOUT`], and returns it with its `SessionAccepted`.
+pub async fn start_stream(
+    clients: &Clients,
+    vehicle_id: &str,
+    model: &str,
+) -> (DetectStream, v1::SessionAccepted) {
+    let mut stream = open_stream(clients, start_request(vehicle_id, model, false))
+        .await
+        .expect("the call is accepted");
+    let accepted = stream
+        .accepted()
+        .await
+        .unwrap_or_else(|e| panic!("expected SessionAccepted for {vehicle_id}: {e}"));
+    (stream, accepted)
 }
 
-/// The start message of a stream.
-pub fn start_message(vehicle_id: &str, model: &str, reset: bool) -> v1::StreamDetectRequest {
-    v1::StreamDetectRequest {
-        kind: Some(RequestKind::Start(v1::SessionStart {
-            vehicle_id: vehicle_id.to_string(),
-            model: model.to_string(),
-            reset,
-        })),
-    }
+/// Opens a call whose first message is `first` (replies bounded by [`REPLY_TIMEOUT`]); `Err` when
+/// the call itself is refused.
+pub async fn open_stream(
+    clients: &Clients,
+    first: v1::StreamDetectRequest,
+) -> Result<DetectStream, ClientError> {
+    Ok(DetectStream::open(&clients.connection, first)
+        .await?
+        .with_reply_timeout(REPLY_TIMEOUT))
 }
 
-/// A batch message.
-pub fn batch_message(seq: u64, samples: Vec<v1::Sample>) -> v1::StreamDetectRequest {
-    v1::StreamDetectRequest {
-        kind: Some(RequestKind::Batch(v1::SampleBatch { seq, samples })),
-    }
-}
-
-impl DetectStream {
-    /// Opens a call whose first message is `first`; `Err` when the call itself is refused.
-    pub async fn open(
-        client: &mut DetectionServiceClient<Channel>,
-        first: v1::StreamDetectRequest,
-    ) -> Result<DetectStream, Status> {
-        let (requests, outbound) = mpsc::channel(16);
-        requests
-            .send(first)
-            .await
-            .expect("the request channel is open");
-        let replies = client
-            .stream_detect(ReceiverStream::new(outbound))
-            .await?
-            .into_inner();
-        Ok(DetectStream { requests, replies })
-    }
-
-    /// Opens a session stream and returns it with its `SessionAccepted`.
-    pub async fn start(
-        client: &mut DetectionServiceClient<Channel>,
-        vehicle_id: &str,
-        model: &str,
-    ) -> (DetectStream, v1::SessionAccepted) {
-        let mut stream = Self::open(client, start_message(vehicle_id, model, false))
-            .await
-            .expect("the call is accepted");
-        match stream.next().await {
-            Ok(Some(ResponseKind::Accepted(accepted))) => (stream, accepted),
-            other => panic!("expected SessionAccepted for {vehicle_id}, got {other:?}"),
-        }
-    }
-
-    /// Sends one message.
-    pub async fn send(&self, message: v1::StreamDetectRequest) {
-        self.requests
-            .send(message)
-            .await
-            .expect("the request stream is open");
-    }
-
-    /// Sends a batch of samples.
-    pub async fn send_batch(&self, seq: u64, samples: Vec<v1::Sample>) {
-        self.send(batch_message(seq, samples)).await;
-    }
-
-    /// The next reply: `Ok(None)` when the call ended with OK, `Err` with its status otherwise.
-    /// Panics when nothing arrives within [`REPLY_TIMEOUT`].
-    pub async fn next(&mut self) -> Result<Option<ResponseKind>, Status> {
-        let message = tokio::time::timeout(REPLY_TIMEOUT, self.replies.message())
-            .await
-            .expect("a reply within the timeout")?;
-        Ok(message.map(|m| m.kind.expect("every reply has a kind")))
-    }
-
-    /// Sends a batch and returns its detections (panics on anything else).
-    pub async fn detect(&mut self, seq: u64, samples: Vec<v1::Sample>) -> Vec<v1::Detection> {
-        let count = samples.len();
-        self.send_batch(seq, samples).await;
-        match self.next().await {
-            Ok(Some(ResponseKind::Detections(batch))) => {
-                assert_eq!(batch.seq, seq, "the reply echoes the batch's seq");
-                assert_eq!(batch.detections.len(), count, "one detection per sample");
-                batch.detections
-            }
-            other => panic!("expected detections for seq {seq}, got {other:?}"),
-        }
-    }
-
-    /// Sends a batch and returns the ItemError it must cause (panics on anything else).
-    pub async fn expect_item_error(
-        &mut self,
-        seq: u64,
-        samples: Vec<v1::Sample>,
-    ) -> tonic_types::Status {
-        self.send_batch(seq, samples).await;
-        match self.next().await {
-            Ok(Some(ResponseKind::ItemError(error))) => {
-                assert_eq!(error.seq, seq, "the ItemError echoes the batch's seq");
-                error.status.expect("an ItemError carries a status")
-            }
-            other => panic!("expected an ItemError for seq {seq}, got {other:?}"),
-        }
-    }
-
-    /// Closes the client side (half-close); the server ends the call with OK.
-    pub fn close(self) -> Streaming<v1::StreamDetectResponse> {
-        drop(self.requests);
-        self.replies
-    }
+/// The status code a failed call or stream ended with (panics when it is not a gRPC status).
+pub fn code_of(error: &ClientError) -> Code {
+    error
+        .status()
+        .unwrap_or_else(|| panic!("expected a gRPC status, got {error}"))
+        .code()
 }
 
 /// Reads replies until the call ends and returns its final status code (OK when it ended cleanly).
@@ -403,14 +339,13 @@ pub async fn final_code(stream: &mut DetectStream) -> Code {
         match stream.next().await {
             Ok(Some(_)) => continue,
             Ok(None) => return Code::Ok,
-            Err(status) => return status.code(),
+            Err(error) => return code_of(&error),
         }
     }
 }
 
 /// The field violations of a google.rpc.Status carrying a BadRequest detail.
 pub fn field_violations(status: &tonic_types::Status) -> Vec<(String, String)> {
-    use prost::Message;
     status
         .details
         .iter()
@@ -425,7 +360,10 @@ pub fn field_violations(status: &tonic_types::Status) -> Vec<(String, String)> {
 }
 
 /// Drains a server-streaming model export into the artifact's bytes.
-pub async fn export_model(models: &mut ModelServiceClient<Channel>, name: &str) -> Vec<u8> {
+pub async fn export_model(
+    models: &mut ModelServiceClient<AuthenticatedChannel>,
+    name: &str,
+) -> Vec<u8> {
     let mut chunks = models
         .export_model(v1::ExportModelRequest {
             name: name.to_string(),
@@ -441,7 +379,7 @@ pub async fn export_model(models: &mut ModelServiceClient<Channel>, name: &str) 
 }
 
 /// The name of the active model (exactly one is active).
-pub async fn active_model(models: &mut ModelServiceClient<Channel>) -> v1::Model {
+pub async fn active_model(models: &mut ModelServiceClient<AuthenticatedChannel>) -> v1::Model {
     let listed = models
         .list_models(v1::ListModelsRequest::default())
         .await
@@ -451,4 +389,110 @@ pub async fn active_model(models: &mut ModelServiceClient<Channel>) -> v1::Model
     let mut active: Vec<v1::Model> = listed.into_iter().filter(|m| m.active).collect();
     assert_eq!(active.len(), 1, "exactly one model is active");
     active.remove(0)
+}
+
+/// Sends a batch and returns the ItemError status it must cause (panics on anything else; the
+/// stream checks that the ItemError echoes the batch's seq).
+pub async fn expect_item_error(
+    stream: &mut DetectStream,
+    seq: u64,
+    samples: Vec<v1::Sample>,
+) -> tonic_types::Status {
+    stream
+        .send_batch(seq, samples)
+        .await
+        .expect("the request stream is open");
+    match stream.recv().await {
+        Ok(BatchReply {
+            outcome: BatchOutcome::Rejected(status),
+            ..
+        }) => status,
+        other => panic!("expected an ItemError for seq {seq}, got {other:?}"),
+    }
+}
+
+/// Five 400 s drives (2,005 rows): two normal, three with ramp attacks placed so that the
+/// chronological 70/15/15 split has both classes in training and in validation.
+pub fn training_fleet() -> Vec<Track> {
+    let ramp = AttackKind::RampDrift { velocity_mps: 1.5 };
+    vec![
+        normal_drive("sim-0", 400.0, 11),
+        attacked_drive("sim-1", 400.0, 12, ramp, 150.0, 100.0),
+        attacked_drive("sim-2", 400.0, 13, ramp, 250.0, 100.0),
+        normal_drive("sim-3", 400.0, 14),
+        attacked_drive("sim-4", 400.0, 15, ramp, 300.0, 80.0),
+    ]
+}
+
+/// A training job on `dataset` with seed 7 and `max_epochs` epochs.
+pub fn training_request(
+    dataset: &str,
+    max_epochs: u32,
+    activate: bool,
+) -> v1::CreateTrainingJobRequest {
+    v1::CreateTrainingJobRequest {
+        datasets: vec![dataset.to_string()],
+        spec: Some(v1::TrainingSpec {
+            seed: 7,
+            max_epochs,
+            ..v1::TrainingSpec::default()
+        }),
+        display_name: format!("tiny {max_epochs}-epoch model"),
+        activate,
+        ..v1::CreateTrainingJobRequest::default()
+    }
+}
+
+/// An operation's `JobMetadata` (it must carry one).
+pub fn metadata_of(operation: &longrunning::Operation) -> v1::JobMetadata {
+    let any = operation
+        .metadata
+        .as_ref()
+        .expect("an operation carries metadata");
+    assert_eq!(
+        any.type_url,
+        "type.googleapis.com/spoofwatch.v1.JobMetadata"
+    );
+    v1::JobMetadata::decode(any.value.as_slice()).expect("decodable JobMetadata")
+}
+
+/// Waits (server side, at most 60 s per call) until the operation is done.
+pub async fn wait_done(
+    operations: &mut OperationsClient<AuthenticatedChannel>,
+    name: &str,
+) -> longrunning::Operation {
+    for _ in 0..5 {
+        let operation = operations
+            .wait_operation(longrunning::WaitOperationRequest {
+                name: name.to_string(),
+                timeout: Some(prost_types::Duration {
+                    seconds: 60,
+                    nanos: 0,
+                }),
+            })
+            .await
+            .expect("WaitOperation works")
+            .into_inner();
+        if operation.done {
+            return operation;
+        }
+    }
+    panic!("{name} did not finish within 5 minutes");
+}
+
+/// The model a finished training operation registered.
+pub fn trained_model(operation: &longrunning::Operation) -> v1::Model {
+    let Some(operation::Result::Response(any)) = &operation.result else {
+        panic!("a succeeded training operation has a response: {operation:?}");
+    };
+    assert_eq!(
+        any.type_url,
+        "type.googleapis.com/spoofwatch.v1.TrainingJobResult"
+    );
+    let result = v1::TrainingJobResult::decode(any.value.as_slice()).expect("decodable result");
+    assert!(
+        result.validation.is_some(),
+        "validation metrics are reported"
+    );
+    result.model.expect("the result names the registered model")
 }

@@ -1,5 +1,7 @@
 //! The CLI's commands: offline ones call `spoofwatch-core` directly, the remote ones (`remote/`)
 //! talk gRPC to a server through the `spoofwatch_client` library.
+//!
+//! It owns the command-line shape and dispatch, not any command's logic.
 
 mod cusum;
 mod evaluate;

@@ -5,20 +5,20 @@
 //! stream), for a fixed time; reports samples/s and the per-batch round trip (p50/p99/max).
 //! Memory phase: opens many short sessions (start + one batch, then the stream closes; the session
 //! stays in memory until idle eviction) and reports the server's resident memory before and after.
+//!
+//! Streams are driven through the client's `DetectStream`; this module owns only the load shape and
+//! the measurements. Without `--server` it needs the `inprocess` feature.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
-use spoofwatch_client::Connection;
-use spoofwatch_client::error::{ClientError, rpc};
+use spoofwatch_client::error::ClientError;
+#[cfg(feature = "inprocess")]
 use spoofwatch_client::inprocess::InProcessServer;
 use spoofwatch_client::synthetic::LoopDriver;
-use spoofwatch_proto::v1;
-use spoofwatch_proto::v1::stream_detect_request::Kind as RequestKind;
-use spoofwatch_proto::v1::stream_detect_response::Kind as ResponseKind;
-use tokio::sync::{Barrier, Semaphore, mpsc};
-use tokio_stream::wrappers::ReceiverStream;
+use spoofwatch_client::{Connection, DetectStream};
+use tokio::sync::{Barrier, Semaphore};
 
 use super::detect::parse_batch;
 
@@ -123,28 +123,29 @@ struct PhaseResult {
 }
 
 pub async fn run(args: Args) -> Result<()> {
-    let (server, url, pid) = match &args.server {
-        Some(url) => (None, url.clone(), args.server_pid),
-        None => {
-            let server = InProcessServer::start().await?;
-            let url = server.url();
-            println!(
-                "in-process server on {url} (temporary database); client and server share this \
-                 process, so its CPU and memory numbers include the client"
-            );
-            (Some(server), url, Some(std::process::id()))
-        }
-    };
-    let token = if server.is_some() {
-        None
-    } else {
-        args.token.clone()
-    };
-    let result = bench(&args, &url, token, pid).await;
-    if let Some(server) = server {
-        server.shutdown().await?;
+    match &args.server {
+        Some(url) => bench(&args, url, args.token.clone(), args.server_pid).await,
+        None => bench_in_process(&args).await,
     }
+}
+
+/// Benchmarks a server started in this process (no token: it has none).
+#[cfg(feature = "inprocess")]
+async fn bench_in_process(args: &Args) -> Result<()> {
+    let server = InProcessServer::start().await?;
+    let url = server.url();
+    println!(
+        "in-process server on {url} (temporary database); client and server share this \
+         process, so its CPU and memory numbers include the client"
+    );
+    let result = bench(args, &url, None, Some(std::process::id())).await;
+    server.shutdown().await?;
     result
+}
+
+#[cfg(not(feature = "inprocess"))]
+async fn bench_in_process(_args: &Args) -> Result<()> {
+    Err(super::no_in_process_server("bench without --server"))
 }
 
 async fn bench(args: &Args, url: &str, token: Option<String>, pid: Option<u32>) -> Result<()> {
@@ -277,97 +278,6 @@ async fn throughput_phase(
     })
 }
 
-fn start_request(vehicle_id: String) -> v1::StreamDetectRequest {
-    v1::StreamDetectRequest {
-        kind: Some(RequestKind::Start(v1::SessionStart {
-            vehicle_id,
-            model: String::new(),
-            reset: true,
-        })),
-    }
-}
-
-fn batch_request(seq: u64, samples: Vec<v1::Sample>) -> v1::StreamDetectRequest {
-    v1::StreamDetectRequest {
-        kind: Some(RequestKind::Batch(v1::SampleBatch { seq, samples })),
-    }
-}
-
-/// An open StreamDetect call after its SessionAccepted.
-struct OpenStream {
-    requests: mpsc::Sender<v1::StreamDetectRequest>,
-    replies: tonic::Streaming<v1::StreamDetectResponse>,
-}
-
-async fn open_stream(
-    connection: &Connection,
-    vehicle_id: String,
-) -> Result<OpenStream, ClientError> {
-    let (requests, outbound) = mpsc::channel(2);
-    let context = format!("opening a stream for {vehicle_id}");
-    requests
-        .send(start_request(vehicle_id))
-        .await
-        .map_err(|_| ClientError::Protocol("request channel closed".into()))?;
-    let mut replies = connection
-        .detection()
-        .stream_detect(ReceiverStream::new(outbound))
-        .await
-        .map_err(rpc(context.clone()))?
-        .into_inner();
-    match replies.message().await.map_err(rpc(context.clone()))? {
-        Some(v1::StreamDetectResponse {
-            kind: Some(ResponseKind::Accepted(_)),
-        }) => Ok(OpenStream { requests, replies }),
-        other => Err(ClientError::Protocol(format!(
-            "{context}: expected SessionAccepted, got {other:?}"
-        ))),
-    }
-}
-
-/// Sends one batch and waits for its detections.
-async fn round_trip(
-    stream: &mut OpenStream,
-    seq: u64,
-    samples: Vec<v1::Sample>,
-) -> Result<(), ClientError> {
-    let expected = samples.len();
-    stream
-        .requests
-        .send(batch_request(seq, samples))
-        .await
-        .map_err(|_| ClientError::Protocol("the stream closed".into()))?;
-    match stream
-        .replies
-        .message()
-        .await
-        .map_err(rpc("waiting for detections"))?
-    {
-        Some(v1::StreamDetectResponse {
-            kind: Some(ResponseKind::Detections(batch)),
-        }) if batch.seq == seq && batch.detections.len() == expected => Ok(()),
-        other => Err(ClientError::Protocol(format!(
-            "expected {expected} detections for batch {seq}, got {other:?}"
-        ))),
-    }
-}
-
-/// Closes our side and reads the stream to its end (the server then detaches the session).
-async fn close_stream(stream: OpenStream) -> Result<(), ClientError> {
-    let OpenStream {
-        requests,
-        mut replies,
-    } = stream;
-    drop(requests);
-    while replies
-        .message()
-        .await
-        .map_err(rpc("closing the stream"))?
-        .is_some()
-    {}
-    Ok(())
-}
-
 async fn drive_stream(
     connection: Connection,
     vehicle_id: String,
@@ -377,12 +287,12 @@ async fn drive_stream(
     barrier: Arc<Barrier>,
     schedule: Option<(Duration, Duration)>,
 ) -> StreamResult {
-    let opened = open_stream(&connection, vehicle_id).await;
+    let opened = DetectStream::start(&connection, &vehicle_id, "", true).await;
     // Every task passes the barrier exactly once, even when its stream failed to open.
     barrier.wait().await;
     let mut result = StreamResult::default();
     let mut stream = match opened {
-        Ok(stream) => stream,
+        Ok((stream, _)) => stream,
         Err(error) => {
             result.error = Some(error.to_string());
             return result;
@@ -400,14 +310,14 @@ async fn drive_stream(
         seq += 1;
         let samples = driver.next_batch(batch);
         let sent = Instant::now();
-        if let Err(error) = round_trip(&mut stream, seq, samples).await {
+        if let Err(error) = stream.detect(seq, samples).await {
             result.error = Some(error.to_string());
             return result;
         }
         result.latencies.push(sent.elapsed());
         result.samples += batch as u64;
     }
-    if let Err(error) = close_stream(stream).await {
+    if let Err(error) = stream.finish().await {
         result.error = Some(error.to_string());
     }
     result
@@ -420,9 +330,11 @@ async fn open_session(
     seed: u64,
     batch: usize,
 ) -> Result<(), ClientError> {
-    let mut stream = open_stream(&connection, vehicle_id).await?;
-    round_trip(&mut stream, 1, LoopDriver::new(seed).next_batch(batch)).await?;
-    close_stream(stream).await
+    let (mut stream, _) = DetectStream::start(&connection, &vehicle_id, "", true).await?;
+    stream
+        .detect(1, LoopDriver::new(seed).next_batch(batch))
+        .await?;
+    stream.finish().await
 }
 
 async fn memory_phase(

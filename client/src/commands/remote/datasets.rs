@@ -1,4 +1,6 @@
 //! `spoofwatch datasets`: upload, import, list, get and delete labelled recordings on the server.
+//!
+//! It owns how datasets are described and uploaded; paging and tables come from `remote`.
 
 use std::path::PathBuf;
 
@@ -7,15 +9,13 @@ use spoofwatch_client::error::rpc;
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::upload_dataset_request::Kind as UploadKind;
 
-use super::{ServerArgs, UPLOAD_CHUNK_BYTES, bytes, display_name, read_upload, text_table, time};
+use super::{
+    ResourceArgs, UPLOAD_CHUNK_BYTES, all_pages, bytes, display_name, print_table, read_upload,
+    time,
+};
 
-#[derive(Debug, clap::Args)]
-pub struct Args {
-    #[command(flatten)]
-    pub server: ServerArgs,
-    #[command(subcommand)]
-    pub command: Command,
-}
+/// `spoofwatch {resource} <command>` with the server flags.
+pub type Args = ResourceArgs<Command>;
 
 #[derive(Debug, clap::Subcommand)]
 pub enum Command {
@@ -111,18 +111,27 @@ pub async fn run(args: Args) -> Result<()> {
             println!("imported {}", describe(&dataset));
         }
         Command::List => {
-            let mut rows = Vec::new();
-            let mut page_token = String::new();
-            loop {
-                let page = client
-                    .list_datasets(v1::ListDatasetsRequest {
-                        page_size: 0,
-                        page_token,
-                    })
-                    .await
-                    .map_err(rpc("listing datasets"))?
-                    .into_inner();
-                rows.extend(page.datasets.iter().map(|d| {
+            let datasets = all_pages(|page_token| {
+                let mut client = client.clone();
+                async move {
+                    let page = client
+                        .list_datasets(v1::ListDatasetsRequest {
+                            page_size: 0,
+                            page_token,
+                        })
+                        .await
+                        .map_err(rpc("listing datasets"))?
+                        .into_inner();
+                    Ok((page.datasets, page.next_page_token))
+                }
+            })
+            .await?;
+            print_table(
+                &[
+                    "name", "display", "format", "rows", "vehicles", "spoofed", "size", "created",
+                ],
+                &datasets,
+                |d| {
                     vec![
                         d.name.clone(),
                         d.display_name.clone(),
@@ -133,21 +142,7 @@ pub async fn run(args: Args) -> Result<()> {
                         bytes(d.size_bytes),
                         time(d.create_time.as_ref()),
                     ]
-                }));
-                if page.next_page_token.is_empty() {
-                    break;
-                }
-                page_token = page.next_page_token;
-            }
-            print!(
-                "{}",
-                text_table(
-                    &[
-                        "name", "display", "format", "rows", "vehicles", "spoofed", "size",
-                        "created"
-                    ],
-                    &rows
-                )
+                },
             );
         }
         Command::Get { name } => {

@@ -1,5 +1,8 @@
 //! `spoofwatch detect`: replay a recording over StreamDetect, one concurrent stream per vehicle,
 //! printing detections as they arrive.
+//!
+//! Replay and the stream protocol belong to `spoofwatch_client::replay` and `DetectStream`; this
+//! module owns only the flags and the console/CSV output.
 
 use std::path::PathBuf;
 

@@ -1,4 +1,6 @@
 //! `spoofwatch health`: the grpc.health.v1 check of the whole server (used by compose.yaml).
+//!
+//! It must not check individual services: compose.yaml relies on the whole-server status.
 
 use std::time::Duration;
 

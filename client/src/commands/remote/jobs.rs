@@ -1,4 +1,7 @@
 //! `spoofwatch jobs`: training and evaluation jobs (google.longrunning operations).
+//!
+//! It owns how operations are decoded, described and waited for; listing and tables come from
+//! `remote`, models are described by `models`.
 
 use std::time::{Duration, Instant};
 
@@ -10,19 +13,14 @@ use spoofwatch_proto::longrunning;
 use spoofwatch_proto::longrunning::operation::Result as OperationResult;
 use spoofwatch_proto::v1;
 
-use super::{ServerArgs, opt, text_table, time};
+use super::{ResourceArgs, all_pages, opt, print_table, time};
 use crate::report::metrics_table;
 
 /// The server's longest single WaitOperation.
 const MAX_WAIT_PER_CALL: Duration = Duration::from_secs(60);
 
-#[derive(Debug, clap::Args)]
-pub struct Args {
-    #[command(flatten)]
-    pub server: ServerArgs,
-    #[command(subcommand)]
-    pub command: Command,
-}
+/// `spoofwatch {resource} <command>` with the server flags.
+pub type Args = ResourceArgs<Command>;
 
 #[derive(Debug, clap::Subcommand)]
 pub enum Command {
@@ -224,42 +222,36 @@ pub async fn run(args: Args) -> Result<()> {
     let mut client = connection.operations();
     match args.command {
         Command::List { filter } => {
-            let mut rows = Vec::new();
-            let mut page_token = String::new();
-            loop {
-                let page = client
-                    .list_operations(longrunning::ListOperationsRequest {
-                        name: String::new(),
-                        filter: filter.clone(),
-                        page_size: 0,
-                        page_token,
-                    })
-                    .await
-                    .map_err(rpc("listing jobs"))?
-                    .into_inner();
-                rows.extend(page.operations.iter().map(|op| {
-                    let m = job_metadata(op).unwrap_or_default();
-                    vec![
-                        op.name.clone(),
-                        m.kind.clone(),
-                        state_name(m.state).to_string(),
-                        format!("{}/{}", m.epoch, m.max_epochs),
-                        time(m.create_time.as_ref()),
-                        m.message.clone(),
-                    ]
-                }));
-                if page.next_page_token.is_empty() {
-                    break;
+            let operations = all_pages(|page_token| {
+                let mut client = client.clone();
+                let filter = filter.clone();
+                async move {
+                    let page = client
+                        .list_operations(longrunning::ListOperationsRequest {
+                            name: String::new(),
+                            filter,
+                            page_size: 0,
+                            page_token,
+                        })
+                        .await
+                        .map_err(rpc("listing jobs"))?
+                        .into_inner();
+                    Ok((page.operations, page.next_page_token))
                 }
-                page_token = page.next_page_token;
-            }
-            print!(
-                "{}",
-                text_table(
-                    &["name", "kind", "state", "epoch", "created", "message"],
-                    &rows
-                )
-            );
+            })
+            .await?;
+            let header = ["name", "kind", "state", "epoch", "created", "message"];
+            print_table(&header, &operations, |op| {
+                let m = job_metadata(op).unwrap_or_default();
+                vec![
+                    op.name.clone(),
+                    m.kind.clone(),
+                    state_name(m.state).to_string(),
+                    format!("{}/{}", m.epoch, m.max_epochs),
+                    time(m.create_time.as_ref()),
+                    m.message.clone(),
+                ]
+            });
         }
         Command::Get { name } => {
             let operation = client

@@ -1,4 +1,9 @@
-//! The commands that talk gRPC to a Spoofwatch server (or start one in-process: `demo`, `bench`).
+//! The commands that talk gRPC to a Spoofwatch server (or start one in-process: `demo`, `bench`),
+//! and what they share: server flags, the runtime, uploads, paging and listing output.
+//!
+//! They reach the server only through the `spoofwatch_client` library (`Connection`,
+//! `DetectStream`); nothing here may depend on the server crate except through
+//! `spoofwatch_client::inprocess` (feature `inprocess`).
 
 pub mod bench;
 pub mod datasets;
@@ -32,11 +37,29 @@ pub struct ServerArgs {
     pub token: Option<String>,
 }
 
+/// A resource command (`datasets`, `jobs`, `models`): the server flags and one subcommand.
+#[derive(Debug, clap::Args)]
+pub struct ResourceArgs<C: clap::Subcommand> {
+    #[command(flatten)]
+    pub server: ServerArgs,
+    #[command(subcommand)]
+    pub command: C,
+}
+
 impl ServerArgs {
     /// Connects (within the connect timeout).
     pub async fn connect(&self) -> Result<Connection> {
         Ok(Connection::connect(self.server.clone(), self.token.clone()).await?)
     }
+}
+
+/// Why a command that needs an in-process server cannot run in a build without one.
+#[cfg(not(feature = "inprocess"))]
+pub fn no_in_process_server(command: &str) -> anyhow::Error {
+    anyhow::anyhow!(
+        "`spoofwatch {command}` starts a server inside this process, and this build has none: \
+         rebuild with the `inprocess` feature (on by default)"
+    )
 }
 
 /// Runs a future on a fresh multi-threaded runtime. A short shutdown timeout keeps a pending
@@ -91,6 +114,31 @@ pub fn bytes(n: u64) -> String {
         n if n >= 1 << 10 => format!("{:.1} KiB", n as f64 / 1024.0),
         n => format!("{n} B"),
     }
+}
+
+/// Every item of a paged listing: `fetch(page_token)` returns one page and the next page token,
+/// empty after the last page.
+pub async fn all_pages<T, F, Fut>(mut fetch: F) -> Result<Vec<T>>
+where
+    F: FnMut(String) -> Fut,
+    Fut: Future<Output = Result<(Vec<T>, String)>>,
+{
+    let mut items = Vec::new();
+    let mut page_token = String::new();
+    loop {
+        let (page, next_page_token) = fetch(page_token).await?;
+        items.extend(page);
+        if next_page_token.is_empty() {
+            return Ok(items);
+        }
+        page_token = next_page_token;
+    }
+}
+
+/// Prints a listing: one row per item under `header`.
+pub fn print_table<T>(header: &[&str], items: &[T], row: impl Fn(&T) -> Vec<String>) {
+    let rows: Vec<Vec<String>> = items.iter().map(row).collect();
+    print!("{}", text_table(header, &rows));
 }
 
 /// Left-aligned text columns, two spaces apart, for listings.

@@ -1,4 +1,6 @@
 //! `spoofwatch models`: the server's model registry.
+//!
+//! It owns how models are described and imported/exported; paging and tables come from `remote`.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -8,16 +10,14 @@ use spoofwatch_client::error::rpc;
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::import_model_request::Kind as ImportKind;
 
-use super::{ServerArgs, UPLOAD_CHUNK_BYTES, bytes, display_name, read_upload, text_table, time};
+use super::{
+    ResourceArgs, UPLOAD_CHUNK_BYTES, all_pages, bytes, display_name, print_table, read_upload,
+    time,
+};
 use crate::report::metrics_table;
 
-#[derive(Debug, clap::Args)]
-pub struct Args {
-    #[command(flatten)]
-    pub server: ServerArgs,
-    #[command(subcommand)]
-    pub command: Command,
-}
+/// `spoofwatch {resource} <command>` with the server flags.
+pub type Args = ResourceArgs<Command>;
 
 #[derive(Debug, clap::Subcommand)]
 pub enum Command {
@@ -139,47 +139,40 @@ pub async fn run(args: Args) -> Result<()> {
     let mut client = connection.models();
     match args.command {
         Command::List => {
-            let mut rows = Vec::new();
-            let mut page_token = String::new();
-            loop {
-                let page = client
-                    .list_models(v1::ListModelsRequest {
-                        page_size: 0,
-                        page_token,
-                    })
-                    .await
-                    .map_err(rpc("listing models"))?
-                    .into_inner();
-                rows.extend(page.models.iter().map(|m| {
-                    let op = m.operating_point.unwrap_or_default();
-                    vec![
-                        format!("{}{}", if m.active { "* " } else { "  " }, m.name),
-                        m.display_name.clone(),
-                        m.source.clone(),
-                        format!("{:.3}/{}", op.theta, op.persistence),
-                        super::opt(m.validation_metrics.as_ref().and_then(|v| v.auroc), 4),
-                        time(m.create_time.as_ref()),
-                    ]
-                }));
-                if page.next_page_token.is_empty() {
-                    break;
+            let models = all_pages(|page_token| {
+                let mut client = client.clone();
+                async move {
+                    let page = client
+                        .list_models(v1::ListModelsRequest {
+                            page_size: 0,
+                            page_token,
+                        })
+                        .await
+                        .map_err(rpc("listing models"))?
+                        .into_inner();
+                    Ok((page.models, page.next_page_token))
                 }
-                page_token = page.next_page_token;
-            }
-            print!(
-                "{}",
-                text_table(
-                    &[
-                        "  name",
-                        "display",
-                        "source",
-                        "theta/N_p",
-                        "val. AUROC",
-                        "created"
-                    ],
-                    &rows
-                )
-            );
+            })
+            .await?;
+            let header = [
+                "  name",
+                "display",
+                "source",
+                "theta/N_p",
+                "val. AUROC",
+                "created",
+            ];
+            print_table(&header, &models, |m| {
+                let op = m.operating_point.unwrap_or_default();
+                vec![
+                    format!("{}{}", if m.active { "* " } else { "  " }, m.name),
+                    m.display_name.clone(),
+                    m.source.clone(),
+                    format!("{:.3}/{}", op.theta, op.persistence),
+                    super::opt(m.validation_metrics.as_ref().and_then(|v| v.auroc), 4),
+                    time(m.create_time.as_ref()),
+                ]
+            });
         }
         Command::Get { name } => {
             let model = client

@@ -1,10 +1,11 @@
-//! Issue 4, test 4: bad input gets its documented code, and harms neither a healthy stream running
-//! at the same time nor stored data.
+//! Invalid input gets its documented code, and harms neither a healthy stream running at the same
+//! time nor stored data; oversized messages are refused and the server keeps serving.
 
 use spoofwatch_proto::v1;
 use spoofwatch_tests::{
-    Clients, DetectStream, TestServer, active_model, batch_message, field_violations, final_code,
-    normal_drive, start_message, test_config, track_samples,
+    Clients, TestServer, active_model, batch_request, code_of, expect_item_error, field_violations,
+    final_code, normal_drive, open_stream, start_request, start_server, start_stream, test_config,
+    track_samples,
 };
 use tokio::task::JoinHandle;
 use tonic::Code;
@@ -16,19 +17,21 @@ const HEALTHY_BATCH: usize = 10;
 
 /// Streams a normal drive and returns every detection's timestamp, checking seqs on the way.
 fn spawn_healthy_stream(clients: &Clients) -> JoinHandle<Vec<f64>> {
-    let mut detection = clients.detection.clone();
+    let clients = clients.clone();
     tokio::spawn(async move {
         let track = normal_drive("healthy", (HEALTHY_SAMPLES - 1) as f64, 99);
-        let (mut stream, _) = DetectStream::start(&mut detection, "healthy", "").await;
+        let (mut stream, _) = start_stream(&clients, "healthy", "").await;
         let mut timestamps = Vec::new();
         for (seq, batch) in track_samples(&track).chunks(HEALTHY_BATCH).enumerate() {
-            let detections = stream.detect(seq as u64 + 1, batch.to_vec()).await;
+            let detections = stream
+                .detect(seq as u64 + 1, batch.to_vec())
+                .await
+                .expect("one detection per sample, for this batch");
             timestamps.extend(detections.iter().map(|d| d.timestamp_s));
             // Interleave with the bad calls of the other tasks.
             tokio::task::yield_now().await;
         }
-        let mut replies = stream.close();
-        assert!(replies.message().await.expect("ends with OK").is_none());
+        stream.finish().await.expect("ends with OK");
         timestamps
     })
 }
@@ -44,13 +47,16 @@ fn samples(t0: f64, n: usize) -> Vec<v1::Sample> {
 }
 
 async fn bad_samples_are_refused_per_batch_and_the_stream_goes_on(clients: &mut Clients) {
-    let (mut stream, _) = DetectStream::start(&mut clients.detection, "bad-samples", "").await;
+    let (mut stream, _) = start_stream(clients, "bad-samples", "").await;
     let good = samples(0.0, 30);
-    stream.detect(1, good[..10].to_vec()).await;
+    stream
+        .detect(1, good[..10].to_vec())
+        .await
+        .expect("one detection per sample, for this batch");
 
     let mut nan = good[10..15].to_vec();
     nan[2].latitude_deg = f64::NAN;
-    let status = stream.expect_item_error(2, nan).await;
+    let status = expect_item_error(&mut stream, 2, nan).await;
     assert_eq!(status.code, Code::InvalidArgument as i32, "{status:?}");
     let fields: Vec<String> = field_violations(&status)
         .into_iter()
@@ -60,7 +66,7 @@ async fn bad_samples_are_refused_per_batch_and_the_stream_goes_on(clients: &mut 
 
     let mut out_of_range = good[10..15].to_vec();
     out_of_range[4].latitude_deg = 91.0;
-    let status = stream.expect_item_error(3, out_of_range).await;
+    let status = expect_item_error(&mut stream, 3, out_of_range).await;
     assert_eq!(status.code, Code::InvalidArgument as i32);
     let fields: Vec<String> = field_violations(&status)
         .into_iter()
@@ -69,7 +75,7 @@ async fn bad_samples_are_refused_per_batch_and_the_stream_goes_on(clients: &mut 
     assert_eq!(fields, ["batch.samples[4].latitude_deg"]);
 
     // Timestamps going backwards (t = 3, 4 s after t = 9 s) are refused too, each one named.
-    let status = stream.expect_item_error(4, good[3..5].to_vec()).await;
+    let status = expect_item_error(&mut stream, 4, good[3..5].to_vec()).await;
     assert_eq!(status.code, Code::InvalidArgument as i32);
     let fields: Vec<String> = field_violations(&status)
         .into_iter()
@@ -84,7 +90,10 @@ async fn bad_samples_are_refused_per_batch_and_the_stream_goes_on(clients: &mut 
     );
 
     // The rejected batches changed nothing: the next good batch continues the same trajectory.
-    let detections = stream.detect(5, good[10..20].to_vec()).await;
+    let detections = stream
+        .detect(5, good[10..20].to_vec())
+        .await
+        .expect("one detection per sample, for this batch");
     let evidence = detections[0].evidence.as_ref().expect("evidence");
     assert_eq!(evidence.trajectory, 0, "no new trajectory was started");
     assert!(
@@ -100,30 +109,25 @@ async fn bad_samples_are_refused_per_batch_and_the_stream_goes_on(clients: &mut 
         .expect("the session exists")
         .into_inner();
     assert_eq!((session.samples, session.last_seq), (20, 5));
-    drop(stream.close());
+    drop(stream);
 }
 
 async fn a_stream_must_start_with_session_start(clients: &mut Clients) {
-    let result =
-        DetectStream::open(&mut clients.detection, batch_message(1, samples(0.0, 3))).await;
+    let result = open_stream(clients, batch_request(1, samples(0.0, 3))).await;
     let code = match result {
         Ok(mut stream) => final_code(&mut stream).await,
-        Err(status) => status.code(),
+        Err(error) => code_of(&error),
     };
     assert_eq!(code, Code::InvalidArgument);
 }
 
 async fn unknown_models_are_not_found(clients: &mut Clients) {
-    let result = DetectStream::open(
-        &mut clients.detection,
-        start_message("ghost-car", "models/nope", false),
-    )
-    .await;
+    let result = open_stream(clients, start_request("ghost-car", "models/nope", false)).await;
     let status = match result {
         Ok(mut stream) => stream.next().await.expect_err("the call fails"),
-        Err(status) => status,
+        Err(error) => error,
     };
-    assert_eq!(status.code(), Code::NotFound, "{status:?}");
+    assert_eq!(code_of(&status), Code::NotFound, "{status:?}");
     let status = clients
         .models
         .get_model(v1::GetModelRequest {
@@ -290,11 +294,7 @@ async fn bad_input_gets_its_code_without_harming_other_streams_or_data() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn oversized_messages_are_refused_and_the_server_keeps_serving() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = test_config(dir.path());
-    config.max_message_bytes = 2048;
-    let server = TestServer::start(config).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, server, mut clients) = start_server(|config| config.max_message_bytes = 2048).await;
     let big = samples(0.0, 200); // ~10 KB encoded
 
     let status = clients
@@ -308,9 +308,15 @@ async fn oversized_messages_are_refused_and_the_server_keeps_serving() {
     // tonic reports a decode-limit violation as OUT_OF_RANGE ("decoded message length too large").
     assert_eq!(status.code(), Code::OutOfRange, "{status:?}");
 
-    let (mut stream, _) = DetectStream::start(&mut clients.detection, "oversized", "").await;
-    stream.detect(1, big[..10].to_vec()).await;
-    stream.send_batch(2, big[10..].to_vec()).await;
+    let (mut stream, _) = start_stream(&clients, "oversized", "").await;
+    stream
+        .detect(1, big[..10].to_vec())
+        .await
+        .expect("one detection per sample, for this batch");
+    stream
+        .send_batch(2, big[10..].to_vec())
+        .await
+        .expect("the request stream is open");
     assert_eq!(final_code(&mut stream).await, Code::OutOfRange);
 
     // Small messages still work, on the same connection.
@@ -324,7 +330,7 @@ async fn oversized_messages_are_refused_and_the_server_keeps_serving() {
         .expect("a small batch is fine")
         .into_inner();
     assert_eq!(response.detections.len(), 5);
-    let (mut again, accepted) = DetectStream::start(&mut clients.detection, "oversized", "").await;
+    let (mut again, accepted) = start_stream(&clients, "oversized", "").await;
     assert!(
         accepted.resumed,
         "the session survived its stream's failure"
@@ -333,9 +339,12 @@ async fn oversized_messages_are_refused_and_the_server_keeps_serving() {
         accepted.samples_seen, 10,
         "the oversized batch changed nothing"
     );
-    let next = again.detect(3, big[10..12].to_vec()).await;
+    let next = again
+        .detect(3, big[10..12].to_vec())
+        .await
+        .expect("one detection per sample, for this batch");
     assert!(matches!(next[0].evidence, Some(ref e) if e.trajectory == 0));
-    drop(again.close());
+    drop(again);
     drop(clients);
     server.stop().await;
 }

@@ -1,5 +1,5 @@
-//! Issue 4, test 1: streaming AV-GPS Dataset-3 through `StreamDetect` gives, sample by sample, what
-//! the offline pass over the same artifact gives.
+//! Streaming AV-GPS Dataset-3 through `StreamDetect` gives, sample by sample, what the offline
+//! pass over the same artifact gives.
 
 use std::sync::Arc;
 
@@ -9,9 +9,7 @@ use spoofwatch_core::evaluation::evaluate_tracks;
 use spoofwatch_core::metrics::EventRules;
 use spoofwatch_core::model::artifact::ModelArtifact;
 use spoofwatch_core::testdata::{AVGPS_DIR_VAR, data_file};
-use spoofwatch_tests::{
-    Clients, DetectStream, TestServer, active_model, export_model, test_config, track_samples,
-};
+use spoofwatch_tests::{active_model, export_model, start_server, start_stream, track_samples};
 
 /// Samples per streamed batch: deliberately not a divisor of anything in the data.
 const BATCH: usize = 7;
@@ -30,9 +28,7 @@ async fn streaming_dataset_3_matches_the_offline_pass_sample_by_sample() {
     let breaks = track.records.iter().filter(|r| r.trajectory_break).count();
     assert_eq!(breaks, 1, "Dataset-3 is a single segment");
 
-    let dir = tempfile::tempdir().expect("temp dir");
-    let server = TestServer::start(test_config(dir.path())).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, server, mut clients) = start_server(|_| {}).await;
     let model = active_model(&mut clients.models).await;
     assert_eq!(
         model.name, "models/default",
@@ -50,15 +46,20 @@ async fn streaming_dataset_3_matches_the_offline_pass_sample_by_sample() {
             && row.decision.alarm == d.alarm
     }));
 
-    let (mut stream, accepted) = DetectStream::start(&mut clients.detection, "dataset-3", "").await;
+    let (mut stream, accepted) = start_stream(&clients, "dataset-3", "").await;
     assert_eq!(accepted.model, model.name);
     assert!(!accepted.resumed);
     let samples = track_samples(track);
     let mut streamed = Vec::with_capacity(samples.len());
     for (seq, batch) in samples.chunks(BATCH).enumerate() {
-        streamed.extend(stream.detect(seq as u64 + 1, batch.to_vec()).await);
+        streamed.extend(
+            stream
+                .detect(seq as u64 + 1, batch.to_vec())
+                .await
+                .expect("one detection per sample, for this batch"),
+        );
     }
-    drop(stream.close());
+    drop(stream);
 
     assert_eq!(streamed.len(), offline.len());
     let mut alarms = 0;

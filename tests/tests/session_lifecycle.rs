@@ -1,28 +1,33 @@
-//! Issue 4, test 5: a second stream for a vehicle takes the session over (the older ends ABORTED,
-//! the newer resumes), and the session limit refuses new vehicles with RESOURCE_EXHAUSTED.
+//! Session lifecycle: a second stream for a vehicle takes the session over (the older ends
+//! ABORTED, the newer resumes), `reset` starts afresh, the session limit refuses new vehicles
+//! with RESOURCE_EXHAUSTED, idle stream-less sessions are evicted, and sessions are listed in pages.
 
 use spoofwatch_proto::v1;
 use spoofwatch_tests::{
-    Clients, DetectStream, TestServer, final_code, normal_drive, start_message, test_config,
-    track_samples,
+    Clients, code_of, final_code, normal_drive, open_stream, start_request, start_server,
+    start_stream, track_samples,
 };
 use tonic::Code;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_second_stream_takes_the_session_over_and_resumes_it() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let server = TestServer::start(test_config(dir.path())).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, server, mut clients) = start_server(|_| {}).await;
     let samples = track_samples(&normal_drive("truck-7", 39.0, 8));
 
-    let (mut older, accepted) = DetectStream::start(&mut clients.detection, "truck-7", "").await;
+    let (mut older, accepted) = start_stream(&clients, "truck-7", "").await;
     assert!(!accepted.resumed);
-    older.detect(1, samples[..10].to_vec()).await;
-    older.detect(2, samples[10..15].to_vec()).await;
+    older
+        .detect(1, samples[..10].to_vec())
+        .await
+        .expect("one detection per sample, for this batch");
+    older
+        .detect(2, samples[10..15].to_vec())
+        .await
+        .expect("one detection per sample, for this batch");
 
     // A second connection, as a reconnecting vehicle would have.
-    let mut other = Clients::of(&server).await;
-    let (mut newer, accepted) = DetectStream::start(&mut other.detection, "truck-7", "").await;
+    let other = Clients::of(&server).await;
+    let (mut newer, accepted) = start_stream(&other, "truck-7", "").await;
     assert_eq!(
         (accepted.resumed, accepted.samples_seen, accepted.last_seq),
         (true, 15, 2),
@@ -32,7 +37,10 @@ async fn a_second_stream_takes_the_session_over_and_resumes_it() {
     assert_eq!(final_code(&mut older).await, Code::Aborted);
 
     // The newer stream continues the same trajectory where the older one stopped.
-    let detections = newer.detect(3, samples[15..25].to_vec()).await;
+    let detections = newer
+        .detect(3, samples[15..25].to_vec())
+        .await
+        .expect("one detection per sample, for this batch");
     let evidence = detections[0].evidence.as_ref().expect("evidence");
     assert_eq!(evidence.trajectory, 0);
     assert!((evidence.delta_t_s - 1.0).abs() < 1e-12);
@@ -50,8 +58,8 @@ async fn a_second_stream_takes_the_session_over_and_resumes_it() {
     );
 
     // reset = true starts afresh even though a session exists.
-    drop(newer.close());
-    let mut fresh = DetectStream::open(&mut other.detection, start_message("truck-7", "", true))
+    drop(newer);
+    let mut fresh = open_stream(&other, start_request("truck-7", "", true))
         .await
         .expect("the call is accepted");
     match fresh.next().await {
@@ -66,23 +74,24 @@ async fn a_second_stream_takes_the_session_over_and_resumes_it() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn beyond_the_session_limit_new_vehicles_are_refused() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = test_config(dir.path());
-    config.max_sessions = 2;
-    let server = TestServer::start(config).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, server, mut clients) = start_server(|config| config.max_sessions = 2).await;
     let samples = track_samples(&normal_drive("fleet", 4.0, 2));
 
-    let (mut first, _) = DetectStream::start(&mut clients.detection, "car-1", "").await;
-    let (mut second, _) = DetectStream::start(&mut clients.detection, "car-2", "").await;
-    first.detect(1, samples.clone()).await;
-    second.detect(1, samples.clone()).await;
+    let (mut first, _) = start_stream(&clients, "car-1", "").await;
+    let (mut second, _) = start_stream(&clients, "car-2", "").await;
+    first
+        .detect(1, samples.clone())
+        .await
+        .expect("one detection per sample, for this batch");
+    second
+        .detect(1, samples.clone())
+        .await
+        .expect("one detection per sample, for this batch");
 
-    let refused =
-        DetectStream::open(&mut clients.detection, start_message("car-3", "", false)).await;
+    let refused = open_stream(&clients, start_request("car-3", "", false)).await;
     let code = match refused {
         Ok(mut stream) => final_code(&mut stream).await,
-        Err(status) => status.code(),
+        Err(error) => code_of(&error),
     };
     assert_eq!(code, Code::ResourceExhausted);
     let status = clients
@@ -97,7 +106,10 @@ async fn beyond_the_session_limit_new_vehicles_are_refused() {
     assert_eq!(status.code(), Code::ResourceExhausted);
 
     // Known vehicles and stateless scoring still work.
-    first.detect(2, samples_after(&samples, 5.0)).await;
+    first
+        .detect(2, samples_after(&samples, 5.0))
+        .await
+        .expect("one detection per sample, for this batch");
     let stateless = clients
         .detection
         .detect(v1::DetectRequest {
@@ -117,7 +129,7 @@ async fn beyond_the_session_limit_new_vehicles_are_refused() {
         .sessions;
     let vehicles: Vec<&str> = listed.iter().map(|s| s.vehicle_id.as_str()).collect();
     assert_eq!(vehicles, ["car-1", "car-2"]);
-    drop((first.close(), second.close(), clients));
+    drop((first, second, clients));
     server.stop().await;
 }
 
@@ -134,16 +146,15 @@ fn samples_after(samples: &[v1::Sample], by: f64) -> Vec<v1::Sample> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn idle_sessions_without_a_stream_are_evicted() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = test_config(dir.path());
-    config.session_idle_secs = 1;
-    let server = TestServer::start(config).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, server, mut clients) = start_server(|config| config.session_idle_secs = 1).await;
     let samples = track_samples(&normal_drive("idle", 9.0, 4));
 
     // "streaming" keeps a stream attached; "parked" only had a unary call.
-    let (mut streaming, _) = DetectStream::start(&mut clients.detection, "streaming", "").await;
-    streaming.detect(1, samples.clone()).await;
+    let (mut streaming, _) = start_stream(&clients, "streaming", "").await;
+    streaming
+        .detect(1, samples.clone())
+        .await
+        .expect("one detection per sample, for this batch");
     for vehicle in ["parked", "another"] {
         clients
             .detection
@@ -184,16 +195,17 @@ async fn idle_sessions_without_a_stream_are_evicted() {
         .expect_err("the evicted session is gone");
     assert_eq!(status.code(), Code::NotFound);
     // The attached session survived its idleness and goes on.
-    streaming.detect(2, samples_after(&samples, 10.0)).await;
-    drop((streaming.close(), clients));
+    streaming
+        .detect(2, samples_after(&samples, 10.0))
+        .await
+        .expect("one detection per sample, for this batch");
+    drop((streaming, clients));
     server.stop().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn sessions_are_listed_in_pages_and_can_be_reset() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let server = TestServer::start(test_config(dir.path())).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, server, mut clients) = start_server(|_| {}).await;
     let samples = track_samples(&normal_drive("paged", 9.0, 4));
     for vehicle in ["streaming", "parked", "another"] {
         clients

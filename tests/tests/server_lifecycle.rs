@@ -1,11 +1,11 @@
-//! Issue 4, test 6: reflection (v1 and v1alpha) lists every service, health reports SERVING and
+//! Server lifecycle: reflection (v1 and v1alpha) lists every service, health reports SERVING and
 //! flips to NOT_SERVING when shutdown starts, and shutdown with an open stream is bounded.
 
 use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
 use spoofwatch_tests::{
-    Clients, DetectStream, TestServer, normal_drive, test_config, track_samples,
+    TestServer, code_of, normal_drive, start_server, start_stream, test_config, track_samples,
 };
 use tonic::Code;
 use tonic::transport::Channel;
@@ -114,11 +114,8 @@ async fn reflection_lists_every_service_in_both_versions() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shutdown_turns_health_not_serving_and_ends_open_streams_within_the_bound() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = test_config(dir.path());
-    config.shutdown_grace_secs = GRACE_SECS;
-    let mut server = TestServer::start(config).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, mut server, mut clients) =
+        start_server(|config| config.shutdown_grace_secs = GRACE_SECS).await;
 
     for service in [
         "",
@@ -137,9 +134,12 @@ async fn shutdown_turns_health_not_serving_and_ends_open_streams_within_the_boun
         assert_eq!(status, ServingStatus::Serving as i32, "service {service:?}");
     }
 
-    let (mut stream, _) = DetectStream::start(&mut clients.detection, "draining-car", "").await;
+    let (mut stream, _) = start_stream(&clients, "draining-car", "").await;
     let samples = track_samples(&normal_drive("draining-car", 9.0, 1));
-    stream.detect(1, samples).await;
+    stream
+        .detect(1, samples)
+        .await
+        .expect("one detection per sample, for this batch");
     let mut watch = clients
         .health
         .watch(HealthCheckRequest {
@@ -172,10 +172,10 @@ async fn shutdown_turns_health_not_serving_and_ends_open_streams_within_the_boun
         match stream.next().await {
             Ok(Some(_)) => continue,
             Ok(None) => panic!("the open stream must not end with OK during shutdown"),
-            Err(status) => break status,
+            Err(error) => break error,
         }
     };
-    assert_eq!(status.code(), Code::Unavailable, "{status:?}");
+    assert_eq!(code_of(&status), Code::Unavailable, "{status:?}");
     let remaining = SHUTDOWN_BOUND.saturating_sub(started.elapsed());
     server
         .stop_within(remaining)

@@ -1,5 +1,5 @@
-//! Evaluation jobs agree with the offline evaluation; operations can be filtered and deleted;
-//! datasets deleted; a configured bearer token guards every service except health.
+//! Evaluation jobs agree with the offline evaluation; their operations can be filtered and
+//! deleted, and a deleted dataset can no longer be evaluated.
 
 use std::sync::Arc;
 
@@ -11,15 +11,11 @@ use spoofwatch_core::model::artifact::ModelArtifact;
 use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::longrunning::{self, operation};
 use spoofwatch_proto::v1;
-use spoofwatch_proto::v1::model_service_client::ModelServiceClient;
 use spoofwatch_tests::{
-    Clients, TestServer, attacked_drive, export_model, normal_drive, telemetry_csv, test_config,
-    upload_tracks,
+    attacked_drive, export_model, normal_drive, start_server, telemetry_csv, upload_tracks,
+    wait_done,
 };
 use tonic::Code;
-use tonic::metadata::MetadataValue;
-use tonic::service::Interceptor;
-use tonic_health::pb::HealthCheckRequest;
 
 const TOLERANCE: f64 = 1e-12;
 
@@ -29,9 +25,7 @@ fn close(a: f64, b: f64) -> bool {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_evaluation_job_matches_the_offline_evaluation() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let server = TestServer::start(test_config(dir.path())).await;
-    let mut clients = Clients::of(&server).await;
+    let (_dir, server, mut clients) = start_server(|_| {}).await;
     let ramp = AttackKind::RampDrift { velocity_mps: 2.0 };
     let fleet = vec![
         normal_drive("eval-0", 200.0, 31),
@@ -49,15 +43,7 @@ async fn an_evaluation_job_matches_the_offline_evaluation() {
         .await
         .expect("the evaluation job is accepted")
         .into_inner();
-    let done = clients
-        .operations
-        .wait_operation(longrunning::WaitOperationRequest {
-            name: job.name.clone(),
-            timeout: None,
-        })
-        .await
-        .expect("WaitOperation")
-        .into_inner();
+    let done = wait_done(&mut clients.operations, &job.name).await;
     assert!(done.done);
     let Some(operation::Result::Response(any)) = &done.result else {
         panic!("the evaluation succeeded: {done:?}");
@@ -156,62 +142,5 @@ async fn an_evaluation_job_matches_the_offline_evaluation() {
         .expect_err("the dataset is gone");
     assert_eq!(status.code(), Code::NotFound);
     drop(clients);
-    server.stop().await;
-}
-
-/// Adds `authorization: Bearer <token>` to every call.
-#[derive(Clone)]
-struct Bearer(&'static str);
-
-impl Interceptor for Bearer {
-    fn call(
-        &mut self,
-        mut request: tonic::Request<()>,
-    ) -> Result<tonic::Request<()>, tonic::Status> {
-        let value = MetadataValue::try_from(format!("Bearer {}", self.0)).expect("ASCII token");
-        request.metadata_mut().insert("authorization", value);
-        Ok(request)
-    }
-}
-
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_configured_token_guards_every_service_but_health() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = test_config(dir.path());
-    config.auth_token = Some("s3cret".into());
-    // start() polls health without a token: health stays open.
-    let server = TestServer::start(config).await;
-    let channel = server.channel().await;
-    let mut clients = Clients::new(channel.clone());
-
-    let status = clients
-        .models
-        .list_models(v1::ListModelsRequest::default())
-        .await
-        .expect_err("no token");
-    assert_eq!(status.code(), Code::Unauthenticated);
-    let status = clients
-        .detection
-        .detect(v1::DetectRequest::default())
-        .await
-        .expect_err("no token");
-    assert_eq!(status.code(), Code::Unauthenticated);
-    let status = ModelServiceClient::with_interceptor(channel.clone(), Bearer("wrong"))
-        .list_models(v1::ListModelsRequest::default())
-        .await
-        .expect_err("a wrong token");
-    assert_eq!(status.code(), Code::Unauthenticated);
-    let models = ModelServiceClient::with_interceptor(channel.clone(), Bearer("s3cret"))
-        .list_models(v1::ListModelsRequest::default())
-        .await
-        .expect("the right token works")
-        .into_inner();
-    assert_eq!(models.models.len(), 1);
-    clients
-        .health
-        .check(HealthCheckRequest::default())
-        .await
-        .expect("health needs no token");
-    drop((clients, channel));
     server.stop().await;
 }
