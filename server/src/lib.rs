@@ -6,14 +6,16 @@
 //!
 //! Layout, one home per concept: `models` (registry + ModelService), `datasets` (catalog +
 //! DatasetService), `detection` (sessions + DetectionService), `jobs` (service → manager → runner),
-//! `store` (the only SQL), `error` (the one error → status mapping), `edge` (request decoding shared
-//! by the services), `identity` (ids and digests). Wire conversions live in `spoofwatch_proto::wire`.
+//! `store` (the only SQL), `error` (the one error → status mapping), `fault` (a server-side fault
+//! inside a subsystem's error), `edge` (request decoding shared by the services), `identity` (ids
+//! and digests). Wire conversions live in `spoofwatch_proto::wire`.
 
 pub mod config;
 mod datasets;
 mod detection;
 mod edge;
 mod error;
+mod fault;
 mod identity;
 pub mod inprocess;
 mod jobs;
@@ -31,10 +33,12 @@ use spoofwatch_proto::v1::model_service_server::ModelServiceServer;
 use spoofwatch_proto::v1::training_service_server::TrainingServiceServer;
 use tokio::net::TcpListener;
 use tokio_util::sync::CancellationToken;
+use tonic::server::NamedService;
 use tonic::service::Interceptor;
 use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
 use tonic::{Request, Status};
+use tonic_health::ServingStatus;
 
 pub use config::Config;
 
@@ -164,21 +168,18 @@ pub async fn serve(
     let operations = OperationsServer::new(OperationsApi { jobs: job_services })
         .max_decoding_message_size(limit);
 
-    health_reporter
-        .set_serving::<DetectionServiceServer<DetectionApi>>()
-        .await;
-    health_reporter
-        .set_serving::<ModelServiceServer<ModelApi>>()
-        .await;
-    health_reporter
-        .set_serving::<DatasetServiceServer<DatasetApi>>()
-        .await;
-    health_reporter
-        .set_serving::<TrainingServiceServer<TrainingApi>>()
-        .await;
-    health_reporter
-        .set_serving::<OperationsServer<OperationsApi>>()
-        .await;
+    let served = [
+        DetectionServiceServer::<DetectionApi>::NAME,
+        ModelServiceServer::<ModelApi>::NAME,
+        DatasetServiceServer::<DatasetApi>::NAME,
+        TrainingServiceServer::<TrainingApi>::NAME,
+        OperationsServer::<OperationsApi>::NAME,
+    ];
+    for service in served {
+        health_reporter
+            .set_service_status(service, ServingStatus::Serving)
+            .await;
+    }
 
     // Idle sessions without a stream are evicted in the background.
     let evictor = {
