@@ -35,6 +35,7 @@ use tokio::net::TcpListener;
 use tokio_util::sync::CancellationToken;
 use tonic::server::NamedService;
 use tonic::service::Interceptor;
+use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
 use tonic::{Request, Status};
@@ -65,6 +66,13 @@ pub enum ServerError {
 #[derive(Clone)]
 struct BearerAuth {
     expected: Option<Arc<str>>,
+}
+
+impl BearerAuth {
+    /// `service` behind this check (every API service is; health and reflection are not).
+    fn guard<S>(&self, service: S) -> InterceptedService<S, BearerAuth> {
+        InterceptedService::new(service, self.clone())
+    }
 }
 
 impl Interceptor for BearerAuth {
@@ -234,25 +242,11 @@ pub async fn serve(
         .add_service(health_service)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)
-        .add_service(tonic::service::interceptor::InterceptedService::new(
-            detection,
-            auth.clone(),
-        ))
-        .add_service(tonic::service::interceptor::InterceptedService::new(
-            models,
-            auth.clone(),
-        ))
-        .add_service(tonic::service::interceptor::InterceptedService::new(
-            datasets,
-            auth.clone(),
-        ))
-        .add_service(tonic::service::interceptor::InterceptedService::new(
-            training,
-            auth.clone(),
-        ))
-        .add_service(tonic::service::interceptor::InterceptedService::new(
-            operations, auth,
-        ));
+        .add_service(auth.guard(detection))
+        .add_service(auth.guard(models))
+        .add_service(auth.guard(datasets))
+        .add_service(auth.guard(training))
+        .add_service(auth.guard(operations));
     let server = router.serve_with_incoming_shutdown(incoming, async {
         let _ = stop_rx.await;
     });
