@@ -11,6 +11,7 @@ use tonic_types::{ErrorDetails, FieldViolation, StatusExt};
 
 use crate::datasets::DatasetError;
 use crate::detection::SessionError;
+use crate::fault::Fault;
 use crate::jobs::{JobError, JobFailure};
 use crate::models::RegistryError;
 use crate::store::StoreError;
@@ -128,7 +129,7 @@ impl From<RegistryError> for Status {
                 failed_precondition("NO_ACTIVE_MODEL", error.to_string())
             }
             RegistryError::InvalidArtifact(_) => invalid_field("chunk", error.to_string()),
-            RegistryError::Internal { context, .. } => internal(context, &error),
+            RegistryError::Internal(Fault { context, .. }) => internal(context, &error),
             RegistryError::Store(store) => store.into(),
         }
     }
@@ -142,7 +143,7 @@ impl From<DatasetError> for Status {
             DatasetError::NoDataDir => failed_precondition("NO_DATA_DIR", error.to_string()),
             DatasetError::PathDenied { .. } => Status::permission_denied(error.to_string()),
             DatasetError::FileNotFound(path) => not_found("file", &path),
-            DatasetError::Internal { context, .. } => internal(context, &error),
+            DatasetError::Internal(Fault { context, .. }) => internal(context, &error),
             DatasetError::Store(store) => store.into(),
         }
     }
@@ -192,7 +193,7 @@ impl From<JobFailure> for Status {
             JobFailure::Model(error) => error.into(),
             JobFailure::Store(error) => error.into(),
             JobFailure::Training(error) => training_status(error),
-            JobFailure::Worker { context, .. } => internal(context, &failure),
+            JobFailure::Worker(Fault { context, .. }) => internal(context, &failure),
         }
     }
 }

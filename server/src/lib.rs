@@ -6,14 +6,16 @@
 //!
 //! Layout, one home per concept: `models` (registry + ModelService), `datasets` (catalog +
 //! DatasetService), `detection` (sessions + DetectionService), `jobs` (service → manager → runner),
-//! `store` (the only SQL), `error` (the one error → status mapping), `edge` (request decoding shared
-//! by the services), `identity` (ids and digests). Wire conversions live in `spoofwatch_proto::wire`.
+//! `store` (the only SQL), `error` (the one error → status mapping), `fault` (a server-side fault
+//! inside a subsystem's error), `edge` (request decoding shared by the services), `identity` (ids
+//! and digests). Wire conversions live in `spoofwatch_proto::wire`.
 
 pub mod config;
 mod datasets;
 mod detection;
 mod edge;
 mod error;
+mod fault;
 mod identity;
 pub mod inprocess;
 mod jobs;
@@ -31,10 +33,13 @@ use spoofwatch_proto::v1::model_service_server::ModelServiceServer;
 use spoofwatch_proto::v1::training_service_server::TrainingServiceServer;
 use tokio::net::TcpListener;
 use tokio_util::sync::CancellationToken;
+use tonic::server::NamedService;
 use tonic::service::Interceptor;
+use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
 use tonic::{Request, Status};
+use tonic_health::ServingStatus;
 
 pub use config::Config;
 
@@ -61,6 +66,13 @@ pub enum ServerError {
 #[derive(Clone)]
 struct BearerAuth {
     expected: Option<Arc<str>>,
+}
+
+impl BearerAuth {
+    /// `service` behind this check (every API service is; health and reflection are not).
+    fn guard<S>(&self, service: S) -> InterceptedService<S, BearerAuth> {
+        InterceptedService::new(service, self.clone())
+    }
 }
 
 impl Interceptor for BearerAuth {
@@ -164,21 +176,18 @@ pub async fn serve(
     let operations = OperationsServer::new(OperationsApi { jobs: job_services })
         .max_decoding_message_size(limit);
 
-    health_reporter
-        .set_serving::<DetectionServiceServer<DetectionApi>>()
-        .await;
-    health_reporter
-        .set_serving::<ModelServiceServer<ModelApi>>()
-        .await;
-    health_reporter
-        .set_serving::<DatasetServiceServer<DatasetApi>>()
-        .await;
-    health_reporter
-        .set_serving::<TrainingServiceServer<TrainingApi>>()
-        .await;
-    health_reporter
-        .set_serving::<OperationsServer<OperationsApi>>()
-        .await;
+    let served = [
+        DetectionServiceServer::<DetectionApi>::NAME,
+        ModelServiceServer::<ModelApi>::NAME,
+        DatasetServiceServer::<DatasetApi>::NAME,
+        TrainingServiceServer::<TrainingApi>::NAME,
+        OperationsServer::<OperationsApi>::NAME,
+    ];
+    for service in served {
+        health_reporter
+            .set_service_status(service, ServingStatus::Serving)
+            .await;
+    }
 
     // Idle sessions without a stream are evicted in the background.
     let evictor = {
@@ -233,25 +242,11 @@ pub async fn serve(
         .add_service(health_service)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)
-        .add_service(tonic::service::interceptor::InterceptedService::new(
-            detection,
-            auth.clone(),
-        ))
-        .add_service(tonic::service::interceptor::InterceptedService::new(
-            models,
-            auth.clone(),
-        ))
-        .add_service(tonic::service::interceptor::InterceptedService::new(
-            datasets,
-            auth.clone(),
-        ))
-        .add_service(tonic::service::interceptor::InterceptedService::new(
-            training,
-            auth.clone(),
-        ))
-        .add_service(tonic::service::interceptor::InterceptedService::new(
-            operations, auth,
-        ));
+        .add_service(auth.guard(detection))
+        .add_service(auth.guard(models))
+        .add_service(auth.guard(datasets))
+        .add_service(auth.guard(training))
+        .add_service(auth.guard(operations));
     let server = router.serve_with_incoming_shutdown(incoming, async {
         let _ = stop_rx.await;
     });

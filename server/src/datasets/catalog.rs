@@ -11,6 +11,7 @@ use spoofwatch_core::sample::Track;
 use spoofwatch_proto::wire::DatasetName;
 use spoofwatch_proto::wire::limits::MAX_DATASET_BYTES;
 
+use crate::fault::Fault;
 use crate::identity::{new_id, sha256_hex};
 use crate::store::{DatasetRow, NewDataset, Page, PageRequest, Store, StoreError};
 
@@ -43,25 +44,11 @@ pub enum DatasetError {
     #[error("file {0:?} not found")]
     FileNotFound(String),
     /// A server-side fault (I/O on the data directory, a crashed parser thread).
-    #[error("{context}: {reason}")]
-    Internal {
-        /// What the catalog was doing.
-        context: &'static str,
-        /// The underlying error's text.
-        reason: String,
-    },
+    #[error(transparent)]
+    Internal(#[from] Fault),
     /// The store failed.
     #[error(transparent)]
     Store(#[from] StoreError),
-}
-
-impl DatasetError {
-    fn internal(context: &'static str, error: impl std::fmt::Display) -> Self {
-        DatasetError::Internal {
-            context,
-            reason: error.to_string(),
-        }
-    }
 }
 
 /// Parses CSV bytes (either format) off the async runtime; a parse error names `field`.
@@ -72,7 +59,7 @@ async fn parse(
 ) -> Result<Recording, DatasetError> {
     tokio::task::spawn_blocking(move || read(bytes.as_slice(), &source))
         .await
-        .map_err(|e| DatasetError::internal("parsing a dataset", e))?
+        .map_err(|e| Fault::new("parsing a dataset", e))?
         .map_err(|e| DatasetError::Invalid {
             field,
             reason: e.to_string(),
@@ -109,7 +96,7 @@ pub fn resolve_inside(data_dir: &Path, relative: &str) -> Result<PathBuf, Datase
     }
     let root = data_dir
         .canonicalize()
-        .map_err(|e| DatasetError::internal("opening the data directory", e))?;
+        .map_err(|e| Fault::new("opening the data directory", e))?;
     let resolved = root
         .join(relative)
         .canonicalize()
@@ -162,7 +149,7 @@ impl Catalog {
     ) -> Result<DatasetRow, DatasetError> {
         let mut csv = Vec::new();
         spoofwatch_core::data::telemetry::write_tracks(&mut csv, tracks)
-            .map_err(|e| DatasetError::internal("encoding uploaded records", e))?;
+            .map_err(|e| Fault::new("encoding uploaded records", e))?;
         self.upload(display_name, csv, "records").await
     }
 
@@ -176,7 +163,7 @@ impl Catalog {
         let path = resolve_inside(data_dir, relative_path)?;
         let content = tokio::fs::read(&path)
             .await
-            .map_err(|e| DatasetError::internal("reading an import file", e))?;
+            .map_err(|e| Fault::new("reading an import file", e))?;
         if content.len() > MAX_DATASET_BYTES {
             return Err(DatasetError::Invalid {
                 field: "path",

@@ -12,6 +12,7 @@ use tokio::sync::{Semaphore, watch};
 use super::records::{EvaluationRequest, JobRequest, Progress, to_json};
 use super::runner::{JobFailure, LiveJob, Runner};
 use crate::datasets::DatasetError;
+use crate::fault::Fault;
 use crate::identity::new_id;
 use crate::models::RegistryError;
 use crate::store::{EpochRow, JobFilter, JobKind, JobRow, NewJob, Page, PageRequest, StoreError};
@@ -143,10 +144,10 @@ impl JobManager {
         let result = tokio::select! {
             permit = Arc::clone(&self.slots).acquire_owned() => match permit {
                 Ok(_permit) => self.runner.execute(&name, request, &live).await,
-                Err(_) => Err(JobFailure::Worker {
-                    context: "waiting for a job slot",
-                    reason: "the job queue is closed".into(),
-                }),
+                Err(_) => Err(JobFailure::Worker(Fault::new(
+                    "waiting for a job slot",
+                    "the job queue is closed",
+                ))),
             },
             _ = live.cancel.cancelled() => Err(JobFailure::Cancelled),
         };

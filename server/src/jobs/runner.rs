@@ -22,6 +22,7 @@ use super::records::{
     EvaluationRequest, JobRequest, JobResult, Progress, TrainingRequest, to_json,
 };
 use crate::datasets::{Catalog, DatasetError};
+use crate::fault::Fault;
 use crate::identity::new_id;
 use crate::models::{Registry, RegistryError};
 use crate::store::{EpochRow, JobOutcome, ModelSource, Store, StoreError};
@@ -44,23 +45,9 @@ pub enum JobFailure {
     /// Training refused the data or found no operating point.
     #[error("training: {0}")]
     Training(TrainDetectorError),
-    /// A worker thread panicked or was aborted.
-    #[error("{context}: {reason}")]
-    Worker {
-        /// What the thread was doing.
-        context: &'static str,
-        /// The join error's text.
-        reason: String,
-    },
-}
-
-impl JobFailure {
-    fn worker(context: &'static str, error: tokio::task::JoinError) -> Self {
-        JobFailure::Worker {
-            context,
-            reason: error.to_string(),
-        }
-    }
+    /// A worker thread panicked or was aborted, or the job queue closed.
+    #[error(transparent)]
+    Worker(#[from] Fault),
 }
 
 /// A job queued or running in this process.
@@ -171,7 +158,7 @@ impl Runner {
             let trained = Arc::clone(&trained);
             tokio::task::spawn_blocking(move || trained.held_out_metrics(EventRules::Spec))
                 .await
-                .map_err(|e| JobFailure::worker("evaluating the test split", e))?
+                .map_err(|e| Fault::new("evaluating the test split", e))?
         };
         let model_id = new_id();
         let name = if display_name.is_empty() {
@@ -209,7 +196,7 @@ impl Runner {
             evaluate_tracks(&artifact, &tracks, EventRules::Spec)
         })
         .await
-        .map_err(|e| JobFailure::worker("evaluating a model", e))?;
+        .map_err(|e| Fault::new("evaluating a model", e))?;
         Ok(JobResult::Evaluation {
             model: loaded.name.to_string(),
             overall: evaluation.overall,
@@ -265,9 +252,7 @@ impl Runner {
                 }
             }
         }
-        let trained = worker
-            .await
-            .map_err(|e| JobFailure::worker("training", e))?;
+        let trained = worker.await.map_err(|e| Fault::new("training", e))?;
         trained.map_err(|e| match e {
             // Cancelled before the first epoch completed: still a cancellation, not a failure.
             TrainDetectorError::Train(TrainError::Cancelled) => JobFailure::Cancelled,

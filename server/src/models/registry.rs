@@ -12,6 +12,7 @@ use spoofwatch_core::metrics::Metrics;
 use spoofwatch_core::model::artifact::{ARTIFACT_SCHEMA_VERSION, ModelArtifact};
 use spoofwatch_proto::wire::{ModelName, OperationName};
 
+use crate::fault::Fault;
 use crate::identity::{new_id, sha256_hex};
 use crate::store::{ModelRow, ModelSource, NewModel, Page, PageRequest, Store, StoreError};
 
@@ -33,25 +34,11 @@ pub enum RegistryError {
     #[error("not a usable model artifact: {0}")]
     InvalidArtifact(String),
     /// A stored or bundled artifact could not be (de)serialised: a server-side fault.
-    #[error("{context}: {reason}")]
-    Internal {
-        /// What the registry was doing.
-        context: &'static str,
-        /// The underlying error's text.
-        reason: String,
-    },
+    #[error(transparent)]
+    Internal(#[from] Fault),
     /// The store failed or refused (e.g. deleting the active model).
     #[error(transparent)]
     Store(#[from] StoreError),
-}
-
-impl RegistryError {
-    fn internal(context: &'static str, error: impl std::fmt::Display) -> Self {
-        RegistryError::Internal {
-            context,
-            reason: error.to_string(),
-        }
-    }
 }
 
 /// What the registry stores beside an artifact (the `metadata_json` column).
@@ -147,7 +134,7 @@ impl Registry {
             return Ok(());
         }
         let artifact = ModelArtifact::from_slice(BUNDLED_MODEL)
-            .map_err(|e| RegistryError::internal("loading the bundled default model", e))?;
+            .map_err(|e| Fault::new("loading the bundled default model", e))?;
         self.register(
             BUNDLED_MODEL_ID,
             "bundled default (av-gps experiment)",
@@ -172,9 +159,9 @@ impl Registry {
     ) -> Result<ModelRow, RegistryError> {
         let bytes = artifact
             .to_vec()
-            .map_err(|e| RegistryError::internal("serialising a model artifact", e))?;
+            .map_err(|e| Fault::new("serialising a model artifact", e))?;
         let metadata = serde_json::to_value(ModelMetadata::of(artifact))
-            .map_err(|e| RegistryError::internal("serialising model metadata", e))?;
+            .map_err(|e| Fault::new("serialising model metadata", e))?;
         let row = self
             .store
             .insert_model(NewModel {
@@ -242,7 +229,7 @@ impl Registry {
         let bytes = self.artifact_bytes(&name).await?;
         let artifact = Arc::new(
             ModelArtifact::from_slice(&bytes)
-                .map_err(|e| RegistryError::internal("loading a stored model", e))?,
+                .map_err(|e| Fault::new("loading a stored model", e))?,
         );
         self.cache()
             .insert(name.id().to_string(), Arc::clone(&artifact));

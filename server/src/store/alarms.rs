@@ -1,6 +1,10 @@
 //! Confirmed-alarm history: one row per alarm episode of a vehicle, written at onset and at end so an
 //! alarm is never lost even if the in-memory session is.
 
+use sqlx::Sqlite;
+use sqlx::query::Query;
+use sqlx::sqlite::SqliteArguments;
+
 use super::error::{require_finite, require_probability};
 use super::{Store, StoreError, now_unix_ms};
 
@@ -74,19 +78,14 @@ impl Store {
         samples: u32,
     ) -> Result<(), StoreError> {
         require_probability("peak_probability", peak_probability)?;
-        let updated = sqlx::query(
+        let update = sqlx::query(
             "UPDATE alarm_events SET peak_probability = ?2, samples = ?3 \
              WHERE id = ?1 AND ended_at IS NULL",
         )
         .bind(id)
         .bind(peak_probability)
-        .bind(samples)
-        .execute(&self.pool)
-        .await?;
-        if updated.rows_affected() == 0 {
-            return Err(self.explain_unchanged_alarm(id, "update").await);
-        }
-        Ok(())
+        .bind(samples);
+        self.update_open_alarm(id, "update", update).await
     }
 
     /// Closes an open alarm at sample time `end_timestamp_s` with its final peak and sample count.
@@ -101,7 +100,7 @@ impl Store {
     ) -> Result<(), StoreError> {
         require_finite("end_timestamp_s", end_timestamp_s)?;
         require_probability("peak_probability", peak_probability)?;
-        let updated = sqlx::query(
+        let update = sqlx::query(
             "UPDATE alarm_events SET end_timestamp_s = ?2, ended_at = ?3, peak_probability = ?4, \
              samples = ?5 WHERE id = ?1 AND ended_at IS NULL",
         )
@@ -109,13 +108,8 @@ impl Store {
         .bind(end_timestamp_s)
         .bind(now_unix_ms())
         .bind(peak_probability)
-        .bind(samples)
-        .execute(&self.pool)
-        .await?;
-        if updated.rows_affected() == 0 {
-            return Err(self.explain_unchanged_alarm(id, "close").await);
-        }
-        Ok(())
+        .bind(samples);
+        self.update_open_alarm(id, "close", update).await
     }
 
     /// The most recently opened alarm events first, optionally for one vehicle, at most `limit`.
@@ -143,6 +137,20 @@ impl Store {
             .execute(&self.pool)
             .await?;
         Ok(updated.rows_affected())
+    }
+
+    /// Runs `update` (restricted to open alarms); if it touched no row, says why.
+    async fn update_open_alarm(
+        &self,
+        id: i64,
+        action: &'static str,
+        update: Query<'_, Sqlite, SqliteArguments>,
+    ) -> Result<(), StoreError> {
+        let updated = update.execute(&self.pool).await?;
+        if updated.rows_affected() == 0 {
+            return Err(self.explain_unchanged_alarm(id, action).await);
+        }
+        Ok(())
     }
 
     /// Why an update of an open alarm touched no row: the alarm is unknown or already closed.

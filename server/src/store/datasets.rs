@@ -1,7 +1,6 @@
 //! Uploaded or imported datasets: summary rows and content blobs.
 
-use super::error::insert_error;
-use super::paging::PagePlan;
+use super::error::{byte_length, insert_error};
 use super::{Page, PageRequest, Store, StoreError, now_unix_ms};
 
 /// A dataset to store; `size_bytes` is taken from the content.
@@ -76,11 +75,7 @@ impl Store {
         created_at_ms: i64,
     ) -> Result<DatasetRow, StoreError> {
         validate_counts(&dataset)?;
-        let size_bytes =
-            i64::try_from(dataset.content.len()).map_err(|_| StoreError::InvalidValue {
-                field: "content",
-                reason: "larger than i64::MAX bytes".to_owned(),
-            })?;
+        let size_bytes = byte_length("content", &dataset.content)?;
         let mut tx = self.begin_write().await?;
         let inserted = sqlx::query(
             "INSERT INTO datasets (id, display_name, source, format, rows, vehicles, \
@@ -124,13 +119,12 @@ impl Store {
 
     /// The dataset with this id, without its content.
     pub async fn get_dataset(&self, id: &str) -> Result<Option<DatasetRow>, StoreError> {
-        Ok(sqlx::query_as::<_, DatasetRow>(
+        self.fetch_by_id(
             "SELECT id, display_name, source, format, rows, vehicles, labelled_rows, \
              spoofed_rows, size_bytes, sha256, created_at FROM datasets WHERE id = ?1",
+            id,
         )
-        .bind(id)
-        .fetch_optional(&self.pool)
-        .await?)
+        .await
     }
 
     /// One page of datasets, newest first.
@@ -140,29 +134,25 @@ impl Store {
         &self,
         request: &PageRequest,
     ) -> Result<Page<DatasetRow>, StoreError> {
-        let plan = PagePlan::new(LISTING, request)?;
-        let rows = sqlx::query_as::<_, DatasetRow>(
+        let query = sqlx::query_as(
             "SELECT id, display_name, source, format, rows, vehicles, labelled_rows, \
              spoofed_rows, size_bytes, sha256, created_at FROM datasets \
              WHERE ?1 IS NULL OR (created_at, id) < (?1, ?2) \
              ORDER BY created_at DESC, id DESC LIMIT ?3",
-        )
-        .bind(plan.after_created_at())
-        .bind(plan.after_id())
-        .bind(plan.fetch_limit())
-        .fetch_all(&self.pool)
-        .await?;
-        Ok(plan.finish(LISTING, rows, |row| (row.created_at_ms, row.id.as_str())))
+        );
+        self.fetch_page(LISTING, request, query, |row: &DatasetRow| {
+            (row.created_at_ms, row.id.as_str())
+        })
+        .await
     }
 
     /// The dataset bytes, or `None` if no dataset has this id.
     pub async fn dataset_content(&self, id: &str) -> Result<Option<Vec<u8>>, StoreError> {
-        Ok(sqlx::query_scalar::<_, Vec<u8>>(
+        self.fetch_blob(
             "SELECT content FROM dataset_contents WHERE dataset_id = ?1",
+            id,
         )
-        .bind(id)
-        .fetch_optional(&self.pool)
-        .await?)
+        .await
     }
 
     /// Deletes a dataset and its content; [`StoreError::NotFound`] for an unknown id.

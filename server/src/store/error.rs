@@ -95,6 +95,14 @@ pub(crate) fn insert_error(error: sqlx::Error, kind: &'static str, id: &str) -> 
     }
 }
 
+/// The length of a blob as the INTEGER its `size_bytes` column holds.
+pub(crate) fn byte_length(field: &'static str, bytes: &[u8]) -> Result<i64, StoreError> {
+    i64::try_from(bytes.len()).map_err(|_| StoreError::InvalidValue {
+        field,
+        reason: "larger than i64::MAX bytes".to_owned(),
+    })
+}
+
 /// Rejects NaN and infinities, which SQLite would silently store as NULL (or reject as NOT NULL).
 pub(crate) fn require_finite(field: &'static str, value: f64) -> Result<f64, StoreError> {
     if value.is_finite() {

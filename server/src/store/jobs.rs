@@ -5,10 +5,12 @@
 //! flag; the job's runner sees it and finishes the job as [`JobOutcome::Cancelled`].
 
 use serde_json::Value;
+use sqlx::Sqlite;
+use sqlx::query::Query;
+use sqlx::sqlite::SqliteArguments;
 use sqlx::types::Json;
 
 use super::error::{insert_error, require_finite};
-use super::paging::PagePlan;
 use super::{ABORTED_CODE, CANCELLED_CODE, Page, PageRequest, Store, StoreError, now_unix_ms};
 
 /// What a job does.
@@ -205,10 +207,7 @@ impl Store {
 
     /// The job with this id.
     pub async fn get_job(&self, id: &str) -> Result<Option<JobRow>, StoreError> {
-        Ok(sqlx::query_as::<_, JobRow>(JOB_COLUMNS_BY_ID)
-            .bind(id)
-            .fetch_optional(&self.pool)
-            .await?)
+        self.fetch_by_id(JOB_COLUMNS_BY_ID, id).await
     }
 
     /// The job's epoch history in epoch order (empty for an unknown job or one without epochs).
@@ -230,8 +229,7 @@ impl Store {
         filter: &JobFilter,
         request: &PageRequest,
     ) -> Result<Page<JobRow>, StoreError> {
-        let plan = PagePlan::new(LISTING, request)?;
-        let rows = sqlx::query_as::<_, JobRow>(
+        let query = sqlx::query_as(
             "SELECT id, kind, state, request_json, metadata_json, result_json, error_code, \
              error_message, created_at, started_at, finished_at, cancel_requested FROM jobs \
              WHERE (?1 IS NULL OR kind = ?1) \
@@ -240,32 +238,24 @@ impl Store {
              ORDER BY created_at DESC, id DESC LIMIT ?5",
         )
         .bind(filter.kind)
-        .bind(filter.done)
-        .bind(plan.after_created_at())
-        .bind(plan.after_id())
-        .bind(plan.fetch_limit())
-        .fetch_all(&self.pool)
-        .await?;
-        Ok(plan.finish(LISTING, rows, |row| (row.created_at_ms, row.id.as_str())))
+        .bind(filter.done);
+        self.fetch_page(LISTING, request, query, |row: &JobRow| {
+            (row.created_at_ms, row.id.as_str())
+        })
+        .await
     }
 
     /// Moves a queued job to `running` and records its start time.
     ///
     /// [`StoreError::NotFound`] for an unknown id, [`StoreError::InvalidState`] unless it is queued.
     pub async fn mark_running(&self, id: &str) -> Result<JobRow, StoreError> {
-        let mut tx = self.begin_write().await?;
-        let state = job_state(&mut tx, id).await?;
-        if state != JobState::Queued {
-            return Err(invalid_state(id, "mark running", state));
-        }
-        sqlx::query("UPDATE jobs SET state = 'running', started_at = ?2 WHERE id = ?1")
-            .bind(id)
-            .bind(now_unix_ms())
-            .execute(&mut *tx)
-            .await?;
-        let row = fetch_job(&mut tx, id).await?;
-        tx.commit().await?;
-        Ok(row)
+        let queued = |state| state == JobState::Queued;
+        self.update_job(id, "mark running", queued, || {
+            sqlx::query("UPDATE jobs SET state = 'running', started_at = ?2 WHERE id = ?1")
+                .bind(id)
+                .bind(now_unix_ms())
+        })
+        .await
     }
 
     /// Records one epoch of a running job.
@@ -327,44 +317,31 @@ impl Store {
                 Some(message),
             ),
         };
-        let mut tx = self.begin_write().await?;
-        let current = job_state(&mut tx, id).await?;
-        if current.is_finished() {
-            return Err(invalid_state(id, "finish", current));
-        }
-        sqlx::query(
-            "UPDATE jobs SET state = ?2, result_json = ?3, error_code = ?4, error_message = ?5, \
-             finished_at = ?6 WHERE id = ?1",
-        )
-        .bind(id)
-        .bind(state)
-        .bind(result.as_ref().map(Json))
-        .bind(code)
-        .bind(message)
-        .bind(now_unix_ms())
-        .execute(&mut *tx)
-        .await?;
-        let row = fetch_job(&mut tx, id).await?;
-        tx.commit().await?;
-        Ok(row)
+        let unfinished = |state: JobState| !state.is_finished();
+        self.update_job(id, "finish", unfinished, || {
+            sqlx::query(
+                "UPDATE jobs SET state = ?2, result_json = ?3, error_code = ?4, \
+                 error_message = ?5, finished_at = ?6 WHERE id = ?1",
+            )
+            .bind(id)
+            .bind(state)
+            .bind(result.map(Json))
+            .bind(code)
+            .bind(message)
+            .bind(now_unix_ms())
+        })
+        .await
     }
 
     /// Flags a queued or running job for cancellation (idempotent); its runner finishes it.
     ///
     /// [`StoreError::NotFound`] for an unknown id, [`StoreError::InvalidState`] if already finished.
     pub async fn request_cancel(&self, id: &str) -> Result<JobRow, StoreError> {
-        let mut tx = self.begin_write().await?;
-        let state = job_state(&mut tx, id).await?;
-        if state.is_finished() {
-            return Err(invalid_state(id, "cancel", state));
-        }
-        sqlx::query("UPDATE jobs SET cancel_requested = 1 WHERE id = ?1")
-            .bind(id)
-            .execute(&mut *tx)
-            .await?;
-        let row = fetch_job(&mut tx, id).await?;
-        tx.commit().await?;
-        Ok(row)
+        let unfinished = |state: JobState| !state.is_finished();
+        self.update_job(id, "cancel", unfinished, || {
+            sqlx::query("UPDATE jobs SET cancel_requested = 1 WHERE id = ?1").bind(id)
+        })
+        .await
     }
 
     /// Deletes a finished job and its epochs.
@@ -385,6 +362,28 @@ impl Store {
             .await?;
         tx.commit().await?;
         Ok(())
+    }
+
+    /// Runs the UPDATE `build` makes on a job whose current state `allowed` accepts, in one write
+    /// transaction, and returns the updated row. [`StoreError::NotFound`] for an unknown id,
+    /// [`StoreError::InvalidState`] (naming `action`) for a state `allowed` refuses. `build` runs
+    /// after the write lock is taken, so any time it binds is the time of the change.
+    async fn update_job<'q>(
+        &self,
+        id: &str,
+        action: &'static str,
+        allowed: impl Fn(JobState) -> bool,
+        build: impl FnOnce() -> Query<'q, Sqlite, SqliteArguments>,
+    ) -> Result<JobRow, StoreError> {
+        let mut tx = self.begin_write().await?;
+        let state = job_state(&mut tx, id).await?;
+        if !allowed(state) {
+            return Err(invalid_state(id, action, state));
+        }
+        build().execute(&mut *tx).await?;
+        let row = fetch_job(&mut tx, id).await?;
+        tx.commit().await?;
+        Ok(row)
     }
 
     /// Startup recovery: every queued or running job becomes `failed` with code ABORTED (10) and

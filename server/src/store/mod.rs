@@ -26,10 +26,11 @@ mod tests;
 use std::str::FromStr;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
+use sqlx::sqlite::SqliteRow;
 use sqlx::sqlite::{
     SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
 };
-use sqlx::{Sqlite, Transaction};
+use sqlx::{FromRow, Sqlite, Transaction};
 
 pub use alarms::AlarmEventRow;
 pub use datasets::{DatasetRow, NewDataset};
@@ -80,6 +81,29 @@ impl Store {
     /// Closes every connection, waiting for in-flight queries; later calls fail with `PoolClosed`.
     pub async fn close(&self) {
         self.pool.close().await;
+    }
+
+    /// The row `select` returns for `id` (its one parameter), or `None`.
+    async fn fetch_by_id<R>(&self, select: &'static str, id: &str) -> Result<Option<R>, StoreError>
+    where
+        R: for<'r> FromRow<'r, SqliteRow> + Send + Unpin,
+    {
+        Ok(sqlx::query_as(select)
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?)
+    }
+
+    /// The blob `select` returns for `id` (its one parameter), or `None`.
+    async fn fetch_blob(
+        &self,
+        select: &'static str,
+        id: &str,
+    ) -> Result<Option<Vec<u8>>, StoreError> {
+        Ok(sqlx::query_scalar(select)
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?)
     }
 
     /// Starts a write transaction that takes SQLite's write lock up front (see the module docs).

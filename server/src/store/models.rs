@@ -3,8 +3,7 @@
 use serde_json::Value;
 use sqlx::types::Json;
 
-use super::error::insert_error;
-use super::paging::PagePlan;
+use super::error::{byte_length, insert_error};
 use super::{Page, PageRequest, Store, StoreError, now_unix_ms};
 
 /// Where a model came from.
@@ -87,11 +86,7 @@ impl Store {
         model: NewModel,
         created_at_ms: i64,
     ) -> Result<ModelRow, StoreError> {
-        let size_bytes =
-            i64::try_from(model.artifact.len()).map_err(|_| StoreError::InvalidValue {
-                field: "artifact",
-                reason: "larger than i64::MAX bytes".to_owned(),
-            })?;
+        let size_bytes = byte_length("artifact", &model.artifact)?;
         let mut tx = self.begin_write().await?;
         let inserted = sqlx::query(
             "INSERT INTO models (id, display_name, source, training_operation, created_at, \
@@ -132,39 +127,32 @@ impl Store {
 
     /// The model with this id, without its artifact.
     pub async fn get_model(&self, id: &str) -> Result<Option<ModelRow>, StoreError> {
-        Ok(sqlx::query_as::<_, ModelRow>(SELECT_MODEL_BY_ID)
-            .bind(id)
-            .fetch_optional(&self.pool)
-            .await?)
+        self.fetch_by_id(SELECT_MODEL_BY_ID, id).await
     }
 
     /// One page of models, newest first.
     ///
     /// Fails with [`StoreError::InvalidPageToken`] for a token not issued by this listing.
     pub async fn list_models(&self, request: &PageRequest) -> Result<Page<ModelRow>, StoreError> {
-        let plan = PagePlan::new(LISTING, request)?;
-        let rows = sqlx::query_as::<_, ModelRow>(
+        let query = sqlx::query_as(
             "SELECT id, display_name, source, training_operation, created_at, schema_version, \
              sha256, size_bytes, metadata_json, active FROM models \
              WHERE ?1 IS NULL OR (created_at, id) < (?1, ?2) \
              ORDER BY created_at DESC, id DESC LIMIT ?3",
-        )
-        .bind(plan.after_created_at())
-        .bind(plan.after_id())
-        .bind(plan.fetch_limit())
-        .fetch_all(&self.pool)
-        .await?;
-        Ok(plan.finish(LISTING, rows, |row| (row.created_at_ms, row.id.as_str())))
+        );
+        self.fetch_page(LISTING, request, query, |row: &ModelRow| {
+            (row.created_at_ms, row.id.as_str())
+        })
+        .await
     }
 
     /// The serialized model, or `None` if no model has this id.
     pub async fn model_artifact(&self, id: &str) -> Result<Option<Vec<u8>>, StoreError> {
-        Ok(sqlx::query_scalar::<_, Vec<u8>>(
+        self.fetch_blob(
             "SELECT artifact FROM model_artifacts WHERE model_id = ?1",
+            id,
         )
-        .bind(id)
-        .fetch_optional(&self.pool)
-        .await?)
+        .await
     }
 
     /// The active model, if one is set.
