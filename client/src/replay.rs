@@ -12,6 +12,8 @@ use std::time::Duration;
 use spoofwatch_core::evidence::MAX_BACKWARD_S;
 use spoofwatch_core::sample::{Record, Sample, Track};
 use spoofwatch_proto::v1;
+use spoofwatch_proto::wire::convert::sample_to_proto;
+use spoofwatch_proto::wire::limits::{MAX_BATCH_SAMPLES, MAX_VEHICLE_ID_LEN};
 use tokio::sync::mpsc;
 
 use crate::connection::Connection;
@@ -21,10 +23,6 @@ use crate::error::ClientError;
 /// The forward gap (s) a recorded trajectory break becomes in a replay; anything above the 5 s
 /// gap rule of SPEC §3 starts a new trajectory on the server.
 pub const REPLAY_BREAK_GAP_S: f64 = 10.0;
-/// Most samples in one `SampleBatch` (the server's default limit).
-pub const MAX_BATCH_SAMPLES: usize = 1000;
-/// Longest vehicle id the server accepts.
-const MAX_VEHICLE_ID_LEN: usize = 128;
 
 /// Timestamps to send for a track's records, in order.
 ///
@@ -62,16 +60,10 @@ pub fn replay_timestamps(records: &[Record]) -> Vec<f64> {
 }
 
 /// A core sample on the wire, sent with `timestamp_s` instead of its own.
-pub fn sample_to_proto(sample: &Sample, timestamp_s: f64) -> v1::Sample {
+pub fn replayed_sample(sample: &Sample, timestamp_s: f64) -> v1::Sample {
     v1::Sample {
         timestamp_s,
-        latitude_deg: sample.latitude_deg,
-        longitude_deg: sample.longitude_deg,
-        speed_mps: sample.speed_mps,
-        heading_deg: sample.heading_deg,
-        position_std_m: sample.position_std_m,
-        speed_std_mps: sample.speed_std_mps,
-        heading_std_deg: sample.heading_std_deg,
+        ..sample_to_proto(sample)
     }
 }
 
@@ -314,7 +306,7 @@ fn batch_requests(
             let samples = chunk
                 .iter()
                 .zip(times)
-                .map(|(record, &t)| sample_to_proto(&record.sample, t))
+                .map(|(record, &t)| replayed_sample(&record.sample, t))
                 .collect();
             (seq, k * batch_size, v1::SampleBatch { seq, samples })
         })

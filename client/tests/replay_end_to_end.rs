@@ -2,10 +2,10 @@
 //! database) and the `detect` replay logic over gRPC.
 
 use spoofwatch_client::Connection;
-use spoofwatch_client::inprocess::InProcessServer;
 use spoofwatch_client::replay::{ReplayEvent, ReplayOptions, replay_timestamps, replay_tracks};
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{DriveSpec, simulate_drive};
+use spoofwatch_server::inprocess::InProcessServer;
 use tokio::sync::mpsc;
 
 /// A short simulated recording with a recorded trajectory break in the middle (the clock restarts).
@@ -27,7 +27,7 @@ fn recording(vehicle_id: &str, seed: u64) -> Track {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_sample_gets_one_detection_in_order_and_breaks_start_trajectories() {
-    let server = InProcessServer::start().await.expect("server starts");
+    let server = InProcessServer::start(|_| {}).await.expect("server starts");
     let connection = Connection::connect(server.url(), None)
         .await
         .expect("connects");
@@ -111,7 +111,7 @@ async fn every_sample_gets_one_detection_in_order_and_breaks_start_trajectories(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_bad_sample_is_an_item_error_and_the_stream_goes_on() {
-    let server = InProcessServer::start().await.expect("server starts");
+    let server = InProcessServer::start(|_| {}).await.expect("server starts");
     let connection = Connection::connect(server.url(), None)
         .await
         .expect("connects");

@@ -1,6 +1,6 @@
-//! A Spoofwatch server running inside this process, on a loopback port with a database in a
-//! temporary directory: for the CLI's `demo`/`bench` and end-to-end tests. It only starts and stops
-//! [`crate::serve`]; it must not configure anything beyond what its caller's tweak asks.
+//! A Spoofwatch server running inside this process on a loopback port: the one used by the CLI's
+//! `demo`/`bench`, the client's end-to-end tests and the black-box test crate. It only starts and
+//! stops [`crate::serve`]; it must not configure anything beyond what its caller asks.
 
 use std::net::SocketAddr;
 
@@ -40,8 +40,8 @@ pub struct InProcessServer {
     addr: SocketAddr,
     stop: Option<oneshot::Sender<()>>,
     task: Option<JoinHandle<Result<(), ServerError>>>,
-    // Held so the database outlives the server; removed on drop.
-    database_dir: tempfile::TempDir,
+    // Held so a temporary database outlives the server; removed on drop.
+    database_dir: Option<tempfile::TempDir>,
 }
 
 impl InProcessServer {
@@ -60,6 +60,19 @@ impl InProcessServer {
         let mut config = Config::with_database(database.to_string_lossy().into_owned());
         config.shutdown_grace_secs = SHUTDOWN_GRACE_SECS;
         config_tweak(&mut config);
+        Self::serve_on_loopback(config, Some(database_dir)).await
+    }
+
+    /// Starts a server with exactly `config` (its own database; e.g. one a test reopens after a
+    /// restart) on 127.0.0.1, an ephemeral port; `config.listen` is not used.
+    pub async fn start_with(config: Config) -> Result<Self, InProcessError> {
+        Self::serve_on_loopback(config, None).await
+    }
+
+    async fn serve_on_loopback(
+        config: Config,
+        database_dir: Option<tempfile::TempDir>,
+    ) -> Result<Self, InProcessError> {
         let listener = TcpListener::bind(("127.0.0.1", 0))
             .await
             .map_err(|source| InProcessError::Io {
@@ -93,21 +106,22 @@ impl InProcessServer {
         self.addr
     }
 
-    /// The temporary directory holding the database.
-    pub fn database_dir(&self) -> &std::path::Path {
-        self.database_dir.path()
+    /// The temporary directory holding the database of a server from [`Self::start`].
+    pub fn database_dir(&self) -> Option<&std::path::Path> {
+        self.database_dir.as_ref().map(tempfile::TempDir::path)
     }
 
     /// Signals the shutdown and waits for the server's drain to finish.
     pub async fn shutdown(mut self) -> Result<(), InProcessError> {
-        self.signal_stop();
+        self.trigger_shutdown();
         match self.task.take() {
             Some(task) => Ok(task.await??),
             None => Ok(()),
         }
     }
 
-    fn signal_stop(&mut self) {
+    /// Signals the shutdown (the server starts draining) without waiting; idempotent.
+    pub fn trigger_shutdown(&mut self) {
         if let Some(stop) = self.stop.take() {
             // The server may already have stopped on its own; then there is nobody to tell.
             let _ = stop.send(());
@@ -117,7 +131,7 @@ impl InProcessServer {
 
 impl Drop for InProcessServer {
     fn drop(&mut self) {
-        self.signal_stop();
+        self.trigger_shutdown();
     }
 }
 
@@ -132,7 +146,7 @@ mod tests {
             .expect("the server starts");
         assert!(server.addr().ip().is_loopback());
         assert_eq!(server.url(), format!("http://{}", server.addr()));
-        assert!(server.database_dir().exists());
+        assert!(server.database_dir().is_some_and(std::path::Path::exists));
         server.shutdown().await.expect("a clean shutdown");
     }
 }

@@ -2,8 +2,9 @@
 //! the client library's `Connection` to it, open `DetectStream`s whose replies are awaited with a
 //! bound, and build test inputs (drives, attacks, uploads) with `spoofwatch-core`.
 //!
-//! Tests talk to the server only through gRPC. The recipe follows tonic's own tests: bind
-//! `127.0.0.1:0`, spawn `serve` with a oneshot shutdown, poll health instead of sleeping, and drop
+//! Tests talk to the server only through gRPC. The recipe follows tonic's own tests: the server
+//! crate's `InProcessServer` binds `127.0.0.1:0` and spawns `serve` with a oneshot shutdown; poll
+//! health instead of sleeping, and drop
 //! clients before triggering shutdown (an open stream holds the connection and delays the drain).
 //! Test-specific assertions stay in the test files (one per behaviour under `tests/`); this crate
 //! must not grow a second implementation of anything the client library already has.
@@ -16,7 +17,6 @@ use prost::Message;
 pub use spoofwatch_client::detect_stream::{
     BatchOutcome, BatchReply, batch_request, start_request,
 };
-use spoofwatch_client::replay::sample_to_proto;
 pub use spoofwatch_client::{AuthenticatedChannel, ClientError, Connection, DetectStream};
 use spoofwatch_core::data::telemetry::write_tracks;
 use spoofwatch_core::sample::Track;
@@ -29,9 +29,9 @@ use spoofwatch_proto::v1::dataset_service_client::DatasetServiceClient;
 use spoofwatch_proto::v1::detection_service_client::DetectionServiceClient;
 use spoofwatch_proto::v1::model_service_client::ModelServiceClient;
 use spoofwatch_proto::v1::training_service_client::TrainingServiceClient;
-use spoofwatch_server::{Config, ServerError, serve};
-use tokio::sync::oneshot;
-use tokio::task::JoinHandle;
+use spoofwatch_proto::wire::convert::sample_to_proto;
+use spoofwatch_server::Config;
+use spoofwatch_server::inprocess::{InProcessError, InProcessServer};
 use tonic::Code;
 use tonic::transport::Channel;
 use tonic_health::pb::HealthCheckRequest;
@@ -68,37 +68,28 @@ pub fn database_path(dir: &Path) -> PathBuf {
     dir.join("spoofwatch.db")
 }
 
-/// A server running in this process.
+/// A server running in this process (the server crate's [`InProcessServer`]), ready when
+/// [`TestServer::start`] returns.
 pub struct TestServer {
     /// The loopback address it listens on.
     pub addr: SocketAddr,
-    shutdown: Option<oneshot::Sender<()>>,
-    handle: Option<JoinHandle<Result<(), ServerError>>>,
+    server: InProcessServer,
 }
 
 impl TestServer {
-    /// Binds a free loopback port, spawns [`serve`] and waits until health reports SERVING.
+    /// Starts `config` on a free loopback port and waits until health reports SERVING.
     pub async fn start(config: Config) -> TestServer {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+        let server = InProcessServer::start_with(config)
             .await
-            .expect("bind a loopback port");
-        let addr = listener.local_addr().expect("local address");
-        let (shutdown, signal) = oneshot::channel::<()>();
-        let handle = tokio::spawn(serve(config, listener, async {
-            let _ = signal.await;
-        }));
-        let server = TestServer {
-            addr,
-            shutdown: Some(shutdown),
-            handle: Some(handle),
-        };
-        server.wait_until_serving().await;
-        server
+            .expect("start the in-process server");
+        let addr = server.addr();
+        wait_until_serving(addr, READY_TIMEOUT).await;
+        TestServer { addr, server }
     }
 
     /// The server's URL.
     pub fn url(&self) -> String {
-        format!("http://{}", self.addr)
+        self.server.url()
     }
 
     /// A new plain channel to the server (for services the client library does not cover).
@@ -117,29 +108,16 @@ impl TestServer {
             .expect("connect to the test server")
     }
 
-    /// Polls `grpc.health.v1.Health/Check` (overall status) until SERVING.
-    async fn wait_until_serving(&self) {
-        wait_until_serving(self.addr, READY_TIMEOUT).await;
-    }
-
     /// Fires the shutdown signal (the server starts draining); idempotent.
     pub fn trigger_shutdown(&mut self) {
-        if let Some(shutdown) = self.shutdown.take() {
-            let _ = shutdown.send(());
-        }
+        self.server.trigger_shutdown();
     }
 
     /// Triggers shutdown and waits (at most `bound`) for `serve` to return; panics past the bound.
-    pub async fn stop_within(mut self, bound: Duration) -> Result<(), ServerError> {
-        self.trigger_shutdown();
-        let handle = self
-            .handle
-            .take()
-            .expect("the server task is only joined once");
-        tokio::time::timeout(bound, handle)
+    pub async fn stop_within(self, bound: Duration) -> Result<(), InProcessError> {
+        tokio::time::timeout(bound, self.server.shutdown())
             .await
             .expect("serve() returned within the shutdown bound")
-            .expect("the server task did not panic")
     }
 
     /// Triggers shutdown and waits for `serve` to return successfully.
@@ -147,16 +125,6 @@ impl TestServer {
         self.stop_within(Duration::from_secs(30))
             .await
             .expect("serve() ended without error");
-    }
-}
-
-impl Drop for TestServer {
-    fn drop(&mut self) {
-        // A test that failed midway must not leave a server running in the other tests' runtime.
-        self.trigger_shutdown();
-        if let Some(handle) = self.handle.take() {
-            handle.abort();
-        }
     }
 }
 
@@ -224,7 +192,7 @@ pub fn track_samples(track: &Track) -> Vec<v1::Sample> {
     track
         .records
         .iter()
-        .map(|r| sample_to_proto(&r.sample, r.sample.timestamp_s))
+        .map(|r| sample_to_proto(&r.sample))
         .collect()
 }
 

@@ -14,10 +14,10 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use spoofwatch_client::error::ClientError;
-#[cfg(feature = "inprocess")]
-use spoofwatch_client::inprocess::InProcessServer;
 use spoofwatch_client::synthetic::LoopDriver;
 use spoofwatch_client::{Connection, DetectStream};
+#[cfg(feature = "inprocess")]
+use spoofwatch_server::inprocess::InProcessServer;
 use tokio::sync::{Barrier, Semaphore};
 
 use super::detect::parse_batch;
@@ -132,7 +132,7 @@ pub async fn run(args: Args) -> Result<()> {
 /// Benchmarks a server started in this process (no token: it has none).
 #[cfg(feature = "inprocess")]
 async fn bench_in_process(args: &Args) -> Result<()> {
-    let server = InProcessServer::start().await?;
+    let server = InProcessServer::start(|_| {}).await?;
     let url = server.url();
     println!(
         "in-process server on {url} (temporary database); client and server share this \

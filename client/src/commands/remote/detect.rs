@@ -10,8 +10,9 @@ use anyhow::{Context, Result, bail};
 use spoofwatch_client::error::describe_rpc_status;
 use spoofwatch_client::input::load_tracks;
 use spoofwatch_client::replay::{
-    MAX_BATCH_SAMPLES, ReplayEvent, ReplayOptions, ReplaySummary, ReplayedDetection, replay_tracks,
+    ReplayEvent, ReplayOptions, ReplaySummary, ReplayedDetection, replay_tracks,
 };
+use spoofwatch_proto::wire::limits::MAX_BATCH_SAMPLES;
 use tokio::sync::mpsc;
 
 use super::ServerArgs;

@@ -3,7 +3,7 @@
 //!
 //! They reach the server only through the `spoofwatch_client` library (`Connection`,
 //! `DetectStream`); nothing here may depend on the server crate except through
-//! `spoofwatch_client::inprocess` (feature `inprocess`).
+//! `spoofwatch_server::inprocess` (feature `inprocess`).
 
 pub mod bench;
 pub mod datasets;

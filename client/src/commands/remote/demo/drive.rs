@@ -6,11 +6,11 @@
 use anyhow::{Context, Result, bail};
 use spoofwatch_client::Connection;
 use spoofwatch_client::error::{describe_rpc_status, rpc};
-use spoofwatch_client::inprocess::InProcessServer;
 use spoofwatch_client::replay::{ReplayEvent, ReplayOptions, replay_track};
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
 use spoofwatch_proto::v1;
+use spoofwatch_server::inprocess::InProcessServer;
 use tokio::sync::mpsc;
 
 use super::Args;
@@ -96,11 +96,14 @@ pub fn summarise(rows: &[(f64, bool, bool)]) -> DemoSummary {
 
 pub async fn run(args: Args) -> Result<()> {
     let (track, attack) = scenario(args.seed, args.drift)?;
-    let server = InProcessServer::start().await?;
+    let server = InProcessServer::start(|_| {}).await?;
     println!(
         "in-process server on {} (temporary database in {})",
         server.url(),
-        server.database_dir().display()
+        server
+            .database_dir()
+            .unwrap_or(std::path::Path::new("?"))
+            .display()
     );
     let result = stream_drive(&server.url(), &track, &attack, args.rate).await;
     server.shutdown().await?;
