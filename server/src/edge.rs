@@ -5,7 +5,7 @@
 use spoofwatch_proto::wire::{DatasetName, ModelName, NameError, OperationName};
 use tonic::Status;
 
-use crate::error::invalid_field;
+use crate::status::invalid_field;
 use crate::store::PageRequest;
 
 /// A required `models/{id}` field.

@@ -1,102 +1,21 @@
-//! The one deliberate mapping of every subsystem's error to a gRPC status, with google.rpc error
-//! details: status builders, then one `impl From<XError> for Status` per subsystem. Internal errors
-//! are logged and answered with a generic INTERNAL message (no leaked internals). Nothing else in
-//! the server chooses codes for subsystem errors; this module must not hold any logic.
+//! The one deliberate mapping of every subsystem's error to a gRPC status: one
+//! `impl From<XError> for Status` per subsystem, built with `crate::status`. Nothing else in the
+//! server chooses codes for subsystem errors; this module must not hold any logic, and nothing in
+//! the crate imports it (the services reach it through `?`), so it may depend on every subsystem.
 
-use prost::Message;
 use spoofwatch_core::train::TrainError;
 use spoofwatch_core::train::detector::TrainDetectorError;
-use tonic::{Code, Status};
-use tonic_types::{ErrorDetails, FieldViolation, StatusExt};
+use tonic::Status;
 
 use crate::datasets::DatasetError;
 use crate::detection::SessionError;
 use crate::fault::Fault;
 use crate::jobs::{JobError, JobFailure};
 use crate::models::RegistryError;
+use crate::status::{
+    failed_precondition, internal, invalid_argument, invalid_field, not_found, resource_exhausted,
+};
 use crate::store::StoreError;
-
-/// INVALID_ARGUMENT with one BadRequest field violation per problem.
-pub fn invalid_argument(violations: Vec<(String, String)>) -> Status {
-    let summary = violations
-        .iter()
-        .map(|(field, description)| format!("{field}: {description}"))
-        .collect::<Vec<_>>()
-        .join("; ");
-    let details = ErrorDetails::with_bad_request(
-        violations
-            .into_iter()
-            .map(|(field, description)| FieldViolation::new(field, description))
-            .collect::<Vec<_>>(),
-    );
-    Status::with_error_details(Code::InvalidArgument, summary, details)
-}
-
-/// INVALID_ARGUMENT for a single field.
-pub fn invalid_field(field: impl Into<String>, description: impl Into<String>) -> Status {
-    invalid_argument(vec![(field.into(), description.into())])
-}
-
-/// NOT_FOUND with ResourceInfo naming the resource.
-pub fn not_found(kind: &str, name: &str) -> Status {
-    let details = ErrorDetails::with_resource_info(kind, name, "", format!("no such {kind}"));
-    Status::with_error_details(
-        Code::NotFound,
-        format!("{kind} {name:?} not found"),
-        details,
-    )
-}
-
-/// FAILED_PRECONDITION with an ErrorInfo reason (machine-readable, UPPER_SNAKE_CASE).
-pub fn failed_precondition(reason: &str, message: impl Into<String>) -> Status {
-    let details = ErrorDetails::with_error_info(
-        reason,
-        "spoofwatch",
-        std::collections::HashMap::<String, String>::new(),
-    );
-    Status::with_error_details(Code::FailedPrecondition, message, details)
-}
-
-/// RESOURCE_EXHAUSTED with a retry hint.
-pub fn resource_exhausted(message: impl Into<String>) -> Status {
-    let details = ErrorDetails::with_retry_info(Some(std::time::Duration::from_secs(5)));
-    Status::with_error_details(Code::ResourceExhausted, message, details)
-}
-
-/// UNAVAILABLE while the server drains.
-pub fn shutting_down() -> Status {
-    let details = ErrorDetails::with_retry_info(Some(std::time::Duration::from_secs(1)));
-    Status::with_error_details(
-        Code::Unavailable,
-        "server is shutting down; reconnect to another replica or retry",
-        details,
-    )
-}
-
-/// INTERNAL for an unexpected failure, logged with its cause.
-pub fn internal(context: &str, error: &dyn std::fmt::Display) -> Status {
-    tracing::error!(%error, "{context}");
-    Status::internal(format!("internal error while {context}"))
-}
-
-/// INVALID_ARGUMENT for a streamed upload whose first message is not its header.
-pub fn header_first() -> Status {
-    invalid_field("header", "the first message must be a header")
-}
-
-/// INVALID_ARGUMENT for a streamed upload with a second header.
-pub fn header_not_first() -> Status {
-    invalid_field("header", "only the first message may be a header")
-}
-
-/// A tonic status as the google.rpc.Status message (for ItemError).
-pub fn to_rpc_status(status: &Status) -> tonic_types::Status {
-    tonic_types::Status::decode(status.details()).unwrap_or_else(|_| tonic_types::Status {
-        code: status.code() as i32,
-        message: status.message().to_string(),
-        details: Vec::new(),
-    })
-}
 
 impl From<StoreError> for Status {
     fn from(error: StoreError) -> Self {
@@ -216,30 +135,9 @@ fn training_status(error: TrainDetectorError) -> Status {
 
 #[cfg(test)]
 mod tests {
-    use super::*;
+    use tonic::Code;
 
-    #[test]
-    fn field_violations_travel_in_the_status_details() {
-        let status = invalid_argument(vec![
-            (
-                "batch.samples[2].latitude_deg".into(),
-                "must be finite".into(),
-            ),
-            ("batch.samples[3].speed_mps".into(), "too fast".into()),
-        ]);
-        assert_eq!(status.code(), Code::InvalidArgument);
-        let bad = status
-            .get_details_bad_request()
-            .expect("BadRequest details");
-        assert_eq!(bad.field_violations.len(), 2);
-        assert_eq!(
-            bad.field_violations[0].field,
-            "batch.samples[2].latitude_deg"
-        );
-        let rpc = to_rpc_status(&status);
-        assert_eq!(rpc.code, Code::InvalidArgument as i32);
-        assert_eq!(rpc.details.len(), 1);
-    }
+    use super::*;
 
     #[test]
     fn store_errors_map_to_deliberate_codes() {

@@ -20,6 +20,7 @@ mod identity;
 pub mod inprocess;
 mod jobs;
 pub mod models;
+mod status;
 pub mod store;
 
 use std::future::Future;

@@ -13,7 +13,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use super::catalog::Catalog;
 use crate::edge::{dataset_name, page_request};
-use crate::error::{header_first, header_not_first, invalid_field};
+use crate::status::{header_first, header_not_first, invalid_field};
 use crate::store::DatasetRow;
 
 /// The wire form of a stored dataset.

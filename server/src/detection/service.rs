@@ -22,7 +22,7 @@ use tonic::{Request, Response, Status, Streaming};
 use super::sessions::{Decisions, SessionManager, SessionSummary};
 use super::validate::vehicle_id_violation;
 use crate::edge::optional_model_name;
-use crate::error::{invalid_field, shutting_down, to_rpc_status};
+use crate::status::{invalid_field, shutting_down, to_rpc_status};
 
 /// Replies buffered per stream before the stream's reader waits for the client.
 const OUTBOUND_BUFFER: usize = 16;

@@ -26,9 +26,9 @@ use tonic::{Request, Response, Status};
 use super::manager::JobManager;
 use super::records::{JobRequest, JobResult, Progress, TrainingRequest};
 use crate::edge::{dataset_names, operation_name, optional_model_name, page_request};
-use crate::error::invalid_field;
 use crate::models::service::model_to_proto;
 use crate::models::{Registry, RegistryError};
+use crate::status::invalid_field;
 use crate::store::{EpochRow, JobFilter, JobKind, JobRow, JobState};
 
 fn pack<M: Message>(type_name: &str, message: &M) -> Any {

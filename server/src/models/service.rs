@@ -17,7 +17,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use super::registry::{ModelMetadata, Registry};
 use crate::edge::{model_name, page_request};
-use crate::error::invalid_field;
+use crate::status::invalid_field;
 use crate::store::{ModelRow, ModelSource};
 
 /// The wire form of a stored model.
@@ -132,7 +132,7 @@ impl ModelService for ModelApi {
             Some(v1::ImportModelRequest {
                 kind: Some(Kind::Header(h)),
             }) => h,
-            _ => return Err(crate::error::header_first()),
+            _ => return Err(crate::status::header_first()),
         };
         let mut bytes = Vec::new();
         while let Some(message) = stream.message().await? {
@@ -146,7 +146,7 @@ impl ModelService for ModelApi {
                     }
                     bytes.extend_from_slice(&chunk);
                 }
-                _ => return Err(crate::error::header_not_first()),
+                _ => return Err(crate::status::header_not_first()),
             }
         }
         let row = self
