@@ -18,7 +18,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::Streaming;
 
 use crate::connection::Connection;
-use crate::error::{ClientError, rpc};
+use crate::error::{ClientError, reply, rpc};
 
 /// Batches sent but not yet answered, by default. Without a window, "as fast as possible" would
 /// queue a whole recording in buffers and the measured latency would be mostly queueing.
@@ -105,12 +105,9 @@ impl DetectStream {
         requests
             .try_send(first)
             .map_err(|_| ClientError::Protocol("request channel closed before the start".into()))?;
-        let replies = connection
-            .detection()
-            .stream_detect(ReceiverStream::new(outbound))
-            .await
-            .map_err(rpc(context.clone()))?
-            .into_inner();
+        let mut detection = connection.detection();
+        let opening = detection.stream_detect(ReceiverStream::new(outbound));
+        let replies = reply(context.clone(), opening).await?;
         Ok(Self {
             requests,
             replies,

@@ -97,6 +97,18 @@ pub fn rpc(context: impl Into<String>) -> impl FnOnce(tonic::Status) -> ClientEr
     move |status| ClientError::Rpc(RpcError::new(context, status))
 }
 
+/// Awaits one gRPC call (a unary call or the opening of a stream) and unwraps its message; a
+/// failure becomes an [`RpcError`] naming `context`. Every call goes through here, so none
+/// repeats the unwrapping.
+pub async fn reply<T>(
+    context: impl Into<String>,
+    call: impl Future<Output = Result<tonic::Response<T>, tonic::Status>>,
+) -> Result<T, ClientError> {
+    call.await
+        .map(tonic::Response::into_inner)
+        .map_err(rpc(context))
+}
+
 /// The canonical name of a gRPC code (`INVALID_ARGUMENT`), as grpcurl and the docs spell it.
 pub fn code_name(code: Code) -> &'static str {
     match code {

@@ -396,23 +396,33 @@ mod tests {
     }
 
     #[test]
-    fn time_going_backwards_by_more_than_half_a_second_becomes_a_ten_second_gap() {
-        let rows = records(&[(50.0, false), (51.0, false), (50.4, false), (51.4, false)]);
-        assert_eq!(replay_timestamps(&rows), vec![50.0, 51.0, 61.0, 62.0]);
-    }
-
-    #[test]
-    fn a_small_backward_step_is_kept_like_offline_evaluation_does() {
-        // −0.3 s is within the 0.5 s tolerance: no new trajectory offline, none in the replay.
-        let rows = records(&[(50.0, false), (51.0, false), (50.7, false), (51.7, false)]);
-        assert_eq!(replay_timestamps(&rows), vec![50.0, 51.0, 50.7, 51.7]);
-    }
-
-    #[test]
-    fn a_break_lands_after_the_latest_timestamp_sent() {
-        // After a tolerated −0.3 s step the latest timestamp is still 51.0, so the break is at 61.0.
-        let rows = records(&[(50.0, false), (51.0, false), (50.7, false), (0.0, true)]);
-        assert_eq!(replay_timestamps(&rows), vec![50.0, 51.0, 50.7, 61.0]);
+    fn backward_steps_are_gaps_beyond_half_a_second_and_breaks_follow_the_latest_timestamp() {
+        let cases = [
+            (
+                "time going backwards by more than half a second becomes a ten-second gap",
+                [(50.0, false), (51.0, false), (50.4, false), (51.4, false)],
+                [50.0, 51.0, 61.0, 62.0],
+            ),
+            (
+                // −0.3 s is within the 0.5 s tolerance: no new trajectory offline, none in the replay.
+                "a small backward step is kept like offline evaluation does",
+                [(50.0, false), (51.0, false), (50.7, false), (51.7, false)],
+                [50.0, 51.0, 50.7, 51.7],
+            ),
+            (
+                // After a tolerated −0.3 s step the latest timestamp is still 51.0: the break is at 61.0.
+                "a break lands after the latest timestamp sent",
+                [(50.0, false), (51.0, false), (50.7, false), (0.0, true)],
+                [50.0, 51.0, 50.7, 61.0],
+            ),
+        ];
+        for (case, rows, expected) in cases {
+            assert_eq!(
+                replay_timestamps(&records(&rows)),
+                expected.to_vec(),
+                "{case}"
+            );
+        }
     }
 
     #[test]

@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 
 use anyhow::Result;
-use spoofwatch_client::error::rpc;
+use spoofwatch_client::error::reply;
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::upload_dataset_request::Kind as UploadKind;
 
@@ -92,39 +92,32 @@ pub async fn run(args: Args) -> Result<()> {
         Command::Upload { file, name } => {
             let content = read_upload(&file)?;
             let requests = upload_requests(display_name(name.as_deref(), &file), &content);
-            let dataset = client
-                .upload_dataset(tokio_stream::iter(requests))
-                .await
-                .map_err(rpc(format!("uploading {}", file.display())))?
-                .into_inner();
+            let upload = client.upload_dataset(tokio_stream::iter(requests));
+            let dataset = reply(format!("uploading {}", file.display()), upload).await?;
             println!("uploaded {}", describe(&dataset));
         }
         Command::Import { path, name } => {
-            let dataset = client
-                .import_dataset(v1::ImportDatasetRequest {
-                    path: path.clone(),
-                    display_name: name.unwrap_or_default(),
-                })
-                .await
-                .map_err(rpc(format!("importing {path}")))?
-                .into_inner();
+            let request = v1::ImportDatasetRequest {
+                path: path.clone(),
+                display_name: name.unwrap_or_default(),
+            };
+            let dataset =
+                reply(format!("importing {path}"), client.import_dataset(request)).await?;
             println!("imported {}", describe(&dataset));
         }
         Command::List => {
-            let datasets = all_pages(|page_token| {
-                let mut client = client.clone();
-                async move {
-                    let page = client
-                        .list_datasets(v1::ListDatasetsRequest {
-                            page_size: 0,
-                            page_token,
-                        })
-                        .await
-                        .map_err(rpc("listing datasets"))?
-                        .into_inner();
-                    Ok((page.datasets, page.next_page_token))
-                }
-            })
+            let datasets = all_pages(
+                "listing datasets",
+                // Page size 0: the server's default.
+                async |page_token| {
+                    let request = v1::ListDatasetsRequest {
+                        page_token,
+                        ..Default::default()
+                    };
+                    client.list_datasets(request).await
+                },
+                |page| (page.datasets, page.next_page_token),
+            )
             .await?;
             print_table(
                 &[
@@ -146,18 +139,13 @@ pub async fn run(args: Args) -> Result<()> {
             );
         }
         Command::Get { name } => {
-            let dataset = client
-                .get_dataset(v1::GetDatasetRequest { name: name.clone() })
-                .await
-                .map_err(rpc(format!("getting {name}")))?
-                .into_inner();
+            let request = v1::GetDatasetRequest { name: name.clone() };
+            let dataset = reply(format!("getting {name}"), client.get_dataset(request)).await?;
             println!("{}", describe(&dataset));
         }
         Command::Delete { name } => {
-            client
-                .delete_dataset(v1::DeleteDatasetRequest { name: name.clone() })
-                .await
-                .map_err(rpc(format!("deleting {name}")))?;
+            let request = v1::DeleteDatasetRequest { name: name.clone() };
+            reply(format!("deleting {name}"), client.delete_dataset(request)).await?;
             println!("deleted {name}");
         }
     }

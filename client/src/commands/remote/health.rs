@@ -5,7 +5,7 @@
 use std::time::Duration;
 
 use anyhow::{Result, bail};
-use spoofwatch_client::error::rpc;
+use spoofwatch_client::error::reply;
 use tonic_health::pb::HealthCheckRequest;
 use tonic_health::pb::health_check_response::ServingStatus;
 
@@ -27,13 +27,8 @@ pub async fn run(args: Args) -> Result<()> {
         service: String::new(),
     });
     request.set_timeout(CHECK_TIMEOUT);
-    let reply = connection
-        .health()
-        .check(request)
-        .await
-        .map_err(rpc("checking health"))?
-        .into_inner();
-    let status = ServingStatus::try_from(reply.status).unwrap_or(ServingStatus::Unknown);
+    let answer = reply("checking health", connection.health().check(request)).await?;
+    let status = ServingStatus::try_from(answer.status).unwrap_or(ServingStatus::Unknown);
     println!("{}: {}", connection.url(), status.as_str_name());
     if status != ServingStatus::Serving {
         bail!("the server is not serving ({})", status.as_str_name());

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Result, bail};
 use prost::Message;
 use spoofwatch_client::Connection;
-use spoofwatch_client::error::{describe_rpc_status, rpc};
+use spoofwatch_client::error::{describe_rpc_status, reply};
 use spoofwatch_proto::longrunning;
 use spoofwatch_proto::longrunning::operation::Result as OperationResult;
 use spoofwatch_proto::v1;
@@ -200,17 +200,18 @@ pub async fn wait_until_done(
     loop {
         let remaining = timeout.map(|t| t.saturating_sub(started.elapsed()));
         let this_call = remaining.map_or(MAX_WAIT_PER_CALL, |r| r.min(MAX_WAIT_PER_CALL));
-        let operation = client
-            .wait_operation(longrunning::WaitOperationRequest {
-                name: name.to_string(),
-                timeout: Some(prost_types::Duration {
-                    seconds: this_call.as_secs() as i64,
-                    nanos: this_call.subsec_nanos() as i32,
-                }),
-            })
-            .await
-            .map_err(rpc(format!("waiting for {name}")))?
-            .into_inner();
+        let request = longrunning::WaitOperationRequest {
+            name: name.to_string(),
+            timeout: Some(prost_types::Duration {
+                seconds: this_call.as_secs() as i64,
+                nanos: this_call.subsec_nanos() as i32,
+            }),
+        };
+        let operation = reply(
+            format!("waiting for {name}"),
+            client.wait_operation(request),
+        )
+        .await?;
         if operation.done || remaining.is_some_and(|r| r <= this_call) {
             return Ok(operation);
         }
@@ -222,23 +223,19 @@ pub async fn run(args: Args) -> Result<()> {
     let mut client = connection.operations();
     match args.command {
         Command::List { filter } => {
-            let operations = all_pages(|page_token| {
-                let mut client = client.clone();
-                let filter = filter.clone();
-                async move {
-                    let page = client
-                        .list_operations(longrunning::ListOperationsRequest {
-                            name: String::new(),
-                            filter,
-                            page_size: 0,
-                            page_token,
-                        })
-                        .await
-                        .map_err(rpc("listing jobs"))?
-                        .into_inner();
-                    Ok((page.operations, page.next_page_token))
-                }
-            })
+            let operations = all_pages(
+                "listing jobs",
+                async |page_token| {
+                    let request = longrunning::ListOperationsRequest {
+                        name: String::new(),
+                        filter: filter.clone(),
+                        page_size: 0,
+                        page_token,
+                    };
+                    client.list_operations(request).await
+                },
+                |page| (page.operations, page.next_page_token),
+            )
             .await?;
             let header = ["name", "kind", "state", "epoch", "created", "message"];
             print_table(&header, &operations, |op| {
@@ -254,18 +251,17 @@ pub async fn run(args: Args) -> Result<()> {
             });
         }
         Command::Get { name } => {
-            let operation = client
-                .get_operation(longrunning::GetOperationRequest { name: name.clone() })
-                .await
-                .map_err(rpc(format!("getting {name}")))?
-                .into_inner();
+            let request = longrunning::GetOperationRequest { name: name.clone() };
+            let operation = reply(format!("getting {name}"), client.get_operation(request)).await?;
             print!("{}", describe_operation(&operation));
         }
         Command::Cancel { name } => {
-            client
-                .cancel_operation(longrunning::CancelOperationRequest { name: name.clone() })
-                .await
-                .map_err(rpc(format!("cancelling {name}")))?;
+            let request = longrunning::CancelOperationRequest { name: name.clone() };
+            reply(
+                format!("cancelling {name}"),
+                client.cancel_operation(request),
+            )
+            .await?;
             println!("cancellation of {name} requested");
         }
         Command::Wait { name, timeout } => {

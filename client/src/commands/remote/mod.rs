@@ -21,6 +21,7 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use spoofwatch_client::Connection;
 use spoofwatch_client::connection::DEFAULT_SERVER_URL;
+use spoofwatch_client::error::reply;
 
 /// Upload chunk size for datasets and model artifacts (the server's documented chunk size).
 pub const UPLOAD_CHUNK_BYTES: usize = 1 << 20;
@@ -116,17 +117,18 @@ pub fn bytes(n: u64) -> String {
     }
 }
 
-/// Every item of a paged listing: `fetch(page_token)` returns one page and the next page token,
-/// empty after the last page.
-pub async fn all_pages<T, F, Fut>(mut fetch: F) -> Result<Vec<T>>
-where
-    F: FnMut(String) -> Fut,
-    Fut: Future<Output = Result<(Vec<T>, String)>>,
-{
+/// Every item of a paged listing, fetched page after page under one error `context`.
+/// `fetch(page_token)` makes one List call; `split` takes its page apart into the items and the
+/// next page token, which is empty after the last page.
+pub async fn all_pages<P, T>(
+    context: &str,
+    mut fetch: impl AsyncFnMut(String) -> Result<tonic::Response<P>, tonic::Status>,
+    split: impl Fn(P) -> (Vec<T>, String),
+) -> Result<Vec<T>> {
     let mut items = Vec::new();
     let mut page_token = String::new();
     loop {
-        let (page, next_page_token) = fetch(page_token).await?;
+        let (page, next_page_token) = split(reply(context, fetch(page_token)).await?);
         items.extend(page);
         if next_page_token.is_empty() {
             return Ok(items);

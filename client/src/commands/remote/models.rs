@@ -6,7 +6,7 @@ use std::io::Write;
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
-use spoofwatch_client::error::rpc;
+use spoofwatch_client::error::{reply, rpc};
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::import_model_request::Kind as ImportKind;
 
@@ -139,20 +139,18 @@ pub async fn run(args: Args) -> Result<()> {
     let mut client = connection.models();
     match args.command {
         Command::List => {
-            let models = all_pages(|page_token| {
-                let mut client = client.clone();
-                async move {
-                    let page = client
-                        .list_models(v1::ListModelsRequest {
-                            page_size: 0,
-                            page_token,
-                        })
-                        .await
-                        .map_err(rpc("listing models"))?
-                        .into_inner();
-                    Ok((page.models, page.next_page_token))
-                }
-            })
+            let models = all_pages(
+                "listing models",
+                // Page size 0: the server's default.
+                async |page_token| {
+                    let request = v1::ListModelsRequest {
+                        page_token,
+                        ..Default::default()
+                    };
+                    client.list_models(request).await
+                },
+                |page| (page.models, page.next_page_token),
+            )
             .await?;
             let header = [
                 "  name",
@@ -175,35 +173,28 @@ pub async fn run(args: Args) -> Result<()> {
             });
         }
         Command::Get { name } => {
-            let model = client
-                .get_model(v1::GetModelRequest { name: name.clone() })
-                .await
-                .map_err(rpc(format!("getting {name}")))?
-                .into_inner();
+            let request = v1::GetModelRequest { name: name.clone() };
+            let model = reply(format!("getting {name}"), client.get_model(request)).await?;
             print!("{}", describe(&model));
         }
         Command::Activate { name } => {
-            let model = client
-                .set_active_model(v1::SetActiveModelRequest { name: name.clone() })
-                .await
-                .map_err(rpc(format!("activating {name}")))?
-                .into_inner();
+            let request = v1::SetActiveModelRequest { name: name.clone() };
+            let model = reply(
+                format!("activating {name}"),
+                client.set_active_model(request),
+            )
+            .await?;
             println!("{} is now the active model", model.name);
         }
         Command::Delete { name } => {
-            client
-                .delete_model(v1::DeleteModelRequest { name: name.clone() })
-                .await
-                .map_err(rpc(format!("deleting {name}")))?;
+            let request = v1::DeleteModelRequest { name: name.clone() };
+            reply(format!("deleting {name}"), client.delete_model(request)).await?;
             println!("deleted {name}");
         }
         Command::Export { name, out } => {
             let context = format!("exporting {name}");
-            let mut chunks = client
-                .export_model(v1::ExportModelRequest { name: name.clone() })
-                .await
-                .map_err(rpc(context.clone()))?
-                .into_inner();
+            let request = v1::ExportModelRequest { name: name.clone() };
+            let mut chunks = reply(context.clone(), client.export_model(request)).await?;
             // Write next to the target and rename at the end: a failed export leaves no partial file.
             let mut partial = out.clone().into_os_string();
             partial.push(".partial");
@@ -241,11 +232,8 @@ pub async fn run(args: Args) -> Result<()> {
             let content = read_upload(&file)?;
             let requests =
                 import_requests(display_name(name.as_deref(), &file), activate, &content);
-            let model = client
-                .import_model(tokio_stream::iter(requests))
-                .await
-                .map_err(rpc(format!("importing {}", file.display())))?
-                .into_inner();
+            let import = client.import_model(tokio_stream::iter(requests));
+            let model = reply(format!("importing {}", file.display()), import).await?;
             print!("imported {}", describe(&model));
         }
     }

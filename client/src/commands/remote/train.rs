@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use anyhow::{Result, bail};
 use spoofwatch_client::Connection;
-use spoofwatch_client::error::rpc;
+use spoofwatch_client::error::{reply, rpc};
 use spoofwatch_client::progress;
 use spoofwatch_proto::longrunning;
 use spoofwatch_proto::v1;
@@ -53,12 +53,9 @@ pub async fn run(remote: RemoteTrainingFlags, flags: TrainingFlags) -> Result<()
         bail!("remote training needs --server");
     };
     let connection = Connection::connect(server, remote.token.clone()).await?;
-    let operation = connection
-        .training()
-        .create_training_job(request)
-        .await
-        .map_err(rpc("creating the training job"))?
-        .into_inner();
+    let mut training = connection.training();
+    let create = training.create_training_job(request);
+    let operation = reply("creating the training job", create).await?;
     let name = operation.name.clone();
     println!("created training job {name}");
     match follow(&connection, &name, flags.epochs).await? {
@@ -78,12 +75,12 @@ pub async fn run(remote: RemoteTrainingFlags, flags: TrainingFlags) -> Result<()
             bail!("training job {name} was cancelled");
         }
     }
-    let operation = connection
-        .operations()
-        .get_operation(longrunning::GetOperationRequest { name: name.clone() })
-        .await
-        .map_err(rpc(format!("getting {name}")))?
-        .into_inner();
+    let request = longrunning::GetOperationRequest { name: name.clone() };
+    let operation = reply(
+        format!("getting {name}"),
+        connection.operations().get_operation(request),
+    )
+    .await?;
     if let Some(result) = describe_result(&operation) {
         print!("{result}");
     }
@@ -101,14 +98,14 @@ enum Followed {
 async fn follow(connection: &Connection, name: &str, max_epochs: u32) -> Result<Followed> {
     let bar = progress::bar(u64::from(max_epochs), "training");
     let interactive = progress::interactive();
-    let mut watch = connection
-        .training()
-        .watch_job(v1::WatchJobRequest {
-            name: name.to_string(),
-        })
-        .await
-        .map_err(rpc(format!("watching {name}")))?
-        .into_inner();
+    let request = v1::WatchJobRequest {
+        name: name.to_string(),
+    };
+    let mut watch = reply(
+        format!("watching {name}"),
+        connection.training().watch_job(request),
+    )
+    .await?;
     let ctrl_c = tokio::signal::ctrl_c();
     tokio::pin!(ctrl_c);
     let mut last_line = String::new();
@@ -159,13 +156,14 @@ async fn on_interrupt(connection: &Connection, name: &str) -> Result<Followed> {
     if terminal && !ask_yes_no(format!("\nCancel job {name}? [y/N] ")).await {
         return Ok(Followed::LeftRunning);
     }
-    connection
-        .operations()
-        .cancel_operation(longrunning::CancelOperationRequest {
-            name: name.to_string(),
-        })
-        .await
-        .map_err(rpc(format!("cancelling {name}")))?;
+    let request = longrunning::CancelOperationRequest {
+        name: name.to_string(),
+    };
+    reply(
+        format!("cancelling {name}"),
+        connection.operations().cancel_operation(request),
+    )
+    .await?;
     eprintln!("cancellation of {name} requested");
     Ok(Followed::CancelRequested)
 }

@@ -5,7 +5,7 @@
 
 use anyhow::{Context, Result, bail};
 use spoofwatch_client::Connection;
-use spoofwatch_client::error::{describe_rpc_status, rpc};
+use spoofwatch_client::error::{describe_rpc_status, reply};
 use spoofwatch_client::replay::{ReplayEvent, ReplayOptions, replay_track};
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
@@ -118,12 +118,9 @@ async fn import_drift_model(connection: &Connection) -> Result<String> {
         false,
         DRIFT_MODEL,
     );
-    let model = connection
-        .models()
-        .import_model(tokio_stream::iter(requests))
-        .await
-        .map_err(rpc("importing the drift model".to_string()))?
-        .into_inner();
+    let mut models = connection.models();
+    let import = models.import_model(tokio_stream::iter(requests));
+    let model = reply("importing the drift model", import).await?;
     Ok(model.name)
 }
 
@@ -214,14 +211,14 @@ async fn stream_drive(url: &str, track: &Track, attack: &AttackSpec, rate: f64) 
 
 /// θ of the model serving the session.
 async fn operating_threshold(connection: &Connection, model: &str) -> Result<f64> {
-    let model = connection
-        .models()
-        .get_model(v1::GetModelRequest {
-            name: model.to_string(),
-        })
-        .await
-        .map_err(rpc(format!("getting {model}")))?
-        .into_inner();
+    let request = v1::GetModelRequest {
+        name: model.to_string(),
+    };
+    let model = reply(
+        format!("getting {model}"),
+        connection.models().get_model(request),
+    )
+    .await?;
     Ok(model.operating_point.map_or(0.5, |op| op.theta))
 }
 
