@@ -6,13 +6,13 @@ use std::hint::black_box;
 use std::sync::atomic::AtomicBool;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use spoofwatch_core::evidence::Features;
+use spoofwatch_core::evidence::{FeatureSchema, Features};
 use spoofwatch_core::model::{LiquidState, Model, ModelConfig, StepScratch};
 use spoofwatch_core::rng::Rng;
 use spoofwatch_core::train::{Sequence, TrainConfig, train};
 
 fn random_features(rng: &mut Rng, count: usize) -> Vec<Features> {
-    spoofwatch_core::testdata::random_features(rng, count, 1.0)
+    spoofwatch_core::testdata::random_features(rng, count, 1.0, FeatureSchema::default())
 }
 
 /// Trajectories with one attack interval each (large η and q inside it).

@@ -17,7 +17,7 @@ use crate::alarm::{
     self, AlarmError, N_P_GRID, OperatingPoint, OperatingPointRule, PersistenceAlarm,
 };
 use crate::evaluation::{Scored, trajectory_key};
-use crate::evidence::{EvidenceParams, build_track};
+use crate::evidence::{EvidenceParams, FeatureSchema, build_track};
 use crate::geo::Projection;
 use crate::metrics::{EventRules, Metrics, ScoredRow};
 use crate::sample::Track;
@@ -379,7 +379,7 @@ pub fn fit_cusum_comparator(
     rule: OperatingPointRule,
 ) -> Result<CusumComparator, ComparatorError> {
     let (kappa, rho) = DEFAULT_KAPPA_RHO;
-    let fit = fit_evidence(train, projection, kappa, rho)?;
+    let fit = fit_evidence(train, projection, kappa, rho, FeatureSchema::Paper)?;
     let rows = cusum_rows(&fit.params, validation);
     let cusum = fit_cusum(
         &rows,

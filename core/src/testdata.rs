@@ -46,21 +46,25 @@ pub fn data_file(var: &str, name: &str) -> Option<PathBuf> {
     Some(path)
 }
 
-/// `count` synthetic ξ rows for model tests and benchmarks: the first 8 entries `scale` × N(0, 1) from
-/// `rng`, ν = 1.
+/// `count` synthetic ξ rows for model tests and benchmarks: every scaled channel of `schema` (the
+/// paper's first 8, then v2's drift channels) `scale` × N(0, 1) from `rng`, ν = 1.
 pub fn random_features(
     rng: &mut crate::rng::Rng,
     count: usize,
     scale: f64,
+    schema: crate::evidence::FeatureSchema,
 ) -> Vec<crate::evidence::Features> {
-    use crate::evidence::FEATURE_COUNT;
+    use crate::evidence::{FEATURE_CAPACITY, NU_INDEX};
     (0..count)
         .map(|_| {
-            let mut x = [0.0; FEATURE_COUNT];
-            for value in &mut x[..FEATURE_COUNT - 1] {
-                *value = scale * rng.normal();
+            let mut x = [0.0; FEATURE_CAPACITY];
+            for (index, value) in x[..schema.feature_count()].iter_mut().enumerate() {
+                *value = if index == NU_INDEX {
+                    1.0
+                } else {
+                    scale * rng.normal()
+                };
             }
-            x[FEATURE_COUNT - 1] = 1.0;
             x
         })
         .collect()

@@ -7,6 +7,7 @@ use std::sync::atomic::AtomicBool;
 
 use spoofwatch_core::alarm::{OperatingPoint, PersistenceAlarm};
 use spoofwatch_core::detector::{Detector, run_records};
+use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::geo::Projection;
 use spoofwatch_core::model::artifact::{
     ARTIFACT_SCHEMA_VERSION, ArtifactError, ModelArtifact, Provenance,
@@ -48,10 +49,12 @@ fn attacked_with(seed: u64, kind: AttackKind) -> Track {
 /// An untrained (but valid) artifact: evidence fitted on normal drives, random weights.
 fn artifact(op: OperatingPoint) -> Arc<ModelArtifact> {
     let normal: Vec<Track> = (0..2).map(|s| drive(s, 400.0)).collect();
-    let fit = fit_evidence(&normal, Projection::Wgs84Local, 0.0, 0.98).expect("enough rows");
+    let schema = FeatureSchema::default();
+    let fit =
+        fit_evidence(&normal, Projection::Wgs84Local, 0.0, 0.98, schema).expect("enough rows");
     Arc::new(ModelArtifact {
         schema_version: ARTIFACT_SCHEMA_VERSION,
-        feature_names: ModelArtifact::current_feature_names(),
+        feature_names: ModelArtifact::feature_names_of(schema),
         model: Model::init(ModelConfig::default(), 7).expect("valid config"),
         evidence: fit.params,
         scaler: fit.scaler,
@@ -208,6 +211,13 @@ fn a_small_training_job_learns_a_frozen_position_attack_and_calibrates_an_operat
     let again =
         train_detector(&spec, data(), &mut |_| {}, &AtomicBool::new(false)).expect("trains");
     assert_eq!(again.artifact.model, trained.artifact.model);
-    let fit = fit_evidence(&train, Projection::Wgs84Local, 0.0, 0.98).expect("fits");
+    let fit = fit_evidence(
+        &train,
+        Projection::Wgs84Local,
+        0.0,
+        0.98,
+        FeatureSchema::default(),
+    )
+    .expect("fits");
     assert_eq!(sequences(&fit, &train).len(), train.len());
 }

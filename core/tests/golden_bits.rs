@@ -8,6 +8,7 @@ use std::sync::atomic::AtomicBool;
 
 use spoofwatch_core::evidence::Features;
 use spoofwatch_core::model::artifact::ModelArtifact;
+use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::model::{LiquidState, ModelConfig};
 use spoofwatch_core::rng::Rng;
 use spoofwatch_core::train::{Sequence, TrainConfig, train};
@@ -25,7 +26,7 @@ fn fingerprint(values: impl IntoIterator<Item = f64>) -> u64 {
 }
 
 fn seeded_features(rng: &mut Rng, count: usize) -> Vec<Features> {
-    spoofwatch_core::testdata::random_features(rng, count, 2.0)
+    spoofwatch_core::testdata::random_features(rng, count, 2.0, FeatureSchema::Paper)
 }
 
 #[test]
@@ -86,6 +87,8 @@ fn a_short_training_run_is_bit_exact() {
         d_s: 8,
         d_zeta: 12,
         d_h: 10,
+        // The pinned run is the paper's model; a v2 model has a wider persistence encoder.
+        schema: FeatureSchema::Paper,
         ..ModelConfig::default()
     };
     let outcome = train(

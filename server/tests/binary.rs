@@ -290,6 +290,8 @@ async fn after_a_crash_the_running_job_is_failed_and_open_alarms_are_closed() {
             datasets: vec![dataset.name],
             spec: Some(v1::TrainingSpec {
                 max_epochs: 200,
+                // 210 s training parts are too short for the v2 drift channels' 120 s scale.
+                feature_schema: "paper".into(),
                 ..v1::TrainingSpec::default()
             }),
             ..v1::CreateTrainingJobRequest::default()

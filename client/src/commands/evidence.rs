@@ -5,7 +5,9 @@ use std::io::Write;
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
-use spoofwatch_core::evidence::{Evidence, EvidenceParams, build_track};
+use clap::builder::{PossibleValuesParser, TypedValueParser};
+use spoofwatch_core::evidence::drift::DriftEvidence;
+use spoofwatch_core::evidence::{Evidence, EvidenceParams, FeatureSchema, build_track};
 use spoofwatch_core::model::artifact::ModelArtifact;
 use spoofwatch_core::train::data::fit_evidence;
 
@@ -27,6 +29,14 @@ pub struct Args {
     /// Local frame for GNSS displacements (ignored with --stats, which carries its own).
     #[arg(long, value_enum, default_value_t)]
     projection: ProjectionArg,
+    /// Evidence channels fitted without --stats: `v2` adds the drift channels to the paper's.
+    #[arg(
+        long,
+        default_value = FeatureSchema::default().name(),
+        value_parser = PossibleValuesParser::new(FeatureSchema::NAMED.map(|(name, _)| name))
+            .map(|name| FeatureSchema::from_name(&name).unwrap_or_default()),
+    )]
+    schema: FeatureSchema,
 }
 
 /// The columns before the evidence values: who, where in the input, which trajectory.
@@ -53,14 +63,40 @@ const EVIDENCE_COLUMNS: [(&str, ColumnValue); 14] = [
     ("a_log", |e| e.accum_log),
 ];
 
+/// Reads one drift column's value from a row's drift channels.
+type DriftValue = fn(&DriftEvidence) -> f64;
+
+/// Evidence v2's columns, written when the parameters carry drift parameters.
+const DRIFT_COLUMNS: [(&str, DriftValue); 17] = [
+    ("r_clip_e", |d| d.clipped_residual[0]),
+    ("r_clip_n", |d| d.clipped_residual[1]),
+    ("r_clean_e", |d| d.cleaned_residual[0]),
+    ("r_clean_n", |d| d.cleaned_residual[1]),
+    ("speed_scale_error", |d| d.calibration[0]),
+    ("heading_bias_deg", |d| d.calibration[1]),
+    ("timing_offset_s", |d| d.calibration[2]),
+    ("warm_up", |d| d.warm_up),
+    ("raw_chi2_10s", |d| d.raw_chi2()[0]),
+    ("raw_chi2_30s", |d| d.raw_chi2()[1]),
+    ("raw_chi2_60s", |d| d.raw_chi2()[2]),
+    ("raw_chi2_120s", |d| d.raw_chi2()[3]),
+    ("calibrated_chi2_10s", |d| d.calibrated_chi2()[0]),
+    ("calibrated_chi2_30s", |d| d.calibrated_chi2()[1]),
+    ("calibrated_chi2_60s", |d| d.calibrated_chi2()[2]),
+    ("calibrated_chi2_120s", |d| d.calibrated_chi2()[3]),
+    ("drift_statistic", |d| d.statistic),
+];
+
 pub fn run(args: Args) -> Result<()> {
     let tracks = load_tracks(&args.data)?;
     let params = match &args.stats {
         Some(path) => load_params(path)?,
         None => {
-            let fit = fit_evidence(&tracks, args.projection.into(), 0.0, 0.98).context(
-                "fitting Σ̂ and μ_e on the data's normal rows (pass --stats for unlabelled data)",
-            )?;
+            let fit = fit_evidence(&tracks, args.projection.into(), 0.0, 0.98, args.schema)
+                .context(
+                    "fitting the evidence statistics on the data's normal rows (pass --stats for \
+                     unlabelled data)",
+                )?;
             eprintln!(
                 "evidence statistics fitted on {} normal valid rows of the input (mu_e = {:.4})",
                 fit.normal_rows, fit.params.mu_e
@@ -75,8 +111,14 @@ pub fn run(args: Args) -> Result<()> {
         None => Box::new(std::io::stdout().lock()),
     };
     let mut out = csv::Writer::from_writer(std::io::BufWriter::new(sink));
+    let has_drift = params.drift.is_some();
+    let drift_names: &[&str] = if has_drift {
+        &DRIFT_COLUMNS.map(|(name, _)| name)
+    } else {
+        &[]
+    };
     let value_names = EVIDENCE_COLUMNS.map(|(name, _)| name);
-    out.write_record(KEY_COLUMNS.iter().chain(&value_names))?;
+    out.write_record(KEY_COLUMNS.iter().chain(&value_names).chain(drift_names))?;
     for track in &tracks {
         for (e, r) in build_track(&params, &track.records)
             .iter()
@@ -92,6 +134,9 @@ pub fn run(args: Args) -> Result<()> {
                     .iter()
                     .map(|(_, value)| value(e).to_string()),
             );
+            if let Some(drift) = &e.drift {
+                row.extend(DRIFT_COLUMNS.iter().map(|(_, value)| value(drift).to_string()));
+            }
             out.write_record(&row)?;
         }
     }

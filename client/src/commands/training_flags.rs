@@ -6,6 +6,7 @@
 
 use clap::ValueEnum;
 use clap::builder::{PossibleValuesParser, TypedValueParser};
+use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::model::{Ablation, FeatureGroups};
 use spoofwatch_core::train::spec::{KappaRho, Recipe, TrainingSpec};
 use spoofwatch_core::train::{DEFAULT_MAX_EPOCHS, DEFAULT_SEED};
@@ -38,6 +39,14 @@ pub struct TrainingFlags {
             .map(|name| FeatureGroups::from_name(&name).unwrap_or_default()),
     )]
     pub features: FeatureGroups,
+    /// Evidence channels: `v2` (the paper's ξ plus directional drift channels) or `paper`.
+    #[arg(
+        long,
+        default_value = FeatureSchema::default().name(),
+        value_parser = PossibleValuesParser::new(FeatureSchema::NAMED.map(|(name, _)| name))
+            .map(|name| FeatureSchema::from_name(&name).unwrap_or_default()),
+    )]
+    pub schema: FeatureSchema,
     /// Select (κ, ρ) on validation from a small grid (trains one model per candidate).
     #[arg(long)]
     pub select_kappa_rho: bool,
@@ -86,6 +95,7 @@ impl TrainingFlags {
             no_third_order: false,
             first_order_cell: false,
             features: FeatureGroups::default(),
+            schema: FeatureSchema::default(),
             select_kappa_rho: false,
             projection: ProjectionArg::default(),
             recipe: RecipeArg::default(),
@@ -112,6 +122,7 @@ impl TrainingFlags {
             ..TrainingSpec::with(
                 self.seed,
                 self.epochs,
+                self.schema,
                 self.ablation(),
                 KappaRho::selected_if(self.select_kappa_rho),
             )

@@ -4,9 +4,10 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::drift::{DriftEvidence, DriftInput, DriftTracker, SCALE_COUNT};
 use super::linalg::{Mat2, inverse_sqrt_positive_definite, inverse_sqrt_symmetric, mul_vec};
 use super::params::{EvidenceParams, SIGMA_EPSILON};
-use super::{FEATURE_COUNT, Features};
+use super::{DRIFT_FEATURES_START, FEATURE_CAPACITY, Features, NU_INDEX};
 use crate::geo::LatLon;
 use crate::sample::{MAX_SPEED_MPS, Record, Sample};
 
@@ -45,12 +46,17 @@ pub struct Evidence {
     pub accum: f64,
     /// ã_t = ln(1 + a_t).
     pub accum_log: f64,
+    /// Evidence v2's drift channels (`None` with the paper's parameters).
+    pub drift: Option<DriftEvidence>,
 }
 
 impl Evidence {
-    /// Unscaled ξ_t in the locked order of `FEATURE_NAMES`, ν as 0/1 last.
+    /// Unscaled ξ_t in the order of `FEATURE_NAMES`: the paper's 9 channels (ν as 0/1), then the drift
+    /// channels ln(1 + χ²_k) per scale (uncalibrated, calibrated), ln(1 + drift statistic) and ω_t.
+    /// A schema reads its prefix; without drift channels they are 0.
     pub fn raw_features(&self) -> Features {
-        let features: Features = [
+        let mut features: Features = [0.0; FEATURE_CAPACITY];
+        features[..DRIFT_FEATURES_START].copy_from_slice(&[
             self.eta[0],
             self.eta[1],
             self.eta_dot[0],
@@ -60,8 +66,20 @@ impl Evidence {
             self.q,
             self.accum_log,
             if self.valid { 1.0 } else { 0.0 },
-        ];
-        debug_assert_eq!(features.len(), FEATURE_COUNT);
+        ]);
+        debug_assert_eq!(NU_INDEX, DRIFT_FEATURES_START - 1);
+        let Some(drift) = &self.drift else {
+            return features;
+        };
+        let raw = drift.raw_chi2();
+        let calibrated = drift.calibrated_chi2();
+        let channels = &mut features[DRIFT_FEATURES_START..];
+        for k in 0..SCALE_COUNT {
+            channels[k] = raw[k].ln_1p();
+            channels[SCALE_COUNT + k] = calibrated[k].ln_1p();
+        }
+        channels[2 * SCALE_COUNT] = drift.statistic.ln_1p();
+        channels[2 * SCALE_COUNT + 1] = drift.warm_up;
         features
     }
 }
@@ -92,6 +110,8 @@ pub struct EvidenceBuilder {
     reference: Option<LatLon>,
     accum: f64,
     trajectory: u32,
+    /// Evidence v2's drift tracker (when the parameters carry drift parameters).
+    drift: Option<DriftTracker>,
 }
 
 impl EvidenceBuilder {
@@ -104,6 +124,7 @@ impl EvidenceBuilder {
             reference: None,
             accum: 0.0,
             trajectory: 0,
+            drift: params.drift.as_ref().map(DriftTracker::new),
         }
     }
 
@@ -114,10 +135,7 @@ impl EvidenceBuilder {
 
     /// Forgets the stream: the next sample starts trajectory 0.
     pub fn reset(&mut self) {
-        self.previous = None;
-        self.reference = None;
-        self.accum = 0.0;
-        self.trajectory = 0;
+        *self = Self::new(self.params);
     }
 
     /// Evidence for the next sample. `trajectory_break` is the source's own "new trajectory here" flag;
@@ -140,6 +158,9 @@ impl EvidenceBuilder {
             self.previous = None;
             self.reference = None;
             self.accum = 0.0;
+            if let Some(drift) = &mut self.drift {
+                drift.start_trajectory();
+            }
         }
 
         let fix = LatLon::new(sample.latitude_deg, sample.longitude_deg);
@@ -163,16 +184,17 @@ impl EvidenceBuilder {
             q: 0.0,
             accum: 0.0,
             accum_log: 0.0,
+            drift: self.drift.as_ref().map(DriftTracker::hold),
         };
 
         // ν needs both samples usable and 0 < δ ≤ 5 s (never true at a start: no previous sample).
-        if let (Some(previous), Some(reference)) = (&self.previous, self.reference)
+        if let (Some(previous), Some(reference)) = (self.previous, self.reference)
             && usable
             && previous.usable
             && delta_t > 0.0
             && delta_t <= MAX_GAP_S
         {
-            self.fill_valid(&mut evidence, previous, reference, sample, fix, velocity);
+            self.fill_valid(&mut evidence, &previous, reference, sample, fix, velocity);
         }
         self.fill_accumulator(&mut evidence);
 
@@ -197,7 +219,7 @@ impl EvidenceBuilder {
 
     /// Residual, η and its finite differences for a sample whose ν_t is 1 unless r is not finite.
     fn fill_valid(
-        &self,
+        &mut self,
         evidence: &mut Evidence,
         previous: &Previous,
         reference: LatLon,
@@ -233,6 +255,17 @@ impl EvidenceBuilder {
         evidence.eta = eta;
         evidence.energy = energy;
         evidence.q = energy - self.params.mu_e - self.params.kappa;
+        if let Some(drift) = &mut self.drift {
+            evidence.drift = Some(drift.push(&DriftInput {
+                residual,
+                motion,
+                velocity_change: [
+                    velocity[0] - previous.velocity[0],
+                    velocity[1] - previous.velocity[1],
+                ],
+                delta_t,
+            }));
+        }
 
         if previous.valid {
             evidence.eta_dot = [

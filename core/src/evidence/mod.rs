@@ -4,6 +4,7 @@
 //! alarms or training.
 
 mod builder;
+pub mod drift;
 pub mod linalg;
 mod params;
 mod scaler;
@@ -12,17 +13,19 @@ mod stats;
 #[cfg(test)]
 mod tests;
 
+use serde::{Deserialize, Serialize};
+
 pub use builder::{Evidence, EvidenceBuilder, MAX_BACKWARD_S, MAX_GAP_S, build_track};
 pub use params::{DEFAULT_KAPPA, DEFAULT_RHO, EvidenceParams, SIGMA_EPSILON};
-pub use scaler::{CLIP, RobustScaler, SCALED_COUNT};
+pub use scaler::{CLIP, RobustScaler};
 pub use stats::{
-    MIN_NORMAL_ROWS, NormalStats, fit_normal_stats, median, quantile_sorted, stats_from_residuals,
+    MIN_NORMAL_ROWS, NormalStats, fit_drift_params, fit_normal_stats, median, normal_residuals,
+    quantile_sorted, stats_from_residuals,
 };
 
-/// Number of model input features in ξ_t.
-pub const FEATURE_COUNT: usize = 9;
-/// ξ_t in the locked order of SPEC §4.
-pub const FEATURE_NAMES: [&str; FEATURE_COUNT] = [
+/// ξ_t in the locked order of SPEC §4 (the `paper` schema), then the drift channels of evidence v2
+/// (`docs/detector.md` §4.1). A schema reads a prefix of this list.
+pub const FEATURE_NAMES: [&str; FEATURE_CAPACITY] = [
     "eta_e",
     "eta_n",
     "eta_dot_e",
@@ -32,9 +35,80 @@ pub const FEATURE_NAMES: [&str; FEATURE_COUNT] = [
     "q",
     "accum_log",
     "nu",
+    "raw_drift_10s",
+    "raw_drift_30s",
+    "raw_drift_60s",
+    "raw_drift_120s",
+    "calibrated_drift_10s",
+    "calibrated_drift_30s",
+    "calibrated_drift_60s",
+    "calibrated_drift_120s",
+    "drift_statistic",
+    "warm_up",
 ];
-/// One ξ_t vector (scaled, ν last).
-pub type Features = [f64; FEATURE_COUNT];
+/// Length of the longest schema's ξ_t.
+pub const FEATURE_CAPACITY: usize = 19;
+/// Index of ν in every schema (it is never scaled).
+pub const NU_INDEX: usize = 8;
+/// First index of the drift channels (v2).
+pub const DRIFT_FEATURES_START: usize = 9;
+/// One ξ_t vector (scaled, order of [`FEATURE_NAMES`]); entries beyond the schema's count are 0.
+pub type Features = [f64; FEATURE_CAPACITY];
+
+/// Which evidence channels a model reads: a prefix of [`FEATURE_NAMES`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FeatureSchema {
+    /// The paper's 9-channel ξ_t, for the faithful reproduction and the paper's tables.
+    Paper,
+    /// The paper's ξ_t plus the directional drift channels (the default).
+    #[default]
+    V2,
+}
+
+impl FeatureSchema {
+    /// Every schema with its name on the command line and on the wire.
+    pub const NAMED: [(&'static str, FeatureSchema); 2] = [("paper", Self::Paper), ("v2", Self::V2)];
+
+    /// The schema's name in [`Self::NAMED`].
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Paper => "paper",
+            Self::V2 => "v2",
+        }
+    }
+
+    /// The schema named `name` in [`Self::NAMED`].
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::NAMED
+            .iter()
+            .find(|(n, _)| *n == name)
+            .map(|(_, schema)| *schema)
+    }
+
+    /// Artifacts written before schemas were named (artifact schema version 1) are `paper`.
+    pub fn legacy() -> Self {
+        Self::Paper
+    }
+
+    /// Number of ξ channels.
+    pub fn feature_count(self) -> usize {
+        match self {
+            Self::Paper => DRIFT_FEATURES_START,
+            Self::V2 => FEATURE_CAPACITY,
+        }
+    }
+
+    /// The channel names, in order.
+    pub fn feature_names(self) -> &'static [&'static str] {
+        &FEATURE_NAMES[..self.feature_count()]
+    }
+
+    /// Whether the evidence needs the drift tracker.
+    pub fn has_drift(self) -> bool {
+        self == Self::V2
+    }
+}
 
 /// Problems with evidence parameters or statistics.
 #[derive(Debug, thiserror::Error)]
@@ -52,6 +126,25 @@ pub enum EvidenceError {
         "too few normal valid rows for the residual statistics: {rows} (label 0, ν = 1), need at least {minimum}"
     )]
     TooFewNormalRows {
+        /// Rows found.
+        rows: usize,
+        /// Rows required.
+        minimum: usize,
+    },
+    /// Too few normal rows deep enough into a trajectory to fit a drift channel's normalisation.
+    #[error(
+        "the v2 feature schema needs longer normal driving: {rows} normal rows are at least {settle_s} s \
+         into a trajectory{warm} for the {scale_s} s drift channel, need at least {minimum} (each \
+         training trajectory should hold 4+ minutes of normal driving); train with the paper feature \
+         schema for short recordings"
+    )]
+    TooFewSettledRows {
+        /// The channel's time scale τ_k (s).
+        scale_s: f64,
+        /// How deep into a trajectory a row must be (s).
+        settle_s: f64,
+        /// " with a warm calibration" for the calibrated channels, else "".
+        warm: &'static str,
         /// Rows found.
         rows: usize,
         /// Rows required.

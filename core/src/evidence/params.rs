@@ -5,6 +5,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::EvidenceError;
+use super::drift::DriftParams;
 use super::linalg::{Mat2, add_diagonal, is_symmetric_positive_definite};
 use crate::geo::Projection;
 
@@ -33,6 +34,9 @@ pub struct EvidenceParams {
     pub rho: f64,
     /// How GNSS fixes become east/north metres.
     pub projection: Projection,
+    /// Evidence v2: the drift channels' parameters (`None` for the paper's ξ_t).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub drift: Option<DriftParams>,
 }
 
 /// The serialised form, checked by `TryFrom` before it becomes [`EvidenceParams`].
@@ -46,6 +50,8 @@ struct UncheckedParams {
     rho: f64,
     #[serde(default)]
     projection: Projection,
+    #[serde(default)]
+    drift: Option<DriftParams>,
 }
 
 fn default_kappa() -> f64 {
@@ -66,6 +72,7 @@ impl TryFrom<UncheckedParams> for EvidenceParams {
             kappa: raw.kappa,
             rho: raw.rho,
             projection: raw.projection,
+            drift: raw.drift,
         };
         params.validate()?;
         Ok(params)
@@ -92,6 +99,7 @@ impl EvidenceParams {
             kappa,
             rho,
             projection,
+            drift: None,
         };
         params.validate()?;
         Ok(params)
@@ -127,6 +135,9 @@ impl EvidenceParams {
                 "rho",
                 format!("must be in [0, 1], got {}", self.rho),
             ));
+        }
+        if let Some(drift) = &self.drift {
+            drift.validate()?;
         }
         Ok(())
     }

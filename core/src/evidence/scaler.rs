@@ -1,4 +1,4 @@
-//! The label-free robust scaler of ξ's first 8 components (SPEC §4, REFERENCE-NOTES §2.9).
+//! The label-free robust scaler of every ξ component except ν (SPEC §4, REFERENCE-NOTES §2.9).
 //!
 //! Owns the robust feature scaler. Must not build evidence.
 
@@ -6,39 +6,65 @@ use serde::{Deserialize, Serialize};
 
 use super::builder::Evidence;
 use super::stats::quantile_sorted;
-use super::{EvidenceError, FEATURE_COUNT, Features};
+use super::{EvidenceError, FEATURE_CAPACITY, FeatureSchema, Features, NU_INDEX};
 
-/// Number of scaled components (all of ξ except ν).
-pub const SCALED_COUNT: usize = FEATURE_COUNT - 1;
 /// Scaled values are clipped to ±this.
 pub const CLIP: f64 = 20.0;
 /// An IQR (or std) below this is treated as zero spread.
 const ZERO_SPREAD: f64 = 1e-8;
 
-/// Per-component median/IQR scaling of ξ's first 8 components; ν passes through.
+/// Per-component median/IQR scaling of ξ (every component of the schema but ν, in order); ν passes
+/// through. The paper schema has 8 scaled components, v2 has 18.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "UncheckedScaler")]
 pub struct RobustScaler {
     /// Medians.
-    pub center: [f64; SCALED_COUNT],
+    pub center: Vec<f64>,
     /// IQR, else population std, else 1 (never zero).
-    pub scale: [f64; SCALED_COUNT],
+    pub scale: Vec<f64>,
+}
+
+#[derive(Deserialize)]
+struct UncheckedScaler {
+    center: Vec<f64>,
+    scale: Vec<f64>,
+}
+
+impl TryFrom<UncheckedScaler> for RobustScaler {
+    type Error = EvidenceError;
+
+    fn try_from(raw: UncheckedScaler) -> Result<Self, EvidenceError> {
+        let scaler = RobustScaler {
+            center: raw.center,
+            scale: raw.scale,
+        };
+        scaler.schema()?;
+        Ok(scaler)
+    }
+}
+
+/// Feature index of the `k`-th scaled component (ν is skipped).
+fn feature_index(k: usize) -> usize {
+    if k < NU_INDEX { k } else { k + 1 }
 }
 
 impl RobustScaler {
     /// Fits on ALL given rows (valid or not, any label), with pandas type-7 quantiles. Non-finite
     /// values are skipped as pandas skips NaN; a component with no finite value gets center 0, scale 1.
-    pub fn fit(rows: &[Evidence]) -> Result<Self, EvidenceError> {
+    pub fn fit(rows: &[Evidence], schema: FeatureSchema) -> Result<Self, EvidenceError> {
         if rows.is_empty() {
             return Err(EvidenceError::NoRows);
         }
-        let mut center = [0.0; SCALED_COUNT];
-        let mut scale = [1.0; SCALED_COUNT];
+        let scaled = schema.feature_count() - 1;
+        let mut center = vec![0.0; scaled];
+        let mut scale = vec![1.0; scaled];
         let mut column = Vec::with_capacity(rows.len());
-        for k in 0..SCALED_COUNT {
+        for k in 0..scaled {
+            let index = feature_index(k);
             column.clear();
             column.extend(
                 rows.iter()
-                    .map(|e| e.raw_features()[k])
+                    .map(|e| e.raw_features()[index])
                     .filter(|x| x.is_finite()),
             );
             column.sort_unstable_by(f64::total_cmp);
@@ -55,17 +81,54 @@ impl RobustScaler {
         Ok(Self { center, scale })
     }
 
+    /// The schema this scaler was fitted for (from its length); checks the values are usable.
+    pub fn schema(&self) -> Result<FeatureSchema, EvidenceError> {
+        let invalid = |reason: String| EvidenceError::InvalidParams {
+            field: "scaler",
+            reason,
+        };
+        let schema = FeatureSchema::NAMED
+            .iter()
+            .map(|(_, schema)| *schema)
+            .find(|schema| schema.feature_count() - 1 == self.center.len())
+            .ok_or_else(|| {
+                invalid(format!(
+                    "{} centers fit no feature schema (paper: 8, v2: 18)",
+                    self.center.len()
+                ))
+            })?;
+        if self.scale.len() != self.center.len() {
+            return Err(invalid(format!(
+                "{} scales for {} centers",
+                self.scale.len(),
+                self.center.len()
+            )));
+        }
+        if let Some(bad) = self.center.iter().find(|c| !c.is_finite()) {
+            return Err(invalid(format!("every center must be finite, got {bad}")));
+        }
+        if let Some(bad) = self.scale.iter().find(|s| !(s.is_finite() && **s > 0.0)) {
+            return Err(invalid(format!(
+                "every scale must be positive and finite, got {bad}"
+            )));
+        }
+        Ok(schema)
+    }
+
     /// Scaled ξ_t of one evidence row.
     pub fn transform(&self, evidence: &Evidence) -> Features {
         self.transform_features(&evidence.raw_features())
     }
 
-    /// Scales raw ξ: NaN/±inf → 0, then (x − center)/scale clipped to ±20; ν unchanged.
+    /// Scales raw ξ: NaN/±inf → 0, then (x − center)/scale clipped to ±20; ν unchanged; entries
+    /// beyond the scaler's schema are 0.
     pub fn transform_features(&self, raw: &Features) -> Features {
-        let mut out = *raw;
-        for k in 0..SCALED_COUNT {
-            let x = if raw[k].is_finite() { raw[k] } else { 0.0 };
-            out[k] = ((x - self.center[k]) / self.scale[k]).clamp(-CLIP, CLIP);
+        let mut out: Features = [0.0; FEATURE_CAPACITY];
+        out[NU_INDEX] = raw[NU_INDEX];
+        for (k, (center, scale)) in self.center.iter().zip(&self.scale).enumerate() {
+            let index = feature_index(k);
+            let x = if raw[index].is_finite() { raw[index] } else { 0.0 };
+            out[index] = ((x - center) / scale).clamp(-CLIP, CLIP);
         }
         out
     }
@@ -101,6 +164,7 @@ mod tests {
             q,
             accum: 0.0,
             accum_log: 0.0,
+            drift: None,
         }
     }
 
@@ -116,7 +180,7 @@ mod tests {
             row(4.0, 0.0, true),
             row(10.0, 5.0, true),
         ];
-        let scaler = RobustScaler::fit(&rows).expect("rows");
+        let scaler = RobustScaler::fit(&rows, FeatureSchema::Paper).expect("rows");
         assert_eq!(scaler.center[6], 3.0);
         assert_eq!(scaler.scale[6], 2.0);
         assert_eq!(scaler.center[0], 0.0);
@@ -136,6 +200,6 @@ mod tests {
 
     #[test]
     fn empty_fit_is_an_error() {
-        assert!(matches!(RobustScaler::fit(&[]), Err(EvidenceError::NoRows)));
+        assert!(matches!(RobustScaler::fit(&[], FeatureSchema::Paper), Err(EvidenceError::NoRows)));
     }
 }

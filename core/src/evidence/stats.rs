@@ -6,6 +6,9 @@
 use serde::{Deserialize, Serialize};
 
 use super::EvidenceError;
+use super::drift::{
+    DriftParams, SettledRates, drift_params_from_rates, robust_residual_sigma,
+};
 use super::builder::build_track;
 use super::linalg::{IDENTITY, Mat2, inverse_sqrt_symmetric, mul_vec};
 use super::params::{EvidenceParams, SIGMA_EPSILON};
@@ -40,6 +43,11 @@ pub fn fit_normal_stats(
     tracks: &[Track],
     projection: Projection,
 ) -> Result<NormalStats, EvidenceError> {
+    stats_from_residuals(&normal_residuals(tracks, projection))
+}
+
+/// r_t of the label-0, ν = 1 rows of `tracks`.
+pub fn normal_residuals(tracks: &[Track], projection: Projection) -> Vec<[f64; 2]> {
     // ν and r do not depend on Σ̂ or μ_e, so any placeholder statistics give the same residuals.
     let placeholder = EvidenceParams {
         sigma_hat: IDENTITY,
@@ -47,6 +55,7 @@ pub fn fit_normal_stats(
         kappa: 0.0,
         rho: 0.0,
         projection,
+        drift: None,
     };
     let mut residuals = Vec::new();
     for track in tracks {
@@ -57,7 +66,42 @@ pub fn fit_normal_stats(
             }
         }
     }
-    stats_from_residuals(&residuals)
+    residuals
+}
+
+/// Evidence v2's drift parameters from the label-0 rows of `tracks` (`params` gives the projection):
+/// the clip from the robust σ of r, then the drift-rate covariances and per-scale thresholds on
+/// settled rows (a row of an attacked track counts once it is normal and valid; its EWMAs may still
+/// carry an earlier attack, which only widens the normalisation).
+pub fn fit_drift_params(
+    tracks: &[Track],
+    projection: Projection,
+) -> Result<DriftParams, EvidenceError> {
+    let residual_sigma = robust_residual_sigma(&normal_residuals(tracks, projection))?;
+    let params = EvidenceParams {
+        sigma_hat: IDENTITY,
+        mu_e: 0.0,
+        kappa: 0.0,
+        rho: 0.0,
+        projection,
+        drift: Some(DriftParams::unwhitened(residual_sigma)),
+    };
+    let mut rows = Vec::new();
+    for track in tracks {
+        let mut elapsed_s = 0.0;
+        for (record, e) in track.records.iter().zip(build_track(&params, &track.records)) {
+            if e.trajectory_start {
+                elapsed_s = 0.0;
+            }
+            if e.valid {
+                elapsed_s += e.delta_t;
+                if let (Some(false), Some(drift)) = (record.label, e.drift) {
+                    rows.push(SettledRates { elapsed_s, drift });
+                }
+            }
+        }
+    }
+    drift_params_from_rates(residual_sigma, &rows)
 }
 
 /// Σ̂ (ddof 1) and μ_e (numpy median energy) from residuals; at least [`MIN_NORMAL_ROWS`] of them.
@@ -89,7 +133,7 @@ pub fn stats_from_residuals(residuals: &[[f64; 2]]) -> Result<NormalStats, Evide
 }
 
 /// ddof-1 sample covariance of 2-vectors (needs at least 2 rows; NaN otherwise).
-fn covariance(rows: &[[f64; 2]]) -> Mat2 {
+pub(super) fn covariance(rows: &[[f64; 2]]) -> Mat2 {
     let n = rows.len() as f64;
     let mean = rows
         .iter()

@@ -11,12 +11,16 @@ use serde::{Deserialize, Serialize};
 
 use super::Model;
 use crate::alarm::OperatingPoint;
-use crate::evidence::{EvidenceParams, FEATURE_NAMES, RobustScaler};
+use crate::evidence::{EvidenceParams, FeatureSchema, RobustScaler};
 use crate::metrics::Metrics;
 
 /// Version of the artifact schema (weights layout, evidence definition, feature order).
 /// Bump it whenever an older artifact would be served differently by this code.
-pub const ARTIFACT_SCHEMA_VERSION: u32 = 1;
+/// Version 2 added named feature schemas (`model.config.schema`) and evidence v2's drift parameters.
+pub const ARTIFACT_SCHEMA_VERSION: u32 = 2;
+/// The oldest version this build still reads: version 1 artifacts are `paper`-schema models, served
+/// exactly as before.
+pub const OLDEST_READABLE_SCHEMA_VERSION: u32 = 1;
 
 /// A trained detector ready to serve.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -75,9 +79,14 @@ pub enum ArtifactError {
 }
 
 impl ModelArtifact {
-    /// The feature order of this build, as stored in artifacts.
-    pub fn current_feature_names() -> Vec<String> {
-        FEATURE_NAMES.iter().map(|s| s.to_string()).collect()
+    /// The feature order a model of `schema` is stored with.
+    pub fn feature_names_of(schema: FeatureSchema) -> Vec<String> {
+        schema.feature_names().iter().map(|s| s.to_string()).collect()
+    }
+
+    /// The feature schema the model reads.
+    pub fn schema(&self) -> FeatureSchema {
+        self.model.config().schema
     }
 
     /// Reads and validates an artifact. The schema version is checked before anything else, so a
@@ -88,7 +97,8 @@ impl ModelArtifact {
             .get("schema_version")
             .and_then(serde_json::Value::as_u64)
             .ok_or(ArtifactError::MissingSchemaVersion)?;
-        if found != u64::from(ARTIFACT_SCHEMA_VERSION) {
+        let readable = u64::from(OLDEST_READABLE_SCHEMA_VERSION)..=u64::from(ARTIFACT_SCHEMA_VERSION);
+        if !readable.contains(&found) {
             let hint = if found > u64::from(ARTIFACT_SCHEMA_VERSION) {
                 "; it was written by a newer Spoofwatch: upgrade to load it"
             } else {
@@ -124,14 +134,41 @@ impl ModelArtifact {
         Ok(out)
     }
 
-    /// Checks the parts fit together: feature order, weights against the configuration, operating point.
+    /// Checks the parts fit together: feature order, scaler and evidence parameters against the
+    /// model's schema, weights against the configuration, operating point.
     pub fn validate(&self) -> Result<(), ArtifactError> {
-        let expected = Self::current_feature_names();
+        let schema = self.schema();
+        let expected = Self::feature_names_of(schema);
         if self.feature_names != expected {
             return Err(ArtifactError::FeatureMismatch {
                 found: self.feature_names.clone(),
                 expected,
             });
+        }
+        let scaler_schema = self
+            .scaler
+            .schema()
+            .map_err(|e| ArtifactError::Invalid(e.to_string()))?;
+        if scaler_schema != schema {
+            return Err(ArtifactError::Invalid(format!(
+                "the scaler has {} components, the {} feature schema needs {}",
+                self.scaler.center.len(),
+                schema.name(),
+                schema.feature_count() - 1
+            )));
+        }
+        if self.evidence.drift.is_some() != schema.has_drift() {
+            return Err(ArtifactError::Invalid(format!(
+                "the {} feature schema {} drift parameters in the evidence",
+                schema.name(),
+                if schema.has_drift() { "needs" } else { "has no use for" }
+            )));
+        }
+        if self.schema_version < 2 && schema != FeatureSchema::legacy() {
+            return Err(ArtifactError::Invalid(format!(
+                "schema_version {} artifacts can only hold paper-schema models",
+                self.schema_version
+            )));
         }
         // The model's weights were checked against its configuration when it was built or parsed.
         let op = self.operating_point;

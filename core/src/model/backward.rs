@@ -444,7 +444,7 @@ impl Model {
             ),
             (
                 &p.w_persistence,
-                &rec.x_persistence[..],
+                &rec.x_persistence[..self.config.persistence_width()],
                 d_p,
                 &mut grad.w_persistence,
                 &mut grad.b_persistence,

@@ -9,8 +9,8 @@
 use super::fastmath::{exp, expm1, map_in_place, sigmoid, tanh};
 use super::linalg::{affine, dot};
 use super::{
-    EVOLUTION_INPUTS, INSTANT_INPUTS, LiquidState, Model, ModelConfig, PERSISTENCE_INPUTS,
-    clamp_delta,
+    EVOLUTION_INPUTS, INSTANT_INPUTS, LiquidState, MAX_PERSISTENCE_INPUTS, Model, ModelConfig,
+    PERSISTENCE_INPUTS, clamp_delta,
 };
 use crate::evidence::Features;
 
@@ -25,10 +25,11 @@ pub(crate) const PAIRS: [(usize, usize); 3] =
 /// Intermediate activations of one step (reusable buffers; create once per vehicle or per thread).
 #[derive(Clone, Debug, Default)]
 pub struct StepScratch {
-    /// Role inputs after ablation masking and NaN → 0: I (3), E (4), P (2).
+    /// Role inputs after ablation masking and NaN → 0: I (3), E (4), P (2 or 12: the first
+    /// `ModelConfig::persistence_width()` entries are used).
     pub(crate) x_instant: [f64; 3],
     pub(crate) x_evolution: [f64; 4],
-    pub(crate) x_persistence: [f64; 2],
+    pub(crate) x_persistence: [f64; MAX_PERSISTENCE_INPUTS],
     /// Role states s^I, s^E, s^P.
     pub(crate) s: [Vec<f64>; 3],
     /// Conductances C_IE, C_IP, C_EP (0 without exchange).
@@ -151,7 +152,7 @@ impl Model {
         affine(
             p.w_persistence.data(),
             p.b_persistence.data(),
-            &rec.x_persistence,
+            &rec.x_persistence[..self.config.persistence_width()],
             s_p,
         );
         for role in &mut rec.s {

@@ -17,7 +17,7 @@ mod params;
 
 use serde::{Deserialize, Serialize};
 
-use crate::evidence::{FEATURE_COUNT, Features};
+use crate::evidence::{DRIFT_FEATURES_START, FEATURE_CAPACITY, FeatureSchema, Features};
 use crate::rng::Rng;
 
 pub use backward::{Tape, TrainingWindow, WindowGradient, WindowLoss, bce_with_logits};
@@ -37,8 +37,13 @@ pub const MAX_DIMENSION: usize = 4096;
 pub const INSTANT_INPUTS: [usize; 3] = [0, 1, 6];
 /// ξ indices feeding the evolution role E = [η̇_E, η̇_N, η̈_E, η̈_N].
 pub const EVOLUTION_INPUTS: [usize; 4] = [2, 3, 4, 5];
-/// ξ indices feeding the persistence role P = [ã, ν].
-pub const PERSISTENCE_INPUTS: [usize; 2] = [7, 8];
+/// ξ indices feeding the persistence role P = [ã, ν] and, in the v2 schema, the drift channels: they
+/// are persistence evidence too (integrated over 10–120 s), and P is where the third-order term lets
+/// persistence gate the instantaneous and evolution roles. The paper schema reads the first 2.
+pub const PERSISTENCE_INPUTS: [usize; MAX_PERSISTENCE_INPUTS] =
+    [7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18];
+/// Width of P in the widest schema.
+pub const MAX_PERSISTENCE_INPUTS: usize = 2 + FEATURE_CAPACITY - DRIFT_FEATURES_START;
 
 /// Errors of the model module.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -133,8 +138,9 @@ fn check_lengths(expected: usize, inputs: &[(&'static str, usize)]) -> Result<()
     }
 }
 
-/// Which evidence groups reach the encoders (SPEC §5 ablations). Removed inputs are set to 0 before the
-/// encoders, so shapes stay fixed; a role whose inputs are all removed has the constant state σ(b).
+/// Which evidence groups reach the encoders (SPEC §5 ablations, and issue #8's drift groups). Removed
+/// inputs are set to 0 before the encoders, so shapes stay fixed; a role whose inputs are all removed
+/// has the constant state σ(b).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum FeatureGroups {
@@ -151,17 +157,32 @@ pub enum FeatureGroups {
     LowOrderOnly,
     /// Keep only ν.
     ValidityOnly,
+    /// Drop every drift channel (v2 reduced to the paper's ξ, same shapes).
+    NoDrift,
+    /// Drop the uncalibrated drift channels.
+    NoRawDrift,
+    /// Drop the calibrated drift channels.
+    NoCalibratedDrift,
+    /// Drop the drift statistic (max over scales).
+    NoDriftStatistic,
+    /// Drop the warm-up indicator ω.
+    NoWarmUp,
 }
 
 impl FeatureGroups {
     /// Every variant with its name on the command line and on the wire (`TrainingSpec.features`).
-    pub const NAMED: [(&'static str, FeatureGroups); 6] = [
+    pub const NAMED: [(&'static str, FeatureGroups); 11] = [
         ("all", Self::All),
         ("no-accumulation", Self::NoAccumulation),
         ("no-evolution", Self::NoEvolution),
         ("no-evolution-no-q", Self::NoEvolutionNoQ),
         ("low-order-only", Self::LowOrderOnly),
         ("validity-only", Self::ValidityOnly),
+        ("no-drift", Self::NoDrift),
+        ("no-raw-drift", Self::NoRawDrift),
+        ("no-calibrated-drift", Self::NoCalibratedDrift),
+        ("no-drift-statistic", Self::NoDriftStatistic),
+        ("no-warm-up", Self::NoWarmUp),
     ];
 
     /// The variant's name in [`Self::NAMED`].
@@ -181,16 +202,25 @@ impl FeatureGroups {
     }
 
     /// For each ξ index (order of `FEATURE_NAMES`), whether the input is kept.
-    pub fn kept(self) -> [bool; FEATURE_COUNT] {
-        // η_E η_N η̇_E η̇_N η̈_E η̈_N q ã ν
-        match self {
-            Self::All => [true; FEATURE_COUNT],
-            Self::NoAccumulation => [true, true, true, true, true, true, true, false, true],
-            Self::NoEvolution => [true, true, false, false, false, false, true, true, true],
-            Self::NoEvolutionNoQ => [true, true, false, false, false, false, false, true, true],
-            Self::LowOrderOnly => [true, true, false, false, false, false, false, false, true],
-            Self::ValidityOnly => [false, false, false, false, false, false, false, false, true],
+    pub fn kept(self) -> [bool; FEATURE_CAPACITY] {
+        let removed: &[usize] = match self {
+            Self::All => &[],
+            Self::NoAccumulation => &[7],
+            Self::NoEvolution => &[2, 3, 4, 5],
+            Self::NoEvolutionNoQ => &[2, 3, 4, 5, 6],
+            Self::LowOrderOnly => &[2, 3, 4, 5, 6, 7, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18],
+            Self::ValidityOnly => &[0, 1, 2, 3, 4, 5, 6, 7, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18],
+            Self::NoDrift => &[9, 10, 11, 12, 13, 14, 15, 16, 17, 18],
+            Self::NoRawDrift => &[9, 10, 11, 12],
+            Self::NoCalibratedDrift => &[13, 14, 15, 16],
+            Self::NoDriftStatistic => &[17],
+            Self::NoWarmUp => &[18],
+        };
+        let mut kept = [true; FEATURE_CAPACITY];
+        for &index in removed {
+            kept[index] = false;
         }
+        kept
     }
 }
 
@@ -225,6 +255,10 @@ pub struct ModelConfig {
     pub tau_max: f64,
     /// Ablation switches.
     pub ablation: Ablation,
+    /// The evidence channels the model reads. A stored configuration without it predates named
+    /// schemas and is the paper's.
+    #[serde(default = "FeatureSchema::legacy")]
+    pub schema: FeatureSchema,
 }
 
 impl Default for ModelConfig {
@@ -236,6 +270,7 @@ impl Default for ModelConfig {
             tau_min: DEFAULT_TAU_MIN_S,
             tau_max: DEFAULT_TAU_MAX_S,
             ablation: Ablation::default(),
+            schema: FeatureSchema::default(),
         }
     }
 }
@@ -269,6 +304,11 @@ impl ModelConfig {
         } else {
             4 * self.d_s
         }
+    }
+
+    /// Width of the persistence role's input P (2 for the paper's ξ, 12 for v2).
+    pub fn persistence_width(&self) -> usize {
+        2 + self.schema.feature_count() - DRIFT_FEATURES_START
     }
 
     /// Width of the head input: `[h; v]`, or `[h]` for the first-order cell.

@@ -132,7 +132,7 @@ impl Params {
             b_instant: make(&[ds], Bias),
             w_evolution: make(&[ds, 4], Weight),
             b_evolution: make(&[ds], Bias),
-            w_persistence: make(&[ds, 2], Weight),
+            w_persistence: make(&[ds, config.persistence_width()], Weight),
             b_persistence: make(&[ds], Bias),
             w_conductance: (!ablation.no_exchange).then(|| make(&[2 * ds], Weight)),
             b_conductance: (!ablation.no_exchange).then(|| make(&[1], Bias)),
@@ -317,15 +317,25 @@ impl Params {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::evidence::FeatureSchema;
     use crate::model::{Ablation, FeatureGroups};
 
     #[test]
     fn default_parameter_count_is_hand_computed() {
-        // Encoders (32·3+32)+(32·4+32)+(32·2+32) = 384; conductance 64+1; fusion 64·128+64 = 8256;
-        // cell 3·(64·64+64) = 12480; head 128+1.
+        // Encoders (32·3+32)+(32·4+32)+(32·12+32) = 704 (v2: P = [ã, ν, 10 drift channels]);
+        // conductance 64+1; fusion 64·128+64 = 8256; cell 3·(64·64+64) = 12480; head 128+1.
         let params = Params::zeros(&ModelConfig::default());
-        assert_eq!(params.scalar_count(), 384 + 65 + 8256 + 12480 + 129);
+        assert_eq!(params.scalar_count(), 704 + 65 + 8256 + 12480 + 129);
         assert_eq!(params.tensors().len(), 18);
+        // The paper's P = [ã, ν]: encoders 384.
+        let paper = ModelConfig {
+            schema: FeatureSchema::Paper,
+            ..ModelConfig::default()
+        };
+        assert_eq!(
+            Params::zeros(&paper).scalar_count(),
+            384 + 65 + 8256 + 12480 + 129
+        );
     }
 
     #[test]
@@ -337,6 +347,7 @@ mod tests {
                 first_order_cell: true,
                 features: FeatureGroups::All,
             },
+            schema: FeatureSchema::Paper,
             ..ModelConfig::default()
         };
         let params = Params::zeros(&config);

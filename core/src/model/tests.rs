@@ -1,7 +1,7 @@
 //! Unit tests of the model: shapes, the step/sequence equivalence and the hand-derived gradients.
 
 use super::*;
-use crate::evidence::FEATURE_COUNT;
+use crate::evidence::{DRIFT_FEATURES_START, FEATURE_CAPACITY, NU_INDEX};
 
 /// A random sequence: ξ ~ N(0,1) (ν = 1 except on `invalid_rows`), δ_0 = 0 then δ ∈ (0.2, 3].
 fn random_sequence(
@@ -15,11 +15,11 @@ fn random_sequence(
     let mut mask = Vec::new();
     for t in 0..steps {
         let valid = !invalid_rows.contains(&t);
-        let mut x = [0.0; FEATURE_COUNT];
-        for value in &mut x[..FEATURE_COUNT - 1] {
+        let mut x = [0.0; FEATURE_CAPACITY];
+        for value in &mut x {
             *value = rng.normal();
         }
-        x[FEATURE_COUNT - 1] = if valid { 1.0 } else { 0.0 };
+        x[NU_INDEX] = if valid { 1.0 } else { 0.0 };
         xs.push(x);
         deltas.push(if t == 0 {
             0.0
@@ -30,6 +30,13 @@ fn random_sequence(
         mask.push(valid);
     }
     (xs, deltas, labels, mask)
+}
+
+/// A paper-schema ξ (9 channels) padded with zeros for the drift channels.
+fn padded(paper: [f64; 9]) -> Features {
+    let mut x = [0.0; FEATURE_CAPACITY];
+    x[..9].copy_from_slice(&paper);
+    x
 }
 
 /// Every parameter (biases too) uniform in ±`scale`, so nothing saturates and bias paths are exercised.
@@ -112,6 +119,7 @@ fn tiny_model_matches_a_hand_computation() {
         d_s: 1,
         d_zeta: 1,
         d_h: 1,
+        schema: FeatureSchema::Paper,
         ..ModelConfig::default()
     };
     let mut model = Model::init(config.clone(), 0).expect("valid config");
@@ -139,7 +147,7 @@ fn tiny_model_matches_a_hand_computation() {
         let (_, v) = values.iter().find(|(n, _)| *n == name).expect("all named");
         tensor.data_mut().copy_from_slice(v);
     }
-    let x = [0.4, -1.0, 0.3, 0.2, -0.5, 0.1, 2.0, 1.5, 1.0];
+    let x = padded([0.4, -1.0, 0.3, 0.2, -0.5, 0.1, 2.0, 1.5, 1.0]);
     let (h0, v0, delta) = (0.2, -0.1, 1.5);
 
     let sig = |z: f64| 1.0 / (1.0 + (-z).exp());
@@ -197,7 +205,7 @@ fn zero_delta_leaves_the_state_unchanged_and_nan_delta_is_zero() {
     let model = Model::init(config.clone(), 4).expect("valid config");
     let mut rng = Rng::seed_from_u64(1);
     let start = random_state(&config, &mut rng);
-    let x = [1.0, -2.0, 0.5, 0.1, 0.0, 0.3, 2.0, 1.0, 1.0];
+    let x = padded([1.0, -2.0, 0.5, 0.1, 0.0, 0.3, 2.0, 1.0, 1.0]);
     let mut scratch = StepScratch::new(&config);
     for delta in [0.0, -3.0, f64::NAN] {
         let mut state = start.clone();
@@ -217,8 +225,8 @@ fn non_finite_features_are_read_as_zero() {
     let config = ModelConfig::default();
     let model = Model::init(config.clone(), 4).expect("valid config");
     let mut scratch = StepScratch::new(&config);
-    let clean = [0.0, -2.0, 0.5, 0.0, 0.0, 0.3, 2.0, 0.0, 1.0];
-    let dirty = [
+    let clean = padded([0.0, -2.0, 0.5, 0.0, 0.0, 0.3, 2.0, 0.0, 1.0]);
+    let mut dirty = padded([
         f64::NAN,
         -2.0,
         0.5,
@@ -228,7 +236,8 @@ fn non_finite_features_are_read_as_zero() {
         2.0,
         f64::NEG_INFINITY,
         1.0,
-    ];
+    ]);
+    dirty[DRIFT_FEATURES_START] = f64::NAN;
     let (mut a, mut b) = (LiquidState::zeros(&config), LiquidState::zeros(&config));
     for _ in 0..3 {
         let pa = model.step(&mut a, &clean, 1.0, &mut scratch);
@@ -240,6 +249,39 @@ fn non_finite_features_are_read_as_zero() {
 
 #[test]
 fn removed_feature_groups_do_not_influence_the_output() {
+    for (name, features) in FeatureGroups::NAMED {
+        let config = ModelConfig {
+            ablation: Ablation {
+                features,
+                ..Ablation::default()
+            },
+            ..ModelConfig::default()
+        };
+        let model = Model::init(config.clone(), 8).expect("valid config");
+        let mut scratch = StepScratch::new(&config);
+        let mut base = [0.3; FEATURE_CAPACITY];
+        base[NU_INDEX] = 1.0;
+        let kept = features.kept();
+        // Every removed input perturbed at once: no effect.
+        let mut noisy = base;
+        for (index, value) in noisy.iter_mut().enumerate() {
+            if !kept[index] {
+                *value = 5.0 + index as f64;
+            }
+        }
+        let step = |x: &Features, scratch: &mut StepScratch| {
+            model.step(&mut LiquidState::zeros(&config), x, 1.0, scratch)
+        };
+        let pa = step(&base, &mut scratch);
+        assert_eq!(pa.to_bits(), step(&noisy, &mut scratch).to_bits(), "{name}");
+        // …while each kept input does move it.
+        for index in (0..FEATURE_CAPACITY).filter(|&i| kept[i] && i != NU_INDEX) {
+            let mut moved = base;
+            moved[index] = 3.0;
+            assert_ne!(pa, step(&moved, &mut scratch), "{name}: input {index}");
+        }
+    }
+    // A role with no input at all sits at σ(b): with zero init biases, 0.5.
     let config = ModelConfig {
         ablation: Ablation {
             features: FeatureGroups::LowOrderOnly,
@@ -249,19 +291,12 @@ fn removed_feature_groups_do_not_influence_the_output() {
     };
     let model = Model::init(config.clone(), 8).expect("valid config");
     let mut scratch = StepScratch::new(&config);
-    let base = [0.7, -0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0];
-    let mut noisy = base;
-    noisy[2..8].copy_from_slice(&[5.0, -4.0, 3.0, 2.0, 9.0, 7.0]);
-    let (mut a, mut b) = (LiquidState::zeros(&config), LiquidState::zeros(&config));
-    let pa = model.step(&mut a, &base, 1.0, &mut scratch);
-    let pb = model.step(&mut b, &noisy, 1.0, &mut scratch);
-    assert_eq!(pa.to_bits(), pb.to_bits());
-    // …while the kept η does.
-    let mut moved = base;
-    moved[0] = 3.0;
-    let pc = model.step(&mut LiquidState::zeros(&config), &moved, 1.0, &mut scratch);
-    assert_ne!(pa, pc);
-    // A role with no input at all sits at σ(b): with zero init biases, 0.5.
+    model.step(
+        &mut LiquidState::zeros(&config),
+        &[1.0; FEATURE_CAPACITY],
+        1.0,
+        &mut scratch,
+    );
     assert!(scratch.s[1].iter().all(|&s| s == 0.5));
 }
 
@@ -289,7 +324,7 @@ fn first_order_cell_keeps_v_at_zero() {
 fn bad_inputs_are_errors_or_documented_resets() {
     let config = ModelConfig::default();
     let model = Model::init(config.clone(), 1).expect("valid config");
-    let x = [0.0; FEATURE_COUNT];
+    let x = [0.0; FEATURE_CAPACITY];
     assert_eq!(
         model.forward_sequence(&[x, x], &[1.0], &mut LiquidState::zeros(&config)),
         Err(ModelError::LengthMismatch {
@@ -383,7 +418,7 @@ fn window_loss_is_the_masked_weighted_mean() {
         tensor.data_mut().fill(0.0);
     }
     model.params_mut().b_out.data_mut()[0] = 0.5;
-    let xs = [[0.0; FEATURE_COUNT]; 4];
+    let xs = [[0.0; FEATURE_CAPACITY]; 4];
     let window = TrainingWindow {
         features: &xs,
         deltas: &[0.0, 1.0, 1.0, 1.0],

@@ -7,7 +7,8 @@
 use std::ops::Range;
 
 use crate::evidence::{
-    EvidenceBuilder, EvidenceParams, Features, RobustScaler, build_track, fit_normal_stats,
+    EvidenceBuilder, EvidenceParams, FeatureSchema, Features, RobustScaler, build_track,
+    fit_drift_params, fit_normal_stats,
 };
 use crate::geo::Projection;
 use crate::sample::{Record, Track};
@@ -48,6 +49,7 @@ fn segmentation_params() -> EvidenceParams {
         kappa: 0.0,
         rho: 0.98,
         projection: Projection::default(),
+        drift: None,
     }
 }
 
@@ -106,16 +108,24 @@ pub enum DataError {
     NoTrainingRows,
 }
 
-/// Fits Σ̂, μ_e on the training tracks' normal rows and the robust scaler on all their rows.
+/// Fits Σ̂, μ_e (and, for the v2 schema, the drift parameters) on the training tracks' normal rows
+/// and the robust scaler on all their rows.
 pub fn fit_evidence(
     train: &[Track],
     projection: Projection,
     kappa: f64,
     rho: f64,
+    schema: FeatureSchema,
 ) -> Result<EvidenceFit, DataError> {
     let stats = fit_normal_stats(train, projection)?;
-    let params =
-        EvidenceParams::with_accumulator(stats.sigma_hat, stats.mu_e, kappa, rho, projection)?;
+    let params = EvidenceParams {
+        drift: schema
+            .has_drift()
+            .then(|| fit_drift_params(train, projection))
+            .transpose()?,
+        ..EvidenceParams::with_accumulator(stats.sigma_hat, stats.mu_e, kappa, rho, projection)?
+    };
+    params.validate()?;
     let evidence: Vec<_> = train
         .iter()
         .flat_map(|t| build_track(&params, &t.records))
@@ -124,7 +134,7 @@ pub fn fit_evidence(
         return Err(DataError::NoTrainingRows);
     }
     Ok(EvidenceFit {
-        scaler: RobustScaler::fit(&evidence)?,
+        scaler: RobustScaler::fit(&evidence, schema)?,
         params,
         normal_rows: stats.rows,
     })

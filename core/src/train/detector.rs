@@ -143,7 +143,7 @@ fn train_candidate(
     on_epoch: &mut dyn FnMut(&EpochProgress),
     cancel: &AtomicBool,
 ) -> Result<TrainedDetector, TrainDetectorError> {
-    let fit = fit_evidence(train_tracks, spec.projection, kappa, rho)?;
+    let fit = fit_evidence(train_tracks, spec.projection, kappa, rho, spec.model.schema)?;
     let train_seqs = sequences(&fit, train_tracks);
     let val_seqs = sequences(&fit, validation);
     let train_config = spec.recipe.apply(&spec.train, &train_seqs);
@@ -157,7 +157,7 @@ fn train_candidate(
     )?;
     let mut artifact = ModelArtifact {
         schema_version: ARTIFACT_SCHEMA_VERSION,
-        feature_names: ModelArtifact::current_feature_names(),
+        feature_names: ModelArtifact::feature_names_of(spec.model.schema),
         model: outcome.model,
         evidence: fit.params,
         scaler: fit.scaler,

@@ -6,6 +6,7 @@
 //! [`super::detector`] executes a spec.
 
 use crate::alarm::OperatingPointRule;
+use crate::evidence::FeatureSchema;
 use crate::geo::Projection;
 use crate::metrics::EventRules;
 use crate::model::{Ablation, ModelConfig};
@@ -161,13 +162,20 @@ impl Default for TrainingSpec {
 }
 
 impl TrainingSpec {
-    /// The defaults with this seed, epoch limit, ablation and (κ, ρ) rule: what the CLI flags and a
-    /// remote job request describe.
-    pub fn with(seed: u64, max_epochs: u32, ablation: Ablation, kappa_rho: KappaRho) -> Self {
+    /// The defaults with this seed, epoch limit, feature schema, ablation and (κ, ρ) rule: what the
+    /// CLI flags and a remote job request describe.
+    pub fn with(
+        seed: u64,
+        max_epochs: u32,
+        schema: FeatureSchema,
+        ablation: Ablation,
+        kappa_rho: KappaRho,
+    ) -> Self {
         let defaults = Self::default();
         Self {
             model: ModelConfig {
                 ablation,
+                schema,
                 ..defaults.model
             },
             train: TrainConfig {

@@ -1,7 +1,7 @@
 //! Unit tests of the optimiser loop: configuration checks, windows, reproducibility, cancellation.
 
 use super::*;
-use crate::evidence::FEATURE_COUNT;
+use crate::evidence::FEATURE_CAPACITY;
 
 /// Synthetic trajectories: normal rows have small η and negative q; inside one attack interval per
 /// trajectory η and q are large and the accumulator ã grows. About 5% of rows are invalid (ν = 0,
@@ -16,7 +16,7 @@ fn synthetic(rng: &mut Rng, count: usize, length: usize) -> Vec<Sequence> {
             for t in 0..length {
                 let spoofed = (onset..end).contains(&t);
                 let valid = t > 0 && rng.uniform() > 0.05;
-                let mut x = [0.0; FEATURE_COUNT];
+                let mut x = [0.0; FEATURE_CAPACITY];
                 if valid {
                     let bias = if spoofed { 1.5 } else { 0.0 };
                     let eta = [bias + 0.6 * rng.normal(), 0.6 * rng.normal() - bias];
@@ -79,7 +79,7 @@ fn param_bits(model: &Model) -> Vec<u64> {
 #[test]
 fn class_weights_are_balanced_and_clipped() {
     let sequence = Sequence {
-        features: vec![[0.0; FEATURE_COUNT]; 5],
+        features: vec![[0.0; FEATURE_CAPACITY]; 5],
         deltas: vec![1.0; 5],
         labels: vec![true, false, false, false, true],
         valid: vec![true, true, true, true, false],
@@ -102,14 +102,14 @@ fn class_weights_are_balanced_and_clipped() {
 #[test]
 fn windows_tile_each_trajectory_and_skip_those_without_valid_rows() {
     let mut first = Sequence {
-        features: vec![[0.0; FEATURE_COUNT]; 10],
+        features: vec![[0.0; FEATURE_CAPACITY]; 10],
         deltas: vec![1.0; 10],
         labels: vec![false; 10],
         valid: vec![true; 10],
     };
     first.valid[4..8].fill(false);
     let second = Sequence {
-        features: vec![[0.0; FEATURE_COUNT]; 3],
+        features: vec![[0.0; FEATURE_CAPACITY]; 3],
         deltas: vec![1.0; 3],
         labels: vec![false; 3],
         valid: vec![false, false, true],

@@ -5,6 +5,7 @@ use prost_types::Timestamp;
 use spoofwatch_core::alarm::OperatingPoint;
 use spoofwatch_core::detector::Decision;
 use spoofwatch_core::evidence::Evidence;
+use spoofwatch_core::evidence::drift::DriftEvidence;
 use spoofwatch_core::metrics::Metrics;
 use spoofwatch_core::sample::Sample;
 
@@ -72,6 +73,23 @@ pub fn evidence_to_proto(e: &Evidence) -> v1::Evidence {
         eta_north: e.eta[1],
         q: e.q,
         accum_log: e.accum_log,
+        drift: e.drift.as_ref().map(drift_to_proto),
+    }
+}
+
+fn drift_to_proto(d: &DriftEvidence) -> v1::DriftEvidence {
+    let [speed_scale_error, heading_bias_deg, timing_offset_s] = d.calibration;
+    let [calibrated_z_east, calibrated_z_north] = d.calibrated_z[2];
+    v1::DriftEvidence {
+        statistic: d.statistic,
+        warm_up: d.warm_up,
+        speed_scale_error,
+        heading_bias_deg,
+        timing_offset_s,
+        raw_chi2: d.raw_chi2().to_vec(),
+        calibrated_chi2: d.calibrated_chi2().to_vec(),
+        calibrated_z_east,
+        calibrated_z_north,
     }
 }
 

@@ -5,6 +5,7 @@
 use std::fmt::Display;
 
 use serde::{Deserialize, Serialize, Serializer};
+use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::metrics::Metrics;
 use spoofwatch_core::model::Ablation;
 use spoofwatch_proto::wire::{DatasetName, ModelName};
@@ -19,6 +20,7 @@ pub struct TrainingRequest {
     pub validation_datasets: Vec<DatasetName>,
     pub seed: u64,
     pub max_epochs: u32,
+    pub schema: FeatureSchema,
     pub ablation: Ablation,
     pub select_kappa_rho: bool,
     pub display_name: String,

@@ -132,6 +132,7 @@ impl Runner {
             validation_datasets,
             seed,
             max_epochs,
+            schema,
             ablation,
             select_kappa_rho,
             display_name,
@@ -146,6 +147,7 @@ impl Runner {
             ..TrainingSpec::with(
                 seed,
                 max_epochs,
+                schema,
                 ablation,
                 KappaRho::selected_if(select_kappa_rho),
             )

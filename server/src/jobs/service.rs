@@ -9,6 +9,7 @@ use std::time::Duration;
 
 use prost::Message;
 use prost_types::Any;
+use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::model::{Ablation, FeatureGroups};
 use spoofwatch_core::train::{DEFAULT_MAX_EPOCHS, DEFAULT_SEED};
 use spoofwatch_proto::longrunning;
@@ -38,12 +39,12 @@ fn pack<M: Message>(type_name: &str, message: &M) -> Any {
     }
 }
 
-/// The wire's feature-group name; empty means the default.
-fn features_from_name(name: &str) -> Option<FeatureGroups> {
+/// A wire name of a choice whose empty value means the default.
+fn named_or_default<T: Default>(name: &str, from_name: fn(&str) -> Option<T>) -> Option<T> {
     if name.is_empty() {
-        Some(FeatureGroups::default())
+        Some(T::default())
     } else {
-        FeatureGroups::from_name(name)
+        from_name(name)
     }
 }
 
@@ -67,7 +68,16 @@ fn training_request(request: v1::CreateTrainingJobRequest) -> Result<TrainingReq
             format!("must be 1 to {MAX_TRAINING_EPOCHS}"),
         ));
     }
-    let features = features_from_name(&spec.features).ok_or_else(|| {
+    let schema = named_or_default(&spec.feature_schema, FeatureSchema::from_name).ok_or_else(|| {
+        invalid_field(
+            "spec.feature_schema",
+            format!(
+                "one of {}",
+                FeatureSchema::NAMED.map(|(name, _)| name).join(", ")
+            ),
+        )
+    })?;
+    let features = named_or_default(&spec.features, FeatureGroups::from_name).ok_or_else(|| {
         invalid_field(
             "spec.features",
             format!(
@@ -85,6 +95,7 @@ fn training_request(request: v1::CreateTrainingJobRequest) -> Result<TrainingReq
             spec.seed
         },
         max_epochs,
+        schema,
         ablation: Ablation {
             no_exchange: spec.no_exchange,
             no_third_order: spec.no_third_order,

@@ -5,6 +5,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use serde::Serialize;
+use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::alarm::{OperatingPoint, OperatingPointRule};
 use spoofwatch_core::cusum::{CusumComparator, fit_cusum_comparator};
 use spoofwatch_core::evaluation::{Scored, evaluate_tracks, trajectory_key};
@@ -37,6 +38,8 @@ pub struct Args {
 #[derive(Clone, Debug)]
 struct Variant {
     name: &'static str,
+    /// The paper's rows use the paper's ξ; the v2 row shows what the drift channels change here.
+    schema: FeatureSchema,
     ablation: Ablation,
     subtle_training: bool,
     recipe: Recipe,
@@ -84,6 +87,7 @@ fn variants(ablations: bool, headline_subtle: bool) -> Vec<Variant> {
     let mut list = vec![
         Variant {
             name: "HO-LLN",
+            schema: FeatureSchema::Paper,
             ablation: full,
             subtle_training: false,
             recipe: Recipe::Auto,
@@ -91,6 +95,7 @@ fn variants(ablations: bool, headline_subtle: bool) -> Vec<Variant> {
         },
         Variant {
             name: "HO-LLN + subtle training",
+            schema: FeatureSchema::Paper,
             ablation: full,
             subtle_training: true,
             recipe: Recipe::Auto,
@@ -98,6 +103,7 @@ fn variants(ablations: bool, headline_subtle: bool) -> Vec<Variant> {
         },
         Variant {
             name: "HO-LLN, SPEC §6 recipe (batch 16, lr 1e-3)",
+            schema: FeatureSchema::Paper,
             ablation: full,
             subtle_training: headline_subtle,
             recipe: Recipe::Spec,
@@ -105,15 +111,25 @@ fn variants(ablations: bool, headline_subtle: bool) -> Vec<Variant> {
         },
         Variant {
             name: "HO-LLN, (κ, ρ) selected on validation",
+            schema: FeatureSchema::Paper,
             ablation: full,
             subtle_training: headline_subtle,
             recipe: Recipe::Auto,
             select_kappa_rho: true,
         },
+        Variant {
+            name: "HO-LLN v2 (drift channels) + subtle training",
+            schema: FeatureSchema::V2,
+            ablation: full,
+            subtle_training: true,
+            recipe: Recipe::Auto,
+            select_kappa_rho: false,
+        },
     ];
     if ablations {
         let with = |name, ablation| Variant {
             name,
+            schema: FeatureSchema::Paper,
             ablation,
             subtle_training: headline_subtle,
             recipe: Recipe::Auto,
@@ -214,6 +230,7 @@ pub fn run(args: Args) -> Result<()> {
             ..TrainingSpec::with(
                 args.common.seed,
                 args.common.epochs,
+                variant.schema,
                 variant.ablation,
                 KappaRho::selected_if(variant.select_kappa_rho),
             )

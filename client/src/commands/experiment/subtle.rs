@@ -9,6 +9,7 @@ use serde::Serialize;
 use spoofwatch_core::alarm::{N_P_GRID, OperatingPointRule, choose_operating_point, theta_grid};
 use spoofwatch_core::cusum::{CusumComparator, fit_cusum_comparator};
 use spoofwatch_core::evaluation::{evaluate_tracks, score_tracks};
+use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::metrics::{EventRules, Metrics};
 use spoofwatch_core::model::artifact::ModelArtifact;
 use spoofwatch_core::sample::Track;
@@ -345,6 +346,7 @@ pub fn run(args: Args) -> Result<()> {
         ..TrainingSpec::with(
             args.common.seed,
             args.common.epochs,
+            FeatureSchema::default(),
             Default::default(),
             KappaRho::default(),
         )

@@ -40,6 +40,7 @@ pub fn job_request(
             first_order_cell: flags.first_order_cell,
             features: flags.features.name().to_string(),
             select_kappa_rho: flags.select_kappa_rho,
+            feature_schema: flags.schema.name().to_string(),
         }),
         display_name: remote.name.clone().unwrap_or_default(),
         activate: remote.activate,

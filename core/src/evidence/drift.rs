@@ -1,0 +1,788 @@
+//! Evidence v2 (issue #8, `docs/detector.md` §4.1): directional drift-rate channels on a clipped
+//! residual that is cleaned, online, of the vehicle's own onboard-sensor errors.
+//!
+//! Every energy in the paper's ξ_t is blind to direction, and the liquid cell forgets within ~10 s, so
+//! a spoofer who drags the fix at 0.5 m/s stays below them. The signed residual, averaged over 10–120 s,
+//! grows as the drift velocity instead. Onboard errors (speed scale, heading bias, GNSS/onboard timing)
+//! also look like drift, but they live in the vehicle's body frame and rotate with it; a spoofed drift
+//! stays fixed in east/north. A slow, *delayed* least-squares calibration learns them from rows at
+//! least two minutes old, so a drift that has just started is not absorbed.
+//!
+//! Owns the per-vehicle drift tracker (clip → calibration → EWMA drift rates → whitened χ²), its
+//! parameters and their fit on normal rows. Must not build the paper's channels (that is `builder.rs`)
+//! or scale features.
+
+use serde::{Deserialize, Serialize};
+
+use super::EvidenceError;
+use super::linalg::{IDENTITY, Mat2, inverse_sqrt_symmetric, is_symmetric_positive_definite, mul_vec};
+use super::stats::{covariance, median, quantile_sorted};
+
+/// Number of drift-rate time scales.
+pub const SCALE_COUNT: usize = 4;
+/// EWMA time constants τ_k of the drift-rate channels (s): 10 s catches fast ramps, 120 s slow ones.
+pub const DRIFT_SCALES_S: [f64; SCALE_COUNT] = [10.0, 30.0, 60.0, 120.0];
+/// The clip radius in robust residual sigmas: c = 4 σ̂_r.
+pub const CLIP_SIGMAS: f64 = 4.0;
+/// Memory of the calibration (s): forgetting λ = exp(−δ/600) per row.
+pub const CALIBRATION_MEMORY_S: f64 = 600.0;
+/// The calibration in use is a snapshot at least this old (s of valid data).
+pub const CALIBRATION_DELAY_S: f64 = 120.0;
+/// Seconds of valid data before the calibrated channels switch on (ω_t reaches 1).
+pub const WARM_UP_S: f64 = 240.0;
+/// Prior (and cap) of the calibration's standard deviations: speed scale 5 %, heading bias 5°, timing 1 s.
+pub const CALIBRATION_PRIOR_STD: [f64; 3] = [0.05, 5.0 * std::f64::consts::PI / 180.0, 1.0];
+/// Snapshot spacing of the calibration (s of valid data).
+const SNAPSHOT_PERIOD_S: f64 = 30.0;
+/// Snapshots kept: enough to always hold one that is `CALIBRATION_DELAY_S` old.
+const SNAPSHOTS: usize = (CALIBRATION_DELAY_S / SNAPSHOT_PERIOD_S) as usize + 2;
+/// Quantile of χ² on normal rows that normalises each scale in the drift statistic.
+const THRESHOLD_QUANTILE: f64 = 0.999;
+/// σ̂ = this × MAD for a normal distribution.
+const MAD_TO_SIGMA: f64 = 1.4826;
+/// ε added to the drift-rate covariances before whitening (m²/s²).
+const RATE_EPSILON: f64 = 1e-9;
+/// A row is settled for scale τ_k this many τ_k into its trajectory.
+const SETTLE_SCALES: f64 = 2.0;
+/// Fewest settled normal rows per scale for a drift-rate covariance.
+pub const MIN_SETTLED_ROWS: usize = 30;
+
+/// Fitted on normal training rows; carried by the artifact inside the evidence parameters.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "UncheckedDriftParams")]
+pub struct DriftParams {
+    /// σ̂_r: root mean square of the per-axis robust σ (1.4826·MAD) of r on normal rows (m).
+    pub residual_sigma_m: f64,
+    /// Clip radius c = 4 σ̂_r (m).
+    pub clip_m: f64,
+    /// Covariance of the uncalibrated drift rate per scale on settled normal rows (m²/s²).
+    pub raw_covariance: [Mat2; SCALE_COUNT],
+    /// The same for the calibrated drift rate, on warm rows.
+    pub calibrated_covariance: [Mat2; SCALE_COUNT],
+    /// 99.9 % quantile of each scale's uncalibrated χ² on those rows.
+    pub raw_threshold: [f64; SCALE_COUNT],
+    /// The same for the calibrated χ².
+    pub calibrated_threshold: [f64; SCALE_COUNT],
+}
+
+#[derive(Deserialize)]
+struct UncheckedDriftParams {
+    residual_sigma_m: f64,
+    clip_m: f64,
+    raw_covariance: [Mat2; SCALE_COUNT],
+    calibrated_covariance: [Mat2; SCALE_COUNT],
+    raw_threshold: [f64; SCALE_COUNT],
+    calibrated_threshold: [f64; SCALE_COUNT],
+}
+
+impl TryFrom<UncheckedDriftParams> for DriftParams {
+    type Error = EvidenceError;
+
+    fn try_from(raw: UncheckedDriftParams) -> Result<Self, EvidenceError> {
+        let params = DriftParams {
+            residual_sigma_m: raw.residual_sigma_m,
+            clip_m: raw.clip_m,
+            raw_covariance: raw.raw_covariance,
+            calibrated_covariance: raw.calibrated_covariance,
+            raw_threshold: raw.raw_threshold,
+            calibrated_threshold: raw.calibrated_threshold,
+        };
+        params.validate()?;
+        Ok(params)
+    }
+}
+
+impl DriftParams {
+    /// Parameters that whiten nothing (identity covariances, unit thresholds): the fit runs with them
+    /// to read the raw drift rates.
+    pub fn unwhitened(residual_sigma_m: f64) -> Self {
+        Self {
+            residual_sigma_m,
+            clip_m: CLIP_SIGMAS * residual_sigma_m,
+            raw_covariance: [IDENTITY; SCALE_COUNT],
+            calibrated_covariance: [IDENTITY; SCALE_COUNT],
+            raw_threshold: [1.0; SCALE_COUNT],
+            calibrated_threshold: [1.0; SCALE_COUNT],
+        }
+    }
+
+    /// Checks every value: σ̂_r and c positive and finite, covariances symmetric positive definite,
+    /// thresholds positive and finite.
+    pub fn validate(&self) -> Result<(), EvidenceError> {
+        let invalid = |field: &'static str, reason: String| EvidenceError::InvalidParams {
+            field,
+            reason,
+        };
+        let positive = |x: f64| x.is_finite() && x > 0.0;
+        if !positive(self.residual_sigma_m) {
+            return Err(invalid(
+                "drift.residual_sigma_m",
+                format!("must be positive and finite, got {}", self.residual_sigma_m),
+            ));
+        }
+        if !positive(self.clip_m) {
+            return Err(invalid(
+                "drift.clip_m",
+                format!("must be positive and finite, got {}", self.clip_m),
+            ));
+        }
+        for (field, covariances) in [
+            ("drift.raw_covariance", &self.raw_covariance),
+            ("drift.calibrated_covariance", &self.calibrated_covariance),
+        ] {
+            if let Some(bad) = covariances
+                .iter()
+                .find(|c| !is_symmetric_positive_definite(c))
+            {
+                return Err(invalid(
+                    field,
+                    format!("every scale must be symmetric positive definite, got {bad:?}"),
+                ));
+            }
+        }
+        for (field, thresholds) in [
+            ("drift.raw_threshold", &self.raw_threshold),
+            ("drift.calibrated_threshold", &self.calibrated_threshold),
+        ] {
+            if let Some(bad) = thresholds.iter().find(|&&h| !positive(h)) {
+                return Err(invalid(
+                    field,
+                    format!("every scale must be positive and finite, got {bad}"),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The drift channels of one sample.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DriftEvidence {
+    /// r^c = r·min(1, c/‖r‖) (m); NaN when ν = 0.
+    pub clipped_residual: [f64; 2],
+    /// r̃ = r^c + H θ: the clipped residual cleaned of the onboard errors in use (m); NaN when ν = 0.
+    pub cleaned_residual: [f64; 2],
+    /// The onboard errors in use (a snapshot ≥ 120 s old): speed scale error (fraction), heading bias
+    /// (degrees), GNSS/onboard timing offset (s).
+    pub calibration: [f64; 3],
+    /// ω_t = min(1, valid seconds seen / 240 s); the calibrated channels are on when ω = 1.
+    pub warm_up: f64,
+    /// Whitened EWMA of r^c/δ per scale (east, north); 0 at a trajectory start.
+    pub raw_z: [[f64; 2]; SCALE_COUNT],
+    /// Whitened EWMA of r̃/δ per scale; 0 until warm.
+    pub calibrated_z: [[f64; 2]; SCALE_COUNT],
+    /// The drift statistic: max over scales of χ²_k / h_k, calibrated when warm, else uncalibrated.
+    pub statistic: f64,
+}
+
+impl DriftEvidence {
+    /// The channels at the very start of a stream (nothing seen yet).
+    pub const EMPTY: Self = Self {
+        clipped_residual: [f64::NAN; 2],
+        cleaned_residual: [f64::NAN; 2],
+        calibration: [0.0; 3],
+        warm_up: 0.0,
+        raw_z: [[0.0; 2]; SCALE_COUNT],
+        calibrated_z: [[0.0; 2]; SCALE_COUNT],
+        statistic: 0.0,
+    };
+
+    /// χ²_k = ‖z_k‖² of the uncalibrated channel per scale.
+    pub fn raw_chi2(&self) -> [f64; SCALE_COUNT] {
+        self.raw_z.map(norm_squared)
+    }
+
+    /// χ²_k of the calibrated channel per scale.
+    pub fn calibrated_chi2(&self) -> [f64; SCALE_COUNT] {
+        self.calibrated_z.map(norm_squared)
+    }
+
+    /// The calibrated channels are on.
+    pub fn is_warm(&self) -> bool {
+        self.warm_up >= 1.0
+    }
+}
+
+fn norm_squared(z: [f64; 2]) -> f64 {
+    z[0] * z[0] + z[1] * z[1]
+}
+
+/// One row's inputs to the tracker, all east/north.
+#[derive(Clone, Copy, Debug)]
+pub struct DriftInput {
+    /// r_t = Δp^g − Δp^u (m).
+    pub residual: [f64; 2],
+    /// Δp^u = ½(v_t + v_{t−1})δ_t (m).
+    pub motion: [f64; 2],
+    /// v_t − v_{t−1} (m/s).
+    pub velocity_change: [f64; 2],
+    /// δ_t (s), in (0, 5].
+    pub delta_t: f64,
+}
+
+/// A calibration snapshot: θ after `clock_s` seconds of valid data.
+#[derive(Clone, Copy, Debug, Default)]
+struct Snapshot {
+    clock_s: f64,
+    theta: [f64; 3],
+}
+
+/// The per-vehicle drift state: calibration (θ, P, snapshots) that persists across trajectories of a
+/// stream, and EWMAs that restart with every trajectory. `push` never allocates.
+#[derive(Clone, Debug)]
+pub struct DriftTracker {
+    clip_m: f64,
+    noise_variance: f64,
+    raw_whitening: [Mat2; SCALE_COUNT],
+    calibrated_whitening: [Mat2; SCALE_COUNT],
+    raw_threshold: [f64; SCALE_COUNT],
+    calibrated_threshold: [f64; SCALE_COUNT],
+    /// θ = (ε, β [rad], τ_L [s]) estimated from every valid row so far.
+    theta: [f64; 3],
+    covariance: [[f64; 3]; 3],
+    /// Valid seconds absorbed by the calibration.
+    clock_s: f64,
+    snapshots: [Snapshot; SNAPSHOTS],
+    snapshot_count: usize,
+    /// The calibration in use (the newest snapshot at least `CALIBRATION_DELAY_S` old).
+    theta_in_use: [f64; 3],
+    raw_rate: [[f64; 2]; SCALE_COUNT],
+    calibrated_rate: [[f64; 2]; SCALE_COUNT],
+    /// e^{−δ/τ_k} for the last δ (1 Hz streams reuse it).
+    decay_delta: f64,
+    decay: [f64; SCALE_COUNT],
+    last: DriftEvidence,
+}
+
+impl DriftTracker {
+    /// A tracker at the start of a stream.
+    pub fn new(params: &DriftParams) -> Self {
+        Self {
+            clip_m: params.clip_m,
+            noise_variance: params.residual_sigma_m * params.residual_sigma_m,
+            raw_whitening: params.raw_covariance.map(|c| whitening(&c)),
+            calibrated_whitening: params.calibrated_covariance.map(|c| whitening(&c)),
+            raw_threshold: params.raw_threshold,
+            calibrated_threshold: params.calibrated_threshold,
+            theta: [0.0; 3],
+            covariance: prior_covariance(),
+            clock_s: 0.0,
+            snapshots: [Snapshot::default(); SNAPSHOTS],
+            snapshot_count: 0,
+            theta_in_use: [0.0; 3],
+            raw_rate: [[0.0; 2]; SCALE_COUNT],
+            calibrated_rate: [[0.0; 2]; SCALE_COUNT],
+            decay_delta: f64::NAN,
+            decay: [0.0; SCALE_COUNT],
+            last: DriftEvidence::EMPTY,
+        }
+    }
+
+    /// A new trajectory: the drift rates restart from 0 (the residual's history is broken); the
+    /// onboard errors are the vehicle's and are kept.
+    pub fn start_trajectory(&mut self) {
+        self.raw_rate = [[0.0; 2]; SCALE_COUNT];
+        self.calibrated_rate = [[0.0; 2]; SCALE_COUNT];
+        self.last = DriftEvidence {
+            clipped_residual: [f64::NAN; 2],
+            cleaned_residual: [f64::NAN; 2],
+            raw_z: [[0.0; 2]; SCALE_COUNT],
+            calibrated_z: [[0.0; 2]; SCALE_COUNT],
+            statistic: 0.0,
+            ..self.last
+        };
+    }
+
+    /// The channels of a row with ν = 0: everything held, residuals undefined.
+    pub fn hold(&self) -> DriftEvidence {
+        DriftEvidence {
+            clipped_residual: [f64::NAN; 2],
+            cleaned_residual: [f64::NAN; 2],
+            ..self.last
+        }
+    }
+
+    /// The channels of a valid row (ν = 1, finite inputs, 0 < δ ≤ 5 s).
+    pub fn push(&mut self, input: &DriftInput) -> DriftEvidence {
+        let clipped = clip(input.residual, self.clip_m);
+        let regressors = regressors(input);
+        let cleaned = add(clipped, apply(&regressors, &self.theta_in_use));
+        self.update_calibration(&regressors, clipped, input.delta_t);
+        self.update_rates(clipped, cleaned, input.delta_t);
+
+        let warm_up = (self.clock_s / WARM_UP_S).min(1.0);
+        let raw_z: [[f64; 2]; SCALE_COUNT] =
+            std::array::from_fn(|k| mul_vec(&self.raw_whitening[k], self.raw_rate[k]));
+        let calibrated_z: [[f64; 2]; SCALE_COUNT] = if warm_up >= 1.0 {
+            std::array::from_fn(|k| {
+                mul_vec(&self.calibrated_whitening[k], self.calibrated_rate[k])
+            })
+        } else {
+            [[0.0; 2]; SCALE_COUNT]
+        };
+        let statistic = if warm_up >= 1.0 {
+            normalised_max(&calibrated_z, &self.calibrated_threshold)
+        } else {
+            normalised_max(&raw_z, &self.raw_threshold)
+        };
+        let [scale, heading, timing] = self.theta_in_use;
+        self.last = DriftEvidence {
+            clipped_residual: clipped,
+            cleaned_residual: cleaned,
+            calibration: [scale, heading.to_degrees(), timing],
+            warm_up,
+            raw_z,
+            calibrated_z,
+            statistic,
+        };
+        self.last
+    }
+
+    /// One recursive-least-squares step with exponential forgetting on the model r^c = −H θ + noise,
+    /// then the snapshot bookkeeping that delays what is used by ≥ `CALIBRATION_DELAY_S`.
+    fn update_calibration(&mut self, h: &[[f64; 2]; 3], clipped: [f64; 2], delta_t: f64) {
+        let forgetting = (-delta_t / CALIBRATION_MEMORY_S).exp();
+        let p: [[f64; 3]; 3] = self.covariance.map(|row| row.map(|x| x / forgetting));
+        // With A = −H: S = H P Hᵀ + σ²I, K = −P Hᵀ S⁻¹, innovation = r^c + H θ.
+        let ph: [[f64; 2]; 3] =
+            std::array::from_fn(|i| std::array::from_fn(|a| (0..3).map(|j| p[i][j] * h[j][a]).sum()));
+        let mut s: Mat2 =
+            std::array::from_fn(|a| std::array::from_fn(|b| (0..3).map(|i| h[i][a] * ph[i][b]).sum()));
+        s[0][0] += self.noise_variance;
+        s[1][1] += self.noise_variance;
+        let Some(s_inv) = inverse(&s) else {
+            return;
+        };
+        let innovation = add(clipped, apply(h, &self.theta));
+        // G = P Hᵀ S⁻¹ (3×2); θ −= G·innovation; P −= G H P.
+        let gain: [[f64; 2]; 3] = std::array::from_fn(|i| {
+            std::array::from_fn(|b| ph[i][0] * s_inv[0][b] + ph[i][1] * s_inv[1][b])
+        });
+        let mut theta = self.theta;
+        for (i, value) in theta.iter_mut().enumerate() {
+            *value -= gain[i][0] * innovation[0] + gain[i][1] * innovation[1];
+        }
+        let mut updated = p;
+        for (i, row) in updated.iter_mut().enumerate() {
+            for (j, cell) in row.iter_mut().enumerate() {
+                *cell -= gain[i][0] * ph[j][0] + gain[i][1] * ph[j][1];
+            }
+        }
+        if !(theta.iter().all(|x| x.is_finite()) && updated.iter().flatten().all(|x| x.is_finite()))
+        {
+            return;
+        }
+        self.theta = theta;
+        self.covariance = cap_covariance(symmetrised(updated));
+        self.clock_s += delta_t;
+        self.take_snapshot();
+    }
+
+    /// Keeps a snapshot every `SNAPSHOT_PERIOD_S` and moves `theta_in_use` to the newest one that is
+    /// at least `CALIBRATION_DELAY_S` old.
+    fn take_snapshot(&mut self) {
+        let newest = self.snapshot_count.checked_sub(1).map(|i| self.snapshots[i]);
+        if newest.is_none_or(|s| self.clock_s - s.clock_s >= SNAPSHOT_PERIOD_S) {
+            if self.snapshot_count == SNAPSHOTS {
+                self.snapshots.copy_within(1.., 0);
+                self.snapshot_count -= 1;
+            }
+            self.snapshots[self.snapshot_count] = Snapshot {
+                clock_s: self.clock_s,
+                theta: self.theta,
+            };
+            self.snapshot_count += 1;
+        }
+        let due = self.clock_s - CALIBRATION_DELAY_S;
+        if let Some(snapshot) = self.snapshots[..self.snapshot_count]
+            .iter()
+            .rev()
+            .find(|s| s.clock_s <= due)
+        {
+            self.theta_in_use = snapshot.theta;
+        }
+    }
+
+    /// m_k ← e^{−δ/τ_k} m_k + (1 − e^{−δ/τ_k}) r/δ for both residuals.
+    fn update_rates(&mut self, clipped: [f64; 2], cleaned: [f64; 2], delta_t: f64) {
+        if delta_t != self.decay_delta {
+            self.decay = DRIFT_SCALES_S.map(|tau| (-delta_t / tau).exp());
+            self.decay_delta = delta_t;
+        }
+        for k in 0..SCALE_COUNT {
+            let a = self.decay[k];
+            for axis in 0..2 {
+                self.raw_rate[k][axis] =
+                    a * self.raw_rate[k][axis] + (1.0 - a) * (clipped[axis] / delta_t);
+                self.calibrated_rate[k][axis] =
+                    a * self.calibrated_rate[k][axis] + (1.0 - a) * (cleaned[axis] / delta_t);
+            }
+        }
+    }
+}
+
+/// r·min(1, c/‖r‖).
+pub fn clip(residual: [f64; 2], clip_m: f64) -> [f64; 2] {
+    let norm = residual[0].hypot(residual[1]);
+    if norm > clip_m {
+        let factor = clip_m / norm;
+        [residual[0] * factor, residual[1] * factor]
+    } else {
+        residual
+    }
+}
+
+/// Columns of H_t = [u, J u, −Δv], J(x, y) = (y, −x): to first order a speed scale error ε, a heading
+/// bias β and an onboard lag τ_L make r = −ε u − β J u + τ_L Δv = −H θ.
+fn regressors(input: &DriftInput) -> [[f64; 2]; 3] {
+    let u = input.motion;
+    let dv = input.velocity_change;
+    [u, [u[1], -u[0]], [-dv[0], -dv[1]]]
+}
+
+/// H θ.
+fn apply(h: &[[f64; 2]; 3], theta: &[f64; 3]) -> [f64; 2] {
+    [
+        h[0][0] * theta[0] + h[1][0] * theta[1] + h[2][0] * theta[2],
+        h[0][1] * theta[0] + h[1][1] * theta[1] + h[2][1] * theta[2],
+    ]
+}
+
+fn add(a: [f64; 2], b: [f64; 2]) -> [f64; 2] {
+    [a[0] + b[0], a[1] + b[1]]
+}
+
+fn inverse(m: &Mat2) -> Option<Mat2> {
+    let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
+    (det.is_finite() && det > 0.0).then(|| {
+        [
+            [m[1][1] / det, -m[0][1] / det],
+            [-m[1][0] / det, m[0][0] / det],
+        ]
+    })
+}
+
+fn prior_covariance() -> [[f64; 3]; 3] {
+    let mut p = [[0.0; 3]; 3];
+    for (i, std) in CALIBRATION_PRIOR_STD.iter().enumerate() {
+        p[i][i] = std * std;
+    }
+    p
+}
+
+fn symmetrised(p: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    std::array::from_fn(|i| std::array::from_fn(|j| 0.5 * (p[i][j] + p[j][i])))
+}
+
+/// D P D with D_ii = min(1, prior_i/√P_ii): no variance exceeds the prior, so directions the drive
+/// does not excite (a straight road) cannot wind the gain up; the congruence keeps P positive definite.
+fn cap_covariance(p: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    let d: [f64; 3] = std::array::from_fn(|i| {
+        let std = p[i][i].max(0.0).sqrt();
+        if std > CALIBRATION_PRIOR_STD[i] {
+            CALIBRATION_PRIOR_STD[i] / std
+        } else {
+            1.0
+        }
+    });
+    std::array::from_fn(|i| std::array::from_fn(|j| d[i] * p[i][j] * d[j]))
+}
+
+/// (Σ + εI)^{-1/2}.
+fn whitening(covariance: &Mat2) -> Mat2 {
+    inverse_sqrt_symmetric(&super::linalg::add_diagonal(*covariance, RATE_EPSILON))
+}
+
+/// max_k ‖z_k‖² / h_k.
+fn normalised_max(z: &[[f64; 2]; SCALE_COUNT], thresholds: &[f64; SCALE_COUNT]) -> f64 {
+    z.iter()
+        .zip(thresholds)
+        .map(|(&z, &h)| norm_squared(z) / h)
+        .fold(0.0, f64::max)
+}
+
+/// The robust residual σ̂_r (m): RMS over the axes of 1.4826·MAD of r on normal valid rows.
+pub fn robust_residual_sigma(residuals: &[[f64; 2]]) -> Result<f64, EvidenceError> {
+    let mut axis_variance = 0.0;
+    for axis in 0..2 {
+        let mut values: Vec<f64> = residuals.iter().map(|r| r[axis]).collect();
+        let center = median(&mut values).ok_or(EvidenceError::NoRows)?;
+        let mut deviations: Vec<f64> = values.iter().map(|x| (x - center).abs()).collect();
+        let mad = median(&mut deviations).ok_or(EvidenceError::NoRows)?;
+        axis_variance += 0.5 * (MAD_TO_SIGMA * mad).powi(2);
+    }
+    let sigma = axis_variance.sqrt();
+    if sigma.is_finite() && sigma > 0.0 {
+        Ok(sigma)
+    } else {
+        Err(EvidenceError::InvalidParams {
+            field: "drift.residual_sigma_m",
+            reason: format!(
+                "the normal residuals have no spread (robust sigma {sigma}); cannot set the clip"
+            ),
+        })
+    }
+}
+
+/// One normal row's drift channels as the fit sees them (computed with [`DriftParams::unwhitened`], so
+/// the z's are the raw drift rates).
+#[derive(Clone, Copy, Debug)]
+pub struct SettledRates {
+    /// Valid seconds since the trajectory started.
+    pub elapsed_s: f64,
+    pub drift: DriftEvidence,
+}
+
+/// Covariances and thresholds from unwhitened normal rows: scale k uses rows at least 2τ_k into their
+/// trajectory (a zero-started EWMA then has 98 % of its stationary variance); the calibrated
+/// channels only warm rows.
+pub fn drift_params_from_rates(
+    residual_sigma_m: f64,
+    rows: &[SettledRates],
+) -> Result<DriftParams, EvidenceError> {
+    let mut params = DriftParams::unwhitened(residual_sigma_m);
+    for k in 0..SCALE_COUNT {
+        let settle_s = SETTLE_SCALES * DRIFT_SCALES_S[k];
+        let settled = |row: &&SettledRates| row.elapsed_s >= settle_s;
+        let raw: Vec<[f64; 2]> = rows.iter().filter(settled).map(|r| r.drift.raw_z[k]).collect();
+        let calibrated: Vec<[f64; 2]> = rows
+            .iter()
+            .filter(settled)
+            .filter(|r| r.drift.is_warm())
+            .map(|r| r.drift.calibrated_z[k])
+            .collect();
+        let too_few = |rows: usize, warm: &'static str| EvidenceError::TooFewSettledRows {
+            scale_s: DRIFT_SCALES_S[k],
+            settle_s,
+            warm,
+            rows,
+            minimum: MIN_SETTLED_ROWS,
+        };
+        (params.raw_covariance[k], params.raw_threshold[k]) =
+            scale_fit(&raw).ok_or_else(|| too_few(raw.len(), ""))?;
+        (params.calibrated_covariance[k], params.calibrated_threshold[k]) = scale_fit(&calibrated)
+            .ok_or_else(|| too_few(calibrated.len(), " with a warm calibration"))?;
+    }
+    params.validate()?;
+    Ok(params)
+}
+
+/// Covariance of one scale's rates and the 99.9 % quantile of their whitened χ²; `None` with fewer
+/// than [`MIN_SETTLED_ROWS`] rows.
+fn scale_fit(rates: &[[f64; 2]]) -> Option<(Mat2, f64)> {
+    if rates.len() < MIN_SETTLED_ROWS {
+        return None;
+    }
+    let covariance = covariance(rates);
+    let w = whitening(&covariance);
+    let mut chi2: Vec<f64> = rates.iter().map(|r| norm_squared(mul_vec(&w, *r))).collect();
+    chi2.sort_unstable_by(f64::total_cmp);
+    let threshold = quantile_sorted(&chi2, THRESHOLD_QUANTILE)
+        .filter(|h| h.is_finite() && *h > 0.0)
+        .unwrap_or(1.0);
+    Some((covariance, threshold))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    #[test]
+    fn clip_scales_long_residuals_onto_the_circle() {
+        assert_eq!(clip([3.0, 4.0], 2.5), [1.5, 2.0]);
+        assert_eq!(clip([0.3, -0.4], 2.5), [0.3, -0.4]);
+        assert_eq!(clip([0.0, 0.0], 2.5), [0.0, 0.0]);
+    }
+
+    #[test]
+    fn robust_sigma_is_the_mad_based_rms_over_axes() {
+        // East: ±1 → median 0, MAD 1; north: ±2 → MAD 2. σ̂ = 1.4826·√((1 + 4)/2).
+        let residuals: Vec<[f64; 2]> = (0..40)
+            .map(|i| if i % 2 == 0 { [1.0, 2.0] } else { [-1.0, -2.0] })
+            .collect();
+        let sigma = robust_residual_sigma(&residuals).expect("spread");
+        assert!((sigma - 1.4826 * 2.5f64.sqrt()).abs() < 1e-12, "{sigma}");
+        assert!(robust_residual_sigma(&[[0.0, 0.0]; 40]).is_err());
+    }
+
+    /// A vehicle around `speed` m/s (±30 %) whose heading swings ±90° (so the body frame rotates and
+    /// speed and yaw rate vary independently), sampled at 1 Hz. Returns (motion, velocity change) per
+    /// row, as the builder sees them.
+    fn turning_rows(rows: usize, speed: f64) -> Vec<([f64; 2], [f64; 2])> {
+        let velocity = |t: f64| {
+            let heading = std::f64::consts::FRAC_PI_2 * (t * std::f64::consts::TAU / 170.0).sin();
+            let speed = speed * (1.0 + 0.3 * (t * std::f64::consts::TAU / 61.0).sin());
+            [speed * heading.sin(), speed * heading.cos()]
+        };
+        (1..=rows)
+            .map(|t| {
+                let (now, before) = (velocity(t as f64), velocity(t as f64 - 1.0));
+                let motion = [0.5 * (now[0] + before[0]), 0.5 * (now[1] + before[1])];
+                (motion, [now[0] - before[0], now[1] - before[1]])
+            })
+            .collect()
+    }
+
+    /// r = −H θ_true + N(0, noise²) + a drift of `drift` m/s east from row `drift_from` on.
+    fn input(
+        row: (usize, &([f64; 2], [f64; 2])),
+        theta_true: [f64; 3],
+        noise: [f64; 2],
+        drift: (usize, f64),
+    ) -> DriftInput {
+        let (t, &(motion, velocity_change)) = row;
+        let h = regressors(&DriftInput {
+            residual: [0.0; 2],
+            motion,
+            velocity_change,
+            delta_t: 1.0,
+        });
+        let onboard = apply(&h, &theta_true);
+        let east_drift = if t >= drift.0 { drift.1 } else { 0.0 };
+        DriftInput {
+            residual: [
+                -onboard[0] + noise[0] + east_drift,
+                -onboard[1] + noise[1],
+            ],
+            motion,
+            velocity_change,
+            delta_t: 1.0,
+        }
+    }
+
+    fn tracker() -> DriftTracker {
+        DriftTracker::new(&DriftParams::unwhitened(0.7))
+    }
+
+    #[test]
+    fn calibration_recovers_a_known_scale_heading_and_timing_error() {
+        let theta_true = [0.03, 3f64.to_radians(), 0.2];
+        let mut rng = Rng::seed_from_u64(5);
+        let mut drift = tracker();
+        let mut last = DriftEvidence::EMPTY;
+        for row in turning_rows(900, 10.0).iter().enumerate() {
+            let noise = [0.5 * rng.normal(), 0.5 * rng.normal()];
+            last = drift.push(&input(row, theta_true, noise, (usize::MAX, 0.0)));
+        }
+        let [scale, heading_deg, timing_s] = last.calibration;
+        assert!((scale - 0.03).abs() < 0.003, "scale {scale}");
+        assert!((heading_deg - 3.0).abs() < 0.2, "heading {heading_deg}");
+        assert!((timing_s - 0.2).abs() < 0.05, "timing {timing_s}");
+        assert!(last.is_warm());
+        // Cleaned of those errors, the residual is the noise again (small), the raw one is not.
+        let raw = last.raw_z[3][0].hypot(last.raw_z[3][1]);
+        let calibrated = last.calibrated_z[3][0].hypot(last.calibrated_z[3][1]);
+        assert!(calibrated < 0.05 && raw > 0.2, "raw {raw}, calibrated {calibrated}");
+    }
+
+    #[test]
+    fn the_calibration_in_use_is_at_least_two_minutes_old() {
+        let theta_true = [0.0, 4f64.to_radians(), 0.0];
+        let mut drift = tracker();
+        let rows = turning_rows(200, 10.0);
+        for (t, row) in rows.iter().enumerate() {
+            let e = drift.push(&input((t, row), theta_true, [0.0; 2], (usize::MAX, 0.0)));
+            let clock = (t + 1) as f64;
+            // The first snapshot is taken after the first row (clock 1 s).
+            if clock <= CALIBRATION_DELAY_S {
+                assert_eq!(e.calibration, [0.0; 3], "row {t}");
+            } else {
+                assert_ne!(e.calibration, [0.0; 3], "row {t}");
+            }
+            assert_eq!(e.warm_up, (clock / WARM_UP_S).min(1.0));
+        }
+    }
+
+    #[test]
+    fn a_drift_that_starts_after_warm_up_is_not_absorbed_and_stands_out() {
+        let theta_true = [0.02, 3f64.to_radians(), 0.1];
+        let rows = turning_rows(700, 10.0);
+        let onset = 600;
+        let mut rng = Rng::seed_from_u64(8);
+        let noise: Vec<[f64; 2]> = rows
+            .iter()
+            .map(|_| [0.5 * rng.normal(), 0.5 * rng.normal()])
+            .collect();
+        let run = |drift_mps: f64| {
+            let mut drift = tracker();
+            rows.iter()
+                .enumerate()
+                .map(|row| drift.push(&input(row, theta_true, noise[row.0], (onset, drift_mps))))
+                .collect::<Vec<_>>()
+        };
+        let clean = run(0.0);
+        let spoofed = run(0.5);
+        // For 120 s after the onset the calibration in use is exactly the drift-free one.
+        for t in onset..onset + CALIBRATION_DELAY_S as usize - SNAPSHOT_PERIOD_S as usize {
+            assert_eq!(spoofed[t].calibration, clean[t].calibration, "row {t}");
+        }
+        // 60 s in, the 60 s calibrated drift rate points east at most of the 0.5 m/s.
+        let rate = |e: &DriftEvidence| e.calibrated_z[2];
+        let at = onset + 60;
+        let (clean_rate, spoofed_rate) = (rate(&clean[at]), rate(&spoofed[at]));
+        assert!(
+            spoofed_rate[0] - clean_rate[0] > 0.3,
+            "{spoofed_rate:?} vs {clean_rate:?}"
+        );
+        assert!((spoofed_rate[1] - clean_rate[1]).abs() < 0.05);
+    }
+
+    #[test]
+    fn drift_rates_are_ewmas_by_hand_and_restart_with_a_trajectory() {
+        let mut drift = tracker();
+        let step = DriftInput {
+            residual: [0.5, 0.0],
+            motion: [0.0; 2],
+            velocity_change: [0.0; 2],
+            delta_t: 0.5,
+        };
+        let mut e = DriftEvidence::EMPTY;
+        for _ in 0..3 {
+            e = drift.push(&step);
+        }
+        // r/δ = 1 m/s east; m = 1 − a³ with a = e^{−0.5/τ} (identity whitening up to 1e-9).
+        for (k, tau) in DRIFT_SCALES_S.iter().enumerate() {
+            let expected = 1.0 - (-0.5 / tau).exp().powi(3);
+            assert!((e.raw_z[k][0] - expected).abs() < 1e-8, "scale {k}");
+            assert_eq!(e.raw_z[k][1], 0.0);
+        }
+        assert_eq!(e.clipped_residual, [0.5, 0.0]);
+        assert_eq!(e.statistic, e.raw_chi2()[0]);
+        drift.start_trajectory();
+        let held = drift.hold();
+        assert_eq!(held.raw_z, [[0.0; 2]; SCALE_COUNT]);
+        assert_eq!(held.warm_up, e.warm_up);
+        assert!(held.clipped_residual[0].is_nan());
+    }
+
+    #[test]
+    fn a_spike_is_clipped_before_it_reaches_the_channels() {
+        let mut drift = tracker();
+        let clip_m = CLIP_SIGMAS * 0.7;
+        let e = drift.push(&DriftInput {
+            residual: [350.0, 0.0],
+            motion: [10.0, 0.0],
+            velocity_change: [0.0; 2],
+            delta_t: 1.0,
+        });
+        assert!((e.clipped_residual[0] - clip_m).abs() < 1e-12 && e.clipped_residual[1] == 0.0);
+        let m = 1.0 - (-1.0 / DRIFT_SCALES_S[0]).exp();
+        assert!((e.raw_z[0][0] - m * clip_m).abs() < 1e-8);
+    }
+
+    #[test]
+    fn params_validate_and_round_trip() {
+        let params = DriftParams::unwhitened(1.0);
+        let json = serde_json::to_string(&params).expect("serialise");
+        let back: DriftParams = serde_json::from_str(&json).expect("valid");
+        assert_eq!(back, params);
+        let bad = json.replace("\"clip_m\":4.0", "\"clip_m\":-1.0");
+        let err = serde_json::from_str::<DriftParams>(&bad).expect_err("negative clip");
+        assert!(err.to_string().contains("drift.clip_m"), "{err}");
+        let mut indefinite = params;
+        indefinite.raw_covariance[2] = [[1.0, 2.0], [2.0, 1.0]];
+        let err = indefinite.validate().expect_err("indefinite");
+        assert!(err.to_string().contains("drift.raw_covariance"), "{err}");
+    }
+}
