@@ -19,6 +19,7 @@ pub mod detector;
 pub mod evaluation;
 pub mod evidence;
 pub mod geo;
+pub mod glr;
 pub mod metrics;
 pub mod model;
 pub mod rng;

@@ -6,9 +6,9 @@
 
 use std::sync::atomic::AtomicBool;
 
+use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::evidence::Features;
 use spoofwatch_core::model::artifact::ModelArtifact;
-use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::model::{LiquidState, ModelConfig};
 use spoofwatch_core::rng::Rng;
 use spoofwatch_core::train::{Sequence, TrainConfig, train};

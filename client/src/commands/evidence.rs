@@ -135,7 +135,11 @@ pub fn run(args: Args) -> Result<()> {
                     .map(|(_, value)| value(e).to_string()),
             );
             if let Some(drift) = &e.drift {
-                row.extend(DRIFT_COLUMNS.iter().map(|(_, value)| value(drift).to_string()));
+                row.extend(
+                    DRIFT_COLUMNS
+                        .iter()
+                        .map(|(_, value)| value(drift).to_string()),
+                );
             }
             out.write_record(&row)?;
         }

@@ -15,7 +15,9 @@
 use serde::{Deserialize, Serialize};
 
 use super::EvidenceError;
-use super::linalg::{IDENTITY, Mat2, inverse_sqrt_symmetric, is_symmetric_positive_definite, mul_vec};
+use super::linalg::{
+    IDENTITY, Mat2, inverse_sqrt_symmetric, is_symmetric_positive_definite, mul_vec,
+};
 use super::stats::{covariance, median, quantile_sorted};
 
 /// Number of drift-rate time scales.
@@ -109,10 +111,8 @@ impl DriftParams {
     /// Checks every value: σ̂_r and c positive and finite, covariances symmetric positive definite,
     /// thresholds positive and finite.
     pub fn validate(&self) -> Result<(), EvidenceError> {
-        let invalid = |field: &'static str, reason: String| EvidenceError::InvalidParams {
-            field,
-            reason,
-        };
+        let invalid =
+            |field: &'static str, reason: String| EvidenceError::InvalidParams { field, reason };
         let positive = |x: f64| x.is_finite() && x > 0.0;
         if !positive(self.residual_sigma_m) {
             return Err(invalid(
@@ -314,9 +314,7 @@ impl DriftTracker {
         let raw_z: [[f64; 2]; SCALE_COUNT] =
             std::array::from_fn(|k| mul_vec(&self.raw_whitening[k], self.raw_rate[k]));
         let calibrated_z: [[f64; 2]; SCALE_COUNT] = if warm_up >= 1.0 {
-            std::array::from_fn(|k| {
-                mul_vec(&self.calibrated_whitening[k], self.calibrated_rate[k])
-            })
+            std::array::from_fn(|k| mul_vec(&self.calibrated_whitening[k], self.calibrated_rate[k]))
         } else {
             [[0.0; 2]; SCALE_COUNT]
         };
@@ -344,10 +342,12 @@ impl DriftTracker {
         let forgetting = (-delta_t / CALIBRATION_MEMORY_S).exp();
         let p: [[f64; 3]; 3] = self.covariance.map(|row| row.map(|x| x / forgetting));
         // With A = −H: S = H P Hᵀ + σ²I, K = −P Hᵀ S⁻¹, innovation = r^c + H θ.
-        let ph: [[f64; 2]; 3] =
-            std::array::from_fn(|i| std::array::from_fn(|a| (0..3).map(|j| p[i][j] * h[j][a]).sum()));
-        let mut s: Mat2 =
-            std::array::from_fn(|a| std::array::from_fn(|b| (0..3).map(|i| h[i][a] * ph[i][b]).sum()));
+        let ph: [[f64; 2]; 3] = std::array::from_fn(|i| {
+            std::array::from_fn(|a| (0..3).map(|j| p[i][j] * h[j][a]).sum())
+        });
+        let mut s: Mat2 = std::array::from_fn(|a| {
+            std::array::from_fn(|b| (0..3).map(|i| h[i][a] * ph[i][b]).sum())
+        });
         s[0][0] += self.noise_variance;
         s[1][1] += self.noise_variance;
         let Some(s_inv) = inverse(&s) else {
@@ -381,7 +381,10 @@ impl DriftTracker {
     /// Keeps a snapshot every `SNAPSHOT_PERIOD_S` and moves `theta_in_use` to the newest one that is
     /// at least `CALIBRATION_DELAY_S` old.
     fn take_snapshot(&mut self) {
-        let newest = self.snapshot_count.checked_sub(1).map(|i| self.snapshots[i]);
+        let newest = self
+            .snapshot_count
+            .checked_sub(1)
+            .map(|i| self.snapshots[i]);
         if newest.is_none_or(|s| self.clock_s - s.clock_s >= SNAPSHOT_PERIOD_S) {
             if self.snapshot_count == SNAPSHOTS {
                 self.snapshots.copy_within(1.., 0);
@@ -544,7 +547,11 @@ pub fn drift_params_from_rates(
     for k in 0..SCALE_COUNT {
         let settle_s = SETTLE_SCALES * DRIFT_SCALES_S[k];
         let settled = |row: &&SettledRates| row.elapsed_s >= settle_s;
-        let raw: Vec<[f64; 2]> = rows.iter().filter(settled).map(|r| r.drift.raw_z[k]).collect();
+        let raw: Vec<[f64; 2]> = rows
+            .iter()
+            .filter(settled)
+            .map(|r| r.drift.raw_z[k])
+            .collect();
         let calibrated: Vec<[f64; 2]> = rows
             .iter()
             .filter(settled)
@@ -560,7 +567,10 @@ pub fn drift_params_from_rates(
         };
         (params.raw_covariance[k], params.raw_threshold[k]) =
             scale_fit(&raw).ok_or_else(|| too_few(raw.len(), ""))?;
-        (params.calibrated_covariance[k], params.calibrated_threshold[k]) = scale_fit(&calibrated)
+        (
+            params.calibrated_covariance[k],
+            params.calibrated_threshold[k],
+        ) = scale_fit(&calibrated)
             .ok_or_else(|| too_few(calibrated.len(), " with a warm calibration"))?;
     }
     params.validate()?;
@@ -575,7 +585,10 @@ fn scale_fit(rates: &[[f64; 2]]) -> Option<(Mat2, f64)> {
     }
     let covariance = covariance(rates);
     let w = whitening(&covariance);
-    let mut chi2: Vec<f64> = rates.iter().map(|r| norm_squared(mul_vec(&w, *r))).collect();
+    let mut chi2: Vec<f64> = rates
+        .iter()
+        .map(|r| norm_squared(mul_vec(&w, *r)))
+        .collect();
     chi2.sort_unstable_by(f64::total_cmp);
     let threshold = quantile_sorted(&chi2, THRESHOLD_QUANTILE)
         .filter(|h| h.is_finite() && *h > 0.0)
@@ -641,10 +654,7 @@ mod tests {
         let onboard = apply(&h, &theta_true);
         let east_drift = if t >= drift.0 { drift.1 } else { 0.0 };
         DriftInput {
-            residual: [
-                -onboard[0] + noise[0] + east_drift,
-                -onboard[1] + noise[1],
-            ],
+            residual: [-onboard[0] + noise[0] + east_drift, -onboard[1] + noise[1]],
             motion,
             velocity_change,
             delta_t: 1.0,
@@ -673,7 +683,10 @@ mod tests {
         // Cleaned of those errors, the residual is the noise again (small), the raw one is not.
         let raw = last.raw_z[3][0].hypot(last.raw_z[3][1]);
         let calibrated = last.calibrated_z[3][0].hypot(last.calibrated_z[3][1]);
-        assert!(calibrated < 0.05 && raw > 0.2, "raw {raw}, calibrated {calibrated}");
+        assert!(
+            calibrated < 0.05 && raw > 0.2,
+            "raw {raw}, calibrated {calibrated}"
+        );
     }
 
     #[test]

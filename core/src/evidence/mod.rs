@@ -68,7 +68,8 @@ pub enum FeatureSchema {
 
 impl FeatureSchema {
     /// Every schema with its name on the command line and on the wire.
-    pub const NAMED: [(&'static str, FeatureSchema); 2] = [("paper", Self::Paper), ("v2", Self::V2)];
+    pub const NAMED: [(&'static str, FeatureSchema); 2] =
+        [("paper", Self::Paper), ("v2", Self::V2)];
 
     /// The schema's name in [`Self::NAMED`].
     pub fn name(self) -> &'static str {

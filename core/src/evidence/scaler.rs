@@ -127,7 +127,11 @@ impl RobustScaler {
         out[NU_INDEX] = raw[NU_INDEX];
         for (k, (center, scale)) in self.center.iter().zip(&self.scale).enumerate() {
             let index = feature_index(k);
-            let x = if raw[index].is_finite() { raw[index] } else { 0.0 };
+            let x = if raw[index].is_finite() {
+                raw[index]
+            } else {
+                0.0
+            };
             out[index] = ((x - center) / scale).clamp(-CLIP, CLIP);
         }
         out
@@ -200,6 +204,9 @@ mod tests {
 
     #[test]
     fn empty_fit_is_an_error() {
-        assert!(matches!(RobustScaler::fit(&[], FeatureSchema::Paper), Err(EvidenceError::NoRows)));
+        assert!(matches!(
+            RobustScaler::fit(&[], FeatureSchema::Paper),
+            Err(EvidenceError::NoRows)
+        ));
     }
 }

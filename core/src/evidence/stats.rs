@@ -6,10 +6,8 @@
 use serde::{Deserialize, Serialize};
 
 use super::EvidenceError;
-use super::drift::{
-    DriftParams, SettledRates, drift_params_from_rates, robust_residual_sigma,
-};
 use super::builder::build_track;
+use super::drift::{DriftParams, SettledRates, drift_params_from_rates, robust_residual_sigma};
 use super::linalg::{IDENTITY, Mat2, inverse_sqrt_symmetric, mul_vec};
 use super::params::{EvidenceParams, SIGMA_EPSILON};
 use crate::geo::Projection;
@@ -89,7 +87,11 @@ pub fn fit_drift_params(
     let mut rows = Vec::new();
     for track in tracks {
         let mut elapsed_s = 0.0;
-        for (record, e) in track.records.iter().zip(build_track(&params, &track.records)) {
+        for (record, e) in track
+            .records
+            .iter()
+            .zip(build_track(&params, &track.records))
+        {
             if e.trajectory_start {
                 elapsed_s = 0.0;
             }

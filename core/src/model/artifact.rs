@@ -81,7 +81,11 @@ pub enum ArtifactError {
 impl ModelArtifact {
     /// The feature order a model of `schema` is stored with.
     pub fn feature_names_of(schema: FeatureSchema) -> Vec<String> {
-        schema.feature_names().iter().map(|s| s.to_string()).collect()
+        schema
+            .feature_names()
+            .iter()
+            .map(|s| s.to_string())
+            .collect()
     }
 
     /// The feature schema the model reads.
@@ -97,7 +101,8 @@ impl ModelArtifact {
             .get("schema_version")
             .and_then(serde_json::Value::as_u64)
             .ok_or(ArtifactError::MissingSchemaVersion)?;
-        let readable = u64::from(OLDEST_READABLE_SCHEMA_VERSION)..=u64::from(ARTIFACT_SCHEMA_VERSION);
+        let readable =
+            u64::from(OLDEST_READABLE_SCHEMA_VERSION)..=u64::from(ARTIFACT_SCHEMA_VERSION);
         if !readable.contains(&found) {
             let hint = if found > u64::from(ARTIFACT_SCHEMA_VERSION) {
                 "; it was written by a newer Spoofwatch: upgrade to load it"
@@ -161,7 +166,11 @@ impl ModelArtifact {
             return Err(ArtifactError::Invalid(format!(
                 "the {} feature schema {} drift parameters in the evidence",
                 schema.name(),
-                if schema.has_drift() { "needs" } else { "has no use for" }
+                if schema.has_drift() {
+                    "needs"
+                } else {
+                    "has no use for"
+                }
             )));
         }
         if self.schema_version < 2 && schema != FeatureSchema::legacy() {

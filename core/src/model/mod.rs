@@ -209,7 +209,9 @@ impl FeatureGroups {
             Self::NoEvolution => &[2, 3, 4, 5],
             Self::NoEvolutionNoQ => &[2, 3, 4, 5, 6],
             Self::LowOrderOnly => &[2, 3, 4, 5, 6, 7, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18],
-            Self::ValidityOnly => &[0, 1, 2, 3, 4, 5, 6, 7, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18],
+            Self::ValidityOnly => &[
+                0, 1, 2, 3, 4, 5, 6, 7, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18,
+            ],
             Self::NoDrift => &[9, 10, 11, 12, 13, 14, 15, 16, 17, 18],
             Self::NoRawDrift => &[9, 10, 11, 12],
             Self::NoCalibratedDrift => &[13, 14, 15, 16],

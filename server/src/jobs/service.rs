@@ -68,15 +68,16 @@ fn training_request(request: v1::CreateTrainingJobRequest) -> Result<TrainingReq
             format!("must be 1 to {MAX_TRAINING_EPOCHS}"),
         ));
     }
-    let schema = named_or_default(&spec.feature_schema, FeatureSchema::from_name).ok_or_else(|| {
-        invalid_field(
-            "spec.feature_schema",
-            format!(
-                "one of {}",
-                FeatureSchema::NAMED.map(|(name, _)| name).join(", ")
-            ),
-        )
-    })?;
+    let schema =
+        named_or_default(&spec.feature_schema, FeatureSchema::from_name).ok_or_else(|| {
+            invalid_field(
+                "spec.feature_schema",
+                format!(
+                    "one of {}",
+                    FeatureSchema::NAMED.map(|(name, _)| name).join(", ")
+                ),
+            )
+        })?;
     let features = named_or_default(&spec.features, FeatureGroups::from_name).ok_or_else(|| {
         invalid_field(
             "spec.features",

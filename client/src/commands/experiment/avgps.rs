@@ -5,10 +5,10 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use serde::Serialize;
-use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::alarm::{OperatingPoint, OperatingPointRule};
 use spoofwatch_core::cusum::{CusumComparator, fit_cusum_comparator};
 use spoofwatch_core::evaluation::{Scored, evaluate_tracks, trajectory_key};
+use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::metrics::{EventRules, Metrics, ScoredRow};
 use spoofwatch_core::model::{Ablation, FeatureGroups};
 use spoofwatch_core::sample::Track;
