@@ -696,4 +696,130 @@ mod tests {
             })
         ));
     }
+
+    /// FNV-1a over the bit patterns of every sample and truth field (and the line numbers).
+    fn drive_fingerprint(drive: &SimulatedDrive) -> u64 {
+        let mut hash = 0xcbf2_9ce4_8422_2325u64;
+        let mut eat = |value: f64| {
+            for byte in value.to_bits().to_le_bytes() {
+                hash ^= u64::from(byte);
+                hash = hash.wrapping_mul(0x0100_0000_01b3);
+            }
+        };
+        for record in &drive.track.records {
+            let s = &record.sample;
+            for value in [
+                s.timestamp_s,
+                s.latitude_deg,
+                s.longitude_deg,
+                s.speed_mps,
+                s.heading_deg,
+                record.line as f64,
+            ] {
+                eat(value);
+            }
+        }
+        for t in &drive.truth {
+            for value in [
+                t.timestamp_s,
+                t.latitude_deg,
+                t.longitude_deg,
+                t.speed_mps,
+                t.heading_deg,
+            ] {
+                eat(value);
+            }
+        }
+        hash
+    }
+
+    /// Specs whose drives were pinned before onboard errors, multipath and outages existed: their
+    /// defaults must leave these drives unchanged bit for bit.
+    fn pinned_specs() -> [DriveSpec; 3] {
+        let mut ten_hz = DriveSpec {
+            duration_s: 120.0,
+            rate_hz: 10.0,
+            start_heading_deg: 45.0,
+            seed: 7,
+            ..DriveSpec::default()
+        };
+        ten_hz.gnss_noise = GnssNoise {
+            white_std_m: 0.8,
+            bias_std_m: 2.0,
+            bias_time_constant_s: 90.0,
+        };
+        ten_hz.onboard_noise = OnboardNoise {
+            speed_std_mps: 0.1,
+            heading_std_deg: 2.0,
+        };
+        let mut fast = DriveSpec {
+            duration_s: 600.0,
+            seed: 12_345,
+            ..DriveSpec::default()
+        };
+        fast.speed.cruise_min_mps = 2.0;
+        fast.speed.cruise_max_mps = 25.0;
+        fast.turns.roam_radius_m = 1000.0;
+        [DriveSpec::default(), ten_hz, fast]
+    }
+
+    #[test]
+    fn drives_without_the_new_errors_are_unchanged_bit_for_bit() {
+        // Computed before onboard errors, multipath and outages were added (commit "pin simulated drives").
+        let pinned: [(usize, u64, [f64; 4]); 3] = [
+            (
+                1801,
+                0x343c_cfa3_bbc5_9091,
+                [
+                    32.22772038615564,
+                    -110.91269911298151,
+                    4.786362304136636,
+                    266.9499750022632,
+                ],
+            ),
+            (
+                1201,
+                0xe013_adb6_12eb_0c84,
+                [
+                    32.23064242127337,
+                    -110.90936210217251,
+                    0.0,
+                    16.422280913632758,
+                ],
+            ),
+            (
+                601,
+                0x36d6_37b4_6c36_3d86,
+                [
+                    32.223850520351164,
+                    -110.91259880373845,
+                    2.357380971017422,
+                    251.35200170902345,
+                ],
+            ),
+        ];
+        for (spec, (rows, fingerprint, last_values)) in pinned_specs().iter().zip(pinned) {
+            let drive = simulate_drive_with_truth(spec, "v").expect("valid spec");
+            let last = drive.track.records.last().expect("rows").sample;
+            assert_eq!(drive.track.records.len(), rows, "seed {}", spec.seed);
+            assert_eq!(
+                [
+                    last.latitude_deg,
+                    last.longitude_deg,
+                    last.speed_mps,
+                    last.heading_deg
+                ],
+                last_values,
+                "seed {}",
+                spec.seed
+            );
+            assert_eq!(
+                drive_fingerprint(&drive),
+                fingerprint,
+                "seed {}: {:#018x}",
+                spec.seed,
+                drive_fingerprint(&drive)
+            );
+        }
+    }
 }
