@@ -3,6 +3,8 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
+use spoofwatch_core::sample::Sample;
+use spoofwatch_core::scenario::{DriveDistribution, DriveSpec, simulate_drive};
 use spoofwatch_core::testdata::{AVGPS_DIR_VAR, data_file};
 
 fn spoofwatch(args: &[&str]) -> Output {
@@ -98,6 +100,76 @@ fn simulate_train_evaluate_and_evidence_work_together() {
     let first: Vec<&str> = lines[1].split(',').collect();
     assert!(first[0].starts_with("sim0#frozen"), "{}", lines[1]);
     assert_eq!(&first[1..5], ["2", "0", "NaN", "0"], "{}", lines[1]);
+}
+
+#[test]
+fn simulated_drives_take_a_rate_and_realistic_ones_round_trip_through_the_reader() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let ten_hz = path(dir.path(), "ten-hz.csv");
+    spoofwatch(&[
+        "scenario",
+        "simulate",
+        "--out",
+        &ten_hz,
+        "--duration",
+        "30",
+        "--rate",
+        "10",
+    ]);
+    let csv = std::fs::read_to_string(&ten_hz).expect("written");
+    assert_eq!(csv.lines().count(), 1 + 301);
+
+    let realistic = path(dir.path(), "realistic.csv");
+    spoofwatch(&[
+        "scenario",
+        "simulate",
+        "--out",
+        &realistic,
+        "--vehicles",
+        "4",
+        "--duration",
+        "900",
+        "--seed",
+        "3",
+        "--realistic",
+    ]);
+    let read = spoofwatch_core::data::read_path(Path::new(&realistic)).expect("readable");
+    assert_eq!(read.tracks.len(), 4);
+    let distribution = DriveDistribution::realistic();
+    let mut vehicles_with_gaps = 0;
+    for (k, track) in (3..).zip(&read.tracks) {
+        let spec = DriveSpec {
+            duration_s: 900.0,
+            ..distribution.draw(k)
+        };
+        let simulated = simulate_drive(&spec, &format!("sim{}", k - 3)).expect("a drawn spec");
+        assert_eq!(track.vehicle_id, simulated.vehicle_id);
+        let samples = |t: &spoofwatch_core::sample::Track| -> Vec<Sample> {
+            t.records.iter().map(|r| r.sample).collect()
+        };
+        // Bit for bit: the CSV writes shortest round-trip floats.
+        assert_eq!(samples(track), samples(&simulated), "{}", track.vehicle_id);
+        assert!(track.records.iter().all(|r| r.label == Some(false)));
+        if track.records.len() < spec.sample_count() {
+            vehicles_with_gaps += 1;
+        }
+    }
+    assert!(
+        vehicles_with_gaps > 0,
+        "seeds 3–6 include drives with outages"
+    );
+
+    let refused = Command::new(env!("CARGO_BIN_EXE_spoofwatch"))
+        .args(["scenario", "simulate", "--out", &realistic, "--realistic"])
+        .args(["--rate", "10"])
+        .output()
+        .expect("runs");
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        stderr.contains("--realistic") && stderr.contains("--rate"),
+        "{stderr}"
+    );
 }
 
 #[test]

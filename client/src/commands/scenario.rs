@@ -7,8 +7,8 @@ use clap::ValueEnum;
 use spoofwatch_core::data::telemetry::write_tracks;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{
-    AttackDuration, AttackKind, AttackSpec, DriveSpec, InjectedTrack, RAMP_SWEEP_VELOCITIES_MPS,
-    ScenarioPlan, generate, inject, normal_runs, simulate_drive,
+    AttackDuration, AttackKind, AttackSpec, DriveDistribution, DriveSpec, InjectedTrack,
+    RAMP_SWEEP_VELOCITIES_MPS, ScenarioPlan, generate, inject, normal_runs, simulate_drive,
 };
 
 use super::write_json;
@@ -97,9 +97,17 @@ pub struct SimulateArgs {
     /// Number of vehicles (one drive each, seeds seed, seed+1, …).
     #[arg(long, default_value_t = 1)]
     vehicles: u64,
-    /// Drive length in seconds (1 Hz).
+    /// Drive length in seconds.
     #[arg(long, default_value_t = 600.0)]
     duration: f64,
+    /// Output sample rate in Hz (the default drive; refused with --realistic, which draws the rate).
+    #[arg(long, default_value_t = 1.0, conflicts_with = "realistic")]
+    rate: f64,
+    /// Draw each vehicle's drive from the realistic distribution (1–30 m/s, 1–10 Hz, varied GNSS noise,
+    /// onboard scale/bias/timing errors, multipath, outages in half the drives) with seed+i. Outages are
+    /// missing rows; an --attack window that spans one is refused.
+    #[arg(long)]
+    realistic: bool,
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// Optionally attack every drive (see `inject`).
@@ -171,15 +179,13 @@ pub fn run(cmd: Command) -> Result<()> {
     }
 }
 
-fn drives(count: u64, duration_s: f64, seed: u64) -> Result<Vec<Track>> {
+/// Drives `sim0`, `sim1`, … with the specs `spec_of(seed)`, `spec_of(seed + 1)`, ….
+fn drives(count: u64, seed: u64, spec_of: impl Fn(u64) -> DriveSpec) -> Result<Vec<Track>> {
     (0..count)
         .map(|k| {
-            let spec = DriveSpec {
-                duration_s,
-                seed: seed.wrapping_add(k),
-                ..DriveSpec::default()
-            };
-            simulate_drive(&spec, &format!("sim{k}")).context("simulating a drive")
+            let vehicle_id = format!("sim{k}");
+            simulate_drive(&spec_of(seed.wrapping_add(k)), &vehicle_id)
+                .with_context(|| format!("simulating {vehicle_id}"))
         })
         .collect()
 }
@@ -189,7 +195,21 @@ fn normal_bases(paths: &[PathBuf]) -> Result<Vec<Track>> {
 }
 
 fn simulate(args: SimulateArgs) -> Result<()> {
-    let bases = drives(args.vehicles, args.duration, args.seed)?;
+    let duration_s = args.duration;
+    let bases = if args.realistic {
+        let distribution = DriveDistribution::realistic();
+        drives(args.vehicles, args.seed, |seed| DriveSpec {
+            duration_s,
+            ..distribution.draw(seed)
+        })?
+    } else {
+        drives(args.vehicles, args.seed, |seed| DriveSpec {
+            duration_s,
+            rate_hz: args.rate,
+            seed,
+            ..DriveSpec::default()
+        })?
+    };
     let (tracks, injected) = match (args.attack, args.onset) {
         (Some(family), Some(onset)) => {
             let spec = AttackArgs {
@@ -225,7 +245,11 @@ fn inject_into_data(args: InjectArgs) -> Result<()> {
 
 fn sweep(args: SweepArgs) -> Result<()> {
     let mut bases = normal_bases(&args.data)?;
-    bases.extend(drives(args.drives, args.drive_duration, args.seed)?);
+    bases.extend(drives(args.drives, args.seed, |seed| DriveSpec {
+        duration_s: args.drive_duration,
+        seed,
+        ..DriveSpec::default()
+    })?);
     if bases.is_empty() {
         bail!("no bases: give --data with normal rows and/or --drives N");
     }

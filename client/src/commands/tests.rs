@@ -1,4 +1,4 @@
-//! Argument parsing of the remote commands (and that `train` keeps its offline form).
+//! Argument parsing: the remote commands, `train`'s offline form, `scenario simulate --rate/--realistic`.
 
 use clap::Parser;
 use spoofwatch_client::connection::DEFAULT_SERVER_URL;
@@ -285,4 +285,20 @@ fn demo_defaults_to_twenty_samples_per_second() {
     };
     assert_eq!(args.rate, 20.0);
     assert!(parse(&["demo", "--rate", "-2"]).is_err());
+}
+
+#[test]
+fn scenario_simulate_takes_a_rate_or_realistic_drives_but_not_both() {
+    let simulate = |extra: &[&str]| {
+        let mut args = vec!["scenario", "simulate", "--out", "drives.csv"];
+        args.extend_from_slice(extra);
+        parse(&args)
+    };
+    assert!(simulate(&[]).is_ok());
+    assert!(simulate(&["--rate", "10"]).is_ok());
+    assert!(simulate(&["--realistic"]).is_ok());
+    let err =
+        simulate(&["--realistic", "--rate", "10"]).expect_err("the realistic draw sets the rate");
+    assert_eq!(err.kind(), clap::error::ErrorKind::ArgumentConflict);
+    assert!(err.to_string().contains("--rate"), "{err}");
 }

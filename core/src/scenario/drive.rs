@@ -3,13 +3,19 @@
 //! The truth is integrated at `SUBSTEPS_PER_SAMPLE` (10) substeps per sample from a speed and a heading that
 //! move towards targets at bounded rates (acceleration, braking, yaw rate, lateral acceleration), so both
 //! evolve smoothly. Targets come from a seeded maneuver planner (cruise at a new speed, turn, stop).
-//! The planner and the sensor noise draw from separate streams of the seed, so changing a noise level
-//! keeps the same ground truth.
+//! The planner, the sensor noise, multipath and outages draw from separate streams of the seed, so changing
+//! a noise level or turning on an error keeps the same ground truth and the same other errors.
 //!
-//! Owns simulated drives. Must not inject attacks (that is `attack.rs`).
+//! Owns simulated drives and their spec. Must not inject attacks (that is `attack.rs`) or draw specs at
+//! random (that is `randomise.rs`).
+
+use std::collections::VecDeque;
 
 use serde::{Deserialize, Serialize};
 
+use super::impairments::{
+    GnssOutage, Multipath, MultipathModel, OnboardErrors, OutageSchedule, Outages,
+};
 use super::{ScenarioError, bearing_unit};
 use crate::geo::displace_fix;
 use crate::rng::Rng;
@@ -25,6 +31,8 @@ const NOISE_STREAM: u64 = 0x6E6F_6973_655F_7631;
 const MIN_TURNING_SPEED_MPS: f64 = 0.1;
 /// When heading home from beyond the roam radius, the aim is jittered by up to this much.
 const HOMING_JITTER_DEG: f64 = 30.0;
+/// Largest onboard timing offset (s): enough for real loggers, and it bounds the kept truth history.
+const MAX_TIMING_OFFSET_S: f64 = 1.0;
 
 /// Speed behaviour: log-uniform cruise speeds (slow driving dominates, like the AV-GPS test track), bounded
 /// acceleration and braking, and stops.
@@ -167,7 +175,13 @@ pub struct DriveSpec {
     pub gnss_noise: GnssNoise,
     /// Onboard sensor noise.
     pub onboard_noise: OnboardNoise,
-    /// Seed of the maneuver and noise streams.
+    /// Onboard speed-scale, heading-bias and timing errors (default: none).
+    pub onboard_errors: OnboardErrors,
+    /// GNSS multipath outliers (default: none).
+    pub multipath: Multipath,
+    /// GNSS outages (default: none).
+    pub outages: Outages,
+    /// Seed of the maneuver, noise, multipath and outage streams.
     pub seed: u64,
 }
 
@@ -183,6 +197,9 @@ impl Default for DriveSpec {
             turns: TurnBehaviour::default(),
             gnss_noise: GnssNoise::default(),
             onboard_noise: OnboardNoise::default(),
+            onboard_errors: OnboardErrors::default(),
+            multipath: Multipath::default(),
+            outages: Outages::default(),
             seed: 0,
         }
     }
@@ -195,8 +212,11 @@ impl DriveSpec {
         let t = &self.turns;
         let g = &self.gnss_noise;
         let o = &self.onboard_noise;
+        let e = &self.onboard_errors;
+        let m = &self.multipath;
+        let gaps = &self.outages;
         let samples = self.duration_s * self.rate_hz;
-        let checks: [(&'static str, f64, bool, &str); 26] = [
+        let checks: [(&'static str, f64, bool, &str); 34] = [
             (
                 "duration_s",
                 self.duration_s,
@@ -353,6 +373,49 @@ impl DriveSpec {
                 o.heading_std_deg >= 0.0,
                 ">= 0 degrees",
             ),
+            (
+                "onboard_errors.speed_scale_error",
+                e.speed_scale_error,
+                e.speed_scale_error.abs() <= 0.5,
+                "in [-0.5, 0.5]",
+            ),
+            (
+                "onboard_errors.heading_bias_deg",
+                e.heading_bias_deg,
+                e.heading_bias_deg.abs() <= 180.0,
+                "in [-180, 180] degrees",
+            ),
+            (
+                "onboard_errors.timing_offset_s",
+                e.timing_offset_s,
+                e.timing_offset_s.abs() <= MAX_TIMING_OFFSET_S,
+                "in [-1, 1] s",
+            ),
+            (
+                "multipath.probability",
+                m.probability,
+                (0.0..=1.0).contains(&m.probability),
+                "in [0, 1]",
+            ),
+            (
+                "multipath.std_m",
+                m.std_m,
+                (0.0..=1000.0).contains(&m.std_m),
+                "in [0, 1000] m",
+            ),
+            (
+                "outages.mean_interval_s",
+                gaps.mean_interval_s,
+                gaps.mean_interval_s >= 0.0,
+                ">= 0 s (0 = no outages)",
+            ),
+            ("outages.min_s", gaps.min_s, gaps.min_s >= 0.0, ">= 0 s"),
+            (
+                "outages.max_s",
+                gaps.max_s,
+                gaps.max_s >= gaps.min_s,
+                ">= min_s",
+            ),
         ];
         for (field, value, ok, expected) in checks {
             if !value.is_finite() || !ok {
@@ -388,13 +451,18 @@ pub struct TrueState {
     pub heading_deg: f64,
 }
 
-/// A simulated drive: the measured track and the ground truth behind each of its rows.
+/// A simulated drive: the measured track, the ground truth behind each of its rows and where the GNSS
+/// misbehaved.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SimulatedDrive {
-    /// Measured samples, labelled normal.
+    /// Measured samples, labelled normal; fixes inside outages are missing.
     pub track: Track,
     /// Ground truth, one per record.
     pub truth: Vec<TrueState>,
+    /// Indices into `track.records` of the fixes that carry a multipath outlier.
+    pub multipath_rows: Vec<usize>,
+    /// The GNSS outages that dropped fixes, in time order.
+    pub outages: Vec<GnssOutage>,
 }
 
 /// Simulates a drive (see [`simulate_drive_with_truth`]) and returns the measured track only.
@@ -402,38 +470,48 @@ pub fn simulate_drive(spec: &DriveSpec, vehicle_id: &str) -> Result<Track, Scena
     simulate_drive_with_truth(spec, vehicle_id).map(|drive| drive.track)
 }
 
-/// Simulates a drive: timestamps 0, 1/rate, …; GNSS fix = truth + [`GnssNoise`]; onboard speed/heading =
-/// truth + [`OnboardNoise`]; every label `Some(false)`; `line` = 1-based sample number. Deterministic
-/// for a spec (including its seed).
+/// Simulates a drive: timestamps 0, 1/rate, …; GNSS fix = truth + [`GnssNoise`] (+ a [`Multipath`]
+/// outlier now and then); onboard speed/heading = truth at t − τ_L with the [`OnboardErrors`] +
+/// [`OnboardNoise`]; fixes inside [`Outages`] dropped; every label `Some(false)`; `line` = 1-based sample
+/// number (so it skips over outages). Deterministic for a spec (including its seed).
 pub fn simulate_drive_with_truth(
     spec: &DriveSpec,
     vehicle_id: &str,
 ) -> Result<SimulatedDrive, ScenarioError> {
     spec.validate()?;
     let sample_interval_s = 1.0 / spec.rate_hz;
-    let substep_s = sample_interval_s / SUBSTEPS_PER_SAMPLE as f64;
-    let mut vehicle = Vehicle::at_start(spec);
-    let mut planner = Planner::new(spec);
+    // The onboard samples look this many substeps back (forward when negative).
+    let onboard_lag_substeps =
+        spec.onboard_errors.timing_offset_s * spec.rate_hz * SUBSTEPS_PER_SAMPLE as f64;
+    let mut truth_stream = TruthStream::new(spec);
     let mut sensors = Sensors::new(spec);
+    let mut outages = OutageSchedule::new(spec.outages, spec.seed, sample_interval_s);
     let count = spec.sample_count();
     let mut records = Vec::with_capacity(count);
     let mut truth = Vec::with_capacity(count);
+    let mut multipath_rows = Vec::new();
     for index in 0..count {
-        if index > 0 {
-            for _ in 0..SUBSTEPS_PER_SAMPLE {
-                planner.update(&mut vehicle);
-                vehicle.advance(substep_s, &spec.speed, &spec.turns);
-            }
-        }
+        let fix_substep = index * SUBSTEPS_PER_SAMPLE;
+        let at_fix = truth_stream.at(fix_substep);
         let state = TrueState {
             timestamp_s: index as f64 * sample_interval_s,
-            latitude_deg: vehicle.latitude_deg,
-            longitude_deg: vehicle.longitude_deg,
-            speed_mps: vehicle.speed_mps,
-            heading_deg: vehicle.heading_deg,
+            latitude_deg: at_fix.latitude_deg,
+            longitude_deg: at_fix.longitude_deg,
+            speed_mps: at_fix.speed_mps,
+            heading_deg: at_fix.heading_deg,
         };
+        let onboard_motion = truth_stream.motion_at(fix_substep as f64 - onboard_lag_substeps);
+        truth_stream.forget_before(fix_substep as f64 - onboard_lag_substeps.max(0.0));
+        // Every sample is measured, even a dropped one, so an outage does not shift the noise streams.
+        let measured = sensors.measure(&state, onboard_motion, index > 0);
+        if outages.drops(state.timestamp_s) {
+            continue;
+        }
+        if measured.has_multipath {
+            multipath_rows.push(records.len());
+        }
         records.push(Record {
-            sample: sensors.measure(&state, index > 0),
+            sample: measured.sample,
             label: Some(false),
             comparator_alarm: None,
             line: index as u64 + 1,
@@ -447,7 +525,112 @@ pub fn simulate_drive_with_truth(
             records,
         },
         truth,
+        multipath_rows,
+        outages: outages.into_dropped_gaps(),
     })
+}
+
+/// The true state after some substep.
+#[derive(Clone, Copy, Debug)]
+struct SubstepState {
+    latitude_deg: f64,
+    longitude_deg: f64,
+    speed_mps: f64,
+    heading_deg: f64,
+}
+
+/// True speed and heading at some instant, as the onboard sensors see it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Motion {
+    speed_mps: f64,
+    heading_deg: f64,
+}
+
+impl Motion {
+    fn of(state: SubstepState) -> Self {
+        Self {
+            speed_mps: state.speed_mps,
+            heading_deg: state.heading_deg,
+        }
+    }
+
+    /// Linear interpolation towards `other` (`fraction` in [0, 1]), the heading along the shorter arc.
+    fn towards(self, other: Self, fraction: f64) -> Self {
+        Self {
+            speed_mps: self.speed_mps + fraction * (other.speed_mps - self.speed_mps),
+            heading_deg: wrap_degrees(
+                self.heading_deg
+                    + fraction * signed_angle_deg(other.heading_deg - self.heading_deg),
+            ),
+        }
+    }
+}
+
+/// The truth at substep resolution: integrated ahead on demand and kept back only as far as the onboard
+/// timing offset looks, so onboard samples can be taken at t − τ_L on either side of t.
+struct TruthStream {
+    vehicle: Vehicle,
+    planner: Planner,
+    speed: SpeedProfile,
+    turns: TurnBehaviour,
+    substep_s: f64,
+    /// States after substeps `first_substep`, `first_substep + 1`, …; substep 0 is the start.
+    states: VecDeque<SubstepState>,
+    first_substep: usize,
+}
+
+impl TruthStream {
+    fn new(spec: &DriveSpec) -> Self {
+        let vehicle = Vehicle::at_start(spec);
+        let start = vehicle.state();
+        Self {
+            vehicle,
+            planner: Planner::new(spec),
+            speed: spec.speed,
+            turns: spec.turns,
+            substep_s: 1.0 / (spec.rate_hz * SUBSTEPS_PER_SAMPLE as f64),
+            states: VecDeque::from([start]),
+            first_substep: 0,
+        }
+    }
+
+    /// The state after `substep` substeps, integrating ahead as needed. Panics if it was forgotten
+    /// (a bug of this module, not of the spec).
+    fn at(&mut self, substep: usize) -> SubstepState {
+        while self.first_substep + self.states.len() <= substep {
+            self.planner.update(&mut self.vehicle);
+            self.vehicle
+                .advance(self.substep_s, &self.speed, &self.turns);
+            self.states.push_back(self.vehicle.state());
+        }
+        let offset = substep
+            .checked_sub(self.first_substep)
+            .expect("truth states are forgotten only once no sample needs them");
+        self.states[offset]
+    }
+
+    /// Speed and heading at a fractional substep, linearly interpolated; before the start the vehicle
+    /// stands at its start.
+    fn motion_at(&mut self, substep: f64) -> Motion {
+        let before = substep.max(0.0).floor();
+        let fraction = substep.max(0.0) - before;
+        let at_before = Motion::of(self.at(before as usize));
+        if fraction == 0.0 {
+            // Exactly on a substep (always so without a timing offset): the state itself, bit for bit.
+            return at_before;
+        }
+        at_before.towards(Motion::of(self.at(before as usize + 1)), fraction)
+    }
+
+    /// Drops the states before `substep` (fractional; no later sample asks for them).
+    fn forget_before(&mut self, substep: f64) {
+        let keep_from = substep.max(0.0).floor() as usize;
+        let forgotten = keep_from
+            .saturating_sub(self.first_substep)
+            .min(self.states.len());
+        self.states.drain(..forgotten);
+        self.first_substep += forgotten;
+    }
 }
 
 /// True kinematic state, advanced in substeps.
@@ -476,6 +659,15 @@ impl Vehicle {
             heading_deg: spec.start_heading_deg,
             target_speed_mps: 0.0,
             target_heading_deg: spec.start_heading_deg,
+        }
+    }
+
+    fn state(&self) -> SubstepState {
+        SubstepState {
+            latitude_deg: self.latitude_deg,
+            longitude_deg: self.longitude_deg,
+            speed_mps: self.speed_mps,
+            heading_deg: self.heading_deg,
         }
     }
 
@@ -570,11 +762,19 @@ impl Planner {
     }
 }
 
-/// GNSS and onboard measurement models, drawing from the seeded noise stream.
+/// One measured sample and whether its fix carries a multipath outlier.
+struct Measurement {
+    sample: Sample,
+    has_multipath: bool,
+}
+
+/// GNSS and onboard measurement models, drawing from the seeded noise stream (multipath from its own).
 struct Sensors {
     rng: Rng,
     gnss: GnssNoise,
     onboard: OnboardNoise,
+    errors: OnboardErrors,
+    multipath: MultipathModel,
     /// Gauss–Markov factor φ per sample.
     bias_decay: f64,
     bias_east_m: f64,
@@ -591,15 +791,18 @@ impl Sensors {
             rng,
             gnss,
             onboard: spec.onboard_noise,
+            errors: spec.onboard_errors,
+            multipath: MultipathModel::new(spec.multipath, spec.seed),
             bias_decay: (-1.0 / (spec.rate_hz * gnss.bias_time_constant_s)).exp(),
             bias_east_m,
             bias_north_m,
         }
     }
 
-    /// Measures one truth state; `advance_bias` is false for the first sample (bias already stationary).
-    /// Always draws the same count of deviates, so noise levels only scale the same stream.
-    fn measure(&mut self, truth: &TrueState, advance_bias: bool) -> Sample {
+    /// Measures the fix at one truth state and the onboard motion (the truth at t − τ_L); `advance_bias`
+    /// is false for the first sample (bias already stationary). Always draws the same count of deviates,
+    /// so noise levels only scale the same stream.
+    fn measure(&mut self, truth: &TrueState, onboard: Motion, advance_bias: bool) -> Measurement {
         if advance_bias {
             let innovation_std = self.gnss.bias_std_m * (1.0 - self.bias_decay.powi(2)).sqrt();
             self.bias_east_m =
@@ -607,8 +810,13 @@ impl Sensors {
             self.bias_north_m =
                 self.bias_decay * self.bias_north_m + innovation_std * self.rng.normal();
         }
-        let error_east_m = self.bias_east_m + self.gnss.white_std_m * self.rng.normal();
-        let error_north_m = self.bias_north_m + self.gnss.white_std_m * self.rng.normal();
+        let mut error_east_m = self.bias_east_m + self.gnss.white_std_m * self.rng.normal();
+        let mut error_north_m = self.bias_north_m + self.gnss.white_std_m * self.rng.normal();
+        let outlier = self.multipath.next_outlier();
+        if let Some((east_m, north_m)) = outlier {
+            error_east_m += east_m;
+            error_north_m += north_m;
+        }
         let (latitude_deg, longitude_deg) = displace_fix(
             truth.latitude_deg,
             truth.longitude_deg,
@@ -618,18 +826,23 @@ impl Sensors {
         let speed_noise = self.onboard.speed_std_mps * self.rng.normal();
         let heading_noise = self.onboard.heading_std_deg * self.rng.normal();
         // A wheel-speed sensor reads exactly zero at standstill.
-        let speed_mps = if truth.speed_mps > 0.0 {
-            (truth.speed_mps + speed_noise).max(0.0)
+        let speed_mps = if onboard.speed_mps > 0.0 {
+            ((1.0 + self.errors.speed_scale_error) * onboard.speed_mps + speed_noise).max(0.0)
         } else {
             0.0
         };
-        Sample::new(
-            truth.timestamp_s,
-            latitude_deg,
-            longitude_deg,
-            speed_mps,
-            wrap_degrees(truth.heading_deg + heading_noise),
-        )
+        let heading_deg =
+            wrap_degrees(onboard.heading_deg + self.errors.heading_bias_deg + heading_noise);
+        Measurement {
+            sample: Sample::new(
+                truth.timestamp_s,
+                latitude_deg,
+                longitude_deg,
+                speed_mps,
+                heading_deg,
+            ),
+            has_multipath: outlier.is_some(),
+        }
     }
 }
 
@@ -656,6 +869,46 @@ mod tests {
         assert_eq!(wrap_degrees(-1e-20), 0.0);
         assert_eq!(signed_angle_deg(350.0), -10.0);
         assert_eq!(signed_angle_deg(-190.0), 170.0);
+    }
+
+    #[test]
+    fn onboard_motion_between_substeps_is_interpolated_and_clamped_at_the_start() {
+        let (a, b) = (
+            Motion {
+                speed_mps: 2.0,
+                heading_deg: 359.0,
+            },
+            Motion {
+                speed_mps: 4.0,
+                heading_deg: 3.0,
+            },
+        );
+        let quarter = a.towards(b, 0.25);
+        assert_eq!(quarter.speed_mps, 2.5);
+        assert!((quarter.heading_deg - 0.0).abs() < 1e-12, "{quarter:?}");
+        assert!((b.towards(a, 0.5).heading_deg - 1.0).abs() < 1e-12);
+
+        let spec = DriveSpec {
+            duration_s: 60.0,
+            seed: 2,
+            ..DriveSpec::default()
+        };
+        let mut stream = TruthStream::new(&spec);
+        let start = Motion::of(stream.at(0));
+        assert_eq!(stream.motion_at(-7.5), start);
+        // The first substep after which the vehicle moves (it starts at rest).
+        let n = (1..)
+            .find(|&n| stream.at(n).speed_mps > 0.0)
+            .expect("the vehicle sets off");
+        let (before, after) = (Motion::of(stream.at(n)), Motion::of(stream.at(n + 1)));
+        assert!(after.speed_mps > before.speed_mps);
+        assert_eq!(stream.motion_at(n as f64), before);
+        let between = stream.motion_at(n as f64 + 0.25);
+        assert_eq!(between, before.towards(after, 0.25));
+        assert!(before.speed_mps < between.speed_mps && between.speed_mps < after.speed_mps);
+        stream.forget_before(n as f64 + 0.5);
+        assert_eq!(stream.first_substep, n);
+        assert_eq!(Motion::of(stream.at(n + 1)), after);
     }
 
     #[test]
@@ -695,5 +948,131 @@ mod tests {
                 ..
             })
         ));
+    }
+
+    /// FNV-1a over the bit patterns of every sample and truth field (and the line numbers).
+    fn drive_fingerprint(drive: &SimulatedDrive) -> u64 {
+        let mut hash = 0xcbf2_9ce4_8422_2325u64;
+        let mut eat = |value: f64| {
+            for byte in value.to_bits().to_le_bytes() {
+                hash ^= u64::from(byte);
+                hash = hash.wrapping_mul(0x0100_0000_01b3);
+            }
+        };
+        for record in &drive.track.records {
+            let s = &record.sample;
+            for value in [
+                s.timestamp_s,
+                s.latitude_deg,
+                s.longitude_deg,
+                s.speed_mps,
+                s.heading_deg,
+                record.line as f64,
+            ] {
+                eat(value);
+            }
+        }
+        for t in &drive.truth {
+            for value in [
+                t.timestamp_s,
+                t.latitude_deg,
+                t.longitude_deg,
+                t.speed_mps,
+                t.heading_deg,
+            ] {
+                eat(value);
+            }
+        }
+        hash
+    }
+
+    /// Specs whose drives were pinned before onboard errors, multipath and outages existed: their
+    /// defaults must leave these drives unchanged bit for bit.
+    fn pinned_specs() -> [DriveSpec; 3] {
+        let mut ten_hz = DriveSpec {
+            duration_s: 120.0,
+            rate_hz: 10.0,
+            start_heading_deg: 45.0,
+            seed: 7,
+            ..DriveSpec::default()
+        };
+        ten_hz.gnss_noise = GnssNoise {
+            white_std_m: 0.8,
+            bias_std_m: 2.0,
+            bias_time_constant_s: 90.0,
+        };
+        ten_hz.onboard_noise = OnboardNoise {
+            speed_std_mps: 0.1,
+            heading_std_deg: 2.0,
+        };
+        let mut fast = DriveSpec {
+            duration_s: 600.0,
+            seed: 12_345,
+            ..DriveSpec::default()
+        };
+        fast.speed.cruise_min_mps = 2.0;
+        fast.speed.cruise_max_mps = 25.0;
+        fast.turns.roam_radius_m = 1000.0;
+        [DriveSpec::default(), ten_hz, fast]
+    }
+
+    #[test]
+    fn drives_without_the_new_errors_are_unchanged_bit_for_bit() {
+        // Computed on the simulator as it was before onboard errors, multipath and outages existed.
+        let pinned: [(usize, u64, [f64; 4]); 3] = [
+            (
+                1801,
+                0x343c_cfa3_bbc5_9091,
+                [
+                    32.22772038615564,
+                    -110.91269911298151,
+                    4.786362304136636,
+                    266.9499750022632,
+                ],
+            ),
+            (
+                1201,
+                0xe013_adb6_12eb_0c84,
+                [
+                    32.23064242127337,
+                    -110.90936210217251,
+                    0.0,
+                    16.422280913632758,
+                ],
+            ),
+            (
+                601,
+                0x36d6_37b4_6c36_3d86,
+                [
+                    32.223850520351164,
+                    -110.91259880373845,
+                    2.357380971017422,
+                    251.35200170902345,
+                ],
+            ),
+        ];
+        for (spec, (rows, fingerprint, last_values)) in pinned_specs().iter().zip(pinned) {
+            let drive = simulate_drive_with_truth(spec, "v").expect("valid spec");
+            let last = drive.track.records.last().expect("rows").sample;
+            assert_eq!(drive.track.records.len(), rows, "seed {}", spec.seed);
+            assert_eq!(
+                [
+                    last.latitude_deg,
+                    last.longitude_deg,
+                    last.speed_mps,
+                    last.heading_deg
+                ],
+                last_values,
+                "seed {}",
+                spec.seed
+            );
+            assert_eq!(
+                drive_fingerprint(&drive),
+                fingerprint,
+                "seed {}: {:#018x}",
+                spec.seed,
+                drive_fingerprint(&drive)
+            );
+        }
     }
 }

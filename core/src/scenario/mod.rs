@@ -2,22 +2,27 @@
 //!
 //! The AV-GPS attacks are not subtle (frozen fixes while stopped, jumps of hundreds of km), so the detector
 //! is trained and judged on attacks injected here: into real normal trajectories ([`inject`], [`generate`])
-//! and into simulated drives ([`simulate_drive`]). Everything is deterministic from seeds.
+//! and into simulated drives ([`simulate_drive`]), whose specs can be drawn at random from a
+//! [`DriveDistribution`]. Everything is deterministic from seeds.
 //!
 //! Geodesy (metres east/north → latitude/longitude) is [`crate::geo::displace_fix`]. This module owns
-//! attack kinds, injection, scenario plans and simulated drives; it must not compute evidence or run a
-//! detector (tests and experiments do that with the scenarios it returns).
+//! attack kinds, injection, scenario plans, simulated drives and their distributions; it must not compute
+//! evidence or run a detector (tests and experiments do that with the scenarios it returns).
 
 mod attack;
 mod drive;
+mod impairments;
 mod plan;
+mod randomise;
 
 pub use attack::{AttackKind, AttackSpec, InjectedTrack, inject};
 pub use drive::{
     DriveSpec, GnssNoise, OnboardNoise, SimulatedDrive, SpeedProfile, TrueState, TurnBehaviour,
     simulate_drive, simulate_drive_with_truth,
 };
+pub use impairments::{GnssOutage, Multipath, OnboardErrors, Outages};
 pub use plan::{AttackDuration, RAMP_SWEEP_VELOCITIES_MPS, ScenarioPlan, generate};
+pub use randomise::{ClippedNormal, DriveDistribution, Range, UrbanToRural};
 
 /// Ramp drift velocities accepted by [`AttackKind::RampDrift`] (m/s, inclusive; SPEC §9).
 pub const RAMP_VELOCITY_RANGE_MPS: (f64, f64) = (0.05, 2.0);
@@ -42,6 +47,13 @@ pub enum ScenarioError {
     /// A field of a [`DriveSpec`] is non-finite or out of range.
     #[error("drive spec {field} must be {expected}, got {value}")]
     InvalidDrive {
+        field: &'static str,
+        expected: String,
+        value: f64,
+    },
+    /// A field of a [`DriveDistribution`] is non-finite or out of range.
+    #[error("drive distribution {field} must be {expected}, got {value}")]
+    InvalidDistribution {
         field: &'static str,
         expected: String,
         value: f64,

@@ -1,0 +1,728 @@
+//! Domain randomisation: drive specs drawn from documented ranges, so detectors are trained and judged on
+//! many vehicles, sensors and error levels instead of one tuned simulator (SUBTLE-DRIFT §5: a threshold
+//! calibrated on one trajectory does not hold on another).
+//!
+//! Owns the distribution of drive specs, its range checks and the seeded draw. Must not simulate (that is
+//! `drive.rs`); the drawn spec's duration and start position are the caller's.
+
+use serde::{Deserialize, Serialize};
+
+use super::ScenarioError;
+use super::drive::{DriveSpec, GnssNoise, OnboardNoise, SpeedProfile, TurnBehaviour};
+use super::impairments::{Multipath, OnboardErrors, Outages};
+use crate::rng::Rng;
+use crate::sample::MAX_SPEED_MPS;
+
+/// Mixed into the seed for the stream the spec is drawn from (the drive's own streams use the seed itself).
+const DISTRIBUTION_STREAM: u64 = 0x7261_6E64_6F6D_6973;
+
+/// A closed range; each field's doc says whether it is drawn uniformly or log-uniformly.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Range {
+    pub min: f64,
+    pub max: f64,
+}
+
+impl Range {
+    const fn new(min: f64, max: f64) -> Self {
+        Self { min, max }
+    }
+
+    fn uniform(self, rng: &mut Rng) -> f64 {
+        rng.uniform_range(self.min, self.max)
+    }
+
+    /// Every factor equally likely (needs min > 0).
+    fn log_uniform(self, rng: &mut Rng) -> f64 {
+        rng.uniform_range(self.min.ln(), self.max.ln())
+            .exp()
+            .clamp(self.min, self.max)
+    }
+}
+
+/// A zero-mean normal with `std`, clipped to ±`limit`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ClippedNormal {
+    pub std: f64,
+    pub limit: f64,
+}
+
+impl ClippedNormal {
+    fn draw(self, rng: &mut Rng) -> f64 {
+        (self.std * rng.normal()).clamp(-self.limit, self.limit)
+    }
+}
+
+/// A driving-style setting interpolated between its value for the slowest speed band (urban streets) and
+/// the fastest (rural roads), by where the drive's lowest cruise speed lies in its log range.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct UrbanToRural {
+    pub urban: f64,
+    pub rural: f64,
+}
+
+impl UrbanToRural {
+    fn at(self, rural_share: f64) -> f64 {
+        self.urban + rural_share * (self.rural - self.urban)
+    }
+}
+
+/// The distribution drive specs are drawn from. Plain data so experiments can write it into their
+/// reports; [`DriveDistribution::validate`] guarantees every draw is a valid [`DriveSpec`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DriveDistribution {
+    /// A drive's lowest cruise speed (m/s), log-uniform.
+    pub cruise_min_mps: Range,
+    /// A drive's highest cruise speed = min(cap, lowest × this factor), factor uniform.
+    pub cruise_max_factor: Range,
+    /// Cap on the highest cruise speed (m/s, ≤ 80).
+    pub cruise_cap_mps: f64,
+    /// Acceleration (m/s²), uniform.
+    pub acceleration_mps2: Range,
+    /// Braking deceleration (m/s²), uniform.
+    pub braking_mps2: Range,
+    /// Shortest cruise maneuver (s).
+    pub maneuver_min_s: UrbanToRural,
+    /// Longest cruise maneuver (s).
+    pub maneuver_max_s: UrbanToRural,
+    /// Probability that a maneuver is a stop.
+    pub stop_probability: UrbanToRural,
+    /// Probability that a cruise maneuver also turns.
+    pub turn_probability: UrbanToRural,
+    /// Largest heading change of a turn (degrees, ≥ the default smallest turn, 15°).
+    pub turn_max_deg: UrbanToRural,
+    /// Roam radius = highest cruise speed × this time (s), uniform: fast vehicles roam further.
+    pub roam_time_s: Range,
+    /// Output sample rates (Hz), one picked with equal probability.
+    pub rates_hz: Vec<f64>,
+    /// GNSS white noise per axis (m), uniform.
+    pub gnss_white_std_m: Range,
+    /// GNSS Gauss–Markov bias per axis (m), uniform.
+    pub gnss_bias_std_m: Range,
+    /// Correlation time of the GNSS bias (s), uniform.
+    pub gnss_bias_time_constant_s: Range,
+    /// Onboard speed noise (m/s), uniform.
+    pub speed_noise_std_mps: Range,
+    /// Onboard heading noise (degrees), uniform.
+    pub heading_noise_std_deg: Range,
+    /// Onboard speed-scale error (fraction).
+    pub speed_scale_error: ClippedNormal,
+    /// Onboard heading bias (degrees).
+    pub heading_bias_deg: ClippedNormal,
+    /// Onboard timing offset τ_L (s), uniform.
+    pub timing_offset_s: Range,
+    /// Share of fixes with a multipath outlier, uniform.
+    pub multipath_probability: Range,
+    /// 1-sigma of a multipath outlier per axis (m), uniform.
+    pub multipath_std_m: Range,
+    /// Share of drives without GNSS outages.
+    pub outage_free_share: f64,
+    /// Mean clean time between outages (s), uniform, for drives that have them.
+    pub outage_mean_interval_s: Range,
+    /// Outage lengths (s): a drive's outages are uniform in this range.
+    pub outage_length_s: Range,
+}
+
+impl Default for DriveDistribution {
+    fn default() -> Self {
+        Self::realistic()
+    }
+}
+
+impl DriveDistribution {
+    /// Road vehicles from walking-pace test tracks to rural roads, with consumer-grade GNSS and onboard
+    /// sensors. Each range says why.
+    pub fn realistic() -> Self {
+        Self {
+            // Drives cover 1–30 m/s: slow test tracks and car parks (AV-GPS: median 1 m/s) up to rural
+            // roads; the log scale gives each speed decade similar weight.
+            cruise_min_mps: Range::new(1.0, 15.0),
+            cruise_max_factor: Range::new(1.5, 3.0),
+            cruise_cap_mps: 30.0,
+            // Gentle to brisk passenger-car acceleration and braking.
+            acceleration_mps2: Range::new(0.5, 1.5),
+            braking_mps2: Range::new(1.0, 2.5),
+            // Urban: short maneuvers, frequent stops and sharp turns; rural: long straights, few stops.
+            maneuver_min_s: UrbanToRural {
+                urban: 10.0,
+                rural: 30.0,
+            },
+            maneuver_max_s: UrbanToRural {
+                urban: 60.0,
+                rural: 180.0,
+            },
+            stop_probability: UrbanToRural {
+                urban: 0.2,
+                rural: 0.05,
+            },
+            turn_probability: UrbanToRural {
+                urban: 0.6,
+                rural: 0.25,
+            },
+            turn_max_deg: UrbanToRural {
+                urban: 120.0,
+                rural: 90.0,
+            },
+            // 30–120 s at top speed before heading back: a slow drive stays within ~100 m, a fast one
+            // roams kilometres.
+            roam_time_s: Range::new(30.0, 120.0),
+            // The rates of common GNSS receivers and vehicle loggers.
+            rates_hz: vec![1.0, 2.0, 5.0, 10.0],
+            // Consumer receivers: decimetre to metre white noise, a metre-level bias that wanders over
+            // minutes (real GNSS error is smooth and does not cancel in window sums, SUBTLE-DRIFT §5).
+            gnss_white_std_m: Range::new(0.2, 1.0),
+            gnss_bias_std_m: Range::new(0.5, 2.5),
+            gnss_bias_time_constant_s: Range::new(60.0, 300.0),
+            // Wheel-speed and heading (gyro/compass) noise of production vehicles.
+            speed_noise_std_mps: Range::new(0.02, 0.2),
+            heading_noise_std_deg: Range::new(0.3, 3.0),
+            // Tyre wear and pressure: a few per cent of speed scale.
+            speed_scale_error: ClippedNormal {
+                std: 0.02,
+                limit: 0.05,
+            },
+            // Compass/gyro alignment: a few degrees (3° at 10 m/s is 0.5 m/s cross-track, SUBTLE-DRIFT §2).
+            heading_bias_deg: ClippedNormal {
+                std: 2.5,
+                limit: 6.0,
+            },
+            // Unsynchronised logging of GNSS and CAN: up to a few tenths of a second either way.
+            timing_offset_s: Range::new(-0.3, 0.3),
+            // Reflections near buildings: rare fixes off by 5–30 m (Dataset-2 shows 30–60 m outliers).
+            multipath_probability: Range::new(0.0, 0.01),
+            multipath_std_m: Range::new(5.0, 30.0),
+            // Tunnels, underpasses and dense cities: half the drives have gaps every 2–10 minutes,
+            // each longer than a trajectory break (5 s) and up to half a minute.
+            outage_free_share: 0.5,
+            outage_mean_interval_s: Range::new(120.0, 600.0),
+            outage_length_s: Range::new(6.0, 30.0),
+        }
+    }
+
+    /// Draws one drive spec; deterministic for a distribution and seed. The spec's seed is `seed` (its
+    /// maneuver and noise streams); the parameters come from a separate stream of the same seed. Duration
+    /// and start position are [`DriveSpec::default`]'s. Draw from a validated distribution only: an
+    /// invalid one can give a spec that `simulate_drive` rejects.
+    pub fn draw(&self, seed: u64) -> DriveSpec {
+        let mut rng = Rng::seed_from_u64(seed ^ DISTRIBUTION_STREAM);
+        // The fixed draw order below is part of the reproducibility contract; every value is drawn even
+        // when unused, so one choice (e.g. no outages) does not shift the others.
+        let cruise_min_mps = self.cruise_min_mps.log_uniform(&mut rng);
+        let cruise_max_mps =
+            (cruise_min_mps * self.cruise_max_factor.uniform(&mut rng)).min(self.cruise_cap_mps);
+        let rural_share = self.rural_share(cruise_min_mps);
+        let speed = SpeedProfile {
+            cruise_min_mps,
+            cruise_max_mps,
+            acceleration_mps2: self.acceleration_mps2.uniform(&mut rng),
+            braking_mps2: self.braking_mps2.uniform(&mut rng),
+            maneuver_min_s: self.maneuver_min_s.at(rural_share),
+            maneuver_max_s: self.maneuver_max_s.at(rural_share),
+            stop_probability: self.stop_probability.at(rural_share),
+            ..SpeedProfile::default()
+        };
+        let turns = TurnBehaviour {
+            turn_probability: self.turn_probability.at(rural_share),
+            turn_max_deg: self.turn_max_deg.at(rural_share),
+            roam_radius_m: cruise_max_mps * self.roam_time_s.uniform(&mut rng),
+            ..TurnBehaviour::default()
+        };
+        let rate_hz = self.rates_hz[rng.below(self.rates_hz.len())];
+        let start_heading_deg = rng.uniform_range(0.0, 360.0);
+        let gnss_noise = GnssNoise {
+            white_std_m: self.gnss_white_std_m.uniform(&mut rng),
+            bias_std_m: self.gnss_bias_std_m.uniform(&mut rng),
+            bias_time_constant_s: self.gnss_bias_time_constant_s.uniform(&mut rng),
+        };
+        let onboard_noise = OnboardNoise {
+            speed_std_mps: self.speed_noise_std_mps.uniform(&mut rng),
+            heading_std_deg: self.heading_noise_std_deg.uniform(&mut rng),
+        };
+        let onboard_errors = OnboardErrors {
+            speed_scale_error: self.speed_scale_error.draw(&mut rng),
+            heading_bias_deg: self.heading_bias_deg.draw(&mut rng),
+            timing_offset_s: self.timing_offset_s.uniform(&mut rng),
+        };
+        let multipath = Multipath {
+            probability: self.multipath_probability.uniform(&mut rng),
+            std_m: self.multipath_std_m.uniform(&mut rng),
+        };
+        let outage_free = rng.uniform() < self.outage_free_share;
+        let outage_mean_interval_s = self.outage_mean_interval_s.uniform(&mut rng);
+        let outages = if outage_free {
+            Outages::default()
+        } else {
+            Outages {
+                mean_interval_s: outage_mean_interval_s,
+                min_s: self.outage_length_s.min,
+                max_s: self.outage_length_s.max,
+            }
+        };
+        DriveSpec {
+            rate_hz,
+            start_heading_deg,
+            speed,
+            turns,
+            gnss_noise,
+            onboard_noise,
+            onboard_errors,
+            multipath,
+            outages,
+            seed,
+            ..DriveSpec::default()
+        }
+    }
+
+    /// 0 for the slowest speed band, 1 for the fastest.
+    fn rural_share(&self, cruise_min_mps: f64) -> f64 {
+        let Range { min, max } = self.cruise_min_mps;
+        if max > min {
+            ((cruise_min_mps / min).ln() / (max / min).ln()).clamp(0.0, 1.0)
+        } else {
+            0.0
+        }
+    }
+
+    /// Checks every field (finite, min ≤ max, and inside what [`DriveSpec::validate`] accepts, so every
+    /// draw is a valid spec); the first problem is reported with the field's name.
+    pub fn validate(&self) -> Result<(), ScenarioError> {
+        if self.rates_hz.is_empty() {
+            return Err(ScenarioError::InvalidDistribution {
+                field: "rates_hz",
+                expected: "a list of at least one rate (length)".into(),
+                value: 0.0,
+            });
+        }
+        let turn_min_deg = TurnBehaviour::default().turn_min_deg;
+        let mut checks = Checks::default();
+        checks.range(
+            ["cruise_min_mps.min", "cruise_min_mps.max"],
+            self.cruise_min_mps,
+            |v| v > 0.0 && v <= self.cruise_cap_mps,
+            "in (0, cruise_cap_mps] m/s",
+        );
+        checks.range(
+            ["cruise_max_factor.min", "cruise_max_factor.max"],
+            self.cruise_max_factor,
+            |v| v >= 1.0,
+            ">= 1",
+        );
+        checks.value(
+            "cruise_cap_mps",
+            self.cruise_cap_mps,
+            self.cruise_cap_mps > 0.0 && self.cruise_cap_mps <= MAX_SPEED_MPS,
+            "in (0, 80] m/s",
+        );
+        checks.range(
+            ["acceleration_mps2.min", "acceleration_mps2.max"],
+            self.acceleration_mps2,
+            |v| v > 0.0,
+            "> 0 m/s²",
+        );
+        checks.range(
+            ["braking_mps2.min", "braking_mps2.max"],
+            self.braking_mps2,
+            |v| v > 0.0,
+            "> 0 m/s²",
+        );
+        let (min_s, max_s) = (self.maneuver_min_s, self.maneuver_max_s);
+        checks.value(
+            "maneuver_min_s.urban",
+            min_s.urban,
+            min_s.urban > 0.0,
+            "> 0 s",
+        );
+        checks.value(
+            "maneuver_min_s.rural",
+            min_s.rural,
+            min_s.rural > 0.0,
+            "> 0 s",
+        );
+        checks.value(
+            "maneuver_max_s.urban",
+            max_s.urban,
+            max_s.urban >= min_s.urban,
+            ">= maneuver_min_s.urban",
+        );
+        checks.value(
+            "maneuver_max_s.rural",
+            max_s.rural,
+            max_s.rural >= min_s.rural,
+            ">= maneuver_min_s.rural",
+        );
+        let probability = |v: f64| (0.0..=1.0).contains(&v);
+        checks.styles(
+            ["stop_probability.urban", "stop_probability.rural"],
+            self.stop_probability,
+            probability,
+            "in [0, 1]",
+        );
+        checks.styles(
+            ["turn_probability.urban", "turn_probability.rural"],
+            self.turn_probability,
+            probability,
+            "in [0, 1]",
+        );
+        checks.styles(
+            ["turn_max_deg.urban", "turn_max_deg.rural"],
+            self.turn_max_deg,
+            |v| (turn_min_deg..=180.0).contains(&v),
+            "in [15, 180] degrees",
+        );
+        checks.range(
+            ["roam_time_s.min", "roam_time_s.max"],
+            self.roam_time_s,
+            |v| v > 0.0,
+            "> 0 s",
+        );
+        for &rate in &self.rates_hz {
+            checks.value(
+                "rates_hz",
+                rate,
+                rate > 0.0 && rate <= 100.0,
+                "in (0, 100] Hz",
+            );
+        }
+        checks.range(
+            ["gnss_white_std_m.min", "gnss_white_std_m.max"],
+            self.gnss_white_std_m,
+            |v| v >= 0.0,
+            ">= 0 m",
+        );
+        checks.range(
+            ["gnss_bias_std_m.min", "gnss_bias_std_m.max"],
+            self.gnss_bias_std_m,
+            |v| v >= 0.0,
+            ">= 0 m",
+        );
+        checks.range(
+            [
+                "gnss_bias_time_constant_s.min",
+                "gnss_bias_time_constant_s.max",
+            ],
+            self.gnss_bias_time_constant_s,
+            |v| v > 0.0,
+            "> 0 s",
+        );
+        checks.range(
+            ["speed_noise_std_mps.min", "speed_noise_std_mps.max"],
+            self.speed_noise_std_mps,
+            |v| v >= 0.0,
+            ">= 0 m/s",
+        );
+        checks.range(
+            ["heading_noise_std_deg.min", "heading_noise_std_deg.max"],
+            self.heading_noise_std_deg,
+            |v| v >= 0.0,
+            ">= 0 degrees",
+        );
+        checks.clipped_normal(
+            ["speed_scale_error.std", "speed_scale_error.limit"],
+            self.speed_scale_error,
+            0.5,
+            "in [0, 0.5]",
+        );
+        checks.clipped_normal(
+            ["heading_bias_deg.std", "heading_bias_deg.limit"],
+            self.heading_bias_deg,
+            180.0,
+            "in [0, 180] degrees",
+        );
+        checks.range(
+            ["timing_offset_s.min", "timing_offset_s.max"],
+            self.timing_offset_s,
+            |v| v.abs() <= 1.0,
+            "in [-1, 1] s",
+        );
+        checks.range(
+            ["multipath_probability.min", "multipath_probability.max"],
+            self.multipath_probability,
+            probability,
+            "in [0, 1]",
+        );
+        checks.range(
+            ["multipath_std_m.min", "multipath_std_m.max"],
+            self.multipath_std_m,
+            |v| (0.0..=1000.0).contains(&v),
+            "in [0, 1000] m",
+        );
+        checks.value(
+            "outage_free_share",
+            self.outage_free_share,
+            probability(self.outage_free_share),
+            "in [0, 1]",
+        );
+        checks.range(
+            ["outage_mean_interval_s.min", "outage_mean_interval_s.max"],
+            self.outage_mean_interval_s,
+            |v| v > 0.0,
+            "> 0 s",
+        );
+        checks.range(
+            ["outage_length_s.min", "outage_length_s.max"],
+            self.outage_length_s,
+            |v| v >= 0.0,
+            ">= 0 s",
+        );
+        checks.first_problem()
+    }
+}
+
+/// Collects (field, value, ok, expected) checks in field order.
+#[derive(Default)]
+struct Checks(Vec<(&'static str, f64, bool, String)>);
+
+impl Checks {
+    fn value(&mut self, field: &'static str, value: f64, ok: bool, expected: &str) {
+        self.0.push((field, value, ok, expected.to_owned()));
+    }
+
+    /// Both ends inside the bounds `inside` describes, and min ≤ max.
+    fn range(
+        &mut self,
+        [min_field, max_field]: [&'static str; 2],
+        range: Range,
+        inside: impl Fn(f64) -> bool,
+        expected: &str,
+    ) {
+        self.value(min_field, range.min, inside(range.min), expected);
+        self.0.push((
+            max_field,
+            range.max,
+            inside(range.max) && range.max >= range.min,
+            format!("{expected} and >= {min_field}"),
+        ));
+    }
+
+    /// Both the urban and the rural value inside the bounds (so is everything in between).
+    fn styles(
+        &mut self,
+        [urban_field, rural_field]: [&'static str; 2],
+        style: UrbanToRural,
+        inside: impl Fn(f64) -> bool,
+        expected: &str,
+    ) {
+        self.value(urban_field, style.urban, inside(style.urban), expected);
+        self.value(rural_field, style.rural, inside(style.rural), expected);
+    }
+
+    /// std ≥ 0 and a limit in [0, `largest`] (clipping keeps every draw inside the spec's range).
+    fn clipped_normal(
+        &mut self,
+        [std_field, limit_field]: [&'static str; 2],
+        normal: ClippedNormal,
+        largest: f64,
+        expected_limit: &str,
+    ) {
+        self.value(std_field, normal.std, normal.std >= 0.0, ">= 0");
+        self.value(
+            limit_field,
+            normal.limit,
+            (0.0..=largest).contains(&normal.limit),
+            expected_limit,
+        );
+    }
+
+    fn first_problem(self) -> Result<(), ScenarioError> {
+        for (field, value, ok, expected) in self.0 {
+            if !value.is_finite() || !ok {
+                return Err(ScenarioError::InvalidDistribution {
+                    field,
+                    expected: format!("a finite number {expected}"),
+                    value,
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scenario::simulate_drive_with_truth;
+
+    fn draws(count: u64) -> Vec<DriveSpec> {
+        let distribution = DriveDistribution::realistic();
+        (0..count).map(|seed| distribution.draw(seed)).collect()
+    }
+
+    #[test]
+    fn the_realistic_distribution_is_the_default_and_valid() {
+        assert_eq!(DriveDistribution::default(), DriveDistribution::realistic());
+        assert_eq!(DriveDistribution::realistic().validate(), Ok(()));
+    }
+
+    #[test]
+    fn draw_is_deterministic_and_the_seed_matters() {
+        let distribution = DriveDistribution::realistic();
+        assert_eq!(distribution.draw(17), distribution.draw(17));
+        assert_ne!(distribution.draw(17), distribution.draw(18));
+        assert_eq!(distribution.draw(17).seed, 17);
+    }
+
+    #[test]
+    fn draws_are_valid_and_cover_the_documented_ranges() {
+        let specs = draws(400);
+        let inside = |value: f64, low: f64, high: f64| (low..=high).contains(&value);
+        for spec in &specs {
+            assert_eq!(spec.validate(), Ok(()), "seed {}", spec.seed);
+            let s = &spec.speed;
+            assert!(inside(s.cruise_min_mps, 1.0, 15.0), "{spec:?}");
+            assert!(
+                s.cruise_max_mps <= 30.0 && s.cruise_max_mps >= 1.5 * s.cruise_min_mps.min(20.0)
+            );
+            // Fast vehicles roam further: 30–120 s at their top cruise speed.
+            let roam_time_s = spec.turns.roam_radius_m / s.cruise_max_mps;
+            assert!(
+                inside(roam_time_s, 30.0 - 1e-9, 120.0 + 1e-9),
+                "{roam_time_s}"
+            );
+            assert!(inside(spec.gnss_noise.white_std_m, 0.2, 1.0));
+            assert!(inside(spec.gnss_noise.bias_std_m, 0.5, 2.5));
+            assert!(inside(spec.gnss_noise.bias_time_constant_s, 60.0, 300.0));
+            assert!(inside(spec.onboard_noise.speed_std_mps, 0.02, 0.2));
+            assert!(inside(spec.onboard_noise.heading_std_deg, 0.3, 3.0));
+            let e = &spec.onboard_errors;
+            assert!(e.speed_scale_error.abs() <= 0.05);
+            assert!(e.heading_bias_deg.abs() <= 6.0);
+            assert!(e.timing_offset_s.abs() <= 0.3);
+            assert!(inside(spec.multipath.probability, 0.0, 0.01));
+            assert!(inside(spec.multipath.std_m, 5.0, 30.0));
+            let o = &spec.outages;
+            assert!(
+                *o == Outages::default()
+                    || (inside(o.mean_interval_s, 120.0, 600.0)
+                        && o.min_s == 6.0
+                        && o.max_s == 30.0),
+                "{o:?}"
+            );
+            assert!(inside(spec.start_heading_deg, 0.0, 360.0));
+        }
+        let count = |keep: &dyn Fn(&DriveSpec) -> bool| specs.iter().filter(|s| keep(s)).count();
+        assert!(count(&|s| s.speed.cruise_max_mps >= 20.0) >= 20);
+        assert!(count(&|s| s.speed.cruise_max_mps <= 3.0) >= 20);
+        for rate_hz in [1.0, 2.0, 5.0, 10.0] {
+            assert!(count(&|s| s.rate_hz == rate_hz) >= 60, "{rate_hz} Hz");
+        }
+        let without_outages = count(&|s| s.outages.mean_interval_s == 0.0);
+        assert!((160..=240).contains(&without_outages), "{without_outages}");
+        // The clipped normals: mostly inside, some at the clip, both signs.
+        assert!(count(&|s| s.onboard_errors.speed_scale_error.abs() == 0.05) >= 2);
+        assert!(count(&|s| s.onboard_errors.heading_bias_deg > 2.5) >= 40);
+        assert!(count(&|s| s.onboard_errors.heading_bias_deg < -2.5) >= 40);
+        assert!(count(&|s| s.onboard_errors.timing_offset_s < -0.2) >= 40);
+        assert!(count(&|s| s.start_heading_deg > 270.0) >= 60);
+        // Urban drives stop and turn more than rural ones.
+        let slowest = specs
+            .iter()
+            .min_by(|a, b| a.speed.cruise_min_mps.total_cmp(&b.speed.cruise_min_mps))
+            .expect("draws");
+        let fastest = specs
+            .iter()
+            .max_by(|a, b| a.speed.cruise_min_mps.total_cmp(&b.speed.cruise_min_mps))
+            .expect("draws");
+        assert!(slowest.speed.stop_probability > 0.18 && fastest.speed.stop_probability < 0.07);
+        assert!(slowest.turns.turn_probability > fastest.turns.turn_probability);
+    }
+
+    #[test]
+    fn simulated_drives_reach_thirty_mps_and_stay_at_walking_pace() {
+        let specs = draws(400);
+        let top_speed = |spec: &DriveSpec| {
+            let spec = DriveSpec {
+                duration_s: 600.0,
+                ..*spec
+            };
+            let drive = simulate_drive_with_truth(&spec, "v").expect("a drawn spec is valid");
+            drive.truth.iter().map(|t| t.speed_mps).fold(0.0, f64::max)
+        };
+        let fastest = specs
+            .iter()
+            .max_by(|a, b| a.speed.cruise_max_mps.total_cmp(&b.speed.cruise_max_mps))
+            .expect("draws");
+        let slowest = specs
+            .iter()
+            .min_by(|a, b| a.speed.cruise_max_mps.total_cmp(&b.speed.cruise_max_mps))
+            .expect("draws");
+        let (fast, slow) = (top_speed(fastest), top_speed(slowest));
+        assert!((20.0..=30.0).contains(&fast), "{fast}");
+        assert!(slow > 0.5 && slow <= 3.0, "{slow}");
+    }
+
+    #[test]
+    fn invalid_fields_are_named() {
+        let realistic = DriveDistribution::realistic;
+        let cases: [(&str, DriveDistribution); 6] = [
+            (
+                "rates_hz",
+                DriveDistribution {
+                    rates_hz: Vec::new(),
+                    ..realistic()
+                },
+            ),
+            (
+                "rates_hz",
+                DriveDistribution {
+                    rates_hz: vec![1.0, 0.0],
+                    ..realistic()
+                },
+            ),
+            (
+                "gnss_white_std_m.max",
+                DriveDistribution {
+                    gnss_white_std_m: Range::new(1.0, 0.5),
+                    ..realistic()
+                },
+            ),
+            (
+                "speed_scale_error.limit",
+                DriveDistribution {
+                    speed_scale_error: ClippedNormal {
+                        std: 0.02,
+                        limit: 0.6,
+                    },
+                    ..realistic()
+                },
+            ),
+            (
+                "timing_offset_s.min",
+                DriveDistribution {
+                    timing_offset_s: Range::new(f64::NAN, 0.3),
+                    ..realistic()
+                },
+            ),
+            (
+                "turn_probability.rural",
+                DriveDistribution {
+                    turn_probability: UrbanToRural {
+                        urban: 0.5,
+                        rural: 1.5,
+                    },
+                    ..realistic()
+                },
+            ),
+        ];
+        for (field, distribution) in cases {
+            let err = distribution.validate().expect_err(field);
+            assert!(
+                matches!(&err, ScenarioError::InvalidDistribution { field: named, .. } if *named == field),
+                "{field}: {err}"
+            );
+            assert!(err.to_string().contains(field), "{err}");
+        }
+    }
+
+    #[test]
+    fn the_distribution_round_trips_through_json() {
+        let distribution = DriveDistribution::realistic();
+        let json = serde_json::to_string_pretty(&distribution).expect("serialises");
+        assert!(json.contains("\"gnss_bias_time_constant_s\""), "{json}");
+        let back: DriveDistribution = serde_json::from_str(&json).expect("parses");
+        assert_eq!(back, distribution);
+    }
+}
