@@ -191,7 +191,7 @@ pub fn choose_operating_point(
             fill_confirmed_alarms(rows, point, &mut alarms);
             let candidate = metrics::alarm_metrics(rows, &alarms, rules);
             let within_budget = budget.is_none_or(|per_hour| {
-                candidate.false_alarm_events as f64 <= per_hour * normal_hours
+                candidate.false_alarm_onsets as f64 <= per_hour * normal_hours
             });
             let improves = best.as_ref().is_none_or(|(best_point, best_metrics)| {
                 compare_candidates((&point, &candidate), (best_point, best_metrics))
@@ -462,6 +462,7 @@ mod tests {
             mean_delay_s: Some(3.0 - q[2]),
             false_alarm_rows: 0,
             false_alarm_events: 0,
+            false_alarm_onsets: 0,
         };
         (point, metrics)
     }

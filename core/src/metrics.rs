@@ -81,6 +81,12 @@ pub struct Metrics {
     pub false_alarm_rows: u64,
     /// Maximal runs of false-alarm rows inside one trajectory.
     pub false_alarm_events: u64,
+    /// Confirmed alarms raised on normal rows: onsets (c̄ 0 → 1, or 1 at a trajectory's first row) at
+    /// ν = 1, label-0 rows. Unlike `false_alarm_events` it leaves out an alarm that started inside an
+    /// attack and outlasts it by a few rows (the spoofer's exit), which is not a new alarm; the
+    /// false-alarm budget of the operating-point search counts these.
+    #[serde(default)]
+    pub false_alarm_onsets: u64,
 }
 
 /// Why rows cannot be evaluated.
@@ -286,6 +292,7 @@ pub(crate) fn alarm_metrics(rows: &[ScoredRow], alarms: &[bool], rules: EventRul
     let confusion = Confusion::count(rows, alarms);
     let mut delays_s = Vec::new();
     let mut false_alarm_events = 0;
+    let mut false_alarm_onsets = 0;
     for trajectory in trajectory_ranges(rows) {
         let rows = &rows[trajectory.clone()];
         let alarms = &alarms[trajectory];
@@ -294,6 +301,7 @@ pub(crate) fn alarm_metrics(rows: &[ScoredRow], alarms: &[bool], rules: EventRul
             EventRules::Legacy => legacy_event_delays(rows, alarms, &mut delays_s),
         }
         false_alarm_events += count_false_alarm_events(rows, alarms);
+        false_alarm_onsets += count_false_alarm_onsets(rows, alarms);
     }
     let detected: Vec<f64> = delays_s.iter().flatten().copied().collect();
     let events = delays_s.len() as u64;
@@ -321,6 +329,7 @@ pub(crate) fn alarm_metrics(rows: &[ScoredRow], alarms: &[bool], rules: EventRul
         mean_delay_s,
         false_alarm_rows: fp,
         false_alarm_events,
+        false_alarm_onsets,
     }
 }
 
@@ -436,9 +445,34 @@ fn count_false_alarm_events(rows: &[ScoredRow], alarms: &[bool]) -> u64 {
     runs_where(rows.len(), |i| alarms[i] && rows[i].valid && !rows[i].label).count() as u64
 }
 
+/// Alarm onsets on ν = 1, label-0 rows inside one trajectory.
+fn count_false_alarm_onsets(rows: &[ScoredRow], alarms: &[bool]) -> u64 {
+    (0..rows.len())
+        .filter(|&i| alarms[i] && (i == 0 || !alarms[i - 1]) && rows[i].valid && !rows[i].label)
+        .count() as u64
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn false_alarm_onsets_leave_out_an_alarm_that_outlasts_its_attack() {
+        let row = |label| ScoredRow {
+            trajectory: 0,
+            time_s: 0.0,
+            valid: true,
+            label,
+            score: 0.0,
+        };
+        // Attack rows 1–2; the alarm starts inside it and runs two rows past it (one FA event, no
+        // new alarm), then a separate alarm starts on normal row 6 (one event, one onset).
+        let rows = [false, true, true, false, false, false, false, false].map(row);
+        let alarms = [false, false, true, true, true, false, true, true];
+        let m = alarm_metrics(&rows, &alarms, EventRules::Spec);
+        assert_eq!((m.false_alarm_rows, m.false_alarm_events), (4, 2));
+        assert_eq!(m.false_alarm_onsets, 1);
+    }
 
     #[test]
     fn normal_hours_count_steps_that_end_on_normal_rows_inside_trajectories() {

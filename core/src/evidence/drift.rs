@@ -34,6 +34,20 @@ pub const CALIBRATION_DELAY_S: f64 = 120.0;
 pub const WARM_UP_S: f64 = 240.0;
 /// Prior (and cap) of the calibration's standard deviations: speed scale 5 %, heading bias 5°, timing 1 s.
 pub const CALIBRATION_PRIOR_STD: [f64; 3] = [0.05, 5.0 * std::f64::consts::PI / 180.0, 1.0];
+/// The calibration learns from blocks of consecutive valid rows at least this long (s): GNSS white
+/// noise telescopes in a block's summed residual while the onboard errors add up, so every block
+/// carries the same information at 1 Hz and at 10 Hz (row by row, a 10 Hz stream would calibrate
+/// ten times more slowly).
+pub const CALIBRATION_BLOCK_S: f64 = 1.0;
+/// Memory of a vehicle's own χ² level (s): vehicles differ ten-fold in how noisy their drift rates
+/// are (GNSS bias dynamics, heading noise at speed), so each χ² is divided by the vehicle's level,
+/// learned like the calibration from data at least `CALIBRATION_DELAY_S` old.
+pub const LEVEL_MEMORY_S: f64 = 300.0;
+/// Weight of the population prior (level 1) in seconds of data.
+const LEVEL_PRIOR_S: f64 = 120.0;
+/// Levels are kept within [1/4, 16] of the population's: a very quiet vehicle is not made more than
+/// twice as sensitive in σ, a very noisy one not blind.
+const LEVEL_RANGE: (f64, f64) = (0.25, 16.0);
 /// Snapshot spacing of the calibration (s of valid data).
 const SNAPSHOT_PERIOD_S: f64 = 30.0;
 /// Snapshots kept: enough to always hold one that is `CALIBRATION_DELAY_S` old.
@@ -65,6 +79,10 @@ pub struct DriftParams {
     pub raw_threshold: [f64; SCALE_COUNT],
     /// The same for the calibrated χ².
     pub calibrated_threshold: [f64; SCALE_COUNT],
+    /// Normalise each χ² by the vehicle's own level (see [`VehicleLevels`]); off only while fitting
+    /// the covariances.
+    #[serde(default)]
+    pub vehicle_levels: bool,
 }
 
 #[derive(Deserialize)]
@@ -75,6 +93,8 @@ struct UncheckedDriftParams {
     calibrated_covariance: [Mat2; SCALE_COUNT],
     raw_threshold: [f64; SCALE_COUNT],
     calibrated_threshold: [f64; SCALE_COUNT],
+    #[serde(default)]
+    vehicle_levels: bool,
 }
 
 impl TryFrom<UncheckedDriftParams> for DriftParams {
@@ -88,6 +108,7 @@ impl TryFrom<UncheckedDriftParams> for DriftParams {
             calibrated_covariance: raw.calibrated_covariance,
             raw_threshold: raw.raw_threshold,
             calibrated_threshold: raw.calibrated_threshold,
+            vehicle_levels: raw.vehicle_levels,
         };
         params.validate()?;
         Ok(params)
@@ -105,6 +126,7 @@ impl DriftParams {
             calibrated_covariance: [IDENTITY; SCALE_COUNT],
             raw_threshold: [1.0; SCALE_COUNT],
             calibrated_threshold: [1.0; SCALE_COUNT],
+            vehicle_levels: false,
         }
     }
 
@@ -203,6 +225,12 @@ impl DriftEvidence {
     }
 }
 
+/// z / √level, the level clamped to [`LEVEL_RANGE`].
+fn scaled(z: [f64; 2], level: f64) -> [f64; 2] {
+    let factor = 1.0 / level.clamp(LEVEL_RANGE.0, LEVEL_RANGE.1).sqrt();
+    [z[0] * factor, z[1] * factor]
+}
+
 fn norm_squared(z: [f64; 2]) -> f64 {
     z[0] * z[0] + z[1] * z[1]
 }
@@ -225,6 +253,23 @@ pub struct DriftInput {
 struct Snapshot {
     clock_s: f64,
     theta: [f64; 3],
+    levels: Levels,
+}
+
+/// A vehicle's χ² level per scale, uncalibrated and calibrated (1 = the training population's).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Levels {
+    raw: [f64; SCALE_COUNT],
+    calibrated: [f64; SCALE_COUNT],
+}
+
+impl Default for Levels {
+    fn default() -> Self {
+        Self {
+            raw: [1.0; SCALE_COUNT],
+            calibrated: [1.0; SCALE_COUNT],
+        }
+    }
 }
 
 /// The per-vehicle drift state: calibration (θ, P, snapshots) that persists across trajectories of a
@@ -237,7 +282,11 @@ pub struct DriftTracker {
     calibrated_whitening: [Mat2; SCALE_COUNT],
     raw_threshold: [f64; SCALE_COUNT],
     calibrated_threshold: [f64; SCALE_COUNT],
-    /// θ = (ε, β [rad], τ_L [s]) estimated from every valid row so far.
+    /// The block being summed for the calibration: Σ r^c, Σ H and Σ δ.
+    block_residual: [f64; 2],
+    block_regressors: [[f64; 2]; 3],
+    block_s: f64,
+    /// θ = (ε, β [rad], τ_L [s]) estimated from every complete block so far.
     theta: [f64; 3],
     covariance: [[f64; 3]; 3],
     /// Valid seconds absorbed by the calibration.
@@ -246,6 +295,14 @@ pub struct DriftTracker {
     snapshot_count: usize,
     /// The calibration in use (the newest snapshot at least `CALIBRATION_DELAY_S` old).
     theta_in_use: [f64; 3],
+    /// Whether χ² are divided by the vehicle's level.
+    vehicle_levels: bool,
+    /// The vehicle's levels so far, and those in use (from the same snapshot as `theta_in_use`).
+    levels: Levels,
+    levels_in_use: Levels,
+    /// Seconds of valid data behind `levels`, and in the current trajectory.
+    level_clock_s: f64,
+    trajectory_s: f64,
     raw_rate: [[f64; 2]; SCALE_COUNT],
     calibrated_rate: [[f64; 2]; SCALE_COUNT],
     /// e^{−δ/τ_k} for the last δ (1 Hz streams reuse it).
@@ -264,12 +321,20 @@ impl DriftTracker {
             calibrated_whitening: params.calibrated_covariance.map(|c| whitening(&c)),
             raw_threshold: params.raw_threshold,
             calibrated_threshold: params.calibrated_threshold,
+            block_residual: [0.0; 2],
+            block_regressors: [[0.0; 2]; 3],
+            block_s: 0.0,
             theta: [0.0; 3],
             covariance: prior_covariance(),
             clock_s: 0.0,
             snapshots: [Snapshot::default(); SNAPSHOTS],
             snapshot_count: 0,
             theta_in_use: [0.0; 3],
+            vehicle_levels: params.vehicle_levels,
+            levels: Levels::default(),
+            levels_in_use: Levels::default(),
+            level_clock_s: 0.0,
+            trajectory_s: 0.0,
             raw_rate: [[0.0; 2]; SCALE_COUNT],
             calibrated_rate: [[0.0; 2]; SCALE_COUNT],
             decay_delta: f64::NAN,
@@ -281,6 +346,10 @@ impl DriftTracker {
     /// A new trajectory: the drift rates restart from 0 (the residual's history is broken); the
     /// onboard errors are the vehicle's and are kept.
     pub fn start_trajectory(&mut self) {
+        self.trajectory_s = 0.0;
+        self.block_residual = [0.0; 2];
+        self.block_regressors = [[0.0; 2]; 3];
+        self.block_s = 0.0;
         self.raw_rate = [[0.0; 2]; SCALE_COUNT];
         self.calibrated_rate = [[0.0; 2]; SCALE_COUNT];
         self.last = DriftEvidence {
@@ -307,14 +376,27 @@ impl DriftTracker {
         let clipped = clip(input.residual, self.clip_m);
         let regressors = regressors(input);
         let cleaned = add(clipped, apply(&regressors, &self.theta_in_use));
-        self.update_calibration(&regressors, clipped, input.delta_t);
+        self.add_to_block(&regressors, clipped, input.delta_t);
         self.update_rates(clipped, cleaned, input.delta_t);
 
         let warm_up = (self.clock_s / WARM_UP_S).min(1.0);
-        let raw_z: [[f64; 2]; SCALE_COUNT] =
+        let population_raw: [[f64; 2]; SCALE_COUNT] =
             std::array::from_fn(|k| mul_vec(&self.raw_whitening[k], self.raw_rate[k]));
-        let calibrated_z: [[f64; 2]; SCALE_COUNT] = if warm_up >= 1.0 {
-            std::array::from_fn(|k| mul_vec(&self.calibrated_whitening[k], self.calibrated_rate[k]))
+        let population_calibrated: [[f64; 2]; SCALE_COUNT] = std::array::from_fn(|k| {
+            mul_vec(&self.calibrated_whitening[k], self.calibrated_rate[k])
+        });
+        if self.vehicle_levels {
+            self.update_levels(
+                &population_raw,
+                &population_calibrated,
+                warm_up >= 1.0,
+                input.delta_t,
+            );
+        }
+        let used = self.levels_in_use;
+        let raw_z = std::array::from_fn(|k| scaled(population_raw[k], used.raw[k]));
+        let calibrated_z = if warm_up >= 1.0 {
+            std::array::from_fn(|k| scaled(population_calibrated[k], used.calibrated[k]))
         } else {
             [[0.0; 2]; SCALE_COUNT]
         };
@@ -334,6 +416,50 @@ impl DriftTracker {
             statistic,
         };
         self.last
+    }
+
+    /// Running mean of χ²/2 per scale (E = 1 for a vehicle like the population), starting from the
+    /// population's level with the weight of `LEVEL_PRIOR_S` seconds and turning into an EWMA with
+    /// memory `LEVEL_MEMORY_S`. Only settled rows (≥ 2τ into the trajectory) count.
+    fn update_levels(
+        &mut self,
+        raw: &[[f64; 2]; SCALE_COUNT],
+        calibrated: &[[f64; 2]; SCALE_COUNT],
+        warm: bool,
+        delta_t: f64,
+    ) {
+        self.level_clock_s += delta_t;
+        self.trajectory_s += delta_t;
+        let weight = delta_t / (LEVEL_PRIOR_S + self.level_clock_s.min(LEVEL_MEMORY_S));
+        for k in 0..SCALE_COUNT {
+            if self.trajectory_s < SETTLE_SCALES * DRIFT_SCALES_S[k] {
+                continue;
+            }
+            let level = &mut self.levels.raw[k];
+            *level += weight * (0.5 * norm_squared(raw[k]) - *level);
+            if warm {
+                let level = &mut self.levels.calibrated[k];
+                *level += weight * (0.5 * norm_squared(calibrated[k]) - *level);
+            }
+        }
+    }
+
+    /// Sums the row into the current block; a complete block updates the calibration.
+    fn add_to_block(&mut self, h: &[[f64; 2]; 3], clipped: [f64; 2], delta_t: f64) {
+        for axis in 0..2 {
+            self.block_residual[axis] += clipped[axis];
+            for (column, regressor) in self.block_regressors.iter_mut().zip(h) {
+                column[axis] += regressor[axis];
+            }
+        }
+        self.block_s += delta_t;
+        if self.block_s >= CALIBRATION_BLOCK_S {
+            let (h, residual, block_s) = (self.block_regressors, self.block_residual, self.block_s);
+            self.block_residual = [0.0; 2];
+            self.block_regressors = [[0.0; 2]; 3];
+            self.block_s = 0.0;
+            self.update_calibration(&h, residual, block_s);
+        }
     }
 
     /// One recursive-least-squares step with exponential forgetting on the model r^c = −H θ + noise,
@@ -393,6 +519,7 @@ impl DriftTracker {
             self.snapshots[self.snapshot_count] = Snapshot {
                 clock_s: self.clock_s,
                 theta: self.theta,
+                levels: self.levels,
             };
             self.snapshot_count += 1;
         }
@@ -403,6 +530,7 @@ impl DriftTracker {
             .find(|s| s.clock_s <= due)
         {
             self.theta_in_use = snapshot.theta;
+            self.levels_in_use = snapshot.levels;
         }
     }
 
@@ -536,64 +664,91 @@ pub struct SettledRates {
     pub drift: DriftEvidence,
 }
 
-/// Covariances and thresholds from unwhitened normal rows: scale k uses rows at least 2τ_k into their
-/// trajectory (a zero-started EWMA then has 98 % of its stationary variance); the calibrated
-/// channels only warm rows.
-pub fn drift_params_from_rates(
+/// Scale k's z-vectors of the rows at least 2τ_k into their trajectory (a zero-started EWMA then has
+/// 98 % of its stationary variance); for the calibrated channel only warm rows.
+fn settled_z(rows: &[SettledRates], k: usize, calibrated: bool) -> Vec<[f64; 2]> {
+    rows.iter()
+        .filter(|r| r.elapsed_s >= SETTLE_SCALES * DRIFT_SCALES_S[k])
+        .filter(|r| !calibrated || r.drift.is_warm())
+        .map(|r| {
+            if calibrated {
+                r.drift.calibrated_z[k]
+            } else {
+                r.drift.raw_z[k]
+            }
+        })
+        .collect()
+}
+
+fn too_few_settled(k: usize, calibrated: bool, rows: usize) -> EvidenceError {
+    EvidenceError::TooFewSettledRows {
+        scale_s: DRIFT_SCALES_S[k],
+        settle_s: SETTLE_SCALES * DRIFT_SCALES_S[k],
+        warm: if calibrated {
+            " with a warm calibration"
+        } else {
+            ""
+        },
+        rows,
+        minimum: MIN_SETTLED_ROWS,
+    }
+}
+
+/// First pass of the fit: covariances from rows computed with [`DriftParams::unwhitened`] (their z's
+/// are the raw drift rates). Returns parameters that whiten with them and normalise by vehicle
+/// levels, with unit thresholds: the second pass ([`thresholds_from_rates`]) sets those.
+pub fn covariances_from_rates(
     residual_sigma_m: f64,
     rows: &[SettledRates],
 ) -> Result<DriftParams, EvidenceError> {
     let mut params = DriftParams::unwhitened(residual_sigma_m);
+    params.vehicle_levels = true;
     for k in 0..SCALE_COUNT {
-        let settle_s = SETTLE_SCALES * DRIFT_SCALES_S[k];
-        let settled = |row: &&SettledRates| row.elapsed_s >= settle_s;
-        let raw: Vec<[f64; 2]> = rows
-            .iter()
-            .filter(settled)
-            .map(|r| r.drift.raw_z[k])
-            .collect();
-        let calibrated: Vec<[f64; 2]> = rows
-            .iter()
-            .filter(settled)
-            .filter(|r| r.drift.is_warm())
-            .map(|r| r.drift.calibrated_z[k])
-            .collect();
-        let too_few = |rows: usize, warm: &'static str| EvidenceError::TooFewSettledRows {
-            scale_s: DRIFT_SCALES_S[k],
-            settle_s,
-            warm,
-            rows,
-            minimum: MIN_SETTLED_ROWS,
-        };
-        (params.raw_covariance[k], params.raw_threshold[k]) =
-            scale_fit(&raw).ok_or_else(|| too_few(raw.len(), ""))?;
-        (
-            params.calibrated_covariance[k],
-            params.calibrated_threshold[k],
-        ) = scale_fit(&calibrated)
-            .ok_or_else(|| too_few(calibrated.len(), " with a warm calibration"))?;
+        for calibrated in [false, true] {
+            let rates = settled_z(rows, k, calibrated);
+            if rates.len() < MIN_SETTLED_ROWS {
+                return Err(too_few_settled(k, calibrated, rates.len()));
+            }
+            let target = if calibrated {
+                &mut params.calibrated_covariance[k]
+            } else {
+                &mut params.raw_covariance[k]
+            };
+            *target = covariance(&rates);
+        }
     }
     params.validate()?;
     Ok(params)
 }
 
-/// Covariance of one scale's rates and the 99.9 % quantile of their whitened χ²; `None` with fewer
-/// than [`MIN_SETTLED_ROWS`] rows.
-fn scale_fit(rates: &[[f64; 2]]) -> Option<(Mat2, f64)> {
-    if rates.len() < MIN_SETTLED_ROWS {
-        return None;
+/// Second pass: each scale's threshold h_k is the 99.9 % quantile of its (whitened, level-normalised)
+/// χ² on settled normal rows computed with `params` (unit thresholds).
+pub fn thresholds_from_rates(
+    mut params: DriftParams,
+    rows: &[SettledRates],
+) -> Result<DriftParams, EvidenceError> {
+    for k in 0..SCALE_COUNT {
+        for calibrated in [false, true] {
+            let mut chi2: Vec<f64> = settled_z(rows, k, calibrated)
+                .into_iter()
+                .map(norm_squared)
+                .collect();
+            if chi2.len() < MIN_SETTLED_ROWS {
+                return Err(too_few_settled(k, calibrated, chi2.len()));
+            }
+            chi2.sort_unstable_by(f64::total_cmp);
+            let threshold = quantile_sorted(&chi2, THRESHOLD_QUANTILE)
+                .filter(|h| h.is_finite() && *h > 0.0)
+                .unwrap_or(1.0);
+            if calibrated {
+                params.calibrated_threshold[k] = threshold;
+            } else {
+                params.raw_threshold[k] = threshold;
+            }
+        }
     }
-    let covariance = covariance(rates);
-    let w = whitening(&covariance);
-    let mut chi2: Vec<f64> = rates
-        .iter()
-        .map(|r| norm_squared(mul_vec(&w, *r)))
-        .collect();
-    chi2.sort_unstable_by(f64::total_cmp);
-    let threshold = quantile_sorted(&chi2, THRESHOLD_QUANTILE)
-        .filter(|h| h.is_finite() && *h > 0.0)
-        .unwrap_or(1.0);
-    Some((covariance, threshold))
+    params.validate()?;
+    Ok(params)
 }
 
 #[cfg(test)]

@@ -7,7 +7,9 @@ use serde::{Deserialize, Serialize};
 
 use super::EvidenceError;
 use super::builder::build_track;
-use super::drift::{DriftParams, SettledRates, drift_params_from_rates, robust_residual_sigma};
+use super::drift::{
+    DriftParams, SettledRates, covariances_from_rates, robust_residual_sigma, thresholds_from_rates,
+};
 use super::linalg::{IDENTITY, Mat2, inverse_sqrt_symmetric, mul_vec};
 use super::params::{EvidenceParams, SIGMA_EPSILON};
 use crate::geo::Projection;
@@ -76,13 +78,28 @@ pub fn fit_drift_params(
     projection: Projection,
 ) -> Result<DriftParams, EvidenceError> {
     let residual_sigma = robust_residual_sigma(&normal_residuals(tracks, projection))?;
+    let unwhitened = DriftParams::unwhitened(residual_sigma);
+    let whitened = covariances_from_rates(
+        residual_sigma,
+        &settled_rates(tracks, projection, unwhitened),
+    )?;
+    thresholds_from_rates(whitened, &settled_rates(tracks, projection, whitened))
+}
+
+/// The drift channels of label-0 valid rows under `drift`, one row per second of driving (so a
+/// 10 Hz vehicle weighs as much as a 1 Hz one), with their depth into the trajectory.
+fn settled_rates(
+    tracks: &[Track],
+    projection: Projection,
+    drift: DriftParams,
+) -> Vec<SettledRates> {
     let params = EvidenceParams {
         sigma_hat: IDENTITY,
         mu_e: 0.0,
         kappa: 0.0,
         rho: 0.0,
         projection,
-        drift: Some(DriftParams::unwhitened(residual_sigma)),
+        drift: Some(drift),
     };
     let mut rows = Vec::new();
     for track in tracks {
@@ -96,14 +113,15 @@ pub fn fit_drift_params(
                 elapsed_s = 0.0;
             }
             if e.valid {
+                let new_second = (elapsed_s + e.delta_t).floor() > elapsed_s.floor();
                 elapsed_s += e.delta_t;
-                if let (Some(false), Some(drift)) = (record.label, e.drift) {
+                if let (true, Some(false), Some(drift)) = (new_second, record.label, e.drift) {
                     rows.push(SettledRates { elapsed_s, drift });
                 }
             }
         }
     }
-    drift_params_from_rates(residual_sigma, &rows)
+    rows
 }
 
 /// Σ̂ (ddof 1) and μ_e (numpy median energy) from residuals; at least [`MIN_NORMAL_ROWS`] of them.

@@ -138,6 +138,7 @@ pub fn metrics_to_proto(m: &Metrics) -> v1::Metrics {
         detected_events: m.detected_events,
         false_alarm_rows: m.false_alarm_rows,
         false_alarm_events: m.false_alarm_events,
+        false_alarm_onsets: m.false_alarm_onsets,
         valid_rows: m.valid_rows,
     }
 }
@@ -164,6 +165,7 @@ pub fn metrics_from_proto(m: &v1::Metrics) -> Metrics {
         mean_delay_s: m.mean_delay_s,
         false_alarm_rows: m.false_alarm_rows,
         false_alarm_events: m.false_alarm_events,
+        false_alarm_onsets: m.false_alarm_onsets,
     }
 }
 
