@@ -544,8 +544,8 @@ pub fn drift_params_from_rates(
     rows: &[SettledRates],
 ) -> Result<DriftParams, EvidenceError> {
     let mut params = DriftParams::unwhitened(residual_sigma_m);
-    for k in 0..SCALE_COUNT {
-        let settle_s = SETTLE_SCALES * DRIFT_SCALES_S[k];
+    for (k, &scale_s) in DRIFT_SCALES_S.iter().enumerate() {
+        let settle_s = SETTLE_SCALES * scale_s;
         let settled = |row: &&SettledRates| row.elapsed_s >= settle_s;
         let raw: Vec<[f64; 2]> = rows
             .iter()
@@ -559,7 +559,7 @@ pub fn drift_params_from_rates(
             .map(|r| r.drift.calibrated_z[k])
             .collect();
         let too_few = |rows: usize, warm: &'static str| EvidenceError::TooFewSettledRows {
-            scale_s: DRIFT_SCALES_S[k],
+            scale_s,
             settle_s,
             warm,
             rows,
