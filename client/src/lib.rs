@@ -1,6 +1,7 @@
 //! Spoofwatch client library: a typed gRPC connection to the Spoofwatch service, one client-side
-//! `StreamDetect` call ([`DetectStream`]), replay of recorded telemetry over it, and the small
-//! helpers the `spoofwatch` CLI shares between its offline and remote commands.
+//! `StreamDetect` call ([`DetectStream`]), replay of recorded telemetry over it and its fleet
+//! summary ([`fleet`]), and the small helpers the `spoofwatch` CLI shares between its offline and
+//! remote commands.
 //!
 //! The `spoofwatch` binary (`main.rs`) adds the clap command line on top; nothing here depends on
 //! it. Nothing here depends on the server crate: only the binary's `demo` and in-process `bench`
@@ -9,6 +10,7 @@
 pub mod connection;
 pub mod detect_stream;
 pub mod error;
+pub mod fleet;
 pub mod input;
 pub mod progress;
 pub mod replay;

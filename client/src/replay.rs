@@ -2,14 +2,22 @@
 //! pacing, replay timestamps and tying each detection back to its recorded row. The stream
 //! protocol itself lives in [`crate::detect_stream`]; printing belongs to the commands.
 //!
+//! Reconnects: with [`ReplayOptions::reconnect_every_s`] a vehicle's stream is closed and a new one
+//! opened every so often ([`stream_starts`]), as when a vehicle's cellular link drops. The new
+//! stream sends `SessionStart{reset: false}`, which is what a reconnecting vehicle sends: the server
+//! resumes the vehicle's in-memory session (same detector state, `SessionAccepted.resumed`), and the
+//! replay continues with the next sample. The first stream always starts afresh (`reset: true`).
+//!
 //! The server sees only timestamps: it cannot see a recording's own trajectory breaks, and it rejects
 //! time going backwards. [`replay_timestamps`] therefore shifts later timestamps so that each break
 //! becomes a 10 s forward gap, which makes the server start a new trajectory exactly where offline
 //! evaluation does, while every δ inside a trajectory stays as recorded.
 
+use std::collections::VecDeque;
 use std::time::Duration;
 
 use spoofwatch_core::evidence::MAX_BACKWARD_S;
+use spoofwatch_core::rng::Rng;
 use spoofwatch_core::sample::{Record, Sample, Track};
 use spoofwatch_proto::v1;
 use spoofwatch_proto::wire::convert::sample_to_proto;
@@ -97,6 +105,11 @@ pub struct ReplayOptions {
     pub batch_size: usize,
     /// `models/{id}` or `{id}`; empty = the server's active model.
     pub model: String,
+    /// Close and reopen each vehicle's stream after about this much recorded time (s); 0 = never.
+    /// See [`stream_starts`].
+    pub reconnect_every_s: f64,
+    /// Seed of the per-vehicle jitter of reconnect times.
+    pub reconnect_seed: u64,
 }
 
 impl Default for ReplayOptions {
@@ -105,6 +118,8 @@ impl Default for ReplayOptions {
             rate_hz: 0.0,
             batch_size: 1,
             model: String::new(),
+            reconnect_every_s: 0.0,
+            reconnect_seed: 1,
         }
     }
 }
@@ -130,12 +145,61 @@ impl ReplayOptions {
                 ),
             });
         }
+        if !(self.reconnect_every_s.is_finite() && self.reconnect_every_s >= 0.0) {
+            return Err(ClientError::InvalidOption {
+                option: "reconnect-every",
+                reason: format!(
+                    "must be a finite, non-negative time in seconds, got {}",
+                    self.reconnect_every_s
+                ),
+            });
+        }
         Ok(())
     }
 }
 
+/// Shortest and longest time between reconnects, as fractions of `reconnect_every_s`: wide
+/// enough that a fleet's reconnects do not happen in step.
+const RECONNECT_JITTER: (f64, f64) = (0.5, 1.5);
+
+/// The random stream of one vehicle's reconnect times: from the seed and the vehicle id (FNV-1a),
+/// so a vehicle keeps its schedule whatever else is replayed with it.
+fn reconnect_rng(seed: u64, vehicle_id: &str) -> Rng {
+    let id_hash = vehicle_id.bytes().fold(0xcbf2_9ce4_8422_2325_u64, |h, b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
+    });
+    Rng::seed_from_u64(seed ^ id_hash)
+}
+
+/// Indices of the records at which a stream opens: always 0, then, when `every_s` > 0, the first
+/// record at least one interval after the current stream's first record, each interval drawn
+/// uniformly from [0.5, 1.5] × `every_s` by `rng`. Time is the replayed `timestamps`; records
+/// with non-finite timestamps never start a stream.
+pub fn stream_starts(timestamps: &[f64], every_s: f64, rng: &mut Rng) -> Vec<usize> {
+    let mut starts = vec![0];
+    if every_s <= 0.0 {
+        return starts;
+    }
+    let (low, high) = RECONNECT_JITTER;
+    let mut interval = rng.uniform_range(low * every_s, high * every_s);
+    let mut stream_t = timestamps.first().copied().unwrap_or(f64::NAN);
+    for (index, &t) in timestamps.iter().enumerate().skip(1) {
+        if !stream_t.is_finite() {
+            // The stream's first record had no usable time: its clock starts at the next one.
+            stream_t = t;
+            continue;
+        }
+        if t - stream_t >= interval {
+            starts.push(index);
+            stream_t = t;
+            interval = rng.uniform_range(low * every_s, high * every_s);
+        }
+    }
+    starts
+}
+
 /// One detection of a replay, tied back to its recorded row.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 pub struct ReplayedDetection {
     /// The vehicle id sent to the server.
     pub vehicle_id: String,
@@ -145,6 +209,12 @@ pub struct ReplayedDetection {
     pub line: u64,
     /// The record's own timestamp (the detection carries the replayed one).
     pub recorded_timestamp_s: f64,
+    /// The record's ground truth (`Some(true)` = attacked), `None` when unlabelled.
+    pub label: Option<bool>,
+    /// Which of the vehicle's streams carried it (0 = the first).
+    pub stream: u32,
+    /// The first detection received on its stream.
+    pub first_on_stream: bool,
     /// The server's verdict.
     pub detection: v1::Detection,
 }
@@ -152,9 +222,11 @@ pub struct ReplayedDetection {
 /// What a replay reports while it runs.
 #[derive(Clone, Debug)]
 pub enum ReplayEvent {
-    /// The server accepted the session.
+    /// The server accepted a stream (the first, or a reconnect).
     Accepted {
         vehicle_id: String,
+        /// Which of the vehicle's streams (0 = the first).
+        stream: u32,
         accepted: v1::SessionAccepted,
     },
     /// One sample's detection, in sample order.
@@ -182,6 +254,10 @@ pub struct ReplaySummary {
     pub rejected_batches: u64,
     /// Confirmed alarm onsets.
     pub alarm_onsets: u64,
+    /// Streams opened (1 + reconnects).
+    pub streams: u32,
+    /// Reconnects the server answered by resuming the session (`SessionAccepted.resumed`).
+    pub resumed_reconnects: u32,
     /// Round trip of each answered batch (sent → its reply).
     pub batch_latencies: Vec<Duration>,
 }
@@ -195,13 +271,25 @@ impl ReplaySummary {
         }
         Some(self.batch_latencies.iter().sum::<Duration>() / n)
     }
+
+    /// Streams opened after the first.
+    pub fn reconnects(&self) -> u32 {
+        self.streams.saturating_sub(1)
+    }
 }
 
-/// Replays one track over its own `StreamDetect` call: `SessionStart{reset: true}`, then the
-/// records in batches (paced by `options.rate_hz`, at most
-/// [`crate::detect_stream::MAX_IN_FLIGHT_BATCHES`] unanswered)
-/// with [`replay_timestamps`]. Every reply is forwarded to `events` as it arrives; the call ends
-/// when all batches are answered.
+/// A batch ready to send, with the index of its first record.
+#[derive(Clone, Debug)]
+struct PlannedBatch {
+    first_index: usize,
+    batch: v1::SampleBatch,
+}
+
+/// Replays one track: its records with [`replay_timestamps`], in batches of `options.batch_size`
+/// (paced by `options.rate_hz`, at most [`crate::detect_stream::MAX_IN_FLIGHT_BATCHES`]
+/// unanswered), over one `StreamDetect` call per [`stream_starts`] segment. The first call sends
+/// `SessionStart{reset: true}`, every reconnect `reset: false`; each call is finished (all its
+/// batches answered) before the next opens. Every reply is forwarded to `events` as it arrives.
 pub async fn replay_track(
     connection: &Connection,
     track: &Track,
@@ -211,104 +299,195 @@ pub async fn replay_track(
     options.validate()?;
     let vehicle_id = server_vehicle_id(&track.vehicle_id);
     let timestamps = replay_timestamps(&track.records);
-    let (mut stream, accepted) =
-        DetectStream::start(connection, &vehicle_id, &options.model, true).await?;
-    let _ = events
-        .send(ReplayEvent::Accepted {
-            vehicle_id: vehicle_id.clone(),
-            accepted,
-        })
-        .await;
-
-    let mut batches = batch_requests(&track.records, &timestamps, options.batch_size).into_iter();
-    let mut next_batch = batches.next();
+    let mut rng = reconnect_rng(options.reconnect_seed, &vehicle_id);
+    let starts = stream_starts(&timestamps, options.reconnect_every_s, &mut rng);
+    let plan = plan_streams(&track.records, &timestamps, options.batch_size, &starts);
     let mut summary = ReplaySummary {
         vehicle_id: vehicle_id.clone(),
         samples_sent: track.records.len() as u64,
         ..ReplaySummary::default()
     };
-    let pace = pace_per_batch(options);
-    let started = tokio::time::Instant::now();
-    let mut sent: u32 = 0;
-    loop {
-        let can_send = next_batch.is_some() && stream.has_room();
-        let awaiting = stream.in_flight() > 0;
-        if !can_send && !awaiting {
-            break;
+    let mut pacer = Pacer::new(options);
+    for (stream_number, batches) in (0_u32..).zip(plan) {
+        let reset = stream_number == 0;
+        let (stream, accepted) =
+            DetectStream::start(connection, &vehicle_id, &options.model, reset).await?;
+        summary.streams += 1;
+        if !reset && accepted.resumed {
+            summary.resumed_reconnects += 1;
         }
-        // Paced: batch k leaves at k × pace; otherwise as soon as the window has room.
-        let send_at = pace.map_or(started, |pace| started + pace * sent);
-        tokio::select! {
-            // A reply that is already there is taken before more is sent, so latencies stay true.
-            biased;
-            reply = stream.recv(), if awaiting => {
-                let reply = reply?;
-                summary.batch_latencies.push(reply.latency);
-                let first_index = (reply.batch.seq - 1) as usize * options.batch_size;
-                match reply.outcome {
-                    BatchOutcome::Detections(detections) => {
-                        for (offset, detection) in detections.into_iter().enumerate() {
-                            let index = first_index + offset;
-                            let record = &track.records[index];
-                            summary.detections += 1;
-                            summary.alarm_onsets += u64::from(detection.alarm_onset);
-                            let _ = events
-                                .send(ReplayEvent::Detection(ReplayedDetection {
-                                    vehicle_id: vehicle_id.clone(),
-                                    index,
-                                    line: record.line,
-                                    recorded_timestamp_s: record.sample.timestamp_s,
-                                    detection,
-                                }))
-                                .await;
-                        }
-                    }
-                    BatchOutcome::Rejected(status) => {
-                        summary.rejected_batches += 1;
-                        let first = &track.records[first_index];
-                        let last = &track.records[first_index + reply.batch.len - 1];
-                        let _ = events
-                            .send(ReplayEvent::ItemError {
-                                vehicle_id: vehicle_id.clone(),
-                                seq: reply.batch.seq,
-                                lines: (first.line, last.line),
-                                status,
-                            })
-                            .await;
-                    }
-                }
-            }
-            () = tokio::time::sleep_until(send_at), if can_send => {
-                if let Some((seq, _, batch)) = next_batch.take() {
-                    stream.send_batch(seq, batch.samples).await?;
-                    sent += 1;
-                    next_batch = batches.next();
-                }
-            }
-        }
+        let _ = events
+            .send(ReplayEvent::Accepted {
+                vehicle_id: vehicle_id.clone(),
+                stream: stream_number,
+                accepted,
+            })
+            .await;
+        let on_stream = StreamReplay {
+            track,
+            vehicle_id: &vehicle_id,
+            stream_number,
+            events: &events,
+        };
+        on_stream
+            .run(stream, batches, &mut pacer, &mut summary)
+            .await?;
     }
-    stream.finish().await?;
     Ok(summary)
 }
 
-/// The records as `(seq, first index, batch)`, seq counting from 1.
-fn batch_requests(
+/// When batch k of a vehicle may leave: at k × pace from the replay's start, or at once.
+struct Pacer {
+    pace: Option<Duration>,
+    started: tokio::time::Instant,
+    sent: u32,
+}
+
+impl Pacer {
+    fn new(options: &ReplayOptions) -> Self {
+        Self {
+            pace: pace_per_batch(options),
+            started: tokio::time::Instant::now(),
+            sent: 0,
+        }
+    }
+
+    fn next_send_at(&self) -> tokio::time::Instant {
+        self.pace
+            .map_or(self.started, |pace| self.started + pace * self.sent)
+    }
+}
+
+/// One stream of a vehicle's replay: where its replies go.
+struct StreamReplay<'a> {
+    track: &'a Track,
+    vehicle_id: &'a str,
+    stream_number: u32,
+    events: &'a mpsc::Sender<ReplayEvent>,
+}
+
+impl StreamReplay<'_> {
+    /// Sends `batches` on `stream`, forwards every reply, then finishes the call.
+    async fn run(
+        &self,
+        mut stream: DetectStream,
+        batches: Vec<PlannedBatch>,
+        pacer: &mut Pacer,
+        summary: &mut ReplaySummary,
+    ) -> Result<(), ClientError> {
+        // Replies come in order: the first indices of the batches awaiting one, oldest first.
+        let mut awaiting_first_index: VecDeque<usize> = VecDeque::new();
+        let mut batches = batches.into_iter();
+        let mut next_batch = batches.next();
+        let mut first_on_stream = true;
+        loop {
+            let can_send = next_batch.is_some() && stream.has_room();
+            let awaiting = stream.in_flight() > 0;
+            if !can_send && !awaiting {
+                break;
+            }
+            tokio::select! {
+                // A reply that is already there is taken before more is sent, so latencies stay true.
+                biased;
+                reply = stream.recv(), if awaiting => {
+                    let reply = reply?;
+                    summary.batch_latencies.push(reply.latency);
+                    let first_index = awaiting_first_index.pop_front().ok_or_else(|| {
+                        ClientError::Protocol("a reply to a batch that was never sent".into())
+                    })?;
+                    match reply.outcome {
+                        BatchOutcome::Detections(detections) => {
+                            for (offset, detection) in detections.into_iter().enumerate() {
+                                summary.detections += 1;
+                                summary.alarm_onsets += u64::from(detection.alarm_onset);
+                                self.forward(first_index + offset, first_on_stream, detection)
+                                    .await;
+                                first_on_stream = false;
+                            }
+                        }
+                        BatchOutcome::Rejected(status) => {
+                            summary.rejected_batches += 1;
+                            let first = &self.track.records[first_index];
+                            let last = &self.track.records[first_index + reply.batch.len - 1];
+                            let _ = self
+                                .events
+                                .send(ReplayEvent::ItemError {
+                                    vehicle_id: self.vehicle_id.to_string(),
+                                    seq: reply.batch.seq,
+                                    lines: (first.line, last.line),
+                                    status,
+                                })
+                                .await;
+                        }
+                    }
+                }
+                () = tokio::time::sleep_until(pacer.next_send_at()), if can_send => {
+                    if let Some(planned) = next_batch.take() {
+                        stream.send_batch(planned.batch.seq, planned.batch.samples).await?;
+                        awaiting_first_index.push_back(planned.first_index);
+                        pacer.sent += 1;
+                        next_batch = batches.next();
+                    }
+                }
+            }
+        }
+        stream.finish().await
+    }
+
+    /// Sends the detection of record `index` to the events.
+    async fn forward(&self, index: usize, first_on_stream: bool, detection: v1::Detection) {
+        let record = &self.track.records[index];
+        let _ = self
+            .events
+            .send(ReplayEvent::Detection(ReplayedDetection {
+                vehicle_id: self.vehicle_id.to_string(),
+                index,
+                line: record.line,
+                recorded_timestamp_s: record.sample.timestamp_s,
+                label: record.label,
+                stream: self.stream_number,
+                first_on_stream,
+                detection,
+            }))
+            .await;
+    }
+}
+
+/// The batches of each stream: the records from one stream start to the next, in batches of at
+/// most `batch_size` that never span a stream start; seq counts from 1 across all streams (a
+/// resumed session keeps its last seq).
+fn plan_streams(
     records: &[Record],
     timestamps: &[f64],
     batch_size: usize,
-) -> Vec<(u64, usize, v1::SampleBatch)> {
-    records
-        .chunks(batch_size)
-        .zip(timestamps.chunks(batch_size))
-        .enumerate()
-        .map(|(k, (chunk, times))| {
-            let seq = k as u64 + 1;
-            let samples = chunk
-                .iter()
-                .zip(times)
-                .map(|(record, &t)| replayed_sample(&record.sample, t))
-                .collect();
-            (seq, k * batch_size, v1::SampleBatch { seq, samples })
+    stream_starts: &[usize],
+) -> Vec<Vec<PlannedBatch>> {
+    let mut seq = 0;
+    let ends = stream_starts
+        .iter()
+        .skip(1)
+        .copied()
+        .chain(std::iter::once(records.len()));
+    stream_starts
+        .iter()
+        .zip(ends)
+        .map(|(&start, end)| {
+            (start..end)
+                .step_by(batch_size)
+                .map(|first_index| {
+                    seq += 1;
+                    let last = (first_index + batch_size).min(end);
+                    let samples = records[first_index..last]
+                        .iter()
+                        .zip(&timestamps[first_index..last])
+                        .map(|(record, &t)| replayed_sample(&record.sample, t))
+                        .collect();
+                    PlannedBatch {
+                        first_index,
+                        batch: v1::SampleBatch { seq, samples },
+                    }
+                })
+                .collect()
         })
         .collect()
 }
@@ -512,22 +691,115 @@ mod tests {
     }
 
     #[test]
-    fn batches_cover_every_record_once_with_increasing_seq() {
+    fn batches_cover_every_record_once_never_span_a_stream_start_and_keep_counting_seq() {
         let rows = records(&[
             (0.0, false),
             (1.0, false),
             (2.0, false),
             (3.0, false),
             (4.0, false),
+            (5.0, false),
         ]);
         let times = replay_timestamps(&rows);
-        let batches = batch_requests(&rows, &times, 2);
-        let shape: Vec<(u64, usize, usize)> = batches
-            .iter()
-            .map(|(seq, first, b)| (*seq, *first, b.samples.len()))
+        let shape = |plan: &[Vec<PlannedBatch>]| -> Vec<Vec<(u64, usize, usize)>> {
+            plan.iter()
+                .map(|stream| {
+                    stream
+                        .iter()
+                        .map(|p| (p.batch.seq, p.first_index, p.batch.samples.len()))
+                        .collect()
+                })
+                .collect()
+        };
+        let one_stream = plan_streams(&rows[..5], &times[..5], 2, &[0]);
+        assert_eq!(
+            shape(&one_stream),
+            vec![vec![(1, 0, 2), (2, 2, 2), (3, 4, 1)]]
+        );
+        assert_eq!(one_stream[0][2].batch.samples[0].timestamp_s, 4.0);
+        // A reconnect before record 3: batch [2, 3] would span it, so it is cut at 3.
+        let reconnected = plan_streams(&rows, &times, 2, &[0, 3]);
+        assert_eq!(
+            shape(&reconnected),
+            vec![vec![(1, 0, 2), (2, 2, 1)], vec![(3, 3, 2), (4, 5, 1)]]
+        );
+        assert_eq!(
+            shape(&plan_streams(&[], &[], 2, &[0])),
+            vec![Vec::new()],
+            "an empty track is one stream without batches"
+        );
+    }
+
+    #[test]
+    fn without_reconnects_there_is_one_stream() {
+        let times: Vec<f64> = (0..1000).map(f64::from).collect();
+        let mut rng = reconnect_rng(1, "car");
+        assert_eq!(stream_starts(&times, 0.0, &mut rng), vec![0]);
+    }
+
+    #[test]
+    fn reconnects_come_after_about_the_given_recorded_time_and_differ_between_vehicles() {
+        // 1 h at 2 Hz with a 20 s gap in the middle.
+        let times: Vec<f64> = (0..7200)
+            .map(|k| f64::from(k) * 0.5 + if k >= 3600 { 20.0 } else { 0.0 })
             .collect();
-        assert_eq!(shape, vec![(1, 0, 2), (2, 2, 2), (3, 4, 1)]);
-        assert_eq!(batches[2].2.seq, 3);
-        assert_eq!(batches[2].2.samples[0].timestamp_s, 4.0);
+        let every_s = 60.0;
+        let mut rng = reconnect_rng(7, "car-1");
+        let starts = stream_starts(&times, every_s, &mut rng);
+        assert_eq!(starts[0], 0);
+        let intervals: Vec<f64> = starts
+            .windows(2)
+            .map(|w| times[w[1]] - times[w[0]])
+            .collect();
+        assert!(
+            (intervals.len() as f64) > 3600.0 / (1.5 * every_s),
+            "{intervals:?}"
+        );
+        for interval in &intervals {
+            // The first record at least the drawn interval (30–90 s) after the stream's start; one
+            // interval spans the gap and may end up to its 20 s later.
+            assert!(
+                (30.0..=111.0).contains(interval),
+                "{interval} s in {intervals:?}"
+            );
+        }
+        assert!(
+            intervals.iter().any(|&i| i < 50.0) && intervals.iter().any(|&i| i > 70.0),
+            "jittered: {intervals:?}"
+        );
+        let again = stream_starts(&times, every_s, &mut reconnect_rng(7, "car-1"));
+        assert_eq!(again, starts, "deterministic from seed and vehicle");
+        let other_vehicle = stream_starts(&times, every_s, &mut reconnect_rng(7, "car-2"));
+        assert_ne!(other_vehicle, starts);
+        let other_seed = stream_starts(&times, every_s, &mut reconnect_rng(8, "car-1"));
+        assert_ne!(other_seed, starts);
+    }
+
+    #[test]
+    fn a_non_finite_timestamp_never_starts_a_stream() {
+        let times = [f64::NAN, 0.0, 1.0, f64::NAN, 2.0, 3.0, 4.0];
+        let mut rng = reconnect_rng(1, "car");
+        // Every interval is at least 0.5 × 2 s = 1 s and at most 3 s.
+        let starts = stream_starts(&times, 2.0, &mut rng);
+        assert_eq!(starts[0], 0);
+        assert!(!starts.contains(&1) && !starts.contains(&3), "{starts:?}");
+        assert!(starts.len() >= 2, "{starts:?}");
+    }
+
+    #[test]
+    fn a_negative_or_infinite_reconnect_time_is_refused() {
+        for reconnect_every_s in [-1.0, f64::INFINITY, f64::NAN] {
+            let options = ReplayOptions {
+                reconnect_every_s,
+                ..ReplayOptions::default()
+            };
+            assert!(matches!(
+                options.validate(),
+                Err(ClientError::InvalidOption {
+                    option: "reconnect-every",
+                    ..
+                })
+            ));
+        }
     }
 }

@@ -2,7 +2,9 @@
 //! database) and the `detect` replay logic over gRPC.
 
 use spoofwatch_client::Connection;
-use spoofwatch_client::replay::{ReplayEvent, ReplayOptions, replay_timestamps, replay_tracks};
+use spoofwatch_client::replay::{
+    ReplayEvent, ReplayOptions, ReplaySummary, replay_timestamps, replay_tracks,
+};
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{DriveSpec, simulate_drive};
 use spoofwatch_server::inprocess::InProcessServer;
@@ -36,6 +38,7 @@ async fn every_sample_gets_one_detection_in_order_and_breaks_start_trajectories(
         rate_hz: 0.0,
         batch_size: 7, // 60 samples: 8 full batches and one of 4
         model: String::new(),
+        ..ReplayOptions::default()
     };
     let (events_tx, mut events) = mpsc::channel(64);
     let replay = {
@@ -121,6 +124,7 @@ async fn a_bad_sample_is_an_item_error_and_the_stream_goes_on() {
         rate_hz: 0.0,
         batch_size: 5,
         model: String::new(),
+        ..ReplayOptions::default()
     };
     let (events_tx, mut events) = mpsc::channel(64);
     let replay = tokio::spawn({
@@ -150,6 +154,116 @@ async fn a_bad_sample_is_an_item_error_and_the_stream_goes_on() {
         text.starts_with("INVALID_ARGUMENT") && text.contains("batch.samples[4].latitude_deg"),
         "{text}"
     );
+    server.shutdown().await.expect("clean shutdown");
+}
+
+/// Replays `track` with `options` and returns its events and summary.
+async fn replay_one(
+    connection: &Connection,
+    track: &Track,
+    options: ReplayOptions,
+) -> (Vec<ReplayEvent>, ReplaySummary) {
+    let (events_tx, mut events) = mpsc::channel(64);
+    let replay = tokio::spawn({
+        let connection = connection.clone();
+        let track = track.clone();
+        async move { replay_tracks(&connection, vec![track], &options, events_tx).await }
+    });
+    let mut received = Vec::new();
+    while let Some(event) = events.recv().await {
+        received.push(event);
+    }
+    let summary = replay
+        .await
+        .expect("replay task")
+        .remove(0)
+        .expect("every stream succeeded");
+    (received, summary)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reconnecting_vehicle_resumes_its_session_and_gets_the_same_detections() {
+    let server = InProcessServer::start(|_| {}).await.expect("server starts");
+    let connection = Connection::connect(server.url(), None)
+        .await
+        .expect("connects");
+    let spec = DriveSpec {
+        duration_s: 299.0,
+        rate_hz: 1.0,
+        seed: 5,
+        ..DriveSpec::default()
+    };
+    let track = simulate_drive(&spec, "car-5").expect("valid drive spec");
+    let batched = ReplayOptions {
+        batch_size: 7,
+        ..ReplayOptions::default()
+    };
+    let (steady, _) = replay_one(&connection, &track, batched.clone()).await;
+    let reconnecting = ReplayOptions {
+        reconnect_every_s: 30.0,
+        reconnect_seed: 3,
+        ..batched
+    };
+    let (events, summary) = replay_one(&connection, &track, reconnecting).await;
+
+    // 300 s with 15–45 s between reconnects.
+    assert!(summary.streams >= 7, "{summary:?}");
+    assert_eq!(summary.resumed_reconnects, summary.streams - 1);
+    assert_eq!((summary.detections, summary.rejected_batches), (300, 0));
+    let mut streams_accepted = Vec::new();
+    let mut firsts = Vec::new();
+    let mut detections = Vec::new();
+    for event in events {
+        match event {
+            ReplayEvent::Accepted {
+                stream, accepted, ..
+            } => {
+                assert_eq!(
+                    accepted.resumed,
+                    stream > 0,
+                    "stream {stream}: {accepted:?}"
+                );
+                assert_eq!(accepted.samples_seen as usize, detections.len());
+                streams_accepted.push(stream);
+            }
+            ReplayEvent::Detection(d) => {
+                assert_eq!(
+                    d.stream + 1,
+                    streams_accepted.len() as u32,
+                    "line {}",
+                    d.line
+                );
+                if d.first_on_stream {
+                    firsts.push(d.index);
+                }
+                detections.push(d);
+            }
+            ReplayEvent::ItemError { status, .. } => panic!("rejected batch: {status:?}"),
+        }
+    }
+    assert_eq!(streams_accepted, (0..summary.streams).collect::<Vec<u32>>());
+    assert_eq!(firsts.len(), summary.streams as usize);
+    assert_eq!(firsts[0], 0);
+    // A resumed session is the same detector: no new trajectory, identical verdicts.
+    let steady: Vec<_> = steady
+        .into_iter()
+        .filter_map(|e| match e {
+            ReplayEvent::Detection(d) => Some(d.detection),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(steady.len(), detections.len());
+    for (d, expected) in detections.iter().zip(&steady) {
+        assert_eq!(
+            d.detection.probability.to_bits(),
+            expected.probability.to_bits(),
+            "line {}",
+            d.line
+        );
+        assert_eq!(d.detection.alarm, expected.alarm, "line {}", d.line);
+        let trajectory = d.detection.evidence.as_ref().expect("evidence").trajectory;
+        assert_eq!(trajectory, 0, "line {}", d.line);
+    }
     server.shutdown().await.expect("clean shutdown");
 }
 

@@ -23,6 +23,10 @@ fn detect_has_documented_defaults() {
     assert_eq!(args.server.server, default_server());
     assert_eq!((args.rate, args.batch, args.quiet), (0.0, 1, false));
     assert_eq!((args.model, args.out), (None, None));
+    assert_eq!(
+        (args.reconnect_every, args.seed, args.summary),
+        (0.0, 1, None)
+    );
 }
 
 #[test]
@@ -44,9 +48,20 @@ fn detect_takes_every_option() {
         "--out",
         "rows.csv",
         "--quiet",
+        "--reconnect-every",
+        "300",
+        "--seed",
+        "9",
+        "--summary",
+        "fleet.json",
     ]) else {
         panic!("detect must parse");
     };
+    assert_eq!((args.reconnect_every, args.seed), (300.0, 9));
+    assert_eq!(
+        args.summary.as_deref(),
+        Some(std::path::Path::new("fleet.json"))
+    );
     assert_eq!(args.server.server, "http://h:1");
     assert_eq!(args.server.token.as_deref(), Some("t0k"));
     assert_eq!((args.rate, args.batch, args.quiet), (20.0, 50, true));
@@ -60,6 +75,8 @@ fn detect_refuses_out_of_range_values() {
         &["detect", "--data", "a.csv", "--batch", "1001"],
         &["detect", "--data", "a.csv", "--rate", "-1"],
         &["detect", "--data", "a.csv", "--rate", "inf"],
+        &["detect", "--data", "a.csv", "--reconnect-every", "-5"],
+        &["detect", "--data", "a.csv", "--reconnect-every", "nan"],
         &["detect"],
     ] {
         assert!(parse(bad).is_err(), "{bad:?}");

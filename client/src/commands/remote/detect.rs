@@ -1,13 +1,15 @@
-//! `spoofwatch detect`: replay a recording over StreamDetect, one concurrent stream per vehicle,
-//! printing detections as they arrive.
+//! `spoofwatch detect`: replay a recording over StreamDetect, one concurrent stream per vehicle
+//! (optionally reconnecting), printing detections as they arrive and a fleet summary at the end.
 //!
-//! Replay and the stream protocol belong to `spoofwatch_client::replay` and `DetectStream`; this
-//! module owns only the flags and the console/CSV output.
+//! Replay and the stream protocol belong to `spoofwatch_client::replay` and `DetectStream`, the
+//! summary's tally to `spoofwatch_client::fleet`; this module owns only the flags and the
+//! console/CSV/JSON output.
 
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use spoofwatch_client::error::describe_rpc_status;
+use spoofwatch_client::fleet::{FleetSummary, FleetTally, OnsetCounts, WorstVehicle};
 use spoofwatch_client::input::load_tracks;
 use spoofwatch_client::replay::{
     ReplayEvent, ReplayOptions, ReplaySummary, ReplayedDetection, replay_tracks,
@@ -16,6 +18,7 @@ use spoofwatch_proto::wire::limits::MAX_BATCH_SAMPLES;
 use tokio::sync::mpsc;
 
 use super::ServerArgs;
+use crate::commands::write_json;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -37,9 +40,35 @@ pub struct Args {
     /// alarm_onset, valid); timestamp_s is the recorded one.
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Print only alarm onsets and ends, and the per-vehicle summaries.
+    /// Print only alarm onsets and ends, and the per-vehicle and fleet summaries.
     #[arg(long)]
     pub quiet: bool,
+    /// Reconnect every vehicle after about this many seconds of recorded time (0: never), as when
+    /// its cellular link drops: the stream is closed and a new one opened with
+    /// SessionStart{reset: false}, which resumes the vehicle's session on the server, and the
+    /// replay goes on with the next sample. Each interval is drawn from 0.5–1.5 × this value,
+    /// per vehicle, from --seed.
+    #[arg(long, value_name = "SECONDS", default_value_t = 0.0, value_parser = parse_reconnect_every)]
+    pub reconnect_every: f64,
+    /// Seed of the reconnect times (with the vehicle id: the same vehicle and seed reconnect at the
+    /// same samples).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Also write the fleet summary (samples, attack-free hours, false-alarm onsets by where they
+    /// start, detections, worst vehicles) as JSON.
+    #[arg(long, value_name = "PATH")]
+    pub summary: Option<PathBuf>,
+}
+
+/// A reconnect interval in seconds: finite and ≥ 0.
+pub fn parse_reconnect_every(text: &str) -> Result<f64, String> {
+    let seconds: f64 = text
+        .parse()
+        .map_err(|_| format!("{text:?} is not a number"))?;
+    if !(seconds.is_finite() && seconds >= 0.0) {
+        return Err(format!("must be a finite time ≥ 0 in seconds, got {text}"));
+    }
+    Ok(seconds)
 }
 
 /// A rate in Hz: finite and ≥ 0.
@@ -124,10 +153,92 @@ pub fn summary_line(s: &ReplaySummary) -> String {
         || "-".to_string(),
         |l| format!("{:.2} ms", l.as_secs_f64() * 1e3),
     );
+    let reconnects = match s.reconnects() {
+        0 => String::new(),
+        n => format!(", {n} reconnects ({} resumed)", s.resumed_reconnects),
+    };
     format!(
-        "{}: {} samples, {} detections, {} alarms, {} rejected batches, mean batch latency {latency}",
+        "{}: {} samples, {} detections, {} alarms, {} rejected batches{reconnects}, mean batch latency {latency}",
         s.vehicle_id, s.samples_sent, s.detections, s.alarm_onsets, s.rejected_batches
     )
+}
+
+/// `n (s at session starts, g after gaps, e elsewhere)`.
+fn onset_breakdown(counts: &OnsetCounts) -> String {
+    format!(
+        "{} ({} within 30 s of a session start, {} within 30 s after a gap, {} elsewhere)",
+        counts.total(),
+        counts.session_start,
+        counts.after_gap,
+        counts.elsewhere
+    )
+}
+
+/// One worst vehicle: its counts and the first few onsets.
+fn worst_vehicle_line(v: &WorstVehicle) -> String {
+    const SHOWN: usize = 5;
+    let onsets: Vec<String> = v
+        .onsets
+        .iter()
+        .take(SHOWN)
+        .map(|o| {
+            let stream = match (o.stream, o.on_resumed_stream) {
+                (0, _) => "its first stream".to_string(),
+                (k, true) => format!("reconnect {k}, resumed"),
+                (k, false) => format!("reconnect {k}, afresh"),
+            };
+            format!(
+                "line {} ({:.1} s into {stream})",
+                o.line, o.after_stream_start_s
+            )
+        })
+        .collect();
+    let more = if v.onsets.len() > SHOWN { ", …" } else { "" };
+    format!(
+        "  {}: {} in {:.2} attack-free h; {}{more}",
+        v.vehicle_id,
+        onset_breakdown(&v.false_alarms),
+        v.attack_free_hours,
+        onsets.join(", ")
+    )
+}
+
+/// The fleet summary as console lines.
+pub fn fleet_lines(s: &FleetSummary) -> Vec<String> {
+    let rate = s
+        .false_alarms_per_attack_free_hour
+        .map_or_else(|| "-".to_string(), |r| format!("{r:.2}"));
+    let mut lines = vec![
+        format!(
+            "fleet: {} vehicles, {} samples, {:.2} attack-free hours; {} streams ({} reconnects, {} resumed); {} GNSS gaps (> {} s)",
+            s.vehicles,
+            s.samples,
+            s.attack_free_hours,
+            s.streams,
+            s.reconnects,
+            s.resumed_reconnects,
+            s.gaps,
+            s.gap_step_s
+        ),
+        format!(
+            "false alarms (onsets on attack-free rows): {} on {} vehicles, {rate} per attack-free hour",
+            onset_breakdown(&s.false_alarms),
+            s.vehicles_with_false_alarms
+        ),
+        format!(
+            "  of those at session starts, {} came soon after a reconnect that resumed the session (no restart for the detector)",
+            s.session_start_onsets_on_resumed_streams
+        ),
+        format!(
+            "detections (onsets on attacked rows): {}; onsets on unlabelled rows: {}",
+            s.detections, s.unlabelled_onsets
+        ),
+    ];
+    if !s.worst_vehicles.is_empty() {
+        lines.push("worst vehicles:".to_string());
+        lines.extend(s.worst_vehicles.iter().map(worst_vehicle_line));
+    }
+    lines
 }
 
 pub async fn run(args: Args) -> Result<()> {
@@ -140,6 +251,8 @@ pub async fn run(args: Args) -> Result<()> {
         rate_hz: args.rate,
         batch_size: args.batch,
         model: args.model.clone().unwrap_or_default(),
+        reconnect_every_s: args.reconnect_every,
+        reconnect_seed: args.seed,
     };
     let mut csv = match &args.out {
         Some(path) => {
@@ -156,14 +269,27 @@ pub async fn run(args: Args) -> Result<()> {
         let connection = connection.clone();
         tokio::spawn(async move { replay_tracks(&connection, tracks, &options, events_tx).await })
     };
+    let mut fleet = FleetTally::default();
     while let Some(event) = events.recv().await {
+        fleet.record(&event);
         match event {
             ReplayEvent::Accepted {
                 vehicle_id,
+                stream,
                 accepted,
             } => {
-                if !args.quiet {
+                if !args.quiet && stream == 0 {
                     println!("{vehicle_id}: session accepted, model {}", accepted.model);
+                } else if !args.quiet {
+                    let how = if accepted.resumed {
+                        "resumed"
+                    } else {
+                        "started afresh"
+                    };
+                    println!(
+                        "{vehicle_id}: reconnected, session {how} after {} samples",
+                        accepted.samples_seen
+                    );
                 }
             }
             ReplayEvent::Detection(detection) => {
@@ -202,7 +328,15 @@ pub async fn run(args: Args) -> Result<()> {
             }
         }
     }
+    let summary = fleet.summary();
+    for line in fleet_lines(&summary) {
+        println!("{line}");
+    }
     if let Some(path) = &args.out {
+        println!("wrote {}", path.display());
+    }
+    if let Some(path) = &args.summary {
+        write_json(path, &summary)?;
         println!("wrote {}", path.display());
     }
     if failures > 0 {

@@ -136,6 +136,7 @@ async fn stream_drive(url: &str, track: &Track, attack: &AttackSpec, rate: f64) 
         rate_hz: rate,
         batch_size: 1,
         model,
+        ..ReplayOptions::default()
     };
     let (events_tx, mut events) = mpsc::channel(256);
     let replay = {
