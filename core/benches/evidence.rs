@@ -4,6 +4,7 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use spoofwatch_core::evidence::drift::DriftParams;
 use spoofwatch_core::evidence::{EvidenceBuilder, EvidenceParams};
 use spoofwatch_core::geo::Projection;
 use spoofwatch_core::rng::Rng;
@@ -42,22 +43,29 @@ fn synthetic_drive(seed: u64, with_uncertainty: bool) -> Vec<Sample> {
         .collect()
 }
 
-fn params(projection: Projection) -> EvidenceParams {
-    EvidenceParams::new([[3.936, 0.183], [0.183, 2.150]], 0.294, projection)
-        .expect("valid parameters")
+fn params(projection: Projection, drift: bool) -> EvidenceParams {
+    let paper = EvidenceParams::new([[3.936, 0.183], [0.183, 2.150]], 0.294, projection)
+        .expect("valid parameters");
+    // Evidence v2: the drift tracker with per-vehicle levels (whitening values do not change the cost).
+    let drift = drift.then(|| DriftParams {
+        vehicle_levels: true,
+        ..DriftParams::unwhitened(1.2)
+    });
+    EvidenceParams { drift, ..paper }
 }
 
 fn bench_builder(c: &mut Criterion) {
     let mut group = c.benchmark_group("evidence_builder");
     group.throughput(Throughput::Elements(SAMPLES as u64));
     let cases = [
-        ("wgs84_local", Projection::Wgs84Local, false),
-        ("equirectangular", Projection::Equirectangular, false),
-        ("per_step_sigma", Projection::Wgs84Local, true),
+        ("wgs84_local", Projection::Wgs84Local, false, false),
+        ("equirectangular", Projection::Equirectangular, false, false),
+        ("per_step_sigma", Projection::Wgs84Local, true, false),
+        ("v2_drift_channels", Projection::Wgs84Local, false, true),
     ];
-    for (name, projection, with_uncertainty) in cases {
+    for (name, projection, with_uncertainty, drift) in cases {
         let samples = synthetic_drive(3, with_uncertainty);
-        let mut builder = EvidenceBuilder::new(params(projection));
+        let mut builder = EvidenceBuilder::new(params(projection, drift));
         group.bench_function(name, |b| {
             b.iter(|| {
                 builder.reset();

@@ -307,9 +307,12 @@ fn median(values: &mut [f64]) -> Option<f64> {
     }
 }
 
+/// Per attack kind (keyed by family position and magnitude bits): the kind and its scenarios' delays.
+type DelaysByKind = BTreeMap<(usize, u64), (AttackKind, Vec<Option<f64>>)>;
+
 /// Groups per-scenario delays (one event each) by attack kind, in test-grid order.
 fn attack_rows(scenarios: &[InjectedTrack], delays: &[Option<f64>]) -> Vec<AttackRow> {
-    let mut groups: BTreeMap<(usize, u64), (AttackKind, Vec<Option<f64>>)> = BTreeMap::new();
+    let mut groups = DelaysByKind::new();
     let families = [
         "ramp_drift",
         "accelerating_drift",
