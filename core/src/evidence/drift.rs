@@ -940,6 +940,42 @@ mod tests {
     }
 
     #[test]
+    fn a_vehicle_noisier_than_the_population_is_normalised_by_its_own_level() {
+        // Identity whitening, so at 1 Hz with white residuals of σ m per axis the 10 s drift rate has
+        // χ²/2 = σ²(1 − a)/(1 + a) ≈ 0.05 σ² (a = e^{−0.1}): ≈ 1.8 for σ = 6 m, ≈ 0.01 for σ = 0.5 m.
+        // The level moves from the population's 1 towards that, from data ≥ 120 s old.
+        let params = DriftParams {
+            vehicle_levels: true,
+            ..DriftParams::unwhitened(5.0)
+        };
+        let run = |noise_m: f64| {
+            let mut drift = DriftTracker::new(&params);
+            let mut rng = Rng::seed_from_u64(3);
+            let mut levels = Vec::new();
+            for _ in 0..900 {
+                drift.push(&DriftInput {
+                    residual: [noise_m * rng.normal(), noise_m * rng.normal()],
+                    motion: [0.0; 2],
+                    velocity_change: [0.0; 2],
+                    delta_t: 1.0,
+                });
+                levels.push(drift.levels_in_use);
+            }
+            levels
+        };
+        let quiet = run(0.5);
+        let noisy = run(6.0);
+        // Nothing is used before the first snapshot is 120 s old.
+        assert_eq!(noisy[100], Levels::default());
+        let (q, n) = (quiet[899].raw[0], noisy[899].raw[0]);
+        assert!(n > 1.3 && n < 2.3, "noisy {n}");
+        assert!(q < 0.3, "quiet {q}");
+        // The χ² seen by the detector are clamped to [1/4, 16] of the population's level.
+        assert_eq!(scaled([2.0, 0.0], 100.0), [0.5, 0.0]);
+        assert_eq!(scaled([2.0, 0.0], 0.01), [4.0, 0.0]);
+    }
+
+    #[test]
     fn params_validate_and_round_trip() {
         let params = DriftParams::unwhitened(1.0);
         let json = serde_json::to_string(&params).expect("serialise");
