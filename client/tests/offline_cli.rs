@@ -204,8 +204,8 @@ fn cusum_and_the_bundled_model_on_the_av_gps_data() {
     assert!(cusum.contains("CUSUM: mu_e ="), "{cusum}");
     assert!(cusum.contains("| data |"), "{cusum}");
 
-    // The committed default model reproduces its documented Dataset-3 scores (README).
-    let bundled = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/default.json");
+    // The committed paper-schema model (`models/paper.json`) reproduces its documented Dataset-3 scores (README).
+    let bundled = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/paper.json");
     let dir = tempfile::tempdir().expect("tempdir");
     let json = path(dir.path(), "d3.json");
     spoofwatch(&[

@@ -31,7 +31,7 @@ fn seeded_features(rng: &mut Rng, count: usize) -> Vec<Features> {
 
 #[test]
 fn bundled_model_outputs_are_bit_exact() {
-    let bytes = include_bytes!("../../models/default.json");
+    let bytes = include_bytes!("../../models/paper.json");
     let artifact = ModelArtifact::from_slice(bytes).expect("bundled model loads");
     let model = &artifact.model;
     let xs = seeded_features(&mut Rng::seed_from_u64(7), 2000);

@@ -317,10 +317,14 @@ async fn after_a_crash_the_running_job_is_failed_and_open_alarms_are_closed() {
         }
     }
 
-    // A drive with a 300 m jump: the bundled model is still alarming at its end (if a future model
-    // is not, the checks below cover the closed-alarm case instead).
-    let jump = AttackKind::Jump { offset_m: 300.0 };
-    let attacked = drive("crash-car", 240.0, 21, Some((jump, 100.0, 60.0)));
+    // A drive whose GNSS fix freezes from 100 s to 230 s: the bundled model may still be alarming
+    // at the end (if a future model is not, the checks below cover the closed-alarm case instead).
+    let attacked = drive(
+        "crash-car",
+        240.0,
+        21,
+        Some((AttackKind::FrozenPosition, 100.0, 130.0)),
+    );
     let mut detection = DetectionServiceClient::new(channel.clone());
     let mut alarming_at_crash = false;
     for chunk in attacked.records.chunks(30) {
@@ -344,7 +348,7 @@ async fn after_a_crash_the_running_job_is_failed_and_open_alarms_are_closed() {
         .into_inner();
     assert!(
         session.alarms_raised >= 1,
-        "the jump raised an alarm: {session:?}"
+        "the frozen fix raised an alarm: {session:?}"
     );
     assert_eq!(session.alarm_active, alarming_at_crash);
     drop((watch, detection, channel));

@@ -74,7 +74,6 @@ fn describe_worst(summary: &FleetSummary) -> String {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[ignore = "waits for the retrained default model (issue #8)"]
 async fn a_clean_fleet_with_gaps_and_reconnects_raises_no_alarm_at_starts_or_gaps() {
     let fleet = clean_fleet();
     let (_dir, server, mut clients) = start_server(|_| {}).await;

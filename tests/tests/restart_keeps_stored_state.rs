@@ -21,10 +21,10 @@ struct Episode {
     samples: i64,
 }
 
-/// Streams a drive with a 300 m jump through the bundled model; returns its alarm episodes.
+/// Streams a drive whose fix freezes for 60 s through the bundled model; returns its alarm episodes.
 async fn stream_attacked_drive(clients: &mut Clients, vehicle_id: &str) -> Vec<Episode> {
-    let jump = AttackKind::Jump { offset_m: 300.0 };
-    let track = attacked_drive(vehicle_id, 240.0, 21, jump, 100.0, 60.0);
+    let frozen = AttackKind::FrozenPosition;
+    let track = attacked_drive(vehicle_id, 240.0, 21, frozen, 100.0, 60.0);
     let (mut stream, _) = start_stream(clients, vehicle_id, "models/default").await;
     let mut episodes: Vec<Episode> = Vec::new();
     for (seq, batch) in track_samples(&track).chunks(20).enumerate() {
@@ -118,10 +118,10 @@ async fn a_restart_on_the_same_database_keeps_models_datasets_jobs_and_alarms() 
         .into_inner();
     let done = wait_done(&mut clients.operations, &job.name).await;
     let trained = trained_model(&done);
-    let episodes = stream_attacked_drive(&mut clients, "jumpy").await;
+    let episodes = stream_attacked_drive(&mut clients, "frozen-fix").await;
     assert!(
         !episodes.is_empty(),
-        "a 300 m jump raises a confirmed alarm"
+        "a frozen fix raises a confirmed alarm"
     );
     let before = snapshot(&mut clients).await;
     assert_eq!(
@@ -148,7 +148,7 @@ async fn a_restart_on_the_same_database_keeps_models_datasets_jobs_and_alarms() 
     let database = database_path(dir.path()).display().to_string();
     let store = Store::open(&database).await.expect("the database opens");
     let events = store
-        .list_alarm_events(Some("jumpy"), 100)
+        .list_alarm_events(Some("frozen-fix"), 100)
         .await
         .expect("alarm events");
     store.close().await;
@@ -203,7 +203,7 @@ async fn a_restart_on_the_same_database_keeps_models_datasets_jobs_and_alarms() 
         .await
         .expect("the database opens again");
     let kept = store
-        .list_alarm_events(Some("jumpy"), 100)
+        .list_alarm_events(Some("frozen-fix"), 100)
         .await
         .expect("alarm events");
     store.close().await;

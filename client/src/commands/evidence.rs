@@ -67,7 +67,7 @@ const EVIDENCE_COLUMNS: [(&str, ColumnValue); 14] = [
 type DriftValue = fn(&DriftEvidence) -> f64;
 
 /// Evidence v2's columns, written when the parameters carry drift parameters.
-const DRIFT_COLUMNS: [(&str, DriftValue); 17] = [
+const DRIFT_COLUMNS: [(&str, DriftValue); 19] = [
     ("r_clip_e", |d| d.clipped_residual[0]),
     ("r_clip_n", |d| d.clipped_residual[1]),
     ("r_clean_e", |d| d.cleaned_residual[0]),
@@ -85,6 +85,8 @@ const DRIFT_COLUMNS: [(&str, DriftValue); 17] = [
     ("calibrated_chi2_60s", |d| d.calibrated_chi2()[2]),
     ("calibrated_chi2_120s", |d| d.calibrated_chi2()[3]),
     ("drift_statistic", |d| d.statistic),
+    ("stale_fix_s", |d| d.stale_fix_s),
+    ("residual_log", |d| d.residual_log),
 ];
 
 pub fn run(args: Args) -> Result<()> {

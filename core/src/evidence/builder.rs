@@ -52,7 +52,8 @@ pub struct Evidence {
 
 impl Evidence {
     /// Unscaled ξ_t in the order of `FEATURE_NAMES`: the paper's 9 channels (ν as 0/1), then the drift
-    /// channels ln(1 + χ²_k) per scale (uncalibrated, calibrated), ln(1 + drift statistic) and ω_t.
+    /// channels ln(1 + χ²_k) per scale (uncalibrated, calibrated), ln(1 + drift statistic), ω_t and
+    /// ln(1 + stale-fix seconds) and ln(1 + ‖r‖/c).
     /// A schema reads its prefix; without drift channels they are 0.
     pub fn raw_features(&self) -> Features {
         let mut features: Features = [0.0; FEATURE_CAPACITY];
@@ -80,6 +81,8 @@ impl Evidence {
         }
         channels[2 * SCALE_COUNT] = drift.statistic.ln_1p();
         channels[2 * SCALE_COUNT + 1] = drift.warm_up;
+        channels[2 * SCALE_COUNT + 2] = drift.stale_fix_s.ln_1p();
+        channels[2 * SCALE_COUNT + 3] = drift.residual_log;
         features
     }
 }
@@ -264,6 +267,7 @@ impl EvidenceBuilder {
                     velocity[1] - previous.velocity[1],
                 ],
                 delta_t,
+                fix_repeated: fix == previous.fix,
             }));
         }
 

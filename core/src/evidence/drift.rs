@@ -195,6 +195,16 @@ pub struct DriftEvidence {
     pub calibrated_z: [[f64; 2]; SCALE_COUNT],
     /// The drift statistic: max over scales of χ²_k / h_k, calibrated when warm, else uncalibrated.
     pub statistic: f64,
+    /// How long (s) the GNSS fix has repeated exactly in this trajectory; 0 when it last moved. A
+    /// receiver's fix jitters at centimetres even at standstill, so a repeated fix is a frozen or
+    /// stale feed (AV-GPS's spoofer freezes it while the vehicle stands).
+    #[serde(default)]
+    pub stale_fix_s: f64,
+    /// ln(1 + ‖r‖/c): the residual's size in clip radii, log-compressed rather than clipped, so that
+    /// a jump of kilometres (no receiver error is that large) stays apart from a multipath spike of
+    /// metres; 0 when ν = 0.
+    #[serde(default)]
+    pub residual_log: f64,
 }
 
 impl DriftEvidence {
@@ -207,6 +217,8 @@ impl DriftEvidence {
         raw_z: [[0.0; 2]; SCALE_COUNT],
         calibrated_z: [[0.0; 2]; SCALE_COUNT],
         statistic: 0.0,
+        stale_fix_s: 0.0,
+        residual_log: 0.0,
     };
 
     /// χ²_k = ‖z_k‖² of the uncalibrated channel per scale.
@@ -246,6 +258,8 @@ pub struct DriftInput {
     pub velocity_change: [f64; 2],
     /// δ_t (s), in (0, 5].
     pub delta_t: f64,
+    /// The GNSS fix equals the previous one exactly.
+    pub fix_repeated: bool,
 }
 
 /// A calibration snapshot: θ after `clock_s` seconds of valid data.
@@ -358,6 +372,7 @@ impl DriftTracker {
             raw_z: [[0.0; 2]; SCALE_COUNT],
             calibrated_z: [[0.0; 2]; SCALE_COUNT],
             statistic: 0.0,
+            stale_fix_s: 0.0,
             ..self.last
         };
     }
@@ -367,6 +382,7 @@ impl DriftTracker {
         DriftEvidence {
             clipped_residual: [f64::NAN; 2],
             cleaned_residual: [f64::NAN; 2],
+            residual_log: 0.0,
             ..self.last
         }
     }
@@ -406,6 +422,11 @@ impl DriftTracker {
             normalised_max(&raw_z, &self.raw_threshold)
         };
         let [scale, heading, timing] = self.theta_in_use;
+        let stale_fix_s = if input.fix_repeated {
+            self.last.stale_fix_s + input.delta_t
+        } else {
+            0.0
+        };
         self.last = DriftEvidence {
             clipped_residual: clipped,
             cleaned_residual: cleaned,
@@ -414,6 +435,8 @@ impl DriftTracker {
             raw_z,
             calibrated_z,
             statistic,
+            stale_fix_s,
+            residual_log: (input.residual[0].hypot(input.residual[1]) / self.clip_m).ln_1p(),
         };
         self.last
     }
@@ -805,6 +828,7 @@ mod tests {
             motion,
             velocity_change,
             delta_t: 1.0,
+            fix_repeated: false,
         });
         let onboard = apply(&h, &theta_true);
         let east_drift = if t >= drift.0 { drift.1 } else { 0.0 };
@@ -813,6 +837,7 @@ mod tests {
             motion,
             velocity_change,
             delta_t: 1.0,
+            fix_repeated: false,
         }
     }
 
@@ -904,6 +929,7 @@ mod tests {
             motion: [0.0; 2],
             velocity_change: [0.0; 2],
             delta_t: 0.5,
+            fix_repeated: false,
         };
         let mut e = DriftEvidence::EMPTY;
         for _ in 0..3 {
@@ -933,10 +959,58 @@ mod tests {
             motion: [10.0, 0.0],
             velocity_change: [0.0; 2],
             delta_t: 1.0,
+            fix_repeated: false,
         });
         assert!((e.clipped_residual[0] - clip_m).abs() < 1e-12 && e.clipped_residual[1] == 0.0);
         let m = 1.0 - (-1.0 / DRIFT_SCALES_S[0]).exp();
         assert!((e.raw_z[0][0] - m * clip_m).abs() < 1e-8);
+    }
+
+    #[test]
+    fn a_repeated_fix_counts_stale_seconds_until_it_moves_or_the_trajectory_restarts() {
+        let mut drift = tracker();
+        let row = |fix_repeated: bool, delta_t: f64| DriftInput {
+            residual: [0.0; 2],
+            motion: [0.0; 2],
+            velocity_change: [0.0; 2],
+            delta_t,
+            fix_repeated,
+        };
+        let stale: Vec<f64> = [
+            row(true, 1.0),
+            row(true, 0.5),
+            row(false, 1.0),
+            row(true, 2.0),
+        ]
+        .iter()
+        .map(|r| drift.push(r).stale_fix_s)
+        .collect();
+        assert_eq!(stale, [1.0, 1.5, 0.0, 2.0]);
+        assert_eq!(drift.hold().stale_fix_s, 2.0, "a ν = 0 row holds it");
+        drift.start_trajectory();
+        assert_eq!(drift.hold().stale_fix_s, 0.0);
+        assert_eq!(drift.push(&row(true, 1.0)).stale_fix_s, 1.0);
+    }
+
+    #[test]
+    fn the_residual_size_is_log_compressed_in_clip_radii() {
+        let mut drift = tracker();
+        let clip_m = CLIP_SIGMAS * 0.7;
+        for (residual, expected) in [
+            ([0.0, 0.0], 0.0),
+            ([3.0 * clip_m, 4.0 * clip_m], 6f64.ln()),
+            ([0.0, -40_000.0], (1.0 + 40_000.0 / clip_m).ln()),
+        ] {
+            let e = drift.push(&DriftInput {
+                residual,
+                motion: [0.0; 2],
+                velocity_change: [0.0; 2],
+                delta_t: 1.0,
+                fix_repeated: false,
+            });
+            assert!((e.residual_log - expected).abs() < 1e-12, "{residual:?}");
+        }
+        assert_eq!(drift.hold().residual_log, 0.0, "undefined when ν = 0");
     }
 
     #[test]
@@ -958,6 +1032,7 @@ mod tests {
                     motion: [0.0; 2],
                     velocity_change: [0.0; 2],
                     delta_t: 1.0,
+                    fix_repeated: false,
                 });
                 levels.push(drift.levels_in_use);
             }

@@ -45,9 +45,11 @@ pub const FEATURE_NAMES: [&str; FEATURE_CAPACITY] = [
     "calibrated_drift_120s",
     "drift_statistic",
     "warm_up",
+    "stale_fix",
+    "residual_log",
 ];
 /// Length of the longest schema's ξ_t.
-pub const FEATURE_CAPACITY: usize = 19;
+pub const FEATURE_CAPACITY: usize = 21;
 /// Index of ν in every schema (it is never scaled).
 pub const NU_INDEX: usize = 8;
 /// First index of the drift channels (v2).

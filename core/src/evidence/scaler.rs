@@ -93,7 +93,7 @@ impl RobustScaler {
             .find(|schema| schema.feature_count() - 1 == self.center.len())
             .ok_or_else(|| {
                 invalid(format!(
-                    "{} centers fit no feature schema (paper: 8, v2: 18)",
+                    "{} centers fit no feature schema (paper: 8, v2: 20)",
                     self.center.len()
                 ))
             })?;

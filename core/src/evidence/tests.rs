@@ -314,3 +314,38 @@ fn build_track_equals_pushing_one_by_one() {
         .collect();
     assert!(same(&whole, &replay));
 }
+
+#[test]
+fn a_fix_repeated_exactly_is_stale_and_its_features_are_the_v2_tail() {
+    let params = EvidenceParams {
+        drift: Some(drift::DriftParams::unwhitened(1.0)),
+        ..params()
+    };
+    let mut builder = EvidenceBuilder::new(params);
+    // Standing still with a frozen fix for 3 s, then the fix jitters by 1 cm.
+    let samples = [
+        at(0.0, 5.0, 5.0, 0.0, 0.0),
+        at(1.0, 5.0, 5.0, 0.0, 0.0),
+        at(2.0, 5.0, 5.0, 0.0, 0.0),
+        at(3.0, 5.0, 5.0, 0.0, 0.0),
+        at(4.0, 5.01, 5.0, 0.0, 0.0),
+    ];
+    let stale: Vec<f64> = samples
+        .iter()
+        .map(|s| builder.push(s, false).drift.expect("v2").stale_fix_s)
+        .collect();
+    assert_eq!(stale, [0.0, 1.0, 2.0, 3.0, 0.0]);
+    let mut builder = EvidenceBuilder::new(params);
+    let features: Vec<Features> = samples[..4]
+        .iter()
+        .map(|s| builder.push(s, false).raw_features())
+        .collect();
+    let names = FeatureSchema::V2.feature_names();
+    let index = |name: &str| names.iter().position(|n| *n == name).expect("named");
+    assert_eq!(features[3][index("stale_fix")], 3f64.ln_1p());
+    assert_eq!(
+        features[3][index("residual_log")],
+        0.0,
+        "no residual at rest"
+    );
+}

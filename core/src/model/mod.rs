@@ -41,7 +41,7 @@ pub const EVOLUTION_INPUTS: [usize; 4] = [2, 3, 4, 5];
 /// are persistence evidence too (integrated over 10–120 s), and P is where the third-order term lets
 /// persistence gate the instantaneous and evolution roles. The paper schema reads the first 2.
 pub const PERSISTENCE_INPUTS: [usize; MAX_PERSISTENCE_INPUTS] =
-    [7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18];
+    [7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20];
 /// Width of P in the widest schema.
 pub const MAX_PERSISTENCE_INPUTS: usize = 2 + FEATURE_CAPACITY - DRIFT_FEATURES_START;
 
@@ -167,11 +167,15 @@ pub enum FeatureGroups {
     NoDriftStatistic,
     /// Drop the warm-up indicator ω.
     NoWarmUp,
+    /// Drop the stale-fix duration.
+    NoStaleFix,
+    /// Drop the log residual size.
+    NoResidualLog,
 }
 
 impl FeatureGroups {
     /// Every variant with its name on the command line and on the wire (`TrainingSpec.features`).
-    pub const NAMED: [(&'static str, FeatureGroups); 11] = [
+    pub const NAMED: [(&'static str, FeatureGroups); 13] = [
         ("all", Self::All),
         ("no-accumulation", Self::NoAccumulation),
         ("no-evolution", Self::NoEvolution),
@@ -183,6 +187,8 @@ impl FeatureGroups {
         ("no-calibrated-drift", Self::NoCalibratedDrift),
         ("no-drift-statistic", Self::NoDriftStatistic),
         ("no-warm-up", Self::NoWarmUp),
+        ("no-stale-fix", Self::NoStaleFix),
+        ("no-residual-log", Self::NoResidualLog),
     ];
 
     /// The variant's name in [`Self::NAMED`].
@@ -208,15 +214,19 @@ impl FeatureGroups {
             Self::NoAccumulation => &[7],
             Self::NoEvolution => &[2, 3, 4, 5],
             Self::NoEvolutionNoQ => &[2, 3, 4, 5, 6],
-            Self::LowOrderOnly => &[2, 3, 4, 5, 6, 7, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18],
-            Self::ValidityOnly => &[
-                0, 1, 2, 3, 4, 5, 6, 7, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18,
+            Self::LowOrderOnly => &[
+                2, 3, 4, 5, 6, 7, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20,
             ],
-            Self::NoDrift => &[9, 10, 11, 12, 13, 14, 15, 16, 17, 18],
+            Self::ValidityOnly => &[
+                0, 1, 2, 3, 4, 5, 6, 7, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20,
+            ],
+            Self::NoDrift => &[9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20],
             Self::NoRawDrift => &[9, 10, 11, 12],
             Self::NoCalibratedDrift => &[13, 14, 15, 16],
             Self::NoDriftStatistic => &[17],
             Self::NoWarmUp => &[18],
+            Self::NoStaleFix => &[19],
+            Self::NoResidualLog => &[20],
         };
         let mut kept = [true; FEATURE_CAPACITY];
         for &index in removed {
@@ -308,7 +318,7 @@ impl ModelConfig {
         }
     }
 
-    /// Width of the persistence role's input P (2 for the paper's ξ, 12 for v2).
+    /// Width of the persistence role's input P (2 for the paper's ξ, 14 for v2).
     pub fn persistence_width(&self) -> usize {
         2 + self.schema.feature_count() - DRIFT_FEATURES_START
     }

@@ -90,6 +90,8 @@ fn drift_to_proto(d: &DriftEvidence) -> v1::DriftEvidence {
         calibrated_chi2: d.calibrated_chi2().to_vec(),
         calibrated_z_east,
         calibrated_z_north,
+        stale_fix_s: d.stale_fix_s,
+        residual_log: d.residual_log,
     }
 }
 

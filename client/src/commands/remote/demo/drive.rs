@@ -18,11 +18,6 @@ use super::Args;
 /// Width of the probability bar in characters.
 const BAR_WIDTH: usize = 40;
 
-/// The model the demo serves: the `spoofwatch experiment subtle` model (trained with injected drifts),
-/// imported into the demo server. The server's own default (the av-gps model) is trained on AV-GPS
-/// attacks, which look nothing like a slow drift, and misses it (README, "subtle").
-const DRIFT_MODEL: &[u8] = include_bytes!("../../../../../models/subtle-drift.json");
-
 /// The demo scenario: a 6-minute drive at 1 Hz, a ramp drift from 150 s for 150 s.
 pub fn scenario(seed: u64, drift_mps: f64) -> Result<(Track, AttackSpec)> {
     let drive = DriveSpec {
@@ -111,22 +106,8 @@ pub async fn run(args: Args) -> Result<()> {
     result
 }
 
-/// Imports the drift model into the demo server; returns its name.
-async fn import_drift_model(connection: &Connection) -> Result<String> {
-    let requests = super::super::models::import_requests(
-        "subtle-drift (spoofwatch experiment subtle)".into(),
-        false,
-        DRIFT_MODEL,
-    );
-    let mut models = connection.models();
-    let import = models.import_model(tokio_stream::iter(requests));
-    let model = reply("importing the drift model", import).await?;
-    Ok(model.name)
-}
-
 async fn stream_drive(url: &str, track: &Track, attack: &AttackSpec, rate: f64) -> Result<()> {
     let connection = Connection::connect(url, None).await?;
-    let model = import_drift_model(&connection).await?;
     println!(
         "drive: {} samples at 1 Hz streamed at {rate} samples/s; attack: {} (ground truth marked ATTACK)",
         track.records.len(),
@@ -135,7 +116,6 @@ async fn stream_drive(url: &str, track: &Track, attack: &AttackSpec, rate: f64) 
     let options = ReplayOptions {
         rate_hz: rate,
         batch_size: 1,
-        model,
         ..ReplayOptions::default()
     };
     let (events_tx, mut events) = mpsc::channel(256);
