@@ -349,3 +349,40 @@ fn a_fix_repeated_exactly_is_stale_and_its_features_are_the_v2_tail() {
         "no residual at rest"
     );
 }
+
+#[test]
+fn the_calibration_recovers_a_simulated_drives_onboard_errors() {
+    use crate::scenario::{DriveSpec, OnboardErrors, simulate_drive};
+    // Reported speed (1 + ε)·v and heading + β, both sampled τ_L late: to first order the residual
+    // is −H θ with θ = (ε/(1 + ε), β, τ_L) (docs/detector.md §4.1).
+    let errors = OnboardErrors {
+        speed_scale_error: 0.04,
+        heading_bias_deg: -3.0,
+        timing_offset_s: 0.3,
+    };
+    let spec = DriveSpec {
+        duration_s: 900.0,
+        onboard_errors: errors,
+        seed: 11,
+        ..DriveSpec::default()
+    };
+    let track = simulate_drive(&spec, "calibrated").expect("a valid drive");
+    let params = EvidenceParams {
+        drift: Some(drift::DriftParams::unwhitened(1.0)),
+        ..EvidenceParams::with_accumulator(
+            [[1.0, 0.0], [0.0, 1.0]],
+            2.0,
+            0.0,
+            0.98,
+            Projection::Wgs84Local,
+        )
+        .expect("valid params")
+    };
+    let evidence = build_track(&params, &track.records);
+    let last = evidence.last().and_then(|e| e.drift).expect("v2 evidence");
+    let [scale, heading_deg, timing_s] = last.calibration;
+    assert!((scale - 0.04 / 1.04).abs() < 0.004, "scale {scale}");
+    assert!((heading_deg + 3.0).abs() < 0.3, "heading {heading_deg}");
+    assert!((timing_s - 0.3).abs() < 0.1, "timing {timing_s}");
+    assert!(last.is_warm());
+}

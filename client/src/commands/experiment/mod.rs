@@ -5,6 +5,7 @@
 mod avgps;
 mod parallel;
 mod subtle;
+mod subtle_d2;
 
 use std::path::{Path, PathBuf};
 
@@ -23,12 +24,15 @@ pub enum Command {
     AvGps(avgps::Args),
     /// Detection delay and ADR per subtle attack type and magnitude; false alarms per hour.
     Subtle(subtle::Args),
+    /// Ramps injected into Dataset-2's real normal trajectories, cross-validated by trajectory.
+    SubtleD2(subtle_d2::Args),
 }
 
 pub fn run(cmd: Command) -> Result<()> {
     match cmd {
         Command::AvGps(args) => avgps::run(args),
         Command::Subtle(args) => subtle::run(args),
+        Command::SubtleD2(args) => subtle_d2::run(args),
     }
 }
 
