@@ -40,7 +40,7 @@ pub struct Args {
 }
 
 /// Ramp velocities injected into the held-out trajectory (m/s); the goal is 2 m/s in 60 s.
-const RAMPS_MPS: [f64; 4] = [0.5, 1.0, 2.0, 3.0];
+const RAMPS_MPS: [f64; 4] = [0.5, 1.0, 1.5, 2.0];
 /// Attacks start this far apart in the held-out trajectory (one attack per test copy)…
 const ONSET_SPACING_S: f64 = 150.0;
 /// …from this far in (the calibration has warmed up) to `ATTACK_S` + 10 s before its end.
