@@ -15,6 +15,7 @@ use spoofwatch_core::alarm::{N_P_GRID, OperatingPointRule, choose_operating_poin
 use spoofwatch_core::cusum::fit_cusum_comparator;
 use spoofwatch_core::evaluation::{Scored, score_tracks};
 use spoofwatch_core::evidence::FeatureSchema;
+use spoofwatch_core::geo::Projection;
 use spoofwatch_core::glr::fit_glr_comparator;
 use spoofwatch_core::metrics::{EventRules, Metrics, normal_hours};
 use spoofwatch_core::model::artifact::ModelArtifact;
@@ -494,6 +495,40 @@ pub(super) fn within_budget(
     (artifact, normal_hours(&rows))
 }
 
+/// The directional GLR and CUSUM, fitted on `train` with operating points within the budget on
+/// `validation`, scored on `test` (a comparator without an admissible point is reported as such).
+pub(super) fn comparator_reports(
+    train: &[Track],
+    validation: &[Track],
+    projection: Projection,
+    test: &TestSet,
+) -> Result<Vec<DetectorReport>> {
+    let mut reports = Vec::new();
+    match fit_glr_comparator(train, validation, projection, BUDGET) {
+        Ok(glr) => reports.push(test.report(
+            "directional GLR",
+            serde_json::to_value(glr.operating_point)?,
+            |tracks| glr.score_tracks(tracks),
+        )),
+        Err(error) => {
+            eprintln!("directional GLR: {error}");
+            reports.push(DetectorReport::none_within_budget("directional GLR"));
+        }
+    }
+    match fit_cusum_comparator(train, validation, projection, BUDGET) {
+        Ok(cusum) => reports.push(test.report(
+            "CUSUM",
+            serde_json::to_value(&cusum.cusum)?,
+            |tracks| cusum.score_tracks(tracks),
+        )),
+        Err(error) => {
+            eprintln!("CUSUM: {error}");
+            reports.push(DetectorReport::none_within_budget("CUSUM"));
+        }
+    }
+    Ok(reports)
+}
+
 pub fn run(args: Args) -> Result<()> {
     let started = Instant::now();
     let threads = args.common.threads.unwrap_or_else(default_threads);
@@ -583,28 +618,7 @@ pub fn run(args: Args) -> Result<()> {
         ));
     }
     let projection = spec_for(FeatureSchema::V2).projection;
-    match fit_glr_comparator(&train, &validation, projection, BUDGET) {
-        Ok(glr) => detectors.push(test.report(
-            "directional GLR",
-            serde_json::to_value(glr.operating_point)?,
-            |tracks| glr.score_tracks(tracks),
-        )),
-        Err(error) => {
-            eprintln!("directional GLR: {error}");
-            detectors.push(DetectorReport::none_within_budget("directional GLR"));
-        }
-    }
-    match fit_cusum_comparator(&train, &validation, projection, BUDGET) {
-        Ok(cusum) => detectors.push(test.report(
-            "CUSUM",
-            serde_json::to_value(&cusum.cusum)?,
-            |tracks| cusum.score_tracks(tracks),
-        )),
-        Err(error) => {
-            eprintln!("CUSUM: {error}");
-            detectors.push(DetectorReport::none_within_budget("CUSUM"));
-        }
-    }
+    detectors.extend(comparator_reports(&train, &validation, projection, &test)?);
     let report = Report {
         protocol: "subtle",
         seed,

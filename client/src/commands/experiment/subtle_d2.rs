@@ -10,10 +10,8 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
-use spoofwatch_core::cusum::fit_cusum_comparator;
 use spoofwatch_core::evaluation::score_tracks;
 use spoofwatch_core::evidence::FeatureSchema;
-use spoofwatch_core::glr::fit_glr_comparator;
 use spoofwatch_core::rng::Rng;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{AttackKind, AttackSpec, inject};
@@ -23,7 +21,7 @@ use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
 
 use super::parallel::{default_threads, map_parallel};
 use super::subtle::{
-    ATTACK_S, BUDGET, DetectorReport, FALSE_ALARM_BUDGET_PER_HOUR, Population, TestSet,
+    ATTACK_S, DetectorReport, FALSE_ALARM_BUDGET_PER_HOUR, Population, TestSet, comparator_reports,
     simulated_mix, within_budget,
 };
 use super::{CommonArgs, load_avgps, with_injections};
@@ -244,28 +242,12 @@ pub fn run(args: Args) -> Result<()> {
             }
             None => detectors.push(DetectorReport::none_within_budget(name)),
         }
-        match fit_glr_comparator(&fold.train, &fold.validation, spec.projection, BUDGET) {
-            Ok(glr) => detectors.push(test.report(
-                "directional GLR",
-                serde_json::to_value(glr.operating_point)?,
-                |tracks| glr.score_tracks(tracks),
-            )),
-            Err(error) => {
-                eprintln!("directional GLR: {error}");
-                detectors.push(DetectorReport::none_within_budget("directional GLR"));
-            }
-        }
-        match fit_cusum_comparator(&fold.train, &fold.validation, spec.projection, BUDGET) {
-            Ok(cusum) => detectors.push(test.report(
-                "CUSUM",
-                serde_json::to_value(&cusum.cusum)?,
-                |tracks| cusum.score_tracks(tracks),
-            )),
-            Err(error) => {
-                eprintln!("CUSUM: {error}");
-                detectors.push(DetectorReport::none_within_budget("CUSUM"));
-            }
-        }
+        detectors.extend(comparator_reports(
+            &fold.train,
+            &fold.validation,
+            spec.projection,
+            test,
+        )?);
         report_folds.push(Fold {
             test_trajectory: fold.name.clone(),
             test_hours: duration_s(&fold.test.clean[0]) / 3600.0,
