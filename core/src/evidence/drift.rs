@@ -8,8 +8,11 @@
 //! stays fixed in east/north. A slow, *delayed* least-squares calibration learns them from rows at
 //! least two minutes old, so a drift that has just started is not absorbed.
 //!
-//! Owns the per-vehicle drift tracker (clip → calibration → EWMA drift rates → whitened χ²), its
-//! parameters and their fit on normal rows. Must not build the paper's channels (that is `builder.rs`)
+//! Two integrity channels ride along: how long the fix has repeated exactly (a frozen feed the
+//! residual cannot show at standstill) and the residual's log size (a kilometre jump is no multipath).
+//!
+//! Owns the per-vehicle drift tracker (clip → calibration → EWMA drift rates → whitened χ²; the
+//! integrity channels), its parameters and their fit on normal rows. Must not build the paper's channels (that is `builder.rs`)
 //! or scale features.
 
 use serde::{Deserialize, Serialize};
