@@ -277,7 +277,16 @@ fn the_subtle_experiment_reports_four_detectors_within_the_budget() {
     let data_dir = d2.parent().expect("a directory").display().to_string();
     let out = tempfile::tempdir().expect("tempdir");
     let out_dir = out.path().display().to_string();
-    let args = ["--epochs", "1", "--drives", "2", "--repeats", "1"];
+    let args = [
+        "--epochs",
+        "1",
+        "--drives",
+        "2",
+        "--repeats",
+        "1",
+        "--clean-drives",
+        "2",
+    ];
     let mut command = vec![
         "experiment",
         "subtle",
@@ -317,4 +326,53 @@ fn the_subtle_experiment_reports_four_detectors_within_the_budget() {
     }
     let markdown = std::fs::read_to_string(out.path().join("report.md")).expect("report.md");
     assert!(markdown.contains("smallest ramp within 30 s"));
+}
+
+#[test]
+fn the_dataset2_ramp_experiment_cross_validates_over_the_normal_trajectories() {
+    let Some(d2) = data_file(AVGPS_DIR_VAR, "AV-GPS-Dataset-2.csv") else {
+        return;
+    };
+    let data_dir = d2.parent().expect("a directory").display().to_string();
+    let out = tempfile::tempdir().expect("tempdir");
+    let out_dir = out.path().display().to_string();
+    spoofwatch(&[
+        "experiment",
+        "subtle-d2",
+        "--data-dir",
+        &data_dir,
+        "--out",
+        &out_dir,
+        "--epochs",
+        "1",
+        "--drives",
+        "2",
+    ]);
+    let report: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.path().join("report.json")).expect("report.json"),
+    )
+    .expect("valid json");
+    // Dataset-2 has two normal trajectories of 10+ minutes: one fold each, three detectors per fold.
+    let folds = report["folds"].as_array().expect("folds");
+    assert_eq!(folds.len(), 2);
+    for fold in folds {
+        assert!(
+            fold["attacks_per_magnitude"].as_u64().expect("count") >= 10,
+            "{fold}"
+        );
+        let detectors = fold["detectors"].as_array().expect("detectors");
+        assert_eq!(detectors.len(), 3);
+        for d in detectors {
+            let attacks = d["attacks"].as_array().expect("attack rows");
+            if !d["operating_point"].is_null() {
+                // One row per ramp velocity, each over every onset.
+                assert_eq!(attacks.len(), 4, "{d}");
+                assert!(
+                    attacks
+                        .iter()
+                        .all(|a| a["events"] == fold["attacks_per_magnitude"])
+                );
+            }
+        }
+    }
 }
