@@ -32,12 +32,7 @@ pub struct TrainingFlags {
     #[arg(long)]
     pub first_order_cell: bool,
     /// Ablation: evidence groups given to the model.
-    #[arg(
-        long,
-        default_value = FeatureGroups::All.name(),
-        value_parser = PossibleValuesParser::new(FeatureGroups::NAMED.map(|(name, _)| name))
-            .map(|name| FeatureGroups::from_name(&name).unwrap_or_default()),
-    )]
+    #[arg(long, default_value = FeatureGroups::All.name(), value_parser = feature_groups())]
     pub features: FeatureGroups,
     /// Evidence channels: `v2` (the paper's ξ plus directional drift channels) or `paper`.
     #[arg(
@@ -60,6 +55,12 @@ pub struct TrainingFlags {
     /// Print one line per epoch on stderr.
     #[arg(long)]
     pub verbose: bool,
+}
+
+/// Parses `--features`: one of [`FeatureGroups::NAMED`].
+pub fn feature_groups() -> impl TypedValueParser<Value = FeatureGroups> {
+    PossibleValuesParser::new(FeatureGroups::NAMED.map(|(name, _)| name))
+        .map(|name| FeatureGroups::from_name(&name).unwrap_or_default())
 }
 
 /// Optimiser recipe.

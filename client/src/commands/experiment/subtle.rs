@@ -9,7 +9,6 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use clap::builder::{PossibleValuesParser, TypedValueParser};
 use serde::Serialize;
 use spoofwatch_core::alarm::{N_P_GRID, OperatingPointRule, choose_operating_point, theta_grid};
 use spoofwatch_core::cusum::fit_cusum_comparator;
@@ -32,6 +31,7 @@ use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
 use super::parallel::{default_threads, map_parallel};
 use super::{CommonArgs, prepare, with_injections};
 use crate::commands::train::train_with_progress;
+use crate::commands::training_flags::feature_groups;
 use crate::commands::write_json;
 
 /// Attacks injected into training (and, in the subtle experiment, validation) data: magnitudes a
@@ -126,12 +126,7 @@ pub struct Args {
     #[arg(long)]
     training_seed: Option<u64>,
     /// Evidence groups given to the v2 model (a retrained ablation; the paper model keeps its ξ).
-    #[arg(
-        long,
-        default_value = FeatureGroups::All.name(),
-        value_parser = PossibleValuesParser::new(FeatureGroups::NAMED.map(|(name, _)| name))
-            .map(|name| FeatureGroups::from_name(&name).unwrap_or_default()),
-    )]
+    #[arg(long, default_value = FeatureGroups::All.name(), value_parser = feature_groups())]
     features: FeatureGroups,
 }
 
