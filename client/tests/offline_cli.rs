@@ -221,29 +221,35 @@ fn cusum_and_the_bundled_model_on_the_av_gps_data() {
     assert_eq!(overall["delays_s"], serde_json::json!([33.0, 50.0]));
 }
 
-#[test]
-fn the_av_gps_experiment_runs_end_to_end() {
-    let Some(d2) = data_file(AVGPS_DIR_VAR, "AV-GPS-Dataset-2.csv") else {
-        return;
-    };
+/// Runs `spoofwatch experiment <name> --data-dir <AV-GPS dir> --out <temp dir> <args>` and returns the
+/// output directory with its `report.json`; `None` (test skipped) without the AV-GPS data.
+fn run_experiment(name: &str, args: &[&str]) -> Option<(tempfile::TempDir, serde_json::Value)> {
+    let d2 = data_file(AVGPS_DIR_VAR, "AV-GPS-Dataset-2.csv")?;
     let data_dir = d2.parent().expect("a directory").display().to_string();
     let out = tempfile::tempdir().expect("tempdir");
     let out_dir = out.path().display().to_string();
-    spoofwatch(&[
+    let mut command = vec![
         "experiment",
-        "av-gps",
+        name,
         "--data-dir",
         &data_dir,
         "--out",
         &out_dir,
-        "--epochs",
-        "1",
-        "--no-ablations",
-    ]);
-    let report: serde_json::Value = serde_json::from_str(
+    ];
+    command.extend(args);
+    spoofwatch(&command);
+    let report = serde_json::from_str(
         &std::fs::read_to_string(out.path().join("report.json")).expect("report.json"),
     )
     .expect("valid json");
+    Some((out, report))
+}
+
+#[test]
+fn the_av_gps_experiment_runs_end_to_end() {
+    let Some((out, report)) = run_experiment("av-gps", &["--epochs", "1", "--no-ablations"]) else {
+        return;
+    };
     for key in ["dataset2_test", "dataset3", "ekf_dataset3"] {
         for field in [
             "auroc",
@@ -271,12 +277,6 @@ fn the_av_gps_experiment_runs_end_to_end() {
 
 #[test]
 fn the_subtle_experiment_reports_four_detectors_within_the_budget() {
-    let Some(d2) = data_file(AVGPS_DIR_VAR, "AV-GPS-Dataset-2.csv") else {
-        return;
-    };
-    let data_dir = d2.parent().expect("a directory").display().to_string();
-    let out = tempfile::tempdir().expect("tempdir");
-    let out_dir = out.path().display().to_string();
     let args = [
         "--epochs",
         "1",
@@ -287,20 +287,9 @@ fn the_subtle_experiment_reports_four_detectors_within_the_budget() {
         "--clean-drives",
         "2",
     ];
-    let mut command = vec![
-        "experiment",
-        "subtle",
-        "--data-dir",
-        &data_dir,
-        "--out",
-        &out_dir,
-    ];
-    command.extend(args);
-    spoofwatch(&command);
-    let report: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(out.path().join("report.json")).expect("report.json"),
-    )
-    .expect("valid json");
+    let Some((out, report)) = run_experiment("subtle", &args) else {
+        return;
+    };
     assert_eq!(report["false_alarm_budget_per_hour"], 1.0);
     let detectors = report["detectors"].as_array().expect("detector rows");
     let names: Vec<&str> = detectors
@@ -330,28 +319,10 @@ fn the_subtle_experiment_reports_four_detectors_within_the_budget() {
 
 #[test]
 fn the_dataset2_ramp_experiment_cross_validates_over_the_normal_trajectories() {
-    let Some(d2) = data_file(AVGPS_DIR_VAR, "AV-GPS-Dataset-2.csv") else {
+    let args = ["--epochs", "1", "--drives", "2"];
+    let Some((_out, report)) = run_experiment("subtle-d2", &args) else {
         return;
     };
-    let data_dir = d2.parent().expect("a directory").display().to_string();
-    let out = tempfile::tempdir().expect("tempdir");
-    let out_dir = out.path().display().to_string();
-    spoofwatch(&[
-        "experiment",
-        "subtle-d2",
-        "--data-dir",
-        &data_dir,
-        "--out",
-        &out_dir,
-        "--epochs",
-        "1",
-        "--drives",
-        "2",
-    ]);
-    let report: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(out.path().join("report.json")).expect("report.json"),
-    )
-    .expect("valid json");
     // Dataset-2 has two normal trajectories of 10+ minutes: one fold each, three detectors per fold.
     let folds = report["folds"].as_array().expect("folds");
     assert_eq!(folds.len(), 2);
