@@ -276,7 +276,8 @@ fn the_av_gps_experiment_runs_end_to_end() {
 }
 
 #[test]
-fn the_subtle_experiment_reports_four_detectors_within_the_budget() {
+fn the_subtle_experiment_reports_every_detector_within_the_budget() {
+    let bundled = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/default.json");
     let args = [
         "--epochs",
         "1",
@@ -286,6 +287,8 @@ fn the_subtle_experiment_reports_four_detectors_within_the_budget() {
         "1",
         "--clean-drives",
         "2",
+        "--also",
+        bundled,
     ];
     let Some((out, report)) = run_experiment("subtle", &args) else {
         return;
@@ -298,7 +301,13 @@ fn the_subtle_experiment_reports_four_detectors_within_the_budget() {
         .collect();
     assert_eq!(
         names,
-        ["HO-LLN v2", "HO-LLN paper", "directional GLR", "CUSUM"]
+        [
+            "HO-LLN v2",
+            "HO-LLN paper",
+            bundled,
+            "directional GLR",
+            "CUSUM"
+        ]
     );
     for d in detectors {
         assert!(d["false_alarms_per_hour"].is_number(), "{d}");
@@ -309,7 +318,12 @@ fn the_subtle_experiment_reports_four_detectors_within_the_budget() {
         if d["operating_point"].is_null() {
             assert!(attacks.is_empty());
         } else {
-            assert!(attacks.iter().any(|a| a["family"] == "ramp_drift"), "{d}");
+            for family in ["ramp_drift", "frozen_position", "jump", "hopping"] {
+                assert!(
+                    attacks.iter().any(|a| a["family"] == family),
+                    "{family}: {d}"
+                );
+            }
             assert!(attacks.iter().all(|a| a["events"] == 1), "{d}");
         }
     }

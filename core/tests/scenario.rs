@@ -208,6 +208,51 @@ fn frozen_position_holds_the_onset_fix() {
 }
 
 #[test]
+fn hopping_teleports_every_hold_and_repeats_the_fix_in_between() {
+    let base = straight_track();
+    let hopping = AttackKind::Hopping {
+        offset_m: 10_000.0,
+        hold_s: 4.0,
+    };
+    assert_eq!(hopping.describe(), "hop-10000m-4s");
+    assert_eq!(hopping.family(), "hopping");
+    let injected = inject(&base, &spec(hopping, 90.0, 20.0, 20.0)).unwrap();
+    let onset_fix = &base.records[20].sample;
+    // Hop k lands at ½ + ½·frac(k/φ) of 10 km, turned k golden angles (137.5077…°) from east.
+    for (hop, fraction) in [(0.0, 0.5), (1.0, 0.809_017), (4.0, 0.736_068)] {
+        let bearing = (90.0_f64 + hop * 137.507_764_05).to_radians();
+        let want = (
+            10_000.0 * fraction * bearing.sin(),
+            10_000.0 * fraction * bearing.cos(),
+        );
+        let first = 20 + 4 * hop as usize;
+        let landed = &injected.track.records[first].sample;
+        assert_close(
+            offset_m(onset_fix, landed),
+            want,
+            0.5,
+            &format!("hop {hop}"),
+        );
+        // The fix repeats exactly until the next hop.
+        for row in first + 1..first + 4 {
+            let s = &injected.track.records[row].sample;
+            assert_eq!(
+                (s.latitude_deg, s.longitude_deg),
+                (landed.latitude_deg, landed.longitude_deg),
+                "row {row}"
+            );
+        }
+    }
+    assert_eq!(injected.track.records[40].sample, base.records[40].sample);
+    let too_fast = AttackKind::Hopping {
+        offset_m: 10_000.0,
+        hold_s: 0.5,
+    };
+    let err = inject(&base, &spec(too_fast, 0.0, 20.0, 20.0)).unwrap_err();
+    assert!(err.to_string().contains("hold_s"), "{err}");
+}
+
+#[test]
 fn vehicle_id_describes_the_attack() {
     let base = straight_track();
     let mut attack = spec(ramp(0.25), 90.0, 10.0, 20.0);

@@ -35,9 +35,11 @@ pub enum KindArg {
     Frozen,
     /// Constant offset from the onset (magnitude: metres).
     Jump,
+    /// Teleports every `--hold` seconds up to `--magnitude` metres from the onset fix, frozen between.
+    Hop,
 }
 
-fn kind(family: KindArg, magnitude: Option<f64>) -> Result<AttackKind> {
+fn kind(family: KindArg, magnitude: Option<f64>, hold_s: f64) -> Result<AttackKind> {
     let need = |what: &str| {
         magnitude.with_context(|| format!("--magnitude is required for {what} attacks"))
     };
@@ -52,6 +54,10 @@ fn kind(family: KindArg, magnitude: Option<f64>) -> Result<AttackKind> {
         KindArg::Jump => AttackKind::Jump {
             offset_m: need("jump")?,
         },
+        KindArg::Hop => AttackKind::Hopping {
+            offset_m: need("hop")?,
+            hold_s,
+        },
     })
 }
 
@@ -61,9 +67,12 @@ pub struct AttackArgs {
     /// Attack family.
     #[arg(long, value_enum)]
     attack: KindArg,
-    /// Attack magnitude (m/s for ramp, m/s² for accel, m for jump).
+    /// Attack magnitude (m/s for ramp, m/s² for accel, m for jump and hop).
     #[arg(long)]
     magnitude: Option<f64>,
+    /// Seconds between the hops of a hop attack.
+    #[arg(long, default_value_t = 4.0)]
+    hold: f64,
     /// Direction of the false displacement, degrees clockwise from north.
     #[arg(long, default_value_t = 90.0)]
     direction: f64,
@@ -78,7 +87,7 @@ pub struct AttackArgs {
 impl AttackArgs {
     fn spec(&self) -> Result<AttackSpec> {
         let spec = AttackSpec {
-            kind: kind(self.attack, self.magnitude)?,
+            kind: kind(self.attack, self.magnitude, self.hold)?,
             direction_deg: self.direction,
             onset_s: self.onset,
             duration_s: self.duration,
@@ -115,6 +124,8 @@ pub struct SimulateArgs {
     attack: Option<KindArg>,
     #[arg(long)]
     magnitude: Option<f64>,
+    #[arg(long, default_value_t = 4.0)]
+    hold: f64,
     #[arg(long, default_value_t = 90.0)]
     direction: f64,
     #[arg(long)]
@@ -215,6 +226,7 @@ fn simulate(args: SimulateArgs) -> Result<()> {
             let spec = AttackArgs {
                 attack: family,
                 magnitude: args.magnitude,
+                hold: args.hold,
                 direction: args.direction,
                 onset,
                 duration: args.attack_duration,

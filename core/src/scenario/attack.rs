@@ -32,7 +32,23 @@ pub enum AttackKind {
         /// Offset (m, > 0, ≤ 1000 km).
         offset_m: f64,
     },
+    /// The fix teleports every `hold_s` seconds to a new place between ½ and 1 × `offset_m` from the
+    /// true position at onset, and repeats exactly in between: the hopping attack of AV-GPS
+    /// Dataset-2's third trajectory (jumps of tens of km every ~4 s, the fix frozen between them).
+    Hopping {
+        /// Largest hop distance (m, > 0, ≤ 1000 km).
+        offset_m: f64,
+        /// Seconds between hops (1–60).
+        hold_s: f64,
+    },
 }
+
+/// Hop `k` of a hopping attack turns by the golden angle from the previous one and lands at
+/// ½ + ½·frac(k·φ⁻¹) of the largest distance: spread out, never repeating, and deterministic.
+const GOLDEN_ANGLE_DEG: f64 = 137.507_764_050_037_85;
+const INVERSE_GOLDEN_RATIO: f64 = 0.618_033_988_749_894_9;
+/// Seconds between hops accepted by [`AttackKind::Hopping`] (inclusive).
+const HOP_HOLD_RANGE_S: (f64, f64) = (1.0, 60.0);
 
 impl AttackKind {
     /// Stable snake_case family name (the serde tag), for grouping results per attack type.
@@ -42,6 +58,7 @@ impl AttackKind {
             Self::AcceleratingDrift { .. } => "accelerating_drift",
             Self::FrozenPosition => "frozen_position",
             Self::Jump { .. } => "jump",
+            Self::Hopping { .. } => "hopping",
         }
     }
 
@@ -51,8 +68,14 @@ impl AttackKind {
             Self::RampDrift { velocity_mps } => Some(velocity_mps),
             Self::AcceleratingDrift { acceleration_mps2 } => Some(acceleration_mps2),
             Self::FrozenPosition => None,
-            Self::Jump { offset_m } => Some(offset_m),
+            Self::Jump { offset_m } | Self::Hopping { offset_m, .. } => Some(offset_m),
         }
+    }
+
+    /// Whether the spoofed fix is placed relative to the fix at onset (frozen position, hopping)
+    /// instead of following the true position.
+    pub fn follows_onset_fix(&self) -> bool {
+        matches!(self, Self::FrozenPosition | Self::Hopping { .. })
     }
 
     /// Short name for vehicle ids and reports: `ramp-0.25mps`, `accel-0.1mps2`, `frozen`, `jump-50m`.
@@ -64,6 +87,9 @@ impl AttackKind {
             }
             Self::FrozenPosition => "frozen".to_owned(),
             Self::Jump { offset_m } => format!("jump-{}m", compact(offset_m)),
+            Self::Hopping { offset_m, hold_s } => {
+                format!("hop-{}m-{}s", compact(offset_m), compact(hold_s))
+            }
         }
     }
 
@@ -86,6 +112,21 @@ impl AttackKind {
             ),
             Self::FrozenPosition => return Ok(()),
             Self::Jump { offset_m } => ("offset_m", offset_m, JUMP_OFFSET_RANGE_M, false, "m"),
+            Self::Hopping { offset_m, hold_s } => {
+                if !(hold_s.is_finite()
+                    && (HOP_HOLD_RANGE_S.0..=HOP_HOLD_RANGE_S.1).contains(&hold_s))
+                {
+                    return Err(ScenarioError::InvalidAttack {
+                        field: "hold_s",
+                        expected: format!(
+                            "a finite number in [{}, {}] s",
+                            HOP_HOLD_RANGE_S.0, HOP_HOLD_RANGE_S.1
+                        ),
+                        value: hold_s,
+                    });
+                }
+                ("offset_m", offset_m, JUMP_OFFSET_RANGE_M, false, "m")
+            }
         };
         let above_low = if low_inclusive {
             value >= low
@@ -103,15 +144,31 @@ impl AttackKind {
         })
     }
 
-    /// Offset magnitude (m) τ seconds after onset; `None` for a frozen position (not an offset).
+    /// Offset magnitude (m) from the true position τ seconds after onset; `None` for the kinds that
+    /// place the fix relative to the onset fix instead (frozen position, hopping).
     fn offset_m(&self, tau_s: f64) -> Option<f64> {
         match *self {
             Self::RampDrift { velocity_mps } => Some(velocity_mps * tau_s),
             Self::AcceleratingDrift { acceleration_mps2 } => {
                 Some(0.5 * acceleration_mps2 * tau_s * tau_s)
             }
-            Self::FrozenPosition => None,
+            Self::FrozenPosition | Self::Hopping { .. } => None,
             Self::Jump { offset_m } => Some(offset_m),
+        }
+    }
+
+    /// Where the fix sits relative to the onset fix τ seconds after onset (east, north, m): zero for a
+    /// frozen position, the current hop for hopping; `None` for the kinds that follow the true position.
+    fn onset_offset_en_m(&self, direction_deg: f64, tau_s: f64) -> Option<(f64, f64)> {
+        match *self {
+            Self::FrozenPosition => Some((0.0, 0.0)),
+            Self::Hopping { offset_m, hold_s } => {
+                let hop = (tau_s / hold_s).floor().max(0.0);
+                let distance = offset_m * (0.5 + 0.5 * (hop * INVERSE_GOLDEN_RATIO).fract());
+                let (unit_e, unit_n) = bearing_unit(direction_deg + hop * GOLDEN_ANGLE_DEG);
+                Some((distance * unit_e, distance * unit_n))
+            }
+            _ => None,
         }
     }
 }
@@ -186,7 +243,8 @@ impl AttackSpec {
         name
     }
 
-    /// Offset (east, north) in metres at τ seconds after onset; `None` for a frozen position.
+    /// Offset (east, north) in metres from the true position at τ seconds after onset; `None` for the
+    /// kinds placed relative to the onset fix (frozen position, hopping).
     pub fn offset_en_m(&self, tau_s: f64) -> Option<(f64, f64)> {
         let magnitude = self.kind.offset_m(tau_s)?;
         let (unit_e, unit_n) = bearing_unit(self.direction_deg);
@@ -248,7 +306,7 @@ pub fn inject(track: &Track, attack: &AttackSpec) -> Result<InjectedTrack, Scena
     }
     let t0 = track.records[0].sample.timestamp_s;
     let onset_fix = &track.records[first].sample;
-    if attack.kind == AttackKind::FrozenPosition
+    if attack.kind.follows_onset_fix()
         && !is_valid_fix(onset_fix.latitude_deg, onset_fix.longitude_deg)
     {
         return Err(ScenarioError::InvalidOnsetFix {
@@ -270,7 +328,13 @@ pub fn inject(track: &Track, attack: &AttackSpec) -> Result<InjectedTrack, Scena
             let tau_s = s.timestamp_s - t0 - attack.onset_s;
             let (lat, lon) = match attack.offset_en_m(tau_s) {
                 Some((east, north)) => displace_fix(s.latitude_deg, s.longitude_deg, east, north),
-                None => held_fix,
+                None => {
+                    let (east, north) = attack
+                        .kind
+                        .onset_offset_en_m(attack.direction_deg, tau_s)
+                        .unwrap_or_default();
+                    displace_fix(held_fix.0, held_fix.1, east, north)
+                }
             };
             if lat.abs() > 90.0 {
                 return Err(ScenarioError::DisplacedOutOfRange {

@@ -5,6 +5,7 @@
 //! simulated drives with injected drifts, frozen positions and jumps).
 
 use std::collections::BTreeMap;
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -30,6 +31,7 @@ use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
 
 use super::parallel::{default_threads, map_parallel};
 use super::{CommonArgs, prepare, with_injections};
+use crate::commands::evaluate::load_artifact;
 use crate::commands::train::train_with_progress;
 use crate::commands::training_flags::feature_groups;
 use crate::commands::write_json;
@@ -128,6 +130,10 @@ pub struct Args {
     /// Evidence groups given to the v2 model (a retrained ablation; the paper model keeps its ξ).
     #[arg(long, default_value = FeatureGroups::All.name(), value_parser = feature_groups())]
     features: FeatureGroups,
+    /// Also score these model artifacts (e.g. one trained on other data), each at its own operating
+    /// point chosen on this experiment's validation data within the same budget.
+    #[arg(long)]
+    also: Vec<PathBuf>,
 }
 
 /// Length of a simulated training/validation/clean test drive (s).
@@ -182,7 +188,11 @@ fn test_kinds() -> Vec<AttackKind> {
             .map(|acceleration_mps2| AttackKind::AcceleratingDrift { acceleration_mps2 }),
     );
     kinds.push(AttackKind::FrozenPosition);
-    kinds.extend([5.0, 20.0, 100.0].map(|offset_m| AttackKind::Jump { offset_m }));
+    kinds.extend([5.0, 20.0, 100.0, 10_000.0].map(|offset_m| AttackKind::Jump { offset_m }));
+    kinds.extend(
+        [(1_000.0, 2.0), (50_000.0, 10.0)]
+            .map(|(offset_m, hold_s)| AttackKind::Hopping { offset_m, hold_s }),
+    );
     kinds
 }
 
@@ -339,6 +349,7 @@ fn attack_rows(scenarios: &[InjectedTrack], delays: &[Option<f64>]) -> Vec<Attac
         "accelerating_drift",
         "frozen_position",
         "jump",
+        "hopping",
     ];
     for (s, d) in scenarios.iter().zip(delays) {
         let kind = s.attack.kind;
@@ -611,6 +622,21 @@ pub fn run(args: Args) -> Result<()> {
             serde_json::to_value(artifact.operating_point)?,
             |tracks| score_tracks(&artifact, tracks),
         ));
+    }
+    for path in &args.also {
+        let name = path.display().to_string(); // the path, as given on the command line
+        let (artifact, _) = within_budget(&name, (*load_artifact(path)?).clone(), &validation);
+        detectors.push(match artifact {
+            Some(artifact) => {
+                let artifact = Arc::new(artifact);
+                test.report(
+                    &name,
+                    serde_json::to_value(artifact.operating_point)?,
+                    |tracks| score_tracks(&artifact, tracks),
+                )
+            }
+            None => DetectorReport::none_within_budget(&name),
+        });
     }
     let projection = spec_for(FeatureSchema::V2).projection;
     detectors.extend(comparator_reports(&train, &validation, projection, &test)?);
