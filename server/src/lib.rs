@@ -5,11 +5,13 @@
 //! up logging, binds and waits for a signal; [`inprocess`] runs it inside another process.
 //!
 //! Layout, one home per concept: `models` (registry + ModelService), `datasets` (catalog +
-//! DatasetService), `detection` (sessions + DetectionService), `jobs` (service → manager → runner),
+//! DatasetService), `detection` (sessions + DetectionService), `alarms` (the outbox and background
+//! writer of alarm events), `jobs` (service → manager → runner),
 //! `store` (the only SQL), `error` (the one error → status mapping), `fault` (a server-side fault
 //! inside a subsystem's error), `edge` (request decoding shared by the services), `identity` (ids
 //! and digests). Wire conversions live in `spoofwatch_proto::wire`.
 
+mod alarms;
 pub mod config;
 mod datasets;
 mod detection;
@@ -44,6 +46,7 @@ use tonic_health::ServingStatus;
 
 pub use config::Config;
 
+use crate::alarms::{AlarmOutbox, OUTBOX_CAPACITY};
 use crate::datasets::{Catalog, DatasetApi};
 use crate::detection::{DetectionApi, SessionLimits, SessionManager};
 use crate::jobs::{JobManager, JobSettings, OperationsApi, Runner, TrainingApi};
@@ -116,10 +119,20 @@ pub async fn serve(
     registry.ensure_default_model().await?;
     let catalog = Catalog::new(store.clone(), config.data_dir.clone());
 
+    let grace = config.shutdown_grace();
+    let alarms = Arc::new(AlarmOutbox::new(&store, OUTBOX_CAPACITY).await?);
+    let stop_alarm_writer = CancellationToken::new();
+    let alarm_writer = {
+        let alarms = Arc::clone(&alarms);
+        let store = store.clone();
+        let stop = stop_alarm_writer.clone();
+        tokio::spawn(async move { alarms.run(store, stop, grace).await })
+    };
+
     let draining = CancellationToken::new();
     let sessions = Arc::new(SessionManager::new(
         Arc::clone(&registry),
-        store.clone(),
+        Arc::clone(&alarms),
         SessionLimits {
             max_sessions: config.max_sessions,
             idle: config.session_idle(),
@@ -212,14 +225,15 @@ pub async fn serve(
         })
     };
 
-    // The drain: health first, then streams, then jobs; tonic stops accepting after this resolves.
-    let grace = config.shutdown_grace();
+    // The drain: health first, then streams, then jobs, then alarms; tonic stops accepting after
+    // this resolves.
     let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
     {
         let draining = draining.clone();
         let health = health_reporter.clone();
         let jobs = Arc::clone(&jobs);
         let sessions = Arc::clone(&sessions);
+        let stop_alarm_writer = stop_alarm_writer.clone();
         tokio::spawn(async move {
             shutdown.await;
             tracing::info!("shutting down: health NOT_SERVING, draining streams and jobs");
@@ -232,6 +246,7 @@ pub async fn serve(
             draining.cancel();
             jobs.shutdown(grace).await;
             sessions.close_all_alarms().await;
+            stop_alarm_writer.cancel();
             let _ = stop_tx.send(());
         });
     }
@@ -261,6 +276,11 @@ pub async fn serve(
         }
     };
     evictor.abort();
+    // The writer stores what is queued (bounded by the grace while the database refuses).
+    stop_alarm_writer.cancel();
+    if let Err(error) = alarm_writer.await {
+        tracing::error!(%error, "the alarm writer failed");
+    }
     store.close().await;
     tracing::info!("server stopped");
     result

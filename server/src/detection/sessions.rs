@@ -1,5 +1,6 @@
 //! Per-vehicle sessions: a detector each, ownership by at most one stream (a newer stream takes
-//! over), a bounded count, idle eviction, and alarm onsets/ends persisted through the store.
+//! over), a bounded count, idle eviction, and alarm onsets/ends handed to the alarm outbox (never a
+//! database call while a session is locked).
 //! Speaks core types ([`Sample`], [`Decision`]) and [`SessionError`]; it must not know about gRPC
 //! messages or statuses (the edge is `detection::service`).
 
@@ -14,8 +15,9 @@ use spoofwatch_proto::wire::ModelName;
 use tokio_util::sync::CancellationToken;
 
 use super::validate::validate_batch;
+use crate::alarms::AlarmOutbox;
 use crate::models::{LoadedModel, Registry, RegistryError};
-use crate::store::{Store, now_unix_ms};
+use crate::store::now_unix_ms;
 
 /// Everything a session operation can fail with.
 #[derive(Debug, thiserror::Error)]
@@ -76,7 +78,7 @@ pub struct SessionLimits {
     pub max_batch_samples: usize,
 }
 
-/// An alarm currently on, as recorded in `alarm_events`.
+/// An alarm currently on (its onset queued for `alarm_events` under `id`).
 #[derive(Debug)]
 struct OpenAlarm {
     id: i64,
@@ -157,17 +159,17 @@ pub struct Attachment {
 pub struct SessionManager {
     slots: Mutex<HashMap<String, Arc<SessionSlot>>>,
     registry: Arc<Registry>,
-    store: Store,
+    alarms: Arc<AlarmOutbox>,
     limits: SessionLimits,
     next_stream_id: AtomicU64,
 }
 
 impl SessionManager {
-    pub fn new(registry: Arc<Registry>, store: Store, limits: SessionLimits) -> Self {
+    pub fn new(registry: Arc<Registry>, alarms: Arc<AlarmOutbox>, limits: SessionLimits) -> Self {
         Self {
             slots: Mutex::new(HashMap::new()),
             registry,
-            store,
+            alarms,
             limits,
             next_stream_id: AtomicU64::new(1),
         }
@@ -235,7 +237,7 @@ impl SessionManager {
         let mut state = slot.state.lock().await;
         let resumed = existed && !reset && state.model.name == model.name;
         if !resumed {
-            self.close_alarm(&mut state).await;
+            self.close_alarm(&mut state);
             *state = SessionState::new(model);
         }
         let accepted = Accepted {
@@ -298,8 +300,7 @@ impl SessionManager {
                     &slot.vehicle_id,
                     sample.timestamp_s,
                     decision.probability,
-                )
-                .await;
+                );
             } else if decision.alarm {
                 if let Some(open) = state.open_alarm.as_mut() {
                     open.peak = open.peak.max(decision.probability);
@@ -308,7 +309,7 @@ impl SessionManager {
                 }
             } else if decision.alarm_end {
                 // This sample is the first non-alarming one; the event ends at the previous sample.
-                self.close_alarm(&mut state).await;
+                self.close_alarm(&mut state);
             }
             state.alarm_active = decision.alarm;
             decisions.push(decision);
@@ -321,38 +322,25 @@ impl SessionManager {
         })
     }
 
-    /// Records an alarm onset. A failed write is logged and retried at the alarm's end (as a closed
-    /// event), so the alarm is not lost while the database recovers.
-    async fn open_alarm(&self, state: &mut SessionState, vehicle: &str, timestamp_s: f64, p: f64) {
-        match self
-            .store
-            .open_alarm(vehicle, state.model.name.id(), timestamp_s, p)
-            .await
-        {
-            Ok(id) => {
-                state.open_alarm = Some(OpenAlarm {
-                    id,
-                    peak: p,
-                    samples: 1,
-                    last_timestamp_s: timestamp_s,
-                })
-            }
-            Err(error) => tracing::error!(%error, vehicle, "could not record an alarm onset"),
-        }
+    /// Queues an alarm onset.
+    fn open_alarm(&self, state: &mut SessionState, vehicle: &str, timestamp_s: f64, p: f64) {
+        let id = self
+            .alarms
+            .onset(vehicle, state.model.name.id(), timestamp_s, p);
+        state.open_alarm = Some(OpenAlarm {
+            id,
+            peak: p,
+            samples: 1,
+            last_timestamp_s: timestamp_s,
+        });
     }
 
-    /// Records the end of the current alarm at its last alarming sample (also when the session
+    /// Queues the end of the current alarm at its last alarming sample (also when the session
     /// ends, resets or changes model while alarming).
-    async fn close_alarm(&self, state: &mut SessionState) {
-        let Some(open) = state.open_alarm.take() else {
-            return;
-        };
-        if let Err(error) = self
-            .store
-            .close_alarm(open.id, open.last_timestamp_s, open.peak, open.samples)
-            .await
-        {
-            tracing::error!(%error, alarm = open.id, "could not record an alarm end");
+    fn close_alarm(&self, state: &mut SessionState) {
+        if let Some(open) = state.open_alarm.take() {
+            self.alarms
+                .end(open.id, open.last_timestamp_s, open.peak, open.samples);
         }
     }
 
@@ -382,7 +370,7 @@ impl SessionManager {
                 let model = self.registry.resolve(Some(requested)).await?;
                 let mut state = slot.state.lock().await;
                 if state.model.name != model.name {
-                    self.close_alarm(&mut state).await;
+                    self.close_alarm(&mut state);
                     *state = SessionState::new(model);
                 }
                 drop(state);
@@ -451,7 +439,7 @@ impl SessionManager {
             .ok_or_else(|| SessionError::NotFound(vehicle_id.to_string()))?;
         {
             let mut state = slot.state.lock().await;
-            self.close_alarm(&mut state).await;
+            self.close_alarm(&mut state);
             let model = state.model.clone();
             *state = SessionState::new(model);
         }
@@ -473,7 +461,7 @@ impl SessionManager {
         };
         for slot in &idle {
             let mut state = slot.state.lock().await;
-            self.close_alarm(&mut state).await;
+            self.close_alarm(&mut state);
         }
         idle.len()
     }
@@ -483,7 +471,7 @@ impl SessionManager {
         let slots: Vec<Arc<SessionSlot>> = self.slots().values().cloned().collect();
         for slot in slots {
             let mut state = slot.state.lock().await;
-            self.close_alarm(&mut state).await;
+            self.close_alarm(&mut state);
         }
     }
 }

@@ -16,7 +16,8 @@ use crate::fault::Fault;
 use crate::identity::{new_id, sha256_hex};
 use crate::store::{ModelRow, ModelSource, NewModel, Page, PageRequest, Store, StoreError};
 
-/// The artifact bundled into the binary: trained by `spoofwatch experiment av-gps` (see README).
+/// The artifact bundled into the binary: the v2 model of `spoofwatch experiment subtle` (seed 42, see
+/// README).
 pub const BUNDLED_MODEL: &[u8] = include_bytes!("../../../models/default.json");
 /// Id of the bundled model in the registry.
 pub const BUNDLED_MODEL_ID: &str = "default";
@@ -108,11 +109,15 @@ pub struct LoadedModel {
     pub artifact: Arc<ModelArtifact>,
 }
 
-/// Models in the store plus a cache of parsed artifacts.
+/// Models in the store plus a cache of parsed artifacts and of the active model's name, so that
+/// starting a stream never waits for the database once the model has been served.
 #[derive(Debug)]
 pub struct Registry {
     store: Store,
     cache: Mutex<HashMap<String, Arc<ModelArtifact>>>,
+    /// The active model, as last read or set by this server (`None` until then). This server is
+    /// the only writer of the activation, so the cache is set where it activates.
+    active: Mutex<Option<ModelName>>,
 }
 
 impl Registry {
@@ -120,12 +125,33 @@ impl Registry {
         Self {
             store,
             cache: Mutex::new(HashMap::new()),
+            active: Mutex::new(None),
         }
     }
 
     fn cache(&self) -> std::sync::MutexGuard<'_, HashMap<String, Arc<ModelArtifact>>> {
         // Single inserts/removes cannot leave the map inconsistent, so a poisoned lock is usable.
         self.cache.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn active(&self) -> std::sync::MutexGuard<'_, Option<ModelName>> {
+        // A single assignment cannot leave it inconsistent, so a poisoned lock is usable.
+        self.active.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The active model's name: from memory, or read once from the store.
+    async fn active_name(&self) -> Result<ModelName, RegistryError> {
+        if let Some(name) = self.active().clone() {
+            return Ok(name);
+        }
+        let row = self
+            .store
+            .active_model()
+            .await?
+            .ok_or(RegistryError::NoActiveModel)?;
+        let name = ModelName::from_id(row.id);
+        *self.active() = Some(name.clone());
+        Ok(name)
     }
 
     /// On an empty registry, registers and activates the bundled default model.
@@ -137,13 +163,14 @@ impl Registry {
             .map_err(|e| Fault::new("loading the bundled default model", e))?;
         self.register(
             BUNDLED_MODEL_ID,
-            "bundled default (av-gps experiment)",
+            "bundled default (subtle experiment, v2 evidence)",
             ModelSource::Bundled,
             None,
             &artifact,
         )
         .await?;
         self.store.set_active_model(BUNDLED_MODEL_ID).await?;
+        *self.active() = Some(ModelName::from_id(BUNDLED_MODEL_ID));
         tracing::info!("registered and activated the bundled default model");
         Ok(())
     }
@@ -214,14 +241,7 @@ impl Registry {
     ) -> Result<LoadedModel, RegistryError> {
         let name = match requested {
             Some(name) => name.clone(),
-            None => {
-                let active = self
-                    .store
-                    .active_model()
-                    .await?
-                    .ok_or(RegistryError::NoActiveModel)?;
-                ModelName::from_id(active.id)
-            }
+            None => self.active_name().await?,
         };
         if let Some(artifact) = self.cache().get(name.id()).cloned() {
             return Ok(LoadedModel { name, artifact });
@@ -261,6 +281,7 @@ impl Registry {
     pub async fn activate(&self, name: &ModelName) -> Result<ModelRow, RegistryError> {
         self.resolve(Some(name)).await?;
         let row = self.store.set_active_model(name.id()).await?;
+        *self.active() = Some(name.clone());
         tracing::info!(model = %name, "activated model");
         Ok(row)
     }
@@ -271,5 +292,36 @@ impl Registry {
         self.cache().remove(name.id());
         tracing::info!(model = %name, "deleted model");
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn the_active_model_is_served_from_memory_and_follows_activation() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join("spoofwatch.db");
+        let store = Store::open(&path.to_string_lossy()).await.expect("open");
+        let registry = Registry::new(store.clone());
+        registry.ensure_default_model().await.unwrap();
+        assert_eq!(registry.resolve(None).await.unwrap().name.id(), "default");
+
+        let artifact = ModelArtifact::from_slice(BUNDLED_MODEL).unwrap();
+        registry
+            .register("second", "second", ModelSource::Import, None, &artifact)
+            .await
+            .unwrap();
+        registry
+            .activate(&ModelName::from_id("second"))
+            .await
+            .unwrap();
+        assert_eq!(registry.resolve(None).await.unwrap().name.id(), "second");
+
+        // With the database gone, a stream start still gets the active model.
+        store.close().await;
+        assert!(store.active_model().await.is_err(), "the store is closed");
+        assert_eq!(registry.resolve(None).await.unwrap().name.id(), "second");
     }
 }

@@ -1,17 +1,14 @@
-//! Confirmed-alarm history: one row per alarm episode of a vehicle, written at onset and at end so an
-//! alarm is never lost even if the in-memory session is.
-
-use sqlx::Sqlite;
-use sqlx::query::Query;
-use sqlx::sqlite::SqliteArguments;
+//! Confirmed-alarm history: one row per alarm episode of a vehicle, written at onset and at end (by
+//! the server's background alarm writer, in batches) so an alarm is never lost even if the
+//! in-memory session is.
 
 use super::error::{require_finite, require_probability};
-use super::{Store, StoreError, now_unix_ms};
+use super::{Store, StoreError};
 
 /// A stored alarm episode.
 #[derive(Debug, Clone, PartialEq, sqlx::FromRow)]
 pub struct AlarmEventRow {
-    /// Store-assigned id, increasing in opening order.
+    /// Server-assigned id, increasing in opening order.
     pub id: i64,
     /// The vehicle that alarmed.
     pub vehicle_id: String,
@@ -34,6 +31,54 @@ pub struct AlarmEventRow {
     pub samples: i64,
 }
 
+/// One alarm write of the background writer: ids come from the server (never from an insert), so
+/// a write can be retried and an end always names its own onset.
+#[derive(Debug, Clone, PartialEq)]
+pub enum AlarmWrite {
+    /// An alarm onset (one sample, peak = `probability`).
+    Onset {
+        id: i64,
+        vehicle_id: String,
+        model_id: String,
+        onset_timestamp_s: f64,
+        onset_at_ms: i64,
+        probability: f64,
+    },
+    /// The end of alarm `id` at its last alarming sample.
+    End {
+        id: i64,
+        end_timestamp_s: f64,
+        ended_at_ms: i64,
+        peak_probability: f64,
+        samples: u32,
+    },
+}
+
+impl AlarmWrite {
+    /// [`StoreError::InvalidValue`] for a non-finite timestamp or a probability outside [0, 1].
+    pub fn validate(&self) -> Result<(), StoreError> {
+        match self {
+            Self::Onset {
+                onset_timestamp_s,
+                probability,
+                ..
+            } => {
+                require_finite("onset_timestamp_s", *onset_timestamp_s)?;
+                require_probability("probability", *probability)?;
+            }
+            Self::End {
+                end_timestamp_s,
+                peak_probability,
+                ..
+            } => {
+                require_finite("end_timestamp_s", *end_timestamp_s)?;
+                require_probability("peak_probability", *peak_probability)?;
+            }
+        }
+        Ok(())
+    }
+}
+
 impl AlarmEventRow {
     /// Whether the alarm is still open.
     pub fn is_open(&self) -> bool {
@@ -42,74 +87,73 @@ impl AlarmEventRow {
 }
 
 impl Store {
-    /// Records an alarm onset (one sample, peak = `probability`) and returns its id.
-    ///
-    /// [`StoreError::InvalidValue`] for a non-finite timestamp or a probability outside [0, 1].
-    pub async fn open_alarm(
-        &self,
-        vehicle_id: &str,
-        model_id: &str,
-        onset_timestamp_s: f64,
-        probability: f64,
-    ) -> Result<i64, StoreError> {
-        require_finite("onset_timestamp_s", onset_timestamp_s)?;
-        require_probability("probability", probability)?;
-        let id = sqlx::query_scalar::<_, i64>(
-            "INSERT INTO alarm_events (vehicle_id, model_id, onset_timestamp_s, onset_at, \
-             peak_probability, samples) VALUES (?1, ?2, ?3, ?4, ?5, 1) RETURNING id",
+    /// The largest alarm id stored (0 when there is none): where server-assigned ids continue.
+    pub async fn max_alarm_id(&self) -> Result<i64, StoreError> {
+        Ok(
+            sqlx::query_scalar::<_, i64>("SELECT COALESCE(MAX(id), 0) FROM alarm_events")
+                .fetch_one(&self.pool)
+                .await?,
         )
-        .bind(vehicle_id)
-        .bind(model_id)
-        .bind(onset_timestamp_s)
-        .bind(now_unix_ms())
-        .bind(probability)
-        .fetch_one(&self.pool)
-        .await?;
-        Ok(id)
     }
 
-    /// Updates an open alarm's peak probability and sample count (cheap progress checkpoint).
+    /// Applies `writes` in order in one transaction, all or nothing. Idempotent, so a batch whose
+    /// outcome is unknown can be retried: an onset already stored is skipped and an end only
+    /// touches its alarm while it is open.
     ///
-    /// [`StoreError::NotFound`] for an unknown id, [`StoreError::InvalidState`] if it is closed.
-    pub async fn update_alarm_peak(
-        &self,
-        id: i64,
-        peak_probability: f64,
-        samples: u32,
-    ) -> Result<(), StoreError> {
-        require_probability("peak_probability", peak_probability)?;
-        let update = sqlx::query(
-            "UPDATE alarm_events SET peak_probability = ?2, samples = ?3 \
-             WHERE id = ?1 AND ended_at IS NULL",
-        )
-        .bind(id)
-        .bind(peak_probability)
-        .bind(samples);
-        self.update_open_alarm(id, "update", update).await
-    }
-
-    /// Closes an open alarm at sample time `end_timestamp_s` with its final peak and sample count.
-    ///
-    /// [`StoreError::NotFound`] for an unknown id, [`StoreError::InvalidState`] if already closed.
-    pub async fn close_alarm(
-        &self,
-        id: i64,
-        end_timestamp_s: f64,
-        peak_probability: f64,
-        samples: u32,
-    ) -> Result<(), StoreError> {
-        require_finite("end_timestamp_s", end_timestamp_s)?;
-        require_probability("peak_probability", peak_probability)?;
-        let update = sqlx::query(
-            "UPDATE alarm_events SET end_timestamp_s = ?2, ended_at = ?3, peak_probability = ?4, \
-             samples = ?5 WHERE id = ?1 AND ended_at IS NULL",
-        )
-        .bind(id)
-        .bind(end_timestamp_s)
-        .bind(now_unix_ms())
-        .bind(peak_probability)
-        .bind(samples);
-        self.update_open_alarm(id, "close", update).await
+    /// [`StoreError::InvalidValue`] (before anything is written) for a non-finite timestamp or a
+    /// probability outside [0, 1].
+    pub async fn write_alarms(&self, writes: &[AlarmWrite]) -> Result<(), StoreError> {
+        for write in writes {
+            write.validate()?;
+        }
+        let mut tx = self.begin_write().await?;
+        for write in writes {
+            match write {
+                AlarmWrite::Onset {
+                    id,
+                    vehicle_id,
+                    model_id,
+                    onset_timestamp_s,
+                    onset_at_ms,
+                    probability,
+                } => {
+                    sqlx::query(
+                        "INSERT OR IGNORE INTO alarm_events (id, vehicle_id, model_id, \
+                         onset_timestamp_s, onset_at, peak_probability, samples) \
+                         VALUES (?1, ?2, ?3, ?4, ?5, ?6, 1)",
+                    )
+                    .bind(id)
+                    .bind(vehicle_id)
+                    .bind(model_id)
+                    .bind(onset_timestamp_s)
+                    .bind(onset_at_ms)
+                    .bind(probability)
+                    .execute(&mut *tx)
+                    .await?;
+                }
+                AlarmWrite::End {
+                    id,
+                    end_timestamp_s,
+                    ended_at_ms,
+                    peak_probability,
+                    samples,
+                } => {
+                    sqlx::query(
+                        "UPDATE alarm_events SET end_timestamp_s = ?2, ended_at = ?3, \
+                         peak_probability = ?4, samples = ?5 WHERE id = ?1 AND ended_at IS NULL",
+                    )
+                    .bind(id)
+                    .bind(end_timestamp_s)
+                    .bind(ended_at_ms)
+                    .bind(peak_probability)
+                    .bind(samples)
+                    .execute(&mut *tx)
+                    .await?;
+                }
+            }
+        }
+        tx.commit().await?;
+        Ok(())
     }
 
     /// The most recently opened alarm events first, optionally for one vehicle, at most `limit`.
@@ -137,40 +181,5 @@ impl Store {
             .execute(&self.pool)
             .await?;
         Ok(updated.rows_affected())
-    }
-
-    /// Runs `update` (restricted to open alarms); if it touched no row, says why.
-    async fn update_open_alarm(
-        &self,
-        id: i64,
-        action: &'static str,
-        update: Query<'_, Sqlite, SqliteArguments>,
-    ) -> Result<(), StoreError> {
-        let updated = update.execute(&self.pool).await?;
-        if updated.rows_affected() == 0 {
-            return Err(self.explain_unchanged_alarm(id, action).await);
-        }
-        Ok(())
-    }
-
-    /// Why an update of an open alarm touched no row: the alarm is unknown or already closed.
-    async fn explain_unchanged_alarm(&self, id: i64, action: &'static str) -> StoreError {
-        let exists = sqlx::query_scalar::<_, i64>("SELECT id FROM alarm_events WHERE id = ?1")
-            .bind(id)
-            .fetch_optional(&self.pool)
-            .await;
-        match exists {
-            Ok(Some(_)) => StoreError::InvalidState {
-                kind: "alarm event",
-                id: id.to_string(),
-                action,
-                state: "closed",
-            },
-            Ok(None) => StoreError::NotFound {
-                kind: "alarm event",
-                id: id.to_string(),
-            },
-            Err(error) => error.into(),
-        }
     }
 }

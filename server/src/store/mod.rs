@@ -32,7 +32,7 @@ use sqlx::sqlite::{
 };
 use sqlx::{FromRow, Sqlite, Transaction};
 
-pub use alarms::AlarmEventRow;
+pub use alarms::{AlarmEventRow, AlarmWrite};
 pub use datasets::{DatasetRow, NewDataset};
 pub use error::StoreError;
 pub use jobs::{EpochRow, JobFilter, JobKind, JobOutcome, JobRow, JobState, NewJob};
@@ -107,6 +107,15 @@ impl Store {
     }
 
     /// Starts a write transaction that takes SQLite's write lock up front (see the module docs).
+    /// Runs one raw statement: fault injection in tests of the store's callers.
+    #[cfg(test)]
+    pub(crate) async fn execute_for_test(&self, sql: &'static str) {
+        sqlx::query(sql)
+            .execute(&self.pool)
+            .await
+            .unwrap_or_else(|error| panic!("{sql}: {error}"));
+    }
+
     async fn begin_write(&self) -> Result<Transaction<'static, Sqlite>, StoreError> {
         Ok(self.pool.begin_with("BEGIN IMMEDIATE").await?)
     }

@@ -2,7 +2,9 @@
 //!
 //! Throughput phase, per stream count S: S concurrent vehicle streams, each sending a batch of
 //! synthetic samples as soon as the previous batch's detections are back (one outstanding batch per
-//! stream), for a fixed time; reports samples/s and the per-batch round trip (p50/p99/max).
+//! stream), or at a given rate, for a fixed time; reports samples/s, the per-batch round trip
+//! (p50/p99/p99.9/max), the share of scheduled batches answered within the phase, and the server's
+//! CPU time per sample when its process id is known.
 //! Memory phase: opens many short sessions (start + one batch, then the stream closes; the session
 //! stays in memory until idle eviction) and reports the server's resident memory before and after.
 //!
@@ -22,14 +24,12 @@ use tokio::sync::{Barrier, Semaphore};
 
 use super::detect::parse_batch;
 
-/// Streams sharing one HTTP/2 connection (more connections spread the server's per-connection work).
-const STREAMS_PER_CONNECTION: usize = 50;
 /// Sessions opened at once in the memory phase.
 const MEMORY_PHASE_CONCURRENCY: usize = 64;
 /// Extra time a phase may take beyond its nominal length before it is abandoned.
 const PHASE_SLACK: Duration = Duration::from_secs(60);
 /// Most concurrent streams in a phase, and most sessions in the memory phase.
-const MAX_STREAMS: u32 = 10_000;
+const MAX_STREAMS: u32 = 200_000;
 const MAX_SESSIONS: u32 = 100_000;
 
 #[derive(Debug, clap::Args)]
@@ -59,9 +59,30 @@ pub struct Args {
     #[arg(long, default_value_t = 10_000,
           value_parser = clap::value_parser!(u32).range(0..=i64::from(MAX_SESSIONS)))]
     pub sessions: u32,
-    /// Process id of the external --server, to read its resident memory from /proc.
+    /// Process id of the external --server, to read its resident memory and CPU time from /proc.
     #[arg(long, requires = "server")]
     pub server_pid: Option<u32>,
+    /// Streams sharing one HTTP/2 connection (a gateway multiplexes many vehicles on one).
+    #[arg(long, default_value_t = 50, value_parser = clap::value_parser!(u32).range(1..=10_000))]
+    pub streams_per_connection: u32,
+    /// Vehicle ids start with this, so that several load processes can share one server.
+    #[arg(long, default_value = "bench", value_parser = parse_prefix)]
+    pub vehicle_prefix: String,
+}
+
+/// A vehicle-id prefix: 1–64 characters that keep the ids valid (letters, digits, `-`, `_`, `.`, `:`).
+pub fn parse_prefix(text: &str) -> Result<String, String> {
+    let valid = (1..=64).contains(&text.len())
+        && text
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.' | ':'));
+    if valid {
+        Ok(text.to_string())
+    } else {
+        Err(format!(
+            "must be 1–64 letters, digits, '-', '_', '.' or ':', got {text:?}"
+        ))
+    }
 }
 
 /// A phase length: finite, > 0 and at most 600 s.
@@ -95,6 +116,24 @@ pub fn parse_vm_rss_kb(status: &str) -> Option<u64> {
         .and_then(|kb| kb.parse().ok())
 }
 
+/// CPU time (user + system, all threads) in seconds from a `/proc/<pid>/stat` text.
+pub fn parse_cpu_seconds(stat: &str) -> Option<f64> {
+    // The command name (field 2) may contain spaces; the fields after its closing parenthesis are
+    // state (3), …, utime (14) and stime (15), in clock ticks of USER_HZ = 100 (a fixed kernel ABI).
+    let after_name = &stat[stat.rfind(')')? + 1..];
+    let mut fields = after_name.split_whitespace().skip(11);
+    let utime: u64 = fields.next()?.parse().ok()?;
+    let stime: u64 = fields.next()?.parse().ok()?;
+    Some((utime + stime) as f64 / 100.0)
+}
+
+/// CPU seconds a process has used so far.
+fn cpu_seconds(pid: u32) -> Result<f64> {
+    let path = format!("/proc/{pid}/stat");
+    let stat = std::fs::read_to_string(&path).with_context(|| format!("reading {path}"))?;
+    parse_cpu_seconds(&stat).with_context(|| format!("unexpected format of {path}"))
+}
+
 /// Resident memory of a process in kB.
 fn resident_kb(pid: u32) -> Result<u64> {
     let path = format!("/proc/{pid}/status");
@@ -106,6 +145,8 @@ fn resident_kb(pid: u32) -> Result<u64> {
 #[derive(Debug, Default)]
 struct StreamResult {
     samples: u64,
+    /// Batches due by the phase's end at the stream's pace (0 at saturation).
+    scheduled: u64,
     latencies: Vec<Duration>,
     error: Option<String>,
 }
@@ -118,7 +159,12 @@ struct PhaseResult {
     batches: usize,
     p50: Option<Duration>,
     p99: Option<Duration>,
+    p999: Option<Duration>,
     max: Option<Duration>,
+    /// Answered / scheduled batches (paced phases only).
+    delivered: Option<f64>,
+    /// Server CPU per sample (µs), when its process id is known.
+    server_cpu_us_per_sample: Option<f64>,
     errors: usize,
 }
 
@@ -168,7 +214,16 @@ async fn bench(args: &Args, url: &str, token: Option<String>, pid: Option<u32>) 
         // Each stream sends one batch per `pace` when a rate is given.
         let pace = (args.rate > 0.0)
             .then(|| Duration::from_secs_f64(f64::from(streams) * args.batch as f64 / args.rate));
-        let phase = throughput_phase(url, token.clone(), streams, args.batch, args.seconds, pace);
+        let shape = PhaseShape {
+            streams,
+            per_connection: args.streams_per_connection as usize,
+            batch: args.batch,
+            seconds: args.seconds,
+            pace,
+            prefix: &args.vehicle_prefix,
+            server_pid: pid,
+        };
+        let phase = throughput_phase(url, token.clone(), shape);
         let limit = Duration::from_secs_f64(args.seconds) + PHASE_SLACK;
         let result = tokio::time::timeout(limit, phase)
             .await
@@ -178,7 +233,13 @@ async fn bench(args: &Args, url: &str, token: Option<String>, pid: Option<u32>) 
     print!("{}", results_table(&results, args.batch));
 
     if args.sessions > 0 {
-        memory_phase(url, token, args.sessions, args.batch, pid).await?;
+        let shape = MemoryShape {
+            sessions: args.sessions,
+            batch: args.batch,
+            prefix: &args.vehicle_prefix,
+            server_pid: pid,
+        };
+        memory_phase(url, token, shape).await?;
     }
     Ok(())
 }
@@ -189,27 +250,38 @@ fn ms(d: Option<Duration>) -> String {
 
 fn results_table(results: &[PhaseResult], batch: usize) -> String {
     let mut out = String::from(
-        "| streams | batch | samples/s | batches | p50 (ms) | p99 (ms) | max (ms) | errors |\n\
-         |---:|---:|---:|---:|---:|---:|---:|---:|\n",
+        "| streams | batch | samples/s | batches | p50 (ms) | p99 (ms) | p99.9 (ms) | max (ms) | \
+         delivered | server CPU µs/sample | errors |\n\
+         |---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
     for r in results {
         out.push_str(&format!(
-            "| {} | {batch} | {:.0} | {} | {} | {} | {} | {} |\n",
+            "| {} | {batch} | {:.0} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
             r.streams,
             r.samples_per_s,
             r.batches,
             ms(r.p50),
             ms(r.p99),
+            ms(r.p999),
             ms(r.max),
+            r.delivered
+                .map_or_else(|| "-".into(), |d| format!("{:.2} %", d * 100.0)),
+            r.server_cpu_us_per_sample
+                .map_or_else(|| "-".into(), |us| format!("{us:.1}")),
             r.errors
         ));
     }
     out
 }
 
-/// Connections for `streams` streams (one per [`STREAMS_PER_CONNECTION`]).
-async fn connections(url: &str, token: Option<String>, streams: usize) -> Result<Vec<Connection>> {
-    let count = streams.div_ceil(STREAMS_PER_CONNECTION).max(1);
+/// Connections for `streams` streams, `per_connection` on each.
+async fn connections(
+    url: &str,
+    token: Option<String>,
+    streams: usize,
+    per_connection: usize,
+) -> Result<Vec<Connection>> {
+    let count = streams.div_ceil(per_connection.max(1)).max(1);
     let mut out = Vec::with_capacity(count);
     for _ in 0..count {
         out.push(Connection::connect(url, token.clone()).await?);
@@ -217,27 +289,39 @@ async fn connections(url: &str, token: Option<String>, streams: usize) -> Result
     Ok(out)
 }
 
+/// The load of one throughput phase.
+struct PhaseShape<'a> {
+    streams: u32,
+    per_connection: usize,
+    batch: usize,
+    seconds: f64,
+    /// Each stream sends one batch per pace (`None`: saturation).
+    pace: Option<Duration>,
+    prefix: &'a str,
+    server_pid: Option<u32>,
+}
+
 async fn throughput_phase(
     url: &str,
     token: Option<String>,
-    streams: u32,
-    batch: usize,
-    seconds: f64,
-    pace: Option<Duration>,
+    shape: PhaseShape<'_>,
 ) -> Result<PhaseResult> {
+    let streams = shape.streams;
     let count = streams as usize;
-    let pool = connections(url, token, count).await?;
+    let pool = connections(url, token, count, shape.per_connection).await?;
     // Everyone (and this task) starts measuring once all streams are open.
     let barrier = Arc::new(Barrier::new(count + 1));
-    let length = Duration::from_secs_f64(seconds);
+    let length = Duration::from_secs_f64(shape.seconds);
     let tasks: Vec<_> = (0..count)
         .map(|i| {
             let connection = pool[i % pool.len()].clone();
             let barrier = Arc::clone(&barrier);
-            let vehicle = format!("bench-s{streams}-{i}");
+            let vehicle = format!("{}-s{streams}-{i}", shape.prefix);
             // Paced streams start spread over one period so their batches do not arrive in lockstep.
-            let offset = pace.map(|p| p.mul_f64(i as f64 / count as f64));
-            let schedule = pace.zip(offset);
+            let schedule = shape
+                .pace
+                .map(|pace| (pace, pace.mul_f64(i as f64 / count as f64)));
+            let batch = shape.batch;
             tokio::spawn(async move {
                 drive_stream(
                     connection, vehicle, i as u64, batch, length, barrier, schedule,
@@ -247,9 +331,11 @@ async fn throughput_phase(
         })
         .collect();
     barrier.wait().await;
+    let cpu_before = shape.server_pid.map(cpu_seconds).transpose()?;
     let started = Instant::now();
     let mut all = Vec::new();
     let mut samples = 0u64;
+    let mut scheduled = 0u64;
     let mut errors = 0usize;
     for task in tasks {
         let result = task.await.unwrap_or_else(|e| StreamResult {
@@ -257,6 +343,7 @@ async fn throughput_phase(
             ..StreamResult::default()
         });
         samples += result.samples;
+        scheduled += result.scheduled;
         all.extend(result.latencies);
         if let Some(error) = result.error {
             if errors == 0 {
@@ -266,16 +353,32 @@ async fn throughput_phase(
         }
     }
     let elapsed = started.elapsed().as_secs_f64();
+    let cpu_after = shape.server_pid.map(cpu_seconds).transpose()?;
     all.sort_unstable();
+    let server_cpu_us_per_sample = match (cpu_before, cpu_after) {
+        (Some(before), Some(after)) if samples > 0 => Some((after - before) * 1e6 / samples as f64),
+        _ => None,
+    };
     Ok(PhaseResult {
         streams,
         samples_per_s: samples as f64 / elapsed,
         batches: all.len(),
         p50: percentile(&all, 0.50),
         p99: percentile(&all, 0.99),
+        p999: percentile(&all, 0.999),
         max: all.last().copied(),
+        delivered: (scheduled > 0).then(|| (all.len() as f64 / scheduled as f64).min(1.0)),
+        server_cpu_us_per_sample,
         errors,
     })
+}
+
+/// Batches due within `length` for a stream that sends every `pace` from `offset` on.
+fn scheduled_batches(length: Duration, pace: Duration, offset: Duration) -> u64 {
+    if offset >= length {
+        return 0;
+    }
+    ((length - offset).as_secs_f64() / pace.as_secs_f64()).ceil() as u64
 }
 
 async fn drive_stream(
@@ -299,6 +402,7 @@ async fn drive_stream(
         }
     };
     let mut driver = LoopDriver::new(seed);
+    result.scheduled = schedule.map_or(0, |(pace, offset)| scheduled_batches(length, pace, offset));
     let deadline = Instant::now() + length;
     let mut next_send = schedule.map(|(_, offset)| tokio::time::Instant::now() + offset);
     let mut seq = 0;
@@ -306,6 +410,9 @@ async fn drive_stream(
         if let (Some(at), Some((pace, _))) = (next_send.as_mut(), schedule) {
             tokio::time::sleep_until(*at).await;
             *at += pace;
+            if Instant::now() >= deadline {
+                break;
+            }
         }
         seq += 1;
         let samples = driver.next_batch(batch);
@@ -337,15 +444,23 @@ async fn open_session(
     stream.finish().await
 }
 
-async fn memory_phase(
-    url: &str,
-    token: Option<String>,
+/// The load of the memory phase.
+struct MemoryShape<'a> {
     sessions: u32,
     batch: usize,
-    pid: Option<u32>,
-) -> Result<()> {
+    prefix: &'a str,
+    server_pid: Option<u32>,
+}
+
+async fn memory_phase(url: &str, token: Option<String>, shape: MemoryShape<'_>) -> Result<()> {
+    let MemoryShape {
+        sessions,
+        batch,
+        prefix,
+        server_pid: pid,
+    } = shape;
     let before = pid.map(resident_kb).transpose()?;
-    let pool = connections(url, token, MEMORY_PHASE_CONCURRENCY).await?;
+    let pool = connections(url, token, MEMORY_PHASE_CONCURRENCY, 1).await?;
     let permits = Arc::new(Semaphore::new(MEMORY_PHASE_CONCURRENCY));
     let started = Instant::now();
     let work = async {
@@ -356,9 +471,9 @@ async fn memory_phase(
                 .await
                 .context("the session semaphore closed")?;
             let connection = pool[i as usize % pool.len()].clone();
+            let vehicle_id = format!("{prefix}-mem-{i}");
             tasks.push(tokio::spawn(async move {
-                let outcome =
-                    open_session(connection, format!("bench-mem-{i}"), u64::from(i), batch).await;
+                let outcome = open_session(connection, vehicle_id, u64::from(i), batch).await;
                 drop(permit);
                 outcome
             }));
@@ -437,6 +552,35 @@ mod tests {
         let status = "Name:\tspoofwatch\nVmPeak:\t  200000 kB\nVmRSS:\t   51234 kB\nThreads:\t4\n";
         assert_eq!(parse_vm_rss_kb(status), Some(51_234));
         assert_eq!(parse_vm_rss_kb("Name:\tx\n"), None);
+    }
+
+    #[test]
+    fn cpu_time_is_read_from_proc_stat() {
+        // utime 250 and stime 50 ticks of 10 ms; the name contains a space and a parenthesis.
+        let stat = "4242 (spoof (w) s) S 1 4242 4242 0 -1 4194560 900 0 0 0 250 50 0 0 20 0 9 0";
+        assert_eq!(parse_cpu_seconds(stat), Some(3.0));
+        assert_eq!(parse_cpu_seconds("4242 (x) S 1"), None);
+        assert!(cpu_seconds(std::process::id()).expect("/proc is readable") >= 0.0);
+    }
+
+    #[test]
+    fn scheduled_batches_count_the_sends_due_in_the_phase() {
+        let s = Duration::from_secs;
+        assert_eq!(scheduled_batches(s(10), s(1), s(0)), 10);
+        assert_eq!(
+            scheduled_batches(s(10), s(1), Duration::from_millis(500)),
+            10
+        );
+        assert_eq!(scheduled_batches(s(10), s(3), s(0)), 4);
+        assert_eq!(scheduled_batches(s(10), s(20), s(15)), 0);
+    }
+
+    #[test]
+    fn vehicle_prefixes_keep_ids_valid() {
+        assert_eq!(parse_prefix("load-2"), Ok("load-2".to_string()));
+        assert!(parse_prefix("").is_err());
+        assert!(parse_prefix("a b").is_err());
+        assert!(parse_prefix(&"x".repeat(65)).is_err());
     }
 
     #[test]

@@ -3,7 +3,9 @@
 use serde_json::json;
 
 use super::{count_rows, db_path, new_dataset, new_job, new_model, temp_store};
-use crate::store::{EpochRow, JobKind, JobOutcome, JobState, PageRequest, Store, StoreError};
+use crate::store::{
+    AlarmWrite, EpochRow, JobKind, JobOutcome, JobState, PageRequest, Store, StoreError,
+};
 
 #[tokio::test]
 async fn open_creates_the_file_and_applies_the_pragmas() {
@@ -116,7 +118,11 @@ async fn reopening_the_same_file_keeps_everything() {
             )
             .await
             .unwrap();
-        alarm_id = store.open_alarm("car", "m2", 9.5, 0.9).await.unwrap();
+        alarm_id = 1;
+        store
+            .write_alarms(&[onset(alarm_id, "car", 9.5)])
+            .await
+            .unwrap();
         store.close().await;
     }
 
@@ -159,9 +165,19 @@ async fn reopening_the_same_file_keeps_everything() {
     let listed = store.list_models(&PageRequest::default()).await.unwrap();
     assert_eq!(listed.items.len(), 2);
 
-    // New alarm ids continue after the old ones (AUTOINCREMENT never reuses ids).
-    let next = store.open_alarm("car", "m2", 20.0, 0.9).await.unwrap();
-    assert!(next > alarm_id);
+    // The alarm writer continues ids after the stored ones.
+    assert_eq!(store.max_alarm_id().await.unwrap(), alarm_id);
+}
+
+fn onset(id: i64, vehicle_id: &str, onset_timestamp_s: f64) -> AlarmWrite {
+    AlarmWrite::Onset {
+        id,
+        vehicle_id: vehicle_id.to_string(),
+        model_id: "m2".to_string(),
+        onset_timestamp_s,
+        onset_at_ms: 1,
+        probability: 0.9,
+    }
 }
 
 /// Two stores (two pools, like two processes) hammer one file with read-then-write transactions;
@@ -181,7 +197,8 @@ async fn concurrent_writers_on_one_file_never_fail_busy() {
                 store.insert_model(new_model(&id)).await?;
                 // Reads the row, then writes two updates: the deferred-transaction BUSY trap.
                 store.set_active_model(&id).await?;
-                store.open_alarm(&id, &id, 1.0, 0.5).await?;
+                let alarm = (writer * PER_WRITER + index + 1) as i64;
+                store.write_alarms(&[onset(alarm, &id, 1.0)]).await?;
                 Ok::<_, StoreError>(())
             }));
         }
