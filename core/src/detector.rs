@@ -4,6 +4,7 @@
 //! Owns running a model artifact on a stream (one vehicle, one sample at a time). Must not train, score
 //! metrics or choose operating points.
 
+use std::cell::RefCell;
 use std::sync::Arc;
 
 use crate::alarm::PersistenceAlarm;
@@ -30,13 +31,21 @@ pub struct Decision {
     pub alarm_end: bool,
 }
 
+thread_local! {
+    /// One step's intermediate activations, shared by every detector stepped on this thread: a
+    /// vehicle's detector keeps only what carries over between samples (a server holds one per
+    /// vehicle, and the activations would be most of its memory). Every buffer is written before
+    /// it is read within a step, and [`Model::step`](crate::model::Model::step) resizes it per
+    /// model, so sharing cannot change a result.
+    static SCRATCH: RefCell<StepScratch> = RefCell::new(StepScratch::default());
+}
+
 /// Per-vehicle detector state over a shared, immutable model.
 #[derive(Clone, Debug)]
 pub struct Detector {
     artifact: Arc<ModelArtifact>,
     evidence: EvidenceBuilder,
     state: LiquidState,
-    scratch: StepScratch,
     alarm: PersistenceAlarm,
     alarm_on: bool,
 }
@@ -46,7 +55,6 @@ impl Detector {
         Self {
             evidence: EvidenceBuilder::new(artifact.evidence),
             state: LiquidState::zeros(artifact.model.config()),
-            scratch: StepScratch::new(artifact.model.config()),
             alarm: PersistenceAlarm::new(artifact.operating_point.n_p),
             alarm_on: false,
             artifact,
@@ -71,12 +79,11 @@ impl Detector {
             self.state = LiquidState::zeros(self.artifact.model.config());
         }
         let features = self.artifact.scaler.transform(&evidence);
-        let probability = self.artifact.model.step(
-            &mut self.state,
-            &features,
-            evidence.delta_t,
-            &mut self.scratch,
-        );
+        let probability = SCRATCH.with_borrow_mut(|scratch| {
+            self.artifact
+                .model
+                .step(&mut self.state, &features, evidence.delta_t, scratch)
+        });
         let positive = probability >= self.artifact.operating_point.theta;
         let alarm = self
             .alarm

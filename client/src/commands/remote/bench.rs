@@ -406,13 +406,18 @@ async fn drive_stream(
     let deadline = Instant::now() + length;
     let mut next_send = schedule.map(|(_, offset)| tokio::time::Instant::now() + offset);
     let mut seq = 0;
-    while Instant::now() < deadline {
-        if let (Some(at), Some((pace, _))) = (next_send.as_mut(), schedule) {
-            tokio::time::sleep_until(*at).await;
-            *at += pace;
-            if Instant::now() >= deadline {
-                break;
+    loop {
+        match (next_send.as_mut(), schedule) {
+            (Some(at), Some((pace, _))) => {
+                // Every slot due before the deadline is sent, even when the wake-up comes later.
+                if at.into_std() >= deadline {
+                    break;
+                }
+                tokio::time::sleep_until(*at).await;
+                *at += pace;
             }
+            _ if Instant::now() >= deadline => break,
+            _ => {}
         }
         seq += 1;
         let samples = driver.next_batch(batch);
