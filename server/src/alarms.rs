@@ -137,6 +137,7 @@ impl AlarmOutbox {
         false
     }
 
+    /// The counters as they are now.
     pub fn stats(&self) -> OutboxStats {
         OutboxStats {
             backlog: self.queue().len(),
