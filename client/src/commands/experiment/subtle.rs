@@ -406,6 +406,23 @@ pub(super) struct TestSet {
 
 impl TestSet {
     /// Scores every scenario and the clean drives with `score` (one fresh detector per track).
+    /// An HO-LLN model's report at its budgeted operating point, or "none within the budget" when
+    /// validation admitted none (`artifact` `None`, as [`within_budget`] returns it).
+    pub(super) fn model_report(
+        &self,
+        name: &str,
+        artifact: Option<&Arc<ModelArtifact>>,
+    ) -> Result<DetectorReport> {
+        let Some(artifact) = artifact else {
+            return Ok(DetectorReport::none_within_budget(name));
+        };
+        Ok(self.report(
+            name,
+            serde_json::to_value(artifact.operating_point)?,
+            |tracks| score_tracks(artifact, tracks),
+        ))
+    }
+
     pub(super) fn report(
         &self,
         name: &str,
@@ -607,36 +624,20 @@ pub fn run(args: Args) -> Result<()> {
         let name = format!("HO-LLN {}", schema.name());
         let (artifact, hours) = within_budget(&name, result?.artifact, &validation);
         validation_hours = hours;
-        let Some(artifact) = artifact else {
-            detectors.push(DetectorReport::none_within_budget(&name));
-            continue;
-        };
-        let artifact = Arc::new(artifact);
-        let file = format!("model-{}.json", schema.name());
-        artifact.write(std::io::BufWriter::new(
-            std::fs::File::create(args.common.out.join(&file))
-                .with_context(|| format!("creating {file}"))?,
-        ))?;
-        detectors.push(test.report(
-            &name,
-            serde_json::to_value(artifact.operating_point)?,
-            |tracks| score_tracks(&artifact, tracks),
-        ));
+        let artifact = artifact.map(Arc::new);
+        if let Some(artifact) = &artifact {
+            let file = format!("model-{}.json", schema.name());
+            artifact.write(std::io::BufWriter::new(
+                std::fs::File::create(args.common.out.join(&file))
+                    .with_context(|| format!("creating {file}"))?,
+            ))?;
+        }
+        detectors.push(test.model_report(&name, artifact.as_ref())?);
     }
     for path in &args.also {
         let name = path.display().to_string(); // the path, as given on the command line
         let (artifact, _) = within_budget(&name, (*load_artifact(path)?).clone(), &validation);
-        detectors.push(match artifact {
-            Some(artifact) => {
-                let artifact = Arc::new(artifact);
-                test.report(
-                    &name,
-                    serde_json::to_value(artifact.operating_point)?,
-                    |tracks| score_tracks(&artifact, tracks),
-                )
-            }
-            None => DetectorReport::none_within_budget(&name),
-        });
+        detectors.push(test.model_report(&name, artifact.map(Arc::new).as_ref())?);
     }
     let projection = spec_for(FeatureSchema::V2).projection;
     detectors.extend(comparator_reports(&train, &validation, projection, &test)?);

@@ -10,7 +10,6 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
-use spoofwatch_core::evaluation::score_tracks;
 use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::rng::Rng;
 use spoofwatch_core::sample::Track;
@@ -231,17 +230,8 @@ pub fn run(args: Args) -> Result<()> {
         let name = "HO-LLN v2";
         let mut detectors = Vec::new();
         let test = &fold.test;
-        match within_budget(name, trained?.artifact, &fold.validation).0 {
-            Some(artifact) => {
-                let artifact = Arc::new(artifact);
-                detectors.push(test.report(
-                    name,
-                    serde_json::to_value(artifact.operating_point)?,
-                    |tracks| score_tracks(&artifact, tracks),
-                ));
-            }
-            None => detectors.push(DetectorReport::none_within_budget(name)),
-        }
+        let artifact = within_budget(name, trained?.artifact, &fold.validation).0;
+        detectors.push(test.model_report(name, artifact.map(Arc::new).as_ref())?);
         detectors.extend(comparator_reports(
             &fold.train,
             &fold.validation,
