@@ -1,5 +1,6 @@
 //! Spoofwatch client library: a typed gRPC connection to the Spoofwatch service, one client-side
-//! `StreamDetect` call ([`DetectStream`]), replay of recorded telemetry over it and its fleet
+//! `StreamDetect` call ([`DetectStream`]) and one gateway `StreamDetectFleet` call
+//! ([`FleetDetectStream`]), replay of recorded telemetry over it and its fleet
 //! summary ([`fleet`]), and the small helpers the `spoofwatch` CLI shares between its offline and
 //! remote commands.
 //!
@@ -11,6 +12,7 @@ pub mod connection;
 pub mod detect_stream;
 pub mod error;
 pub mod fleet;
+pub mod fleet_stream;
 pub mod input;
 pub mod progress;
 pub mod replay;
@@ -20,4 +22,5 @@ pub mod synthetic;
 pub use connection::{AuthenticatedChannel, BearerAuth, Connection};
 pub use detect_stream::DetectStream;
 pub use error::{ClientError, RpcError};
+pub use fleet_stream::FleetDetectStream;
 pub use replay::replay_timestamps;

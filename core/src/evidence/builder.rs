@@ -8,7 +8,7 @@ use super::drift::{DriftEvidence, DriftInput, DriftTracker, SCALE_COUNT};
 use super::linalg::{Mat2, inverse_sqrt_positive_definite, inverse_sqrt_symmetric, mul_vec};
 use super::params::{EvidenceParams, SIGMA_EPSILON};
 use super::{DRIFT_FEATURES_START, FEATURE_CAPACITY, Features, NU_INDEX};
-use crate::geo::LatLon;
+use crate::geo::{LatLon, Projection};
 use crate::sample::{MAX_SPEED_MPS, Record, Sample};
 
 /// A gap longer than this (s) starts a new trajectory (SPEC §3).
@@ -105,7 +105,12 @@ struct Previous {
 /// stream and a recorded track ([`build_track`]).
 #[derive(Clone, Debug)]
 pub struct EvidenceBuilder {
-    params: EvidenceParams,
+    /// What `push` uses of the [`EvidenceParams`] (not a copy of them: a server holds one builder
+    /// per vehicle, and the drift parameters alone are larger than the builder's state).
+    projection: Projection,
+    mu_e: f64,
+    kappa: f64,
+    rho: f64,
     /// (Σ̂ + εI)^{-1/2}, computed once.
     sigma_hat_inv_sqrt: Mat2,
     previous: Option<Previous>,
@@ -121,8 +126,11 @@ impl EvidenceBuilder {
     /// A builder at the start of a stream.
     pub fn new(params: EvidenceParams) -> Self {
         Self {
+            projection: params.projection,
+            mu_e: params.mu_e,
+            kappa: params.kappa,
+            rho: params.rho,
             sigma_hat_inv_sqrt: inverse_sqrt_symmetric(&params.regularised_sigma()),
-            params,
             previous: None,
             reference: None,
             accum: 0.0,
@@ -131,14 +139,15 @@ impl EvidenceBuilder {
         }
     }
 
-    /// The parameters this builder uses.
-    pub fn params(&self) -> &EvidenceParams {
-        &self.params
-    }
-
-    /// Forgets the stream: the next sample starts trajectory 0.
+    /// Forgets the stream: the next sample starts trajectory 0, as in a new builder.
     pub fn reset(&mut self) {
-        *self = Self::new(self.params);
+        self.previous = None;
+        self.reference = None;
+        self.accum = 0.0;
+        self.trajectory = 0;
+        if let Some(drift) = &mut self.drift {
+            drift.reset();
+        }
     }
 
     /// Evidence for the next sample. `trajectory_break` is the source's own "new trajectory here" flag;
@@ -231,10 +240,7 @@ impl EvidenceBuilder {
         velocity: [f64; 2],
     ) {
         let delta_t = evidence.delta_t;
-        let gnss = self
-            .params
-            .projection
-            .displacement(reference, previous.fix, fix);
+        let gnss = self.projection.displacement(reference, previous.fix, fix);
         // Causal trapezoid on the velocity vector.
         let motion = [
             0.5 * (velocity[0] + previous.velocity[0]) * delta_t,
@@ -257,7 +263,7 @@ impl EvidenceBuilder {
         evidence.residual = residual;
         evidence.eta = eta;
         evidence.energy = energy;
-        evidence.q = energy - self.params.mu_e - self.params.kappa;
+        evidence.q = energy - self.mu_e - self.kappa;
         if let Some(drift) = &mut self.drift {
             evidence.drift = Some(drift.push(&DriftInput {
                 residual,
@@ -289,7 +295,7 @@ impl EvidenceBuilder {
 
     /// a_t and ã_t; a_{t−1} was reset to 0 at a trajectory start.
     fn fill_accumulator(&mut self, evidence: &mut Evidence) {
-        let decayed = self.params.rho * self.accum;
+        let decayed = self.rho * self.accum;
         let accum = if evidence.valid {
             (decayed + evidence.q).max(0.0)
         } else {

@@ -293,12 +293,7 @@ impl Default for Levels {
 /// stream, and EWMAs that restart with every trajectory. `push` never allocates.
 #[derive(Clone, Debug)]
 pub struct DriftTracker {
-    clip_m: f64,
-    noise_variance: f64,
-    raw_whitening: [Mat2; SCALE_COUNT],
-    calibrated_whitening: [Mat2; SCALE_COUNT],
-    raw_threshold: [f64; SCALE_COUNT],
-    calibrated_threshold: [f64; SCALE_COUNT],
+    constants: TrackerConstants,
     /// The block being summed for the calibration: Σ r^c, Σ H and Σ δ.
     block_residual: [f64; 2],
     block_regressors: [[f64; 2]; 3],
@@ -312,8 +307,6 @@ pub struct DriftTracker {
     snapshot_count: usize,
     /// The calibration in use (the newest snapshot at least `CALIBRATION_DELAY_S` old).
     theta_in_use: [f64; 3],
-    /// Whether χ² are divided by the vehicle's level.
-    vehicle_levels: bool,
     /// The vehicle's levels so far, and those in use (from the same snapshot as `theta_in_use`).
     levels: Levels,
     levels_in_use: Levels,
@@ -328,16 +321,42 @@ pub struct DriftTracker {
     last: DriftEvidence,
 }
 
+/// What a tracker derives from its [`DriftParams`] once; a tracker keeps only these, not the
+/// parameters (a server holds one tracker per vehicle).
+#[derive(Clone, Copy, Debug)]
+struct TrackerConstants {
+    clip_m: f64,
+    noise_variance: f64,
+    raw_whitening: [Mat2; SCALE_COUNT],
+    calibrated_whitening: [Mat2; SCALE_COUNT],
+    raw_threshold: [f64; SCALE_COUNT],
+    calibrated_threshold: [f64; SCALE_COUNT],
+    /// Whether χ² are divided by the vehicle's level.
+    vehicle_levels: bool,
+}
+
 impl DriftTracker {
     /// A tracker at the start of a stream.
     pub fn new(params: &DriftParams) -> Self {
-        Self {
+        Self::fresh(TrackerConstants {
             clip_m: params.clip_m,
             noise_variance: params.residual_sigma_m * params.residual_sigma_m,
             raw_whitening: params.raw_covariance.map(|c| whitening(&c)),
             calibrated_whitening: params.calibrated_covariance.map(|c| whitening(&c)),
             raw_threshold: params.raw_threshold,
             calibrated_threshold: params.calibrated_threshold,
+            vehicle_levels: params.vehicle_levels,
+        })
+    }
+
+    /// Forgets the stream (calibration included), as a new tracker of the same parameters.
+    pub fn reset(&mut self) {
+        *self = Self::fresh(self.constants);
+    }
+
+    fn fresh(constants: TrackerConstants) -> Self {
+        Self {
+            constants,
             block_residual: [0.0; 2],
             block_regressors: [[0.0; 2]; 3],
             block_s: 0.0,
@@ -347,7 +366,6 @@ impl DriftTracker {
             snapshots: [Snapshot::default(); SNAPSHOTS],
             snapshot_count: 0,
             theta_in_use: [0.0; 3],
-            vehicle_levels: params.vehicle_levels,
             levels: Levels::default(),
             levels_in_use: Levels::default(),
             level_clock_s: 0.0,
@@ -392,7 +410,7 @@ impl DriftTracker {
 
     /// The channels of a valid row (ν = 1, finite inputs, 0 < δ ≤ 5 s).
     pub fn push(&mut self, input: &DriftInput) -> DriftEvidence {
-        let clipped = clip(input.residual, self.clip_m);
+        let clipped = clip(input.residual, self.constants.clip_m);
         let regressors = regressors(input);
         let cleaned = add(clipped, apply(&regressors, &self.theta_in_use));
         self.add_to_block(&regressors, clipped, input.delta_t);
@@ -400,11 +418,14 @@ impl DriftTracker {
 
         let warm_up = (self.clock_s / WARM_UP_S).min(1.0);
         let population_raw: [[f64; 2]; SCALE_COUNT] =
-            std::array::from_fn(|k| mul_vec(&self.raw_whitening[k], self.raw_rate[k]));
+            std::array::from_fn(|k| mul_vec(&self.constants.raw_whitening[k], self.raw_rate[k]));
         let population_calibrated: [[f64; 2]; SCALE_COUNT] = std::array::from_fn(|k| {
-            mul_vec(&self.calibrated_whitening[k], self.calibrated_rate[k])
+            mul_vec(
+                &self.constants.calibrated_whitening[k],
+                self.calibrated_rate[k],
+            )
         });
-        if self.vehicle_levels {
+        if self.constants.vehicle_levels {
             self.update_levels(
                 &population_raw,
                 &population_calibrated,
@@ -420,9 +441,9 @@ impl DriftTracker {
             [[0.0; 2]; SCALE_COUNT]
         };
         let statistic = if warm_up >= 1.0 {
-            normalised_max(&calibrated_z, &self.calibrated_threshold)
+            normalised_max(&calibrated_z, &self.constants.calibrated_threshold)
         } else {
-            normalised_max(&raw_z, &self.raw_threshold)
+            normalised_max(&raw_z, &self.constants.raw_threshold)
         };
         let [scale, heading, timing] = self.theta_in_use;
         let stale_fix_s = if input.fix_repeated {
@@ -439,7 +460,8 @@ impl DriftTracker {
             calibrated_z,
             statistic,
             stale_fix_s,
-            residual_log: (input.residual[0].hypot(input.residual[1]) / self.clip_m).ln_1p(),
+            residual_log: (input.residual[0].hypot(input.residual[1]) / self.constants.clip_m)
+                .ln_1p(),
         };
         self.last
     }
@@ -500,8 +522,8 @@ impl DriftTracker {
         let mut s: Mat2 = std::array::from_fn(|a| {
             std::array::from_fn(|b| (0..3).map(|i| h[i][a] * ph[i][b]).sum())
         });
-        s[0][0] += self.noise_variance;
-        s[1][1] += self.noise_variance;
+        s[0][0] += self.constants.noise_variance;
+        s[1][1] += self.constants.noise_variance;
         let Some(s_inv) = inverse(&s) else {
             return;
         };

@@ -296,23 +296,28 @@ fn random_records(seed: u64, n: usize) -> Vec<Record> {
 #[test]
 fn build_track_equals_pushing_one_by_one() {
     let records = random_records(7, 2000);
-    let params = params();
-    let whole = build_track(&params, &records);
-    let mut builder = EvidenceBuilder::new(params);
-    let streamed: Vec<Evidence> = records
-        .iter()
-        .map(|r| builder.push(&r.sample, r.trajectory_break))
-        .collect();
-    assert!(same(&whole, &streamed));
-    assert!(whole.iter().filter(|e| e.trajectory_start).count() > 10);
-    assert!(whole.iter().filter(|e| e.valid).count() > 1500);
-    // A reset builder replays the same stream identically.
-    builder.reset();
-    let replay: Vec<Evidence> = records
-        .iter()
-        .map(|r| builder.push(&r.sample, r.trajectory_break))
-        .collect();
-    assert!(same(&whole, &replay));
+    let v2 = EvidenceParams {
+        drift: Some(drift::DriftParams::unwhitened(1.0)),
+        ..params()
+    };
+    for params in [params(), v2] {
+        let whole = build_track(&params, &records);
+        let mut builder = EvidenceBuilder::new(params);
+        let streamed: Vec<Evidence> = records
+            .iter()
+            .map(|r| builder.push(&r.sample, r.trajectory_break))
+            .collect();
+        assert!(same(&whole, &streamed));
+        assert!(whole.iter().filter(|e| e.trajectory_start).count() > 10);
+        assert!(whole.iter().filter(|e| e.valid).count() > 1500);
+        // A reset builder (drift calibration included) replays the same stream identically.
+        builder.reset();
+        let replay: Vec<Evidence> = records
+            .iter()
+            .map(|r| builder.push(&r.sample, r.trajectory_break))
+            .collect();
+        assert!(same(&whole, &replay));
+    }
 }
 
 #[test]

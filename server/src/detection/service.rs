@@ -1,9 +1,9 @@
 //! The DetectionService RPCs: the edge between the wire and the [`SessionManager`]. Validates
 //! vehicle ids and paging, converts wire samples to core samples and decisions back to wire
 //! detections, and maps [`super::SessionError`] once (through `crate::error`); it must not hold
-//! session state. Each StreamDetect call runs in its own task that reads the inbound stream and
-//! writes replies into a small bounded channel: a slow client fills only its own channel, which
-//! pauses only its own task.
+//! session state. Each StreamDetect and StreamDetectFleet call runs in its own task that reads the
+//! inbound stream and writes replies into a small bounded channel: a slow client fills only its own
+//! channel, which pauses only its own task.
 
 use std::sync::Arc;
 
@@ -19,9 +19,9 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
-use super::sessions::{Decisions, SessionManager, SessionSummary};
+use super::sessions::{Decisions, SessionError, SessionManager, SessionSummary};
 use super::validate::vehicle_id_violation;
-use crate::edge::optional_model_name;
+use crate::edge::{model_name, optional_model_name};
 use crate::status::{invalid_field, shutting_down, to_rpc_status};
 
 /// Replies buffered per stream before the stream's reader waits for the client.
@@ -203,9 +203,160 @@ async fn run_stream(
     tracing::debug!(vehicle = %start.vehicle_id, "stream detached");
 }
 
+type FleetReply = Result<v1::FleetDetections, Status>;
+
+/// INVALID_ARGUMENT for a fleet message beyond the per-message bounds, or `None`.
+fn fleet_batch_violation(batch: &v1::FleetBatch, max_samples: usize) -> Option<Status> {
+    let samples: usize = batch.vehicles.iter().map(|v| v.samples.len()).sum();
+    if batch.vehicles.is_empty() {
+        Some(invalid_field(
+            "vehicles",
+            "empty: send at least one vehicle",
+        ))
+    } else if batch.vehicles.len() > max_samples {
+        Some(invalid_field(
+            "vehicles",
+            format!(
+                "{} vehicles in one message; at most {max_samples}",
+                batch.vehicles.len()
+            ),
+        ))
+    } else if samples > max_samples {
+        Some(invalid_field(
+            "vehicles",
+            format!("{samples} samples in one message; at most {max_samples} in total"),
+        ))
+    } else {
+        None
+    }
+}
+
+/// One vehicle of a fleet message, run on its session; a refusal becomes the vehicle's status.
+async fn detect_vehicle(
+    sessions: &SessionManager,
+    seq: u64,
+    index: usize,
+    vehicle: v1::VehicleSamples,
+) -> v1::VehicleDetections {
+    // Field paths are built only for errors: this runs once per vehicle and message.
+    let at = |field: &str| format!("vehicles[{index}].{field}");
+    let outcome = async {
+        if let Some(problem) = vehicle_id_violation(&vehicle.vehicle_id) {
+            return Err(invalid_field(at("vehicle_id"), problem));
+        }
+        let model = match vehicle.model.as_str() {
+            "" => None,
+            name => Some(model_name(&at("model"), name)?),
+        };
+        let samples = samples_from_proto(&vehicle.samples);
+        let decisions = sessions
+            .detect_unattached(
+                &vehicle.vehicle_id,
+                model.as_ref(),
+                Some(seq),
+                &samples,
+                "samples",
+            )
+            .await
+            .map_err(|error| match error {
+                SessionError::InvalidBatch(violations) => SessionError::InvalidBatch(
+                    violations.into_iter().map(|(f, p)| (at(&f), p)).collect(),
+                ),
+                other => other,
+            })?;
+        let detections = samples
+            .iter()
+            .zip(&decisions.decisions)
+            .map(|(s, d)| detection_to_proto(s.timestamp_s, d, ""))
+            .collect();
+        Ok::<_, Status>((decisions.model.to_string(), detections))
+    };
+    match outcome.await {
+        Ok((model, detections)) => v1::VehicleDetections {
+            vehicle_id: vehicle.vehicle_id,
+            model,
+            detections,
+            error: None,
+        },
+        Err(status) => v1::VehicleDetections {
+            vehicle_id: vehicle.vehicle_id,
+            model: String::new(),
+            detections: Vec::new(),
+            error: Some(to_rpc_status(&status)),
+        },
+    }
+}
+
+/// Drives one StreamDetectFleet call to its end: one reply per message, in order.
+async fn run_fleet_stream(
+    sessions: Arc<SessionManager>,
+    shutdown: CancellationToken,
+    mut inbound: Streaming<v1::FleetBatch>,
+    tx: mpsc::Sender<FleetReply>,
+) {
+    let max_samples = sessions.limits().max_batch_samples;
+    loop {
+        let message = tokio::select! {
+            biased;
+            _ = shutdown.cancelled() => {
+                let _ = tx.send(Err(shutting_down())).await;
+                break;
+            }
+            message = inbound.message() => message,
+        };
+        let batch = match message {
+            Ok(Some(batch)) => batch,
+            Ok(None) => break,
+            Err(status) => {
+                let _ = tx.send(Err(status)).await;
+                break;
+            }
+        };
+        let reply = match fleet_batch_violation(&batch, max_samples) {
+            Some(status) => v1::FleetDetections {
+                seq: batch.seq,
+                vehicles: Vec::new(),
+                error: Some(to_rpc_status(&status)),
+            },
+            None => {
+                let mut vehicles = Vec::with_capacity(batch.vehicles.len());
+                for (index, vehicle) in batch.vehicles.into_iter().enumerate() {
+                    vehicles.push(detect_vehicle(&sessions, batch.seq, index, vehicle).await);
+                }
+                v1::FleetDetections {
+                    seq: batch.seq,
+                    vehicles,
+                    error: None,
+                }
+            }
+        };
+        if tx.send(Ok(reply)).await.is_err() {
+            break; // the client went away
+        }
+    }
+}
+
 #[tonic::async_trait]
 impl DetectionService for DetectionApi {
     type StreamDetectStream = ReceiverStream<Reply>;
+    type StreamDetectFleetStream = ReceiverStream<FleetReply>;
+
+    async fn stream_detect_fleet(
+        &self,
+        request: Request<Streaming<v1::FleetBatch>>,
+    ) -> Result<Response<Self::StreamDetectFleetStream>, Status> {
+        if self.shutdown.is_cancelled() {
+            return Err(shutting_down());
+        }
+        let (tx, rx) = mpsc::channel(OUTBOUND_BUFFER);
+        tokio::spawn(run_fleet_stream(
+            Arc::clone(&self.sessions),
+            self.shutdown.clone(),
+            request.into_inner(),
+            tx,
+        ));
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
 
     async fn stream_detect(
         &self,
@@ -239,10 +390,18 @@ impl DetectionService for DetectionApi {
         };
         let model = optional_model_name("model", &r.model)?;
         let samples = samples_from_proto(&r.samples);
-        let decisions = self
-            .sessions
-            .detect_unary(vehicle, model.as_ref(), &samples, "samples")
-            .await?;
+        let decisions = match vehicle {
+            Some(vehicle) => {
+                self.sessions
+                    .detect_unattached(vehicle, model.as_ref(), None, &samples, "samples")
+                    .await?
+            }
+            None => {
+                self.sessions
+                    .detect_stateless(model.as_ref(), &samples, "samples")
+                    .await?
+            }
+        };
         Ok(Response::new(v1::DetectResponse {
             detections: detections_to_proto(&samples, &decisions),
             model: decisions.model.to_string(),

@@ -344,26 +344,35 @@ impl SessionManager {
         }
     }
 
-    /// Runs a batch for a vehicle without a stream (creating the session if needed), or on a
-    /// throw-away detector when `vehicle_id` is `None`. `vehicle_id` must be valid (checked at the
-    /// edge); `field` names the samples in violations.
-    pub async fn detect_unary(
+    /// Runs a batch on a throw-away detector (no session).
+    pub async fn detect_stateless(
         &self,
-        vehicle_id: Option<&str>,
         model: Option<&ModelName>,
         samples: &[Sample],
         field: &str,
     ) -> Result<Decisions, SessionError> {
-        let Some(vehicle_id) = vehicle_id else {
-            let model = self.registry.resolve(model).await?;
-            validate_batch(samples, None, self.limits.max_batch_samples, field)
-                .map_err(SessionError::InvalidBatch)?;
-            let mut detector = Detector::new(Arc::clone(&model.artifact));
-            return Ok(Decisions {
-                model: model.name,
-                decisions: samples.iter().map(|s| detector.step(s, false)).collect(),
-            });
-        };
+        let model = self.registry.resolve(model).await?;
+        validate_batch(samples, None, self.limits.max_batch_samples, field)
+            .map_err(SessionError::InvalidBatch)?;
+        let mut detector = Detector::new(Arc::clone(&model.artifact));
+        Ok(Decisions {
+            model: model.name,
+            decisions: samples.iter().map(|s| detector.step(s, false)).collect(),
+        })
+    }
+
+    /// Runs a batch for a vehicle without attaching a stream (creating the session if needed;
+    /// `model` `Some` switches it to that model). `seq` becomes the session's `last_seq` (`None`
+    /// keeps it). `vehicle_id` must be valid (checked at the edge); `field` names the samples in
+    /// violations.
+    pub async fn detect_unattached(
+        &self,
+        vehicle_id: &str,
+        model: Option<&ModelName>,
+        seq: Option<u64>,
+        samples: &[Sample],
+        field: &str,
+    ) -> Result<Decisions, SessionError> {
         let slot = match (self.lookup(vehicle_id), model) {
             (Some(slot), None) => slot,
             (Some(slot), Some(requested)) => {
@@ -378,11 +387,22 @@ impl SessionManager {
             }
             (None, requested) => {
                 let model = self.registry.resolve(requested).await?;
+                // A refused first batch must not leave a session behind.
+                validate_batch(samples, None, self.limits.max_batch_samples, field)
+                    .map_err(SessionError::InvalidBatch)?;
                 self.slot_for(vehicle_id, &model)?.0
             }
         };
-        let last_seq = slot.state.lock().await.last_seq;
-        self.process(&slot, last_seq, samples, field).await
+        let seq = match seq {
+            Some(seq) => seq,
+            None => slot.state.lock().await.last_seq,
+        };
+        self.process(&slot, seq, samples, field).await
+    }
+
+    /// The limits the table was made with.
+    pub fn limits(&self) -> SessionLimits {
+        self.limits
     }
 
     async fn describe(&self, slot: &SessionSlot) -> SessionSummary {
