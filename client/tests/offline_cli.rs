@@ -1,4 +1,5 @@
-//! The offline `spoofwatch` commands, run as a user would (the real binary, real files).
+//! The offline `spoofwatch` commands, run as a user would (the real binary, real files), and `bench`
+//! against its in-process server.
 
 use std::path::Path;
 use std::process::{Command, Output};
@@ -359,5 +360,60 @@ fn the_dataset2_ramp_experiment_cross_validates_over_the_normal_trajectories() {
                 );
             }
         }
+    }
+}
+
+/// The data rows (vehicles, per message, …, errors) of `bench`'s results table.
+fn bench_rows(output: &str) -> Vec<Vec<String>> {
+    output
+        .lines()
+        .filter(|l| {
+            l.starts_with("| ")
+                && l.split('|')
+                    .nth(1)
+                    .is_some_and(|c| c.trim().parse::<u32>().is_ok())
+        })
+        .map(|l| {
+            l.split('|')
+                .map(|c| c.trim().to_string())
+                .filter(|c| !c.is_empty())
+                .collect()
+        })
+        .collect()
+}
+
+#[test]
+fn bench_drives_one_stream_per_vehicle_or_gateway_streams_without_errors() {
+    for per_message in ["1", "10"] {
+        let output = stdout(&spoofwatch(&[
+            "bench",
+            "--streams",
+            "25",
+            "--batch",
+            "2",
+            "--seconds",
+            "1",
+            "--rate",
+            "500",
+            "--sessions",
+            "0",
+            "--vehicles-per-message",
+            per_message,
+        ]));
+        let rows = bench_rows(&output);
+        assert_eq!(rows.len(), 1, "{output}");
+        let row = &rows[0];
+        assert_eq!(
+            (row[0].as_str(), row[1].as_str()),
+            ("25", per_message),
+            "{output}"
+        );
+        assert_eq!(
+            row.last().map(String::as_str),
+            Some("0"),
+            "no errors: {output}"
+        );
+        let messages: u64 = row[4].parse().expect("a message count");
+        assert!(messages > 0, "{output}");
     }
 }

@@ -293,6 +293,12 @@ fn bench_has_documented_defaults_and_bounds() {
     assert!(parse(&["bench", "--streams", "0"]).is_err());
     assert!(parse(&["bench", "--seconds", "0"]).is_err());
     assert!(parse(&["bench", "--batch", "1001"]).is_err());
+    assert_eq!(
+        args.vehicles_per_message, 1,
+        "one stream per vehicle by default"
+    );
+    assert!(parse(&["bench", "--vehicles-per-message", "0"]).is_err());
+    assert!(parse(&["bench", "--vehicles-per-message", "1001"]).is_err());
 }
 
 #[test]

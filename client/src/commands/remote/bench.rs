@@ -17,7 +17,8 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use spoofwatch_client::error::ClientError;
 use spoofwatch_client::synthetic::LoopDriver;
-use spoofwatch_client::{Connection, DetectStream};
+use spoofwatch_client::{Connection, DetectStream, FleetDetectStream};
+use spoofwatch_proto::v1;
 #[cfg(feature = "inprocess")]
 use spoofwatch_server::inprocess::InProcessServer;
 use tokio::sync::{Barrier, Semaphore};
@@ -68,6 +69,10 @@ pub struct Args {
     /// Vehicle ids start with this, so that several load processes can share one server.
     #[arg(long, default_value = "bench", value_parser = parse_prefix)]
     pub vehicle_prefix: String,
+    /// Vehicles per message: above 1, the `--streams` vehicles travel this many per message on
+    /// StreamDetectFleet (gateway) streams instead of one StreamDetect stream each.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    pub vehicles_per_message: u32,
 }
 
 /// A vehicle-id prefix: 1–64 characters that keep the ids valid (letters, digits, `-`, `_`, `.`, `:`).
@@ -154,7 +159,9 @@ struct StreamResult {
 /// One row of the results table.
 #[derive(Debug)]
 struct PhaseResult {
+    /// Vehicles (one StreamDetect stream each, or `per_message` per gateway message).
     streams: u32,
+    per_message: u32,
     samples_per_s: f64,
     batches: usize,
     p50: Option<Duration>,
@@ -205,8 +212,13 @@ async fn bench(args: &Args, url: &str, token: Option<String>, pid: Option<u32>) 
     } else {
         "saturation (each stream sends as soon as its reply is back)".to_string()
     };
+    let carrier = match args.vehicles_per_message {
+        1 => "one StreamDetect stream per vehicle".to_string(),
+        k => format!("{k} vehicles per message on StreamDetectFleet streams"),
+    };
     println!(
-        "throughput: {} s per phase, batches of {} samples, one outstanding batch per stream, {load}",
+        "throughput: {} s per phase, batches of {} samples per vehicle, {carrier}, one outstanding \
+         message per stream, {load}",
         args.seconds, args.batch
     );
     let mut results = Vec::new();
@@ -216,6 +228,7 @@ async fn bench(args: &Args, url: &str, token: Option<String>, pid: Option<u32>) 
             .then(|| Duration::from_secs_f64(f64::from(streams) * args.batch as f64 / args.rate));
         let shape = PhaseShape {
             streams,
+            per_message: args.vehicles_per_message,
             per_connection: args.streams_per_connection as usize,
             batch: args.batch,
             seconds: args.seconds,
@@ -250,14 +263,15 @@ fn ms(d: Option<Duration>) -> String {
 
 fn results_table(results: &[PhaseResult], batch: usize) -> String {
     let mut out = String::from(
-        "| streams | batch | samples/s | batches | p50 (ms) | p99 (ms) | p99.9 (ms) | max (ms) | \
-         delivered | server CPU µs/sample | errors |\n\
-         |---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+        "| vehicles | per message | batch | samples/s | messages | p50 (ms) | p99 (ms) | \
+         p99.9 (ms) | max (ms) | delivered | server CPU µs/sample | errors |\n\
+         |---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
     for r in results {
         out.push_str(&format!(
-            "| {} | {batch} | {:.0} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            "| {} | {} | {batch} | {:.0} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
             r.streams,
+            r.per_message,
             r.samples_per_s,
             r.batches,
             ms(r.p50),
@@ -291,7 +305,10 @@ async fn connections(
 
 /// The load of one throughput phase.
 struct PhaseShape<'a> {
+    /// Vehicles.
     streams: u32,
+    /// Vehicles per message (1: a StreamDetect stream each; more: StreamDetectFleet streams).
+    per_message: u32,
     per_connection: usize,
     batch: usize,
     seconds: f64,
@@ -307,26 +324,39 @@ async fn throughput_phase(
     shape: PhaseShape<'_>,
 ) -> Result<PhaseResult> {
     let streams = shape.streams;
-    let count = streams as usize;
+    let per_message = shape.per_message as usize;
+    let count = (streams as usize).div_ceil(per_message);
     let pool = connections(url, token, count, shape.per_connection).await?;
     // Everyone (and this task) starts measuring once all streams are open.
     let barrier = Arc::new(Barrier::new(count + 1));
     let length = Duration::from_secs_f64(shape.seconds);
     let tasks: Vec<_> = (0..count)
         .map(|i| {
-            let connection = pool[i % pool.len()].clone();
-            let barrier = Arc::clone(&barrier);
-            let vehicle = format!("{}-s{streams}-{i}", shape.prefix);
-            // Paced streams start spread over one period so their batches do not arrive in lockstep.
-            let schedule = shape
-                .pace
-                .map(|pace| (pace, pace.mul_f64(i as f64 / count as f64)));
-            let batch = shape.batch;
+            let load = StreamLoad {
+                connection: pool[i % pool.len()].clone(),
+                batch: shape.batch,
+                length,
+                barrier: Arc::clone(&barrier),
+                // Paced streams start spread over one period so their messages do not arrive in
+                // lockstep.
+                schedule: shape
+                    .pace
+                    .map(|pace| (pace, pace.mul_f64(i as f64 / count as f64))),
+            };
+            let vehicle = |v: usize| (format!("{}-s{streams}-{v}", shape.prefix), v as u64);
+            let first = i * per_message;
+            let vehicles: Vec<(String, u64)> = (first..(first + per_message).min(streams as usize))
+                .map(vehicle)
+                .collect();
             tokio::spawn(async move {
-                drive_stream(
-                    connection, vehicle, i as u64, batch, length, barrier, schedule,
-                )
-                .await
+                if per_message == 1 {
+                    let vehicle = vehicles.into_iter().next().unwrap_or_default();
+                    let opened = VehicleStream::open(&load, vehicle);
+                    drive(&load, opened).await
+                } else {
+                    let opened = GatewayStream::open(&load, vehicles);
+                    drive(&load, opened).await
+                }
             })
         })
         .collect();
@@ -361,6 +391,7 @@ async fn throughput_phase(
     };
     Ok(PhaseResult {
         streams,
+        per_message: shape.per_message,
         samples_per_s: samples as f64 / elapsed,
         batches: all.len(),
         p50: percentile(&all, 0.50),
@@ -381,33 +412,131 @@ fn scheduled_batches(length: Duration, pace: Duration, offset: Duration) -> u64 
     ((length - offset).as_secs_f64() / pace.as_secs_f64()).ceil() as u64
 }
 
-async fn drive_stream(
+/// What a stream of a phase is given: where it runs, what it sends and when.
+struct StreamLoad {
     connection: Connection,
-    vehicle_id: String,
-    seed: u64,
+    /// Samples per vehicle per message.
     batch: usize,
     length: Duration,
     barrier: Arc<Barrier>,
+    /// (pace, offset of the first send), or `None` at saturation.
     schedule: Option<(Duration, Duration)>,
+}
+
+/// A stream under load: sends message `seq` and returns the samples it carried once its reply is
+/// back.
+trait LoadStream: Sized {
+    async fn send(&mut self, seq: u64) -> Result<u64, ClientError>;
+    async fn finish(self) -> Result<(), ClientError>;
+}
+
+/// One vehicle on its own StreamDetect stream.
+struct VehicleStream {
+    stream: DetectStream,
+    driver: LoopDriver,
+    batch: usize,
+}
+
+impl VehicleStream {
+    async fn open(
+        load: &StreamLoad,
+        (vehicle_id, seed): (String, u64),
+    ) -> Result<Self, ClientError> {
+        let (stream, _) = DetectStream::start(&load.connection, &vehicle_id, "", true).await?;
+        Ok(Self {
+            stream,
+            driver: LoopDriver::new(seed),
+            batch: load.batch,
+        })
+    }
+}
+
+impl LoadStream for VehicleStream {
+    async fn send(&mut self, seq: u64) -> Result<u64, ClientError> {
+        let samples = self.driver.next_batch(self.batch);
+        self.stream.detect(seq, samples).await?;
+        Ok(self.batch as u64)
+    }
+
+    async fn finish(self) -> Result<(), ClientError> {
+        self.stream.finish().await
+    }
+}
+
+/// Several vehicles on one StreamDetectFleet stream, each message carrying a batch of every one.
+struct GatewayStream {
+    stream: FleetDetectStream,
+    vehicles: Vec<(String, LoopDriver)>,
+    batch: usize,
+}
+
+impl GatewayStream {
+    async fn open(load: &StreamLoad, vehicles: Vec<(String, u64)>) -> Result<Self, ClientError> {
+        Ok(Self {
+            stream: FleetDetectStream::open(&load.connection).await?,
+            vehicles: vehicles
+                .into_iter()
+                .map(|(id, seed)| (id, LoopDriver::new(seed)))
+                .collect(),
+            batch: load.batch,
+        })
+    }
+}
+
+impl LoadStream for GatewayStream {
+    async fn send(&mut self, seq: u64) -> Result<u64, ClientError> {
+        let batch = self.batch;
+        let message: Vec<v1::VehicleSamples> = self
+            .vehicles
+            .iter_mut()
+            .map(|(id, driver)| v1::VehicleSamples {
+                vehicle_id: id.clone(),
+                model: String::new(),
+                samples: driver.next_batch(batch),
+            })
+            .collect();
+        let samples = (message.len() * batch) as u64;
+        let reply = self.stream.detect(seq, message).await?;
+        match reply.iter().find_map(|v| v.error.as_ref()) {
+            Some(status) => Err(ClientError::Protocol(format!(
+                "a vehicle was refused: {}",
+                spoofwatch_client::error::describe_rpc_status(status)
+            ))),
+            None => Ok(samples),
+        }
+    }
+
+    async fn finish(self) -> Result<(), ClientError> {
+        self.stream.finish().await
+    }
+}
+
+/// Drives one stream through a phase: messages paced or back to back, one outstanding at a time.
+async fn drive<S: LoadStream>(
+    load: &StreamLoad,
+    opened: impl Future<Output = Result<S, ClientError>>,
 ) -> StreamResult {
-    let opened = DetectStream::start(&connection, &vehicle_id, "", true).await;
+    let opened = opened.await;
     // Every task passes the barrier exactly once, even when its stream failed to open.
-    barrier.wait().await;
+    load.barrier.wait().await;
     let mut result = StreamResult::default();
     let mut stream = match opened {
-        Ok((stream, _)) => stream,
+        Ok(stream) => stream,
         Err(error) => {
             result.error = Some(error.to_string());
             return result;
         }
     };
-    let mut driver = LoopDriver::new(seed);
-    result.scheduled = schedule.map_or(0, |(pace, offset)| scheduled_batches(length, pace, offset));
-    let deadline = Instant::now() + length;
-    let mut next_send = schedule.map(|(_, offset)| tokio::time::Instant::now() + offset);
+    result.scheduled = load.schedule.map_or(0, |(pace, offset)| {
+        scheduled_batches(load.length, pace, offset)
+    });
+    let deadline = Instant::now() + load.length;
+    let mut next_send = load
+        .schedule
+        .map(|(_, offset)| tokio::time::Instant::now() + offset);
     let mut seq = 0;
     loop {
-        match (next_send.as_mut(), schedule) {
+        match (next_send.as_mut(), load.schedule) {
             (Some(at), Some((pace, _))) => {
                 // Every slot due before the deadline is sent, even when the wake-up comes later.
                 if at.into_std() >= deadline {
@@ -420,14 +549,17 @@ async fn drive_stream(
             _ => {}
         }
         seq += 1;
-        let samples = driver.next_batch(batch);
         let sent = Instant::now();
-        if let Err(error) = stream.detect(seq, samples).await {
-            result.error = Some(error.to_string());
-            return result;
+        match stream.send(seq).await {
+            Ok(samples) => {
+                result.latencies.push(sent.elapsed());
+                result.samples += samples;
+            }
+            Err(error) => {
+                result.error = Some(error.to_string());
+                return result;
+            }
         }
-        result.latencies.push(sent.elapsed());
-        result.samples += batch as u64;
     }
     if let Err(error) = stream.finish().await {
         result.error = Some(error.to_string());
