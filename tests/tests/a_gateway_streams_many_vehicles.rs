@@ -20,6 +20,7 @@ fn entry(vehicle_id: &str, samples: Vec<v1::Sample>) -> v1::VehicleSamples {
         vehicle_id: vehicle_id.to_string(),
         model: String::new(),
         samples,
+        reset: false,
     }
 }
 
@@ -227,6 +228,28 @@ async fn a_refused_vehicle_leaves_the_others_and_its_session_untouched() {
         .map(|s| s.vehicle_id.as_str())
         .collect();
     assert_eq!(ids, ["ok-a", "ok-b"], "refused vehicles get no session");
+
+    // `reset` starts a vehicle afresh, but only with samples that are accepted.
+    let mut restart = entry("ok-a", a[..1].to_vec());
+    restart.reset = true;
+    let mut refused_restart = entry("ok-b", vec![b[5], b[0]]);
+    refused_restart.reset = true;
+    let reply = gateway
+        .detect(5, vec![restart, refused_restart])
+        .await
+        .expect("answered");
+    assert!(
+        reply[0].error.is_none() && reply[1].error.is_some(),
+        "{reply:?}"
+    );
+    let restarted = session(&mut clients, "ok-a").await;
+    assert_eq!(
+        (restarted.samples, restarted.last_seq),
+        (1, 5),
+        "{restarted:?}"
+    );
+    let kept = session(&mut clients, "ok-b").await;
+    assert_eq!((kept.samples, kept.last_seq), (10, 4), "{kept:?}");
 
     // Shutdown ends the open gateway stream with UNAVAILABLE.
     let mut server = server;

@@ -253,6 +253,7 @@ async fn detect_vehicle(
             .detect_unattached(
                 &vehicle.vehicle_id,
                 model.as_ref(),
+                vehicle.reset,
                 Some(seq),
                 &samples,
                 "samples",
@@ -393,7 +394,7 @@ impl DetectionService for DetectionApi {
         let decisions = match vehicle {
             Some(vehicle) => {
                 self.sessions
-                    .detect_unattached(vehicle, model.as_ref(), None, &samples, "samples")
+                    .detect_unattached(vehicle, model.as_ref(), false, None, &samples, "samples")
                     .await?
             }
             None => {

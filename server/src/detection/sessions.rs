@@ -362,23 +362,32 @@ impl SessionManager {
     }
 
     /// Runs a batch for a vehicle without attaching a stream (creating the session if needed;
-    /// `model` `Some` switches it to that model). `seq` becomes the session's `last_seq` (`None`
-    /// keeps it). `vehicle_id` must be valid (checked at the edge); `field` names the samples in
-    /// violations.
+    /// `model` `Some` switches it to that model; `reset` starts it afresh if the batch is valid).
+    /// `seq` becomes the session's `last_seq` (`None` keeps it). `vehicle_id` must be valid
+    /// (checked at the edge); `field` names the samples in violations.
     pub async fn detect_unattached(
         &self,
         vehicle_id: &str,
         model: Option<&ModelName>,
+        reset: bool,
         seq: Option<u64>,
         samples: &[Sample],
         field: &str,
     ) -> Result<Decisions, SessionError> {
         let slot = match (self.lookup(vehicle_id), model) {
-            (Some(slot), None) => slot,
-            (Some(slot), Some(requested)) => {
-                let model = self.registry.resolve(Some(requested)).await?;
+            (Some(slot), None) if !reset => slot,
+            (Some(slot), requested) => {
+                let requested = match requested {
+                    Some(name) => Some(self.registry.resolve(Some(name)).await?),
+                    None => None,
+                };
                 let mut state = slot.state.lock().await;
-                if state.model.name != model.name {
+                let model = requested.unwrap_or_else(|| state.model.clone());
+                if reset || state.model.name != model.name {
+                    // The session starts afresh, but only for a batch valid on a fresh session: a
+                    // refused batch changes nothing.
+                    validate_batch(samples, None, self.limits.max_batch_samples, field)
+                        .map_err(SessionError::InvalidBatch)?;
                     self.close_alarm(&mut state);
                     *state = SessionState::new(model);
                 }

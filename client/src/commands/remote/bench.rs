@@ -493,6 +493,8 @@ impl LoadStream for GatewayStream {
                 vehicle_id: id.clone(),
                 model: String::new(),
                 samples: driver.next_batch(batch),
+                // Each run starts its vehicles afresh (their timestamps start over).
+                reset: seq == 1,
             })
             .collect();
         let samples = (message.len() * batch) as u64;
