@@ -1,15 +1,17 @@
 //! `spoofwatch bench`: a load benchmark over loopback.
 //!
-//! Throughput phase, per stream count S: S concurrent vehicle streams, each sending a batch of
-//! synthetic samples as soon as the previous batch's detections are back (one outstanding batch per
-//! stream), or at a given rate, for a fixed time; reports samples/s, the per-batch round trip
-//! (p50/p99/p99.9/max), the share of scheduled batches answered within the phase, and the server's
-//! CPU time per sample when its process id is known.
+//! Throughput phase, per vehicle count S: S vehicles, each on its own StreamDetect stream or (with
+//! `--vehicles-per-message K`) K per message on S/K StreamDetectFleet gateway streams. Each stream
+//! sends its next message as soon as the previous one's reply is back (one outstanding message per
+//! stream), or at a given rate, for a fixed time; reports samples/s, the per-message round trip
+//! (p50/p99/p99.9/max), the share of the messages due within the phase that were answered (late
+//! answers count: the percentiles show lateness), and the server's CPU time per sample and resident
+//! memory when its process id is known.
 //! Memory phase: opens many short sessions (start + one batch, then the stream closes; the session
 //! stays in memory until idle eviction) and reports the server's resident memory before and after.
 //!
-//! Streams are driven through the client's `DetectStream`; this module owns only the load shape and
-//! the measurements. Without `--server` it needs the `inprocess` feature.
+//! Streams are driven through the client's `DetectStream` and `FleetDetectStream`; this module owns
+//! only the load shape and the measurements. Without `--server` it needs the `inprocess` feature.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -172,6 +174,8 @@ struct PhaseResult {
     delivered: Option<f64>,
     /// Server CPU per sample (µs), when its process id is known.
     server_cpu_us_per_sample: Option<f64>,
+    /// Server resident memory at the end of the phase (kB), when its process id is known.
+    server_rss_kb: Option<u64>,
     errors: usize,
 }
 
@@ -264,12 +268,12 @@ fn ms(d: Option<Duration>) -> String {
 fn results_table(results: &[PhaseResult], batch: usize) -> String {
     let mut out = String::from(
         "| vehicles | per message | batch | samples/s | messages | p50 (ms) | p99 (ms) | \
-         p99.9 (ms) | max (ms) | delivered | server CPU µs/sample | errors |\n\
-         |---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
+         p99.9 (ms) | max (ms) | delivered | server CPU µs/sample | server RSS (MiB) | errors |\n\
+         |---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n",
     );
     for r in results {
         out.push_str(&format!(
-            "| {} | {} | {batch} | {:.0} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            "| {} | {} | {batch} | {:.0} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
             r.streams,
             r.per_message,
             r.samples_per_s,
@@ -282,6 +286,8 @@ fn results_table(results: &[PhaseResult], batch: usize) -> String {
                 .map_or_else(|| "-".into(), |d| format!("{:.2} %", d * 100.0)),
             r.server_cpu_us_per_sample
                 .map_or_else(|| "-".into(), |us| format!("{us:.1}")),
+            r.server_rss_kb
+                .map_or_else(|| "-".into(), |kb| format!("{:.0}", kb as f64 / 1024.0)),
             r.errors
         ));
     }
@@ -384,6 +390,7 @@ async fn throughput_phase(
     }
     let elapsed = started.elapsed().as_secs_f64();
     let cpu_after = shape.server_pid.map(cpu_seconds).transpose()?;
+    let server_rss_kb = shape.server_pid.map(resident_kb).transpose()?;
     all.sort_unstable();
     let server_cpu_us_per_sample = match (cpu_before, cpu_after) {
         (Some(before), Some(after)) if samples > 0 => Some((after - before) * 1e6 / samples as f64),
@@ -400,6 +407,7 @@ async fn throughput_phase(
         max: all.last().copied(),
         delivered: (scheduled > 0).then(|| (all.len() as f64 / scheduled as f64).min(1.0)),
         server_cpu_us_per_sample,
+        server_rss_kb,
         errors,
     })
 }
