@@ -337,6 +337,36 @@ async fn run_fleet_stream(
     }
 }
 
+impl DetectionApi {
+    /// Starts a streaming call: `run` reads `inbound` in its own task and writes the replies into a
+    /// small bounded channel, which is the call's response stream.
+    fn spawn_call<In, Out, Fut>(
+        &self,
+        inbound: Streaming<In>,
+        run: impl FnOnce(
+            Arc<SessionManager>,
+            CancellationToken,
+            Streaming<In>,
+            mpsc::Sender<Result<Out, Status>>,
+        ) -> Fut,
+    ) -> Result<Response<ReceiverStream<Result<Out, Status>>>, Status>
+    where
+        Fut: Future<Output = ()> + Send + 'static,
+    {
+        if self.shutdown.is_cancelled() {
+            return Err(shutting_down());
+        }
+        let (tx, rx) = mpsc::channel(OUTBOUND_BUFFER);
+        tokio::spawn(run(
+            Arc::clone(&self.sessions),
+            self.shutdown.clone(),
+            inbound,
+            tx,
+        ));
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+}
+
 #[tonic::async_trait]
 impl DetectionService for DetectionApi {
     type StreamDetectStream = ReceiverStream<Reply>;
@@ -346,34 +376,14 @@ impl DetectionService for DetectionApi {
         &self,
         request: Request<Streaming<v1::FleetBatch>>,
     ) -> Result<Response<Self::StreamDetectFleetStream>, Status> {
-        if self.shutdown.is_cancelled() {
-            return Err(shutting_down());
-        }
-        let (tx, rx) = mpsc::channel(OUTBOUND_BUFFER);
-        tokio::spawn(run_fleet_stream(
-            Arc::clone(&self.sessions),
-            self.shutdown.clone(),
-            request.into_inner(),
-            tx,
-        ));
-        Ok(Response::new(ReceiverStream::new(rx)))
+        self.spawn_call(request.into_inner(), run_fleet_stream)
     }
 
     async fn stream_detect(
         &self,
         request: Request<Streaming<v1::StreamDetectRequest>>,
     ) -> Result<Response<Self::StreamDetectStream>, Status> {
-        if self.shutdown.is_cancelled() {
-            return Err(shutting_down());
-        }
-        let (tx, rx) = mpsc::channel(OUTBOUND_BUFFER);
-        tokio::spawn(run_stream(
-            Arc::clone(&self.sessions),
-            self.shutdown.clone(),
-            request.into_inner(),
-            tx,
-        ));
-        Ok(Response::new(ReceiverStream::new(rx)))
+        self.spawn_call(request.into_inner(), run_stream)
     }
 
     async fn detect(
