@@ -21,7 +21,7 @@ use spoofwatch_core::rng::Rng;
 use spoofwatch_core::sample::{Record, Sample, Track};
 use spoofwatch_proto::v1;
 use spoofwatch_proto::wire::convert::sample_to_proto;
-use spoofwatch_proto::wire::limits::{MAX_BATCH_SAMPLES, MAX_VEHICLE_ID_LEN};
+use spoofwatch_proto::wire::limits::{MAX_BATCH_SAMPLES, MAX_FORWARD_JUMP_S, MAX_VEHICLE_ID_LEN};
 use tokio::sync::mpsc;
 
 use crate::connection::Connection;
@@ -35,8 +35,9 @@ pub const REPLAY_BREAK_GAP_S: f64 = 10.0;
 /// Timestamps to send for a track's records, in order.
 ///
 /// From the first record on, every timestamp is shifted by a running offset. At a record with
-/// `trajectory_break`, or where time steps backwards by more than 0.5 s, the offset changes so that
-/// the record lands [`REPLAY_BREAK_GAP_S`] after the latest timestamp sent so far. Inside a
+/// `trajectory_break`, where time steps backwards by more than 0.5 s, or where it jumps forward by
+/// more than the server accepts ([`MAX_FORWARD_JUMP_S`]), the offset changes so that the record
+/// lands [`REPLAY_BREAK_GAP_S`] after the latest timestamp sent so far. Inside a
 /// trajectory the differences between consecutive timestamps are unchanged. A non-finite timestamp
 /// is passed through (the server rejects it); a break on it moves to the next finite record.
 pub fn replay_timestamps(records: &[Record]) -> Vec<f64> {
@@ -54,7 +55,8 @@ pub fn replay_timestamps(records: &[Record]) -> Vec<f64> {
         }
         if let Some((previous_t, latest)) = previous {
             let backwards = t - previous_t < -MAX_BACKWARD_S;
-            if record.trajectory_break || pending_break || backwards {
+            let far_ahead = t + offset - latest > MAX_FORWARD_JUMP_S;
+            if record.trajectory_break || pending_break || backwards || far_ahead {
                 offset = latest + REPLAY_BREAK_GAP_S - t;
             }
         }
@@ -602,6 +604,20 @@ mod tests {
                 "{case}"
             );
         }
+    }
+
+    #[test]
+    fn a_jump_further_ahead_than_the_server_accepts_becomes_a_ten_second_gap() {
+        // Two days apart without a break flag; a one-hour pause is kept as it is.
+        let rows = records(&[
+            (0.0, false),
+            (1.0, false),
+            (172_801.0, false),
+            (172_802.0, false),
+        ]);
+        assert_eq!(replay_timestamps(&rows), vec![0.0, 1.0, 11.0, 12.0]);
+        let rows = records(&[(0.0, false), (3_600.0, false)]);
+        assert_eq!(replay_timestamps(&rows), vec![0.0, 3_600.0]);
     }
 
     #[test]

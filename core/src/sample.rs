@@ -27,6 +27,20 @@ pub struct Sample {
     pub heading_std_deg: Option<f64>,
 }
 
+/// A number as error messages print it: plain with up to three decimals in the everyday range,
+/// scientific outside it (`1e301` is printed as `1.000e301`, not as 302 digits).
+pub fn readable(value: f64) -> String {
+    if !value.is_finite() {
+        return value.to_string();
+    }
+    if value == 0.0 || (1e-3..1e9).contains(&value.abs()) {
+        let text = format!("{value:.3}");
+        text.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        format!("{value:.3e}")
+    }
+}
+
 /// A field-level problem with a sample, as reported by the API (`samples[i].<field>`).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct FieldViolation {
@@ -63,12 +77,12 @@ impl Sample {
             if !value.is_finite() {
                 out.push(FieldViolation {
                     field,
-                    description: format!("must be a finite number, got {value}"),
+                    description: format!("must be a finite number, got {}", readable(value)),
                 });
             } else if !ok {
                 out.push(FieldViolation {
                     field,
-                    description: format!("must be {expect}, got {value}"),
+                    description: format!("must be {expect}, got {}", readable(value)),
                 });
             }
         };
@@ -135,6 +149,31 @@ pub struct Track {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn numbers_in_messages_stay_short() {
+        let cases = [
+            (12.0, "12"),
+            (0.25, "0.25"),
+            (-4.56789, "-4.568"),
+            (1e301, "1.000e301"),
+            (-2.5e-7, "-2.500e-7"),
+            (0.0, "0"),
+            (f64::NAN, "NaN"),
+            (f64::NEG_INFINITY, "-inf"),
+        ];
+        for (value, expected) in cases {
+            assert_eq!(readable(value), expected);
+        }
+        let mut s = Sample::new(1e301, 32.0, -110.0, 2.0, 90.0);
+        s.speed_std_mps = Some(-1e200);
+        let descriptions: Vec<String> = s.violations().into_iter().map(|v| v.description).collect();
+        assert_eq!(
+            descriptions,
+            ["must be non-negative, got -1.000e200"],
+            "a finite, huge timestamp is valid for a sample alone"
+        );
+    }
 
     #[test]
     fn a_plausible_sample_has_no_violations() {

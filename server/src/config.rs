@@ -21,6 +21,7 @@ pub mod defaults {
     pub const MAX_RUNNING_JOBS: usize = 1;
     pub const MAX_PENDING_JOBS: usize = 16;
     pub const SHUTDOWN_GRACE_SECS: u64 = 10;
+    pub const HANDSHAKE_TIMEOUT_SECS: u64 = 10;
 }
 
 /// Everything the server needs to start.
@@ -61,9 +62,25 @@ pub struct Config {
     /// Seconds the shutdown waits for streams and jobs before closing anyway.
     #[arg(long, env = "SPOOFWATCH_SHUTDOWN_GRACE_SECS", default_value_t = defaults::SHUTDOWN_GRACE_SECS)]
     pub shutdown_grace_secs: u64,
+    /// Seconds a new connection has to send the HTTP/2 preface before it is closed.
+    #[arg(long, env = "SPOOFWATCH_HANDSHAKE_TIMEOUT_SECS", default_value_t = defaults::HANDSHAKE_TIMEOUT_SECS,
+          value_parser = clap::value_parser!(u64).range(1..=300))]
+    pub handshake_timeout_secs: u64,
     /// Require `authorization: Bearer <token>` on every call except health checks.
-    #[arg(long, env = "SPOOFWATCH_AUTH_TOKEN", hide_env_values = true)]
+    #[arg(long, env = "SPOOFWATCH_AUTH_TOKEN", hide_env_values = true, value_parser = parse_token)]
     pub auth_token: Option<String>,
+}
+
+/// A bearer token: 1–4,096 visible ASCII characters (what an `authorization` header can carry).
+/// An empty token would make "no token" and "the token" the same, so it is a configuration error.
+pub fn parse_token(text: &str) -> Result<String, String> {
+    if text.is_empty() {
+        return Err("must not be empty (leave the flag out to serve without a token)".into());
+    }
+    if text.len() > 4096 || !text.bytes().all(|b| b.is_ascii_graphic()) {
+        return Err("must be at most 4096 visible ASCII characters, without spaces".into());
+    }
+    Ok(text.to_string())
 }
 
 /// The defaults, without reading the environment (no data directory, no auth token).
@@ -80,6 +97,7 @@ impl Default for Config {
             max_running_jobs: defaults::MAX_RUNNING_JOBS,
             max_pending_jobs: defaults::MAX_PENDING_JOBS,
             shutdown_grace_secs: defaults::SHUTDOWN_GRACE_SECS,
+            handshake_timeout_secs: defaults::HANDSHAKE_TIMEOUT_SECS,
             auth_token: None,
         }
     }
@@ -101,6 +119,10 @@ impl Config {
     pub fn shutdown_grace(&self) -> Duration {
         Duration::from_secs(self.shutdown_grace_secs)
     }
+
+    pub fn handshake_timeout(&self) -> Duration {
+        Duration::from_secs(self.handshake_timeout_secs)
+    }
 }
 
 #[cfg(test)]
@@ -118,5 +140,18 @@ mod tests {
             assert_eq!(format!("{parsed:?}"), format!("{default:?}"));
         }
         assert_eq!(default.listen.to_string(), "127.0.0.1:50051");
+    }
+
+    #[test]
+    fn an_empty_or_unprintable_token_is_a_configuration_error() {
+        for bad in ["", "two words", "tab\there", "é"] {
+            assert!(
+                Config::try_parse_from(["spoofwatch-server", "--auth-token", bad]).is_err(),
+                "{bad:?}"
+            );
+        }
+        let parsed = Config::try_parse_from(["spoofwatch-server", "--auth-token", "s3cr3t-T0ken"])
+            .expect("a valid token");
+        assert_eq!(parsed.auth_token.as_deref(), Some("s3cr3t-T0ken"));
     }
 }

@@ -2,6 +2,7 @@
 //! turned into validated domain values, with field-level INVALID_ARGUMENT errors. Owns no logic and
 //! touches no storage.
 
+use spoofwatch_proto::wire::limits::MAX_DISPLAY_NAME_CHARS;
 use spoofwatch_proto::wire::{DatasetName, ModelName, NameError, OperationName};
 use tonic::Status;
 
@@ -19,6 +20,19 @@ pub fn optional_model_name(field: &str, name: &str) -> Result<Option<ModelName>,
         return Ok(None);
     }
     model_name(field, name).map(Some)
+}
+
+/// A free-text display name (may be empty), at most [`MAX_DISPLAY_NAME_CHARS`] characters: it is
+/// stored, listed and echoed, so its length is bounded before anything else looks at it.
+pub fn display_name<'a>(field: &str, name: &'a str) -> Result<&'a str, Status> {
+    let chars = name.chars().count();
+    if chars > MAX_DISPLAY_NAME_CHARS {
+        return Err(invalid_field(
+            field,
+            format!("at most {MAX_DISPLAY_NAME_CHARS} characters, got {chars}"),
+        ));
+    }
+    Ok(name)
 }
 
 /// A required `datasets/{id}` field.

@@ -19,6 +19,7 @@ mod edge;
 mod error;
 mod fault;
 mod identity;
+mod incoming;
 pub mod inprocess;
 mod jobs;
 pub mod models;
@@ -40,7 +41,6 @@ use tonic::server::NamedService;
 use tonic::service::Interceptor;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Server;
-use tonic::transport::server::TcpIncoming;
 use tonic::{Request, Status};
 use tonic_health::ServingStatus;
 
@@ -88,12 +88,26 @@ impl Interceptor for BearerAuth {
             .metadata()
             .get("authorization")
             .and_then(|v| v.to_str().ok())
-            .and_then(|v| v.strip_prefix("Bearer "));
+            .and_then(bearer_token);
         match presented {
-            Some(token) if token == &**expected => Ok(request),
+            Some(token) if tokens_match(token, expected) => Ok(request),
             _ => Err(Status::unauthenticated("missing or wrong bearer token")),
         }
     }
+}
+
+/// The token of an `authorization` value `Bearer <token>` (the scheme is case-insensitive, RFC
+/// 9110 §11.1); `None` for another scheme or an empty token.
+fn bearer_token(value: &str) -> Option<&str> {
+    let (scheme, token) = value.trim().split_once(' ')?;
+    let token = token.trim();
+    (scheme.eq_ignore_ascii_case("bearer") && !token.is_empty()).then_some(token)
+}
+
+/// Compares in time independent of where the tokens differ (their length is not secret).
+fn tokens_match(presented: &str, expected: &str) -> bool {
+    use subtle::ConstantTimeEq;
+    bool::from(presented.as_bytes().ct_eq(expected.as_bytes()))
 }
 
 /// Runs the server on `listener` until `shutdown` resolves, then drains: health turns NOT_SERVING,
@@ -251,7 +265,7 @@ pub async fn serve(
         });
     }
 
-    let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
+    let incoming = incoming::vetted(listener, config.handshake_timeout());
     let router = Server::builder()
         .http2_keepalive_interval(Some(Duration::from_secs(30)))
         .http2_keepalive_timeout(Some(Duration::from_secs(10)))
@@ -284,4 +298,23 @@ pub async fn serve(
     store.close().await;
     tracing::info!("server stopped");
     result
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_bearer_scheme_is_case_insensitive_and_an_empty_token_is_none() {
+        assert_eq!(bearer_token("Bearer abc"), Some("abc"));
+        assert_eq!(bearer_token("bearer abc"), Some("abc"));
+        assert_eq!(bearer_token("BEARER   abc "), Some("abc"));
+        assert_eq!(bearer_token("Bearer "), None);
+        assert_eq!(bearer_token("Bearer"), None);
+        assert_eq!(bearer_token("Basic abc"), None);
+        assert!(tokens_match("abc", "abc"));
+        assert!(!tokens_match("abd", "abc"));
+        assert!(!tokens_match("", "abc"));
+        assert!(!tokens_match("abcd", "abc"));
+    }
 }

@@ -89,6 +89,17 @@ async fn bad_samples_are_refused_per_batch_and_the_stream_goes_on(clients: &mut 
         ]
     );
 
+    // Milliseconds sent once into a seconds stream: refused with a short, readable reason.
+    let mut millis = good[10..11].to_vec();
+    millis[0].timestamp_s = 1_700_000_000_000.0;
+    let status = expect_item_error(&mut stream, 4, millis).await;
+    let violations = field_violations(&status);
+    assert_eq!(violations[0].0, "batch.samples[0].timestamp_s");
+    assert!(
+        violations[0].1.contains("1.700e12 s ahead") && violations[0].1.len() < 200,
+        "{violations:?}"
+    );
+
     // The rejected batches changed nothing: the next good batch continues the same trajectory.
     let detections = stream
         .detect(5, good[10..20].to_vec())
@@ -110,6 +121,47 @@ async fn bad_samples_are_refused_per_batch_and_the_stream_goes_on(clients: &mut 
         .into_inner();
     assert_eq!((session.samples, session.last_seq), (20, 5));
     drop(stream);
+}
+
+/// Names and free text are bounded before they are stored or echoed: a 20,000-character vehicle id
+/// or display name gets a short INVALID_ARGUMENT, not a grpc-message too large for the client.
+async fn long_names_are_refused_without_being_echoed(clients: &mut Clients) {
+    let long = "x".repeat(20_000);
+    let status = clients
+        .detection
+        .get_session(v1::GetSessionRequest {
+            vehicle_id: long.clone(),
+        })
+        .await
+        .expect_err("too long");
+    assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+    assert!(status.message().len() < 200, "{}", status.message());
+    let header = v1::UploadDatasetRequest {
+        kind: Some(v1::upload_dataset_request::Kind::Header(
+            v1::UploadDatasetHeader { display_name: long },
+        )),
+    };
+    let chunk = v1::UploadDatasetRequest {
+        kind: Some(v1::upload_dataset_request::Kind::CsvChunk(
+            b"vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg\nv,0,32,-110,1,0\n"
+                .to_vec(),
+        )),
+    };
+    let status = clients
+        .datasets
+        .upload_dataset(tokio_stream::iter(vec![header, chunk]))
+        .await
+        .expect_err("too long");
+    assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+    assert_eq!(
+        status
+            .get_details_bad_request()
+            .expect("field violations")
+            .field_violations[0]
+            .field,
+        "header.display_name"
+    );
+    assert!(status.message().len() < 200, "{}", status.message());
 }
 
 async fn a_stream_must_start_with_session_start(clients: &mut Clients) {
@@ -260,6 +312,7 @@ async fn bad_input_gets_its_code_without_harming_other_streams_or_data() {
     let healthy = spawn_healthy_stream(&clients);
     bad_samples_are_refused_per_batch_and_the_stream_goes_on(&mut clients).await;
     a_stream_must_start_with_session_start(&mut clients).await;
+    long_names_are_refused_without_being_echoed(&mut clients).await;
     unknown_models_are_not_found(&mut clients).await;
     unary_bad_samples_carry_field_violations(&mut clients).await;
     imports_outside_the_data_directory_are_denied(&mut clients, &outside.display().to_string())

@@ -117,16 +117,20 @@ pub(super) fn read_tracks<R: Read>(
     Ok(tracks)
 }
 
-/// Writes tracks in the telemetry format (with a `label` column when any record is labelled).
+/// Writes tracks in the telemetry format, with a `label` column when any record is labelled and
+/// the three uncertainty columns when any sample carries one (an absent value is an empty cell).
 /// Vehicles are written one after another; floats use Rust's shortest round-trip form.
 pub fn write_tracks<W: Write>(writer: W, tracks: &[Track]) -> csv::Result<()> {
-    let labelled = tracks
-        .iter()
-        .any(|t| t.records.iter().any(|r| r.label.is_some()));
+    let records = || tracks.iter().flat_map(|t| &t.records);
+    let labelled = records().any(|r| r.label.is_some());
+    let uncertain = records().any(|r| uncertainties(&r.sample).iter().any(Option::is_some));
     let mut out = csv::Writer::from_writer(writer);
     let mut header: Vec<&str> = REQUIRED_COLUMNS.to_vec();
     if labelled {
         header.push("label");
+    }
+    if uncertain {
+        header.extend(&OPTIONAL_COLUMNS[1..]);
     }
     out.write_record(&header)?;
     for track in tracks {
@@ -147,9 +151,23 @@ pub fn write_tracks<W: Write>(writer: W, tracks: &[Track]) -> csv::Result<()> {
                     None => String::new(),
                 });
             }
+            if uncertain {
+                row.extend(
+                    uncertainties(s).map(|std| std.map_or_else(String::new, |v| v.to_string())),
+                );
+            }
             out.write_record(&row)?;
         }
     }
     out.flush()?;
     Ok(())
+}
+
+/// A sample's optional uncertainties in the order of [`OPTIONAL_COLUMNS`]`[1..]`.
+fn uncertainties(sample: &Sample) -> [Option<f64>; 3] {
+    [
+        sample.position_std_m,
+        sample.speed_std_mps,
+        sample.heading_std_deg,
+    ]
 }

@@ -257,4 +257,23 @@ fn telemetry_round_trips_through_write_tracks() {
     write_tracks(&mut bytes, &nan_track).expect("write");
     let rec = read(bytes.as_slice(), "nan").expect("read back");
     assert!(rec.tracks[0].records[0].sample.speed_mps.is_nan());
+    // Uncertainties, present or absent per sample, survive too.
+    let mut uncertain = tracks.clone();
+    uncertain[0].records[0].sample.position_std_m = Some(2.5);
+    uncertain[0].records[1].sample.speed_std_mps = Some(0.125);
+    uncertain[1].records[0].sample.heading_std_deg = Some(3.0);
+    let mut bytes = Vec::new();
+    write_tracks(&mut bytes, &uncertain).expect("write");
+    let header = String::from_utf8_lossy(&bytes)
+        .lines()
+        .next()
+        .map(str::to_owned);
+    assert_eq!(
+        header.as_deref(),
+        Some(
+            "vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg,label,position_std_m,speed_std_mps,heading_std_deg"
+        )
+    );
+    let rec = read(bytes.as_slice(), "uncertain").expect("read back");
+    assert_eq!(rec.tracks, uncertain);
 }

@@ -15,6 +15,12 @@ pub const MAX_RESOURCE_ID_LEN: usize = 128;
 /// Largest backward time step tolerated inside a session (SPEC §3: beyond it time "goes backwards").
 pub const BACKWARD_TOLERANCE_S: f64 = spoofwatch_core::evidence::MAX_BACKWARD_S;
 
+/// Largest forward step between a session's consecutive samples (s). A sample further ahead (e.g.
+/// milliseconds sent once into a seconds stream) is refused rather than accepted: accepted, it
+/// would make every later sample of the vehicle "go backwards". A session that really restarts at
+/// a far later time is reset first (`SessionStart.reset`, `VehicleSamples.reset`, ResetSession).
+pub const MAX_FORWARD_JUMP_S: f64 = 86_400.0;
+
 /// Largest gRPC message the server accepts by default (bytes).
 pub const MAX_MESSAGE_BYTES: usize = 4 << 20;
 
@@ -23,6 +29,12 @@ pub const MAX_ARTIFACT_BYTES: usize = 64 << 20;
 
 /// Largest dataset accepted by upload or import (bytes of CSV).
 pub const MAX_DATASET_BYTES: usize = 256 << 20;
+
+/// Most records in one structured `UploadDataset` (a CSV upload is bounded by its bytes).
+pub const MAX_DATASET_RECORDS: usize = 2_000_000;
+
+/// Longest free-text display name (characters) of a dataset, model or job.
+pub const MAX_DISPLAY_NAME_CHARS: usize = 256;
 
 /// Size of the chunks `ExportModel` streams.
 pub const EXPORT_CHUNK_BYTES: usize = 1 << 20;

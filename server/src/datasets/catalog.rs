@@ -66,6 +66,9 @@ async fn parse(
         })
 }
 
+/// Longest import path accepted (it is echoed in errors, so it is bounded first).
+const MAX_IMPORT_PATH_BYTES: usize = 1024;
+
 /// Resolves `relative` inside `data_dir`, refusing anything that escapes it (`..`, absolute paths,
 /// symlinks pointing outside).
 pub fn resolve_inside(data_dir: &Path, relative: &str) -> Result<PathBuf, DatasetError> {
@@ -73,10 +76,10 @@ pub fn resolve_inside(data_dir: &Path, relative: &str) -> Result<PathBuf, Datase
         path: relative.to_string(),
         why,
     };
-    if relative.is_empty() {
+    if relative.is_empty() || relative.len() > MAX_IMPORT_PATH_BYTES {
         return Err(DatasetError::Invalid {
             field: "path",
-            reason: "required".into(),
+            reason: format!("required, at most {MAX_IMPORT_PATH_BYTES} bytes"),
         });
     }
     if Path::new(relative).is_absolute() {
@@ -161,15 +164,7 @@ impl Catalog {
     ) -> Result<DatasetRow, DatasetError> {
         let data_dir = self.data_dir.as_deref().ok_or(DatasetError::NoDataDir)?;
         let path = resolve_inside(data_dir, relative_path)?;
-        let content = tokio::fs::read(&path)
-            .await
-            .map_err(|e| Fault::new("reading an import file", e))?;
-        if content.len() > MAX_DATASET_BYTES {
-            return Err(DatasetError::Invalid {
-                field: "path",
-                reason: format!("file exceeds {MAX_DATASET_BYTES} bytes"),
-            });
-        }
+        let content = read_bounded(&path, MAX_DATASET_BYTES).await?;
         let stem = path.file_stem().map_or_else(
             || relative_path.to_string(),
             |s| s.to_string_lossy().to_string(),
@@ -262,9 +257,52 @@ impl Catalog {
     }
 }
 
+/// A file of at most `limit` bytes: its size is checked before anything is read, and the read
+/// stops past the limit (the file may grow in between), so an oversized file is never loaded.
+async fn read_bounded(path: &Path, limit: usize) -> Result<Vec<u8>, DatasetError> {
+    use tokio::io::AsyncReadExt;
+    let too_large = |size: u64| DatasetError::Invalid {
+        field: "path",
+        reason: format!("the file has {size} bytes; at most {limit} are accepted"),
+    };
+    let read_error = |e| Fault::new("reading an import file", e);
+    let file = tokio::fs::File::open(path).await.map_err(read_error)?;
+    let size = file.metadata().await.map_err(read_error)?.len();
+    if size > limit as u64 {
+        return Err(too_large(size));
+    }
+    let mut content = Vec::with_capacity(size as usize);
+    file.take(limit as u64 + 1)
+        .read_to_end(&mut content)
+        .await
+        .map_err(read_error)?;
+    if content.len() > limit {
+        return Err(too_large(content.len() as u64));
+    }
+    Ok(content)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[tokio::test]
+    async fn an_import_file_over_the_limit_is_refused_before_it_is_read() {
+        let dir = tempfile::tempdir().expect("a temporary directory");
+        let path = dir.path().join("big.csv");
+        std::fs::write(&path, vec![b'x'; 100]).expect("written");
+        assert_eq!(
+            read_bounded(&path, 100).await.expect("at the limit").len(),
+            100
+        );
+        match read_bounded(&path, 99).await {
+            Err(DatasetError::Invalid { field, reason }) => {
+                assert_eq!(field, "path");
+                assert!(reason.contains("100 bytes; at most 99"), "{reason}");
+            }
+            other => panic!("expected a refusal, got {other:?}"),
+        }
+    }
 
     #[test]
     fn paths_must_stay_inside_the_data_directory() {
@@ -288,5 +326,10 @@ mod tests {
             code(resolve_inside(root.path(), "missing.csv").unwrap_err()),
             tonic::Code::NotFound
         );
+        // A 20,000-character path is refused without being echoed.
+        let long = resolve_inside(root.path(), &"a/".repeat(10_000)).unwrap_err();
+        let status = tonic::Status::from(long);
+        assert_eq!(status.code(), tonic::Code::InvalidArgument);
+        assert!(status.message().len() < 200, "{}", status.message());
     }
 }

@@ -8,11 +8,11 @@ use spoofwatch_proto::v1::dataset_service_server::DatasetService;
 use spoofwatch_proto::v1::upload_dataset_request::Kind;
 use spoofwatch_proto::wire::DatasetName;
 use spoofwatch_proto::wire::convert::{sample_from_proto, timestamp_from_ms};
-use spoofwatch_proto::wire::limits::MAX_DATASET_BYTES;
+use spoofwatch_proto::wire::limits::{MAX_DATASET_BYTES, MAX_DATASET_RECORDS};
 use tonic::{Request, Response, Status, Streaming};
 
 use super::catalog::Catalog;
-use crate::edge::{dataset_name, page_request};
+use crate::edge::{dataset_name, display_name, page_request};
 use crate::status::{header_first, header_not_first, invalid_field};
 use crate::store::DatasetRow;
 
@@ -99,6 +99,12 @@ impl DatasetService for DatasetApi {
                     csv.extend_from_slice(&chunk);
                 }
                 Some(Kind::Records(batch)) if csv.is_empty() => {
+                    if structured.len() + batch.records.len() > MAX_DATASET_RECORDS {
+                        return Err(invalid_field(
+                            "records",
+                            format!("more than {MAX_DATASET_RECORDS} records"),
+                        ));
+                    }
                     structured.extend(batch.records);
                 }
                 Some(Kind::Header(_)) => return Err(header_not_first()),
@@ -110,15 +116,12 @@ impl DatasetService for DatasetApi {
                 }
             }
         }
+        let name = display_name("header.display_name", &header.display_name)?;
         let row = if structured.is_empty() {
-            self.catalog
-                .upload(&header.display_name, csv, "csv_chunk")
-                .await?
+            self.catalog.upload(name, csv, "csv_chunk").await?
         } else {
             let tracks = tracks_from_records(structured)?;
-            self.catalog
-                .upload_tracks(&header.display_name, &tracks)
-                .await?
+            self.catalog.upload_tracks(name, &tracks).await?
         };
         Ok(Response::new(dataset_to_proto(&row)))
     }
@@ -128,7 +131,8 @@ impl DatasetService for DatasetApi {
         request: Request<v1::ImportDatasetRequest>,
     ) -> Result<Response<v1::Dataset>, Status> {
         let r = request.into_inner();
-        let row = self.catalog.import(&r.path, &r.display_name).await?;
+        let name = display_name("display_name", &r.display_name)?;
+        let row = self.catalog.import(&r.path, name).await?;
         Ok(Response::new(dataset_to_proto(&row)))
     }
 

@@ -440,7 +440,11 @@ impl DetectionService for DetectionApi {
         &self,
         request: Request<v1::GetSessionRequest>,
     ) -> Result<Response<v1::Session>, Status> {
-        let session = self.sessions.get(&request.into_inner().vehicle_id).await?;
+        let r = request.into_inner();
+        let session = self
+            .sessions
+            .get(vehicle_id("vehicle_id", &r.vehicle_id)?)
+            .await?;
         Ok(Response::new(session_to_proto(session)))
     }
 
@@ -450,7 +454,7 @@ impl DetectionService for DetectionApi {
     ) -> Result<Response<v1::Session>, Status> {
         let session = self
             .sessions
-            .reset(&request.into_inner().vehicle_id)
+            .reset(vehicle_id("vehicle_id", &request.get_ref().vehicle_id)?)
             .await?;
         Ok(Response::new(session_to_proto(session)))
     }

@@ -2,8 +2,10 @@
 //! batches (checked by the session against its last timestamp). Every problem becomes a field
 //! violation, and nothing is applied unless the whole batch is valid. Owns no session state.
 
-use spoofwatch_core::sample::Sample;
-use spoofwatch_proto::wire::limits::{BACKWARD_TOLERANCE_S, MAX_VEHICLE_ID_LEN};
+use spoofwatch_core::sample::{Sample, readable};
+use spoofwatch_proto::wire::limits::{
+    BACKWARD_TOLERANCE_S, MAX_FORWARD_JUMP_S, MAX_VEHICLE_ID_LEN,
+};
 
 /// Checks a vehicle id: 1–128 characters of `[A-Za-z0-9._:-]`.
 pub fn vehicle_id_violation(id: &str) -> Option<String> {
@@ -48,12 +50,29 @@ pub fn validate_batch(
         let t = sample.timestamp_s;
         if let Some(prev) = previous
             && t.is_finite()
-            && t < prev - BACKWARD_TOLERANCE_S
         {
-            violations.push((
-                format!("{prefix}[{i}].timestamp_s"),
-                format!("goes backwards from {prev} to {t} (more than {BACKWARD_TOLERANCE_S} s)"),
-            ));
+            let field = || format!("{prefix}[{i}].timestamp_s");
+            if t < prev - BACKWARD_TOLERANCE_S {
+                violations.push((
+                    field(),
+                    format!(
+                        "goes backwards from {} to {} (more than {BACKWARD_TOLERANCE_S} s)",
+                        readable(prev),
+                        readable(t)
+                    ),
+                ));
+            } else if t - prev > MAX_FORWARD_JUMP_S {
+                violations.push((
+                    field(),
+                    format!(
+                        "jumps {} s ahead of the previous sample at {} (more than \
+                         {MAX_FORWARD_JUMP_S} s: wrong time unit?); reset the session to restart it \
+                         at a later time",
+                        readable(t - prev),
+                        readable(prev)
+                    ),
+                ));
+            }
         }
         if t.is_finite() {
             previous = Some(previous.map_or(t, |p| p.max(t)));
@@ -103,6 +122,41 @@ mod tests {
     fn time_before_the_session_is_rejected() {
         let errors = validate_batch(&[sample(5.0, 32.0)], Some(10.0), 10, "s").unwrap_err();
         assert_eq!(errors[0].0, "s[0].timestamp_s");
+    }
+
+    #[test]
+    fn a_far_jump_ahead_is_refused_and_does_not_blind_the_session() {
+        // Milliseconds sent once into a seconds stream.
+        let errors =
+            validate_batch(&[sample(1_700_000_000_000.0, 32.0)], Some(100.0), 10, "s").unwrap_err();
+        assert_eq!(errors[0].0, "s[0].timestamp_s");
+        assert!(errors[0].1.contains("1.700e12 s ahead"), "{}", errors[0].1);
+        // Nothing was applied, so the next sample follows the session's real last time.
+        assert_eq!(
+            validate_batch(&[sample(101.0, 32.0)], Some(100.0), 10, "s"),
+            Ok(())
+        );
+        // A long pause within the bound, and a jump inside one batch.
+        assert_eq!(
+            validate_batch(&[sample(80_000.0, 32.0)], Some(100.0), 10, "s"),
+            Ok(())
+        );
+        let inside = [sample(1.0, 32.0), sample(90_000.0, 32.0)];
+        assert_eq!(
+            validate_batch(&inside, None, 10, "s").unwrap_err()[0].0,
+            "s[1].timestamp_s"
+        );
+    }
+
+    #[test]
+    fn backward_time_is_printed_readably() {
+        let errors = validate_batch(&[sample(5.0, 32.0)], Some(1e301), 10, "s").unwrap_err();
+        assert!(errors[0].1.len() < 100, "{}", errors[0].1);
+        assert!(
+            errors[0].1.contains("from 1.000e301 to 5"),
+            "{}",
+            errors[0].1
+        );
     }
 
     #[test]

@@ -26,7 +26,7 @@ use tonic::{Request, Response, Status};
 
 use super::manager::JobManager;
 use super::records::{JobRequest, JobResult, Progress, TrainingRequest};
-use crate::edge::{dataset_names, operation_name, optional_model_name, page_request};
+use crate::edge::{dataset_names, display_name, operation_name, optional_model_name, page_request};
 use crate::models::service::model_to_proto;
 use crate::models::{Registry, RegistryError};
 use crate::status::invalid_field;
@@ -104,7 +104,7 @@ fn training_request(request: v1::CreateTrainingJobRequest) -> Result<TrainingReq
             features,
         },
         select_kappa_rho: spec.select_kappa_rho,
-        display_name: request.display_name,
+        display_name: display_name("display_name", &request.display_name)?.to_string(),
         activate: request.activate,
     })
 }

@@ -16,7 +16,7 @@ use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 
 use super::registry::{ModelMetadata, Registry};
-use crate::edge::{model_name, page_request};
+use crate::edge::{display_name, model_name, page_request};
 use crate::status::invalid_field;
 use crate::store::{ModelRow, ModelSource};
 
@@ -149,10 +149,8 @@ impl ModelService for ModelApi {
                 _ => return Err(crate::status::header_not_first()),
             }
         }
-        let row = self
-            .registry
-            .import(&bytes, &header.display_name, header.activate)
-            .await?;
+        let name = display_name("header.display_name", &header.display_name)?;
+        let row = self.registry.import(&bytes, name, header.activate).await?;
         Ok(Response::new(model_to_proto(&row)))
     }
 }
