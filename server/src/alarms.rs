@@ -10,7 +10,7 @@
 
 use std::collections::VecDeque;
 use std::sync::Mutex;
-use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
 use std::time::Duration;
 
 use tokio::sync::Notify;
@@ -38,6 +38,8 @@ pub struct OutboxStats {
     pub invalid: u64,
     /// Batches the store refused (each retried).
     pub failed_batches: u64,
+    /// The last batch was refused: writes wait for the database to accept them again.
+    pub failing: bool,
 }
 
 /// The queue between the sessions and the writer.
@@ -51,6 +53,7 @@ pub struct AlarmOutbox {
     dropped_onsets: AtomicU64,
     invalid: AtomicU64,
     failed_batches: AtomicU64,
+    failing: AtomicBool,
 }
 
 impl AlarmOutbox {
@@ -65,6 +68,7 @@ impl AlarmOutbox {
             dropped_onsets: AtomicU64::new(0),
             invalid: AtomicU64::new(0),
             failed_batches: AtomicU64::new(0),
+            failing: AtomicBool::new(false),
         })
     }
 
@@ -145,6 +149,7 @@ impl AlarmOutbox {
             dropped_onsets: self.dropped_onsets.load(Ordering::Relaxed),
             invalid: self.invalid.load(Ordering::Relaxed),
             failed_batches: self.failed_batches.load(Ordering::Relaxed),
+            failing: self.failing.load(Ordering::Relaxed),
         }
     }
 
@@ -152,7 +157,6 @@ impl AlarmOutbox {
     /// `grace` has passed after `stop` with the store still refusing (what is left is logged).
     pub async fn run(&self, store: Store, stop: CancellationToken, grace: Duration) {
         let mut backoff = BACKOFF.0;
-        let mut failing = false;
         let mut deadline = None;
         loop {
             let batch: Vec<AlarmWrite> = self.queue().iter().take(BATCH).cloned().collect();
@@ -171,7 +175,7 @@ impl AlarmOutbox {
                     self.queue().drain(..batch.len());
                     self.written
                         .fetch_add(batch.len() as u64, Ordering::Relaxed);
-                    if std::mem::take(&mut failing) {
+                    if self.failing.swap(false, Ordering::Relaxed) {
                         tracing::info!(
                             failed_batches = self.failed_batches.load(Ordering::Relaxed),
                             "alarm writer recovered: the database accepts alarm events again"
@@ -181,9 +185,10 @@ impl AlarmOutbox {
                 }
                 Err(error) => {
                     self.failed_batches.fetch_add(1, Ordering::Relaxed);
-                    if !std::mem::replace(&mut failing, true) {
+                    if !self.failing.swap(true, Ordering::Relaxed) {
                         tracing::error!(
                             %error,
+                            detail = ?error,
                             backlog = self.stats().backlog,
                             "could not store alarm events; retrying until the database accepts them"
                         );
@@ -272,10 +277,12 @@ mod tests {
         );
         wait_until("two batches failed", || outbox.stats().failed_batches >= 2).await;
         assert_eq!(outbox.stats().backlog, 3);
+        assert!(outbox.stats().failing);
         assert_eq!(store.list_alarm_events(None, 10).await.unwrap().len(), 1);
 
         store.execute_for_test("DROP TRIGGER refuse").await;
         wait_until("the backlog is stored", || outbox.stats().backlog == 0).await;
+        assert!(!outbox.stats().failing);
         let rows = store.list_alarm_events(None, 10).await.unwrap();
         let stored: Vec<_> = rows
             .iter()

@@ -38,6 +38,10 @@ pub struct Config {
     /// SQLite database (file path or sqlite:// URL); created and migrated on first start.
     #[arg(long, env = "SPOOFWATCH_DATABASE", default_value = defaults::DATABASE)]
     pub database: String,
+    /// Most MiB the database may grow to; beyond it writes fail RESOURCE_EXHAUSTED until deletions
+    /// free space (detection and alarms in memory go on). Unset: only the disk limits it.
+    #[arg(long, env = "SPOOFWATCH_DATABASE_MAX_MIB", value_parser = clap::value_parser!(u64).range(1..=16_777_216))]
+    pub database_max_mib: Option<u64>,
     /// Directory ImportDataset may read CSV files from (nothing outside it). Unset: imports refused.
     #[arg(long, env = "SPOOFWATCH_DATA_DIR")]
     pub data_dir: Option<PathBuf>,
@@ -89,6 +93,7 @@ impl Default for Config {
         Self {
             listen: defaults::LISTEN,
             database: defaults::DATABASE.to_string(),
+            database_max_mib: None,
             data_dir: None,
             max_sessions: defaults::MAX_SESSIONS,
             session_idle_secs: defaults::SESSION_IDLE_SECS,
@@ -110,6 +115,11 @@ impl Config {
             database: database.into(),
             ..Self::default()
         }
+    }
+
+    /// The database size limit in bytes.
+    pub fn database_max_bytes(&self) -> Option<u64> {
+        self.database_max_mib.map(|mib| mib * 1024 * 1024)
     }
 
     pub fn session_idle(&self) -> Duration {

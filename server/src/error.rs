@@ -5,6 +5,8 @@
 
 use spoofwatch_core::train::TrainError;
 use spoofwatch_core::train::detector::TrainDetectorError;
+use std::time::Duration;
+
 use tonic::Status;
 
 use crate::datasets::DatasetError;
@@ -13,9 +15,10 @@ use crate::fault::Fault;
 use crate::jobs::{JobError, JobFailure};
 use crate::models::RegistryError;
 use crate::status::{
-    failed_precondition, internal, invalid_argument, invalid_field, not_found, resource_exhausted,
+    dependency_failed, failed_precondition, internal, invalid_argument, invalid_field, not_found,
+    resource_exhausted,
 };
-use crate::store::StoreError;
+use crate::store::{FaultKind, StoreError, StoreFault};
 
 impl From<StoreError> for Status {
     fn from(error: StoreError) -> Self {
@@ -33,11 +36,26 @@ impl From<StoreError> for Status {
             }
             StoreError::InvalidPageToken => invalid_field("page_token", "invalid page token"),
             StoreError::InvalidValue { field, reason } => invalid_field(field.to_string(), reason),
+            StoreError::Unavailable(fault) => store_fault(fault),
             StoreError::Database(_) | StoreError::Migration(_) => {
                 internal("accessing the database", &error)
             }
         }
     }
+}
+
+/// A database fault: RESOURCE_EXHAUSTED when full, else UNAVAILABLE, each with a retry delay that
+/// fits how soon the cause may clear.
+fn store_fault(fault: &StoreFault) -> Status {
+    let retry_after = match fault.kind {
+        FaultKind::Busy | FaultKind::Closed => Duration::from_secs(1),
+        FaultKind::Full | FaultKind::ReadOnly | FaultKind::Io | FaultKind::CantOpen => {
+            Duration::from_secs(30)
+        }
+        FaultKind::Corrupt | FaultKind::Lost => Duration::from_secs(300),
+    };
+    let exhausted = fault.kind == FaultKind::Full;
+    dependency_failed(exhausted, fault.kind.describe(), &fault.cause, retry_after)
 }
 
 impl From<RegistryError> for Status {
@@ -172,7 +190,9 @@ mod tests {
             state: "succeeded",
         };
         assert_eq!(code(JobFailure::Store(store)), Code::FailedPrecondition);
-        let database = StoreError::Database(sqlx::Error::PoolClosed);
-        assert_eq!(code(JobFailure::Store(database)), Code::Internal);
+        let closed = StoreError::from(sqlx::Error::PoolClosed);
+        assert_eq!(code(JobFailure::Store(closed)), Code::Unavailable);
+        let bug = StoreError::from(sqlx::Error::RowNotFound);
+        assert_eq!(code(JobFailure::Store(bug)), Code::Internal);
     }
 }

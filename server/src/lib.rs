@@ -7,7 +7,7 @@
 //! Layout, one home per concept: `models` (registry + ModelService), `datasets` (catalog +
 //! DatasetService), `detection` (sessions + DetectionService), `alarms` (the outbox and background
 //! writer of alarm events), `jobs` (service → manager → runner),
-//! `store` (the only SQL), `error` (the one error → status mapping), `fault` (a server-side fault
+//! `store` (the only SQL), `watch` (database file and alarm-writer health), `error` (the one error → status mapping), `fault` (a server-side fault
 //! inside a subsystem's error), `edge` (request decoding shared by the services), `identity` (ids
 //! and digests). Wire conversions live in `spoofwatch_proto::wire`.
 
@@ -25,6 +25,7 @@ mod jobs;
 pub mod models;
 mod status;
 pub mod store;
+mod watch;
 
 use std::future::Future;
 use std::sync::Arc;
@@ -51,7 +52,7 @@ use crate::datasets::{Catalog, DatasetApi};
 use crate::detection::{DetectionApi, SessionLimits, SessionManager};
 use crate::jobs::{JobManager, JobSettings, OperationsApi, Runner, TrainingApi};
 use crate::models::{ModelApi, Registry, RegistryError};
-use crate::store::{Store, StoreError};
+use crate::store::{Store, StoreError, StoreOptions};
 
 /// Why the server could not start or run.
 #[derive(Debug, thiserror::Error)]
@@ -118,7 +119,13 @@ pub async fn serve(
     listener: TcpListener,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
-    let store = Store::open(&config.database).await?;
+    let store = Store::open_with(
+        &config.database,
+        StoreOptions {
+            max_bytes: config.database_max_bytes(),
+        },
+    )
+    .await?;
     let interrupted = store
         .fail_interrupted_jobs("server restarted while the job was queued or running")
         .await?;
@@ -211,11 +218,19 @@ pub async fn serve(
         TrainingServiceServer::<TrainingApi>::NAME,
         OperationsServer::<OperationsApi>::NAME,
     ];
-    for service in served {
+    for service in served.iter().copied().chain([watch::STORAGE_HEALTH]) {
         health_reporter
             .set_service_status(service, ServingStatus::Serving)
             .await;
     }
+    let storage_watch = tokio::spawn(watch::watch_storage(
+        store.clone(),
+        Arc::clone(&alarms),
+        health_reporter.clone(),
+        // Detection runs from memory; everything else needs the database.
+        served[1..].to_vec(),
+        draining.clone(),
+    ));
 
     // Idle sessions without a stream are evicted in the background.
     let evictor = {
@@ -290,6 +305,7 @@ pub async fn serve(
         }
     };
     evictor.abort();
+    storage_watch.abort();
     // The writer stores what is queued (bounded by the grace while the database refuses).
     stop_alarm_writer.cancel();
     if let Err(error) = alarm_writer.await {

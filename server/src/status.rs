@@ -54,6 +54,24 @@ pub fn resource_exhausted(message: impl Into<String>) -> Status {
     Status::with_error_details(Code::ResourceExhausted, message, details)
 }
 
+/// RESOURCE_EXHAUSTED (`exhausted`) or UNAVAILABLE for a resource the server depends on, with the
+/// delay after which a retry may succeed; logged as an error naming the cause.
+pub fn dependency_failed(
+    exhausted: bool,
+    message: &str,
+    cause: &str,
+    retry_after: std::time::Duration,
+) -> Status {
+    tracing::error!(cause, "{message}");
+    let code = if exhausted {
+        Code::ResourceExhausted
+    } else {
+        Code::Unavailable
+    };
+    let details = ErrorDetails::with_retry_info(Some(retry_after));
+    Status::with_error_details(code, message, details)
+}
+
 /// UNAVAILABLE while the server drains.
 pub fn shutting_down() -> Status {
     let details = ErrorDetails::with_retry_info(Some(std::time::Duration::from_secs(1)));

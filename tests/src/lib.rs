@@ -32,10 +32,11 @@ use spoofwatch_proto::v1::training_service_client::TrainingServiceClient;
 use spoofwatch_proto::wire::convert::sample_to_proto;
 use spoofwatch_server::Config;
 use spoofwatch_server::inprocess::{InProcessError, InProcessServer};
+use spoofwatch_server::store::AlarmEventRow;
 use tonic::Code;
 use tonic::transport::Channel;
 use tonic_health::pb::HealthCheckRequest;
-use tonic_health::pb::health_check_response::ServingStatus;
+pub use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
 
 /// Longest a test waits for one reply before failing (generous: debug builds on 2 shared cores).
@@ -245,6 +246,17 @@ pub async fn upload_tracks(
     display_name: &str,
     tracks: &[Track],
 ) -> v1::Dataset {
+    try_upload_tracks(clients, display_name, tracks)
+        .await
+        .expect("the upload is accepted")
+}
+
+/// [`upload_tracks`], returning the status of a refused upload.
+pub async fn try_upload_tracks(
+    clients: &mut Clients,
+    display_name: &str,
+    tracks: &[Track],
+) -> Result<v1::Dataset, tonic::Status> {
     use v1::upload_dataset_request::Kind;
     let csv = telemetry_csv(tracks);
     let header = Kind::Header(v1::UploadDatasetHeader {
@@ -261,8 +273,7 @@ pub async fn upload_tracks(
         .datasets
         .upload_dataset(tokio_stream::iter(messages))
         .await
-        .expect("the upload is accepted")
-        .into_inner()
+        .map(tonic::Response::into_inner)
 }
 
 /// Opens a session stream for `vehicle_id` (reset = false) whose replies must each arrive within
@@ -463,4 +474,86 @@ pub fn trained_model(operation: &longrunning::Operation) -> v1::Model {
         "validation metrics are reported"
     );
     result.model.expect("the result names the registered model")
+}
+
+/// One confirmed alarm as the detections show it: onset time, last alarming sample's time, peak
+/// probability and number of alarming samples.
+#[derive(Debug, PartialEq)]
+pub struct Episode {
+    pub onset_s: f64,
+    pub last_s: f64,
+    pub peak: f64,
+    pub samples: i64,
+}
+
+/// Streams a 240 s drive whose fix freezes for 60 s (from 100 s) through the bundled model, 20
+/// samples per batch; returns the alarm episodes the detections show.
+pub async fn stream_frozen_fix_drive(clients: &Clients, vehicle_id: &str) -> Vec<Episode> {
+    let frozen = AttackKind::FrozenPosition;
+    let track = attacked_drive(vehicle_id, 240.0, 21, frozen, 100.0, 60.0);
+    let (mut stream, _) = start_stream(clients, vehicle_id, "models/default").await;
+    let mut episodes: Vec<Episode> = Vec::new();
+    for (seq, batch) in track_samples(&track).chunks(20).enumerate() {
+        for d in stream
+            .detect(seq as u64 + 1, batch.to_vec())
+            .await
+            .expect("one detection per sample, for this batch")
+        {
+            if d.alarm_onset {
+                episodes.push(Episode {
+                    onset_s: d.timestamp_s,
+                    last_s: d.timestamp_s,
+                    peak: d.probability,
+                    samples: 1,
+                });
+            } else if d.alarm {
+                let open = episodes.last_mut().expect("an alarm follows its onset");
+                open.last_s = d.timestamp_s;
+                open.peak = open.peak.max(d.probability);
+                open.samples += 1;
+            }
+        }
+    }
+    episodes
+}
+
+/// Stored alarm events (newest first, as the store lists them) as episodes, oldest first; every
+/// event must be closed.
+pub fn stored_episodes(events: &[AlarmEventRow]) -> Vec<Episode> {
+    events
+        .iter()
+        .rev()
+        .map(|e| Episode {
+            onset_s: e.onset_timestamp_s,
+            last_s: e
+                .end_timestamp_s
+                .expect("the alarm ended with a sample time"),
+            peak: e.peak_probability,
+            samples: e.samples,
+        })
+        .collect()
+}
+
+/// The health status the server reports for `service` ("" = overall).
+pub async fn health_of(server: &TestServer, service: &str) -> ServingStatus {
+    let status = HealthClient::new(server.channel().await)
+        .check(HealthCheckRequest {
+            service: service.to_string(),
+        })
+        .await
+        .expect("health answers")
+        .into_inner()
+        .status;
+    ServingStatus::try_from(status).expect("a known serving status")
+}
+
+/// Polls `service`'s health every 50 ms until it is `wanted`; panics after 30 s.
+pub async fn wait_for_health(server: &TestServer, service: &str, wanted: ServingStatus) {
+    for _ in 0..600 {
+        if health_of(server, service).await == wanted {
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    panic!("health of {service:?} never became {wanted:?}");
 }

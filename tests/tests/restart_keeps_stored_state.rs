@@ -1,56 +1,14 @@
 //! A restart on the same database keeps models (and which is active), datasets, finished jobs
 //! and the alarm events recorded while streaming.
 
-use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::longrunning;
 use spoofwatch_proto::v1;
 use spoofwatch_server::store::Store;
 use spoofwatch_tests::{
-    Clients, TestServer, attacked_drive, database_path, metadata_of, start_server, start_stream,
-    test_config, track_samples, trained_model, training_fleet, training_request, upload_tracks,
-    wait_done,
+    Clients, TestServer, database_path, metadata_of, start_server, start_stream, stored_episodes,
+    stream_frozen_fix_drive, test_config, trained_model, training_fleet, training_request,
+    upload_tracks, wait_done,
 };
-
-/// One confirmed alarm as the detections show it: onset time, last alarming sample's time, peak
-/// probability and number of alarming samples.
-#[derive(Debug, PartialEq)]
-struct Episode {
-    onset_s: f64,
-    last_s: f64,
-    peak: f64,
-    samples: i64,
-}
-
-/// Streams a drive whose fix freezes for 60 s through the bundled model; returns its alarm episodes.
-async fn stream_attacked_drive(clients: &mut Clients, vehicle_id: &str) -> Vec<Episode> {
-    let frozen = AttackKind::FrozenPosition;
-    let track = attacked_drive(vehicle_id, 240.0, 21, frozen, 100.0, 60.0);
-    let (mut stream, _) = start_stream(clients, vehicle_id, "models/default").await;
-    let mut episodes: Vec<Episode> = Vec::new();
-    for (seq, batch) in track_samples(&track).chunks(20).enumerate() {
-        for d in stream
-            .detect(seq as u64 + 1, batch.to_vec())
-            .await
-            .expect("one detection per sample, for this batch")
-        {
-            if d.alarm_onset {
-                episodes.push(Episode {
-                    onset_s: d.timestamp_s,
-                    last_s: d.timestamp_s,
-                    peak: d.probability,
-                    samples: 1,
-                });
-            } else if d.alarm {
-                let open = episodes.last_mut().expect("an alarm follows its onset");
-                open.last_s = d.timestamp_s;
-                open.peak = open.peak.max(d.probability);
-                open.samples += 1;
-            }
-        }
-    }
-    drop(stream);
-    episodes
-}
 
 /// What a restart must preserve, as seen through the API.
 #[derive(Debug, PartialEq)]
@@ -118,7 +76,7 @@ async fn a_restart_on_the_same_database_keeps_models_datasets_jobs_and_alarms() 
         .into_inner();
     let done = wait_done(&mut clients.operations, &job.name).await;
     let trained = trained_model(&done);
-    let episodes = stream_attacked_drive(&mut clients, "frozen-fix").await;
+    let episodes = stream_frozen_fix_drive(&clients, "frozen-fix").await;
     assert!(
         !episodes.is_empty(),
         "a frozen fix raises a confirmed alarm"
@@ -157,19 +115,7 @@ async fn a_restart_on_the_same_database_keeps_models_datasets_jobs_and_alarms() 
             .iter()
             .all(|e| e.model_id == "default" && !e.is_open())
     );
-    // Newest first in the store; each event matches its episode (end = last alarming sample).
-    let recorded: Vec<Episode> = events
-        .iter()
-        .rev()
-        .map(|e| Episode {
-            onset_s: e.onset_timestamp_s,
-            last_s: e
-                .end_timestamp_s
-                .expect("the alarm ended with a sample time"),
-            peak: e.peak_probability,
-            samples: e.samples,
-        })
-        .collect();
+    let recorded = stored_episodes(&events);
     assert_eq!(
         recorded, episodes,
         "one stored event per confirmed alarm episode"

@@ -91,7 +91,7 @@ impl Store {
     pub async fn max_alarm_id(&self) -> Result<i64, StoreError> {
         Ok(
             sqlx::query_scalar::<_, i64>("SELECT COALESCE(MAX(id), 0) FROM alarm_events")
-                .fetch_one(&self.pool)
+                .fetch_one(self.pool()?)
                 .await?,
         )
     }
@@ -169,7 +169,7 @@ impl Store {
         )
         .bind(vehicle_id)
         .bind(limit)
-        .fetch_all(&self.pool)
+        .fetch_all(self.pool()?)
         .await?)
     }
 
@@ -178,7 +178,7 @@ impl Store {
     pub async fn close_open_alarms(&self, ended_at_ms: i64) -> Result<u64, StoreError> {
         let updated = sqlx::query("UPDATE alarm_events SET ended_at = ?1 WHERE ended_at IS NULL")
             .bind(ended_at_ms)
-            .execute(&self.pool)
+            .execute(self.pool()?)
             .await?;
         Ok(updated.rows_affected())
     }

@@ -160,7 +160,7 @@ impl Store {
         // One statement (the content goes by ON DELETE CASCADE), so no explicit transaction.
         let deleted = sqlx::query("DELETE FROM datasets WHERE id = ?1")
             .bind(id)
-            .execute(&self.pool)
+            .execute(self.pool()?)
             .await?;
         if deleted.rows_affected() == 0 {
             return Err(StoreError::NotFound {

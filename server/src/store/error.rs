@@ -1,4 +1,8 @@
-//! The store's error type.
+//! The store's error type, and the classification of database faults.
+
+use std::sync::OnceLock;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
 
 /// Everything a store operation can fail with.
 ///
@@ -59,7 +63,11 @@ pub enum StoreError {
         /// Why it was rejected.
         reason: String,
     },
-    /// The database failed (I/O, corruption, lock timeout, closed pool...).
+    /// The database is unusable for a reason outside this request: full, read-only, failing I/O,
+    /// locked, missing, corrupt or closed. Safe to show (the kind), and worth retrying later.
+    #[error("{0}")]
+    Unavailable(StoreFault),
+    /// Any other database failure (a query or decoding bug): logged, answered INTERNAL.
     #[error("database error")]
     Database(#[source] sqlx::Error),
     /// Applying the embedded migrations failed.
@@ -69,8 +77,105 @@ pub enum StoreError {
 
 impl From<sqlx::Error> for StoreError {
     fn from(error: sqlx::Error) -> Self {
-        StoreError::Database(error)
+        match FaultKind::of(&error) {
+            Some(kind) => {
+                if kind.may_spoil_connections() {
+                    note_connection_fault();
+                }
+                StoreError::Unavailable(StoreFault {
+                    kind,
+                    cause: error.to_string(),
+                })
+            }
+            None => StoreError::Database(error),
+        }
     }
+}
+
+/// Why the database cannot serve right now. Each kind clears without a restart once its cause does
+/// (space freed, file system writable again, lock released), except `Lost`, which needs an
+/// operator: the file the server opened is gone or replaced.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FaultKind {
+    /// SQLITE_FULL: the disk (or the configured database size limit) is full.
+    Full,
+    /// SQLITE_READONLY: the database file or its file system became read-only.
+    ReadOnly,
+    /// SQLITE_IOERR: the file system failed a read or write.
+    Io,
+    /// SQLITE_BUSY/LOCKED or no pooled connection in time: another writer holds the database.
+    Busy,
+    /// SQLITE_CANTOPEN: the database file or its directory cannot be opened.
+    CantOpen,
+    /// SQLITE_CORRUPT/NOTADB: the file is damaged or not a database.
+    Corrupt,
+    /// The database file was deleted, moved or replaced while the server ran.
+    Lost,
+    /// The store was closed (the server is shutting down).
+    Closed,
+}
+
+impl FaultKind {
+    /// The kind of a sqlx error that is a fault of the database rather than of the query, from the
+    /// SQLite primary result code (the low byte of the extended code).
+    pub fn of(error: &sqlx::Error) -> Option<FaultKind> {
+        match error {
+            sqlx::Error::PoolTimedOut => Some(FaultKind::Busy),
+            sqlx::Error::PoolClosed | sqlx::Error::WorkerCrashed => Some(FaultKind::Closed),
+            sqlx::Error::Io(_) => Some(FaultKind::Io),
+            sqlx::Error::Database(db_error) => {
+                let code: i32 = db_error.code()?.parse().ok()?;
+                match code {
+                    // SQLITE_READONLY_DBMOVED: the file was unlinked or renamed under us.
+                    1032 => Some(FaultKind::Lost),
+                    _ => match code & 0xff {
+                        13 => Some(FaultKind::Full),
+                        8 => Some(FaultKind::ReadOnly),
+                        10 => Some(FaultKind::Io),
+                        5 | 6 => Some(FaultKind::Busy),
+                        14 => Some(FaultKind::CantOpen),
+                        11 | 26 => Some(FaultKind::Corrupt),
+                        _ => None,
+                    },
+                }
+            }
+            _ => None,
+        }
+    }
+
+    /// Whether connections opened before this fault may stay broken after it clears: SQLite opens a
+    /// file it cannot write read-only and keeps it so, and a connection that saw an I/O error may
+    /// hold stale state.
+    fn may_spoil_connections(self) -> bool {
+        matches!(
+            self,
+            FaultKind::ReadOnly | FaultKind::Io | FaultKind::CantOpen | FaultKind::Corrupt
+        )
+    }
+
+    /// What an operator reads in logs and clients read in the status message.
+    pub fn describe(self) -> &'static str {
+        match self {
+            FaultKind::Full => "the database is full (disk or --database-max-mib limit)",
+            FaultKind::ReadOnly => "the database is read-only",
+            FaultKind::Io => "the database file system is failing (I/O error)",
+            FaultKind::Busy => "the database is busy (locked by another writer)",
+            FaultKind::CantOpen => "the database file cannot be opened",
+            FaultKind::Corrupt => "the database file is corrupt",
+            FaultKind::Lost => {
+                "the database file was deleted or replaced while the server ran; restore it and restart"
+            }
+            FaultKind::Closed => "the database is closed (the server is shutting down)",
+        }
+    }
+}
+
+/// A database fault: its kind, and the driver's text for the log (never shown to clients).
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{}", kind.describe())]
+pub struct StoreFault {
+    pub kind: FaultKind,
+    pub cause: String,
 }
 
 impl From<sqlx::migrate::MigrateError> for StoreError {
@@ -124,5 +229,49 @@ pub(crate) fn require_probability(field: &'static str, value: f64) -> Result<f64
             field,
             reason: format!("must be a probability in [0, 1], got {value}"),
         })
+    }
+}
+
+/// Milliseconds after [`clock_start`] of the last fault that may spoil connections (0 = none yet).
+/// Process-wide because faults are seen where sqlx errors are converted, which knows no store;
+/// several stores in one process (tests) only cost each other a few reconnects.
+static LAST_CONNECTION_FAULT_MS: AtomicU64 = AtomicU64::new(0);
+
+fn clock_start() -> Instant {
+    static START: OnceLock<Instant> = OnceLock::new();
+    *START.get_or_init(Instant::now)
+}
+
+fn note_connection_fault() {
+    let since_start = clock_start().elapsed().as_millis() as u64 + 1;
+    LAST_CONNECTION_FAULT_MS.fetch_max(since_start, Ordering::Relaxed);
+}
+
+/// Whether a pooled connection of this `age` was opened after the last fault that may spoil
+/// connections; older ones are closed before use so that the pool opens fresh ones.
+pub(crate) fn outlived_no_fault(age: Duration) -> bool {
+    let fault_ms = LAST_CONNECTION_FAULT_MS.load(Ordering::Relaxed);
+    if fault_ms == 0 {
+        return true;
+    }
+    let fault_at = clock_start() + Duration::from_millis(fault_ms - 1);
+    Instant::now()
+        .checked_sub(age)
+        .is_some_and(|opened| opened > fault_at)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn connections_opened_before_a_spoiling_fault_are_retired() {
+        let hour = Duration::from_secs(3600);
+        note_connection_fault();
+        assert!(!outlived_no_fault(hour), "opened before the fault");
+        std::thread::sleep(Duration::from_millis(5));
+        assert!(outlived_no_fault(Duration::ZERO), "opened after it");
+        assert!(FaultKind::ReadOnly.may_spoil_connections());
+        assert!(!FaultKind::Full.may_spoil_connections());
     }
 }

@@ -184,7 +184,7 @@ impl Store {
         .bind(Json(&job.request))
         .bind(Json(&job.metadata))
         .bind(created_at_ms)
-        .execute(&self.pool)
+        .execute(self.pool()?)
         .await;
         match inserted {
             Ok(_) => Ok(JobRow {
@@ -217,7 +217,7 @@ impl Store {
              FROM job_epochs WHERE job_id = ?1 ORDER BY epoch",
         )
         .bind(id)
-        .fetch_all(&self.pool)
+        .fetch_all(self.pool()?)
         .await?)
     }
 
@@ -293,7 +293,7 @@ impl Store {
         let updated = sqlx::query("UPDATE jobs SET metadata_json = ?2 WHERE id = ?1")
             .bind(id)
             .bind(Json(metadata))
-            .execute(&self.pool)
+            .execute(self.pool()?)
             .await?;
         if updated.rows_affected() == 0 {
             return Err(job_not_found(id));
@@ -396,7 +396,7 @@ impl Store {
         .bind(ABORTED_CODE)
         .bind(reason)
         .bind(now_unix_ms())
-        .execute(&self.pool)
+        .execute(self.pool()?)
         .await?;
         Ok(updated.rows_affected())
     }

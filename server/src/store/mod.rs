@@ -23,18 +23,22 @@ mod paging;
 #[cfg(test)]
 mod tests;
 
+use std::path::{Path, PathBuf};
 use std::str::FromStr;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use sqlx::sqlite::SqliteRow;
 use sqlx::sqlite::{
     SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
 };
-use sqlx::{FromRow, Sqlite, Transaction};
+use sqlx::{Connection, FromRow, Sqlite, SqliteConnection, Transaction};
 
 pub use alarms::{AlarmEventRow, AlarmWrite};
 pub use datasets::{DatasetRow, NewDataset};
-pub use error::StoreError;
+use error::outlived_no_fault;
+pub use error::{FaultKind, StoreError, StoreFault};
 pub use jobs::{EpochRow, JobFilter, JobKind, JobOutcome, JobRow, JobState, NewJob};
 pub use models::{ModelRow, ModelSource, NewModel};
 pub use paging::{DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE, Page, PageRequest};
@@ -52,17 +56,42 @@ pub const CANCELLED_CODE: i32 = 1;
 #[derive(Debug, Clone)]
 pub struct Store {
     pool: SqlitePool,
+    /// The file opened, for databases on disk: checked so that a deleted or replaced file is
+    /// noticed instead of writing into an unlinked inode.
+    file: Option<Arc<DatabaseFile>>,
+}
+
+/// Options of [`Store::open_with`].
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StoreOptions {
+    /// Refuse to grow the database beyond this many bytes (writes then fail as [`FaultKind::Full`]);
+    /// `None` = only the disk limits it.
+    pub max_bytes: Option<u64>,
 }
 
 impl Store {
+    /// Opens (creating if missing) and migrates the database at `url_or_path` without a size limit.
+    pub async fn open(url_or_path: &str) -> Result<Store, StoreError> {
+        Self::open_with(url_or_path, StoreOptions::default()).await
+    }
+
     /// Opens (creating if missing) and migrates the database at `url_or_path`.
     ///
     /// Accepts `sqlite://path`, `sqlite:path`, `sqlite::memory:` (tests only: the database lives as long
     /// as the store) or a bare filesystem path. Connections use WAL, `synchronous=NORMAL`,
-    /// `foreign_keys=ON` and a 5 s busy timeout.
-    pub async fn open(url_or_path: &str) -> Result<Store, StoreError> {
-        let options = connect_options(url_or_path)?;
+    /// `foreign_keys=ON`, a 5 s busy timeout and `max_page_count` from `options.max_bytes`.
+    pub async fn open_with(url_or_path: &str, options: StoreOptions) -> Result<Store, StoreError> {
+        let mut connect = connect_options(url_or_path)?;
+        if let Some(max_bytes) = options.max_bytes {
+            connect = connect.pragma("max_page_count", (max_bytes / PAGE_SIZE).max(1).to_string());
+        }
         let in_memory = is_in_memory(url_or_path);
+        let path = (!in_memory).then(|| connect.get_filename().to_path_buf());
+        if let Some(path) = &path
+            && !path.exists()
+        {
+            tracing::warn!(path = %path.display(), "creating a new, empty database");
+        }
         let pool_options = if in_memory {
             // An in-memory database vanishes with its last connection: keep exactly one, forever.
             SqlitePoolOptions::new()
@@ -72,10 +101,37 @@ impl Store {
                 .max_lifetime(None)
         } else {
             SqlitePoolOptions::new()
-        };
-        let pool = pool_options.connect_with(options).await?;
+        }
+        .before_acquire(|_, metadata| Box::pin(async move { Ok(outlived_no_fault(metadata.age)) }))
+        .after_release(|connection, _| Box::pin(still_usable(connection)));
+        let pool = pool_options.connect_with(connect).await?;
         sqlx::migrate!("../migrations").run(&pool).await?;
-        Ok(Store { pool })
+        let file = match path {
+            Some(path) => Some(Arc::new(DatabaseFile::opened(path)?)),
+            None => None,
+        };
+        Ok(Store { pool, file })
+    }
+
+    /// The pool, unless the database file was found deleted or replaced: then every call fails
+    /// with [`FaultKind::Lost`] rather than write into a file nobody will read again.
+    fn pool(&self) -> Result<&SqlitePool, StoreError> {
+        match &self.file {
+            Some(file) if file.is_lost() => Err(StoreError::Unavailable(StoreFault {
+                kind: FaultKind::Lost,
+                cause: format!("{} is not the file opened", file.path.display()),
+            })),
+            _ => Ok(&self.pool),
+        }
+    }
+
+    /// Checks that the database file is still the one opened (same device and inode); once it is
+    /// not, the store stays unavailable until a restart. Always `Ok` for in-memory databases.
+    pub fn check_file(&self) -> Result<(), StoreFault> {
+        match &self.file {
+            Some(file) => file.check(),
+            None => Ok(()),
+        }
     }
 
     /// Closes every connection, waiting for in-flight queries; later calls fail with `PoolClosed`.
@@ -90,7 +146,7 @@ impl Store {
     {
         Ok(sqlx::query_as(select)
             .bind(id)
-            .fetch_optional(&self.pool)
+            .fetch_optional(self.pool()?)
             .await?)
     }
 
@@ -102,11 +158,10 @@ impl Store {
     ) -> Result<Option<Vec<u8>>, StoreError> {
         Ok(sqlx::query_scalar(select)
             .bind(id)
-            .fetch_optional(&self.pool)
+            .fetch_optional(self.pool()?)
             .await?)
     }
 
-    /// Starts a write transaction that takes SQLite's write lock up front (see the module docs).
     /// Runs one raw statement: fault injection in tests of the store's callers.
     #[cfg(test)]
     pub(crate) async fn execute_for_test(&self, sql: &'static str) {
@@ -116,9 +171,85 @@ impl Store {
             .unwrap_or_else(|error| panic!("{sql}: {error}"));
     }
 
+    /// Starts a write transaction that takes SQLite's write lock up front (see the module docs).
     async fn begin_write(&self) -> Result<Transaction<'static, Sqlite>, StoreError> {
-        Ok(self.pool.begin_with("BEGIN IMMEDIATE").await?)
+        Ok(self.pool()?.begin_with("BEGIN IMMEDIATE").await?)
     }
+}
+
+/// Whether a connection handed back to the pool can serve again. After SQLITE_FULL or an I/O error
+/// SQLite may roll a transaction back by itself; sqlx then still counts it as open, its own ROLLBACK
+/// fails, and every later `BEGIN IMMEDIATE` on that connection would fail until a restart. Such a
+/// connection is closed instead (the pool opens a fresh one when needed).
+async fn still_usable(connection: &mut SqliteConnection) -> Result<bool, sqlx::Error> {
+    if connection.is_in_transaction() {
+        // A dropped transaction's ROLLBACK may still be queued on the connection's worker: wait for
+        // it with a round trip before judging.
+        connection.ping().await?;
+    }
+    let usable = !connection.is_in_transaction();
+    if !usable {
+        tracing::warn!("closing a database connection left inside a failed transaction");
+    }
+    Ok(usable)
+}
+
+/// SQLite's default page size, which this store never changes.
+const PAGE_SIZE: u64 = 4096;
+
+/// The database file as opened: its identity (device, inode) and whether it was found changed.
+#[derive(Debug)]
+struct DatabaseFile {
+    path: PathBuf,
+    identity: (u64, u64),
+    lost: AtomicBool,
+}
+
+impl DatabaseFile {
+    fn opened(path: PathBuf) -> Result<Self, StoreError> {
+        let identity = file_identity(&path).map_err(|error| {
+            StoreError::Unavailable(StoreFault {
+                kind: FaultKind::CantOpen,
+                cause: format!("{}: {error}", path.display()),
+            })
+        })?;
+        Ok(DatabaseFile {
+            path,
+            identity,
+            lost: AtomicBool::new(false),
+        })
+    }
+
+    fn is_lost(&self) -> bool {
+        self.lost.load(Ordering::Relaxed)
+    }
+
+    fn check(&self) -> Result<(), StoreFault> {
+        let lost = |cause: String| StoreFault {
+            kind: FaultKind::Lost,
+            cause,
+        };
+        if self.is_lost() {
+            return Err(lost(format!(
+                "{} is not the file opened",
+                self.path.display()
+            )));
+        }
+        let cause = match file_identity(&self.path) {
+            Ok(identity) if identity == self.identity => return Ok(()),
+            Ok(_) => format!("{} was replaced by another file", self.path.display()),
+            Err(error) => format!("{}: {error}", self.path.display()),
+        };
+        self.lost.store(true, Ordering::Relaxed);
+        Err(lost(cause))
+    }
+}
+
+/// (device, inode) of the file at `path`.
+fn file_identity(path: &Path) -> std::io::Result<(u64, u64)> {
+    use std::os::unix::fs::MetadataExt;
+    let metadata = std::fs::metadata(path)?;
+    Ok((metadata.dev(), metadata.ino()))
 }
 
 /// Builds the connection options for a `sqlite:` URL or a bare path.

@@ -161,7 +161,7 @@ impl Store {
             "SELECT id, display_name, source, training_operation, created_at, schema_version, \
              sha256, size_bytes, metadata_json, active FROM models WHERE active = 1",
         )
-        .fetch_optional(&self.pool)
+        .fetch_optional(self.pool()?)
         .await?)
     }
 
@@ -218,7 +218,7 @@ impl Store {
     /// How many models are registered.
     pub async fn model_count(&self) -> Result<u64, StoreError> {
         let count = sqlx::query_scalar::<_, i64>("SELECT COUNT(*) FROM models")
-            .fetch_one(&self.pool)
+            .fetch_one(self.pool()?)
             .await?;
         Ok(u64::try_from(count).unwrap_or(0))
     }

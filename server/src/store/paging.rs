@@ -151,7 +151,7 @@ impl Store {
             .bind(plan.after_created_at())
             .bind(plan.after_id().map(str::to_owned))
             .bind(plan.fetch_limit())
-            .fetch_all(&self.pool)
+            .fetch_all(self.pool()?)
             .await?;
         Ok(plan.finish(listing, rows, key))
     }

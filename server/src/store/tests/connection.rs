@@ -4,8 +4,10 @@ use serde_json::json;
 
 use super::{count_rows, db_path, new_dataset, new_job, new_model, temp_store};
 use crate::store::{
-    AlarmWrite, EpochRow, JobKind, JobOutcome, JobState, PageRequest, Store, StoreError,
+    AlarmWrite, EpochRow, FaultKind, JobKind, JobOutcome, JobState, PageRequest, Store, StoreError,
+    StoreOptions,
 };
+use sqlx::Connection;
 
 #[tokio::test]
 async fn open_creates_the_file_and_applies_the_pragmas() {
@@ -65,23 +67,147 @@ async fn memory_databases_are_private_to_their_store() {
     assert_eq!(second.model_count().await.unwrap(), 0);
 }
 
+/// The fault kind of a store error, panicking on anything that is not a fault.
+fn fault_kind(error: StoreError) -> FaultKind {
+    match error {
+        StoreError::Unavailable(fault) => fault.kind,
+        other => panic!("expected a database fault, got {other:?}"),
+    }
+}
+
 #[tokio::test]
-async fn opening_an_unusable_path_is_a_database_error() {
+async fn opening_an_unusable_path_is_a_cant_open_fault() {
     let dir = tempfile::tempdir().unwrap();
     let inside_missing_dir = dir.path().join("no-such-dir").join("db.sqlite");
     let error = Store::open(&inside_missing_dir.to_string_lossy())
         .await
         .unwrap_err();
-    assert!(matches!(error, StoreError::Database(_)), "{error:?}");
+    assert_eq!(fault_kind(error), FaultKind::CantOpen);
 }
 
 #[tokio::test]
-async fn a_closed_store_fails_with_a_database_error() {
+async fn a_closed_store_fails_with_a_closed_fault() {
     let (_dir, store) = temp_store().await;
     store.close().await;
     let error = store.model_count().await.unwrap_err();
-    assert!(matches!(error, StoreError::Database(_)), "{error:?}");
-    assert_eq!(error.to_string(), "database error");
+    assert_eq!(
+        error.to_string(),
+        "the database is closed (the server is shutting down)"
+    );
+    assert_eq!(fault_kind(error), FaultKind::Closed);
+}
+
+#[tokio::test]
+async fn a_full_database_refuses_writes_and_takes_them_again_once_space_is_freed() {
+    let dir = tempfile::tempdir().unwrap();
+    let options = StoreOptions {
+        max_bytes: Some(256 * 1024),
+    };
+    let store = Store::open_with(&db_path(&dir), options).await.unwrap();
+    let mut blob = new_dataset("ballast-0");
+    blob.content = vec![7; 40 * 1024];
+    let mut stored = Vec::new();
+    let full = loop {
+        let mut dataset = blob.clone();
+        dataset.id = format!("ballast-{}", stored.len());
+        match store.insert_dataset(dataset.clone()).await {
+            Ok(_) => stored.push(dataset.id),
+            Err(error) => break error,
+        }
+        assert!(stored.len() < 100, "the size limit never applied");
+    };
+    assert_eq!(fault_kind(full), FaultKind::Full);
+    // Small rows fill the last partly used pages, then fail too.
+    let mut id = 1;
+    let refused = loop {
+        if let Err(error) = store.write_alarms(&[alarm_onset(id)]).await {
+            break error;
+        }
+        id += 1;
+        assert!(id < 100_000, "alarm rows never filled the database");
+    };
+    assert_eq!(fault_kind(refused), FaultKind::Full);
+    // Reads keep working while full.
+    assert_eq!(store.max_alarm_id().await.unwrap(), id - 1);
+
+    for dataset in &stored[..2] {
+        store.delete_dataset(dataset).await.unwrap();
+    }
+    store.write_alarms(&[alarm_onset(id)]).await.unwrap();
+    store.insert_model(new_model("after-full")).await.unwrap();
+    assert_eq!(store.max_alarm_id().await.unwrap(), id);
+}
+
+#[tokio::test]
+async fn a_deleted_database_file_is_detected_and_refuses_everything_after() {
+    let (dir, store) = temp_store().await;
+    store.insert_model(new_model("m1")).await.unwrap();
+    store.check_file().unwrap();
+    std::fs::remove_file(db_path(&dir)).unwrap();
+    let fault = store.check_file().unwrap_err();
+    assert_eq!(fault.kind, FaultKind::Lost);
+    assert!(fault.cause.contains("No such file"), "{}", fault.cause);
+    let error = store.insert_model(new_model("m2")).await.unwrap_err();
+    assert_eq!(fault_kind(error), FaultKind::Lost);
+    assert_eq!(
+        fault_kind(store.model_count().await.unwrap_err()),
+        FaultKind::Lost
+    );
+}
+
+#[tokio::test]
+async fn a_replaced_database_file_is_detected() {
+    let (dir, store) = temp_store().await;
+    let path = db_path(&dir);
+    let replacement = dir.path().join("other.db");
+    std::fs::copy(&path, &replacement).unwrap();
+    std::fs::rename(&replacement, &path).unwrap();
+    let fault = store.check_file().unwrap_err();
+    assert_eq!(fault.kind, FaultKind::Lost);
+    assert!(fault.cause.contains("replaced"), "{}", fault.cause);
+    // Once lost, always lost: the file the server opened is gone.
+    assert!(store.check_file().is_err());
+}
+
+#[tokio::test]
+async fn a_read_only_database_is_a_read_only_fault() {
+    let (dir, store) = temp_store().await;
+    store.close().await;
+    let read_only = format!("sqlite://{}?mode=ro", db_path(&dir));
+    // Migrations are already applied, so opening read-only succeeds and only writes fail.
+    let store = Store::open(&read_only).await.unwrap();
+    let error = store.insert_model(new_model("m1")).await.unwrap_err();
+    assert_eq!(fault_kind(error), FaultKind::ReadOnly);
+    assert_eq!(store.model_count().await.unwrap(), 0);
+}
+
+#[tokio::test]
+async fn a_database_locked_by_another_process_is_a_busy_fault() {
+    let (dir, store) = temp_store().await;
+    // Another connection (as another process would) holds the write lock past the busy timeout.
+    let mut other = sqlx::SqliteConnection::connect(&format!("sqlite://{}", db_path(&dir)))
+        .await
+        .unwrap();
+    sqlx::query("BEGIN IMMEDIATE")
+        .execute(&mut other)
+        .await
+        .unwrap();
+    let error = store.insert_model(new_model("m1")).await.unwrap_err();
+    assert_eq!(fault_kind(error), FaultKind::Busy);
+    sqlx::query("ROLLBACK").execute(&mut other).await.unwrap();
+    store.insert_model(new_model("m1")).await.unwrap();
+}
+
+/// An alarm onset with id `id`.
+fn alarm_onset(id: i64) -> AlarmWrite {
+    AlarmWrite::Onset {
+        id,
+        vehicle_id: "v1".into(),
+        model_id: "m1".into(),
+        onset_timestamp_s: 10.0,
+        onset_at_ms: 1_000,
+        probability: 0.9,
+    }
 }
 
 #[tokio::test]
