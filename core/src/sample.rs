@@ -7,6 +7,12 @@ use serde::{Deserialize, Serialize};
 
 /// Largest plausible ground speed (m/s); faster samples are invalid (SPEC §2, §4).
 pub const MAX_SPEED_MPS: f64 = 80.0;
+/// Largest reported 1-σ position error: a receiver that unsure has no fix worth comparing.
+pub const MAX_POSITION_STD_M: f64 = 1_000.0;
+/// Largest reported 1-σ speed error (the speed range itself).
+pub const MAX_SPEED_STD_MPS: f64 = MAX_SPEED_MPS;
+/// Largest reported 1-σ heading error: beyond half a turn the heading says nothing.
+pub const MAX_HEADING_STD_DEG: f64 = 180.0;
 
 /// One telemetry sample of one vehicle: a GNSS fix plus onboard motion.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -69,6 +75,15 @@ impl Sample {
         }
     }
 
+    /// Whether the reported uncertainties that are present are finite and within their documented
+    /// ranges (an out-of-range one makes the sample unusable, like any other bad field).
+    pub fn uncertainties_in_range(&self) -> bool {
+        let in_range = |std: Option<f64>, max: f64| std.is_none_or(|s| (0.0..=max).contains(&s));
+        in_range(self.position_std_m, MAX_POSITION_STD_M)
+            && in_range(self.speed_std_mps, MAX_SPEED_STD_MPS)
+            && in_range(self.heading_std_deg, MAX_HEADING_STD_DEG)
+    }
+
     /// Every out-of-range or non-finite field. Recorded data keeps such samples (they get ν = 0);
     /// the API rejects them with these violations (SPEC §2).
     pub fn violations(&self) -> Vec<FieldViolation> {
@@ -111,13 +126,29 @@ impl Sample {
             (-360.0..=360.0).contains(&h),
             "in [-360, 360] degrees",
         );
-        for (field, value) in [
-            ("position_std_m", self.position_std_m),
-            ("speed_std_mps", self.speed_std_mps),
-            ("heading_std_deg", self.heading_std_deg),
+        for (field, value, max, unit) in [
+            (
+                "position_std_m",
+                self.position_std_m,
+                MAX_POSITION_STD_M,
+                "m",
+            ),
+            (
+                "speed_std_mps",
+                self.speed_std_mps,
+                MAX_SPEED_STD_MPS,
+                "m/s",
+            ),
+            (
+                "heading_std_deg",
+                self.heading_std_deg,
+                MAX_HEADING_STD_DEG,
+                "degrees",
+            ),
         ] {
             if let Some(value) = value {
-                check(field, value, value >= 0.0, "non-negative");
+                let expect = format!("in [0, {max}] {unit}");
+                check(field, value, (0.0..=max).contains(&value), &expect);
             }
         }
         out
@@ -170,9 +201,39 @@ mod tests {
         let descriptions: Vec<String> = s.violations().into_iter().map(|v| v.description).collect();
         assert_eq!(
             descriptions,
-            ["must be non-negative, got -1.000e200"],
+            ["must be in [0, 80] m/s, got -1.000e200"],
             "a finite, huge timestamp is valid for a sample alone"
         );
+    }
+
+    #[test]
+    fn uncertainties_are_bounded_on_both_sides() {
+        let mut s = Sample::new(1.0, 32.0, -110.0, 2.0, 90.0);
+        s.position_std_m = Some(1e200);
+        s.speed_std_mps = Some(80.5);
+        s.heading_std_deg = Some(180.0);
+        let violations: Vec<(&str, String)> = s
+            .violations()
+            .into_iter()
+            .map(|v| (v.field, v.description))
+            .collect();
+        assert_eq!(
+            violations,
+            [
+                (
+                    "position_std_m",
+                    "must be in [0, 1000] m, got 1.000e200".to_string()
+                ),
+                (
+                    "speed_std_mps",
+                    "must be in [0, 80] m/s, got 80.5".to_string()
+                ),
+            ]
+        );
+        assert!(!s.uncertainties_in_range());
+        s.position_std_m = Some(0.0);
+        s.speed_std_mps = Some(0.0);
+        assert!(s.violations().is_empty() && s.uncertainties_in_range());
     }
 
     #[test]

@@ -5,7 +5,10 @@
 use serde::{Deserialize, Serialize};
 
 use super::drift::{DriftEvidence, DriftInput, DriftTracker, SCALE_COUNT};
-use super::linalg::{Mat2, inverse_sqrt_positive_definite, inverse_sqrt_symmetric, mul_vec};
+use super::linalg::{
+    Mat2, floor_at_identity, inverse, inverse_sqrt_positive_definite, inverse_sqrt_symmetric, mul,
+    mul_vec,
+};
 use super::params::{EvidenceParams, SIGMA_EPSILON};
 use super::{DRIFT_FEATURES_START, FEATURE_CAPACITY, Features, NU_INDEX};
 use crate::geo::{LatLon, Projection};
@@ -111,8 +114,9 @@ pub struct EvidenceBuilder {
     mu_e: f64,
     kappa: f64,
     rho: f64,
-    /// (Σ̂ + εI)^{-1/2}, computed once.
+    /// (Σ̂ + εI)^{-1/2} and (Σ̂ + εI)^{1/2}, computed once.
     sigma_hat_inv_sqrt: Mat2,
+    sigma_hat_sqrt: Mat2,
     previous: Option<Previous>,
     /// First valid fix of the current trajectory (the equirectangular origin).
     reference: Option<LatLon>,
@@ -125,17 +129,35 @@ pub struct EvidenceBuilder {
 impl EvidenceBuilder {
     /// A builder at the start of a stream.
     pub fn new(params: EvidenceParams) -> Self {
+        let sigma_hat_inv_sqrt = inverse_sqrt_symmetric(&params.regularised_sigma());
         Self {
             projection: params.projection,
             mu_e: params.mu_e,
             kappa: params.kappa,
             rho: params.rho,
-            sigma_hat_inv_sqrt: inverse_sqrt_symmetric(&params.regularised_sigma()),
+            sigma_hat_inv_sqrt,
+            sigma_hat_sqrt: inverse(&sigma_hat_inv_sqrt),
             previous: None,
             reference: None,
             accum: 0.0,
             trajectory: 0,
             drift: params.drift.as_ref().map(DriftTracker::new),
+        }
+    }
+
+    /// The per-step Σ_t, but never tighter than the training Σ̂ in any direction: with
+    /// W = Σ̂^{-1/2}, the eigenvalues of W·Σ_t·W are raised to at least 1. Reported uncertainty can
+    /// so only widen the noise model (a degraded fix alarms less), never narrow it below what the
+    /// model was trained on: a zero, tiny or lying std cannot blow up η. Σ_t itself when no
+    /// eigenvalue needs raising; exactly Σ̂ when both do.
+    fn floored_at_training(&self, sigma: &Mat2) -> Mat2 {
+        let w = &self.sigma_hat_inv_sqrt;
+        match floor_at_identity(&mul(w, &mul(sigma, w))) {
+            None => *sigma,
+            Some(floored) => {
+                let root = &self.sigma_hat_sqrt;
+                mul(root, &mul(&floored, root))
+            }
         }
     }
 
@@ -252,7 +274,7 @@ impl EvidenceBuilder {
         }
         let per_step = per_step_sigma(&previous.sample, sample, delta_t);
         let inv_sqrt = match &per_step {
-            Some(sigma) => inverse_sqrt_positive_definite(sigma),
+            Some(sigma) => inverse_sqrt_positive_definite(&self.floored_at_training(sigma)),
             None => self.sigma_hat_inv_sqrt,
         };
         let eta = mul_vec(&inv_sqrt, residual);
@@ -327,13 +349,7 @@ fn velocity_vector(sample: &Sample) -> [f64; 2] {
 fn is_usable(sample: &Sample, fix: LatLon) -> bool {
     let speed_ok = sample.speed_mps.is_finite() && sample.speed_mps.abs() <= MAX_SPEED_MPS;
     let heading_ok = sample.heading_deg.is_finite() && sample.heading_deg.abs() <= 360.0;
-    let std_ok = |std: Option<f64>| std.is_none_or(|s| s.is_finite() && s >= 0.0);
-    fix.is_valid()
-        && speed_ok
-        && heading_ok
-        && std_ok(sample.position_std_m)
-        && std_ok(sample.speed_std_mps)
-        && std_ok(sample.heading_std_deg)
+    fix.is_valid() && speed_ok && heading_ok && sample.uncertainties_in_range()
 }
 
 /// Σ_t = Σ^Δg + Σ^Δu + εI when BOTH samples carry position, speed and heading std, else `None`.

@@ -25,6 +25,48 @@ pub fn mul_vec(m: &Mat2, v: [f64; 2]) -> [f64; 2] {
     ]
 }
 
+/// `x · y`.
+pub fn mul(x: &Mat2, y: &Mat2) -> Mat2 {
+    [
+        [
+            x[0][0] * y[0][0] + x[0][1] * y[1][0],
+            x[0][0] * y[0][1] + x[0][1] * y[1][1],
+        ],
+        [
+            x[1][0] * y[0][0] + x[1][1] * y[1][0],
+            x[1][0] * y[0][1] + x[1][1] * y[1][1],
+        ],
+    ]
+}
+
+/// `m^{-1}` from the adjugate (non-finite for a singular `m`).
+pub fn inverse(m: &Mat2) -> Mat2 {
+    let k = 1.0 / (m[0][0] * m[1][1] - m[0][1] * m[1][0]);
+    [[m[1][1] * k, -m[0][1] * k], [-m[1][0] * k, m[0][0] * k]]
+}
+
+/// The symmetric 2×2 `m` with its eigenvalues raised to at least 1 (the smallest matrix above both
+/// `m` and I along `m`'s eigenvectors); `None` when none is below 1. Same closed-form
+/// eigendecomposition as [`inverse_sqrt_symmetric`].
+pub fn floor_at_identity(m: &Mat2) -> Option<Mat2> {
+    let a = m[0][0];
+    let b = 0.5 * (m[0][1] + m[1][0]);
+    let c = m[1][1];
+    let theta = 0.5 * (2.0 * b).atan2(a - c);
+    let (sin, cos) = theta.sin_cos();
+    let lambda1 = a * cos * cos + 2.0 * b * cos * sin + c * sin * sin;
+    let lambda2 = a * sin * sin - 2.0 * b * cos * sin + c * cos * cos;
+    if lambda1 >= 1.0 && lambda2 >= 1.0 {
+        return None;
+    }
+    let (l1, l2) = (lambda1.max(1.0), lambda2.max(1.0));
+    let off = (l1 - l2) * cos * sin;
+    Some([
+        [l1 * cos * cos + l2 * sin * sin, off],
+        [off, l1 * sin * sin + l2 * cos * cos],
+    ])
+}
+
 /// Symmetric inverse square root `S^{-1/2}` of a symmetric 2×2 matrix, from its closed-form
 /// eigendecomposition with eigenvalues floored at [`EIGENVALUE_FLOOR`]. The off-diagonal is taken as
 /// the mean of the two given entries. Non-finite input gives non-finite output.
@@ -77,14 +119,39 @@ pub fn is_symmetric_positive_definite(m: &Mat2) -> bool {
 mod tests {
     use super::*;
 
-    fn mul(x: &Mat2, y: &Mat2) -> Mat2 {
-        let mut out = [[0.0; 2]; 2];
-        for (i, row) in out.iter_mut().enumerate() {
-            for (j, cell) in row.iter_mut().enumerate() {
-                *cell = x[i][0] * y[0][j] + x[i][1] * y[1][j];
+    fn assert_close(m: Mat2, expected: Mat2) {
+        for (row, expected_row) in m.iter().zip(expected) {
+            for (x, e) in row.iter().zip(expected_row) {
+                assert!((x - e).abs() < 1e-12, "{m:?} != {expected:?}");
             }
         }
-        out
+    }
+
+    #[test]
+    fn flooring_at_the_identity_raises_only_the_small_eigenvalues() {
+        let floored = |m: Mat2| floor_at_identity(&m).expect("an eigenvalue below 1");
+        // diag(0.25, 4): the first axis is raised to 1, the second kept.
+        assert_close(floored([[0.25, 0.0], [0.0, 4.0]]), [[1.0, 0.0], [0.0, 4.0]]);
+        assert_eq!(floor_at_identity(&[[2.0, 0.0], [0.0, 3.0]]), None);
+        // [[2, 1], [1, 2]]: eigenvalues 3 along (1, 1) and 1 along (1, −1): kept.
+        assert_eq!(floor_at_identity(&[[2.0, 1.0], [1.0, 2.0]]), None);
+        // [[0.5, 0.25], [0.25, 0.5]]: eigenvalues 0.75 and 0.25, both raised: exactly I.
+        assert_close(floored([[0.5, 0.25], [0.25, 0.5]]), IDENTITY);
+        // [[1.25, 0.75], [0.75, 1.25]]: 2 along (1, 1), 0.5 along (1, −1) raised to 1:
+        // 2·½(1,1)(1,1)ᵀ + 1·½(1,−1)(1,−1)ᵀ = [[1.5, 0.5], [0.5, 1.5]].
+        assert_close(
+            floored([[1.25, 0.75], [0.75, 1.25]]),
+            [[1.5, 0.5], [0.5, 1.5]],
+        );
+    }
+
+    #[test]
+    fn inverse_and_product_undo_each_other() {
+        let m = [[4.0, 1.0], [2.0, 3.0]];
+        // det = 10: m^{-1} = [[0.3, −0.1], [−0.2, 0.4]].
+        assert_close(inverse(&m), [[0.3, -0.1], [-0.2, 0.4]]);
+        assert_close(mul(&m, &inverse(&m)), IDENTITY);
+        assert_close(mul(&m, &IDENTITY), m);
     }
 
     #[test]

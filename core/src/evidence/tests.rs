@@ -247,12 +247,32 @@ fn per_step_sigma_branch() {
     let e = push_all(&[first, second]);
     assert!(e[1].valid && e[1].sigma_per_step);
     let sigma_n = 2.0 + 0.5 * (2.0 * 10.0_f64.to_radians()).powi(2) + SIGMA_EPSILON;
+    // Σ_t is never tighter than the training Σ̂ = diag(4, 1): east 2.125 < 4 is raised to 4 (η_E
+    // as in the Σ̂ branch below), north 2.06 > 1 is kept. Unfloored, η_E would be 1/√2.125.
+    assert!(close(e[1].eta[0], 0.5), "{:?}", e[1]);
+    assert!(close(e[1].eta[1], 0.5 / sigma_n.sqrt()), "{:?}", e[1]);
+    // Wider than Σ̂ in both directions (σ_p = 2 m: 8 + 0.125 east): Σ_t applies as it is.
+    let wide = |mut s: Sample| {
+        s.position_std_m = Some(2.0);
+        s
+    };
+    let e = push_all(&[wide(first), wide(second)]);
+    let wide_e = 8.0 + 0.125 + SIGMA_EPSILON;
+    assert!(close(e[1].eta[0], 1.0 / wide_e.sqrt()), "{:?}", e[1]);
+    // Zero uncertainty (a receiver claiming perfection) cannot blow η up: exactly the Σ̂ values.
+    let perfect = |mut s: Sample| {
+        s.position_std_m = Some(0.0);
+        s.speed_std_mps = Some(0.0);
+        s.heading_std_deg = Some(0.0);
+        s
+    };
+    let e = push_all(&[perfect(first), perfect(second)]);
+    assert!(e[1].sigma_per_step);
     assert!(
-        close(e[1].eta[0], 1.0 / (2.125 + SIGMA_EPSILON).sqrt()),
+        close(e[1].eta[0], 0.5) && close(e[1].eta[1], 0.5),
         "{:?}",
         e[1]
     );
-    assert!(close(e[1].eta[1], 0.5 / sigma_n.sqrt()), "{:?}", e[1]);
     // Without the previous sample's stds the training Σ̂ = diag(4, 1) applies.
     let e = push_all(&[at(0.0, 0.0, 0.0, 2.0, 90.0), second]);
     assert!(e[1].valid && !e[1].sigma_per_step);
