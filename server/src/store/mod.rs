@@ -100,10 +100,14 @@ impl Store {
                 .idle_timeout(None)
                 .max_lifetime(None)
         } else {
+            // Connections a fault may have spoiled are replaced (never for memory: that would
+            // drop the database).
             SqlitePoolOptions::new()
-        }
-        .before_acquire(|_, metadata| Box::pin(async move { Ok(outlived_no_fault(metadata.age)) }))
-        .after_release(|connection, _| Box::pin(still_usable(connection)));
+                .before_acquire(|_, metadata| {
+                    Box::pin(async move { Ok(outlived_no_fault(metadata.age)) })
+                })
+                .after_release(|connection, _| Box::pin(still_usable(connection)))
+        };
         let pool = pool_options.connect_with(connect).await?;
         sqlx::migrate!("../migrations").run(&pool).await?;
         let file = match path {
