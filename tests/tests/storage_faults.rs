@@ -193,4 +193,8 @@ async fn a_deleted_database_file_turns_the_server_not_serving_and_detection_goes
     assert!(!episodes.is_empty(), "detection still alarms");
     drop(clients);
     server.stop().await;
+    assert!(
+        !database.exists(),
+        "no empty database silently takes the deleted one's place"
+    );
 }

@@ -87,28 +87,36 @@ impl Store {
         }
         let in_memory = is_in_memory(url_or_path);
         let path = (!in_memory).then(|| connect.get_filename().to_path_buf());
-        if let Some(path) = &path
-            && !path.exists()
-        {
-            tracing::warn!(path = %path.display(), "creating a new, empty database");
+        if path.is_some() {
+            // Create the file now, once; the pool's connections never create one, so a file
+            // deleted while the server runs is not silently replaced by an empty one.
+            SqliteConnection::connect_with(&connect)
+                .await?
+                .close()
+                .await?;
+            connect = connect.create_if_missing(false);
         }
-        let pool_options = if in_memory {
+        let pool_options = if let Some(path) = path.clone() {
+            // Connections a fault may have spoiled are replaced.
+            let path = Arc::new(path);
+            SqlitePoolOptions::new()
+                .before_acquire(|_, metadata| {
+                    Box::pin(async move { Ok(outlived_no_fault(metadata.age)) })
+                })
+                .after_release(move |connection, _| {
+                    let path = Arc::clone(&path);
+                    Box::pin(async move { still_usable(connection, &path).await })
+                })
+        } else {
             // An in-memory database vanishes with its last connection: keep exactly one, forever.
             SqlitePoolOptions::new()
                 .max_connections(1)
                 .min_connections(1)
                 .idle_timeout(None)
                 .max_lifetime(None)
-        } else {
-            // Connections a fault may have spoiled are replaced (never for memory: that would
-            // drop the database).
-            SqlitePoolOptions::new()
-                .before_acquire(|_, metadata| {
-                    Box::pin(async move { Ok(outlived_no_fault(metadata.age)) })
-                })
-                .after_release(|connection, _| Box::pin(still_usable(connection)))
         };
         let pool = pool_options.connect_with(connect).await?;
+        warn_if_new(&pool, path.as_deref()).await?;
         sqlx::migrate!("../migrations").run(&pool).await?;
         let file = match path {
             Some(path) => Some(Arc::new(DatabaseFile::opened(path)?)),
@@ -181,11 +189,37 @@ impl Store {
     }
 }
 
+/// Logs a warning when the database holds no Spoofwatch tables yet: right on a first start, a
+/// sign of a lost database on any later one.
+async fn warn_if_new(pool: &SqlitePool, path: Option<&Path>) -> Result<(), StoreError> {
+    let migrated: i64 = sqlx::query_scalar(
+        "SELECT count(*) FROM sqlite_master WHERE type = 'table' AND name = '_sqlx_migrations'",
+    )
+    .fetch_one(pool)
+    .await?;
+    if migrated == 0
+        && let Some(path) = path
+    {
+        tracing::warn!(
+            path = %path.display(),
+            "initialising a new, empty database (no Spoofwatch tables found): expected on a first \
+             start only"
+        );
+    }
+    Ok(())
+}
+
 /// Whether a connection handed back to the pool can serve again. After SQLITE_FULL or an I/O error
 /// SQLite may roll a transaction back by itself; sqlx then still counts it as open, its own ROLLBACK
 /// fails, and every later `BEGIN IMMEDIATE` on that connection would fail until a restart. Such a
-/// connection is closed instead (the pool opens a fresh one when needed).
-async fn still_usable(connection: &mut SqliteConnection) -> Result<bool, sqlx::Error> {
+/// connection is closed instead (the pool opens a fresh one when needed). So is any connection
+/// released while the file cannot be opened for writing: SQLite opens such a file read-only and
+/// the connection would stay read-only after the file is writable again.
+async fn still_usable(connection: &mut SqliteConnection, path: &Path) -> Result<bool, sqlx::Error> {
+    if std::fs::OpenOptions::new().write(true).open(path).is_err() {
+        tracing::debug!("closing a database connection: the file is not writable");
+        return Ok(false);
+    }
     if connection.is_in_transaction() {
         // A dropped transaction's ROLLBACK may still be queued on the connection's worker: wait for
         // it with a round trip before judging.
