@@ -117,6 +117,12 @@ impl Provenance {
     }
 }
 
+/// Provenance free text cut to [`MAX_PROVENANCE_TEXT_BYTES`] (on a character boundary), e.g. for
+/// showing text stored before the bound existed.
+pub fn bounded_provenance_text(text: String) -> String {
+    truncate(text, MAX_PROVENANCE_TEXT_BYTES)
+}
+
 /// `text` cut to at most `max_bytes` on a character boundary.
 fn truncate(mut text: String, max_bytes: usize) -> String {
     if text.len() > max_bytes {
