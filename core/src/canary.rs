@@ -1,5 +1,5 @@
 //! The canary drive: a fixed synthetic drive that every model artifact must get through with only
-//! finite probabilities in [0, 1] before it is accepted (`docs/detector.md` §8). The range checks on
+//! finite probabilities in [0, 1] before it is accepted (`docs/detector.md` §5.1). The range checks on
 //! an artifact's values are meant to make a bad output impossible; the canary runs the real streaming
 //! [`Detector`] to prove it for the artifact at hand, so a value the checks missed is refused at import
 //! instead of blinding detection later.

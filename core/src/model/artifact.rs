@@ -3,7 +3,7 @@
 //! and provenance.
 //!
 //! Owns the artifact's schema, (de)serialisation and validation (the documented ranges of
-//! `docs/detector.md` §8, with errors that name the field). Must not run the model on data (that is
+//! `docs/detector.md` §5.1, with errors that name the field). Must not run the model on data (that is
 //! [`crate::detector`], and the canary drive is [`crate::canary`]) nor produce artifacts (that is
 //! [`crate::train::detector`]).
 
@@ -422,7 +422,7 @@ impl ModelArtifact {
         Ok(out)
     }
 
-    /// Checks every value is in its documented range (`docs/detector.md` §8) and the parts fit
+    /// Checks every value is in its documented range (`docs/detector.md` §5.1) and the parts fit
     /// together: feature order, scaler and evidence parameters against the model's schema, weights
     /// against the configuration, operating point, provenance bounds; then runs the canary drive
     /// ([`crate::canary`]), which must yield only finite probabilities in [0, 1]. A few milliseconds,
