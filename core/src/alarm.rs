@@ -26,6 +26,34 @@ pub struct OperatingPoint {
 /// The N_p grid of SPEC §7.
 pub const N_P_GRID: RangeInclusive<u32> = 1..=10;
 
+/// Largest N_p a served operating point may ask for: an hour of consecutive positive steps at 1 Hz.
+/// The search grid stops at 10; a persistence beyond an hour can never confirm an attack in time (and
+/// N_p = 2³²−1 never alarms at all).
+pub const MAX_PERSISTENCE: u32 = 3600;
+
+impl OperatingPoint {
+    /// Checks θ ∈ (0, 1) (θ = 0 alarms on everything, θ = 1 on nothing but p̂ = 1) and
+    /// N_p ∈ 1..=[`MAX_PERSISTENCE`]; the error names the field (`theta`, `n_p`).
+    pub fn validate(&self) -> Result<(), AlarmError> {
+        if !(self.theta > 0.0 && self.theta < 1.0) {
+            return Err(AlarmError::InvalidOperatingPoint {
+                field: "theta",
+                reason: format!(
+                    "must be strictly between 0 and 1, got {}",
+                    crate::sample::readable(self.theta)
+                ),
+            });
+        }
+        if !(1..=MAX_PERSISTENCE).contains(&self.n_p) {
+            return Err(AlarmError::InvalidOperatingPoint {
+                field: "n_p",
+                reason: format!("must be in 1..={MAX_PERSISTENCE}, got {}", self.n_p),
+            });
+        }
+        Ok(())
+    }
+}
+
 /// The θ grid of SPEC §7: k/20 for k = 1..=19 (0.05, 0.10, …, 0.95), computed exactly that way.
 pub fn theta_grid() -> Vec<f64> {
     (1..=19).map(|k| f64::from(k) / 20.0).collect()
@@ -124,6 +152,14 @@ pub enum AlarmError {
         per_hour: f64,
         /// Attack-free hours of the selection rows.
         normal_hours: f64,
+    },
+    /// A served operating point is out of its range.
+    #[error("operating point {field}: {reason}")]
+    InvalidOperatingPoint {
+        /// `theta` or `n_p`.
+        field: &'static str,
+        /// What is wrong with it.
+        reason: String,
     },
     /// A NaN threshold compares false with every score.
     #[error("threshold {index} of the grid is NaN")]

@@ -13,6 +13,7 @@
 //! comparator is [`cusum`]; labelled attack scenarios are [`scenario`].
 
 pub mod alarm;
+pub mod canary;
 pub mod cusum;
 pub mod data;
 pub mod detector;

@@ -149,7 +149,7 @@ fn other_schema_versions_and_foreign_documents_fail_clearly() {
     assert!(matches!(foreign, ArtifactError::MissingSchemaVersion));
     assert!(matches!(
         ModelArtifact::from_slice(b"not json").unwrap_err(),
-        ArtifactError::Json(_)
+        ArtifactError::Json { .. }
     ));
 
     value["schema_version"] = serde_json::json!(ARTIFACT_SCHEMA_VERSION);

@@ -22,6 +22,9 @@ pub mod defaults {
     pub const MAX_PENDING_JOBS: usize = 16;
     pub const SHUTDOWN_GRACE_SECS: u64 = 10;
     pub const HANDSHAKE_TIMEOUT_SECS: u64 = 10;
+    /// Room for about 370 artifacts the size of the bundled model (0.7 MB), or 16 of the largest
+    /// importable (`limits::MAX_ARTIFACT_BYTES`).
+    pub const MODEL_CACHE_BYTES: usize = 256 << 20;
 }
 
 /// Everything the server needs to start.
@@ -63,6 +66,10 @@ pub struct Config {
     /// Jobs queued or running at once; more are refused.
     #[arg(long, env = "SPOOFWATCH_MAX_PENDING_JOBS", default_value_t = defaults::MAX_PENDING_JOBS)]
     pub max_pending_jobs: usize,
+    /// Bytes of parsed model artifacts kept in memory besides the active model (least recently used
+    /// evicted first; sized by the serialised artifact).
+    #[arg(long, env = "SPOOFWATCH_MODEL_CACHE_BYTES", default_value_t = defaults::MODEL_CACHE_BYTES)]
+    pub model_cache_bytes: usize,
     /// Seconds the shutdown waits for streams and jobs before closing anyway.
     #[arg(long, env = "SPOOFWATCH_SHUTDOWN_GRACE_SECS", default_value_t = defaults::SHUTDOWN_GRACE_SECS)]
     pub shutdown_grace_secs: u64,
@@ -101,6 +108,7 @@ impl Default for Config {
             max_message_bytes: defaults::MAX_MESSAGE_BYTES,
             max_running_jobs: defaults::MAX_RUNNING_JOBS,
             max_pending_jobs: defaults::MAX_PENDING_JOBS,
+            model_cache_bytes: defaults::MODEL_CACHE_BYTES,
             shutdown_grace_secs: defaults::SHUTDOWN_GRACE_SECS,
             handshake_timeout_secs: defaults::HANDSHAKE_TIMEOUT_SECS,
             auth_token: None,

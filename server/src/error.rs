@@ -65,7 +65,14 @@ impl From<RegistryError> for Status {
             RegistryError::NoActiveModel => {
                 failed_precondition("NO_ACTIVE_MODEL", error.to_string())
             }
-            RegistryError::InvalidArtifact(_) => invalid_field("chunk", error.to_string()),
+            // The field is the artifact's own JSON path under `artifact` (`artifact.evidence.mu_e`).
+            RegistryError::InvalidArtifact(ref artifact) => {
+                let field = match artifact.field() {
+                    Some(path) => format!("artifact.{path}"),
+                    None => "artifact".to_string(),
+                };
+                invalid_field(field, error.to_string())
+            }
             RegistryError::Internal(Fault { context, .. }) => internal(context, &error),
             RegistryError::Store(store) => store.into(),
         }

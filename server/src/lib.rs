@@ -136,7 +136,7 @@ pub async fn serve(
         );
     }
     store.close_open_alarms(store::now_unix_ms()).await?;
-    let registry = Arc::new(Registry::new(store.clone()));
+    let registry = Arc::new(Registry::new(store.clone(), config.model_cache_bytes));
     registry.ensure_default_model().await?;
     let catalog = Catalog::new(store.clone(), config.data_dir.clone());
 

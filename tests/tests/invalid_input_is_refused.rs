@@ -253,6 +253,14 @@ async fn malformed_uploads_are_refused_and_nothing_is_stored(clients: &mut Clien
         .await
         .expect_err("a malformed artifact is refused");
     assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+    assert_eq!(
+        status
+            .get_details_bad_request()
+            .expect("field violations")
+            .field_violations[0]
+            .field,
+        "artifact.schema_version"
+    );
 
     let csv = "vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg\n\
                car,0,32.2,-110.9,1.0,0\n\

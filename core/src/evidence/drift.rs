@@ -22,6 +22,7 @@ use super::linalg::{
     IDENTITY, Mat2, inverse_sqrt_symmetric, is_symmetric_positive_definite, mul_vec,
 };
 use super::stats::{covariance, median, quantile_sorted};
+use crate::sample::readable;
 
 /// Number of drift-rate time scales.
 pub const SCALE_COUNT: usize = 4;
@@ -88,8 +89,10 @@ pub struct DriftParams {
     pub vehicle_levels: bool,
 }
 
+/// The serialised form, checked by `TryFrom` (or by [`super::EvidenceParams::validate`] when it is
+/// parsed as part of them).
 #[derive(Deserialize)]
-struct UncheckedDriftParams {
+pub(crate) struct UncheckedDriftParams {
     residual_sigma_m: f64,
     clip_m: f64,
     raw_covariance: [Mat2; SCALE_COUNT],
@@ -104,7 +107,16 @@ impl TryFrom<UncheckedDriftParams> for DriftParams {
     type Error = EvidenceError;
 
     fn try_from(raw: UncheckedDriftParams) -> Result<Self, EvidenceError> {
-        let params = DriftParams {
+        let params = DriftParams::unchecked(raw);
+        params.validate()?;
+        Ok(params)
+    }
+}
+
+impl DriftParams {
+    /// The parsed values as they are; the caller validates.
+    pub(crate) fn unchecked(raw: UncheckedDriftParams) -> Self {
+        Self {
             residual_sigma_m: raw.residual_sigma_m,
             clip_m: raw.clip_m,
             raw_covariance: raw.raw_covariance,
@@ -112,13 +124,9 @@ impl TryFrom<UncheckedDriftParams> for DriftParams {
             raw_threshold: raw.raw_threshold,
             calibrated_threshold: raw.calibrated_threshold,
             vehicle_levels: raw.vehicle_levels,
-        };
-        params.validate()?;
-        Ok(params)
+        }
     }
-}
 
-impl DriftParams {
     /// Parameters that whiten nothing (identity covariances, unit thresholds): the fit runs with them
     /// to read the raw drift rates.
     pub fn unwhitened(residual_sigma_m: f64) -> Self {
@@ -142,13 +150,16 @@ impl DriftParams {
         if !positive(self.residual_sigma_m) {
             return Err(invalid(
                 "drift.residual_sigma_m",
-                format!("must be positive and finite, got {}", self.residual_sigma_m),
+                format!(
+                    "must be positive and finite, got {}",
+                    readable(self.residual_sigma_m)
+                ),
             ));
         }
         if !positive(self.clip_m) {
             return Err(invalid(
                 "drift.clip_m",
-                format!("must be positive and finite, got {}", self.clip_m),
+                format!("must be positive and finite, got {}", readable(self.clip_m)),
             ));
         }
         for (field, covariances) in [
@@ -172,7 +183,10 @@ impl DriftParams {
             if let Some(bad) = thresholds.iter().find(|&&h| !positive(h)) {
                 return Err(invalid(
                     field,
-                    format!("every scale must be positive and finite, got {bad}"),
+                    format!(
+                        "every scale must be positive and finite, got {}",
+                        readable(*bad)
+                    ),
                 ));
             }
         }

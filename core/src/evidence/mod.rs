@@ -16,8 +16,13 @@ mod tests;
 use serde::{Deserialize, Serialize};
 
 pub use builder::{Evidence, EvidenceBuilder, MAX_BACKWARD_S, MAX_GAP_S, build_track};
-pub use params::{DEFAULT_KAPPA, DEFAULT_RHO, EvidenceParams, SIGMA_EPSILON};
-pub use scaler::{CLIP, RobustScaler};
+pub(crate) use params::UncheckedParams;
+pub use params::{
+    DEFAULT_KAPPA, DEFAULT_RHO, EvidenceParams, MAX_ABS_KAPPA, MAX_MU_E, MAX_SIGMA_M2,
+    SIGMA_EPSILON,
+};
+pub(crate) use scaler::UncheckedScaler;
+pub use scaler::{CLIP, MAX_SCALER_VALUE, RobustScaler};
 pub use stats::{
     MIN_NORMAL_ROWS, NormalStats, fit_drift_params, fit_normal_stats, median, normal_residuals,
     quantile_sorted, stats_from_residuals,

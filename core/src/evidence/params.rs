@@ -5,9 +5,10 @@
 use serde::{Deserialize, Serialize};
 
 use super::EvidenceError;
-use super::drift::DriftParams;
+use super::drift::{DriftParams, UncheckedDriftParams};
 use super::linalg::{Mat2, add_diagonal, is_symmetric_positive_definite};
 use crate::geo::Projection;
+use crate::sample::readable;
 
 /// ε added to every Σ before inversion (SPEC §4).
 pub const SIGMA_EPSILON: f64 = 1e-6;
@@ -15,6 +16,16 @@ pub const SIGMA_EPSILON: f64 = 1e-6;
 pub const DEFAULT_KAPPA: f64 = 0.0;
 /// Default accumulator forgetting factor ρ (SPEC §4).
 pub const DEFAULT_RHO: f64 = 0.98;
+/// Largest accepted μ_e. μ_e is the median of η'η on the very rows Σ̂ was fitted on, whose mean is
+/// 2 + (mean residual in σ units)²; trained artifacts hold 0.03 and 0.27. 1e6 still admits a mean
+/// residual of 1000 σ, far beyond normal driving, and refuses values that make every q hugely negative
+/// (μ_e = 1e308 alarms on almost every clean sample).
+pub const MAX_MU_E: f64 = 1e6;
+/// Largest accepted |κ| (the same units as μ_e; the training grid uses 0).
+pub const MAX_ABS_KAPPA: f64 = 1e6;
+/// Largest accepted entry of Σ̂ (m²): a residual standard deviation of 100 km is no GNSS receiver
+/// (trained artifacts hold 5–37 m²).
+pub const MAX_SIGMA_M2: f64 = 1e10;
 
 /// Everything the evidence builder needs besides the samples.
 ///
@@ -39,9 +50,10 @@ pub struct EvidenceParams {
     pub drift: Option<DriftParams>,
 }
 
-/// The serialised form, checked by `TryFrom` before it becomes [`EvidenceParams`].
+/// The serialised form, checked by `TryFrom` before it becomes [`EvidenceParams`] (the artifact
+/// reader parses it first, so that a type error and a value error are told apart).
 #[derive(Deserialize)]
-struct UncheckedParams {
+pub(crate) struct UncheckedParams {
     sigma_hat: Mat2,
     mu_e: f64,
     #[serde(default = "default_kappa")]
@@ -51,7 +63,7 @@ struct UncheckedParams {
     #[serde(default)]
     projection: Projection,
     #[serde(default)]
-    drift: Option<DriftParams>,
+    drift: Option<UncheckedDriftParams>,
 }
 
 fn default_kappa() -> f64 {
@@ -72,7 +84,7 @@ impl TryFrom<UncheckedParams> for EvidenceParams {
             kappa: raw.kappa,
             rho: raw.rho,
             projection: raw.projection,
-            drift: raw.drift,
+            drift: raw.drift.map(DriftParams::unchecked),
         };
         params.validate()?;
         Ok(params)
@@ -105,35 +117,56 @@ impl EvidenceParams {
         Ok(params)
     }
 
-    /// Checks Σ̂ + εI is finite, symmetric and positive definite, μ_e and κ are finite and ρ ∈ [0, 1].
+    /// Checks Σ̂ + εI is symmetric positive definite with entries within ±[`MAX_SIGMA_M2`],
+    /// μ_e ∈ [0, [`MAX_MU_E`]], |κ| ≤ [`MAX_ABS_KAPPA`], ρ ∈ [0, 1] and the drift parameters.
     pub fn validate(&self) -> Result<(), EvidenceError> {
         let invalid =
             |field: &'static str, reason: String| EvidenceError::InvalidParams { field, reason };
-        if !is_symmetric_positive_definite(&self.regularised_sigma()) {
+        let sigma = self.sigma_hat.iter().flatten();
+        if let Some(&bad) = sigma
+            .clone()
+            .find(|v| !(-MAX_SIGMA_M2..=MAX_SIGMA_M2).contains(*v))
+        {
             return Err(invalid(
                 "sigma_hat",
                 format!(
-                    "Σ̂ + εI must be finite, symmetric and positive definite, got {:?}",
-                    self.sigma_hat
+                    "every entry must be finite and within ±{MAX_SIGMA_M2:e} m², got {}",
+                    readable(bad)
                 ),
             ));
         }
-        if !self.mu_e.is_finite() {
+        if !is_symmetric_positive_definite(&self.regularised_sigma()) {
+            let entries: Vec<String> = sigma.map(|&v| readable(v)).collect();
             return Err(invalid(
-                "mu_e",
-                format!("must be finite, got {}", self.mu_e),
+                "sigma_hat",
+                format!(
+                    "Σ̂ + εI must be symmetric and positive definite, got [[{}, {}], [{}, {}]]",
+                    entries[0], entries[1], entries[2], entries[3]
+                ),
             ));
         }
-        if !self.kappa.is_finite() {
+        if !(0.0..=MAX_MU_E).contains(&self.mu_e) {
+            return Err(invalid(
+                "mu_e",
+                format!(
+                    "must be finite and in [0, {MAX_MU_E:e}] (a median energy), got {}",
+                    readable(self.mu_e)
+                ),
+            ));
+        }
+        if !(-MAX_ABS_KAPPA..=MAX_ABS_KAPPA).contains(&self.kappa) {
             return Err(invalid(
                 "kappa",
-                format!("must be finite, got {}", self.kappa),
+                format!(
+                    "must be finite and within ±{MAX_ABS_KAPPA:e}, got {}",
+                    readable(self.kappa)
+                ),
             ));
         }
         if !(0.0..=1.0).contains(&self.rho) {
             return Err(invalid(
                 "rho",
-                format!("must be in [0, 1], got {}", self.rho),
+                format!("must be in [0, 1], got {}", readable(self.rho)),
             ));
         }
         if let Some(drift) = &self.drift {

@@ -6,12 +6,18 @@ use serde::{Deserialize, Serialize};
 
 use super::builder::Evidence;
 use super::stats::quantile_sorted;
-use super::{EvidenceError, FEATURE_CAPACITY, FeatureSchema, Features, NU_INDEX};
+use super::{EvidenceError, FEATURE_CAPACITY, FEATURE_NAMES, FeatureSchema, Features, NU_INDEX};
+use crate::sample::readable;
 
 /// Scaled values are clipped to ±this.
 pub const CLIP: f64 = 20.0;
-/// An IQR (or std) below this is treated as zero spread.
+/// An IQR (or std) below this is treated as zero spread; it is also the smallest scale a fit produces,
+/// and so the smallest an artifact may hold.
 const ZERO_SPREAD: f64 = 1e-8;
+/// Largest accepted |center| and scale. Trained scalers hold values below 25 (whitened residuals and
+/// their rates, log energies, drift statistics); 1e12 admits rates of finely sampled data (η̈ grows as
+/// 1/δ²) with a wide margin, and refuses values that only a corrupted artifact holds.
+pub const MAX_SCALER_VALUE: f64 = 1e12;
 
 /// Per-component median/IQR scaling of ξ (every component of the schema but ν, in order); ν passes
 /// through. The paper schema has 8 scaled components, v2 has 18.
@@ -24,8 +30,9 @@ pub struct RobustScaler {
     pub scale: Vec<f64>,
 }
 
+/// The serialised form, checked by `TryFrom` (the artifact reader parses it first).
 #[derive(Deserialize)]
-struct UncheckedScaler {
+pub(crate) struct UncheckedScaler {
     center: Vec<f64>,
     scale: Vec<f64>,
 }
@@ -81,36 +88,58 @@ impl RobustScaler {
         Ok(Self { center, scale })
     }
 
-    /// The schema this scaler was fitted for (from its length); checks the values are usable.
+    /// The schema this scaler was fitted for (from its length); checks every center is finite within
+    /// ±[`MAX_SCALER_VALUE`] and every scale within [`ZERO_SPREAD`], [`MAX_SCALER_VALUE`]].
     pub fn schema(&self) -> Result<FeatureSchema, EvidenceError> {
-        let invalid = |reason: String| EvidenceError::InvalidParams {
-            field: "scaler",
-            reason,
-        };
+        let invalid =
+            |field: &'static str, reason: String| EvidenceError::InvalidParams { field, reason };
         let schema = FeatureSchema::NAMED
             .iter()
             .map(|(_, schema)| *schema)
             .find(|schema| schema.feature_count() - 1 == self.center.len())
             .ok_or_else(|| {
-                invalid(format!(
-                    "{} centers fit no feature schema (paper: 8, v2: 20)",
-                    self.center.len()
-                ))
+                invalid(
+                    "scaler.center",
+                    format!(
+                        "{} centers fit no feature schema (paper: 8, v2: 20)",
+                        self.center.len()
+                    ),
+                )
             })?;
         if self.scale.len() != self.center.len() {
-            return Err(invalid(format!(
-                "{} scales for {} centers",
-                self.scale.len(),
-                self.center.len()
-            )));
+            return Err(invalid(
+                "scaler.scale",
+                format!(
+                    "{} scales for {} centers",
+                    self.scale.len(),
+                    self.center.len()
+                ),
+            ));
         }
-        if let Some(bad) = self.center.iter().find(|c| !c.is_finite()) {
-            return Err(invalid(format!("every center must be finite, got {bad}")));
+        let component = |k: usize| FEATURE_NAMES[feature_index(k)];
+        if let Some((k, bad)) = (self.center.iter().enumerate())
+            .find(|(_, c)| !(-MAX_SCALER_VALUE..=MAX_SCALER_VALUE).contains(*c))
+        {
+            return Err(invalid(
+                "scaler.center",
+                format!(
+                    "every center must be finite and within ±{MAX_SCALER_VALUE:e}, got {} for {}",
+                    readable(*bad),
+                    component(k)
+                ),
+            ));
         }
-        if let Some(bad) = self.scale.iter().find(|s| !(s.is_finite() && **s > 0.0)) {
-            return Err(invalid(format!(
-                "every scale must be positive and finite, got {bad}"
-            )));
+        if let Some((k, bad)) = (self.scale.iter().enumerate())
+            .find(|(_, s)| !(ZERO_SPREAD..=MAX_SCALER_VALUE).contains(*s))
+        {
+            return Err(invalid(
+                "scaler.scale",
+                format!(
+                    "every scale must be in [{ZERO_SPREAD:e}, {MAX_SCALER_VALUE:e}], got {} for {}",
+                    readable(*bad),
+                    component(k)
+                ),
+            ));
         }
         Ok(schema)
     }

@@ -2,17 +2,26 @@
 //! with a versioned schema — the trained model plus its evidence statistics, scaler, operating point
 //! and provenance.
 //!
-//! Owns the artifact's schema, (de)serialisation and validation. Must not run the model on data
-//! (that is [`crate::detector`]) nor produce artifacts (that is [`crate::train::detector`]).
+//! Owns the artifact's schema, (de)serialisation and validation (the documented ranges of
+//! `docs/detector.md` §5.1, with errors that name the field). Must not run the model on data (that is
+//! [`crate::detector`], and the canary drive is [`crate::canary`]) nor produce artifacts (that is
+//! [`crate::train::detector`]).
 
 use std::io::{Read, Write};
+use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
-use super::Model;
-use crate::alarm::OperatingPoint;
-use crate::evidence::{EvidenceParams, FeatureSchema, RobustScaler};
+use super::{
+    MAX_ABS_PARAMETER, MAX_DIMENSION, MAX_TAU_S, MIN_TAU_S, Model, ModelError, ModelParts,
+};
+use crate::alarm::{AlarmError, OperatingPoint};
+use crate::canary;
+use crate::evidence::{
+    EvidenceError, EvidenceParams, FeatureSchema, RobustScaler, UncheckedParams, UncheckedScaler,
+};
 use crate::metrics::Metrics;
+use crate::sample::readable;
 
 /// Version of the artifact schema (weights layout, evidence definition, feature order).
 /// Bump it whenever an older artifact would be served differently by this code.
@@ -35,6 +44,13 @@ pub struct ModelArtifact {
     pub provenance: Provenance,
 }
 
+/// Longest free-text field of the provenance (`created_by`, `notes`, each `training_data` entry), in
+/// bytes. Real artifacts hold under 300 bytes per field; the bound keeps a model's description well
+/// inside one gRPC message (`GetModel`) however many models the registry holds.
+pub const MAX_PROVENANCE_TEXT_BYTES: usize = 4096;
+/// Most `training_data` entries (one per training dataset or data source).
+pub const MAX_TRAINING_DATA_ENTRIES: usize = 256;
+
 /// How an artifact was made.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Provenance {
@@ -52,13 +68,87 @@ pub struct Provenance {
     pub notes: String,
 }
 
-/// Why an artifact cannot be loaded or saved.
+impl Provenance {
+    /// A training-data description within the bounds: at most [`MAX_TRAINING_DATA_ENTRIES`] entries
+    /// (the last one then says how many were left out), each cut to [`MAX_PROVENANCE_TEXT_BYTES`].
+    pub fn bounded_training_data(entries: Vec<String>) -> Vec<String> {
+        let total = entries.len();
+        let mut bounded: Vec<String> = entries
+            .into_iter()
+            .take(MAX_TRAINING_DATA_ENTRIES)
+            .map(|entry| truncate(entry, MAX_PROVENANCE_TEXT_BYTES))
+            .collect();
+        if total > MAX_TRAINING_DATA_ENTRIES {
+            bounded.truncate(MAX_TRAINING_DATA_ENTRIES - 1);
+            let shown = bounded.len();
+            bounded.push(format!("... and {} more", total - shown));
+        }
+        bounded
+    }
+
+    /// Checks the free-text bounds; the error names the field (`notes`, `training_data[3]`...).
+    fn validate(&self) -> Result<(), (String, String)> {
+        let too_long = |text: &str| text.len() > MAX_PROVENANCE_TEXT_BYTES;
+        let reason = |text: &str| {
+            format!(
+                "must be at most {MAX_PROVENANCE_TEXT_BYTES} bytes, got {}",
+                text.len()
+            )
+        };
+        for (field, text) in [("created_by", &self.created_by), ("notes", &self.notes)] {
+            if too_long(text) {
+                return Err((field.to_string(), reason(text)));
+            }
+        }
+        if self.training_data.len() > MAX_TRAINING_DATA_ENTRIES {
+            return Err((
+                "training_data".to_string(),
+                format!(
+                    "must have at most {MAX_TRAINING_DATA_ENTRIES} entries, got {}",
+                    self.training_data.len()
+                ),
+            ));
+        }
+        if let Some((i, text)) = (self.training_data.iter().enumerate()).find(|(_, t)| too_long(t))
+        {
+            return Err((format!("training_data[{i}]"), reason(text)));
+        }
+        Ok(())
+    }
+}
+
+/// Provenance free text cut to [`MAX_PROVENANCE_TEXT_BYTES`] (on a character boundary), e.g. for
+/// showing text stored before the bound existed.
+pub fn bounded_provenance_text(text: String) -> String {
+    truncate(text, MAX_PROVENANCE_TEXT_BYTES)
+}
+
+/// `text` cut to at most `max_bytes` on a character boundary.
+fn truncate(mut text: String, max_bytes: usize) -> String {
+    if text.len() > max_bytes {
+        let mut end = max_bytes;
+        while !text.is_char_boundary(end) {
+            end -= 1;
+        }
+        text.truncate(end);
+    }
+    text
+}
+
+/// Why an artifact cannot be loaded or saved. Every refusal of the artifact's content names the field
+/// ([`ArtifactError::field`]), as a JSON path such as `evidence.mu_e` or `model.params.w_out`.
 #[derive(Debug, thiserror::Error)]
 pub enum ArtifactError {
     #[error("reading the model artifact: {0}")]
     Io(#[from] std::io::Error),
-    #[error("the model artifact is not valid JSON: {0}")]
-    Json(#[from] serde_json::Error),
+    /// A JSON syntax error (or a number beyond f64); `path` is where the parser was, when known.
+    #[error("the model artifact is not valid JSON{}: {source}", path.as_ref().map(|p| format!(" in {p}")).unwrap_or_default())]
+    Json {
+        source: serde_json::Error,
+        path: Option<String>,
+    },
+    #[error("writing the model artifact: {0}")]
+    Write(serde_json::Error),
     #[error("the model artifact has no schema_version field; is this a Spoofwatch model?")]
     MissingSchemaVersion,
     #[error(
@@ -74,8 +164,188 @@ pub enum ArtifactError {
         found: Vec<String>,
         expected: Vec<String>,
     },
-    #[error("the model artifact is inconsistent: {0}")]
-    Invalid(String),
+    /// A field is missing, has the wrong type or a value outside its documented range.
+    #[error("{field}: {reason}")]
+    Field { field: String, reason: String },
+}
+
+impl ArtifactError {
+    /// The JSON path of the offending field (`evidence.mu_e`, `model.params.w_out`...), when the error
+    /// is about the artifact's content and the place is known.
+    pub fn field(&self) -> Option<String> {
+        match self {
+            Self::Io(_) | Self::Write(_) => None,
+            Self::Json { path, .. } => path.clone(),
+            Self::MissingSchemaVersion | Self::UnsupportedSchema { .. } => {
+                Some("schema_version".to_string())
+            }
+            Self::FeatureMismatch { .. } => Some("feature_names".to_string()),
+            Self::Field { field, .. } => Some(field.clone()),
+        }
+    }
+
+    fn field_error(field: impl Into<String>, reason: impl Into<String>) -> Self {
+        Self::Field {
+            field: field.into(),
+            reason: reason.into(),
+        }
+    }
+
+    /// An evidence or scaler refusal; `prefix` is the path of the validated part (`evidence.`, or ``
+    /// for the scaler, whose fields are named `scaler.center`/`scaler.scale` already).
+    fn from_evidence(prefix: &str, error: EvidenceError) -> Self {
+        match error {
+            EvidenceError::InvalidParams { field, reason } => {
+                Self::field_error(format!("{prefix}{field}"), reason)
+            }
+            other => Self::field_error(prefix.trim_end_matches('.'), other.to_string()),
+        }
+    }
+
+    /// A model refusal, at the path of the configuration value or tensor it is about.
+    fn from_model(error: ModelError) -> Self {
+        let tensor = |name: &str| format!("model.params.{name}");
+        match error {
+            ModelError::InvalidDimension { name, value } => Self::field_error(
+                format!("model.config.{name}"),
+                format!("must be in 1..={MAX_DIMENSION}, got {value}"),
+            ),
+            ModelError::InvalidTimeConstants { tau_min, .. } => {
+                let field = if (MIN_TAU_S..MAX_TAU_S).contains(&tau_min) {
+                    "model.config.tau_max"
+                } else {
+                    "model.config.tau_min"
+                };
+                Self::field_error(field, error.to_string())
+            }
+            ModelError::TensorLength {
+                ref name,
+                expected,
+                found,
+            } => Self::field_error(
+                format!("{}.data", tensor(name)),
+                format!("has {found} values, its shape needs {expected}"),
+            ),
+            ModelError::MissingParameter { name } => {
+                Self::field_error(tensor(name), "is missing for this model configuration")
+            }
+            ModelError::UnexpectedParameter { name } => {
+                Self::field_error(tensor(name), "is not used by this model configuration")
+            }
+            ModelError::ShapeMismatch {
+                name,
+                expected,
+                found,
+            } => Self::field_error(
+                format!("{}.shape", tensor(name)),
+                format!("expected {expected:?}, got {found:?}"),
+            ),
+            ModelError::NonFiniteParameter { name, index } => Self::field_error(
+                tensor(name),
+                format!("value at flat index {index} must be finite"),
+            ),
+            ModelError::ParameterOutOfRange { name, index, value } => Self::field_error(
+                tensor(name),
+                format!(
+                    "value at flat index {index} must be within ±{MAX_ABS_PARAMETER:e}, got {}",
+                    readable(value)
+                ),
+            ),
+            other @ (ModelError::LengthMismatch { .. } | ModelError::StateWidth { .. }) => {
+                Self::field_error("model", other.to_string())
+            }
+        }
+    }
+
+    /// A type or presence error found while parsing, at its JSON path. serde reports a missing field
+    /// at the enclosing object, so its name is moved into the path.
+    fn from_parse(error: serde_path_to_error::Error<serde_json::Error>) -> Self {
+        let path = path_text(error.path());
+        let message = error.inner().to_string();
+        let join = |name: &str| {
+            if path.is_empty() {
+                name.to_string()
+            } else {
+                format!("{path}.{name}")
+            }
+        };
+        let quoted = |prefix: &str| {
+            message
+                .strip_prefix(prefix)
+                .and_then(|rest| rest.split_once('`'))
+                .map(|(name, rest)| {
+                    (
+                        name.to_string(),
+                        rest.trim_start_matches(',').trim().to_string(),
+                    )
+                })
+        };
+        if let Some((name, _)) = quoted("missing field `") {
+            return Self::field_error(join(&name), "is required");
+        }
+        if let Some((name, rest)) = quoted("unknown field `") {
+            // The path already ends at the unknown key.
+            let field = if path.is_empty() { name } else { path };
+            return Self::field_error(field, format!("is not a known field ({rest})"));
+        }
+        Self::field_error(if path.is_empty() { "." } else { &path }, message)
+    }
+}
+
+/// A parse path as `model.params.w_out.data[3]` (empty at the root).
+fn path_text(path: &serde_path_to_error::Path) -> String {
+    if path.iter().next().is_none() {
+        String::new()
+    } else {
+        path.to_string()
+    }
+}
+
+/// The artifact as parsed, before any value is checked: what lets a type error (here) and a value
+/// error ([`RawArtifact::into_checked`]) each name their field.
+#[derive(Deserialize)]
+struct RawArtifact {
+    schema_version: u32,
+    feature_names: Vec<String>,
+    model: ModelParts,
+    evidence: UncheckedParams,
+    scaler: UncheckedScaler,
+    operating_point: OperatingPoint,
+    provenance: Provenance,
+}
+
+impl RawArtifact {
+    /// The parts built and validated one by one (their cross-checks are [`ModelArtifact::validate`]).
+    fn into_checked(self) -> Result<ModelArtifact, ArtifactError> {
+        let model = Model::from_parts(self.model.config, self.model.params)
+            .map_err(ArtifactError::from_model)?;
+        let evidence = EvidenceParams::try_from(self.evidence)
+            .map_err(|e| ArtifactError::from_evidence("evidence.", e))?;
+        let scaler =
+            RobustScaler::try_from(self.scaler).map_err(|e| ArtifactError::from_evidence("", e))?;
+        Ok(ModelArtifact {
+            schema_version: self.schema_version,
+            feature_names: self.feature_names,
+            model,
+            evidence,
+            scaler,
+            operating_point: self.operating_point,
+            provenance: self.provenance,
+        })
+    }
+}
+
+/// What a JSON value is, for "expected ..., got ..." messages.
+fn describe(value: &serde_json::Value) -> String {
+    use serde_json::Value;
+    match value {
+        Value::Null => "null".to_string(),
+        Value::Bool(_) => "a boolean".to_string(),
+        Value::Number(n) => n.to_string(),
+        Value::String(_) => "a string".to_string(),
+        Value::Array(_) => "an array".to_string(),
+        Value::Object(_) => "an object".to_string(),
+    }
 }
 
 impl ModelArtifact {
@@ -93,17 +363,34 @@ impl ModelArtifact {
         self.model.config().schema
     }
 
-    /// Reads and validates an artifact. The schema version is checked before anything else, so a
-    /// newer artifact gets a clear message instead of a field-level parse error.
-    pub fn read<R: Read>(reader: R) -> Result<Self, ArtifactError> {
-        let value: serde_json::Value = serde_json::from_reader(reader)?;
-        let found = value
+    /// Reads and validates an artifact (see [`ModelArtifact::from_slice`]).
+    pub fn read<R: Read>(mut reader: R) -> Result<Self, ArtifactError> {
+        let mut bytes = Vec::new();
+        reader.read_to_end(&mut bytes)?;
+        Self::from_slice(&bytes)
+    }
+
+    /// Parses and validates an artifact: JSON syntax, then the schema version (before anything else,
+    /// so a newer artifact gets a clear message instead of a field-level parse error), then every
+    /// field's type, then every value's range ([`ModelArtifact::validate`], canary drive included).
+    pub fn from_slice(bytes: &[u8]) -> Result<Self, ArtifactError> {
+        let value: serde_json::Value =
+            serde_json::from_slice(bytes).map_err(|source| ArtifactError::Json {
+                path: syntax_error_path(bytes),
+                source,
+            })?;
+        let version = value
             .get("schema_version")
-            .and_then(serde_json::Value::as_u64)
             .ok_or(ArtifactError::MissingSchemaVersion)?;
-        let readable =
+        let found = version.as_u64().ok_or_else(|| {
+            ArtifactError::field_error(
+                "schema_version",
+                format!("expected an unsigned integer, got {}", describe(version)),
+            )
+        })?;
+        let readable_versions =
             u64::from(OLDEST_READABLE_SCHEMA_VERSION)..=u64::from(ARTIFACT_SCHEMA_VERSION);
-        if !readable.contains(&found) {
+        if !readable_versions.contains(&found) {
             let hint = if found > u64::from(ARTIFACT_SCHEMA_VERSION) {
                 "; it was written by a newer Spoofwatch: upgrade to load it"
             } else {
@@ -115,21 +402,17 @@ impl ModelArtifact {
                 hint,
             });
         }
-        let artifact: ModelArtifact = serde_json::from_value(value)?;
+        let raw: RawArtifact =
+            serde_path_to_error::deserialize(&value).map_err(ArtifactError::from_parse)?;
+        let artifact = raw.into_checked()?;
         artifact.validate()?;
         Ok(artifact)
     }
 
-    /// Parses an artifact from bytes (e.g. a database blob).
-    pub fn from_slice(bytes: &[u8]) -> Result<Self, ArtifactError> {
-        Self::read(bytes)
-    }
-
-    /// Writes the artifact as pretty JSON.
+    /// Writes the artifact as pretty JSON (after [`ModelArtifact::validate`]: what is written reads).
     pub fn write<W: Write>(&self, writer: W) -> Result<(), ArtifactError> {
         self.validate()?;
-        serde_json::to_writer_pretty(writer, self)?;
-        Ok(())
+        serde_json::to_writer_pretty(writer, self).map_err(ArtifactError::Write)
     }
 
     /// The artifact as JSON bytes.
@@ -139,8 +422,11 @@ impl ModelArtifact {
         Ok(out)
     }
 
-    /// Checks the parts fit together: feature order, scaler and evidence parameters against the
-    /// model's schema, weights against the configuration, operating point.
+    /// Checks every value is in its documented range (`docs/detector.md` §5.1) and the parts fit
+    /// together: feature order, scaler and evidence parameters against the model's schema, weights
+    /// against the configuration, operating point, provenance bounds; then runs the canary drive
+    /// ([`crate::canary`]), which must yield only finite probabilities in [0, 1]. A few milliseconds,
+    /// so it runs on every read and write: no path into the registry skips it.
     pub fn validate(&self) -> Result<(), ArtifactError> {
         let schema = self.schema();
         let expected = Self::feature_names_of(schema);
@@ -150,43 +436,83 @@ impl ModelArtifact {
                 expected,
             });
         }
+        let config = self.model.config();
+        config.validate().map_err(ArtifactError::from_model)?;
+        // Training changes the weights in place, so they are checked again here.
+        self.model
+            .params()
+            .validate(config)
+            .map_err(ArtifactError::from_model)?;
+        if self.schema_version < 2 && schema != FeatureSchema::legacy() {
+            return Err(ArtifactError::field_error(
+                "model.config.schema",
+                format!(
+                    "schema_version {} artifacts can only hold paper-schema models",
+                    self.schema_version
+                ),
+            ));
+        }
+        self.evidence
+            .validate()
+            .map_err(|e| ArtifactError::from_evidence("evidence.", e))?;
         let scaler_schema = self
             .scaler
             .schema()
-            .map_err(|e| ArtifactError::Invalid(e.to_string()))?;
+            .map_err(|e| ArtifactError::from_evidence("", e))?;
         if scaler_schema != schema {
-            return Err(ArtifactError::Invalid(format!(
-                "the scaler has {} components, the {} feature schema needs {}",
-                self.scaler.center.len(),
-                schema.name(),
-                schema.feature_count() - 1
-            )));
+            return Err(ArtifactError::field_error(
+                "scaler.center",
+                format!(
+                    "the scaler has {} components, the {} feature schema needs {}",
+                    self.scaler.center.len(),
+                    schema.name(),
+                    schema.feature_count() - 1
+                ),
+            ));
         }
         if self.evidence.drift.is_some() != schema.has_drift() {
-            return Err(ArtifactError::Invalid(format!(
-                "the {} feature schema {} drift parameters in the evidence",
-                schema.name(),
-                if schema.has_drift() {
-                    "needs"
-                } else {
-                    "has no use for"
-                }
-            )));
+            return Err(ArtifactError::field_error(
+                "evidence.drift",
+                format!(
+                    "the {} feature schema {} drift parameters",
+                    schema.name(),
+                    if schema.has_drift() {
+                        "needs"
+                    } else {
+                        "has no use for"
+                    }
+                ),
+            ));
         }
-        if self.schema_version < 2 && schema != FeatureSchema::legacy() {
-            return Err(ArtifactError::Invalid(format!(
-                "schema_version {} artifacts can only hold paper-schema models",
-                self.schema_version
-            )));
-        }
-        // The model's weights were checked against its configuration when it was built or parsed.
-        let op = self.operating_point;
-        if !(op.theta > 0.0 && op.theta < 1.0) || op.n_p == 0 {
-            return Err(ArtifactError::Invalid(format!(
-                "operating point theta={} n_p={} (need 0 < theta < 1 and n_p >= 1)",
-                op.theta, op.n_p
-            )));
-        }
-        Ok(())
+        self.operating_point.validate().map_err(|e| match e {
+            AlarmError::InvalidOperatingPoint { field, reason } => {
+                ArtifactError::field_error(format!("operating_point.{field}"), reason)
+            }
+            other => ArtifactError::field_error("operating_point", other.to_string()),
+        })?;
+        self.provenance.validate().map_err(|(field, reason)| {
+            ArtifactError::field_error(format!("provenance.{field}"), reason)
+        })?;
+        canary::check(Arc::new(self.clone())).map_err(|failure| {
+            ArtifactError::field_error(
+                "model",
+                format!(
+                    "the canary drive yields probability {} at sample {}; every probability must \
+                     be finite and in [0, 1]",
+                    readable(failure.probability),
+                    failure.sample
+                ),
+            )
+        })
     }
+}
+
+/// Where a JSON syntax error sits (`model.params.w_out.data[7]`), found by parsing again with the path
+/// tracked; `None` when the second parse stops for another reason first (then the place is not known).
+fn syntax_error_path(bytes: &[u8]) -> Option<String> {
+    let mut deserializer = serde_json::Deserializer::from_slice(bytes);
+    let error = serde_path_to_error::deserialize::<_, RawArtifact>(&mut deserializer).err()?;
+    let inner = error.inner();
+    let path = path_text(error.path());
+    ((inner.is_syntax() || inner.is_eof()) && !path.is_empty()).then_some(path)
 }

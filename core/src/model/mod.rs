@@ -19,6 +19,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::evidence::{DRIFT_FEATURES_START, FEATURE_CAPACITY, FeatureSchema, Features};
 use crate::rng::Rng;
+use crate::sample::readable;
 
 pub use backward::{Tape, TrainingWindow, WindowGradient, WindowLoss, bce_with_logits};
 pub use forward::StepScratch;
@@ -32,6 +33,16 @@ pub const DEFAULT_TAU_MAX_S: f64 = 10.0;
 pub const MAX_DELTA_S: f64 = 5.0;
 /// Largest accepted width of any layer (guards against absurd allocations from a bad config).
 pub const MAX_DIMENSION: usize = 4096;
+/// Smallest accepted τ_min (s). Trained models use 0.05 s; below a millisecond a time constant is far
+/// shorter than any sample interval and the cell just copies its candidate.
+pub const MIN_TAU_S: f64 = 1e-3;
+/// Largest accepted τ_max (s). Trained models use 10 s; a day is far beyond any memory a drive needs.
+pub const MAX_TAU_S: f64 = 86_400.0;
+/// Largest accepted |value| of a parameter. Trained weights stay below 1.5 (the bundled models: at most
+/// 0.93 and 1.32; Xavier init at most √3 ≈ 1.73), so 1e4 leaves a margin of thousands while keeping every
+/// pre-activation finite: inputs are clipped to ±20 and no layer is wider than [`MAX_DIMENSION`] × 4,
+/// so |pre-activation| ≤ 1e4 · 20 · 16384 + 1e4 ≈ 3.3e9, and every state is squashed by tanh/σ after.
+pub const MAX_ABS_PARAMETER: f64 = 1e4;
 
 /// ξ indices feeding the instantaneous role I = [η_E, η_N, q].
 pub const INSTANT_INPUTS: [usize; 3] = [0, 1, 6];
@@ -56,9 +67,11 @@ pub enum ModelError {
         /// The rejected value.
         value: usize,
     },
-    /// The time-constant range is not `0 < tau_min < tau_max < ∞`.
+    /// The time-constant range is not `MIN_TAU_S <= tau_min < tau_max <= MAX_TAU_S`.
     #[error(
-        "liquid time constants must satisfy 0 < tau_min < tau_max (finite); got tau_min = {tau_min}, tau_max = {tau_max}"
+        "liquid time constants must satisfy {MIN_TAU_S} <= tau_min < tau_max <= {MAX_TAU_S}; got tau_min = {}, tau_max = {}",
+        readable(*tau_min),
+        readable(*tau_max)
     )]
     InvalidTimeConstants {
         /// Configured τ_min.
@@ -105,6 +118,19 @@ pub enum ModelError {
         name: &'static str,
         /// Flat row-major index of the first bad value.
         index: usize,
+    },
+    /// A tensor holds a finite value beyond ±[`MAX_ABS_PARAMETER`].
+    #[error(
+        "parameter tensor {name} has {} at flat index {index}, beyond ±{MAX_ABS_PARAMETER:e}",
+        readable(*value)
+    )]
+    ParameterOutOfRange {
+        /// Tensor name.
+        name: &'static str,
+        /// Flat row-major index of the first bad value.
+        index: usize,
+        /// The value.
+        value: f64,
     },
     /// Per-step inputs of a sequence or window do not have the same length.
     #[error("{field} has {found} entries but the sequence has {expected} steps")]
@@ -299,8 +325,8 @@ impl ModelConfig {
                 return Err(ModelError::InvalidDimension { name, value });
             }
         }
-        let ordered = self.tau_min > 0.0 && self.tau_max > self.tau_min;
-        if !(ordered && self.tau_max.is_finite()) {
+        let ordered = self.tau_min >= MIN_TAU_S && self.tau_max > self.tau_min;
+        if !(ordered && self.tau_max <= MAX_TAU_S) {
             return Err(ModelError::InvalidTimeConstants {
                 tau_min: self.tau_min,
                 tau_max: self.tau_max,
@@ -390,12 +416,12 @@ pub struct Model {
     params: Params,
 }
 
-/// Unvalidated serde form of [`Model`].
+/// Unvalidated serde form of [`Model`] (the artifact reader checks it with [`Model::from_parts`]).
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
-struct ModelParts {
-    config: ModelConfig,
-    params: Params,
+pub(crate) struct ModelParts {
+    pub(crate) config: ModelConfig,
+    pub(crate) params: Params,
 }
 
 impl TryFrom<ModelParts> for Model {

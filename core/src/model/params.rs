@@ -9,7 +9,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{ModelConfig, ModelError};
+use super::{MAX_ABS_PARAMETER, ModelConfig, ModelError};
 use crate::rng::Rng;
 
 /// One parameter tensor: a shape and its row-major data (`data.len()` = product of `shape`).
@@ -242,7 +242,8 @@ impl Params {
         self.tensors().iter().map(|(_, t)| t.data.len()).sum()
     }
 
-    /// Checks names, shapes and finiteness against what `config` needs.
+    /// Checks names, shapes, finiteness and the magnitude bound [`MAX_ABS_PARAMETER`] against what
+    /// `config` needs.
     pub fn validate(&self, config: &ModelConfig) -> Result<(), ModelError> {
         let template = Self::zeros(config);
         let expected = template.tensors();
@@ -267,6 +268,14 @@ impl Params {
             }
             if let Some(index) = have.data.iter().position(|v| !v.is_finite()) {
                 return Err(ModelError::NonFiniteParameter { name, index });
+            }
+            if let Some((index, &value)) = have
+                .data
+                .iter()
+                .enumerate()
+                .find(|(_, v)| v.abs() > MAX_ABS_PARAMETER)
+            {
+                return Err(ModelError::ParameterOutOfRange { name, index, value });
             }
         }
         if let Some((name, _)) = found

@@ -165,7 +165,7 @@ fn train_candidate(
         operating_point: OperatingPoint { theta: 0.5, n_p: 1 },
         provenance: Provenance {
             created_by: format!("spoofwatch {}", env!("CARGO_PKG_VERSION")),
-            training_data: spec.data_description.clone(),
+            training_data: Provenance::bounded_training_data(spec.data_description.clone()),
             seed: spec.train.seed,
             training_rows: train_seqs.iter().map(|s| s.features.len() as u64).sum(),
             epochs_run: outcome.history.len() as u32,

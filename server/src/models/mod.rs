@@ -2,6 +2,7 @@
 //! edge, the ModelService ([`service`]). Storage stays in `store`; conversions of core types stay in
 //! `spoofwatch_proto::wire`.
 
+mod cache;
 pub mod registry;
 pub mod service;
 

@@ -3,15 +3,15 @@
 //! rows) and [`RegistryError`]; it must not know about gRPC (the edge is `models::service`) nor
 //! write SQL (that is `store`).
 
-use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
 use serde::{Deserialize, Serialize};
 use spoofwatch_core::alarm::OperatingPoint;
 use spoofwatch_core::metrics::Metrics;
-use spoofwatch_core::model::artifact::{ARTIFACT_SCHEMA_VERSION, ModelArtifact};
+use spoofwatch_core::model::artifact::{ARTIFACT_SCHEMA_VERSION, ArtifactError, ModelArtifact};
 use spoofwatch_proto::wire::{ModelName, OperationName};
 
+use super::cache::ModelCache;
 use crate::fault::Fault;
 use crate::identity::{new_id, sha256_hex};
 use crate::store::{ModelRow, ModelSource, NewModel, Page, PageRequest, Store, StoreError};
@@ -31,9 +31,9 @@ pub enum RegistryError {
     /// A request asked for the active model and none is set.
     #[error("no model is active")]
     NoActiveModel,
-    /// Uploaded bytes are not a model artifact this server can load.
+    /// Uploaded bytes are not a model artifact this server can load (the error names the field).
     #[error("not a usable model artifact: {0}")]
-    InvalidArtifact(String),
+    InvalidArtifact(ArtifactError),
     /// A stored or bundled artifact could not be (de)serialised: a server-side fault.
     #[error(transparent)]
     Internal(#[from] Fault),
@@ -57,7 +57,7 @@ pub struct ModelMetadata {
 }
 
 impl ModelMetadata {
-    fn of(artifact: &ModelArtifact) -> Self {
+    pub(crate) fn of(artifact: &ModelArtifact) -> Self {
         let config = artifact.model.config();
         let a = &config.ablation;
         let mut ablations = Vec::new();
@@ -109,40 +109,46 @@ pub struct LoadedModel {
     pub artifact: Arc<ModelArtifact>,
 }
 
-/// Models in the store plus a cache of parsed artifacts and of the active model's name, so that
-/// starting a stream never waits for the database once the model has been served.
+/// Models in the store plus the active model and a byte-bounded LRU cache of other parsed
+/// artifacts, so that starting a stream never waits for the database once the model has been
+/// served, and importing many models cannot grow memory without bound.
 #[derive(Debug)]
 pub struct Registry {
     store: Store,
-    cache: Mutex<HashMap<String, Arc<ModelArtifact>>>,
-    /// The active model, as last read or set by this server (`None` until then). This server is
-    /// the only writer of the activation, so the cache is set where it activates.
-    active: Mutex<Option<ModelName>>,
+    /// Parsed artifacts other than the active one, within the `--model-cache-bytes` budget.
+    cache: Mutex<ModelCache>,
+    /// The active model, as last read or set by this server (`None` until then). Held apart from
+    /// the cache, so it is never evicted. This server is the only writer of the activation, so it
+    /// is set where it activates.
+    active: Mutex<Option<LoadedModel>>,
 }
 
 impl Registry {
-    pub fn new(store: Store) -> Self {
+    /// A registry over `store` caching at most `cache_bytes` of (serialised) artifacts besides the
+    /// active model.
+    pub fn new(store: Store, cache_bytes: usize) -> Self {
         Self {
             store,
-            cache: Mutex::new(HashMap::new()),
+            cache: Mutex::new(ModelCache::new(cache_bytes)),
             active: Mutex::new(None),
         }
     }
 
-    fn cache(&self) -> std::sync::MutexGuard<'_, HashMap<String, Arc<ModelArtifact>>> {
-        // Single inserts/removes cannot leave the map inconsistent, so a poisoned lock is usable.
+    fn cache(&self) -> std::sync::MutexGuard<'_, ModelCache> {
+        // Each cache operation completes its bookkeeping before it can panic (it does not), and a
+        // stale entry is only a cache miss, so a poisoned lock is usable.
         self.cache.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    fn active(&self) -> std::sync::MutexGuard<'_, Option<ModelName>> {
+    fn active(&self) -> std::sync::MutexGuard<'_, Option<LoadedModel>> {
         // A single assignment cannot leave it inconsistent, so a poisoned lock is usable.
         self.active.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// The active model's name: from memory, or read once from the store.
-    async fn active_name(&self) -> Result<ModelName, RegistryError> {
-        if let Some(name) = self.active().clone() {
-            return Ok(name);
+    /// The active model: from memory, or read once from the store.
+    async fn active_model(&self) -> Result<LoadedModel, RegistryError> {
+        if let Some(active) = self.active().clone() {
+            return Ok(active);
         }
         let row = self
             .store
@@ -150,8 +156,24 @@ impl Registry {
             .await?
             .ok_or(RegistryError::NoActiveModel)?;
         let name = ModelName::from_id(row.id);
-        *self.active() = Some(name.clone());
-        Ok(name)
+        let loaded = self.load(name).await?;
+        *self.active() = Some(loaded.clone());
+        Ok(loaded)
+    }
+
+    /// A model other than the known active one: from the cache, or parsed from the store.
+    async fn load(&self, name: ModelName) -> Result<LoadedModel, RegistryError> {
+        if let Some(artifact) = self.cache().get(name.id()) {
+            return Ok(LoadedModel { name, artifact });
+        }
+        let bytes = self.artifact_bytes(&name).await?;
+        let artifact = Arc::new(
+            ModelArtifact::from_slice(&bytes)
+                .map_err(|e| Fault::new("loading a stored model", e))?,
+        );
+        self.cache()
+            .insert(name.id(), Arc::clone(&artifact), bytes.len());
+        Ok(LoadedModel { name, artifact })
     }
 
     /// On an empty registry, registers and activates the bundled default model.
@@ -161,6 +183,7 @@ impl Registry {
         }
         let artifact = ModelArtifact::from_slice(BUNDLED_MODEL)
             .map_err(|e| Fault::new("loading the bundled default model", e))?;
+        let artifact = Arc::new(artifact);
         self.register(
             BUNDLED_MODEL_ID,
             "bundled default (subtle experiment, v2 evidence)",
@@ -170,7 +193,10 @@ impl Registry {
         )
         .await?;
         self.store.set_active_model(BUNDLED_MODEL_ID).await?;
-        *self.active() = Some(ModelName::from_id(BUNDLED_MODEL_ID));
+        *self.active() = Some(LoadedModel {
+            name: ModelName::from_id(BUNDLED_MODEL_ID),
+            artifact,
+        });
         tracing::info!("registered and activated the bundled default model");
         Ok(())
     }
@@ -187,6 +213,7 @@ impl Registry {
         let bytes = artifact
             .to_vec()
             .map_err(|e| Fault::new("serialising a model artifact", e))?;
+        let size = bytes.len();
         let metadata = serde_json::to_value(ModelMetadata::of(artifact))
             .map_err(|e| Fault::new("serialising model metadata", e))?;
         let row = self
@@ -202,8 +229,7 @@ impl Registry {
                 artifact: bytes,
             })
             .await?;
-        self.cache()
-            .insert(id.to_string(), Arc::new(artifact.clone()));
+        self.cache().insert(id, Arc::new(artifact.clone()), size);
         Ok(row)
     }
 
@@ -214,8 +240,8 @@ impl Registry {
         display_name: &str,
         activate: bool,
     ) -> Result<ModelRow, RegistryError> {
-        let artifact = ModelArtifact::from_slice(bytes)
-            .map_err(|e| RegistryError::InvalidArtifact(e.to_string()))?;
+        let artifact =
+            Arc::new(ModelArtifact::from_slice(bytes).map_err(RegistryError::InvalidArtifact)?);
         let id = new_id();
         let display_name = if display_name.is_empty() {
             format!("imported {id}")
@@ -239,21 +265,14 @@ impl Registry {
         &self,
         requested: Option<&ModelName>,
     ) -> Result<LoadedModel, RegistryError> {
-        let name = match requested {
-            Some(name) => name.clone(),
-            None => self.active_name().await?,
+        let Some(name) = requested else {
+            return self.active_model().await;
         };
-        if let Some(artifact) = self.cache().get(name.id()).cloned() {
-            return Ok(LoadedModel { name, artifact });
+        let active = self.active().clone();
+        match active {
+            Some(active) if active.name == *name => Ok(active),
+            _ => self.load(name.clone()).await,
         }
-        let bytes = self.artifact_bytes(&name).await?;
-        let artifact = Arc::new(
-            ModelArtifact::from_slice(&bytes)
-                .map_err(|e| Fault::new("loading a stored model", e))?,
-        );
-        self.cache()
-            .insert(name.id().to_string(), Arc::clone(&artifact));
-        Ok(LoadedModel { name, artifact })
     }
 
     /// A stored model's row.
@@ -279,9 +298,9 @@ impl Registry {
 
     /// Makes a model active (it must load).
     pub async fn activate(&self, name: &ModelName) -> Result<ModelRow, RegistryError> {
-        self.resolve(Some(name)).await?;
+        let loaded = self.resolve(Some(name)).await?;
         let row = self.store.set_active_model(name.id()).await?;
-        *self.active() = Some(name.clone());
+        *self.active() = Some(loaded);
         tracing::info!(model = %name, "activated model");
         Ok(row)
     }
@@ -304,7 +323,8 @@ mod tests {
         let dir = tempfile::tempdir().expect("temp dir");
         let path = dir.path().join("spoofwatch.db");
         let store = Store::open(&path.to_string_lossy()).await.expect("open");
-        let registry = Registry::new(store.clone());
+        // A cache too small for any artifact: the active model is held apart from it.
+        let registry = Registry::new(store.clone(), 1);
         registry.ensure_default_model().await.unwrap();
         assert_eq!(registry.resolve(None).await.unwrap().name.id(), "default");
 
@@ -323,5 +343,32 @@ mod tests {
         store.close().await;
         assert!(store.active_model().await.is_err(), "the store is closed");
         assert_eq!(registry.resolve(None).await.unwrap().name.id(), "second");
+    }
+
+    #[tokio::test]
+    async fn a_poisoned_import_is_refused_at_its_field_and_nothing_is_stored() {
+        use tonic_types::StatusExt;
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join("spoofwatch.db");
+        let store = Store::open(&path.to_string_lossy()).await.expect("open");
+        let registry = Registry::new(store.clone(), 1 << 20);
+        let mut value: serde_json::Value = serde_json::from_slice(BUNDLED_MODEL).expect("json");
+        value["evidence"]["mu_e"] = serde_json::json!(1e308);
+        let error = registry
+            .import(value.to_string().as_bytes(), "poisoned", true)
+            .await
+            .expect_err("mu_e = 1e308 is refused");
+        let status = tonic::Status::from(error);
+        assert_eq!(status.code(), tonic::Code::InvalidArgument);
+        let bad = status
+            .get_details_bad_request()
+            .expect("BadRequest details");
+        assert_eq!(bad.field_violations[0].field, "artifact.evidence.mu_e");
+        assert!(
+            bad.field_violations[0].description.contains("1.000e308"),
+            "{}",
+            bad.field_violations[0].description
+        );
+        assert_eq!(store.model_count().await.expect("count"), 0);
     }
 }

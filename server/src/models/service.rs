@@ -5,6 +5,7 @@
 use std::pin::Pin;
 use std::sync::Arc;
 
+use spoofwatch_core::model::artifact::{Provenance, bounded_provenance_text};
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::model_service_server::ModelService;
 use spoofwatch_proto::wire::ModelName;
@@ -20,7 +21,9 @@ use crate::edge::{display_name, model_name, page_request};
 use crate::status::invalid_field;
 use crate::store::{ModelRow, ModelSource};
 
-/// The wire form of a stored model.
+/// The wire form of a stored model, as GetModel returns it. The provenance text is cut to the
+/// artifact bounds (`MAX_TRAINING_DATA_ENTRIES` × `MAX_PROVENANCE_TEXT_BYTES`, and that for the
+/// notes) even for a row stored before they existed, so one model always fits a default message.
 pub fn model_to_proto(row: &ModelRow) -> v1::Model {
     let source = match row.source {
         ModelSource::Bundled => "bundled",
@@ -45,12 +48,22 @@ pub fn model_to_proto(row: &ModelRow) -> v1::Model {
         model.architecture = m.architecture;
         model.parameter_count = m.parameter_count;
         model.seed = m.seed;
-        model.training_data = m.training_data;
+        model.training_data = Provenance::bounded_training_data(m.training_data);
         model.train_wall_time_s = m.train_wall_time_s;
         model.epochs_run = m.epochs_run;
-        model.notes = m.notes;
+        model.notes = bounded_provenance_text(m.notes);
     }
     model
+}
+
+/// The wire form of a stored model in a ListModels page: without the provenance free text, so that
+/// a page of `MAX_PAGE_SIZE` models stays far below the default 4 MiB message limit.
+pub fn model_summary_to_proto(row: &ModelRow) -> v1::Model {
+    v1::Model {
+        training_data: Vec::new(),
+        notes: String::new(),
+        ..model_to_proto(row)
+    }
 }
 
 /// The ModelService implementation.
@@ -73,7 +86,7 @@ impl ModelService for ModelApi {
             .list(&page_request(r.page_size, &r.page_token)?)
             .await?;
         Ok(Response::new(v1::ListModelsResponse {
-            models: page.items.iter().map(model_to_proto).collect(),
+            models: page.items.iter().map(model_summary_to_proto).collect(),
             next_page_token: page.next_page_token.unwrap_or_default(),
         }))
     }
@@ -138,10 +151,15 @@ impl ModelService for ModelApi {
         while let Some(message) = stream.message().await? {
             match message.kind {
                 Some(Kind::Chunk(chunk)) => {
+                    // Refused before the chunk is buffered: memory per import stays bounded.
                     if bytes.len() + chunk.len() > MAX_ARTIFACT_BYTES {
                         return Err(invalid_field(
-                            "chunk",
-                            format!("artifact exceeds {MAX_ARTIFACT_BYTES} bytes"),
+                            "artifact",
+                            format!(
+                                "must be at most {} MiB, got more than {} MiB",
+                                MAX_ARTIFACT_BYTES >> 20,
+                                (bytes.len() + chunk.len()) >> 20
+                            ),
                         ));
                     }
                     bytes.extend_from_slice(&chunk);
@@ -152,5 +170,71 @@ impl ModelService for ModelApi {
         let name = display_name("header.display_name", &header.display_name)?;
         let row = self.registry.import(&bytes, name, header.activate).await?;
         Ok(Response::new(model_to_proto(&row)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use prost::Message;
+    use spoofwatch_core::alarm::OperatingPoint;
+    use spoofwatch_core::model::artifact::{MAX_PROVENANCE_TEXT_BYTES, MAX_TRAINING_DATA_ENTRIES};
+    use spoofwatch_proto::wire::limits::{
+        MAX_DISPLAY_NAME_CHARS, MAX_MESSAGE_BYTES, MAX_PAGE_SIZE, MAX_RESOURCE_ID_LEN,
+    };
+
+    use super::*;
+    use crate::models::registry::BUNDLED_MODEL;
+
+    /// A stored model with every field at its largest: ids and names at their bounds in 4-byte
+    /// characters where free text is allowed, and provenance text far beyond the artifact bounds (as
+    /// a row stored before them could hold).
+    fn worst_case_row() -> ModelRow {
+        let artifact = spoofwatch_core::model::artifact::ModelArtifact::from_slice(BUNDLED_MODEL)
+            .expect("the bundled model");
+        let mut metadata = ModelMetadata::of(&artifact);
+        metadata.operating_point = OperatingPoint {
+            theta: 0.123_456_789,
+            n_p: u32::MAX,
+        };
+        metadata.training_data =
+            vec!["𝔡".repeat(MAX_PROVENANCE_TEXT_BYTES); 10 * MAX_TRAINING_DATA_ENTRIES];
+        metadata.notes = "𝔫".repeat(10 * MAX_PROVENANCE_TEXT_BYTES);
+        metadata.architecture = "a".repeat(1024);
+        ModelRow {
+            id: "i".repeat(MAX_RESOURCE_ID_LEN),
+            display_name: "𝔪".repeat(MAX_DISPLAY_NAME_CHARS),
+            source: ModelSource::Training,
+            training_operation: Some(format!("operations/{}", "o".repeat(MAX_RESOURCE_ID_LEN))),
+            created_at_ms: i64::MAX,
+            schema_version: i64::from(u32::MAX),
+            sha256: "f".repeat(64),
+            size_bytes: i64::MAX,
+            metadata: serde_json::to_value(metadata).expect("metadata serialises"),
+            active: true,
+        }
+    }
+
+    #[test]
+    fn a_full_page_of_the_largest_models_fits_the_default_message_limit() {
+        let row = worst_case_row();
+        let page = v1::ListModelsResponse {
+            models: vec![model_summary_to_proto(&row); MAX_PAGE_SIZE as usize],
+            next_page_token: "t".repeat(1024),
+        };
+        let page_bytes = page.encoded_len();
+        // Half the limit (about 2.6 KB a model): room for the gRPC framing and for fields added later.
+        assert!(
+            page_bytes < MAX_MESSAGE_BYTES / 2,
+            "{page_bytes} bytes for {MAX_PAGE_SIZE} models"
+        );
+
+        let one = model_to_proto(&row);
+        assert_eq!(one.training_data.len(), MAX_TRAINING_DATA_ENTRIES);
+        assert!(one.notes.len() <= MAX_PROVENANCE_TEXT_BYTES);
+        let one_bytes = one.encoded_len();
+        assert!(
+            one_bytes < MAX_MESSAGE_BYTES / 2,
+            "{one_bytes} bytes for one model"
+        );
     }
 }

@@ -1,0 +1,127 @@
+//! The canary drive: a fixed synthetic drive that every model artifact must get through with only
+//! finite probabilities in [0, 1] before it is accepted (`docs/detector.md` §5.1). The range checks on
+//! an artifact's values are meant to make a bad output impossible; the canary runs the real streaming
+//! [`Detector`] to prove it for the artifact at hand, so a value the checks missed is refused at import
+//! instead of blinding detection later.
+//!
+//! Owns the canary drive and the check. Must not parse artifacts nor choose what they may hold.
+
+use std::sync::Arc;
+
+use crate::detector::Detector;
+use crate::geo::displace_fix;
+use crate::model::artifact::ModelArtifact;
+use crate::sample::Sample;
+
+/// Samples in the canary drive (1 Hz): past the v2 evidence's 240 s warm-up, so every drift channel
+/// is switched on for the final samples, and still only a few milliseconds of model steps.
+pub const CANARY_SAMPLES: usize = 260;
+
+/// Where the canary drive starts (degrees).
+const START: (f64, f64) = (48.137, 11.575);
+/// Onboard speed (m/s) and heading (degrees clockwise from north).
+const SPEED_MPS: f64 = 12.0;
+const HEADING_DEG: f64 = 60.0;
+/// The spoofer's cross-track drag from this sample on (m/s), then a jump and a frozen fix.
+const DRIFT_START: usize = 150;
+const DRIFT_MPS: f64 = 1.5;
+const JUMP_AT: usize = 220;
+const JUMP_M: f64 = 300.0;
+const FROZEN: std::ops::Range<usize> = 235..242;
+/// A 3 s gap in the timestamps after this sample (a dropped second of data).
+const GAP_AFTER: usize = 245;
+
+/// The canary drive: a straight line at constant speed with a small deterministic wobble on the fix,
+/// then a slow cross-track drift, a jump, a frozen fix and a gap, so that every evidence channel moves.
+pub fn canary_drive() -> Vec<Sample> {
+    let heading = HEADING_DEG.to_radians();
+    let (along_e, along_n) = (heading.sin(), heading.cos());
+    let mut samples: Vec<Sample> = Vec::with_capacity(CANARY_SAMPLES);
+    for k in 0..CANARY_SAMPLES {
+        let t = k as f64 + if k > GAP_AFTER { 3.0 } else { 0.0 };
+        let travelled = SPEED_MPS * t;
+        let wobble = [0.6 * (0.9 * t).sin(), 0.4 * (1.3 * t).cos()];
+        let drag = DRIFT_MPS * (k.saturating_sub(DRIFT_START) as f64);
+        let jump = if k >= JUMP_AT { JUMP_M } else { 0.0 };
+        // The drag and the jump are across the track (to the right of the heading).
+        let cross = drag + jump;
+        let east = travelled * along_e + wobble[0] + cross * along_n;
+        let north = travelled * along_n + wobble[1] - cross * along_e;
+        let (latitude, longitude) = displace_fix(START.0, START.1, east, north);
+        let mut sample = Sample::new(t, latitude, longitude, SPEED_MPS, HEADING_DEG);
+        if FROZEN.contains(&k)
+            && let Some(previous) = samples.last()
+        {
+            sample.latitude_deg = previous.latitude_deg;
+            sample.longitude_deg = previous.longitude_deg;
+        }
+        samples.push(sample);
+    }
+    samples
+}
+
+/// The first canary sample whose probability is not a number in [0, 1].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CanaryFailure {
+    /// Index into [`canary_drive`].
+    pub sample: usize,
+    /// The probability the detector produced there.
+    pub probability: f64,
+}
+
+/// Runs a fresh streaming detector with `artifact` over the canary drive.
+pub fn check(artifact: Arc<ModelArtifact>) -> Result<(), CanaryFailure> {
+    let mut detector = Detector::new(artifact);
+    for (sample, record) in canary_drive().iter().enumerate() {
+        let probability = detector.step(record, false).probability;
+        if !(0.0..=1.0).contains(&probability) {
+            return Err(CanaryFailure {
+                sample,
+                probability,
+            });
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::artifact::ModelArtifact;
+
+    fn bundled() -> ModelArtifact {
+        ModelArtifact::from_slice(include_bytes!("../../models/default.json"))
+            .expect("the bundled model loads")
+    }
+
+    #[test]
+    fn the_drive_is_fixed_and_moves_every_evidence_channel() {
+        let drive = canary_drive();
+        assert_eq!(drive.len(), CANARY_SAMPLES);
+        assert_eq!(drive, canary_drive());
+        assert!(drive.iter().all(|s| s.violations().is_empty()));
+        let artifact = Arc::new(bundled());
+        let mut detector = Detector::new(Arc::clone(&artifact));
+        let features: Vec<_> = drive
+            .iter()
+            .map(|s| detector.step(s, false).features)
+            .collect();
+        for channel in 0..artifact.schema().feature_count() {
+            let first = features[0][channel];
+            assert!(
+                features.iter().any(|f| f[channel] != first),
+                "channel {channel} never moves"
+            );
+        }
+    }
+
+    #[test]
+    fn a_model_that_yields_nan_fails_at_the_first_sample() {
+        let mut artifact = bundled();
+        artifact.model.params_mut().tensors_mut()[0].1.data_mut()[0] = f64::NAN;
+        let failure = check(Arc::new(artifact)).expect_err("NaN weights");
+        assert_eq!(failure.sample, 0);
+        assert!(failure.probability.is_nan());
+        assert_eq!(check(Arc::new(bundled())), Ok(()));
+    }
+}
