@@ -59,8 +59,12 @@ def stored_events(database):
     if not os.path.exists(database):
         return None
     con = sqlite3.connect(database)
-    rows = con.execute("SELECT id, vehicle_id, ended_at, samples FROM alarm_events").fetchall()
-    con.close()
+    try:
+        rows = con.execute("SELECT id, vehicle_id, ended_at, samples FROM alarm_events").fetchall()
+    except sqlite3.OperationalError as error:
+        return {"error": f"{error} (an empty file took the database's place)"}
+    finally:
+        con.close()
     ids = [r[0] for r in rows]
     return {"rows": len(rows), "unique_ids": len(set(ids)) == len(ids),
             "open": sum(1 for r in rows if r[2] is None)}

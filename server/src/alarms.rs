@@ -22,6 +22,8 @@ use crate::store::{AlarmWrite, Store, StoreError, now_unix_ms};
 pub const OUTBOX_CAPACITY: usize = 100_000;
 /// Most writes per transaction.
 const BATCH: usize = 512;
+/// Most unstored writes logged one by one at shutdown.
+const MAX_LOGGED_UNSTORED: usize = 10_000;
 /// Retry delays after a failed batch: doubling from the first to the last.
 const BACKOFF: (Duration, Duration) = (Duration::from_millis(50), Duration::from_secs(5));
 
@@ -153,6 +155,19 @@ impl AlarmOutbox {
         }
     }
 
+    /// At a shutdown the database refuses: every write still queued goes to the log (up to
+    /// [`MAX_LOGGED_UNSTORED`] of them), so an operator can restore them by hand.
+    fn log_unstored(&self) {
+        let queue = self.queue();
+        tracing::error!(
+            lost = queue.len(),
+            "shutting down with alarm events the database did not accept; they follow"
+        );
+        for write in queue.iter().take(MAX_LOGGED_UNSTORED) {
+            tracing::error!(?write, "alarm event not stored");
+        }
+    }
+
     /// The writer: stores queued writes until `stop` is cancelled and the queue is empty, or until
     /// `grace` has passed after `stop` with the store still refusing (what is left is logged).
     pub async fn run(&self, store: Store, stop: CancellationToken, grace: Duration) {
@@ -197,10 +212,7 @@ impl AlarmOutbox {
                         let deadline =
                             *deadline.get_or_insert_with(|| tokio::time::Instant::now() + grace);
                         if tokio::time::Instant::now() >= deadline {
-                            tracing::error!(
-                                lost = self.stats().backlog,
-                                "shutting down with alarm events the database did not accept"
-                            );
+                            self.log_unstored();
                             return;
                         }
                     }

@@ -3,6 +3,7 @@
 //! server chooses codes for subsystem errors; this module must not hold any logic, and nothing in
 //! the crate imports it (the services reach it through `?`), so it may depend on every subsystem.
 
+use spoofwatch_core::model::artifact::ArtifactError;
 use spoofwatch_core::train::TrainError;
 use spoofwatch_core::train::detector::TrainDetectorError;
 use std::time::Duration;
@@ -71,7 +72,12 @@ impl From<RegistryError> for Status {
                     Some(path) => format!("artifact.{path}"),
                     None => "artifact".to_string(),
                 };
-                invalid_field(field, error.to_string())
+                // A field's own reason, without repeating the field the violation names.
+                let description = match artifact {
+                    ArtifactError::Field { reason, .. } => reason.clone(),
+                    other => other.to_string(),
+                };
+                invalid_field(field, description)
             }
             RegistryError::Internal(Fault { context, .. }) => internal(context, &error),
             RegistryError::Store(store) => store.into(),

@@ -61,10 +61,12 @@ pub async fn watch_storage(
                 tracing::info!("storage healthy again: alarm events are being stored");
                 ServingStatus::Serving
             } else {
-                tracing::error!(
-                    backlog = stats.backlog,
-                    "storage NOT_SERVING: alarm events are waiting for the database"
-                );
+                if !lost {
+                    tracing::error!(
+                        backlog = stats.backlog,
+                        "storage NOT_SERVING: alarm events are waiting for the database"
+                    );
+                }
                 ServingStatus::NotServing
             };
             health.set_service_status(STORAGE_HEALTH, status).await;

@@ -156,9 +156,8 @@ impl ModelService for ModelApi {
                         return Err(invalid_field(
                             "artifact",
                             format!(
-                                "must be at most {} MiB, got more than {} MiB",
-                                MAX_ARTIFACT_BYTES >> 20,
-                                (bytes.len() + chunk.len()) >> 20
+                                "must be at most {} MiB; the upload went past it",
+                                MAX_ARTIFACT_BYTES >> 20
                             ),
                         ));
                     }
