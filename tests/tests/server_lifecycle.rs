@@ -5,7 +5,8 @@ use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
 use spoofwatch_tests::{
-    TestServer, code_of, normal_drive, start_server, start_stream, test_config, track_samples,
+    TestServer, code_of, health_of, normal_drive, start_server, start_stream, test_config,
+    track_samples,
 };
 use tonic::Code;
 use tonic::transport::Channel;
@@ -121,17 +122,10 @@ async fn shutdown_turns_health_not_serving_and_ends_open_streams_within_the_boun
         "",
         "spoofwatch.v1.DetectionService",
         "spoofwatch.v1.ModelService",
+        "spoofwatch.storage",
     ] {
-        let status = clients
-            .health
-            .check(HealthCheckRequest {
-                service: service.to_string(),
-            })
-            .await
-            .expect("health answers")
-            .into_inner()
-            .status;
-        assert_eq!(status, ServingStatus::Serving as i32, "service {service:?}");
+        let status = health_of(&server, service).await;
+        assert_eq!(status, ServingStatus::Serving, "service {service:?}");
     }
 
     let (mut stream, _) = start_stream(&clients, "draining-car", "").await;

@@ -45,48 +45,61 @@ pub fn inverse(m: &Mat2) -> Mat2 {
     [[m[1][1] * k, -m[0][1] * k], [-m[1][0] * k, m[0][0] * k]]
 }
 
+/// Closed-form eigendecomposition of a symmetric 2×2 matrix (the off-diagonal taken as the mean of
+/// the two given entries): eigenvalues λ₁, λ₂ along (cos θ, sin θ) and (−sin θ, cos θ).
+struct SymmetricEigen {
+    lambda1: f64,
+    lambda2: f64,
+    cos: f64,
+    sin: f64,
+}
+
+impl SymmetricEigen {
+    fn of(m: &Mat2) -> Self {
+        let a = m[0][0];
+        let b = 0.5 * (m[0][1] + m[1][0]);
+        let c = m[1][1];
+        // Rotation by θ with tan 2θ = 2b/(a−c) diagonalises S; eigenvector 1 = (cos θ, sin θ).
+        let theta = 0.5 * (2.0 * b).atan2(a - c);
+        let (sin, cos) = theta.sin_cos();
+        // Rayleigh quotients: accurate eigenvalues even when they are close.
+        Self {
+            lambda1: a * cos * cos + 2.0 * b * cos * sin + c * sin * sin,
+            lambda2: a * sin * sin - 2.0 * b * cos * sin + c * cos * cos,
+            cos,
+            sin,
+        }
+    }
+
+    /// The symmetric matrix with the same eigenvectors and eigenvalues `f1`, `f2`.
+    fn with_values(&self, f1: f64, f2: f64) -> Mat2 {
+        let (cos, sin) = (self.cos, self.sin);
+        let off = (f1 - f2) * cos * sin;
+        [
+            [f1 * cos * cos + f2 * sin * sin, off],
+            [off, f1 * sin * sin + f2 * cos * cos],
+        ]
+    }
+}
+
 /// The symmetric 2×2 `m` with its eigenvalues raised to at least 1 (the smallest matrix above both
-/// `m` and I along `m`'s eigenvectors); `None` when none is below 1. Same closed-form
-/// eigendecomposition as [`inverse_sqrt_symmetric`].
+/// `m` and I along `m`'s eigenvectors); `None` when none is below 1.
 pub fn floor_at_identity(m: &Mat2) -> Option<Mat2> {
-    let a = m[0][0];
-    let b = 0.5 * (m[0][1] + m[1][0]);
-    let c = m[1][1];
-    let theta = 0.5 * (2.0 * b).atan2(a - c);
-    let (sin, cos) = theta.sin_cos();
-    let lambda1 = a * cos * cos + 2.0 * b * cos * sin + c * sin * sin;
-    let lambda2 = a * sin * sin - 2.0 * b * cos * sin + c * cos * cos;
-    if lambda1 >= 1.0 && lambda2 >= 1.0 {
+    let eigen = SymmetricEigen::of(m);
+    if eigen.lambda1 >= 1.0 && eigen.lambda2 >= 1.0 {
         return None;
     }
-    let (l1, l2) = (lambda1.max(1.0), lambda2.max(1.0));
-    let off = (l1 - l2) * cos * sin;
-    Some([
-        [l1 * cos * cos + l2 * sin * sin, off],
-        [off, l1 * sin * sin + l2 * cos * cos],
-    ])
+    Some(eigen.with_values(eigen.lambda1.max(1.0), eigen.lambda2.max(1.0)))
 }
 
 /// Symmetric inverse square root `S^{-1/2}` of a symmetric 2×2 matrix, from its closed-form
-/// eigendecomposition with eigenvalues floored at [`EIGENVALUE_FLOOR`]. The off-diagonal is taken as
-/// the mean of the two given entries. Non-finite input gives non-finite output.
+/// eigendecomposition with eigenvalues floored at [`EIGENVALUE_FLOOR`]. Non-finite input gives
+/// non-finite output.
 pub fn inverse_sqrt_symmetric(m: &Mat2) -> Mat2 {
-    let a = m[0][0];
-    let b = 0.5 * (m[0][1] + m[1][0]);
-    let c = m[1][1];
-    // Rotation by θ with tan 2θ = 2b/(a−c) diagonalises S; eigenvector 1 = (cos θ, sin θ).
-    let theta = 0.5 * (2.0 * b).atan2(a - c);
-    let (sin, cos) = theta.sin_cos();
-    // Rayleigh quotients: accurate eigenvalues even when they are close.
-    let lambda1 = a * cos * cos + 2.0 * b * cos * sin + c * sin * sin;
-    let lambda2 = a * sin * sin - 2.0 * b * cos * sin + c * cos * cos;
-    let f1 = 1.0 / lambda1.max(EIGENVALUE_FLOOR).sqrt();
-    let f2 = 1.0 / lambda2.max(EIGENVALUE_FLOOR).sqrt();
-    let off = (f1 - f2) * cos * sin;
-    [
-        [f1 * cos * cos + f2 * sin * sin, off],
-        [off, f1 * sin * sin + f2 * cos * cos],
-    ]
+    let eigen = SymmetricEigen::of(m);
+    let f1 = 1.0 / eigen.lambda1.max(EIGENVALUE_FLOOR).sqrt();
+    let f2 = 1.0 / eigen.lambda2.max(EIGENVALUE_FLOOR).sqrt();
+    eigen.with_values(f1, f2)
 }
 
 /// `S^{-1/2}` of a symmetric positive-definite 2×2 matrix without trigonometry (per-step Σ_t is
