@@ -153,14 +153,7 @@ async fn long_names_are_refused_without_being_echoed(clients: &mut Clients) {
         .await
         .expect_err("too long");
     assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
-    assert_eq!(
-        status
-            .get_details_bad_request()
-            .expect("field violations")
-            .field_violations[0]
-            .field,
-        "header.display_name"
-    );
+    assert_eq!(first_violated_field(&status), "header.display_name");
     assert!(status.message().len() < 200, "{}", status.message());
 }
 
@@ -212,13 +205,7 @@ async fn unary_bad_samples_carry_field_violations(clients: &mut Clients) {
         .await
         .expect_err("an infinite speed is refused");
     assert_eq!(status.code(), Code::InvalidArgument);
-    let bad_request = status
-        .get_details_bad_request()
-        .expect("BadRequest details");
-    assert_eq!(
-        bad_request.field_violations[0].field,
-        "samples[1].speed_mps"
-    );
+    assert_eq!(first_violated_field(&status), "samples[1].speed_mps");
 }
 
 async fn imports_outside_the_data_directory_are_denied(clients: &mut Clients, outside: &str) {
@@ -253,14 +240,7 @@ async fn malformed_uploads_are_refused_and_nothing_is_stored(clients: &mut Clien
         .await
         .expect_err("a malformed artifact is refused");
     assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
-    assert_eq!(
-        status
-            .get_details_bad_request()
-            .expect("field violations")
-            .field_violations[0]
-            .field,
-        "artifact.schema_version"
-    );
+    assert_eq!(first_violated_field(&status), "artifact.schema_version");
 
     let csv = "vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg\n\
                car,0,32.2,-110.9,1.0,0\n\
@@ -408,4 +388,12 @@ async fn oversized_messages_are_refused_and_the_server_keeps_serving() {
     drop(again);
     drop(clients);
     server.stop().await;
+}
+
+/// The field of a refusal's first BadRequest violation.
+fn first_violated_field(status: &tonic::Status) -> String {
+    let bad_request = status
+        .get_details_bad_request()
+        .expect("BadRequest details");
+    bad_request.field_violations[0].field.clone()
 }
