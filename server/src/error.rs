@@ -106,6 +106,7 @@ impl From<SessionError> for Status {
             SessionError::NotFound(vehicle) => not_found("session", &vehicle),
             SessionError::Full(_) => resource_exhausted(error.to_string()),
             SessionError::Model(model) => model.into(),
+            SessionError::ModelDeleted(_) => Status::aborted(error.to_string()),
         }
     }
 }

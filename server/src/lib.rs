@@ -200,6 +200,7 @@ pub async fn serve(
     .max_decoding_message_size(limit);
     let models = ModelServiceServer::new(ModelApi {
         registry: Arc::clone(&registry),
+        sessions: Arc::clone(&sessions),
     })
     .max_decoding_message_size(limit);
     let datasets =

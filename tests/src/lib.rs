@@ -357,6 +357,31 @@ pub async fn export_model(
     bytes
 }
 
+/// Uploads an artifact in two chunks under `display_name` (not activated).
+pub async fn import_model(
+    clients: &mut Clients,
+    artifact: Vec<u8>,
+    display_name: &str,
+) -> v1::Model {
+    use v1::import_model_request::Kind;
+    let (head, tail) = artifact.split_at(artifact.len() / 2);
+    let messages = [
+        Kind::Header(v1::ImportModelHeader {
+            display_name: display_name.into(),
+            activate: false,
+        }),
+        Kind::Chunk(head.to_vec()),
+        Kind::Chunk(tail.to_vec()),
+    ]
+    .map(|kind| v1::ImportModelRequest { kind: Some(kind) });
+    clients
+        .models
+        .import_model(tokio_stream::iter(messages))
+        .await
+        .expect("ImportModel accepts an exported artifact")
+        .into_inner()
+}
+
 /// The name of the active model (exactly one is active).
 pub async fn active_model(models: &mut ModelServiceClient<AuthenticatedChannel>) -> v1::Model {
     let listed = models

@@ -7,8 +7,9 @@ use spoofwatch_core::sample::Track;
 use spoofwatch_proto::longrunning::{self, operation};
 use spoofwatch_proto::v1;
 use spoofwatch_tests::{
-    Clients, active_model, export_model, metadata_of, normal_drive, start_server, start_stream,
-    track_samples, trained_model, training_fleet, training_request, upload_tracks, wait_done,
+    Clients, active_model, export_model, import_model, metadata_of, normal_drive, start_server,
+    start_stream, track_samples, trained_model, training_fleet, training_request, upload_tracks,
+    wait_done,
 };
 use tonic::Code;
 
@@ -20,27 +21,6 @@ fn rows_and_spoofed(tracks: &[Track]) -> (u64, u64) {
 
 fn state_of(metadata: &v1::JobMetadata) -> v1::JobState {
     v1::JobState::try_from(metadata.state).expect("a known job state")
-}
-
-/// Uploads an artifact in two chunks (not activated).
-async fn import_model(clients: &mut Clients, artifact: Vec<u8>) -> v1::Model {
-    use v1::import_model_request::Kind;
-    let (head, tail) = artifact.split_at(artifact.len() / 2);
-    let messages = [
-        Kind::Header(v1::ImportModelHeader {
-            display_name: "re-imported".into(),
-            activate: false,
-        }),
-        Kind::Chunk(head.to_vec()),
-        Kind::Chunk(tail.to_vec()),
-    ]
-    .map(|kind| v1::ImportModelRequest { kind: Some(kind) });
-    clients
-        .models
-        .import_model(tokio_stream::iter(messages))
-        .await
-        .expect("ImportModel accepts an exported artifact")
-        .into_inner()
 }
 
 /// Opens a WatchJob stream.
@@ -164,7 +144,7 @@ async fn a_trained_model_serves_new_sessions_and_a_second_job_can_be_cancelled()
 
     // Export and re-import give the same artifact under a new name.
     let artifact = export_model(&mut clients.models, &model.name).await;
-    let imported = import_model(&mut clients, artifact).await;
+    let imported = import_model(&mut clients, artifact, "re-imported").await;
     assert_ne!(imported.name, model.name);
     assert_eq!(
         (imported.source.as_str(), imported.active),

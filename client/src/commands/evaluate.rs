@@ -1,4 +1,5 @@
-//! `spoofwatch evaluate`: score a model artifact on labelled data.
+//! `spoofwatch evaluate`: score a model artifact on labelled data, or (`--server`) run an
+//! evaluation job on a server (`remote::evaluate`).
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -13,19 +14,30 @@ use crate::report::{delays, metrics_table};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Model artifact (JSON) written by `spoofwatch train`.
-    #[arg(long)]
-    model: PathBuf,
+    /// Model artifact (JSON) written by `spoofwatch train`; with --server a stored model
+    /// (`models/{id}` or `{id}`, default: the active model).
+    #[arg(long, required_unless_present = "server")]
+    model: Option<String>,
     /// Labelled recorded data (AV-GPS or telemetry CSV).
-    #[arg(long, required = true, num_args = 1..)]
+    #[arg(long, num_args = 1.., required_unless_present = "server", conflicts_with = "server")]
     data: Vec<PathBuf>,
+    /// Evaluate on this Spoofwatch server (an evaluation job over its --dataset's) instead of
+    /// locally. Deliberately not read from SPOOFWATCH_SERVER, so offline evaluation stays offline.
+    #[arg(long, requires = "datasets")]
+    server: Option<String>,
+    /// Bearer token for the server.
+    #[arg(long, env = "SPOOFWATCH_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// Remote mode: stored datasets to score (`datasets/{id}` or `{id}`).
+    #[arg(long = "dataset", num_args = 1.., requires = "server")]
+    datasets: Vec<String>,
     /// Write the metrics as JSON here.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "server")]
     json: Option<PathBuf>,
     /// Write per-row probabilities and alarms as CSV here.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "server")]
     rows: Option<PathBuf>,
-    /// Event rules for ADR and delays.
+    /// Event rules for ADR and delays (offline; a server job uses SPEC §8's).
     #[arg(long, value_enum, default_value_t)]
     rules: RulesArg,
 }
@@ -38,7 +50,19 @@ pub fn load_artifact(path: &PathBuf) -> Result<Arc<ModelArtifact>> {
 }
 
 pub fn run(args: Args) -> Result<()> {
-    let artifact = load_artifact(&args.model)?;
+    if let Some(server) = args.server {
+        let job = super::remote::evaluate::Job {
+            server,
+            token: args.token,
+            model: args.model.unwrap_or_default(),
+            datasets: args.datasets,
+        };
+        return super::remote::block_on(super::remote::evaluate::run(job));
+    }
+    let Some(model) = args.model.as_deref().map(PathBuf::from) else {
+        anyhow::bail!("--model is required for offline evaluation");
+    };
+    let artifact = load_artifact(&model)?;
     let tracks = load_tracks(&args.data)?;
     let evaluation = evaluate_tracks(&artifact, &tracks, args.rules.into());
     let op = artifact.operating_point;
@@ -54,7 +78,7 @@ pub fn run(args: Args) -> Result<()> {
             .map(|(v, m)| Ok((v.clone(), serde_json::to_value(m)?)))
             .collect::<Result<_, serde_json::Error>>()?;
         let doc = serde_json::json!({
-            "model": args.model.display().to_string(),
+            "model": model.display().to_string(),
             "operating_point": op,
             "overall": evaluation.overall,
             "per_vehicle": per_vehicle,

@@ -38,7 +38,7 @@ enum Command {
     Cusum(cusum::Args),
     /// Train an HO-LLN detector and write its model artifact.
     Train(train::Args),
-    /// Score a model artifact on labelled data.
+    /// Score a model artifact on labelled data (or a stored model on a server's datasets).
     Evaluate(evaluate::Args),
     /// Reproducible experiments (reports in an output directory).
     #[command(subcommand)]
@@ -53,6 +53,8 @@ enum Command {
     Jobs(remote::jobs::Args),
     /// Manage the models on a server.
     Models(remote::models::Args),
+    /// Inspect and reset the vehicle sessions a server holds in memory.
+    Sessions(remote::sessions::Args),
     /// Live demo: an in-process server detecting a simulated drive with a GNSS drift attack.
     Demo(remote::demo::Args),
     /// Load benchmark over loopback: throughput, batch latency and per-session memory.
@@ -73,6 +75,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Datasets(args) => remote::block_on(remote::datasets::run(args)),
         Command::Jobs(args) => remote::block_on(remote::jobs::run(args)),
         Command::Models(args) => remote::block_on(remote::models::run(args)),
+        Command::Sessions(args) => remote::block_on(remote::sessions::run(args)),
         Command::Demo(args) => remote::block_on(remote::demo::run(args)),
         Command::Bench(args) => remote::block_on(remote::bench::run(args)),
     }

@@ -139,6 +139,11 @@ async fn run_stream(
         resumed: accepted.resumed,
         samples_seen: accepted.samples_seen,
         last_seq: accepted.last_seq,
+        replaced_model: accepted
+            .replaced_model
+            .as_ref()
+            .map(ToString::to_string)
+            .unwrap_or_default(),
     };
     tracing::debug!(vehicle = %start.vehicle_id, resumed = accepted.resumed, "stream attached");
     if tx
@@ -157,6 +162,10 @@ async fn run_stream(
                     let _ = tx.send(Err(Status::aborted(
                         "another stream for this vehicle took the session over",
                     ))).await;
+                    break;
+                }
+                _ = attachment.slot.model_deleted.cancelled() => {
+                    let _ = tx.send(Err(SessionError::ModelDeleted(attachment.accepted.model.clone()).into())).await;
                     break;
                 }
                 message = inbound.message() => message,

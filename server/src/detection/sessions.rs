@@ -1,6 +1,9 @@
 //! Per-vehicle sessions: a detector each, ownership by at most one stream (a newer stream takes
 //! over), a bounded count, idle eviction, and alarm onsets/ends handed to the alarm outbox (never a
 //! database call while a session is locked).
+//!
+//! Roll-out: a session started or resumed without a model follows the active model (a fresh
+//! detector when it changed); deleting a model ends the sessions that use it.
 //! Speaks core types ([`Sample`], [`Decision`]) and [`SessionError`]; it must not know about gRPC
 //! messages or statuses (the edge is `detection::service`).
 
@@ -34,6 +37,11 @@ pub enum SessionError {
     /// The requested model cannot be served.
     #[error(transparent)]
     Model(#[from] RegistryError),
+    /// The session's model was deleted: the session ended.
+    #[error(
+        "{0} was deleted, which ended this session; start a new one (an empty model follows the active model)"
+    )]
+    ModelDeleted(ModelName),
 }
 
 /// What a stream learns when it attaches.
@@ -44,6 +52,8 @@ pub struct Accepted {
     pub resumed: bool,
     pub samples_seen: u64,
     pub last_seq: u64,
+    /// The session existed with this other model and started afresh with `model`.
+    pub replaced_model: Option<ModelName>,
 }
 
 /// A processed batch: one decision per sample, in order, by `model`.
@@ -131,6 +141,8 @@ pub struct SessionSlot {
     state: tokio::sync::Mutex<SessionState>,
     owner: Mutex<Option<StreamOwner>>,
     last_activity_ms: AtomicI64,
+    /// Cancelled when the session's model is deleted: the session is gone and its stream ends.
+    pub model_deleted: CancellationToken,
 }
 
 impl SessionSlot {
@@ -162,6 +174,9 @@ pub struct SessionManager {
     alarms: Arc<AlarmOutbox>,
     limits: SessionLimits,
     next_stream_id: AtomicU64,
+    /// Held (shared) while a model is resolved and installed in a session, and exclusively while a
+    /// model is deleted and its sessions end, so that no session can start on a deleted model.
+    model_gate: tokio::sync::RwLock<()>,
 }
 
 impl SessionManager {
@@ -172,6 +187,7 @@ impl SessionManager {
             alarms,
             limits,
             next_stream_id: AtomicU64::new(1),
+            model_gate: tokio::sync::RwLock::new(()),
         }
     }
 
@@ -202,6 +218,7 @@ impl SessionManager {
             state: tokio::sync::Mutex::new(SessionState::new(model.clone())),
             owner: Mutex::new(None),
             last_activity_ms: AtomicI64::new(now_unix_ms()),
+            model_deleted: CancellationToken::new(),
         });
         slots.insert(vehicle_id.to_string(), Arc::clone(&slot));
         Ok((slot, false))
@@ -209,18 +226,15 @@ impl SessionManager {
 
     /// Attaches a stream to a vehicle's session (creating or resuming it); an older stream on the same
     /// session is told to end. `vehicle_id` must be valid (checked at the edge); `model` `None`
-    /// keeps the session's model (or serves the active one for a new session).
+    /// is the active model. A session on another model starts afresh.
     pub async fn attach(
         &self,
         vehicle_id: &str,
         model: Option<&ModelName>,
         reset: bool,
     ) -> Result<Attachment, SessionError> {
-        let existing = self.lookup(vehicle_id);
-        let model = match (&existing, model) {
-            (Some(slot), None) => slot.state.lock().await.model.clone(),
-            (_, requested) => self.registry.resolve(requested).await?,
-        };
+        let _gate = self.model_gate.read().await;
+        let model = self.registry.resolve(model).await?;
         let (slot, existed) = self.slot_for(vehicle_id, &model)?;
         let evicted = CancellationToken::new();
         let stream_id = self.next_stream_id.fetch_add(1, Ordering::Relaxed);
@@ -235,7 +249,9 @@ impl SessionManager {
         }
         slot.touch();
         let mut state = slot.state.lock().await;
-        let resumed = existed && !reset && state.model.name == model.name;
+        let replaced_model =
+            (existed && state.model.name != model.name).then(|| state.model.name.clone());
+        let resumed = existed && !reset && replaced_model.is_none();
         if !resumed {
             self.close_alarm(&mut state);
             *state = SessionState::new(model);
@@ -246,6 +262,7 @@ impl SessionManager {
             resumed,
             samples_seen: state.samples,
             last_seq: state.last_seq,
+            replaced_model,
         };
         drop(state);
         Ok(Attachment {
@@ -276,6 +293,20 @@ impl SessionManager {
         field: &str,
     ) -> Result<Decisions, SessionError> {
         let mut state = slot.state.lock().await;
+        self.process_locked(slot, &mut state, seq, samples, field)
+    }
+
+    fn process_locked(
+        &self,
+        slot: &SessionSlot,
+        state: &mut SessionState,
+        seq: u64,
+        samples: &[Sample],
+        field: &str,
+    ) -> Result<Decisions, SessionError> {
+        if slot.model_deleted.is_cancelled() {
+            return Err(SessionError::ModelDeleted(state.model.name.clone()));
+        }
         validate_batch(
             samples,
             state.last_timestamp_s,
@@ -296,7 +327,7 @@ impl SessionManager {
             if decision.alarm_onset {
                 state.alarms_raised += 1;
                 self.open_alarm(
-                    &mut state,
+                    state,
                     &slot.vehicle_id,
                     sample.timestamp_s,
                     decision.probability,
@@ -309,7 +340,7 @@ impl SessionManager {
                 }
             } else if decision.alarm_end {
                 // This sample is the first non-alarming one; the event ends at the previous sample.
-                self.close_alarm(&mut state);
+                self.close_alarm(state);
             }
             state.alarm_active = decision.alarm;
             decisions.push(decision);
@@ -361,10 +392,10 @@ impl SessionManager {
         })
     }
 
-    /// Runs a batch for a vehicle without attaching a stream (creating the session if needed;
-    /// `model` `Some` switches it to that model; `reset` starts it afresh if the batch is valid).
-    /// `seq` becomes the session's `last_seq` (`None` keeps it). `vehicle_id` must be valid
-    /// (checked at the edge); `field` names the samples in violations.
+    /// Runs a batch for a vehicle without attaching a stream (creating the session if needed).
+    /// `model` `None` is the active model; a session on another model, or with `reset`, starts
+    /// afresh if the batch is valid. `seq` becomes the session's `last_seq` (`None` keeps it).
+    /// `vehicle_id` must be valid (checked at the edge); `field` names the samples in violations.
     pub async fn detect_unattached(
         &self,
         vehicle_id: &str,
@@ -374,39 +405,69 @@ impl SessionManager {
         samples: &[Sample],
         field: &str,
     ) -> Result<Decisions, SessionError> {
-        let slot = match (self.lookup(vehicle_id), model) {
-            (Some(slot), None) if !reset => slot,
-            (Some(slot), requested) => {
-                let requested = match requested {
-                    Some(name) => Some(self.registry.resolve(Some(name)).await?),
-                    None => None,
-                };
-                let mut state = slot.state.lock().await;
-                let model = requested.unwrap_or_else(|| state.model.clone());
-                if reset || state.model.name != model.name {
-                    // The session starts afresh, but only for a batch valid on a fresh session: a
-                    // refused batch changes nothing.
-                    validate_batch(samples, None, self.limits.max_batch_samples, field)
-                        .map_err(SessionError::InvalidBatch)?;
-                    self.close_alarm(&mut state);
-                    *state = SessionState::new(model);
-                }
-                drop(state);
-                slot
+        if !reset
+            && let Some(slot) = self.lookup(vehicle_id)
+            && !slot.model_deleted.is_cancelled()
+        {
+            let mut state = slot.state.lock().await;
+            if self.runs(&state, model) {
+                let seq = seq.unwrap_or(state.last_seq);
+                return self.process_locked(&slot, &mut state, seq, samples, field);
             }
-            (None, requested) => {
-                let model = self.registry.resolve(requested).await?;
-                // A refused first batch must not leave a session behind.
-                validate_batch(samples, None, self.limits.max_batch_samples, field)
-                    .map_err(SessionError::InvalidBatch)?;
-                self.slot_for(vehicle_id, &model)?.0
+        }
+        // A model to resolve and install: a new session, a reset, or another model.
+        let _gate = self.model_gate.read().await;
+        let model = self.registry.resolve(model).await?;
+        // Starting afresh needs a batch valid on a fresh session: a refused batch changes nothing
+        // and leaves no new session behind.
+        validate_batch(samples, None, self.limits.max_batch_samples, field)
+            .map_err(SessionError::InvalidBatch)?;
+        let (slot, _) = self.slot_for(vehicle_id, &model)?;
+        let mut state = slot.state.lock().await;
+        if reset || state.model.name != model.name {
+            self.close_alarm(&mut state);
+            *state = SessionState::new(model);
+        }
+        let seq = seq.unwrap_or(state.last_seq);
+        self.process_locked(&slot, &mut state, seq, samples, field)
+    }
+
+    /// Whether a session already runs the model a request names (`None`: the active one).
+    fn runs(&self, state: &SessionState, model: Option<&ModelName>) -> bool {
+        match model {
+            Some(name) => state.model.name == *name,
+            None => self.registry.is_active(&state.model.name),
+        }
+    }
+
+    /// Deletes a model (not the active one) and ends the sessions that use it: their open alarms
+    /// end, they leave the table and their streams are told to end. Returns how many ended.
+    pub async fn delete_model(&self, name: &ModelName) -> Result<usize, SessionError> {
+        let _gate = self.model_gate.write().await;
+        self.registry.delete(name).await?;
+        let slots: Vec<Arc<SessionSlot>> = self.slots().values().cloned().collect();
+        let mut ended = 0;
+        for slot in slots {
+            let mut state = slot.state.lock().await;
+            if state.model.name != *name {
+                continue;
             }
-        };
-        let seq = match seq {
-            Some(seq) => seq,
-            None => slot.state.lock().await.last_seq,
-        };
-        self.process(&slot, seq, samples, field).await
+            self.close_alarm(&mut state);
+            slot.model_deleted.cancel();
+            drop(state);
+            let mut table = self.slots();
+            if table
+                .get(&slot.vehicle_id)
+                .is_some_and(|s| Arc::ptr_eq(s, &slot))
+            {
+                table.remove(&slot.vehicle_id);
+            }
+            ended += 1;
+        }
+        if ended > 0 {
+            tracing::info!(model = %name, sessions = ended, "ended the sessions of a deleted model");
+        }
+        Ok(ended)
     }
 
     /// The limits the table was made with.

@@ -275,6 +275,11 @@ impl Registry {
         }
     }
 
+    /// Whether `name` is the active model as this server knows it (`false` until it is first read).
+    pub fn is_active(&self, name: &ModelName) -> bool {
+        self.active().as_ref().is_some_and(|a| a.name == *name)
+    }
+
     /// A stored model's row.
     pub async fn get(&self, name: &ModelName) -> Result<ModelRow, RegistryError> {
         self.store

@@ -17,6 +17,7 @@ use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 
 use super::registry::{ModelMetadata, Registry};
+use crate::detection::SessionManager;
 use crate::edge::{display_name, model_name, page_request};
 use crate::status::invalid_field;
 use crate::store::{ModelRow, ModelSource};
@@ -70,6 +71,8 @@ pub fn model_summary_to_proto(row: &ModelRow) -> v1::Model {
 #[derive(Debug, Clone)]
 pub struct ModelApi {
     pub registry: Arc<Registry>,
+    /// Deleting a model ends the sessions that use it.
+    pub sessions: Arc<SessionManager>,
 }
 
 type ChunkStream = Pin<Box<dyn Stream<Item = Result<v1::ModelChunk, Status>> + Send>>;
@@ -116,7 +119,7 @@ impl ModelService for ModelApi {
         request: Request<v1::DeleteModelRequest>,
     ) -> Result<Response<()>, Status> {
         let name = model_name("name", &request.into_inner().name)?;
-        self.registry.delete(&name).await?;
+        self.sessions.delete_model(&name).await?;
         Ok(Response::new(()))
     }
 

@@ -9,9 +9,11 @@ pub mod bench;
 pub mod datasets;
 pub mod demo;
 pub mod detect;
+pub mod evaluate;
 pub mod health;
 pub mod jobs;
 pub mod models;
+pub mod sessions;
 pub mod train;
 
 use std::future::Future;

@@ -28,12 +28,12 @@ pub enum Command {
         /// `models/{id}` or `{id}`.
         name: String,
     },
-    /// Make a model the one new sessions use.
+    /// Make a model the active one: sessions started or resumed without a model run it.
     Activate {
         /// `models/{id}` or `{id}`.
         name: String,
     },
-    /// Delete a model (not the active one).
+    /// Delete a model (not the active one); the sessions that run it end.
     Delete {
         /// `models/{id}` or `{id}`.
         name: String,
