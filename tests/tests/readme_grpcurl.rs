@@ -17,9 +17,11 @@ const README_ADDR: &str = "127.0.0.1:50051";
 
 /// The grpcurl binary to use, or why there is none.
 fn grpcurl() -> Result<PathBuf, String> {
+    // A relative path is the workspace's (cargo runs tests in the crate directory).
+    let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let candidate = std::env::var_os("SPOOFWATCH_GRPCURL")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from("grpcurl"));
+        .filter(|v| !v.is_empty())
+        .map_or_else(|| PathBuf::from("grpcurl"), |v| workspace.join(v));
     match Command::new(&candidate).arg("-version").output() {
         Ok(output) if output.status.success() => Ok(candidate),
         _ => Err(format!(

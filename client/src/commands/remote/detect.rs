@@ -5,6 +5,7 @@
 //! summary's tally to `spoofwatch_client::fleet`; this module owns only the flags and the
 //! console/CSV/JSON output.
 
+use std::collections::HashMap;
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
@@ -12,8 +13,9 @@ use spoofwatch_client::error::describe_rpc_status;
 use spoofwatch_client::fleet::{FleetSummary, FleetTally, OnsetCounts, WorstVehicle};
 use spoofwatch_client::input::load_tracks;
 use spoofwatch_client::replay::{
-    ReplayEvent, ReplayOptions, ReplaySummary, ReplayedDetection, replay_tracks,
+    ReplayEvent, ReplayOptions, ReplaySummary, ReplayedDetection, replay_tracks, server_vehicle_id,
 };
+use spoofwatch_core::sample::Track;
 use spoofwatch_proto::wire::limits::MAX_BATCH_SAMPLES;
 use tokio::sync::mpsc;
 
@@ -241,10 +243,37 @@ pub fn fleet_lines(s: &FleetSummary) -> Vec<String> {
     lines
 }
 
+/// The vehicle ids the replay must rewrite for the server, as (recorded, sent) pairs; an error
+/// when two recorded ids would become one (they would share, and fight over, one session).
+fn renamed_vehicles(tracks: &[Track]) -> Result<Vec<(String, String)>> {
+    let mut owner_of_sent: HashMap<String, &str> = HashMap::new();
+    let mut renamed = Vec::new();
+    for track in tracks {
+        let sent = server_vehicle_id(&track.vehicle_id);
+        if let Some(other) = owner_of_sent.insert(sent.clone(), &track.vehicle_id)
+            && other != track.vehicle_id
+        {
+            bail!(
+                "vehicles {other:?} and {:?} would both be sent as {sent:?}; rename one",
+                track.vehicle_id
+            );
+        }
+        if sent != track.vehicle_id {
+            renamed.push((track.vehicle_id.clone(), sent));
+        }
+    }
+    Ok(renamed)
+}
+
 pub async fn run(args: Args) -> Result<()> {
     let tracks = load_tracks(&args.data)?;
     if tracks.is_empty() {
         bail!("no vehicle data in the given files");
+    }
+    for (recorded, sent) in renamed_vehicles(&tracks)? {
+        eprintln!(
+            "note: vehicle {recorded:?} is sent as {sent:?} (vehicle ids are at most 128 of [A-Za-z0-9._:-])"
+        );
     }
     let connection = args.server.connect().await?;
     let options = ReplayOptions {
@@ -343,4 +372,28 @@ pub async fn run(args: Args) -> Result<()> {
         bail!("{failures} vehicle stream(s) failed");
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn track(id: &str) -> Track {
+        Track {
+            vehicle_id: id.to_string(),
+            records: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn rewritten_vehicle_ids_are_named_and_collisions_refused() {
+        let tracks = [track("car-1"), track("sim0#ramp")];
+        assert_eq!(
+            renamed_vehicles(&tracks).expect("no collision"),
+            vec![("sim0#ramp".to_string(), "sim0_ramp".to_string())]
+        );
+        let colliding = [track("a#b"), track("a/b")];
+        let error = renamed_vehicles(&colliding).expect_err("a collision");
+        assert!(error.to_string().contains("\"a_b\""), "{error}");
+    }
 }
