@@ -3,7 +3,8 @@
 //! detections, and maps [`super::SessionError`] once (through `crate::error`); it must not hold
 //! session state. Each StreamDetect and StreamDetectFleet call runs in its own task that reads the
 //! inbound stream and writes replies into a small bounded channel: a slow client fills only its own
-//! channel, which pauses only its own task.
+//! channel, which pauses only its own task. Each batch, scored or refused, is counted here for the
+//! metrics (`crate::telemetry`), once per batch.
 
 use std::sync::Arc;
 use std::time::Instant;
