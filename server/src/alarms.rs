@@ -17,6 +17,7 @@ use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 
 use crate::store::{AlarmWrite, Store, StoreError, now_unix_ms};
+use crate::telemetry;
 
 /// Most writes queued before new onsets are dropped.
 pub const OUTBOX_CAPACITY: usize = 100_000;
@@ -27,7 +28,7 @@ const MAX_LOGGED_UNSTORED: usize = 10_000;
 /// Retry delays after a failed batch: doubling from the first to the last.
 const BACKOFF: (Duration, Duration) = (Duration::from_millis(50), Duration::from_secs(5));
 
-/// Counters of the outbox, for logs, tests and (later) metrics.
+/// Counters of the outbox, for logs, tests and metrics.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct OutboxStats {
     /// Writes waiting to be stored.
@@ -185,7 +186,7 @@ impl AlarmOutbox {
                 }
                 continue;
             }
-            match store.write_alarms(&batch).await {
+            match telemetry::db_timed("alarm_batch_write", store.write_alarms(&batch)).await {
                 Ok(()) => {
                     self.queue().drain(..batch.len());
                     self.written

@@ -25,6 +25,16 @@ pub mod defaults {
     /// Room for about 370 artifacts the size of the bundled model (0.7 MB), or 16 of the largest
     /// importable (`limits::MAX_ARTIFACT_BYTES`).
     pub const MODEL_CACHE_BYTES: usize = 256 << 20;
+    pub const LOG_FORMAT: super::LogFormat = super::LogFormat::Text;
+}
+
+/// How the server binary writes its log lines to stderr.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum LogFormat {
+    /// Human-readable lines (coloured only on a terminal).
+    Text,
+    /// One JSON object per line, the event's fields at the top level.
+    Json,
 }
 
 /// Everything the server needs to start.
@@ -80,6 +90,13 @@ pub struct Config {
     /// Require `authorization: Bearer <token>` on every call except health checks.
     #[arg(long, env = "SPOOFWATCH_AUTH_TOKEN", hide_env_values = true, value_parser = parse_token)]
     pub auth_token: Option<String>,
+    /// Serve Prometheus metrics at `GET /metrics` on this address (its own listener, no token).
+    /// Unset: no metrics are collected.
+    #[arg(long, env = "SPOOFWATCH_METRICS_LISTEN")]
+    pub metrics_listen: Option<SocketAddr>,
+    /// Log line format on stderr.
+    #[arg(long, env = "SPOOFWATCH_LOG_FORMAT", value_enum, default_value_t = defaults::LOG_FORMAT)]
+    pub log_format: LogFormat,
 }
 
 /// A bearer token: 1–4,096 visible ASCII characters (what an `authorization` header can carry).
@@ -112,6 +129,8 @@ impl Default for Config {
             shutdown_grace_secs: defaults::SHUTDOWN_GRACE_SECS,
             handshake_timeout_secs: defaults::HANDSHAKE_TIMEOUT_SECS,
             auth_token: None,
+            metrics_listen: None,
+            log_format: defaults::LOG_FORMAT,
         }
     }
 }
@@ -158,6 +177,26 @@ mod tests {
             assert_eq!(format!("{parsed:?}"), format!("{default:?}"));
         }
         assert_eq!(default.listen.to_string(), "127.0.0.1:50051");
+        assert_eq!(default.metrics_listen, None, "metrics are off by default");
+        assert_eq!(default.log_format, LogFormat::Text);
+    }
+
+    #[test]
+    fn metrics_and_log_format_flags_parse() {
+        let parsed = Config::try_parse_from([
+            "spoofwatch-server",
+            "--metrics-listen",
+            "0.0.0.0:9464",
+            "--log-format",
+            "json",
+        ])
+        .expect("valid flags");
+        assert_eq!(
+            parsed.metrics_listen,
+            Some("0.0.0.0:9464".parse().expect("an address"))
+        );
+        assert_eq!(parsed.log_format, LogFormat::Json);
+        assert!(Config::try_parse_from(["spoofwatch-server", "--log-format", "xml"]).is_err());
     }
 
     #[test]

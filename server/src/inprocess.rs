@@ -8,7 +8,7 @@ use tokio::net::TcpListener;
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 
-use crate::{Config, ServerError, serve};
+use crate::{Config, ServerError, serve_with_metrics};
 
 /// Seconds the in-process server waits for streams and jobs when shutting down.
 const SHUTDOWN_GRACE_SECS: u64 = 2;
@@ -38,6 +38,7 @@ pub enum InProcessError {
 #[derive(Debug)]
 pub struct InProcessServer {
     addr: SocketAddr,
+    metrics_addr: Option<SocketAddr>,
     stop: Option<oneshot::Sender<()>>,
     task: Option<JoinHandle<Result<(), ServerError>>>,
     // Held so a temporary database outlives the server; removed on drop.
@@ -64,7 +65,8 @@ impl InProcessServer {
     }
 
     /// Starts a server with exactly `config` (its own database; e.g. one a test reopens after a
-    /// restart) on 127.0.0.1, an ephemeral port; `config.listen` is not used.
+    /// restart) on 127.0.0.1, an ephemeral port; `config.listen` is not used, and metrics (when
+    /// `config.metrics_listen` is set) are served on another ephemeral loopback port.
     pub async fn start_with(config: Config) -> Result<Self, InProcessError> {
         Self::serve_on_loopback(config, None).await
     }
@@ -83,13 +85,37 @@ impl InProcessServer {
             context: "reading the listening address",
             source,
         })?;
+        let metrics_listener = match config.metrics_listen {
+            Some(_) => Some(
+                TcpListener::bind(("127.0.0.1", 0))
+                    .await
+                    .map_err(|source| InProcessError::Io {
+                        context: "binding 127.0.0.1:0 for metrics",
+                        source,
+                    })?,
+            ),
+            None => None,
+        };
+        let metrics_addr = match &metrics_listener {
+            Some(listener) => Some(listener.local_addr().map_err(|source| InProcessError::Io {
+                context: "reading the metrics address",
+                source,
+            })?),
+            None => None,
+        };
         let (stop, stopped) = oneshot::channel::<()>();
-        let task = tokio::spawn(serve(config, listener, async {
-            // A dropped sender also means "stop".
-            let _ = stopped.await;
-        }));
+        let task = tokio::spawn(serve_with_metrics(
+            config,
+            listener,
+            metrics_listener,
+            async {
+                // A dropped sender also means "stop".
+                let _ = stopped.await;
+            },
+        ));
         Ok(Self {
             addr,
+            metrics_addr,
             stop: Some(stop),
             task: Some(task),
             database_dir,
@@ -104,6 +130,11 @@ impl InProcessServer {
     /// Where the server listens.
     pub fn addr(&self) -> SocketAddr {
         self.addr
+    }
+
+    /// Where the server answers `GET /metrics` (when started with `config.metrics_listen`).
+    pub fn metrics_addr(&self) -> Option<SocketAddr> {
+        self.metrics_addr
     }
 
     /// The temporary directory holding the database of a server from [`Self::start`].

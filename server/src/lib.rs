@@ -9,7 +9,8 @@
 //! writer of alarm events), `jobs` (service → manager → runner),
 //! `store` (the only SQL), `watch` (database file and alarm-writer health), `error` (the one error → status mapping), `fault` (a server-side fault
 //! inside a subsystem's error), `edge` (request decoding shared by the services), `identity` (ids
-//! and digests). Wire conversions live in `spoofwatch_proto::wire`.
+//! and digests), `telemetry` (every Prometheus metric and the `/metrics` endpoint). Wire
+//! conversions live in `spoofwatch_proto::wire`.
 
 mod alarms;
 pub mod config;
@@ -25,6 +26,7 @@ mod jobs;
 pub mod models;
 mod status;
 pub mod store;
+mod telemetry;
 mod watch;
 
 use std::future::Future;
@@ -65,6 +67,13 @@ pub enum ServerError {
     Reflection(#[from] tonic_reflection::server::Error),
     #[error("serving: {0}")]
     Transport(#[from] tonic::transport::Error),
+    #[error("listening for metrics on {addr}: {source}")]
+    MetricsListen {
+        addr: std::net::SocketAddr,
+        source: std::io::Error,
+    },
+    #[error("installing the metrics recorder: {0}")]
+    Metrics(#[from] metrics_exporter_prometheus::BuildError),
 }
 
 /// Checks `authorization: Bearer <token>` when a token is configured.
@@ -92,7 +101,10 @@ impl Interceptor for BearerAuth {
             .and_then(bearer_token);
         match presented {
             Some(token) if tokens_match(token, expected) => Ok(request),
-            _ => Err(Status::unauthenticated("missing or wrong bearer token")),
+            _ => {
+                telemetry::unauthenticated();
+                Err(Status::unauthenticated("missing or wrong bearer token"))
+            }
         }
     }
 }
@@ -113,12 +125,37 @@ fn tokens_match(presented: &str, expected: &str) -> bool {
 
 /// Runs the server on `listener` until `shutdown` resolves, then drains: health turns NOT_SERVING,
 /// streams end with UNAVAILABLE, running jobs are cancelled and recorded, open alarms are closed, and
-/// the whole drain is bounded by `config.shutdown_grace_secs`.
+/// the whole drain is bounded by `config.shutdown_grace_secs`. With `config.metrics_listen`, metrics
+/// are served there too (see [`serve_with_metrics`]).
 pub async fn serve(
     config: Config,
     listener: TcpListener,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
+    let metrics = match config.metrics_listen {
+        Some(addr) => Some(
+            TcpListener::bind(addr)
+                .await
+                .map_err(|source| ServerError::MetricsListen { addr, source })?,
+        ),
+        None => None,
+    };
+    serve_with_metrics(config, listener, metrics, shutdown).await
+}
+
+/// [`serve`], with Prometheus metrics at `GET /metrics` on `metrics_listener` when given (instead
+/// of binding `config.metrics_listen`); the metrics endpoint stops when the server has drained.
+pub async fn serve_with_metrics(
+    config: Config,
+    listener: TcpListener,
+    metrics_listener: Option<TcpListener>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), ServerError> {
+    // Installed before anything is counted (a store fault at startup included).
+    let metrics_handle = match metrics_listener {
+        Some(_) => Some(telemetry::install()?),
+        None => None,
+    };
     let store = Store::open_with(
         &config.database,
         StoreOptions {
@@ -255,6 +292,29 @@ pub async fn serve(
         })
     };
 
+    let stop_metrics = CancellationToken::new();
+    let metrics_endpoint = match (metrics_listener, metrics_handle) {
+        (Some(metrics_listener), Some(handle)) => {
+            match metrics_listener.local_addr() {
+                Ok(addr) => tracing::info!(%addr, "metrics listening (GET /metrics)"),
+                Err(error) => tracing::warn!(%error, "metrics listening (address unknown)"),
+            }
+            let sources = telemetry::Sources {
+                sessions: Arc::clone(&sessions),
+                alarms: Arc::clone(&alarms),
+                jobs: Arc::clone(&jobs),
+                registry: Arc::clone(&registry),
+            };
+            Some(tokio::spawn(telemetry::serve_metrics(
+                metrics_listener,
+                handle,
+                sources,
+                stop_metrics.clone(),
+            )))
+        }
+        _ => None,
+    };
+
     // The drain: health first, then streams, then jobs, then alarms; tonic stops accepting after
     // this resolves.
     let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
@@ -313,6 +373,15 @@ pub async fn serve(
         tracing::error!(%error, "the alarm writer failed");
     }
     store.close().await;
+    // Scrapes are answered through the drain; an open scrape connection gets a second to finish.
+    stop_metrics.cancel();
+    if let Some(mut endpoint) = metrics_endpoint
+        && tokio::time::timeout(Duration::from_secs(1), &mut endpoint)
+            .await
+            .is_err()
+    {
+        endpoint.abort();
+    }
     tracing::info!("server stopped");
     result
 }

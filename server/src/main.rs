@@ -2,6 +2,7 @@
 //! SIGTERM.
 
 use clap::Parser;
+use spoofwatch_server::config::LogFormat;
 use spoofwatch_server::{Config, serve};
 use tracing_subscriber::EnvFilter;
 
@@ -31,19 +32,31 @@ async fn shutdown_signal() {
     }
 }
 
-#[tokio::main]
-async fn main() -> std::process::ExitCode {
-    tracing_subscriber::fmt()
+/// Logs to stderr, filtered by `SPOOFWATCH_LOG` (default `info`), as text or JSON lines.
+fn init_logging(format: LogFormat) {
+    let logs = tracing_subscriber::fmt()
         .with_env_filter(
             EnvFilter::try_from_env("SPOOFWATCH_LOG").unwrap_or_else(|_| EnvFilter::new("info")),
         )
         .with_writer(std::io::stderr)
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         // With a closed stderr, reporting a failed log write would itself panic (eprintln!) and
         // kill the server; a lost log line must not.
-        .log_internal_errors(false)
-        .init();
+        .log_internal_errors(false);
+    match format {
+        LogFormat::Text => logs
+            .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+            .init(),
+        // Fields at the top level ({"timestamp","level","message","addr",...,"target"}), no
+        // colour codes inside the strings.
+        LogFormat::Json => logs.json().flatten_event(true).with_ansi(false).init(),
+    }
+}
+
+#[tokio::main]
+async fn main() -> std::process::ExitCode {
+    // Parsed first so that the log format applies to every line (clap prints its own errors).
     let config = Config::parse();
+    init_logging(config.log_format);
     let listener = match tokio::net::TcpListener::bind(config.listen).await {
         Ok(listener) => listener,
         Err(error) => {

@@ -108,6 +108,11 @@ struct Running {
 
 /// Starts the binary on `database` and waits for its listening address (from its log).
 fn spawn_server(database: &Path) -> Running {
+    spawn_server_with(database, &[]).0
+}
+
+/// [`spawn_server`] with extra flags; also returns the log lines read up to the listening address.
+fn spawn_server_with(database: &Path, flags: &[&str]) -> (Running, Vec<String>) {
     let child = Command::new(env!("CARGO_BIN_EXE_spoofwatch-server"))
         // A clean environment: no SPOOFWATCH_* settings of the caller leak in (e.g. an auth token).
         .env_clear()
@@ -121,6 +126,7 @@ fn spawn_server(database: &Path) -> Running {
             "--database",
         ])
         .arg(database)
+        .args(flags)
         .stdin(Stdio::null())
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
@@ -129,20 +135,24 @@ fn spawn_server(database: &Path) -> Running {
     let mut process = ServerProcess(child);
     let log = stderr_lines(&mut process.0);
     let deadline = Instant::now() + STARTUP_BOUND;
+    let mut startup = Vec::new();
     let port = loop {
         let remaining = deadline.saturating_duration_since(Instant::now());
         let line = log
             .recv_timeout(remaining)
             .expect("the binary logs its listening address");
-        if let Some(port) = listening_port(&line) {
+        let port = listening_port(&line);
+        startup.push(line);
+        if let Some(port) = port {
             break port;
         }
     };
-    Running {
+    let running = Running {
         process,
         addr: SocketAddr::from(([127, 0, 0, 1], port)),
         log,
-    }
+    };
+    (running, startup)
 }
 
 /// Sends `signal` (e.g. `-TERM`) to the child and waits for its exit status.
@@ -444,4 +454,56 @@ async fn the_binary_survives_a_closed_stderr() {
     assert_eq!(response.detections.len(), 3);
     let status = signal_and_wait(&mut server, "-TERM").await;
     assert_eq!(status.code(), Some(0), "clean exit: {status:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn json_logs_are_one_object_per_line_with_top_level_fields() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let database = dir.path().join("json-logs.db");
+    let (
+        Running {
+            process: mut server,
+            addr,
+            log: lines,
+        },
+        mut log,
+    ) = spawn_server_with(
+        &database,
+        &["--log-format", "json", "--metrics-listen", "127.0.0.1:0"],
+    );
+    wait_until_serving(addr).await;
+    let status = signal_and_wait(&mut server, "-TERM").await;
+    assert_eq!(status.code(), Some(0), "clean exit on SIGTERM: {status:?}");
+    while let Ok(line) = lines.recv_timeout(EXIT_BOUND) {
+        log.push(line);
+    }
+
+    let events: Vec<serde_json::Value> = log
+        .iter()
+        .map(|line| {
+            serde_json::from_str(line).unwrap_or_else(|e| panic!("not a JSON line ({e}): {line}"))
+        })
+        .collect();
+    for event in &events {
+        for key in ["timestamp", "level", "target", "message"] {
+            assert!(event[key].is_string(), "{key} missing in {event}");
+        }
+    }
+    let message = |text: &str| {
+        events
+            .iter()
+            .find(|e| e["message"] == text)
+            .unwrap_or_else(|| panic!("no {text:?} line in {log:?}"))
+    };
+    let listening = message("spoofwatch-server listening");
+    assert_eq!(listening["addr"], addr.to_string(), "fields are top-level");
+    assert_eq!(listening["level"], "INFO");
+    let metrics = message("metrics listening (GET /metrics)");
+    assert!(
+        metrics["addr"]
+            .as_str()
+            .is_some_and(|a| a.starts_with("127.0.0.1:")),
+        "{metrics}"
+    );
+    message("server stopped");
 }

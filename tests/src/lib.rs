@@ -93,6 +93,11 @@ impl TestServer {
         self.server.url()
     }
 
+    /// Where the server answers `GET /metrics` (started with `config.metrics_listen` set).
+    pub fn metrics_addr(&self) -> Option<SocketAddr> {
+        self.server.metrics_addr()
+    }
+
     /// A new plain channel to the server (for services the client library does not cover).
     pub async fn channel(&self) -> Channel {
         Channel::from_shared(self.url())

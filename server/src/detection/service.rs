@@ -3,9 +3,11 @@
 //! detections, and maps [`super::SessionError`] once (through `crate::error`); it must not hold
 //! session state. Each StreamDetect and StreamDetectFleet call runs in its own task that reads the
 //! inbound stream and writes replies into a small bounded channel: a slow client fills only its own
-//! channel, which pauses only its own task.
+//! channel, which pauses only its own task. Each batch, scored or refused, is counted here for the
+//! metrics (`crate::telemetry`), once per batch.
 
 use std::sync::Arc;
+use std::time::Instant;
 
 use spoofwatch_core::sample::Sample;
 use spoofwatch_proto::v1;
@@ -23,6 +25,7 @@ use super::sessions::{Decisions, SessionError, SessionManager, SessionSummary};
 use super::validate::vehicle_id_violation;
 use crate::edge::{model_name, optional_model_name};
 use crate::status::{invalid_field, shutting_down, to_rpc_status};
+use crate::telemetry::{self, Rpc};
 
 /// Replies buffered per stream before the stream's reader waits for the client.
 const OUTBOUND_BUFFER: usize = 16;
@@ -79,6 +82,17 @@ fn session_to_proto(s: SessionSummary) -> v1::Session {
     }
 }
 
+/// How many decisions have the alarm on (counted per batch, for metrics).
+fn alarming(batch: &Decisions) -> usize {
+    batch.decisions.iter().filter(|d| d.alarm).count()
+}
+
+/// A StreamDetect message that is not a batch after the start: refused without a seq.
+fn stream_misuse(status: Status) -> Reply {
+    telemetry::batch_rejected(Rpc::StreamDetect, &status, 0);
+    item_error(0, &status)
+}
+
 fn item_error(seq: u64, status: &Status) -> Reply {
     reply(ResponseKind::ItemError(v1::ItemError {
         seq,
@@ -102,16 +116,17 @@ async fn run_stream(
             kind: Some(RequestKind::Start(start)),
         })) => start,
         Ok(Some(_)) => {
-            let _ = tx
-                .send(Err(invalid_field(
-                    "start",
-                    "the first message of a stream must be a SessionStart",
-                )))
-                .await;
+            let status = invalid_field(
+                "start",
+                "the first message of a stream must be a SessionStart",
+            );
+            telemetry::batch_rejected(Rpc::StreamDetect, &status, 0);
+            let _ = tx.send(Err(status)).await;
             return;
         }
         Ok(None) => return,
         Err(status) => {
+            telemetry::stream_failed(Rpc::StreamDetect, &status);
             let _ = tx.send(Err(status)).await;
             return;
         }
@@ -128,6 +143,7 @@ async fn run_stream(
     let attachment = match attached.await {
         Ok(a) => a,
         Err(status) => {
+            telemetry::batch_rejected(Rpc::StreamDetect, &status, 0);
             let _ = tx.send(Err(status)).await;
             return;
         }
@@ -174,31 +190,46 @@ async fn run_stream(
                 Ok(Some(v1::StreamDetectRequest {
                     kind: Some(RequestKind::Batch(batch)),
                 })) => {
+                    let started = Instant::now();
                     let samples = samples_from_proto(&batch.samples);
                     match sessions
                         .process(&attachment.slot, batch.seq, &samples, "batch.samples")
                         .await
                     {
-                        Ok(decisions) => reply(ResponseKind::Detections(v1::DetectionBatch {
-                            seq: batch.seq,
-                            detections: detections_to_proto(&samples, &decisions),
-                        })),
-                        Err(error) => item_error(batch.seq, &error.into()),
+                        Ok(decisions) => {
+                            let detections = detections_to_proto(&samples, &decisions);
+                            telemetry::batch_scored(
+                                Rpc::StreamDetect,
+                                samples.len(),
+                                alarming(&decisions),
+                                started,
+                            );
+                            reply(ResponseKind::Detections(v1::DetectionBatch {
+                                seq: batch.seq,
+                                detections,
+                            }))
+                        }
+                        Err(error) => {
+                            let status = error.into();
+                            telemetry::batch_rejected(Rpc::StreamDetect, &status, samples.len());
+                            item_error(batch.seq, &status)
+                        }
                     }
                 }
                 Ok(Some(v1::StreamDetectRequest {
                     kind: Some(RequestKind::Start(_)),
-                })) => item_error(
-                    0,
-                    &invalid_field("start", "the session has already started on this stream"),
-                ),
+                })) => stream_misuse(invalid_field(
+                    "start",
+                    "the session has already started on this stream",
+                )),
                 Ok(Some(v1::StreamDetectRequest { kind: None })) => {
-                    item_error(0, &invalid_field("kind", "empty message: send a batch"))
+                    stream_misuse(invalid_field("kind", "empty message: send a batch"))
                 }
                 // The client closed its side: the call ends with OK.
                 Ok(None) => break,
                 Err(status) => {
                     // e.g. an oversized message: report it as the call's status.
+                    telemetry::stream_failed(Rpc::StreamDetect, &status);
                     let _ = tx.send(Err(status)).await;
                     break;
                 }
@@ -240,15 +271,24 @@ fn fleet_batch_violation(batch: &v1::FleetBatch, max_samples: usize) -> Option<S
     }
 }
 
+/// Samples scored in a fleet message so far, and how many of them alarm (for metrics).
+#[derive(Default)]
+struct Scored {
+    samples: usize,
+    alarming: usize,
+}
+
 /// One vehicle of a fleet message, run on its session; a refusal becomes the vehicle's status.
 async fn detect_vehicle(
     sessions: &SessionManager,
     seq: u64,
     index: usize,
     vehicle: v1::VehicleSamples,
+    scored: &mut Scored,
 ) -> v1::VehicleDetections {
     // Field paths are built only for errors: this runs once per vehicle and message.
     let at = |field: &str| format!("vehicles[{index}].{field}");
+    let sample_count = vehicle.samples.len();
     let outcome = async {
         if let Some(problem) = vehicle_id_violation(&vehicle.vehicle_id) {
             return Err(invalid_field(at("vehicle_id"), problem));
@@ -279,21 +319,32 @@ async fn detect_vehicle(
             .zip(&decisions.decisions)
             .map(|(s, d)| detection_to_proto(s.timestamp_s, d, ""))
             .collect();
-        Ok::<_, Status>((decisions.model.to_string(), detections))
+        Ok::<_, Status>((
+            decisions.model.to_string(),
+            detections,
+            alarming(&decisions),
+        ))
     };
     match outcome.await {
-        Ok((model, detections)) => v1::VehicleDetections {
-            vehicle_id: vehicle.vehicle_id,
-            model,
-            detections,
-            error: None,
-        },
-        Err(status) => v1::VehicleDetections {
-            vehicle_id: vehicle.vehicle_id,
-            model: String::new(),
-            detections: Vec::new(),
-            error: Some(to_rpc_status(&status)),
-        },
+        Ok((model, detections, alarming)) => {
+            scored.samples += sample_count;
+            scored.alarming += alarming;
+            v1::VehicleDetections {
+                vehicle_id: vehicle.vehicle_id,
+                model,
+                detections,
+                error: None,
+            }
+        }
+        Err(status) => {
+            telemetry::batch_rejected(Rpc::StreamDetectFleet, &status, sample_count);
+            v1::VehicleDetections {
+                vehicle_id: vehicle.vehicle_id,
+                model: String::new(),
+                detections: Vec::new(),
+                error: Some(to_rpc_status(&status)),
+            }
+        }
     }
 }
 
@@ -318,21 +369,36 @@ async fn run_fleet_stream(
             Ok(Some(batch)) => batch,
             Ok(None) => break,
             Err(status) => {
+                telemetry::stream_failed(Rpc::StreamDetectFleet, &status);
                 let _ = tx.send(Err(status)).await;
                 break;
             }
         };
+        let started = Instant::now();
         let reply = match fleet_batch_violation(&batch, max_samples) {
-            Some(status) => v1::FleetDetections {
-                seq: batch.seq,
-                vehicles: Vec::new(),
-                error: Some(to_rpc_status(&status)),
-            },
+            Some(status) => {
+                let samples = batch.vehicles.iter().map(|v| v.samples.len()).sum();
+                telemetry::batch_rejected(Rpc::StreamDetectFleet, &status, samples);
+                v1::FleetDetections {
+                    seq: batch.seq,
+                    vehicles: Vec::new(),
+                    error: Some(to_rpc_status(&status)),
+                }
+            }
             None => {
+                let mut scored = Scored::default();
                 let mut vehicles = Vec::with_capacity(batch.vehicles.len());
                 for (index, vehicle) in batch.vehicles.into_iter().enumerate() {
-                    vehicles.push(detect_vehicle(&sessions, batch.seq, index, vehicle).await);
+                    vehicles.push(
+                        detect_vehicle(&sessions, batch.seq, index, vehicle, &mut scored).await,
+                    );
                 }
+                telemetry::batch_scored(
+                    Rpc::StreamDetectFleet,
+                    scored.samples,
+                    scored.alarming,
+                    started,
+                );
                 v1::FleetDetections {
                     seq: batch.seq,
                     vehicles,
@@ -374,6 +440,33 @@ impl DetectionApi {
         ));
         Ok(Response::new(ReceiverStream::new(rx)))
     }
+
+    /// One Detect call: the request's samples and their decisions, or its refusal.
+    async fn detect_once(&self, r: v1::DetectRequest) -> Result<(Vec<Sample>, Decisions), Status> {
+        if self.shutdown.is_cancelled() {
+            return Err(shutting_down());
+        }
+        let vehicle = if r.vehicle_id.is_empty() {
+            None
+        } else {
+            Some(vehicle_id("vehicle_id", &r.vehicle_id)?)
+        };
+        let model = optional_model_name("model", &r.model)?;
+        let samples = samples_from_proto(&r.samples);
+        let decisions = match vehicle {
+            Some(vehicle) => {
+                self.sessions
+                    .detect_unattached(vehicle, model.as_ref(), false, None, &samples, "samples")
+                    .await?
+            }
+            None => {
+                self.sessions
+                    .detect_stateless(model.as_ref(), &samples, "samples")
+                    .await?
+            }
+        };
+        Ok((samples, decisions))
+    }
 }
 
 #[tonic::async_trait]
@@ -399,29 +492,16 @@ impl DetectionService for DetectionApi {
         &self,
         request: Request<v1::DetectRequest>,
     ) -> Result<Response<v1::DetectResponse>, Status> {
-        if self.shutdown.is_cancelled() {
-            return Err(shutting_down());
+        let started = Instant::now();
+        let sample_count = request.get_ref().samples.len();
+        let detected = self.detect_once(request.into_inner()).await;
+        match &detected {
+            Ok((samples, decisions)) => {
+                telemetry::batch_scored(Rpc::Detect, samples.len(), alarming(decisions), started)
+            }
+            Err(status) => telemetry::batch_rejected(Rpc::Detect, status, sample_count),
         }
-        let r = request.into_inner();
-        let vehicle = if r.vehicle_id.is_empty() {
-            None
-        } else {
-            Some(vehicle_id("vehicle_id", &r.vehicle_id)?)
-        };
-        let model = optional_model_name("model", &r.model)?;
-        let samples = samples_from_proto(&r.samples);
-        let decisions = match vehicle {
-            Some(vehicle) => {
-                self.sessions
-                    .detect_unattached(vehicle, model.as_ref(), false, None, &samples, "samples")
-                    .await?
-            }
-            None => {
-                self.sessions
-                    .detect_stateless(model.as_ref(), &samples, "samples")
-                    .await?
-            }
-        };
+        let (samples, decisions) = detected?;
         Ok(Response::new(v1::DetectResponse {
             detections: detections_to_proto(&samples, &decisions),
             model: decisions.model.to_string(),

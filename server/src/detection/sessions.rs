@@ -21,6 +21,7 @@ use super::validate::validate_batch;
 use crate::alarms::AlarmOutbox;
 use crate::models::{LoadedModel, Registry, RegistryError};
 use crate::store::now_unix_ms;
+use crate::telemetry;
 
 /// Everything a session operation can fail with.
 #[derive(Debug, thiserror::Error)]
@@ -211,6 +212,7 @@ impl SessionManager {
             return Ok((Arc::clone(slot), true));
         }
         if slots.len() >= self.limits.max_sessions {
+            telemetry::session_refused();
             return Err(SessionError::Full(self.limits.max_sessions));
         }
         let slot = Arc::new(SessionSlot {
@@ -358,6 +360,7 @@ impl SessionManager {
         let id = self
             .alarms
             .onset(vehicle, state.model.name.id(), timestamp_s, p);
+        telemetry::alarm_onset();
         state.open_alarm = Some(OpenAlarm {
             id,
             peak: p,
@@ -372,6 +375,7 @@ impl SessionManager {
         if let Some(open) = state.open_alarm.take() {
             self.alarms
                 .end(open.id, open.last_timestamp_s, open.peak, open.samples);
+            telemetry::alarm_end();
         }
     }
 
@@ -553,7 +557,16 @@ impl SessionManager {
             let mut state = slot.state.lock().await;
             self.close_alarm(&mut state);
         }
+        telemetry::sessions_evicted(idle.len());
         idle.len()
+    }
+
+    /// Sessions held, and how many of them have a live stream (for metrics; one pass under the
+    /// table's lock, like the evictor's).
+    pub fn counts(&self) -> (usize, usize) {
+        let slots = self.slots();
+        let connected = slots.values().filter(|s| s.connected()).count();
+        (slots.len(), connected)
     }
 
     /// Closes every open alarm (shutdown).

@@ -16,6 +16,7 @@ use crate::fault::Fault;
 use crate::identity::new_id;
 use crate::models::RegistryError;
 use crate::store::{EpochRow, JobFilter, JobKind, JobRow, NewJob, Page, PageRequest, StoreError};
+use crate::telemetry;
 
 /// Limits of the job manager.
 #[derive(Clone, Copy, Debug)]
@@ -122,16 +123,13 @@ impl JobManager {
             return Err(JobError::QueueFull(self.settings.max_pending));
         }
         let name = OperationName::from_id(new_id());
-        let row = self
-            .runner
-            .store
-            .insert_job(NewJob {
-                id: name.id().to_string(),
-                kind,
-                request: to_json(&request),
-                metadata: to_json(&progress),
-            })
-            .await?;
+        let insert = self.runner.store.insert_job(NewJob {
+            id: name.id().to_string(),
+            kind,
+            request: to_json(&request),
+            metadata: to_json(&progress),
+        });
+        let row = telemetry::db_timed("job_create", insert).await?;
         let live = Arc::new(LiveJob::new());
         self.live().insert(name.clone(), Arc::clone(&live));
         let manager = Arc::clone(self);
@@ -151,6 +149,11 @@ impl JobManager {
             },
             _ = live.cancel.cancelled() => Err(JobFailure::Cancelled),
         };
+        telemetry::job_finished(match &result {
+            Ok(_) => "succeeded",
+            Err(JobFailure::Cancelled) => "cancelled",
+            Err(_) => "failed",
+        });
         self.runner.record_end(&name, result).await;
         self.live().remove(&name);
         live.notify();
@@ -216,6 +219,13 @@ impl JobManager {
                 Err(_) => return Ok(row),
             }
         }
+    }
+
+    /// Jobs waiting for a slot and jobs running (for metrics): a running job holds a slot.
+    pub fn counts(&self) -> (usize, usize) {
+        let live = self.live().len();
+        let held = self.settings.max_running.max(1) - self.slots.available_permits();
+        (live.saturating_sub(held), held.min(live))
     }
 
     /// Cancels every live job and waits (bounded) for them to record their end.

@@ -26,6 +26,7 @@ use crate::fault::Fault;
 use crate::identity::new_id;
 use crate::models::{Registry, RegistryError};
 use crate::store::{EpochRow, JobOutcome, ModelSource, Store, StoreError};
+use crate::telemetry;
 
 /// Why a job did not succeed: its real cause, so the operation's error gets the right code.
 #[derive(Debug, thiserror::Error)]
@@ -88,7 +89,7 @@ impl Runner {
         request: JobRequest,
         live: &LiveJob,
     ) -> Result<JobResult, JobFailure> {
-        self.store.mark_running(id.id()).await?;
+        telemetry::db_timed("job_start", self.store.mark_running(id.id())).await?;
         live.notify();
         match request {
             JobRequest::Training(training) => self.train_model(id, training, live).await,
@@ -115,7 +116,8 @@ impl Runner {
         };
         // Nobody waits on this background task's result: the failure is logged with its cause, and
         // the row stays unfinished until the next start marks it failed.
-        if let Err(error) = self.store.finish_job(id.id(), outcome).await {
+        let finish = self.store.finish_job(id.id(), outcome);
+        if let Err(error) = telemetry::db_timed("job_finish", finish).await {
             tracing::error!(%error, job = %id, "could not record the end of a job");
         }
     }
@@ -280,14 +282,13 @@ impl Runner {
             learning_rate: p.learning_rate,
             elapsed_s: p.elapsed_s,
         };
-        if let Err(error) = self.store.append_epoch(id.id(), &row).await {
+        let append = self.store.append_epoch(id.id(), &row);
+        if let Err(error) = telemetry::db_timed("job_progress", append).await {
             tracing::warn!(%error, job = %id, "could not record an epoch");
         }
-        if let Err(error) = self
-            .store
-            .update_job_metadata(id.id(), &to_json(progress))
-            .await
-        {
+        let metadata = to_json(progress);
+        let update = self.store.update_job_metadata(id.id(), &metadata);
+        if let Err(error) = telemetry::db_timed("job_progress", update).await {
             tracing::warn!(%error, job = %id, "could not record the job's progress");
         }
     }

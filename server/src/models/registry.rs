@@ -145,6 +145,11 @@ impl Registry {
         self.active.lock().unwrap_or_else(|p| p.into_inner())
     }
 
+    /// The active model's name as this server knows it in memory (`None` before it is first read).
+    pub fn active_name(&self) -> Option<ModelName> {
+        self.active().as_ref().map(|model| model.name.clone())
+    }
+
     /// The active model: from memory, or read once from the store.
     async fn active_model(&self) -> Result<LoadedModel, RegistryError> {
         if let Some(active) = self.active().clone() {

@@ -82,10 +82,7 @@ impl From<sqlx::Error> for StoreError {
                 if kind.may_spoil_connections() {
                     note_connection_fault();
                 }
-                StoreError::Unavailable(StoreFault {
-                    kind,
-                    cause: error.to_string(),
-                })
+                StoreError::Unavailable(StoreFault::seen(kind, error.to_string()))
             }
             None => StoreError::Database(error),
         }
@@ -116,6 +113,18 @@ pub enum FaultKind {
 }
 
 impl FaultKind {
+    /// Every kind (the label values of the store-fault metric).
+    pub const ALL: [FaultKind; 8] = [
+        FaultKind::Full,
+        FaultKind::ReadOnly,
+        FaultKind::Io,
+        FaultKind::Busy,
+        FaultKind::CantOpen,
+        FaultKind::Corrupt,
+        FaultKind::Lost,
+        FaultKind::Closed,
+    ];
+
     /// The kind of a sqlx error that is a fault of the database rather than of the query, from the
     /// SQLite primary result code (the low byte of the extended code).
     pub fn of(error: &sqlx::Error) -> Option<FaultKind> {
@@ -153,6 +162,20 @@ impl FaultKind {
         )
     }
 
+    /// The value of the `kind` label of the store-fault metric.
+    pub fn label(self) -> &'static str {
+        match self {
+            FaultKind::Full => "full",
+            FaultKind::ReadOnly => "read_only",
+            FaultKind::Io => "io",
+            FaultKind::Busy => "busy",
+            FaultKind::CantOpen => "cant_open",
+            FaultKind::Corrupt => "corrupt",
+            FaultKind::Lost => "lost",
+            FaultKind::Closed => "closed",
+        }
+    }
+
     /// What an operator reads in logs and clients read in the status message.
     pub fn describe(self) -> &'static str {
         match self {
@@ -176,6 +199,15 @@ impl FaultKind {
 pub struct StoreFault {
     pub kind: FaultKind,
     pub cause: String,
+}
+
+impl StoreFault {
+    /// A fault just classified; every one is counted in the metrics, so this is the only way
+    /// faults are made.
+    pub(crate) fn seen(kind: FaultKind, cause: String) -> Self {
+        crate::telemetry::store_fault(kind.label());
+        StoreFault { kind, cause }
+    }
 }
 
 impl From<sqlx::migrate::MigrateError> for StoreError {

@@ -129,10 +129,10 @@ impl Store {
     /// with [`FaultKind::Lost`] rather than write into a file nobody will read again.
     fn pool(&self) -> Result<&SqlitePool, StoreError> {
         match &self.file {
-            Some(file) if file.is_lost() => Err(StoreError::Unavailable(StoreFault {
-                kind: FaultKind::Lost,
-                cause: format!("{} is not the file opened", file.path.display()),
-            })),
+            Some(file) if file.is_lost() => Err(StoreError::Unavailable(StoreFault::seen(
+                FaultKind::Lost,
+                format!("{} is not the file opened", file.path.display()),
+            ))),
             _ => Ok(&self.pool),
         }
     }
@@ -246,10 +246,10 @@ struct DatabaseFile {
 impl DatabaseFile {
     fn opened(path: PathBuf) -> Result<Self, StoreError> {
         let identity = file_identity(&path).map_err(|error| {
-            StoreError::Unavailable(StoreFault {
-                kind: FaultKind::CantOpen,
-                cause: format!("{}: {error}", path.display()),
-            })
+            StoreError::Unavailable(StoreFault::seen(
+                FaultKind::CantOpen,
+                format!("{}: {error}", path.display()),
+            ))
         })?;
         Ok(DatabaseFile {
             path,
@@ -263,10 +263,7 @@ impl DatabaseFile {
     }
 
     fn check(&self) -> Result<(), StoreFault> {
-        let lost = |cause: String| StoreFault {
-            kind: FaultKind::Lost,
-            cause,
-        };
+        let lost = |cause: String| StoreFault::seen(FaultKind::Lost, cause);
         if self.is_lost() {
             return Err(lost(format!(
                 "{} is not the file opened",

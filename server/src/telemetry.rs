@@ -1,0 +1,589 @@
+//! Prometheus metrics, one home: every metric's name, type and help text ([`METRICS`]), the cheap
+//! recording calls the subsystems make, and the `GET /metrics` endpoint on `--metrics-listen`.
+//!
+//! Recording goes through the `metrics` facade. Until [`install`] sets the process-wide Prometheus
+//! recorder (only when a metrics listener is configured), every call is a no-op. Counting is per
+//! batch, never per sample: one batch is a StreamDetect batch, a Detect call or a StreamDetectFleet
+//! message. The per-batch handles are looked up once at install ([`HOT`]), so a scored batch costs a
+//! few atomic additions with metrics on and one atomic load with them off; rarer events use the
+//! facade's macros (a registry lookup each).
+//!
+//! Gauges that mirror state kept elsewhere (open sessions, the alarm backlog, jobs by state, the
+//! active model) are read from that state at scrape time ([`Sources`]) rather than updated on every
+//! change. The recorder is per process: several servers in one process (tests) share the counters.
+
+use std::future::Future;
+use std::sync::{Arc, Mutex, OnceLock, PoisonError};
+use std::time::{Duration, Instant};
+
+use metrics::{
+    Counter, Histogram, counter, describe_counter, describe_gauge, describe_histogram, gauge,
+    histogram,
+};
+use metrics_exporter_prometheus::{BuildError, Matcher, PrometheusBuilder, PrometheusHandle};
+use tokio::net::TcpListener;
+use tokio_util::sync::CancellationToken;
+use tonic::{Code, Status};
+use tonic_types::StatusExt;
+
+use crate::alarms::AlarmOutbox;
+use crate::detection::SessionManager;
+use crate::jobs::JobManager;
+use crate::models::Registry;
+use crate::store::FaultKind;
+
+pub const BUILD_INFO: &str = "spoofwatch_build_info";
+pub const ACTIVE_MODEL_INFO: &str = "spoofwatch_active_model_info";
+pub const DETECTION_BATCHES: &str = "spoofwatch_detection_batches_total";
+pub const DETECTION_SAMPLES: &str = "spoofwatch_detection_samples_total";
+pub const DETECTION_ALARMING: &str = "spoofwatch_detection_alarming_samples_total";
+pub const DETECTION_BATCH_SECONDS: &str = "spoofwatch_detection_batch_duration_seconds";
+pub const REJECTED_BATCHES: &str = "spoofwatch_detection_rejected_batches_total";
+pub const REJECTED_SAMPLES: &str = "spoofwatch_detection_rejected_samples_total";
+pub const UNAUTHENTICATED: &str = "spoofwatch_unauthenticated_requests_total";
+pub const ALARM_ONSETS: &str = "spoofwatch_alarm_onsets_total";
+pub const ALARM_ENDS: &str = "spoofwatch_alarm_ends_total";
+pub const ALARMS_OPEN: &str = "spoofwatch_alarms_open";
+pub const ALARM_BACKLOG: &str = "spoofwatch_alarm_outbox_backlog";
+pub const ALARM_STORED: &str = "spoofwatch_alarm_outbox_stored_writes_total";
+pub const ALARM_FAILED_BATCHES: &str = "spoofwatch_alarm_outbox_failed_batches_total";
+pub const ALARM_DROPPED_ONSETS: &str = "spoofwatch_alarm_outbox_dropped_onsets_total";
+pub const ALARM_INVALID: &str = "spoofwatch_alarm_outbox_invalid_writes_total";
+pub const SESSIONS_OPEN: &str = "spoofwatch_sessions_open";
+pub const SESSIONS_CONNECTED: &str = "spoofwatch_sessions_connected";
+pub const SESSIONS_EVICTED: &str = "spoofwatch_sessions_evicted_total";
+pub const SESSIONS_REFUSED: &str = "spoofwatch_sessions_refused_total";
+pub const JOBS: &str = "spoofwatch_jobs";
+pub const JOBS_FINISHED: &str = "spoofwatch_jobs_finished_total";
+pub const STORE_FAULTS: &str = "spoofwatch_store_faults_total";
+pub const DB_SECONDS: &str = "spoofwatch_db_operation_duration_seconds";
+
+/// What kind of Prometheus metric a name is.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kind {
+    Counter,
+    Gauge,
+    Histogram,
+}
+
+/// Every metric: name, kind, and the HELP text (label values are listed with their recording
+/// calls below, and in the README).
+pub const METRICS: &[(&str, Kind, &str)] = &[
+    (
+        BUILD_INFO,
+        Kind::Gauge,
+        "Always 1; the label `version` is the server's version.",
+    ),
+    (
+        ACTIVE_MODEL_INFO,
+        Kind::Gauge,
+        "1 for the model that sessions without an explicit model are served (label `model`); 0 for models active earlier in this process.",
+    ),
+    (
+        DETECTION_BATCHES,
+        Kind::Counter,
+        "Batches scored, by `rpc` (a StreamDetect batch, a Detect call or a StreamDetectFleet message).",
+    ),
+    (
+        DETECTION_SAMPLES,
+        Kind::Counter,
+        "Samples scored, by `rpc`; each returned one detection.",
+    ),
+    (
+        DETECTION_ALARMING,
+        Kind::Counter,
+        "Detections returned with the alarm on, by `rpc`.",
+    ),
+    (
+        DETECTION_BATCH_SECONDS,
+        Kind::Histogram,
+        "Time to score one batch, from its arrival to its reply (session lock wait included), by `rpc`.",
+    ),
+    (
+        REJECTED_BATCHES,
+        Kind::Counter,
+        "Batches refused, by `rpc` and `reason` (a fleet vehicle's entry counts as a batch of its own).",
+    ),
+    (
+        REJECTED_SAMPLES,
+        Kind::Counter,
+        "Samples in refused batches, by `rpc` and `reason`.",
+    ),
+    (
+        UNAUTHENTICATED,
+        Kind::Counter,
+        "API calls refused for a missing or wrong bearer token.",
+    ),
+    (
+        ALARM_ONSETS,
+        Kind::Counter,
+        "Alarm onsets (a vehicle's confirmed spoofing alarm turned on).",
+    ),
+    (
+        ALARM_ENDS,
+        Kind::Counter,
+        "Alarm ends (the alarm turned off, or its session reset, changed model, was evicted or the server stopped).",
+    ),
+    (ALARMS_OPEN, Kind::Gauge, "Alarms on right now."),
+    (
+        ALARM_BACKLOG,
+        Kind::Gauge,
+        "Alarm events waiting in the outbox to be stored.",
+    ),
+    (
+        ALARM_STORED,
+        Kind::Counter,
+        "Alarm events (onsets and ends) stored in the database.",
+    ),
+    (
+        ALARM_FAILED_BATCHES,
+        Kind::Counter,
+        "Outbox write batches the database refused (each is retried).",
+    ),
+    (
+        ALARM_DROPPED_ONSETS,
+        Kind::Counter,
+        "Alarm onsets not stored because the outbox was full.",
+    ),
+    (
+        ALARM_INVALID,
+        Kind::Counter,
+        "Alarm events not stored because of invalid values.",
+    ),
+    (
+        SESSIONS_OPEN,
+        Kind::Gauge,
+        "Vehicle sessions held in memory.",
+    ),
+    (
+        SESSIONS_CONNECTED,
+        Kind::Gauge,
+        "Vehicle sessions with a live StreamDetect stream.",
+    ),
+    (
+        SESSIONS_EVICTED,
+        Kind::Counter,
+        "Sessions evicted after being idle without a stream.",
+    ),
+    (
+        SESSIONS_REFUSED,
+        Kind::Counter,
+        "New sessions refused because the session table was full (--max-sessions).",
+    ),
+    (
+        JOBS,
+        Kind::Gauge,
+        "Training and evaluation jobs in this process, by `state` (queued, running).",
+    ),
+    (
+        JOBS_FINISHED,
+        Kind::Counter,
+        "Jobs finished, by `state` (succeeded, failed, cancelled).",
+    ),
+    (
+        STORE_FAULTS,
+        Kind::Counter,
+        "Database faults seen, by `kind` (full, read_only, io, busy, cant_open, corrupt, lost, closed).",
+    ),
+    (
+        DB_SECONDS,
+        Kind::Histogram,
+        "Time of selected database writes, by `op` (alarm_batch_write, job_create, job_start, job_progress, job_finish).",
+    ),
+];
+
+/// The detection RPCs, the values of the `rpc` label.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Rpc {
+    StreamDetect,
+    Detect,
+    StreamDetectFleet,
+}
+
+impl Rpc {
+    /// In the order of their index into [`HOT`].
+    const ALL: [Rpc; 3] = [Rpc::StreamDetect, Rpc::Detect, Rpc::StreamDetectFleet];
+
+    fn index(self) -> usize {
+        self as usize
+    }
+
+    fn label(self) -> &'static str {
+        match self {
+            Rpc::StreamDetect => "StreamDetect",
+            Rpc::Detect => "Detect",
+            Rpc::StreamDetectFleet => "StreamDetectFleet",
+        }
+    }
+}
+
+/// The values of the `reason` label of refused batches: a small fixed set.
+pub const REJECTION_REASONS: [&str; 9] = [
+    "batch_size",
+    "invalid_sample",
+    "invalid_request",
+    "too_large",
+    "session_limit",
+    "model_not_found",
+    "no_active_model",
+    "unavailable",
+    "other",
+];
+
+/// The `reason` of a refusal: INVALID_ARGUMENT by the class of its first violated field (the
+/// batch's sample count, a sample's value or time, or anything else of the request), every other
+/// code by what it means at the detection edge.
+pub fn rejection_reason(status: &Status) -> &'static str {
+    match status.code() {
+        Code::InvalidArgument => {
+            let field = status
+                .get_details_bad_request()
+                .and_then(|bad| bad.field_violations.into_iter().next())
+                .map(|violation| violation.field)
+                .unwrap_or_default();
+            if field.ends_with("samples") {
+                "batch_size"
+            } else if field.contains("samples[") {
+                "invalid_sample"
+            } else {
+                "invalid_request"
+            }
+        }
+        Code::OutOfRange => "too_large",
+        Code::ResourceExhausted => "session_limit",
+        Code::NotFound => "model_not_found",
+        Code::FailedPrecondition => "no_active_model",
+        Code::Unavailable => "unavailable",
+        _ => "other",
+    }
+}
+
+/// Buckets of the batch latency: a sample costs a few µs, a batch holds up to 1,000 of them.
+const BATCH_BUCKETS: [f64; 14] = [
+    0.000_05, 0.000_1, 0.000_25, 0.000_5, 0.001, 0.002_5, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5,
+    1.0,
+];
+/// Buckets of database writes: SQLite commits take milliseconds, a busy or failing disk seconds.
+const DB_BUCKETS: [f64; 12] = [
+    0.000_5, 0.001, 0.002_5, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 5.0,
+];
+/// How often histogram samples are folded into their buckets between scrapes.
+const UPKEEP_PERIOD: Duration = Duration::from_secs(5);
+
+/// The process-wide recorder's handle, once installed.
+static HANDLE: Mutex<Option<PrometheusHandle>> = Mutex::new(None);
+
+/// The handles a scored batch updates, per [`Rpc`] (set once the recorder is installed).
+struct BatchHandles {
+    batches: Counter,
+    samples: Counter,
+    alarming: Counter,
+    latency: Histogram,
+}
+
+static HOT: OnceLock<[BatchHandles; 3]> = OnceLock::new();
+
+/// Installs the Prometheus recorder (once per process; later calls return the same handle),
+/// describes every metric and sets the labelled counters to zero so that they are scraped before
+/// their first event.
+pub fn install() -> Result<PrometheusHandle, BuildError> {
+    let mut installed = HANDLE.lock().unwrap_or_else(PoisonError::into_inner);
+    if let Some(handle) = installed.as_ref() {
+        return Ok(handle.clone());
+    }
+    let handle = PrometheusBuilder::new()
+        .set_buckets_for_metric(
+            Matcher::Full(DETECTION_BATCH_SECONDS.into()),
+            &BATCH_BUCKETS,
+        )?
+        .set_buckets_for_metric(Matcher::Full(DB_SECONDS.into()), &DB_BUCKETS)?
+        .install_recorder()?;
+    for &(name, kind, help) in METRICS {
+        match kind {
+            Kind::Counter => describe_counter!(name, help),
+            Kind::Gauge => describe_gauge!(name, help),
+            Kind::Histogram => describe_histogram!(name, help),
+        }
+    }
+    gauge!(BUILD_INFO, "version" => env!("CARGO_PKG_VERSION")).set(1);
+    let _ = HOT.set(Rpc::ALL.map(|rpc| BatchHandles {
+        batches: counter!(DETECTION_BATCHES, "rpc" => rpc.label()),
+        samples: counter!(DETECTION_SAMPLES, "rpc" => rpc.label()),
+        alarming: counter!(DETECTION_ALARMING, "rpc" => rpc.label()),
+        latency: histogram!(DETECTION_BATCH_SECONDS, "rpc" => rpc.label()),
+    }));
+    for rpc in Rpc::ALL {
+        for name in [DETECTION_BATCHES, DETECTION_SAMPLES, DETECTION_ALARMING] {
+            counter!(name, "rpc" => rpc.label()).increment(0);
+        }
+        for reason in REJECTION_REASONS {
+            counter!(REJECTED_BATCHES, "rpc" => rpc.label(), "reason" => reason).increment(0);
+            counter!(REJECTED_SAMPLES, "rpc" => rpc.label(), "reason" => reason).increment(0);
+        }
+    }
+    for name in [
+        UNAUTHENTICATED,
+        ALARM_ONSETS,
+        ALARM_ENDS,
+        SESSIONS_EVICTED,
+        SESSIONS_REFUSED,
+    ] {
+        counter!(name).increment(0);
+    }
+    gauge!(ALARMS_OPEN).increment(0.0);
+    for kind in FaultKind::ALL {
+        counter!(STORE_FAULTS, "kind" => kind.label()).increment(0);
+    }
+    for state in ["succeeded", "failed", "cancelled"] {
+        counter!(JOBS_FINISHED, "state" => state).increment(0);
+    }
+    *installed = Some(handle.clone());
+    Ok(handle)
+}
+
+/// A batch was scored: `samples` detections returned, `alarming` of them with the alarm on.
+pub fn batch_scored(rpc: Rpc, samples: usize, alarming: usize, started: Instant) {
+    let Some(hot) = HOT.get() else {
+        return;
+    };
+    let handles = &hot[rpc.index()];
+    handles.latency.record(started.elapsed());
+    handles.batches.increment(1);
+    handles.samples.increment(samples as u64);
+    handles.alarming.increment(alarming as u64);
+}
+
+/// A batch of `samples` samples was refused with `status`.
+pub fn batch_rejected(rpc: Rpc, status: &Status, samples: usize) {
+    let (rpc, reason) = (rpc.label(), rejection_reason(status));
+    counter!(REJECTED_BATCHES, "rpc" => rpc, "reason" => reason).increment(1);
+    counter!(REJECTED_SAMPLES, "rpc" => rpc, "reason" => reason).increment(samples as u64);
+}
+
+/// A detection stream ended with `status` from the transport: counted as a refused batch when the
+/// message was over the size limit (other transport errors are the client going away).
+pub fn stream_failed(rpc: Rpc, status: &Status) {
+    if status.code() == Code::OutOfRange {
+        batch_rejected(rpc, status, 0);
+    }
+}
+
+/// An API call was refused for its bearer token.
+pub fn unauthenticated() {
+    counter!(UNAUTHENTICATED).increment(1);
+}
+
+/// An alarm turned on.
+pub fn alarm_onset() {
+    counter!(ALARM_ONSETS).increment(1);
+    gauge!(ALARMS_OPEN).increment(1.0);
+}
+
+/// An alarm turned off (or its session ended while alarming).
+pub fn alarm_end() {
+    counter!(ALARM_ENDS).increment(1);
+    gauge!(ALARMS_OPEN).decrement(1.0);
+}
+
+/// `count` idle sessions were evicted.
+pub fn sessions_evicted(count: usize) {
+    counter!(SESSIONS_EVICTED).increment(count as u64);
+}
+
+/// A new session was refused: the table is full.
+pub fn session_refused() {
+    counter!(SESSIONS_REFUSED).increment(1);
+}
+
+/// A job finished in `state` (succeeded, failed or cancelled).
+pub fn job_finished(state: &'static str) {
+    counter!(JOBS_FINISHED, "state" => state).increment(1);
+}
+
+/// A database fault of `kind` (a `FaultKind` label) was seen.
+pub fn store_fault(kind: &'static str) {
+    counter!(STORE_FAULTS, "kind" => kind).increment(1);
+}
+
+/// Runs the database operation `op` and records how long it took (also when it failed).
+pub async fn db_timed<F: Future>(op: &'static str, operation: F) -> F::Output {
+    let started = Instant::now();
+    let output = operation.await;
+    histogram!(DB_SECONDS, "op" => op).record(started.elapsed());
+    output
+}
+
+/// The server state the scrape-time gauges mirror.
+#[derive(Debug, Clone)]
+pub struct Sources {
+    pub sessions: Arc<SessionManager>,
+    pub alarms: Arc<AlarmOutbox>,
+    pub jobs: Arc<JobManager>,
+    pub registry: Arc<Registry>,
+}
+
+/// What the endpoint holds: the recorder's handle, the sources, and the last active model shown
+/// (so that a change sets the old model's series to 0).
+#[derive(Debug)]
+struct Endpoint {
+    handle: PrometheusHandle,
+    sources: Sources,
+    shown_model: Mutex<Option<String>>,
+}
+
+impl Endpoint {
+    /// Sets the mirrored gauges from the server's state, then renders every metric.
+    fn scrape(&self) -> String {
+        let Sources {
+            sessions,
+            alarms,
+            jobs,
+            registry,
+        } = &self.sources;
+        let (open, connected) = sessions.counts();
+        gauge!(SESSIONS_OPEN).set(open as f64);
+        gauge!(SESSIONS_CONNECTED).set(connected as f64);
+        let outbox = alarms.stats();
+        gauge!(ALARM_BACKLOG).set(outbox.backlog as f64);
+        counter!(ALARM_STORED).absolute(outbox.written);
+        counter!(ALARM_FAILED_BATCHES).absolute(outbox.failed_batches);
+        counter!(ALARM_DROPPED_ONSETS).absolute(outbox.dropped_onsets);
+        counter!(ALARM_INVALID).absolute(outbox.invalid);
+        let (queued, running) = jobs.counts();
+        gauge!(JOBS, "state" => "queued").set(queued as f64);
+        gauge!(JOBS, "state" => "running").set(running as f64);
+        let active = registry.active_name().map(|name| name.to_string());
+        let mut shown = self
+            .shown_model
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        if *shown != active {
+            if let Some(old) = shown.take() {
+                gauge!(ACTIVE_MODEL_INFO, "model" => old).set(0);
+            }
+            if let Some(new) = &active {
+                gauge!(ACTIVE_MODEL_INFO, "model" => new.clone()).set(1);
+            }
+            *shown = active;
+        }
+        drop(shown);
+        self.handle.render()
+    }
+}
+
+async fn metrics_page(
+    axum::extract::State(endpoint): axum::extract::State<Arc<Endpoint>>,
+) -> impl axum::response::IntoResponse {
+    (
+        [(
+            axum::http::header::CONTENT_TYPE,
+            "text/plain; version=0.0.4; charset=utf-8",
+        )],
+        endpoint.scrape(),
+    )
+}
+
+/// Serves `GET /metrics` on `listener` until `stop` is cancelled, and folds histogram samples into
+/// their buckets every few seconds meanwhile.
+pub async fn serve_metrics(
+    listener: TcpListener,
+    handle: PrometheusHandle,
+    sources: Sources,
+    stop: CancellationToken,
+) {
+    let upkeep = {
+        let (handle, stop) = (handle.clone(), stop.clone());
+        tokio::spawn(async move {
+            let mut tick = tokio::time::interval(UPKEEP_PERIOD);
+            loop {
+                tokio::select! {
+                    _ = stop.cancelled() => break,
+                    _ = tick.tick() => handle.run_upkeep(),
+                }
+            }
+        })
+    };
+    let endpoint = Arc::new(Endpoint {
+        handle,
+        sources,
+        shown_model: Mutex::new(None),
+    });
+    let app = axum::Router::new()
+        .route("/metrics", axum::routing::get(metrics_page))
+        .with_state(endpoint);
+    let served = axum::serve(listener, app)
+        .with_graceful_shutdown(stop.clone().cancelled_owned())
+        .await;
+    if let Err(error) = served {
+        tracing::error!(%error, "the metrics endpoint failed");
+    }
+    upkeep.abort();
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::status::{invalid_field, not_found, resource_exhausted, shutting_down};
+
+    #[test]
+    fn refusals_are_classed_by_their_first_field_or_their_code() {
+        // Every reason is one of the label values registered at zero.
+        let reason = |status: Status| {
+            let reason = rejection_reason(&status);
+            assert!(REJECTION_REASONS.contains(&reason), "{reason}");
+            reason
+        };
+        assert_eq!(
+            reason(invalid_field("batch.samples", "must hold 1 to 1000")),
+            "batch_size"
+        );
+        assert_eq!(
+            reason(invalid_field("vehicles[2].samples", "must hold 1 to 1000")),
+            "batch_size"
+        );
+        assert_eq!(
+            reason(invalid_field(
+                "batch.samples[3].latitude_deg",
+                "must be finite"
+            )),
+            "invalid_sample"
+        );
+        assert_eq!(
+            reason(invalid_field(
+                "vehicles[0].samples[1].timestamp_s",
+                "goes backwards"
+            )),
+            "invalid_sample"
+        );
+        assert_eq!(
+            reason(invalid_field("start.vehicle_id", "required")),
+            "invalid_request"
+        );
+        assert_eq!(
+            reason(Status::invalid_argument("no details")),
+            "invalid_request"
+        );
+        assert_eq!(reason(Status::out_of_range("too large")), "too_large");
+        assert_eq!(reason(resource_exhausted("full")), "session_limit");
+        assert_eq!(reason(not_found("model", "models/x")), "model_not_found");
+        assert_eq!(reason(shutting_down()), "unavailable");
+        assert_eq!(reason(Status::internal("bug")), "other");
+    }
+
+    #[test]
+    fn every_metric_is_named_once_with_its_unit_and_help() {
+        let mut names: Vec<&str> = METRICS.iter().map(|(name, _, _)| *name).collect();
+        names.sort_unstable();
+        names.dedup();
+        assert_eq!(names.len(), METRICS.len(), "a name is listed twice");
+        for &(name, kind, help) in METRICS {
+            assert!(name.starts_with("spoofwatch_"), "{name}");
+            assert!(!help.is_empty(), "{name} has no help text");
+            match kind {
+                Kind::Counter => assert!(name.ends_with("_total"), "{name}"),
+                Kind::Histogram => assert!(name.ends_with("_seconds"), "{name}"),
+                Kind::Gauge => assert!(!name.ends_with("_total"), "{name}"),
+            }
+        }
+    }
+}
