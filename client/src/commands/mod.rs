@@ -53,6 +53,8 @@ enum Command {
     Jobs(remote::jobs::Args),
     /// Manage the models on a server.
     Models(remote::models::Args),
+    /// The fleet's confirmed alarms on a server: list the stored ones, watch onsets and ends.
+    Alarms(remote::alarms::Args),
     /// Live demo: an in-process server detecting a simulated drive with a GNSS drift attack.
     Demo(remote::demo::Args),
     /// Load benchmark over loopback: throughput, batch latency and per-session memory.
@@ -73,6 +75,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Datasets(args) => remote::block_on(remote::datasets::run(args)),
         Command::Jobs(args) => remote::block_on(remote::jobs::run(args)),
         Command::Models(args) => remote::block_on(remote::models::run(args)),
+        Command::Alarms(args) => remote::block_on(remote::alarms::run(args)),
         Command::Demo(args) => remote::block_on(remote::demo::run(args)),
         Command::Bench(args) => remote::block_on(remote::bench::run(args)),
     }
