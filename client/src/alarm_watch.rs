@@ -33,7 +33,7 @@ pub struct WatchOptions {
 
 /// Called before each reconnection attempt with the status that ended the call and the cursor
 /// the watch will resume after.
-pub type ReconnectNotice = Box<dyn FnMut(&tonic::Status, Option<i64>) + Send>;
+pub type ReconnectNotice = Box<dyn FnMut(&tonic::Status, Option<i64>) + Send + Sync>;
 
 /// One `WatchAlarms` feed that survives reconnects.
 pub struct AlarmWatch {

@@ -333,7 +333,6 @@ impl AlarmOutbox {
     }
 }
 
-
 /// The structured log line of an emitted alarm event (one per onset, one per end).
 fn log_event(event: &AlarmEvent) {
     let alarm = &event.alarm;
@@ -506,7 +505,9 @@ mod tests {
         let left_open = before.onset("car", "m", 1.0, 0.9);
         let stop = CancellationToken::new();
         stop.cancel();
-        before.run(store.clone(), stop, Duration::from_secs(5)).await;
+        before
+            .run(store.clone(), stop, Duration::from_secs(5))
+            .await;
         // A cursor only a live watcher saw (the crash lost it before it was stored).
         let unstored = before.onset("car-2", "m", 2.0, 0.9);
         let seen_live = before.subscribe(0).head;
@@ -531,7 +532,11 @@ mod tests {
             .alarm_events_between(seen_live, i64::MAX, None, 10)
             .await
             .unwrap();
-        assert_eq!(end.len(), 1, "the end is logged with a cursor of the new run");
+        assert_eq!(
+            end.len(),
+            1,
+            "the end is logged with a cursor of the new run"
+        );
         assert_eq!(end[0].seq, restarted.head);
     }
 

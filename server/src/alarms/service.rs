@@ -98,7 +98,10 @@ fn vehicle_filter(vehicle_id: &str) -> Result<Option<String>, Status> {
 }
 
 /// An optional timestamp field as unix milliseconds (sub-millisecond parts are truncated).
-fn timestamp_ms(field: &str, timestamp: Option<&prost_types::Timestamp>) -> Result<Option<i64>, Status> {
+fn timestamp_ms(
+    field: &str,
+    timestamp: Option<&prost_types::Timestamp>,
+) -> Result<Option<i64>, Status> {
     let Some(t) = timestamp else {
         return Ok(None);
     };
@@ -137,10 +140,7 @@ fn list_filter(r: &v1::ListAlarmsRequest) -> Result<AlarmFilter, Status> {
         Ok(v1::AlarmStateFilter::Open) => AlarmState::Open,
         Ok(v1::AlarmStateFilter::Closed) => AlarmState::Closed,
         Err(_) => {
-            return Err(invalid_field(
-                "state",
-                format!("unknown state {}", r.state),
-            ));
+            return Err(invalid_field("state", format!("unknown state {}", r.state)));
         }
     };
     Ok(AlarmFilter {

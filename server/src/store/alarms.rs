@@ -208,7 +208,10 @@ impl Store {
     ///
     /// [`StoreError::InvalidValue`] (before anything is written) for the values
     /// [`AlarmEvent::validate`] refuses.
-    pub async fn write_alarms<E: Borrow<AlarmEvent>>(&self, events: &[E]) -> Result<(), StoreError> {
+    pub async fn write_alarms<E: Borrow<AlarmEvent>>(
+        &self,
+        events: &[E],
+    ) -> Result<(), StoreError> {
         for event in events {
             event.borrow().validate()?;
         }
@@ -295,7 +298,8 @@ impl Store {
             .bind(state);
         // Alarms page by id alone: the token's time slot carries the last id; its id slot (?7) is
         // bound but unused.
-        self.fetch_page(LISTING, page, query, |row| (row.id, "")).await
+        self.fetch_page(LISTING, page, query, |row| (row.id, ""))
+            .await
     }
 
     /// The logged events with `after < seq < before`, optionally of one vehicle, in cursor order,

@@ -145,7 +145,8 @@ async fn run_list(server: &super::ServerArgs, args: ListArgs) -> Result<()> {
     }
     print_table(
         &[
-            "id", "vehicle", "model", "onset", "end", "onset_s", "end_s", "peak", "samples", "state",
+            "id", "vehicle", "model", "onset", "end", "onset_s", "end_s", "peak", "samples",
+            "state",
         ],
         &alarms,
         |a| {
@@ -173,15 +174,14 @@ async fn run_watch(server: &super::ServerArgs, args: WatchArgs) -> Result<()> {
         after_cursor: args.after,
         reconnect_for: Duration::from_secs_f64(args.reconnect_for),
     };
-    let mut watch = AlarmWatch::new(connection, options).with_reconnect_notice(Box::new(
-        |status, cursor| {
+    let mut watch =
+        AlarmWatch::new(connection, options).with_reconnect_notice(Box::new(|status, cursor| {
             eprintln!(
                 "watch ended ({}); reconnecting{}",
                 describe_status(status),
                 resume_hint(cursor)
             );
-        },
-    ));
+        }));
     let mut events = 0;
     let mut out = std::io::stdout().lock();
     while args.count.is_none_or(|count| events < count) {
@@ -192,7 +192,8 @@ async fn run_watch(server: &super::ServerArgs, args: WatchArgs) -> Result<()> {
                 return Ok(());
             }
         };
-        let event = next.with_context(|| format!("the watch ended{}", resume_hint(watch.cursor())))?;
+        let event =
+            next.with_context(|| format!("the watch ended{}", resume_hint(watch.cursor())))?;
         if event.kind != v1::AlarmEventKind::CaughtUp as i32 {
             events += 1;
         }

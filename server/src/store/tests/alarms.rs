@@ -173,10 +173,16 @@ async fn close_open_alarms_ends_only_open_ones_without_an_end_timestamp() {
         closed_before
     );
     assert!(store.close_open_alarms(5_000, 78).await.unwrap().is_empty());
-    let logged = store.alarm_events_between(0, i64::MAX, None, 10).await.unwrap();
+    let logged = store
+        .alarm_events_between(0, i64::MAX, None, 10)
+        .await
+        .unwrap();
     let logged: Vec<_> = logged.iter().map(|e| (e.seq, e.alarm.id)).collect();
     assert_eq!(logged, [(1, 1), (2, 2), (77, 2), (1_001, 1)]);
-    assert_eq!(closed[0].alarm, *recovered, "the logged end is the alarm as closed");
+    assert_eq!(
+        closed[0].alarm, *recovered,
+        "the logged end is the alarm as closed"
+    );
 }
 
 #[tokio::test]
@@ -273,10 +279,7 @@ async fn list_alarms_filters_and_pages_in_id_order() {
     let mut pages = Vec::new();
     let mut request = PageRequest::first(3);
     loop {
-        let page = store
-            .list_alarms(&vehicle("a"), &request)
-            .await
-            .unwrap();
+        let page = store.list_alarms(&vehicle("a"), &request).await.unwrap();
         pages.push(ids(page.items));
         match page.next_page_token {
             Some(token) => request = PageRequest::after(2, token),
@@ -284,10 +287,16 @@ async fn list_alarms_filters_and_pages_in_id_order() {
         }
     }
     assert_eq!(pages, [vec![1, 3, 4]]);
-    let page = store.list_alarms(&AlarmFilter::default(), &PageRequest::first(3)).await.unwrap();
+    let page = store
+        .list_alarms(&AlarmFilter::default(), &PageRequest::first(3))
+        .await
+        .unwrap();
     assert_eq!(ids(page.items), [1, 2, 3]);
     let token = page.next_page_token.expect("a second page");
-    let rest = store.list_alarms(&AlarmFilter::default(), &PageRequest::after(3, token)).await.unwrap();
+    let rest = store
+        .list_alarms(&AlarmFilter::default(), &PageRequest::after(3, token))
+        .await
+        .unwrap();
     assert_eq!((ids(rest.items), rest.next_page_token), (vec![4], None));
     assert!(matches!(
         store

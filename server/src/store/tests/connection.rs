@@ -4,8 +4,8 @@ use serde_json::json;
 
 use super::{count_rows, db_path, new_dataset, new_job, new_model, temp_store};
 use crate::store::{
-    AlarmEvent, AlarmEventKind, AlarmEventRow, EpochRow, FaultKind, JobKind, JobOutcome, JobState, PageRequest, Store, StoreError,
-    StoreOptions,
+    AlarmEvent, AlarmEventKind, AlarmEventRow, EpochRow, FaultKind, JobKind, JobOutcome, JobState,
+    PageRequest, Store, StoreError, StoreOptions,
 };
 use sqlx::Connection;
 
