@@ -84,6 +84,7 @@ impl AlarmWatch {
         let request = v1::WatchAlarmsRequest {
             vehicle_id: self.options.vehicle_id.clone(),
             after_cursor: self.cursor,
+            stop_when_caught_up: false,
         };
         Ok(self
             .connection

@@ -181,6 +181,18 @@ fn alarms_are_listed_and_watched_from_the_command_line() {
         &(2 * listed.len() - 1).to_string(),
     ]));
     assert_eq!(resumed[..], replayed[1..]);
+    let collected = json_lines(&succeed(&[
+        "alarms",
+        "watch",
+        "--server",
+        &url,
+        "--after",
+        &cursor,
+        "--until-caught-up",
+    ]));
+    let (last, events) = collected.split_last().expect("at least caught_up");
+    assert_eq!(last["kind"], "caught_up");
+    assert_eq!(events, &replayed[1..]);
 
     // Refusals name the field; a refused watch does not retry.
     let refused = run(&["alarms", "list", "--server", &url, "--vehicle", "no spaces"]);

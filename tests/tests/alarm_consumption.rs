@@ -65,9 +65,32 @@ async fn until_caught_up(watch: &mut AlarmWatch) -> Vec<v1::AlarmEvent> {
     }
 }
 
-/// Every event stored so far, from a new watch after cursor 0.
+/// Every event stored so far: a watch after cursor 0 that stops when caught up (CAUGHT_UP is
+/// left out).
 async fn history(clients: &Clients, vehicle_id: &str) -> Vec<v1::AlarmEvent> {
-    until_caught_up(&mut watch(clients, vehicle_id, Some(0))).await
+    let request = v1::WatchAlarmsRequest {
+        vehicle_id: vehicle_id.to_string(),
+        after_cursor: Some(0),
+        stop_when_caught_up: true,
+    };
+    let mut stream = clients
+        .alarms
+        .clone()
+        .watch_alarms(request)
+        .await
+        .expect("WatchAlarms works")
+        .into_inner();
+    let mut events = Vec::new();
+    while let Some(event) = tokio::time::timeout(REPLY_TIMEOUT, stream.message())
+        .await
+        .expect("an event within the reply timeout")
+        .expect("the watch ends with OK")
+    {
+        events.push(event);
+    }
+    let last = events.pop().expect("at least CAUGHT_UP");
+    assert_eq!(last.kind, CAUGHT_UP, "the call ends right after CAUGHT_UP");
+    events
 }
 
 /// Checks that `events` are the onset and end of each episode, in order.
@@ -372,21 +395,21 @@ async fn invalid_filters_and_cursors_are_refused_field_by_field() {
         (
             v1::WatchAlarmsRequest {
                 vehicle_id: "a/b".into(),
-                after_cursor: None,
+                ..v1::WatchAlarmsRequest::default()
             },
             "vehicle_id",
         ),
         (
             v1::WatchAlarmsRequest {
-                vehicle_id: String::new(),
                 after_cursor: Some(-1),
+                ..v1::WatchAlarmsRequest::default()
             },
             "after_cursor",
         ),
         (
             v1::WatchAlarmsRequest {
-                vehicle_id: String::new(),
                 after_cursor: Some(head + 1),
+                ..v1::WatchAlarmsRequest::default()
             },
             "after_cursor",
         ),

@@ -183,6 +183,8 @@ struct Watch {
     outbox: Arc<AlarmOutbox>,
     shutdown: CancellationToken,
     vehicle_id: Option<String>,
+    /// End the call after CAUGHT_UP.
+    stop_when_caught_up: bool,
     tx: mpsc::Sender<WatchReply>,
     /// Every event up to this cursor has been sent or filtered out.
     position: i64,
@@ -270,6 +272,9 @@ impl Watch {
             if !announced {
                 self.send(caught_up(self.position)).await?;
                 announced = true;
+                if self.stop_when_caught_up {
+                    return Ok(());
+                }
             }
             loop {
                 let received = tokio::select! {
@@ -351,6 +356,7 @@ impl AlarmService for AlarmApi {
             outbox: Arc::clone(&self.outbox),
             shutdown: self.shutdown.clone(),
             vehicle_id,
+            stop_when_caught_up: r.stop_when_caught_up,
             tx: tx.clone(),
             position,
         };

@@ -80,6 +80,10 @@ pub struct WatchArgs {
     /// Stop after this many onsets and ends (default: never).
     #[arg(long)]
     pub count: Option<u64>,
+    /// Stop once caught up (after the `caught_up` line): print what happened after `--after`
+    /// and exit.
+    #[arg(long)]
+    pub until_caught_up: bool,
 }
 
 /// Seconds: finite and >= 0.
@@ -194,11 +198,15 @@ async fn run_watch(server: &super::ServerArgs, args: WatchArgs) -> Result<()> {
         };
         let event =
             next.with_context(|| format!("the watch ended{}", resume_hint(watch.cursor())))?;
-        if event.kind != v1::AlarmEventKind::CaughtUp as i32 {
+        let caught_up = event.kind == v1::AlarmEventKind::CaughtUp as i32;
+        if !caught_up {
             events += 1;
         }
         writeln!(out, "{}", event_json(&event))?;
         out.flush()?;
+        if caught_up && args.until_caught_up {
+            break;
+        }
     }
     Ok(())
 }
