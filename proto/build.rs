@@ -5,12 +5,13 @@ use std::path::PathBuf;
 
 use prost::Message;
 
-const PROTOS: [&str; 6] = [
+const PROTOS: [&str; 7] = [
     "proto/spoofwatch/v1/common.proto",
     "proto/spoofwatch/v1/detection.proto",
     "proto/spoofwatch/v1/models.proto",
     "proto/spoofwatch/v1/datasets.proto",
     "proto/spoofwatch/v1/training.proto",
+    "proto/spoofwatch/v1/alarms.proto",
     "proto/google/longrunning/operations.proto",
 ];
 

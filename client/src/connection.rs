@@ -5,6 +5,7 @@
 use std::time::Duration;
 
 use spoofwatch_proto::longrunning::operations_client::OperationsClient;
+use spoofwatch_proto::v1::alarm_service_client::AlarmServiceClient;
 use spoofwatch_proto::v1::dataset_service_client::DatasetServiceClient;
 use spoofwatch_proto::v1::detection_service_client::DetectionServiceClient;
 use spoofwatch_proto::v1::model_service_client::ModelServiceClient;
@@ -153,6 +154,14 @@ impl Connection {
         self.limited(
             OperationsClient::new,
             OperationsClient::max_decoding_message_size,
+        )
+    }
+
+    /// The AlarmService client (list stored alarms, watch onsets and ends).
+    pub fn alarms(&self) -> AlarmServiceClient<AuthenticatedChannel> {
+        self.limited(
+            AlarmServiceClient::new,
+            AlarmServiceClient::max_decoding_message_size,
         )
     }
 

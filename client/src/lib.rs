@@ -1,6 +1,6 @@
 //! Spoofwatch client library: a typed gRPC connection to the Spoofwatch service, one client-side
 //! `StreamDetect` call ([`DetectStream`]) and one gateway `StreamDetectFleet` call
-//! ([`FleetDetectStream`]), replay of recorded telemetry over it and its fleet
+//! ([`FleetDetectStream`]), a resumable alarm feed ([`AlarmWatch`]), replay of recorded telemetry over it and its fleet
 //! summary ([`fleet`]), and the small helpers the `spoofwatch` CLI shares between its offline and
 //! remote commands.
 //!
@@ -8,6 +8,7 @@
 //! it. Nothing here depends on the server crate: only the binary's `demo` and in-process `bench`
 //! use `spoofwatch_server::inprocess` (feature `inprocess`, on by default).
 
+pub mod alarm_watch;
 pub mod connection;
 pub mod detect_stream;
 pub mod error;
@@ -19,6 +20,7 @@ pub mod replay;
 pub mod report;
 pub mod synthetic;
 
+pub use alarm_watch::{AlarmWatch, WatchOptions};
 pub use connection::{AuthenticatedChannel, BearerAuth, Connection};
 pub use detect_stream::DetectStream;
 pub use error::{ClientError, RpcError};

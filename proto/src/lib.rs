@@ -6,7 +6,7 @@ pub mod wire;
 
 #[allow(clippy::all, missing_docs, rust_2018_idioms)]
 pub mod spoofwatch {
-    /// `spoofwatch.v1`: detection, models, datasets, training.
+    /// `spoofwatch.v1`: detection, models, datasets, training, alarms.
     pub mod v1 {
         tonic::include_proto!("spoofwatch.v1");
     }

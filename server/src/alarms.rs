@@ -1,26 +1,43 @@
 //! The alarm outbox: alarm onsets and ends leave the detection path at once (no database call while
-//! a session is locked) and one background writer stores them in batches, one transaction per batch,
-//! retried with backoff until the store accepts them, and drained at shutdown.
+//! a session is locked), are sent to live watchers and logged, and one background writer stores them
+//! in batches, one transaction per batch, retried with backoff until the store accepts them, and
+//! drained at shutdown.
 //!
-//! Ids are assigned here, continuing after the largest stored id, so a retried batch is idempotent
-//! and an end always names its own onset. The queue is bounded: when it is full a new onset is
-//! dropped (counted and logged) rather than stall detection; ends are always queued (one per open
+//! Ids and cursors are assigned here. Ids continue after the largest stored id, so a retried batch is
+//! idempotent and an end always names its own onset. Cursors (the WatchAlarms positions) increase in
+//! emission order under the queue's lock, so the queue, the live channel and the stored event log
+//! all hold events in cursor order; each server start takes a new block of cursors
+//! ([`first_seq_of_run`]), so a cursor a crash kept from being stored is never reused.
+//!
+//! The queue is bounded: when it is full a new onset is dropped (counted and logged; never sent or
+//! stored, and its end neither) rather than stall detection; ends are always queued (one per open
 //! alarm, so they are bounded by the session limit). A write the store would refuse by its values
 //! (a non-finite time, a probability outside [0, 1]) is refused here, so it cannot block the queue.
+//!
+//! [`service`] serves the events: ListAlarms from the store, WatchAlarms from the store, then this
+//! queue, then the live channel.
 
-use std::collections::VecDeque;
-use std::sync::Mutex;
-use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
+pub mod service;
+
+use std::collections::{HashMap, VecDeque};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use tokio::sync::Notify;
+use spoofwatch_proto::wire::convert::timestamp_from_ms;
+use tokio::sync::{Notify, broadcast};
 use tokio_util::sync::CancellationToken;
 
-use crate::store::{AlarmWrite, Store, StoreError, now_unix_ms};
+use crate::store::{
+    AlarmEvent, AlarmEventKind, AlarmEventRow, Store, StoreError, first_seq_of_run, now_unix_ms,
+};
 use crate::telemetry;
 
 /// Most writes queued before new onsets are dropped.
 pub const OUTBOX_CAPACITY: usize = 100_000;
+/// Events a live watcher may fall behind before it is told it lagged (it then replays from the
+/// database and this queue).
+const LIVE_BUFFER: usize = 4_096;
 /// Most writes per transaction.
 const BATCH: usize = 512;
 /// Most unstored writes logged one by one at shutdown.
@@ -45,13 +62,37 @@ pub struct OutboxStats {
     pub failing: bool,
 }
 
+/// What the queue's lock guards.
+#[derive(Debug)]
+struct Pending {
+    /// Emitted events not stored yet, in cursor order.
+    queue: VecDeque<Arc<AlarmEvent>>,
+    /// Alarms whose onset was emitted and whose end was not: an end is emitted only for these.
+    open: HashMap<i64, AlarmEventRow>,
+    next_id: i64,
+    next_seq: i64,
+}
+
+/// Where a watcher joins the event sequence (see [`AlarmOutbox::subscribe`]).
+#[derive(Debug)]
+pub struct Subscription {
+    /// Every event emitted after the subscription.
+    pub live: broadcast::Receiver<Arc<AlarmEvent>>,
+    /// The emitted events after the requested cursor that are not stored yet, in cursor order.
+    pub unstored: Vec<Arc<AlarmEvent>>,
+    /// Every emitted event with a lower cursor is stored.
+    pub stored_below: i64,
+    /// The latest cursor emitted so far (the one before this run's first when none was).
+    pub head: i64,
+}
+
 /// The queue between the sessions and the writer.
 #[derive(Debug)]
 pub struct AlarmOutbox {
-    queue: Mutex<VecDeque<AlarmWrite>>,
+    pending: Mutex<Pending>,
+    live: broadcast::Sender<Arc<AlarmEvent>>,
     capacity: usize,
     wake: Notify,
-    next_id: AtomicI64,
     written: AtomicU64,
     dropped_onsets: AtomicU64,
     invalid: AtomicU64,
@@ -60,13 +101,27 @@ pub struct AlarmOutbox {
 }
 
 impl AlarmOutbox {
-    /// An outbox whose ids continue after the largest one in `store`.
+    /// The outbox of a server starting on `store`: it starts a new cursor run, ends the alarms a
+    /// previous run left open (a crash, or a drain that could not store them) with logged end
+    /// events, and continues ids after the largest stored one.
     pub async fn new(store: &Store, capacity: usize) -> Result<Self, StoreError> {
+        let now = now_unix_ms();
+        let first_seq = first_seq_of_run(store.start_alarm_run(now).await?);
+        let closed = store.close_open_alarms(now, first_seq).await?;
+        for event in &closed {
+            log_event(event);
+        }
+        let next_seq = first_seq + i64::try_from(closed.len()).unwrap_or(i64::MAX);
         Ok(Self {
-            queue: Mutex::new(VecDeque::new()),
+            pending: Mutex::new(Pending {
+                queue: VecDeque::new(),
+                open: HashMap::new(),
+                next_id: store.max_alarm_id().await? + 1,
+                next_seq,
+            }),
+            live: broadcast::channel(LIVE_BUFFER).0,
             capacity,
             wake: Notify::new(),
-            next_id: AtomicI64::new(store.max_alarm_id().await? + 1),
             written: AtomicU64::new(0),
             dropped_onsets: AtomicU64::new(0),
             invalid: AtomicU64::new(0),
@@ -75,9 +130,9 @@ impl AlarmOutbox {
         })
     }
 
-    fn queue(&self) -> std::sync::MutexGuard<'_, VecDeque<AlarmWrite>> {
-        // Pushes and pops cannot leave the queue inconsistent, so a poisoned lock is usable.
-        self.queue.lock().unwrap_or_else(|p| p.into_inner())
+    fn pending(&self) -> std::sync::MutexGuard<'_, Pending> {
+        // Every update leaves the state consistent before it can panic, so a poisoned lock is usable.
+        self.pending.lock().unwrap_or_else(|p| p.into_inner())
     }
 
     /// Queues an alarm onset and returns its id (also when the onset had to be dropped, so that the
@@ -89,21 +144,23 @@ impl AlarmOutbox {
         timestamp_s: f64,
         probability: f64,
     ) -> i64 {
-        let id = self.next_id.fetch_add(1, Ordering::Relaxed);
-        let write = AlarmWrite::Onset {
-            id,
-            vehicle_id: vehicle_id.to_string(),
-            model_id: model_id.to_string(),
-            onset_timestamp_s: timestamp_s,
-            onset_at_ms: now_unix_ms(),
-            probability,
+        let mut pending = self.pending();
+        let id = pending.next_id;
+        pending.next_id += 1;
+        let event = AlarmEvent {
+            seq: 0, // assigned when queued
+            kind: AlarmEventKind::Onset,
+            alarm: AlarmEventRow::opened(
+                id,
+                vehicle_id,
+                model_id,
+                timestamp_s,
+                now_unix_ms(),
+                probability,
+            ),
         };
-        if !self.acceptable(&write) {
-            return id;
-        }
-        let mut queue = self.queue();
-        if queue.len() >= self.capacity {
-            drop(queue);
+        if pending.queue.len() >= self.capacity {
+            drop(pending);
             let dropped = self.dropped_onsets.fetch_add(1, Ordering::Relaxed) + 1;
             tracing::error!(
                 vehicle = vehicle_id,
@@ -113,41 +170,88 @@ impl AlarmOutbox {
             );
             return id;
         }
-        queue.push_back(write);
-        drop(queue);
-        self.wake.notify_one();
+        if !self.acceptable(&event) {
+            return id;
+        }
+        pending.open.insert(id, event.alarm.clone());
+        let event = self.emit(&mut pending, event);
+        drop(pending);
+        log_event(&event);
         id
     }
 
-    /// Queues the end of alarm `id` at its last alarming sample.
+    /// Queues the end of alarm `id` at its last alarming sample (nothing when its onset was
+    /// dropped or refused).
     pub fn end(&self, id: i64, end_timestamp_s: f64, peak_probability: f64, samples: u32) {
-        let write = AlarmWrite::End {
-            id,
-            end_timestamp_s,
-            ended_at_ms: now_unix_ms(),
-            peak_probability,
-            samples,
+        let mut pending = self.pending();
+        let Some(onset) = pending.open.remove(&id) else {
+            return;
         };
-        if self.acceptable(&write) {
-            self.queue().push_back(write);
-            self.wake.notify_one();
+        let event = AlarmEvent {
+            seq: 0, // assigned when queued
+            kind: AlarmEventKind::End,
+            alarm: onset.ended(
+                Some(end_timestamp_s),
+                now_unix_ms(),
+                peak_probability,
+                i64::from(samples),
+            ),
+        };
+        if self.acceptable(&event) {
+            let event = self.emit(&mut pending, event);
+            drop(pending);
+            log_event(&event);
         }
     }
 
-    /// Whether the store will take `write`'s values; a refusal is counted and logged.
-    fn acceptable(&self, write: &AlarmWrite) -> bool {
-        let Err(error) = write.validate() else {
+    /// Gives `event` the next cursor, queues it for the writer and sends it to live watchers, all
+    /// under the lock, so that every watcher sees cursor order.
+    fn emit(&self, pending: &mut Pending, mut event: AlarmEvent) -> Arc<AlarmEvent> {
+        event.seq = pending.next_seq;
+        pending.next_seq += 1;
+        let event = Arc::new(event);
+        pending.queue.push_back(Arc::clone(&event));
+        // No watcher is not an error.
+        let _ = self.live.send(Arc::clone(&event));
+        self.wake.notify_one();
+        event
+    }
+
+    /// Whether the store will take `event`'s values; a refusal is counted and logged.
+    fn acceptable(&self, event: &AlarmEvent) -> bool {
+        let Err(error) = event.validate() else {
             return true;
         };
         self.invalid.fetch_add(1, Ordering::Relaxed);
-        tracing::error!(%error, ?write, "an alarm event with invalid values was not stored");
+        tracing::error!(%error, ?event, "an alarm event with invalid values was not stored");
         false
+    }
+
+    /// Joins the event sequence after cursor `after`: the live receiver is created under the
+    /// queue's lock, so every event after `head` reaches it, every queued event after `after` is
+    /// in `unstored`, and every earlier one is in the database.
+    pub fn subscribe(&self, after: i64) -> Subscription {
+        let pending = self.pending();
+        let live = self.live.subscribe();
+        let stored_below = pending.queue.front().map_or(pending.next_seq, |e| e.seq);
+        let unstored = pending
+            .queue
+            .iter()
+            .filter(|e| e.seq > after)
+            .cloned()
+            .collect();
+        Subscription {
+            live,
+            unstored,
+            stored_below,
+            head: pending.next_seq - 1,
+        }
     }
 
     /// The counters as they are now.
     pub fn stats(&self) -> OutboxStats {
         OutboxStats {
-            backlog: self.queue().len(),
+            backlog: self.pending().queue.len(),
             written: self.written.load(Ordering::Relaxed),
             dropped_onsets: self.dropped_onsets.load(Ordering::Relaxed),
             invalid: self.invalid.load(Ordering::Relaxed),
@@ -159,13 +263,13 @@ impl AlarmOutbox {
     /// At a shutdown the database refuses: every write still queued goes to the log (up to
     /// [`MAX_LOGGED_UNSTORED`] of them), so an operator can restore them by hand.
     fn log_unstored(&self) {
-        let queue = self.queue();
+        let pending = self.pending();
         tracing::error!(
-            lost = queue.len(),
+            lost = pending.queue.len(),
             "shutting down with alarm events the database did not accept; they follow"
         );
-        for write in queue.iter().take(MAX_LOGGED_UNSTORED) {
-            tracing::error!(?write, "alarm event not stored");
+        for event in pending.queue.iter().take(MAX_LOGGED_UNSTORED) {
+            tracing::error!(?event, "alarm event not stored");
         }
     }
 
@@ -175,7 +279,8 @@ impl AlarmOutbox {
         let mut backoff = BACKOFF.0;
         let mut deadline = None;
         loop {
-            let batch: Vec<AlarmWrite> = self.queue().iter().take(BATCH).cloned().collect();
+            let batch: Vec<Arc<AlarmEvent>> =
+                self.pending().queue.iter().take(BATCH).cloned().collect();
             if batch.is_empty() {
                 if stop.is_cancelled() {
                     return;
@@ -188,7 +293,8 @@ impl AlarmOutbox {
             }
             match telemetry::db_timed("alarm_batch_write", store.write_alarms(&batch)).await {
                 Ok(()) => {
-                    self.queue().drain(..batch.len());
+                    // Removed only once committed: a watcher finds each event queued or stored.
+                    self.pending().queue.drain(..batch.len());
                     self.written
                         .fetch_add(batch.len() as u64, Ordering::Relaxed);
                     if self.failing.swap(false, Ordering::Relaxed) {
@@ -228,6 +334,36 @@ impl AlarmOutbox {
     }
 }
 
+/// The structured log line of an emitted alarm event (one per onset, one per end).
+fn log_event(event: &AlarmEvent) {
+    let alarm = &event.alarm;
+    match event.kind {
+        AlarmEventKind::Onset => tracing::info!(
+            vehicle_id = %alarm.vehicle_id,
+            model = %alarm.model_id,
+            alarm_id = alarm.id,
+            cursor = event.seq,
+            probability = alarm.peak_probability,
+            onset_timestamp_s = alarm.onset_timestamp_s,
+            onset_at = %timestamp_from_ms(alarm.onset_at_ms),
+            "alarm onset"
+        ),
+        AlarmEventKind::End => tracing::info!(
+            vehicle_id = %alarm.vehicle_id,
+            model = %alarm.model_id,
+            alarm_id = alarm.id,
+            cursor = event.seq,
+            peak_probability = alarm.peak_probability,
+            samples = alarm.samples,
+            onset_timestamp_s = alarm.onset_timestamp_s,
+            end_timestamp_s = alarm.end_timestamp_s,
+            onset_at = %timestamp_from_ms(alarm.onset_at_ms),
+            ended_at = %timestamp_from_ms(alarm.ended_at_ms.unwrap_or_default()),
+            "alarm end"
+        ),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use std::sync::Arc;
@@ -256,13 +392,10 @@ mod tests {
     async fn alarms_queued_while_the_database_refuses_are_stored_once_it_accepts() {
         let (_dir, store) = temp_store().await;
         store
-            .write_alarms(&[AlarmWrite::Onset {
-                id: 41,
-                vehicle_id: "old".into(),
-                model_id: "m".into(),
-                onset_timestamp_s: 1.0,
-                onset_at_ms: 1,
-                probability: 0.9,
+            .write_alarms(&[AlarmEvent {
+                seq: 1,
+                kind: AlarmEventKind::Onset,
+                alarm: AlarmEventRow::opened(41, "old", "m", 1.0, 1, 0.9),
             }])
             .await
             .unwrap();
@@ -331,11 +464,81 @@ mod tests {
     async fn invalid_values_are_refused_before_they_can_block_the_queue() {
         let (_dir, store) = temp_store().await;
         let outbox = AlarmOutbox::new(&store, 10).await.unwrap();
-        let id = outbox.onset("car", "m", f64::NAN, 0.9);
-        outbox.end(id, 2.0, f64::NAN, 2);
-        outbox.onset("car", "m", 3.0, 0.9);
+        let refused = outbox.onset("car", "m", f64::NAN, 0.9);
+        outbox.end(refused, 2.0, 0.9, 2); // its onset was refused: nothing to end
+        let id = outbox.onset("car", "m", 3.0, 0.9);
+        outbox.end(id, 4.0, f64::NAN, 2);
         let stats = outbox.stats();
         assert_eq!((stats.backlog, stats.invalid), (1, 2));
+    }
+
+    #[tokio::test]
+    async fn a_subscriber_gets_the_queued_events_after_its_cursor_then_live_ones_in_order() {
+        let (_dir, store) = temp_store().await;
+        let outbox = AlarmOutbox::new(&store, 10).await.unwrap();
+        let empty = outbox.subscribe(0);
+        assert!(empty.unstored.is_empty());
+        assert_eq!(empty.stored_below, empty.head + 1);
+
+        let first = outbox.onset("car-1", "m", 1.0, 0.9);
+        let second = outbox.onset("car-2", "m", 2.0, 0.8);
+        let mut subscription = outbox.subscribe(empty.head + 1);
+        let queued: Vec<_> = subscription.unstored.iter().map(|e| e.alarm.id).collect();
+        assert_eq!(queued, [second], "only the events after the cursor");
+        assert_eq!(subscription.stored_below, empty.head + 1);
+        assert_eq!(subscription.head, empty.head + 2);
+
+        outbox.end(first, 3.0, 0.95, 3);
+        let live = subscription.live.recv().await.unwrap();
+        assert_eq!((live.seq, live.kind), (empty.head + 3, AlarmEventKind::End));
+        assert_eq!(
+            (live.alarm.vehicle_id.as_str(), live.alarm.onset_timestamp_s),
+            ("car-1", 1.0),
+            "an end carries its alarm"
+        );
+        assert_eq!(live.alarm.end_timestamp_s, Some(3.0));
+    }
+
+    #[tokio::test]
+    async fn a_restart_continues_above_every_earlier_cursor_and_ends_the_alarms_left_open() {
+        let (_dir, store) = temp_store().await;
+        let before = AlarmOutbox::new(&store, 10).await.unwrap();
+        let left_open = before.onset("car", "m", 1.0, 0.9);
+        let stop = CancellationToken::new();
+        stop.cancel();
+        before
+            .run(store.clone(), stop, Duration::from_secs(5))
+            .await;
+        // A cursor only a live watcher saw (the crash lost it before it was stored).
+        let unstored = before.onset("car-2", "m", 2.0, 0.9);
+        let seen_live = before.subscribe(0).head;
+        assert_ne!(unstored, left_open);
+
+        let after = AlarmOutbox::new(&store, 10).await.unwrap();
+        let restarted = after.subscribe(i64::MAX);
+        assert!(restarted.head > seen_live);
+        let logged = store
+            .alarm_events_between(0, i64::MAX, None, 10)
+            .await
+            .unwrap();
+        let logged: Vec<_> = logged.iter().map(|e| (e.kind, e.alarm.id)).collect();
+        assert_eq!(
+            logged,
+            [
+                (AlarmEventKind::Onset, left_open),
+                (AlarmEventKind::End, left_open)
+            ]
+        );
+        let end = store
+            .alarm_events_between(seen_live, i64::MAX, None, 10)
+            .await
+            .unwrap();
+        assert_eq!(
+            end.len(),
+            1,
+            "the end is logged with a cursor of the new run"
+        );
+        assert_eq!(end[0].seq, restarted.head);
     }
 
     #[tokio::test]

@@ -61,24 +61,31 @@ impl InProcessServer {
         let mut config = Config::with_database(database.to_string_lossy().into_owned());
         config.shutdown_grace_secs = SHUTDOWN_GRACE_SECS;
         config_tweak(&mut config);
-        Self::serve_on_loopback(config, Some(database_dir)).await
+        Self::serve_on_loopback(config, Some(database_dir), 0).await
     }
 
     /// Starts a server with exactly `config` (its own database; e.g. one a test reopens after a
     /// restart) on 127.0.0.1, an ephemeral port; `config.listen` is not used, and metrics (when
     /// `config.metrics_listen` is set) are served on another ephemeral loopback port.
     pub async fn start_with(config: Config) -> Result<Self, InProcessError> {
-        Self::serve_on_loopback(config, None).await
+        Self::serve_on_loopback(config, None, 0).await
+    }
+
+    /// [`InProcessServer::start_with`] on 127.0.0.1:`port`, e.g. the port of a server that just
+    /// stopped, so that its clients reconnect to the restarted one.
+    pub async fn start_on_port(config: Config, port: u16) -> Result<Self, InProcessError> {
+        Self::serve_on_loopback(config, None, port).await
     }
 
     async fn serve_on_loopback(
         config: Config,
         database_dir: Option<tempfile::TempDir>,
+        port: u16,
     ) -> Result<Self, InProcessError> {
-        let listener = TcpListener::bind(("127.0.0.1", 0))
+        let listener = TcpListener::bind(("127.0.0.1", port))
             .await
             .map_err(|source| InProcessError::Io {
-                context: "binding 127.0.0.1:0",
+                context: "binding a loopback port",
                 source,
             })?;
         let addr = listener.local_addr().map_err(|source| InProcessError::Io {

@@ -5,8 +5,8 @@
 //! up logging, binds and waits for a signal; [`inprocess`] runs it inside another process.
 //!
 //! Layout, one home per concept: `models` (registry + ModelService), `datasets` (catalog +
-//! DatasetService), `detection` (sessions + DetectionService), `alarms` (the outbox and background
-//! writer of alarm events), `jobs` (service → manager → runner),
+//! DatasetService), `detection` (sessions + DetectionService), `alarms` (the outbox, background
+//! writer and live feed of alarm events + AlarmService), `jobs` (service → manager → runner),
 //! `store` (the only SQL), `watch` (database file and alarm-writer health), `error` (the one error → status mapping), `fault` (a server-side fault
 //! inside a subsystem's error), `edge` (request decoding shared by the services), `identity` (ids
 //! and digests), `telemetry` (every Prometheus metric and the `/metrics` endpoint). Wire
@@ -34,6 +34,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use spoofwatch_proto::longrunning::operations_server::OperationsServer;
+use spoofwatch_proto::v1::alarm_service_server::AlarmServiceServer;
 use spoofwatch_proto::v1::dataset_service_server::DatasetServiceServer;
 use spoofwatch_proto::v1::detection_service_server::DetectionServiceServer;
 use spoofwatch_proto::v1::model_service_server::ModelServiceServer;
@@ -49,6 +50,7 @@ use tonic_health::ServingStatus;
 
 pub use config::Config;
 
+use crate::alarms::service::AlarmApi;
 use crate::alarms::{AlarmOutbox, OUTBOX_CAPACITY};
 use crate::datasets::{Catalog, DatasetApi};
 use crate::detection::{DetectionApi, SessionLimits, SessionManager};
@@ -172,12 +174,12 @@ pub async fn serve_with_metrics(
             "marked jobs left over by a previous run as failed"
         );
     }
-    store.close_open_alarms(store::now_unix_ms()).await?;
     let registry = Arc::new(Registry::new(store.clone(), config.model_cache_bytes));
     registry.ensure_default_model().await?;
     let catalog = Catalog::new(store.clone(), config.data_dir.clone());
 
     let grace = config.shutdown_grace();
+    // Also ends the alarms a previous run left open.
     let alarms = Arc::new(AlarmOutbox::new(&store, OUTBOX_CAPACITY).await?);
     let stop_alarm_writer = CancellationToken::new();
     let alarm_writer = {
@@ -248,6 +250,12 @@ pub async fn serve_with_metrics(
     .max_decoding_message_size(limit);
     let operations = OperationsServer::new(OperationsApi { jobs: job_services })
         .max_decoding_message_size(limit);
+    let alarm_service = AlarmServiceServer::new(AlarmApi {
+        store: store.clone(),
+        outbox: Arc::clone(&alarms),
+        shutdown: draining.clone(),
+    })
+    .max_decoding_message_size(limit);
 
     let served = [
         DetectionServiceServer::<DetectionApi>::NAME,
@@ -255,6 +263,8 @@ pub async fn serve_with_metrics(
         DatasetServiceServer::<DatasetApi>::NAME,
         TrainingServiceServer::<TrainingApi>::NAME,
         OperationsServer::<OperationsApi>::NAME,
+        // Live alarm events come from memory, but listing and replay need the database.
+        AlarmServiceServer::<AlarmApi>::NAME,
     ];
     for service in served.iter().copied().chain([watch::STORAGE_HEALTH]) {
         health_reporter
@@ -333,6 +343,9 @@ pub async fn serve_with_metrics(
             health
                 .set_not_serving::<DetectionServiceServer<DetectionApi>>()
                 .await;
+            health
+                .set_not_serving::<AlarmServiceServer<AlarmApi>>()
+                .await;
             draining.cancel();
             jobs.shutdown(grace).await;
             sessions.close_all_alarms().await;
@@ -352,7 +365,8 @@ pub async fn serve_with_metrics(
         .add_service(auth.guard(models))
         .add_service(auth.guard(datasets))
         .add_service(auth.guard(training))
-        .add_service(auth.guard(operations));
+        .add_service(auth.guard(operations))
+        .add_service(auth.guard(alarm_service));
     let server = router.serve_with_incoming_shutdown(incoming, async {
         let _ = stop_rx.await;
     });

@@ -25,6 +25,7 @@ use spoofwatch_proto::longrunning;
 use spoofwatch_proto::longrunning::operation;
 use spoofwatch_proto::longrunning::operations_client::OperationsClient;
 use spoofwatch_proto::v1;
+use spoofwatch_proto::v1::alarm_service_client::AlarmServiceClient;
 use spoofwatch_proto::v1::dataset_service_client::DatasetServiceClient;
 use spoofwatch_proto::v1::detection_service_client::DetectionServiceClient;
 use spoofwatch_proto::v1::model_service_client::ModelServiceClient;
@@ -83,6 +84,17 @@ impl TestServer {
         let server = InProcessServer::start_with(config)
             .await
             .expect("start the in-process server");
+        let addr = server.addr();
+        wait_until_serving(addr, READY_TIMEOUT).await;
+        TestServer { addr, server }
+    }
+
+    /// Starts `config` on 127.0.0.1:`port` (e.g. the port of a server that just stopped, so its
+    /// clients reconnect to this one) and waits until health reports SERVING.
+    pub async fn start_on_port(config: Config, port: u16) -> TestServer {
+        let server = InProcessServer::start_on_port(config, port)
+            .await
+            .expect("start the in-process server on the given port");
         let addr = server.addr();
         wait_until_serving(addr, READY_TIMEOUT).await;
         TestServer { addr, server }
@@ -170,6 +182,7 @@ pub struct Clients {
     pub datasets: DatasetServiceClient<AuthenticatedChannel>,
     pub training: TrainingServiceClient<AuthenticatedChannel>,
     pub operations: OperationsClient<AuthenticatedChannel>,
+    pub alarms: AlarmServiceClient<AuthenticatedChannel>,
     pub health: HealthClient<AuthenticatedChannel>,
 }
 
@@ -182,6 +195,7 @@ impl Clients {
             datasets: connection.datasets(),
             training: connection.training(),
             operations: connection.operations(),
+            alarms: connection.alarms(),
             health: connection.health(),
             connection,
         }

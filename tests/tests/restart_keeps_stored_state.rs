@@ -102,7 +102,8 @@ async fn a_restart_on_the_same_database_keeps_models_datasets_jobs_and_alarms() 
     drop(clients);
     server.stop().await;
 
-    // Alarm events have no RPC yet: read them from the database file while no server runs.
+    // Read the alarm events from the database file while no server runs (ListAlarms serves them
+    // too: tests/tests/alarm_consumption.rs).
     let database = database_path(dir.path()).display().to_string();
     let store = Store::open(&database).await.expect("the database opens");
     let events = store

@@ -15,10 +15,11 @@ use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_reflection::pb::{v1, v1alpha};
 
 /// Every service the server must list through reflection v1 (the reflection service included).
-const SERVICES: [&str; 7] = [
+const SERVICES: [&str; 8] = [
     "google.longrunning.Operations",
     "grpc.health.v1.Health",
     "grpc.reflection.v1.ServerReflection",
+    "spoofwatch.v1.AlarmService",
     "spoofwatch.v1.DatasetService",
     "spoofwatch.v1.DetectionService",
     "spoofwatch.v1.ModelService",

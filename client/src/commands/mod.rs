@@ -55,6 +55,8 @@ enum Command {
     Models(remote::models::Args),
     /// Inspect and reset the vehicle sessions a server holds in memory.
     Sessions(remote::sessions::Args),
+    /// The fleet's confirmed alarms on a server: list the stored ones, watch onsets and ends.
+    Alarms(remote::alarms::Args),
     /// Live demo: an in-process server detecting a simulated drive with a GNSS drift attack.
     Demo(remote::demo::Args),
     /// Load benchmark over loopback: throughput, batch latency and per-session memory.
@@ -76,6 +78,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Jobs(args) => remote::block_on(remote::jobs::run(args)),
         Command::Models(args) => remote::block_on(remote::models::run(args)),
         Command::Sessions(args) => remote::block_on(remote::sessions::run(args)),
+        Command::Alarms(args) => remote::block_on(remote::alarms::run(args)),
         Command::Demo(args) => remote::block_on(remote::demo::run(args)),
         Command::Bench(args) => remote::block_on(remote::bench::run(args)),
     }

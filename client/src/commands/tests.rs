@@ -325,3 +325,66 @@ fn scenario_simulate_takes_a_rate_or_realistic_drives_but_not_both() {
     assert_eq!(err.kind(), clap::error::ErrorKind::ArgumentConflict);
     assert!(err.to_string().contains("--rate"), "{err}");
 }
+
+#[test]
+fn alarms_list_and_watch_take_their_filters() {
+    let Ok(Command::Alarms(args)) = parse(&[
+        "alarms",
+        "list",
+        "--vehicle",
+        "car-1",
+        "--model",
+        "models/m",
+        "--since",
+        "2025-06-01T00:00:00Z",
+        "--until",
+        "2025-06-02T00:00:00Z",
+        "--state",
+        "open",
+        "--limit",
+        "5",
+        "--json",
+    ]) else {
+        panic!("alarms list must parse");
+    };
+    let remote::alarms::Command::List(list) = args.command else {
+        panic!("a list command");
+    };
+    let request = remote::alarms::list_request(&list);
+    assert_eq!(
+        (request.vehicle_id.as_str(), request.model.as_str()),
+        ("car-1", "models/m")
+    );
+    assert_eq!(request.onset_after.map(|t| t.seconds), Some(1_748_736_000));
+    assert_eq!(request.onset_before.map(|t| t.seconds), Some(1_748_822_400));
+    assert_eq!(
+        request.state,
+        spoofwatch_proto::v1::AlarmStateFilter::Open as i32
+    );
+    assert_eq!((list.limit, list.json), (Some(5), true));
+
+    let Ok(Command::Alarms(args)) = parse(&["alarms", "watch", "--after", "42"]) else {
+        panic!("alarms watch must parse");
+    };
+    let remote::alarms::Command::Watch(watch) = args.command else {
+        panic!("a watch command");
+    };
+    assert_eq!(
+        (watch.after, watch.vehicle, watch.count),
+        (Some(42), None, None)
+    );
+    assert_eq!(watch.reconnect_for, 300.0);
+}
+
+#[test]
+fn alarms_refuse_bad_times_cursors_and_states() {
+    for bad in [
+        &["alarms", "list", "--since", "yesterday"][..],
+        &["alarms", "list", "--state", "half"],
+        &["alarms", "watch", "--after", "-1"],
+        &["alarms", "watch", "--reconnect-for", "-1"],
+        &["alarms", "watch", "--reconnect-for", "nan"],
+    ] {
+        assert!(parse(bad).is_err(), "{bad:?} must be refused");
+    }
+}

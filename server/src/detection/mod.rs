@@ -8,3 +8,4 @@ mod validate;
 
 pub use service::DetectionApi;
 pub use sessions::{SessionError, SessionLimits, SessionManager};
+pub use validate::vehicle_id_violation;

@@ -2,8 +2,12 @@
 //! the server's background alarm writer, in batches) so an alarm is never lost even if the
 //! in-memory session is.
 
+use std::borrow::Borrow;
+
+use sqlx::{Sqlite, Transaction};
+
 use super::error::{require_finite, require_probability};
-use super::{Store, StoreError};
+use super::{Page, PageRequest, Store, StoreError};
 
 /// A stored alarm episode.
 #[derive(Debug, Clone, PartialEq, sqlx::FromRow)]
@@ -31,52 +35,28 @@ pub struct AlarmEventRow {
     pub samples: i64,
 }
 
-/// One alarm write of the background writer: ids come from the server (never from an insert), so
-/// a write can be retried and an end always names its own onset.
-#[derive(Debug, Clone, PartialEq)]
-pub enum AlarmWrite {
-    /// An alarm onset (one sample, peak = `probability`).
-    Onset {
-        id: i64,
-        vehicle_id: String,
-        model_id: String,
-        onset_timestamp_s: f64,
-        onset_at_ms: i64,
-        probability: f64,
-    },
-    /// The end of alarm `id` at its last alarming sample.
-    End {
-        id: i64,
-        end_timestamp_s: f64,
-        ended_at_ms: i64,
-        peak_probability: f64,
-        samples: u32,
-    },
+/// What an alarm event did to its alarm.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, sqlx::Type)]
+#[sqlx(rename_all = "lowercase")]
+pub enum AlarmEventKind {
+    /// The alarm started: its row is inserted.
+    Onset,
+    /// The alarm ended: its row is closed.
+    End,
 }
 
-impl AlarmWrite {
-    /// [`StoreError::InvalidValue`] for a non-finite timestamp or a probability outside [0, 1].
-    pub fn validate(&self) -> Result<(), StoreError> {
-        match self {
-            Self::Onset {
-                onset_timestamp_s,
-                probability,
-                ..
-            } => {
-                require_finite("onset_timestamp_s", *onset_timestamp_s)?;
-                require_probability("probability", *probability)?;
-            }
-            Self::End {
-                end_timestamp_s,
-                peak_probability,
-                ..
-            } => {
-                require_finite("end_timestamp_s", *end_timestamp_s)?;
-                require_probability("peak_probability", *peak_probability)?;
-            }
-        }
-        Ok(())
-    }
+/// One alarm onset or end, as the server emits it: stored by the background writer (the alarm row
+/// and the event log), sent live to watchers and replayed from the log. Ids and cursors come from
+/// the server (never from an insert), so a write can be retried and an end always names its onset.
+#[derive(Debug, Clone, PartialEq, sqlx::FromRow)]
+pub struct AlarmEvent {
+    /// The WatchAlarms cursor: increasing in emission order, also across restarts.
+    pub seq: i64,
+    /// Onset or end.
+    pub kind: AlarmEventKind,
+    /// The alarm as this event left it (open with one sample for an onset, closed for an end).
+    #[sqlx(flatten)]
+    pub alarm: AlarmEventRow,
 }
 
 impl AlarmEventRow {
@@ -84,6 +64,120 @@ impl AlarmEventRow {
     pub fn is_open(&self) -> bool {
         self.ended_at_ms.is_none()
     }
+
+    /// A new open alarm of one sample whose peak is its onset probability.
+    pub fn opened(
+        id: i64,
+        vehicle_id: &str,
+        model_id: &str,
+        onset_timestamp_s: f64,
+        onset_at_ms: i64,
+        probability: f64,
+    ) -> Self {
+        Self {
+            id,
+            vehicle_id: vehicle_id.to_string(),
+            model_id: model_id.to_string(),
+            onset_timestamp_s,
+            end_timestamp_s: None,
+            onset_at_ms,
+            ended_at_ms: None,
+            peak_probability: probability,
+            samples: 1,
+        }
+    }
+
+    /// This alarm closed at wall time `ended_at_ms` after its last alarming sample (`None` when its
+    /// session or the server stopped while it was on).
+    pub fn ended(
+        &self,
+        end_timestamp_s: Option<f64>,
+        ended_at_ms: i64,
+        peak_probability: f64,
+        samples: i64,
+    ) -> Self {
+        Self {
+            end_timestamp_s,
+            ended_at_ms: Some(ended_at_ms),
+            peak_probability,
+            samples,
+            ..self.clone()
+        }
+    }
+}
+
+impl AlarmEvent {
+    /// [`StoreError::InvalidValue`] for a non-finite timestamp, a probability outside [0, 1] or an
+    /// end without an end time.
+    pub fn validate(&self) -> Result<(), StoreError> {
+        let alarm = &self.alarm;
+        match self.kind {
+            AlarmEventKind::Onset => {
+                require_finite("onset_timestamp_s", alarm.onset_timestamp_s)?;
+                require_probability("probability", alarm.peak_probability)?;
+            }
+            AlarmEventKind::End => {
+                if let Some(end) = alarm.end_timestamp_s {
+                    require_finite("end_timestamp_s", end)?;
+                }
+                require_probability("peak_probability", alarm.peak_probability)?;
+                if alarm.ended_at_ms.is_none() {
+                    return Err(StoreError::InvalidValue {
+                        field: "ended_at",
+                        reason: "an alarm end needs its end time".to_string(),
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Which alarms `ListAlarms` returns.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum AlarmState {
+    /// Open and closed.
+    #[default]
+    Any,
+    /// Still on.
+    Open,
+    /// Ended.
+    Closed,
+}
+
+/// The filters of [`Store::list_alarms`]; every `None` matches all.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct AlarmFilter {
+    /// Exactly this vehicle.
+    pub vehicle_id: Option<String>,
+    /// Raised by this model (its id).
+    pub model_id: Option<String>,
+    /// Wall-clock onset at or after this (unix ms).
+    pub onset_from_ms: Option<i64>,
+    /// Wall-clock onset before this (unix ms).
+    pub onset_before_ms: Option<i64>,
+    /// Open, closed or both.
+    pub state: AlarmState,
+}
+
+/// Listing name inside page tokens.
+const LISTING: &str = "alarms";
+
+/// Where the cursors of alarm run `run` start: a run's cursors are `(run << 32) + n`.
+pub fn first_seq_of_run(run: i64) -> i64 {
+    run << 32
+}
+
+/// `SELECT <the columns of an [`AlarmEventRow`]> FROM alarm_events <rest>`, as a literal (sqlx takes
+/// only literal SQL).
+macro_rules! select_alarms {
+    ($rest:literal) => {
+        concat!(
+            "SELECT id, vehicle_id, model_id, onset_timestamp_s, end_timestamp_s, onset_at, \
+             ended_at, peak_probability, samples FROM alarm_events ",
+            $rest
+        )
+    };
 }
 
 impl Store {
@@ -96,60 +190,65 @@ impl Store {
         )
     }
 
-    /// Applies `writes` in order in one transaction, all or nothing. Idempotent, so a batch whose
-    /// outcome is unknown can be retried: an onset already stored is skipped and an end only
-    /// touches its alarm while it is open.
+    /// Records a server start and returns its run number (never reused, increasing): the run's
+    /// alarm event cursors start at [`first_seq_of_run`].
+    pub async fn start_alarm_run(&self, started_at_ms: i64) -> Result<i64, StoreError> {
+        Ok(sqlx::query_scalar::<_, i64>(
+            "INSERT INTO alarm_runs (started_at) VALUES (?1) RETURNING run",
+        )
+        .bind(started_at_ms)
+        .fetch_one(self.pool()?)
+        .await?)
+    }
+
+    /// Applies `events` in order in one transaction, all or nothing: an onset inserts its alarm, an
+    /// end closes it, and each is appended to the event log. Idempotent, so a batch whose outcome
+    /// is unknown can be retried: an onset or log entry already stored is skipped and an end only
+    /// touches its alarm (and is only logged) while the alarm is open.
     ///
-    /// [`StoreError::InvalidValue`] (before anything is written) for a non-finite timestamp or a
-    /// probability outside [0, 1].
-    pub async fn write_alarms(&self, writes: &[AlarmWrite]) -> Result<(), StoreError> {
-        for write in writes {
-            write.validate()?;
+    /// [`StoreError::InvalidValue`] (before anything is written) for the values
+    /// [`AlarmEvent::validate`] refuses.
+    pub async fn write_alarms<E: Borrow<AlarmEvent>>(
+        &self,
+        events: &[E],
+    ) -> Result<(), StoreError> {
+        for event in events {
+            event.borrow().validate()?;
         }
         let mut tx = self.begin_write().await?;
-        for write in writes {
-            match write {
-                AlarmWrite::Onset {
-                    id,
-                    vehicle_id,
-                    model_id,
-                    onset_timestamp_s,
-                    onset_at_ms,
-                    probability,
-                } => {
-                    sqlx::query(
-                        "INSERT OR IGNORE INTO alarm_events (id, vehicle_id, model_id, \
-                         onset_timestamp_s, onset_at, peak_probability, samples) \
-                         VALUES (?1, ?2, ?3, ?4, ?5, ?6, 1)",
-                    )
-                    .bind(id)
-                    .bind(vehicle_id)
-                    .bind(model_id)
-                    .bind(onset_timestamp_s)
-                    .bind(onset_at_ms)
-                    .bind(probability)
-                    .execute(&mut *tx)
-                    .await?;
-                }
-                AlarmWrite::End {
-                    id,
-                    end_timestamp_s,
-                    ended_at_ms,
-                    peak_probability,
-                    samples,
-                } => {
-                    sqlx::query(
-                        "UPDATE alarm_events SET end_timestamp_s = ?2, ended_at = ?3, \
-                         peak_probability = ?4, samples = ?5 WHERE id = ?1 AND ended_at IS NULL",
-                    )
-                    .bind(id)
-                    .bind(end_timestamp_s)
-                    .bind(ended_at_ms)
-                    .bind(peak_probability)
-                    .bind(samples)
-                    .execute(&mut *tx)
-                    .await?;
-                }
+        for event in events {
+            let event = event.borrow();
+            let alarm = &event.alarm;
+            let applied = match event.kind {
+                AlarmEventKind::Onset => sqlx::query(
+                    "INSERT OR IGNORE INTO alarm_events (id, vehicle_id, model_id, \
+                     onset_timestamp_s, onset_at, peak_probability, samples) \
+                     VALUES (?1, ?2, ?3, ?4, ?5, ?6, 1)",
+                )
+                .bind(alarm.id)
+                .bind(&alarm.vehicle_id)
+                .bind(&alarm.model_id)
+                .bind(alarm.onset_timestamp_s)
+                .bind(alarm.onset_at_ms)
+                .bind(alarm.peak_probability)
+                .execute(&mut *tx)
+                .await?
+                .rows_affected(),
+                AlarmEventKind::End => sqlx::query(
+                    "UPDATE alarm_events SET end_timestamp_s = ?2, ended_at = ?3, \
+                     peak_probability = ?4, samples = ?5 WHERE id = ?1 AND ended_at IS NULL",
+                )
+                .bind(alarm.id)
+                .bind(alarm.end_timestamp_s)
+                .bind(alarm.ended_at_ms)
+                .bind(alarm.peak_probability)
+                .bind(alarm.samples)
+                .execute(&mut *tx)
+                .await?
+                .rows_affected(),
+            };
+            if applied > 0 {
+                log_event(&mut tx, event).await?;
             }
         }
         tx.commit().await?;
@@ -162,24 +261,123 @@ impl Store {
         vehicle_id: Option<&str>,
         limit: u32,
     ) -> Result<Vec<AlarmEventRow>, StoreError> {
-        Ok(sqlx::query_as::<_, AlarmEventRow>(
-            "SELECT id, vehicle_id, model_id, onset_timestamp_s, end_timestamp_s, onset_at, \
-             ended_at, peak_probability, samples FROM alarm_events \
-             WHERE ?1 IS NULL OR vehicle_id = ?1 ORDER BY id DESC LIMIT ?2",
-        )
+        Ok(sqlx::query_as::<_, AlarmEventRow>(select_alarms!(
+            "WHERE ?1 IS NULL OR vehicle_id = ?1 ORDER BY id DESC LIMIT ?2"
+        ))
         .bind(vehicle_id)
         .bind(limit)
         .fetch_all(self.pool()?)
         .await?)
     }
 
-    /// Shutdown/crash recovery: marks every open alarm ended at wall time `ended_at_ms`, leaving
-    /// `end_timestamp_s` NULL ("the session ended while alarming"). Returns how many were closed.
-    pub async fn close_open_alarms(&self, ended_at_ms: i64) -> Result<u64, StoreError> {
-        let updated = sqlx::query("UPDATE alarm_events SET ended_at = ?1 WHERE ended_at IS NULL")
-            .bind(ended_at_ms)
-            .execute(self.pool()?)
-            .await?;
-        Ok(updated.rows_affected())
+    /// One page of the alarms `filter` selects, in id (opening) order.
+    ///
+    /// [`StoreError::InvalidPageToken`] for a token this listing did not issue.
+    pub async fn list_alarms(
+        &self,
+        filter: &AlarmFilter,
+        page: &PageRequest,
+    ) -> Result<Page<AlarmEventRow>, StoreError> {
+        let sql = select_alarms!(
+            "WHERE (?1 IS NULL OR vehicle_id = ?1) AND (?2 IS NULL OR model_id = ?2) \
+             AND (?3 IS NULL OR onset_at >= ?3) AND (?4 IS NULL OR onset_at < ?4) \
+             AND (?5 = 'any' OR (?5 = 'open') = (ended_at IS NULL)) \
+             AND (?6 IS NULL OR id > ?6) \
+             ORDER BY id LIMIT ?8"
+        );
+        let state = match filter.state {
+            AlarmState::Any => "any",
+            AlarmState::Open => "open",
+            AlarmState::Closed => "closed",
+        };
+        let query = sqlx::query_as::<_, AlarmEventRow>(sql)
+            .bind(filter.vehicle_id.as_deref())
+            .bind(filter.model_id.as_deref())
+            .bind(filter.onset_from_ms)
+            .bind(filter.onset_before_ms)
+            .bind(state);
+        // Alarms page by id alone: the token's time slot carries the last id; its id slot (?7) is
+        // bound but unused.
+        self.fetch_page(LISTING, page, query, |row| (row.id, ""))
+            .await
     }
+
+    /// The logged events with `after < seq < before`, optionally of one vehicle, in cursor order,
+    /// at most `limit`.
+    pub async fn alarm_events_between(
+        &self,
+        after: i64,
+        before: i64,
+        vehicle_id: Option<&str>,
+        limit: u32,
+    ) -> Result<Vec<AlarmEvent>, StoreError> {
+        Ok(sqlx::query_as::<_, AlarmEvent>(
+            "SELECT l.seq, l.kind, a.id, a.vehicle_id, a.model_id, a.onset_timestamp_s, \
+             l.end_timestamp_s, a.onset_at, l.ended_at, l.peak_probability, l.samples \
+             FROM alarm_event_log l JOIN alarm_events a ON a.id = l.alarm_id \
+             WHERE l.seq > ?1 AND l.seq < ?2 AND (?3 IS NULL OR a.vehicle_id = ?3) \
+             ORDER BY l.seq LIMIT ?4",
+        )
+        .bind(after)
+        .bind(before)
+        .bind(vehicle_id)
+        .bind(limit)
+        .fetch_all(self.pool()?)
+        .await?)
+    }
+
+    /// Shutdown/crash recovery: ends every open alarm at wall time `ended_at_ms`, leaving
+    /// `end_timestamp_s` NULL ("the session ended while alarming"), and logs each end with the
+    /// cursors `first_seq`, `first_seq + 1`, … in id order. Returns the end events.
+    pub async fn close_open_alarms(
+        &self,
+        ended_at_ms: i64,
+        first_seq: i64,
+    ) -> Result<Vec<AlarmEvent>, StoreError> {
+        let mut tx = self.begin_write().await?;
+        let open = sqlx::query_as::<_, AlarmEventRow>(select_alarms!(
+            "WHERE ended_at IS NULL ORDER BY id"
+        ))
+        .fetch_all(&mut *tx)
+        .await?;
+        let mut events = Vec::with_capacity(open.len());
+        for (seq, alarm) in (first_seq..).zip(open) {
+            sqlx::query("UPDATE alarm_events SET ended_at = ?2 WHERE id = ?1")
+                .bind(alarm.id)
+                .bind(ended_at_ms)
+                .execute(&mut *tx)
+                .await?;
+            let event = AlarmEvent {
+                seq,
+                kind: AlarmEventKind::End,
+                alarm: alarm.ended(None, ended_at_ms, alarm.peak_probability, alarm.samples),
+            };
+            log_event(&mut tx, &event).await?;
+            events.push(event);
+        }
+        tx.commit().await?;
+        Ok(events)
+    }
+}
+
+/// Appends `event` to the event log (skipped when its cursor is already there: a retry).
+async fn log_event(
+    tx: &mut Transaction<'static, Sqlite>,
+    event: &AlarmEvent,
+) -> Result<(), StoreError> {
+    let alarm = &event.alarm;
+    sqlx::query(
+        "INSERT OR IGNORE INTO alarm_event_log (seq, alarm_id, kind, end_timestamp_s, ended_at, \
+         peak_probability, samples) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
+    )
+    .bind(event.seq)
+    .bind(alarm.id)
+    .bind(event.kind)
+    .bind(alarm.end_timestamp_s)
+    .bind(alarm.ended_at_ms)
+    .bind(alarm.peak_probability)
+    .bind(alarm.samples)
+    .execute(&mut **tx)
+    .await?;
+    Ok(())
 }

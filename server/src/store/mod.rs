@@ -1,7 +1,8 @@
 //! Persistence for the service: SQLite through sqlx (runtime queries, `FromRow` rows).
 //!
 //! One [`Store`] wraps a connection pool. Tables: models (+ artifact blobs in their own table so list
-//! queries never read blobs), datasets (+ content blobs), jobs (+ per-epoch history) and alarm events.
+//! queries never read blobs), datasets (+ content blobs), jobs (+ per-epoch history) and alarm events
+//! (+ the event log behind WatchAlarms).
 //! The schema lives in `migrations/` at the workspace root and is applied by [`Store::open`].
 //!
 //! Conventions:
@@ -35,7 +36,9 @@ use sqlx::sqlite::{
 };
 use sqlx::{Connection, FromRow, Sqlite, SqliteConnection, Transaction};
 
-pub use alarms::{AlarmEventRow, AlarmWrite};
+pub use alarms::{
+    AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, first_seq_of_run,
+};
 pub use datasets::{DatasetRow, NewDataset};
 use error::outlived_no_fault;
 pub use error::{FaultKind, StoreError, StoreFault};

@@ -5,6 +5,7 @@
 //! `DetectStream`); nothing here may depend on the server crate except through
 //! `spoofwatch_server::inprocess` (feature `inprocess`).
 
+pub mod alarms;
 pub mod bench;
 pub mod datasets;
 pub mod demo;

@@ -2,26 +2,38 @@
 //! alarms.
 
 use super::temp_store;
-use crate::store::{AlarmEventRow, AlarmWrite, StoreError};
+use crate::store::{
+    AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, PageRequest, StoreError,
+};
 
-fn onset(id: i64, vehicle_id: &str, onset_timestamp_s: f64, probability: f64) -> AlarmWrite {
-    AlarmWrite::Onset {
-        id,
-        vehicle_id: vehicle_id.to_string(),
-        model_id: "m1".to_string(),
-        onset_timestamp_s,
-        onset_at_ms: 1_000 + id,
-        probability,
+/// The onset of alarm `id` (cursor `id`), opened at wall time `1_000 + id`.
+fn onset(id: i64, vehicle_id: &str, onset_timestamp_s: f64, probability: f64) -> AlarmEvent {
+    AlarmEvent {
+        seq: id,
+        kind: AlarmEventKind::Onset,
+        alarm: AlarmEventRow::opened(
+            id,
+            vehicle_id,
+            "m1",
+            onset_timestamp_s,
+            1_000 + id,
+            probability,
+        ),
     }
 }
 
-fn end(id: i64, end_timestamp_s: f64, peak_probability: f64, samples: u32) -> AlarmWrite {
-    AlarmWrite::End {
-        id,
-        end_timestamp_s,
-        ended_at_ms: 2_000 + id,
-        peak_probability,
-        samples,
+/// The end of alarm `id` (cursor `1_000 + id`) at wall time `2_000 + id`. The store reads only the
+/// id and the end's own values of an end.
+fn end(id: i64, end_timestamp_s: f64, peak_probability: f64, samples: i64) -> AlarmEvent {
+    AlarmEvent {
+        seq: 1_000 + id,
+        kind: AlarmEventKind::End,
+        alarm: AlarmEventRow::opened(id, "unread", "unread", 0.0, 0, 0.5).ended(
+            Some(end_timestamp_s),
+            2_000 + id,
+            peak_probability,
+            samples,
+        ),
     }
 }
 
@@ -148,7 +160,9 @@ async fn close_open_alarms_ends_only_open_ones_without_an_end_timestamp() {
         .unwrap();
     let closed_before = store.list_alarm_events(Some("a"), 1).await.unwrap();
 
-    assert_eq!(store.close_open_alarms(4_242).await.unwrap(), 1);
+    let closed = store.close_open_alarms(4_242, 77).await.unwrap();
+    assert_eq!(closed.len(), 1);
+    assert_eq!((closed[0].seq, closed[0].kind), (77, AlarmEventKind::End));
     let recovered = &store.list_alarm_events(Some("b"), 1).await.unwrap()[0];
     assert_eq!(recovered.id, 2);
     assert_eq!(recovered.ended_at_ms, Some(4_242));
@@ -158,5 +172,136 @@ async fn close_open_alarms_ends_only_open_ones_without_an_end_timestamp() {
         store.list_alarm_events(Some("a"), 1).await.unwrap(),
         closed_before
     );
-    assert_eq!(store.close_open_alarms(5_000).await.unwrap(), 0);
+    assert!(store.close_open_alarms(5_000, 78).await.unwrap().is_empty());
+    let logged = store
+        .alarm_events_between(0, i64::MAX, None, 10)
+        .await
+        .unwrap();
+    let logged: Vec<_> = logged.iter().map(|e| (e.seq, e.alarm.id)).collect();
+    assert_eq!(logged, [(1, 1), (2, 2), (77, 2), (1_001, 1)]);
+    assert_eq!(
+        closed[0].alarm, *recovered,
+        "the logged end is the alarm as closed"
+    );
+}
+
+#[tokio::test]
+async fn the_event_log_replays_each_event_as_it_was_emitted_in_cursor_order() {
+    let (_dir, store) = temp_store().await;
+    let events = [
+        onset(1, "a", 10.0, 0.6),
+        onset(2, "b", 11.0, 0.7),
+        end(1, 15.0, 0.95, 6),
+    ];
+    store.write_alarms(&events).await.unwrap();
+    let replayed = store
+        .alarm_events_between(0, i64::MAX, None, 10)
+        .await
+        .unwrap();
+    // The onset of alarm 1 is replayed as it opened, although its row has ended since.
+    assert_eq!(replayed[0], events[0]);
+    assert_eq!(replayed[1], events[1]);
+    assert_eq!(replayed[2].seq, 1_001);
+    assert_eq!(replayed[2].kind, AlarmEventKind::End);
+    assert_eq!(
+        replayed[2].alarm,
+        events[0].alarm.ended(Some(15.0), 2_001, 0.95, 6)
+    );
+    let seqs = |events: Vec<AlarmEvent>| events.iter().map(|e| e.seq).collect::<Vec<_>>();
+    let between = store.alarm_events_between(1, 1_001, None, 10).await;
+    assert_eq!(seqs(between.unwrap()), [2]);
+    let of_a = store.alarm_events_between(0, i64::MAX, Some("a"), 10).await;
+    assert_eq!(seqs(of_a.unwrap()), [1, 1_001]);
+    let first = store.alarm_events_between(0, i64::MAX, None, 1).await;
+    assert_eq!(seqs(first.unwrap()), [1]);
+}
+
+#[tokio::test]
+async fn alarm_runs_increase_and_start_blocks_of_cursors_above_the_previous_ones() {
+    let (_dir, store) = temp_store().await;
+    let first = store.start_alarm_run(1).await.unwrap();
+    let second = store.start_alarm_run(2).await.unwrap();
+    assert!(second > first);
+    assert_eq!(
+        crate::store::first_seq_of_run(second) - crate::store::first_seq_of_run(first),
+        1 << 32
+    );
+}
+
+#[tokio::test]
+async fn list_alarms_filters_and_pages_in_id_order() {
+    let (_dir, store) = temp_store().await;
+    let mut other_model = onset(4, "a", 40.0, 0.9);
+    other_model.alarm.model_id = "m2".to_string();
+    store
+        .write_alarms(&[
+            onset(1, "a", 10.0, 0.9),
+            onset(2, "b", 20.0, 0.9),
+            onset(3, "a", 30.0, 0.9),
+            other_model,
+            end(1, 12.0, 0.9, 3),
+        ])
+        .await
+        .unwrap();
+    let list = async |filter: AlarmFilter| {
+        ids(store
+            .list_alarms(&filter, &PageRequest::default())
+            .await
+            .unwrap()
+            .items)
+    };
+    assert_eq!(list(AlarmFilter::default()).await, [1, 2, 3, 4]);
+    let vehicle = |v: &str| AlarmFilter {
+        vehicle_id: Some(v.to_string()),
+        ..AlarmFilter::default()
+    };
+    assert_eq!(list(vehicle("a")).await, [1, 3, 4]);
+    assert_eq!(list(vehicle("zzz")).await, Vec::<i64>::new());
+    let model = AlarmFilter {
+        model_id: Some("m2".to_string()),
+        ..AlarmFilter::default()
+    };
+    assert_eq!(list(model).await, [4]);
+    // Onsets at wall times 1_001 … 1_004: [1_002, 1_004) holds alarms 2 and 3.
+    let window = AlarmFilter {
+        onset_from_ms: Some(1_002),
+        onset_before_ms: Some(1_004),
+        ..AlarmFilter::default()
+    };
+    assert_eq!(list(window).await, [2, 3]);
+    let state = |state| AlarmFilter {
+        state,
+        ..AlarmFilter::default()
+    };
+    assert_eq!(list(state(AlarmState::Open)).await, [2, 3, 4]);
+    assert_eq!(list(state(AlarmState::Closed)).await, [1]);
+
+    let mut pages = Vec::new();
+    let mut request = PageRequest::first(3);
+    loop {
+        let page = store.list_alarms(&vehicle("a"), &request).await.unwrap();
+        pages.push(ids(page.items));
+        match page.next_page_token {
+            Some(token) => request = PageRequest::after(2, token),
+            None => break,
+        }
+    }
+    assert_eq!(pages, [vec![1, 3, 4]]);
+    let page = store
+        .list_alarms(&AlarmFilter::default(), &PageRequest::first(3))
+        .await
+        .unwrap();
+    assert_eq!(ids(page.items), [1, 2, 3]);
+    let token = page.next_page_token.expect("a second page");
+    let rest = store
+        .list_alarms(&AlarmFilter::default(), &PageRequest::after(3, token))
+        .await
+        .unwrap();
+    assert_eq!((ids(rest.items), rest.next_page_token), (vec![4], None));
+    assert!(matches!(
+        store
+            .list_alarms(&AlarmFilter::default(), &PageRequest::after(3, "zz"))
+            .await,
+        Err(StoreError::InvalidPageToken)
+    ));
 }

@@ -4,8 +4,8 @@ use serde_json::json;
 
 use super::{count_rows, db_path, new_dataset, new_job, new_model, temp_store};
 use crate::store::{
-    AlarmWrite, EpochRow, FaultKind, JobKind, JobOutcome, JobState, PageRequest, Store, StoreError,
-    StoreOptions,
+    AlarmEvent, AlarmEventKind, AlarmEventRow, EpochRow, FaultKind, JobKind, JobOutcome, JobState,
+    PageRequest, Store, StoreError, StoreOptions,
 };
 use sqlx::Connection;
 
@@ -199,14 +199,11 @@ async fn a_database_locked_by_another_process_is_a_busy_fault() {
 }
 
 /// An alarm onset with id `id`.
-fn alarm_onset(id: i64) -> AlarmWrite {
-    AlarmWrite::Onset {
-        id,
-        vehicle_id: "v1".into(),
-        model_id: "m1".into(),
-        onset_timestamp_s: 10.0,
-        onset_at_ms: 1_000,
-        probability: 0.9,
+fn alarm_onset(id: i64) -> AlarmEvent {
+    AlarmEvent {
+        seq: id,
+        kind: AlarmEventKind::Onset,
+        alarm: AlarmEventRow::opened(id, "v1", "m1", 10.0, 1_000, 0.9),
     }
 }
 
@@ -295,14 +292,11 @@ async fn reopening_the_same_file_keeps_everything() {
     assert_eq!(store.max_alarm_id().await.unwrap(), alarm_id);
 }
 
-fn onset(id: i64, vehicle_id: &str, onset_timestamp_s: f64) -> AlarmWrite {
-    AlarmWrite::Onset {
-        id,
-        vehicle_id: vehicle_id.to_string(),
-        model_id: "m2".to_string(),
-        onset_timestamp_s,
-        onset_at_ms: 1,
-        probability: 0.9,
+fn onset(id: i64, vehicle_id: &str, onset_timestamp_s: f64) -> AlarmEvent {
+    AlarmEvent {
+        seq: id,
+        kind: AlarmEventKind::Onset,
+        alarm: AlarmEventRow::opened(id, vehicle_id, "m2", onset_timestamp_s, 1, 0.9),
     }
 }
 

@@ -1,0 +1,220 @@
+//! `spoofwatch alarms list|watch`, run as a user would (the real binary) against an in-process server
+//! that has just detected simulated drives with a frozen GNSS fix (replayed by `spoofwatch detect`).
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Command, Output, Stdio};
+use std::time::Duration;
+
+use serde_json::Value;
+use spoofwatch_server::inprocess::InProcessServer;
+
+fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_spoofwatch"))
+        .args(args)
+        .env_remove("SPOOFWATCH_SERVER")
+        .env_remove("SPOOFWATCH_TOKEN")
+        .output()
+        .expect("the spoofwatch binary runs")
+}
+
+fn succeed(args: &[&str]) -> String {
+    let output = run(args);
+    assert!(
+        output.status.success(),
+        "spoofwatch {args:?} failed:\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+fn json_lines(text: &str) -> Vec<Value> {
+    text.lines()
+        .map(|line| serde_json::from_str(line).expect("one JSON object per line"))
+        .collect()
+}
+
+/// Two simulated 240 s drives whose fix freezes for 60 s from 100 s.
+fn simulate(path: &Path) {
+    succeed(&[
+        "scenario",
+        "simulate",
+        "--out",
+        &path.display().to_string(),
+        "--vehicles",
+        "2",
+        "--duration",
+        "240",
+        "--seed",
+        "21",
+        "--attack",
+        "frozen",
+        "--onset",
+        "100",
+        "--attack-duration",
+        "60",
+    ]);
+}
+
+fn detect(url: &str, data: &Path) {
+    succeed(&[
+        "detect",
+        "--server",
+        url,
+        "--data",
+        &data.display().to_string(),
+        "--batch",
+        "20",
+        "--quiet",
+    ]);
+}
+
+#[test]
+fn alarms_are_listed_and_watched_from_the_command_line() {
+    let runtime = tokio::runtime::Runtime::new().expect("a runtime");
+    let server = runtime
+        .block_on(InProcessServer::start(|_| {}))
+        .expect("the server starts");
+    let url = server.url();
+    let dir = tempfile::tempdir().expect("temp dir");
+    let drives = dir.path().join("drives.csv");
+    simulate(&drives);
+
+    // A watcher connected before the drives: it prints CAUGHT_UP, then the events as they happen.
+    let mut watcher = Command::new(env!("CARGO_BIN_EXE_spoofwatch"))
+        .args(["alarms", "watch", "--server", &url, "--count", "2"])
+        .stdout(Stdio::piped())
+        .spawn()
+        .expect("the watcher starts");
+    let mut lines = BufReader::new(watcher.stdout.take().expect("stdout")).lines();
+    let first: Value =
+        serde_json::from_str(&lines.next().expect("a line").expect("readable")).expect("JSON");
+    assert_eq!(first["kind"], "caught_up");
+    detect(&url, &drives);
+    let live: Vec<Value> = lines
+        .map(|line| serde_json::from_str(&line.expect("readable")).expect("JSON"))
+        .collect();
+    assert!(watcher.wait().expect("the watcher exits").success());
+    assert_eq!(live.len(), 2, "--count 2: {live:?}");
+    // The two vehicles are replayed at once: the first two events of the fleet, in cursor order.
+    assert_eq!(live[0]["kind"], "onset");
+    assert!(live[0]["cursor"].as_i64() < live[1]["cursor"].as_i64());
+
+    // The writer stores in the background: list until every alarm is closed and stored.
+    let mut listed = Vec::new();
+    for _ in 0..300 {
+        listed = json_lines(&succeed(&[
+            "alarms", "list", "--server", &url, "--state", "closed", "--json",
+        ]));
+        let all = json_lines(&succeed(&["alarms", "list", "--server", &url, "--json"]));
+        if !listed.is_empty() && listed.len() == all.len() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert!(!listed.is_empty(), "the frozen fixes raised alarms");
+    assert!(
+        listed
+            .iter()
+            .all(|a| a["open"] == false && a["model"] == "models/default")
+    );
+    assert_eq!(
+        listed[0]["onset_time"], live[0]["alarm"]["onset_time"],
+        "the first listed alarm is the first one watched"
+    );
+
+    let vehicle = listed[0]["vehicle_id"]
+        .as_str()
+        .expect("a vehicle id")
+        .to_string();
+    let of_vehicle = json_lines(&succeed(&[
+        "alarms",
+        "list",
+        "--server",
+        &url,
+        "--vehicle",
+        &vehicle,
+        "--json",
+    ]));
+    assert!(!of_vehicle.is_empty());
+    assert!(
+        of_vehicle
+            .iter()
+            .all(|a| a["vehicle_id"] == vehicle.as_str())
+    );
+    assert_eq!(
+        json_lines(&succeed(&[
+            "alarms", "list", "--server", &url, "--limit", "1", "--json"
+        ])),
+        listed[..1]
+    );
+    let future = json_lines(&succeed(&[
+        "alarms",
+        "list",
+        "--server",
+        &url,
+        "--since",
+        "2999-01-01T00:00:00Z",
+        "--json",
+    ]));
+    assert!(future.is_empty());
+    let table = succeed(&["alarms", "list", "--server", &url]);
+    assert!(table.starts_with("id  vehicle"), "{table}");
+    assert_eq!(table.lines().count(), 1 + listed.len());
+
+    // Replay from cursor 0, then resume after the first event: the same events, one fewer.
+    let count = (2 * listed.len()).to_string();
+    let replayed = json_lines(&succeed(&[
+        "alarms", "watch", "--server", &url, "--after", "0", "--count", &count,
+    ]));
+    assert_eq!(replayed.len(), 2 * listed.len());
+    assert_eq!(replayed[..2], live[..]);
+    let cursor = replayed[0]["cursor"].to_string();
+    let resumed = json_lines(&succeed(&[
+        "alarms",
+        "watch",
+        "--server",
+        &url,
+        "--after",
+        &cursor,
+        "--count",
+        &(2 * listed.len() - 1).to_string(),
+    ]));
+    assert_eq!(resumed[..], replayed[1..]);
+    let collected = json_lines(&succeed(&[
+        "alarms",
+        "watch",
+        "--server",
+        &url,
+        "--after",
+        &cursor,
+        "--until-caught-up",
+    ]));
+    let (last, events) = collected.split_last().expect("at least caught_up");
+    assert_eq!(last["kind"], "caught_up");
+    assert_eq!(events, &replayed[1..]);
+
+    // Refusals name the field; a refused watch does not retry.
+    let refused = run(&["alarms", "list", "--server", &url, "--vehicle", "no spaces"]);
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        stderr.contains("INVALID_ARGUMENT") && stderr.contains("vehicle_id"),
+        "{stderr}"
+    );
+    let refused = run(&[
+        "alarms",
+        "watch",
+        "--server",
+        &url,
+        "--after",
+        "999999999999999",
+    ]);
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(stderr.contains("after_cursor"), "{stderr}");
+
+    runtime
+        .block_on(server.shutdown())
+        .expect("the server stops cleanly");
+}

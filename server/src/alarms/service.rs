@@ -1,0 +1,370 @@
+//! The AlarmService RPCs: ListAlarms reads the store; WatchAlarms joins the outbox's event sequence.
+//!
+//! A watch replays what the caller missed, then follows live events:
+//! 1. it subscribes to the outbox (the live receiver, the queued events and `stored_below` are taken
+//!    together under the queue's lock);
+//! 2. it sends the stored events after its position and below `stored_below` (paged from the log),
+//!    then the queued ones, then CAUGHT_UP;
+//! 3. it follows the live receiver, skipping any cursor it has already passed (de-duplication).
+//!
+//! A watcher that falls more than the live buffer behind (`Lagged`) goes back to step 1 from its
+//! position: the missed events are in the database or the queue, so a slow dashboard is slowed
+//! down, never given a gap. Only the replay needs the database; if it fails, or the server
+//! drains, the stream ends with UNAVAILABLE naming the cursor to resume from. Each call runs in
+//! its own task writing into a small bounded channel (as DetectionService streams do).
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::Duration;
+
+use spoofwatch_proto::v1;
+use spoofwatch_proto::v1::alarm_service_server::AlarmService;
+use spoofwatch_proto::wire::ModelName;
+use spoofwatch_proto::wire::convert::timestamp_from_ms;
+use tokio::sync::broadcast::error::RecvError;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tokio_util::sync::CancellationToken;
+use tonic::{Code, Request, Response, Status};
+use tonic_types::{ErrorDetails, StatusExt};
+
+use super::{AlarmOutbox, Subscription};
+use crate::detection::vehicle_id_violation;
+use crate::edge::{optional_model_name, page_request};
+use crate::status::{invalid_field, shutting_down};
+use crate::store::{AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, Store};
+
+/// Events buffered per watch before its task waits for the client.
+const OUTBOUND_BUFFER: usize = 16;
+/// Stored events read per query of a replay.
+const REPLAY_PAGE: u32 = 500;
+
+type WatchReply = Result<v1::AlarmEvent, Status>;
+
+/// The AlarmService implementation.
+#[derive(Debug, Clone)]
+pub struct AlarmApi {
+    pub store: Store,
+    pub outbox: Arc<AlarmOutbox>,
+    /// Cancelled when the server starts draining.
+    pub shutdown: CancellationToken,
+}
+
+/// A stored or emitted alarm on the wire.
+fn alarm_to_proto(alarm: &AlarmEventRow) -> v1::Alarm {
+    v1::Alarm {
+        id: alarm.id,
+        vehicle_id: alarm.vehicle_id.clone(),
+        model: ModelName::from_id(&alarm.model_id).to_string(),
+        onset_timestamp_s: alarm.onset_timestamp_s,
+        end_timestamp_s: alarm.end_timestamp_s,
+        onset_time: Some(timestamp_from_ms(alarm.onset_at_ms)),
+        end_time: alarm.ended_at_ms.map(timestamp_from_ms),
+        peak_probability: alarm.peak_probability,
+        samples: u64::try_from(alarm.samples).unwrap_or(0),
+        open: alarm.is_open(),
+    }
+}
+
+fn event_to_proto(event: &AlarmEvent) -> v1::AlarmEvent {
+    let kind = match event.kind {
+        AlarmEventKind::Onset => v1::AlarmEventKind::Onset,
+        AlarmEventKind::End => v1::AlarmEventKind::End,
+    };
+    v1::AlarmEvent {
+        cursor: event.seq,
+        kind: kind as i32,
+        alarm: Some(alarm_to_proto(&event.alarm)),
+    }
+}
+
+fn caught_up(cursor: i64) -> v1::AlarmEvent {
+    v1::AlarmEvent {
+        cursor,
+        kind: v1::AlarmEventKind::CaughtUp as i32,
+        alarm: None,
+    }
+}
+
+/// A `vehicle_id` filter: empty = every vehicle.
+fn vehicle_filter(vehicle_id: &str) -> Result<Option<String>, Status> {
+    if vehicle_id.is_empty() {
+        return Ok(None);
+    }
+    match vehicle_id_violation(vehicle_id) {
+        Some(problem) => Err(invalid_field("vehicle_id", problem)),
+        None => Ok(Some(vehicle_id.to_string())),
+    }
+}
+
+/// An optional timestamp field as unix milliseconds (sub-millisecond parts are truncated).
+fn timestamp_ms(
+    field: &str,
+    timestamp: Option<&prost_types::Timestamp>,
+) -> Result<Option<i64>, Status> {
+    let Some(t) = timestamp else {
+        return Ok(None);
+    };
+    if !(0..1_000_000_000).contains(&t.nanos) {
+        return Err(invalid_field(
+            format!("{field}.nanos"),
+            format!("must be in [0, 999999999], got {}", t.nanos),
+        ));
+    }
+    t.seconds
+        .checked_mul(1000)
+        .and_then(|ms| ms.checked_add(i64::from(t.nanos / 1_000_000)))
+        .map(Some)
+        .ok_or_else(|| {
+            invalid_field(
+                format!("{field}.seconds"),
+                format!("{} is out of range", t.seconds),
+            )
+        })
+}
+
+/// The ListAlarms filters, validated.
+fn list_filter(r: &v1::ListAlarmsRequest) -> Result<AlarmFilter, Status> {
+    let onset_from_ms = timestamp_ms("onset_after", r.onset_after.as_ref())?;
+    let onset_before_ms = timestamp_ms("onset_before", r.onset_before.as_ref())?;
+    if let (Some(from), Some(before)) = (onset_from_ms, onset_before_ms)
+        && before <= from
+    {
+        return Err(invalid_field(
+            "onset_before",
+            "must be later than onset_after",
+        ));
+    }
+    let state = match v1::AlarmStateFilter::try_from(r.state) {
+        Ok(v1::AlarmStateFilter::Unspecified) => AlarmState::Any,
+        Ok(v1::AlarmStateFilter::Open) => AlarmState::Open,
+        Ok(v1::AlarmStateFilter::Closed) => AlarmState::Closed,
+        Err(_) => {
+            return Err(invalid_field("state", format!("unknown state {}", r.state)));
+        }
+    };
+    Ok(AlarmFilter {
+        vehicle_id: vehicle_filter(&r.vehicle_id)?,
+        model_id: optional_model_name("model", &r.model)?.map(|m| m.id().to_string()),
+        onset_from_ms,
+        onset_before_ms,
+        state,
+    })
+}
+
+/// UNAVAILABLE ending a watch, telling the client where to resume (in the message for people, in
+/// ErrorInfo metadata `resume_after_cursor` for programs) and when (RetryInfo).
+fn resume_status(reason: &str, message: &str, cursor: i64, retry_after: Duration) -> Status {
+    let mut details = ErrorDetails::new();
+    details.set_retry_info(Some(retry_after)).set_error_info(
+        reason,
+        "spoofwatch",
+        HashMap::from([("resume_after_cursor".to_string(), cursor.to_string())]),
+    );
+    Status::with_error_details(
+        Code::Unavailable,
+        format!("{message}; resume with after_cursor = {cursor}"),
+        details,
+    )
+}
+
+fn draining(cursor: i64) -> Status {
+    resume_status(
+        "SHUTTING_DOWN",
+        "server is shutting down",
+        cursor,
+        Duration::from_secs(1),
+    )
+}
+
+/// One WatchAlarms call.
+struct Watch {
+    store: Store,
+    outbox: Arc<AlarmOutbox>,
+    shutdown: CancellationToken,
+    vehicle_id: Option<String>,
+    /// End the call after CAUGHT_UP.
+    stop_when_caught_up: bool,
+    tx: mpsc::Sender<WatchReply>,
+    /// Every event up to this cursor has been sent or filtered out.
+    position: i64,
+}
+
+/// Why a watch stops early.
+enum Stop {
+    /// The client went away.
+    Gone,
+    /// The call ends with this status.
+    Fail(Status),
+}
+
+impl Watch {
+    fn wanted(&self, event: &AlarmEvent) -> bool {
+        self.vehicle_id
+            .as_deref()
+            .is_none_or(|v| v == event.alarm.vehicle_id)
+    }
+
+    /// Sends `event` if it is past the position and wanted; advances the position.
+    async fn offer(&mut self, event: &AlarmEvent) -> Result<(), Stop> {
+        if event.seq <= self.position {
+            return Ok(());
+        }
+        self.position = event.seq;
+        if self.wanted(event) {
+            self.send(event_to_proto(event)).await?;
+        }
+        Ok(())
+    }
+
+    async fn send(&self, message: v1::AlarmEvent) -> Result<(), Stop> {
+        self.tx.send(Ok(message)).await.map_err(|_| Stop::Gone)
+    }
+
+    /// Sends the stored events after the position and below `stored_below`.
+    async fn replay_stored(&mut self, stored_below: i64) -> Result<(), Stop> {
+        while self.position < stored_below - 1 {
+            if self.shutdown.is_cancelled() {
+                return Err(Stop::Fail(draining(self.position)));
+            }
+            let page = self
+                .store
+                .alarm_events_between(
+                    self.position,
+                    stored_below,
+                    self.vehicle_id.as_deref(),
+                    REPLAY_PAGE,
+                )
+                .await
+                .map_err(|error| {
+                    let status = Status::from(error);
+                    let message = format!(
+                        "{}; resume with after_cursor = {}",
+                        status.message(),
+                        self.position
+                    );
+                    Stop::Fail(Status::with_details(
+                        status.code(),
+                        message,
+                        status.details().to_vec().into(),
+                    ))
+                })?;
+            let complete = page.len() < REPLAY_PAGE as usize;
+            for event in &page {
+                self.offer(event).await?;
+            }
+            if complete {
+                self.position = stored_below - 1;
+            }
+        }
+        Ok(())
+    }
+
+    /// Replays, then follows live events until the client goes away or the call must end.
+    async fn run(mut self, mut subscription: Subscription) -> Result<(), Stop> {
+        let mut announced = false;
+        loop {
+            self.replay_stored(subscription.stored_below).await?;
+            for event in std::mem::take(&mut subscription.unstored) {
+                self.offer(&event).await?;
+            }
+            self.position = self.position.max(subscription.head);
+            if !announced {
+                self.send(caught_up(self.position)).await?;
+                announced = true;
+                if self.stop_when_caught_up {
+                    return Ok(());
+                }
+            }
+            loop {
+                let received = tokio::select! {
+                    biased;
+                    _ = self.shutdown.cancelled() => return Err(Stop::Fail(draining(self.position))),
+                    _ = self.tx.closed() => return Err(Stop::Gone),
+                    received = subscription.live.recv() => received,
+                };
+                match received {
+                    Ok(event) => self.offer(&event).await?,
+                    Err(RecvError::Lagged(missed)) => {
+                        tracing::debug!(
+                            missed,
+                            position = self.position,
+                            "an alarm watcher fell behind; replaying what it missed"
+                        );
+                        break;
+                    }
+                    // The outbox lives as long as the server: it is going away.
+                    Err(RecvError::Closed) => return Err(Stop::Fail(draining(self.position))),
+                }
+            }
+            subscription = self.outbox.subscribe(self.position);
+        }
+    }
+}
+
+#[tonic::async_trait]
+impl AlarmService for AlarmApi {
+    type WatchAlarmsStream = ReceiverStream<WatchReply>;
+
+    async fn list_alarms(
+        &self,
+        request: Request<v1::ListAlarmsRequest>,
+    ) -> Result<Response<v1::ListAlarmsResponse>, Status> {
+        let r = request.into_inner();
+        let filter = list_filter(&r)?;
+        let page = self
+            .store
+            .list_alarms(&filter, &page_request(r.page_size, &r.page_token)?)
+            .await?;
+        Ok(Response::new(v1::ListAlarmsResponse {
+            alarms: page.items.iter().map(alarm_to_proto).collect(),
+            next_page_token: page.next_page_token.unwrap_or_default(),
+        }))
+    }
+
+    async fn watch_alarms(
+        &self,
+        request: Request<v1::WatchAlarmsRequest>,
+    ) -> Result<Response<Self::WatchAlarmsStream>, Status> {
+        if self.shutdown.is_cancelled() {
+            return Err(shutting_down());
+        }
+        let r = request.into_inner();
+        let vehicle_id = vehicle_filter(&r.vehicle_id)?;
+        if let Some(after) = r.after_cursor
+            && after < 0
+        {
+            return Err(invalid_field("after_cursor", "must not be negative"));
+        }
+        let subscription = self.outbox.subscribe(r.after_cursor.unwrap_or(i64::MAX));
+        let position = match r.after_cursor {
+            Some(after) if after > subscription.head => {
+                return Err(invalid_field(
+                    "after_cursor",
+                    format!(
+                        "{after} is beyond the latest event ({}); resume with a cursor this server sent",
+                        subscription.head
+                    ),
+                ));
+            }
+            Some(after) => after,
+            None => subscription.head,
+        };
+        let (tx, rx) = mpsc::channel(OUTBOUND_BUFFER);
+        let watch = Watch {
+            store: self.store.clone(),
+            outbox: Arc::clone(&self.outbox),
+            shutdown: self.shutdown.clone(),
+            vehicle_id,
+            stop_when_caught_up: r.stop_when_caught_up,
+            tx: tx.clone(),
+            position,
+        };
+        tokio::spawn(async move {
+            if let Err(Stop::Fail(status)) = watch.run(subscription).await {
+                let _ = tx.send(Err(status)).await;
+            }
+        });
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+}
