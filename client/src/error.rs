@@ -17,6 +17,13 @@ pub enum ClientError {
     /// The bearer token cannot be sent as an HTTP header value.
     #[error("invalid token: it must be printable ASCII without spaces or control characters")]
     InvalidToken,
+    /// A TLS file cannot be read or holds no usable PEM item.
+    #[error("{option} {}: {reason}", path.display())]
+    TlsFile {
+        option: &'static str,
+        path: std::path::PathBuf,
+        reason: String,
+    },
     /// The TCP/HTTP2 connection could not be established.
     #[error("cannot connect to {url}: {reason}")]
     Connect { url: String, reason: String },

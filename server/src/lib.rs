@@ -10,6 +10,9 @@
 //! `store` (the only SQL), `watch` (database file and alarm-writer health), `error` (the one error → status mapping), `fault` (a server-side fault
 //! inside a subsystem's error), `edge` (request decoding shared by the services), `identity` (ids
 //! and digests). Wire conversions live in `spoofwatch_proto::wire`.
+//!
+//! Transport: `incoming` (connections vetted for a first message), `tls` (the TLS files read and
+//! checked at startup), `idle` (the stream idle timeout); bearer auth is [`BearerAuth`] below.
 
 mod alarms;
 pub mod config;
@@ -19,12 +22,14 @@ mod edge;
 mod error;
 mod fault;
 mod identity;
+mod idle;
 mod incoming;
 pub mod inprocess;
 mod jobs;
 pub mod models;
 mod status;
 pub mod store;
+pub mod tls;
 mod watch;
 
 use std::future::Future;
@@ -38,6 +43,7 @@ use spoofwatch_proto::v1::model_service_server::ModelServiceServer;
 use spoofwatch_proto::v1::training_service_server::TrainingServiceServer;
 use tokio::net::TcpListener;
 use tokio_util::sync::CancellationToken;
+use tonic::codec::CompressionEncoding;
 use tonic::server::NamedService;
 use tonic::service::Interceptor;
 use tonic::service::interceptor::InterceptedService;
@@ -50,9 +56,11 @@ pub use config::Config;
 use crate::alarms::{AlarmOutbox, OUTBOX_CAPACITY};
 use crate::datasets::{Catalog, DatasetApi};
 use crate::detection::{DetectionApi, SessionLimits, SessionManager};
+use crate::idle::StreamIdle;
 use crate::jobs::{JobManager, JobSettings, OperationsApi, Runner, TrainingApi};
 use crate::models::{ModelApi, Registry, RegistryError};
 use crate::store::{Store, StoreError, StoreOptions};
+use crate::tls::TlsError;
 
 /// Why the server could not start or run.
 #[derive(Debug, thiserror::Error)]
@@ -63,11 +71,41 @@ pub enum ServerError {
     Registry(#[from] RegistryError),
     #[error("reflection service: {0}")]
     Reflection(#[from] tonic_reflection::server::Error),
+    #[error("TLS: {0}")]
+    Tls(#[from] TlsError),
     #[error("serving: {0}")]
     Transport(#[from] tonic::transport::Error),
 }
 
-/// Checks `authorization: Bearer <token>` when a token is configured.
+/// A generated service server that accepts gzip-compressed requests and compresses its replies
+/// with gzip for clients that accept it (`grpc-accept-encoding`).
+macro_rules! gzip {
+    ($server:expr) => {
+        $server
+            .accept_compressed(CompressionEncoding::Gzip)
+            .send_compressed(CompressionEncoding::Gzip)
+    };
+}
+
+/// An error and its causes on one line: tonic's transport errors say little at the top level.
+fn error_chain(error: &dyn std::error::Error) -> String {
+    let mut out = error.to_string();
+    let mut source = error.source();
+    while let Some(cause) = source {
+        out.push_str(": ");
+        out.push_str(&cause.to_string());
+        source = cause.source();
+    }
+    out
+}
+
+/// Checks `authorization: Bearer <token>` when a token is configured: the scheme in any case, the
+/// token in constant time. Ours rather than tower-http's `ValidateRequestHeaderLayer::bearer`,
+/// which matches the header with `==` (case-sensitive scheme, time depending on the token).
+///
+/// Health and reflection stay open on purpose: health is for load balancers and orchestrators that
+/// hold no token, and reflection serves only the public schema (the `.proto` files of this
+/// repository), no data. Whoever must not even reach them is kept out by mutual TLS.
 #[derive(Clone)]
 struct BearerAuth {
     expected: Option<Arc<str>>,
@@ -119,6 +157,18 @@ pub async fn serve(
     listener: TcpListener,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
+    // First, so that a wrong TLS file stops the server before it touches the database.
+    let tls = tls::server_tls(&config)?;
+    tracing::info!(
+        transport = tls::transport(&config).as_str(),
+        auth = if config.auth_token.is_some() {
+            "bearer token"
+        } else {
+            "none"
+        },
+        stream_idle_s = config.stream_idle_secs,
+        "transport settings"
+    );
     let store = Store::open_with(
         &config.database,
         StoreOptions {
@@ -177,38 +227,47 @@ pub async fn serve(
     };
 
     let (health_reporter, health_service) = tonic_health::server::health_reporter();
+    let health_service = gzip!(health_service);
     let reflection_v1 = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(spoofwatch_proto::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         // google.rpc error details (BadRequest, ...), so grpcurl can print ItemError statuses.
         .register_encoded_file_descriptor_set(tonic_types::pb::FILE_DESCRIPTOR_SET)
         .build_v1()?;
+    let reflection_v1 = gzip!(reflection_v1);
     let reflection_v1alpha = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(spoofwatch_proto::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_types::pb::FILE_DESCRIPTOR_SET)
         .build_v1alpha()?;
+    let reflection_v1alpha = gzip!(reflection_v1alpha);
 
     let auth = BearerAuth {
         expected: config.auth_token.as_deref().map(Arc::from),
     };
     let limit = config.max_message_bytes;
-    let detection = DetectionServiceServer::new(DetectionApi {
+    let stream_idle = StreamIdle(config.stream_idle());
+    let detection = gzip!(DetectionServiceServer::new(DetectionApi {
         sessions: Arc::clone(&sessions),
         shutdown: draining.clone(),
-    })
+        stream_idle,
+    }))
     .max_decoding_message_size(limit);
-    let models = ModelServiceServer::new(ModelApi {
+    let models = gzip!(ModelServiceServer::new(ModelApi {
         registry: Arc::clone(&registry),
-    })
+        stream_idle,
+    }))
     .max_decoding_message_size(limit);
-    let datasets =
-        DatasetServiceServer::new(DatasetApi { catalog }).max_decoding_message_size(limit);
-    let training = TrainingServiceServer::new(TrainingApi {
+    let datasets = gzip!(DatasetServiceServer::new(DatasetApi {
+        catalog,
+        stream_idle,
+    }))
+    .max_decoding_message_size(limit);
+    let training = gzip!(TrainingServiceServer::new(TrainingApi {
         jobs: job_services.clone(),
-    })
+    }))
     .max_decoding_message_size(limit);
-    let operations = OperationsServer::new(OperationsApi { jobs: job_services })
+    let operations = gzip!(OperationsServer::new(OperationsApi { jobs: job_services }))
         .max_decoding_message_size(limit);
 
     let served = [
@@ -281,7 +340,15 @@ pub async fn serve(
     }
 
     let incoming = incoming::vetted(listener, config.handshake_timeout());
-    let router = Server::builder()
+    let mut builder = Server::builder();
+    if let Some(tls) = tls {
+        // tonic runs the handshakes on the vetted connections, each bounded by the handshake
+        // timeout (set in `tls::server_tls`).
+        builder = builder
+            .tls_config(tls)
+            .map_err(|e| TlsError::Refused(error_chain(&e)))?;
+    }
+    let router = builder
         .http2_keepalive_interval(Some(Duration::from_secs(30)))
         .http2_keepalive_timeout(Some(Duration::from_secs(10)))
         .add_service(health_service)
