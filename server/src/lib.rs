@@ -157,8 +157,15 @@ pub async fn serve(
     listener: TcpListener,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
-    // First, so that a wrong TLS file stops the server before it touches the database.
-    let tls = tls::server_tls(&config)?;
+    // First, so that a wrong TLS file (or a key that is not the certificate's) stops the server
+    // before it touches the database. tonic runs the handshakes on the vetted connections, each
+    // bounded by the handshake timeout (set in `tls::server_tls`).
+    let mut builder = Server::builder();
+    if let Some(tls) = tls::server_tls(&config)? {
+        builder = builder
+            .tls_config(tls)
+            .map_err(|e| TlsError::Refused(error_chain(&e)))?;
+    }
     tracing::info!(
         transport = tls::transport(&config).as_str(),
         auth = if config.auth_token.is_some() {
@@ -340,14 +347,6 @@ pub async fn serve(
     }
 
     let incoming = incoming::vetted(listener, config.handshake_timeout());
-    let mut builder = Server::builder();
-    if let Some(tls) = tls {
-        // tonic runs the handshakes on the vetted connections, each bounded by the handshake
-        // timeout (set in `tls::server_tls`).
-        builder = builder
-            .tls_config(tls)
-            .map_err(|e| TlsError::Refused(error_chain(&e)))?;
-    }
     let router = builder
         .http2_keepalive_interval(Some(Duration::from_secs(30)))
         .http2_keepalive_timeout(Some(Duration::from_secs(10)))

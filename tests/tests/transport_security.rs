@@ -1,6 +1,6 @@
 //! Transport: TLS (a client trusting the server's CA gets through; a plaintext client or one
 //! trusting another CA does not), mutual TLS (clients without a certificate, or with one from
-//! another CA, are refused), unreadable TLS files stop the server with their flag and path,
+//! another CA, are refused), unusable TLS files stop the server with their flag and path,
 //! `host:port` addresses, gzip requests, and the stream idle timeout (the stream ends with
 //! DEADLINE_EXCEEDED and the session resumes on a new one).
 
@@ -143,6 +143,22 @@ async fn an_unusable_tls_file_stops_the_server_naming_its_flag_and_path() {
         .await
         .expect_err("a key file without a key is a startup error");
     assert!(error.to_string().contains("private key"), "{error}");
+
+    // Another certificate's key.
+    let other = ca.client(dir.path(), "other");
+    let mut config = test_config(dir.path());
+    config.tls_cert = Some(server_files.cert.clone());
+    config.tls_key = Some(other.key);
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+        .await
+        .expect("bound");
+    let error = spoofwatch_server::serve(config, listener, std::future::pending())
+        .await
+        .expect_err("a key that is not the certificate's is a startup error");
+    assert!(
+        error.to_string().contains("--tls-cert/--tls-key"),
+        "{error}"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
