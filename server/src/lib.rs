@@ -87,18 +87,6 @@ macro_rules! gzip {
     };
 }
 
-/// An error and its causes on one line: tonic's transport errors say little at the top level.
-fn error_chain(error: &dyn std::error::Error) -> String {
-    let mut out = error.to_string();
-    let mut source = error.source();
-    while let Some(cause) = source {
-        out.push_str(": ");
-        out.push_str(&cause.to_string());
-        source = cause.source();
-    }
-    out
-}
-
 /// Checks `authorization: Bearer <token>` when a token is configured: the scheme in any case, the
 /// token in constant time. Ours rather than tower-http's `ValidateRequestHeaderLayer::bearer`,
 /// which matches the header with `==` (case-sensitive scheme, time depending on the token).
@@ -158,14 +146,8 @@ pub async fn serve(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), ServerError> {
     // First, so that a wrong TLS file (or a key that is not the certificate's) stops the server
-    // before it touches the database. tonic runs the handshakes on the vetted connections, each
-    // bounded by the handshake timeout (set in `tls::server_tls`).
-    let mut builder = Server::builder();
-    if let Some(tls) = tls::server_tls(&config)? {
-        builder = builder
-            .tls_config(tls)
-            .map_err(|e| TlsError::Refused(error_chain(&e)))?;
-    }
+    // before it touches the database.
+    let builder = tls::configure(Server::builder(), &config)?;
     tracing::info!(
         transport = tls::transport(&config).as_str(),
         auth = if config.auth_token.is_some() {

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use rustls_pki_types::pem::PemObject;
 use rustls_pki_types::{CertificateDer, PrivateKeyDer};
-use tonic::transport::{Certificate, Identity, ServerTlsConfig};
+use tonic::transport::{Certificate, Identity, Server, ServerTlsConfig};
 
 use crate::Config;
 
@@ -51,6 +51,29 @@ impl Transport {
             Transport::MutualTls => "mutual TLS (client certificates required)",
         }
     }
+}
+
+/// `server` speaking TLS as `config` says (unchanged for plaintext). tonic runs the handshakes on
+/// the vetted connections, each bounded by the handshake timeout.
+pub fn configure(server: Server, config: &Config) -> Result<Server, TlsError> {
+    match server_tls(config)? {
+        None => Ok(server),
+        Some(tls) => server
+            .tls_config(tls)
+            .map_err(|e| TlsError::Refused(error_chain(&e))),
+    }
+}
+
+/// An error and its causes on one line: tonic's transport errors say little at the top level.
+fn error_chain(error: &dyn std::error::Error) -> String {
+    let mut out = error.to_string();
+    let mut source = error.source();
+    while let Some(cause) = source {
+        out.push_str(": ");
+        out.push_str(&cause.to_string());
+        source = cause.source();
+    }
+    out
 }
 
 /// The TLS configuration of `config` (`None`: plaintext), with every file read and checked.

@@ -112,7 +112,8 @@ impl TestServer {
         }
     }
 
-    /// A new plain channel to the server (for services the client library does not cover).
+    /// A new plain channel to a plaintext server (for services the client library does not
+    /// cover, or calls it would not make).
     pub async fn channel(&self) -> Channel {
         Channel::from_shared(self.url())
             .expect("a valid URI")
