@@ -1,26 +1,31 @@
-//! A typed connection to a Spoofwatch server: one HTTP/2 channel, an optional bearer token on every
-//! request, and accessors for each service's generated client. It must not know what the calls
-//! mean: streams live in `detect_stream`, commands in the binary.
+//! A typed connection to a Spoofwatch server: one HTTP/2 channel (plaintext, TLS or mutual TLS), an
+//! optional bearer token on every request, optional gzip, and accessors for each service's
+//! generated client. It must not know what the calls mean: streams live in `detect_stream`,
+//! retries in `retry`, commands in the binary.
 
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use rustls_pki_types::pem::PemObject;
+use rustls_pki_types::{CertificateDer, PrivateKeyDer};
 use spoofwatch_proto::longrunning::operations_client::OperationsClient;
 use spoofwatch_proto::v1::alarm_service_client::AlarmServiceClient;
 use spoofwatch_proto::v1::dataset_service_client::DatasetServiceClient;
 use spoofwatch_proto::v1::detection_service_client::DetectionServiceClient;
 use spoofwatch_proto::v1::model_service_client::ModelServiceClient;
 use spoofwatch_proto::v1::training_service_client::TrainingServiceClient;
+use tonic::codec::CompressionEncoding;
 use tonic::metadata::AsciiMetadataValue;
 use tonic::service::Interceptor;
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::{Channel, Endpoint};
+use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity};
 use tonic::{Request, Status};
 use tonic_health::pb::health_client::HealthClient;
 
 use crate::error::{ClientError, error_chain};
 
-/// Default server address of every remote command.
-pub const DEFAULT_SERVER_URL: &str = "http://127.0.0.1:50051";
+/// Default server address of every remote command (`http://`, or `https://` with TLS files).
+pub const DEFAULT_SERVER_ADDRESS: &str = "127.0.0.1:50051";
 /// How long establishing the connection may take before the command gives up.
 pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
 /// Largest reply accepted. Model exports arrive in chunks of at most 1 MiB, but artifacts (and with
@@ -67,12 +72,73 @@ impl Interceptor for BearerAuth {
 /// The channel every generated client of a [`Connection`] uses.
 pub type AuthenticatedChannel = InterceptedService<Channel, BearerAuth>;
 
+/// How to connect besides the address: authentication, TLS files, compression.
+#[derive(Clone, Debug, Default)]
+pub struct ConnectOptions {
+    /// Sent as `authorization: Bearer <token>` with every request.
+    pub token: Option<String>,
+    /// CA certificate(s) (PEM) to trust for the server, instead of the built-in web PKI roots.
+    pub ca_cert: Option<PathBuf>,
+    /// Client certificate chain (PEM) for mutual TLS; needs `client_key`.
+    pub client_cert: Option<PathBuf>,
+    /// Private key (PEM) of `client_cert`.
+    pub client_key: Option<PathBuf>,
+    /// Compress requests with gzip and ask for gzip replies (worth it on slow links only: it costs
+    /// CPU on both ends).
+    pub gzip: bool,
+}
+
+impl ConnectOptions {
+    /// Options with only a bearer token.
+    pub fn with_token(token: Option<String>) -> Self {
+        Self {
+            token,
+            ..Self::default()
+        }
+    }
+
+    /// Whether a TLS file is given (then a bare `host:port` means `https://`).
+    pub fn wants_tls(&self) -> bool {
+        self.ca_cert.is_some() || self.client_cert.is_some() || self.client_key.is_some()
+    }
+}
+
+/// A server address as a URL: `host:port` gets `https://` when `tls`, else `http://`; a URL with a
+/// scheme is kept as it is.
+pub fn server_url(address: &str, tls: bool) -> String {
+    let address = address.trim();
+    if address.contains("://") {
+        address.to_string()
+    } else if tls {
+        format!("https://{address}")
+    } else {
+        format!("http://{address}")
+    }
+}
+
 /// A connection to one Spoofwatch server. Cheap to clone: clones share the HTTP/2 connection.
 #[derive(Clone, Debug)]
 pub struct Connection {
     url: String,
     channel: Channel,
     auth: BearerAuth,
+    gzip: bool,
+}
+
+/// A generated client over `$connection`'s channel that accepts replies up to
+/// [`MAX_DECODING_MESSAGE_BYTES`] and uses gzip when the connection does.
+macro_rules! client {
+    ($connection:expr, $client:ident) => {{
+        let client = $client::new($connection.channel())
+            .max_decoding_message_size(MAX_DECODING_MESSAGE_BYTES);
+        if $connection.gzip {
+            client
+                .send_compressed(CompressionEncoding::Gzip)
+                .accept_compressed(CompressionEncoding::Gzip)
+        } else {
+            client
+        }
+    }};
 }
 
 impl Connection {
@@ -82,20 +148,49 @@ impl Connection {
         url: impl Into<String>,
         token: Option<String>,
     ) -> Result<Connection, ClientError> {
-        let url = url.into();
-        let auth = BearerAuth::new(token.as_deref())?;
-        let endpoint = Endpoint::from_shared(url.clone())
+        Self::connect_with(&url.into(), &ConnectOptions::with_token(token)).await
+    }
+
+    /// Connects to `address` (a URL, or `host:port`: see [`server_url`]) with `options` within
+    /// [`CONNECT_TIMEOUT`] (TCP, then again for the TLS handshake). `https://` uses TLS, trusting
+    /// `options.ca_cert` or else the built-in web PKI roots.
+    pub async fn connect_with(
+        address: &str,
+        options: &ConnectOptions,
+    ) -> Result<Connection, ClientError> {
+        let url = server_url(address, options.wants_tls());
+        let auth = BearerAuth::new(options.token.as_deref())?;
+        let mut endpoint = Endpoint::from_shared(url.clone())
             .map_err(|e| ClientError::InvalidUrl {
                 url: url.clone(),
                 reason: error_chain(&e),
             })?
             .connect_timeout(CONNECT_TIMEOUT)
             .tcp_nodelay(true);
+        if url.starts_with("https://") {
+            endpoint =
+                endpoint
+                    .tls_config(client_tls(options)?)
+                    .map_err(|e| ClientError::InvalidUrl {
+                        url: url.clone(),
+                        reason: error_chain(&e),
+                    })?;
+        } else if options.wants_tls() {
+            return Err(ClientError::InvalidOption {
+                option: "--ca-cert/--client-cert/--client-key",
+                reason: format!("TLS files need an https:// server URL, not {url}"),
+            });
+        }
         let channel = endpoint.connect().await.map_err(|e| ClientError::Connect {
             url: url.clone(),
             reason: error_chain(&e),
         })?;
-        Ok(Self { url, channel, auth })
+        Ok(Self {
+            url,
+            channel,
+            auth,
+            gzip: options.gzip,
+        })
     }
 
     /// The server URL this connection was made to.
@@ -107,67 +202,98 @@ impl Connection {
         InterceptedService::new(self.channel.clone(), self.auth.clone())
     }
 
-    /// A generated client over this connection that accepts replies up to
-    /// [`MAX_DECODING_MESSAGE_BYTES`].
-    fn limited<C>(
-        &self,
-        new: impl FnOnce(AuthenticatedChannel) -> C,
-        max_decoding_message_size: impl FnOnce(C, usize) -> C,
-    ) -> C {
-        max_decoding_message_size(new(self.channel()), MAX_DECODING_MESSAGE_BYTES)
-    }
-
     /// The DetectionService client (streaming and unary detection, sessions).
     pub fn detection(&self) -> DetectionServiceClient<AuthenticatedChannel> {
-        self.limited(
-            DetectionServiceClient::new,
-            DetectionServiceClient::max_decoding_message_size,
-        )
+        client!(self, DetectionServiceClient)
     }
 
     /// The ModelService client (registry, export/import).
     pub fn models(&self) -> ModelServiceClient<AuthenticatedChannel> {
-        self.limited(
-            ModelServiceClient::new,
-            ModelServiceClient::max_decoding_message_size,
-        )
+        client!(self, ModelServiceClient)
     }
 
     /// The DatasetService client (upload, import, list, delete).
     pub fn datasets(&self) -> DatasetServiceClient<AuthenticatedChannel> {
-        self.limited(
-            DatasetServiceClient::new,
-            DatasetServiceClient::max_decoding_message_size,
-        )
+        client!(self, DatasetServiceClient)
     }
 
     /// The TrainingService client (create jobs, watch their progress).
     pub fn training(&self) -> TrainingServiceClient<AuthenticatedChannel> {
-        self.limited(
-            TrainingServiceClient::new,
-            TrainingServiceClient::max_decoding_message_size,
-        )
+        client!(self, TrainingServiceClient)
     }
 
     /// The google.longrunning.Operations client (get, list, cancel, delete, wait for jobs).
     pub fn operations(&self) -> OperationsClient<AuthenticatedChannel> {
-        self.limited(
-            OperationsClient::new,
-            OperationsClient::max_decoding_message_size,
-        )
+        client!(self, OperationsClient)
     }
 
     /// The AlarmService client (list stored alarms, watch onsets and ends).
     pub fn alarms(&self) -> AlarmServiceClient<AuthenticatedChannel> {
-        self.limited(
-            AlarmServiceClient::new,
-            AlarmServiceClient::max_decoding_message_size,
-        )
+        client!(self, AlarmServiceClient)
     }
 
     /// The grpc.health.v1 client.
     pub fn health(&self) -> HealthClient<AuthenticatedChannel> {
-        HealthClient::new(self.channel())
+        client!(self, HealthClient)
+    }
+}
+
+/// The TLS settings of `options`, with every file read and checked (named in the error).
+fn client_tls(options: &ConnectOptions) -> Result<ClientTlsConfig, ClientError> {
+    let tls = ClientTlsConfig::new().timeout(CONNECT_TIMEOUT);
+    let tls = match &options.ca_cert {
+        Some(ca) => tls.ca_certificate(Certificate::from_pem(certificates_pem("--ca-cert", ca)?)),
+        None => tls.with_webpki_roots(),
+    };
+    match (&options.client_cert, &options.client_key) {
+        (None, None) => Ok(tls),
+        (Some(cert), Some(key)) => Ok(tls.identity(Identity::from_pem(
+            certificates_pem("--client-cert", cert)?,
+            key_pem("--client-key", key)?,
+        ))),
+        (Some(_), None) | (None, Some(_)) => Err(ClientError::InvalidOption {
+            option: "--client-cert/--client-key",
+            reason: "give both (a client certificate and its private key) or neither".into(),
+        }),
+    }
+}
+
+/// The bytes of a PEM file holding at least one certificate.
+fn certificates_pem(option: &'static str, path: &Path) -> Result<Vec<u8>, ClientError> {
+    let pem = read_file(option, path)?;
+    let mut count = 0;
+    for item in CertificateDer::pem_slice_iter(&pem) {
+        item.map_err(|e| tls_file_error(option, path, format!("not valid PEM: {e}")))?;
+        count += 1;
+    }
+    if count == 0 {
+        return Err(tls_file_error(option, path, "holds no PEM certificate"));
+    }
+    Ok(pem)
+}
+
+/// The bytes of a PEM file holding a private key.
+fn key_pem(option: &'static str, path: &Path) -> Result<Vec<u8>, ClientError> {
+    let pem = read_file(option, path)?;
+    PrivateKeyDer::from_pem_slice(&pem).map_err(|e| {
+        tls_file_error(
+            option,
+            path,
+            format!("holds no usable PEM private key: {e}"),
+        )
+    })?;
+    Ok(pem)
+}
+
+fn read_file(option: &'static str, path: &Path) -> Result<Vec<u8>, ClientError> {
+    std::fs::read(path).map_err(|e| tls_file_error(option, path, format!("cannot read: {e}")))
+}
+
+fn tls_file_error(option: &'static str, path: &Path, reason: impl Into<String>) -> ClientError {
+    ClientError::TlsFile {
+        option,
+        path: path.to_path_buf(),
+        reason: reason.into(),
     }
 }
 
@@ -208,6 +334,59 @@ mod tests {
                 "{token:?}"
             );
         }
+    }
+
+    #[test]
+    fn a_bare_address_gets_a_scheme_and_a_url_keeps_its_own() {
+        assert_eq!(
+            server_url("127.0.0.1:50051", false),
+            "http://127.0.0.1:50051"
+        );
+        assert_eq!(
+            server_url("fleet.example:443", true),
+            "https://fleet.example:443"
+        );
+        assert_eq!(server_url("https://h:1", false), "https://h:1");
+        assert_eq!(server_url("http://h:1", true), "http://h:1");
+    }
+
+    #[tokio::test]
+    async fn tls_files_with_a_plaintext_url_or_half_a_client_pair_are_refused() {
+        let options = ConnectOptions {
+            ca_cert: Some("ca.pem".into()),
+            ..ConnectOptions::default()
+        };
+        let error = Connection::connect_with("http://127.0.0.1:1", &options)
+            .await
+            .expect_err("TLS files with http://");
+        assert!(
+            matches!(error, ClientError::InvalidOption { .. }),
+            "{error}"
+        );
+        let options = ConnectOptions {
+            client_cert: Some("c.pem".into()),
+            ..ConnectOptions::default()
+        };
+        let error = Connection::connect_with("https://127.0.0.1:1", &options)
+            .await
+            .expect_err("a certificate without its key");
+        assert!(
+            matches!(error, ClientError::InvalidOption { .. }),
+            "{error}"
+        );
+        let options = ConnectOptions {
+            ca_cert: Some("/nonexistent/ca.pem".into()),
+            ..ConnectOptions::default()
+        };
+        let error = Connection::connect_with("127.0.0.1:1", &options)
+            .await
+            .expect_err("an unreadable CA file");
+        assert!(
+            error
+                .to_string()
+                .starts_with("--ca-cert /nonexistent/ca.pem: cannot read"),
+            "{error}"
+        );
     }
 
     #[tokio::test]

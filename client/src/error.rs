@@ -17,6 +17,13 @@ pub enum ClientError {
     /// The bearer token cannot be sent as an HTTP header value.
     #[error("invalid token: it must be printable ASCII without spaces or control characters")]
     InvalidToken,
+    /// A TLS file cannot be read or holds no usable PEM item.
+    #[error("{option} {}: {reason}", path.display())]
+    TlsFile {
+        option: &'static str,
+        path: std::path::PathBuf,
+        reason: String,
+    },
     /// The TCP/HTTP2 connection could not be established.
     #[error("cannot connect to {url}: {reason}")]
     Connect { url: String, reason: String },
@@ -134,7 +141,15 @@ pub fn code_name(code: Code) -> &'static str {
 
 /// `CODE: message` followed by one indented line per error detail (field violations first).
 pub fn describe_status(status: &tonic::Status) -> String {
-    describe(status.code(), status.message(), &status.get_error_details())
+    let mut out = describe(status.code(), status.message(), &status.get_error_details());
+    // A status made on this side from a transport failure (e.g. a TLS alert) keeps its cause.
+    if let Some(source) = std::error::Error::source(status) {
+        let cause = error_chain(source);
+        if !out.contains(&cause) {
+            out.push_str(&format!(" ({cause})"));
+        }
+    }
+    out
 }
 
 /// Like [`describe_status`], for a `google.rpc.Status` message (e.g. from an `ItemError` or a failed

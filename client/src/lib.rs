@@ -1,4 +1,5 @@
-//! Spoofwatch client library: a typed gRPC connection to the Spoofwatch service, one client-side
+//! Spoofwatch client library: a typed gRPC connection to the Spoofwatch service (TLS, token, gzip),
+//! retries of unary calls ([`retry`]), one client-side
 //! `StreamDetect` call ([`DetectStream`]) and one gateway `StreamDetectFleet` call
 //! ([`FleetDetectStream`]), a resumable alarm feed ([`AlarmWatch`]), replay of recorded telemetry over it and its fleet
 //! summary ([`fleet`]), and the small helpers the `spoofwatch` CLI shares between its offline and
@@ -18,10 +19,11 @@ pub mod input;
 pub mod progress;
 pub mod replay;
 pub mod report;
+pub mod retry;
 pub mod synthetic;
 
 pub use alarm_watch::{AlarmWatch, WatchOptions};
-pub use connection::{AuthenticatedChannel, BearerAuth, Connection};
+pub use connection::{AuthenticatedChannel, BearerAuth, ConnectOptions, Connection};
 pub use detect_stream::DetectStream;
 pub use error::{ClientError, RpcError};
 pub use fleet_stream::FleetDetectStream;

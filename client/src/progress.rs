@@ -8,7 +8,13 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 /// Whether progress bars should be drawn: stderr is a terminal and `CI` is not set.
 pub fn interactive() -> bool {
-    std::io::stderr().is_terminal() && std::env::var_os("CI").is_none()
+    on_terminal() && std::env::var_os("CI").is_none()
+}
+
+/// Whether progress may be shown at all: stderr is a terminal (a CI job's log may be one, then
+/// progress comes as plain lines). Into pipes and files, progress is never written.
+pub fn on_terminal() -> bool {
+    std::io::stderr().is_terminal()
 }
 
 /// A bar of `len` steps labelled `what`, hidden when not interactive.

@@ -22,6 +22,9 @@ pub mod defaults {
     pub const MAX_PENDING_JOBS: usize = 16;
     pub const SHUTDOWN_GRACE_SECS: u64 = 10;
     pub const HANDSHAKE_TIMEOUT_SECS: u64 = 10;
+    /// Five minutes: a vehicle sends every second or so, and the HTTP/2 keepalive already notices
+    /// dead peers; this ends live connections that merely stopped talking.
+    pub const STREAM_IDLE_SECS: u64 = 300;
     /// Room for about 370 artifacts the size of the bundled model (0.7 MB), or 16 of the largest
     /// importable (`limits::MAX_ARTIFACT_BYTES`).
     pub const MODEL_CACHE_BYTES: usize = 256 << 20;
@@ -83,7 +86,8 @@ pub struct Config {
     /// Seconds the shutdown waits for streams and jobs before closing anyway.
     #[arg(long, env = "SPOOFWATCH_SHUTDOWN_GRACE_SECS", default_value_t = defaults::SHUTDOWN_GRACE_SECS)]
     pub shutdown_grace_secs: u64,
-    /// Seconds a new connection has to send the HTTP/2 preface before it is closed.
+    /// Seconds a new connection has to send the HTTP/2 preface (with TLS: to complete the TLS
+    /// handshake) before it is closed.
     #[arg(long, env = "SPOOFWATCH_HANDSHAKE_TIMEOUT_SECS", default_value_t = defaults::HANDSHAKE_TIMEOUT_SECS,
           value_parser = clap::value_parser!(u64).range(1..=300))]
     pub handshake_timeout_secs: u64,
@@ -97,6 +101,22 @@ pub struct Config {
     /// Log line format on stderr.
     #[arg(long, env = "SPOOFWATCH_LOG_FORMAT", value_enum, default_value_t = defaults::LOG_FORMAT)]
     pub log_format: LogFormat,
+    /// TLS certificate chain (PEM), server certificate first. With --tls-key, the server speaks
+    /// only TLS.
+    #[arg(long, env = "SPOOFWATCH_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// TLS private key (PEM: PKCS#8, PKCS#1 or SEC1) of --tls-cert.
+    #[arg(long, env = "SPOOFWATCH_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// CA certificate(s) (PEM) that client certificates must be signed by (mutual TLS): clients
+    /// without such a certificate are refused during the handshake.
+    #[arg(long, env = "SPOOFWATCH_TLS_CLIENT_CA", requires = "tls_cert")]
+    pub tls_client_ca: Option<PathBuf>,
+    /// Seconds a StreamDetect, StreamDetectFleet or upload stream may send nothing before the
+    /// server ends it with DEADLINE_EXCEEDED (the session stays resumable).
+    #[arg(long, env = "SPOOFWATCH_STREAM_IDLE_SECS", default_value_t = defaults::STREAM_IDLE_SECS,
+          value_parser = clap::value_parser!(u64).range(1..=86_400))]
+    pub stream_idle_secs: u64,
 }
 
 /// A bearer token: 1–4,096 visible ASCII characters (what an `authorization` header can carry).
@@ -131,6 +151,10 @@ impl Default for Config {
             auth_token: None,
             metrics_listen: None,
             log_format: defaults::LOG_FORMAT,
+            tls_cert: None,
+            tls_key: None,
+            tls_client_ca: None,
+            stream_idle_secs: defaults::STREAM_IDLE_SECS,
         }
     }
 }
@@ -159,6 +183,10 @@ impl Config {
 
     pub fn handshake_timeout(&self) -> Duration {
         Duration::from_secs(self.handshake_timeout_secs)
+    }
+
+    pub fn stream_idle(&self) -> Duration {
+        Duration::from_secs(self.stream_idle_secs)
     }
 }
 
@@ -210,5 +238,26 @@ mod tests {
         let parsed = Config::try_parse_from(["spoofwatch-server", "--auth-token", "s3cr3t-T0ken"])
             .expect("a valid token");
         assert_eq!(parsed.auth_token.as_deref(), Some("s3cr3t-T0ken"));
+    }
+
+    #[test]
+    fn a_tls_certificate_and_key_go_together_and_mtls_needs_both() {
+        let parse = |args: &[&str]| {
+            Config::try_parse_from(std::iter::once("spoofwatch-server").chain(args.iter().copied()))
+        };
+        assert!(parse(&["--tls-cert", "c.pem"]).is_err());
+        assert!(parse(&["--tls-key", "k.pem"]).is_err());
+        assert!(parse(&["--tls-client-ca", "ca.pem"]).is_err());
+        let parsed = parse(&[
+            "--tls-cert",
+            "c.pem",
+            "--tls-key",
+            "k.pem",
+            "--tls-client-ca",
+            "ca.pem",
+        ])
+        .expect("complete TLS flags");
+        assert_eq!(parsed.tls_client_ca, Some(PathBuf::from("ca.pem")));
+        assert!(parse(&["--stream-idle-secs", "0"]).is_err());
     }
 }

@@ -1,7 +1,9 @@
 //! Accepted TCP connections, handed to the gRPC server only once the client has sent the 24-byte
-//! HTTP/2 connection preface (or, later, a TLS ClientHello, which is longer) within a deadline.
-//! Without it a client could hold any number of connections open by never speaking: hyper waits
-//! for the preface forever. Connections are vetted concurrently, so a slow client delays nobody.
+//! HTTP/2 connection preface (or, with TLS, the first 24 bytes of its ClientHello) within a
+//! deadline. Without it a client could hold any number of connections open by never speaking: hyper
+//! waits for the preface forever. Connections are vetted concurrently, so a slow client delays
+//! nobody. With TLS, tonic then runs the handshake on the vetted connection, bounded by the same
+//! timeout (`tls::server_tls`), so a client that stalls mid-handshake is closed too.
 
 use std::time::Duration;
 

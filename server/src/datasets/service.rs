@@ -13,6 +13,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use super::catalog::Catalog;
 use crate::edge::{dataset_name, display_name, page_request};
+use crate::idle::StreamIdle;
 use crate::status::{header_first, header_not_first, invalid_field};
 use crate::store::DatasetRow;
 
@@ -70,6 +71,8 @@ fn tracks_from_records(records: Vec<v1::LabelledSample>) -> Result<Vec<Track>, S
 #[derive(Debug, Clone)]
 pub struct DatasetApi {
     pub catalog: Catalog,
+    /// How long an upload may send nothing.
+    pub stream_idle: StreamIdle,
 }
 
 #[tonic::async_trait]
@@ -79,7 +82,7 @@ impl DatasetService for DatasetApi {
         request: Request<Streaming<v1::UploadDatasetRequest>>,
     ) -> Result<Response<v1::Dataset>, Status> {
         let mut stream = request.into_inner();
-        let header = match stream.message().await? {
+        let header = match self.stream_idle.next(&mut stream).await? {
             Some(v1::UploadDatasetRequest {
                 kind: Some(Kind::Header(h)),
             }) => h,
@@ -87,7 +90,7 @@ impl DatasetService for DatasetApi {
         };
         let mut csv = Vec::new();
         let mut structured = Vec::new();
-        while let Some(message) = stream.message().await? {
+        while let Some(message) = self.stream_idle.next(&mut stream).await? {
             match message.kind {
                 Some(Kind::CsvChunk(chunk)) if structured.is_empty() => {
                     if csv.len() + chunk.len() > MAX_DATASET_BYTES {

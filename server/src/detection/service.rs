@@ -24,6 +24,7 @@ use tonic::{Request, Response, Status, Streaming};
 use super::sessions::{Decisions, SessionError, SessionManager, SessionSummary};
 use super::validate::vehicle_id_violation;
 use crate::edge::{model_name, optional_model_name};
+use crate::idle::StreamIdle;
 use crate::status::{invalid_field, shutting_down, to_rpc_status};
 use crate::telemetry::{self, Rpc};
 
@@ -38,6 +39,8 @@ pub struct DetectionApi {
     pub sessions: Arc<SessionManager>,
     /// Cancelled when the server starts draining.
     pub shutdown: CancellationToken,
+    /// How long a stream may send nothing.
+    pub stream_idle: StreamIdle,
 }
 
 fn reply(kind: ResponseKind) -> Reply {
@@ -106,10 +109,11 @@ async fn run_stream(
     shutdown: CancellationToken,
     mut inbound: Streaming<v1::StreamDetectRequest>,
     tx: mpsc::Sender<Reply>,
+    idle: StreamIdle,
 ) {
     let first = tokio::select! {
         _ = shutdown.cancelled() => Err(shutting_down()),
-        message = inbound.message() => message,
+        message = idle.next(&mut inbound) => message,
     };
     let start = match first {
         Ok(Some(v1::StreamDetectRequest {
@@ -184,7 +188,7 @@ async fn run_stream(
                     let _ = tx.send(Err(SessionError::ModelDeleted(attachment.accepted.model.clone()).into())).await;
                     break;
                 }
-                message = inbound.message() => message,
+                message = idle.next(&mut inbound) => message,
             };
             let outcome = match message {
                 Ok(Some(v1::StreamDetectRequest {
@@ -228,7 +232,7 @@ async fn run_stream(
                 // The client closed its side: the call ends with OK.
                 Ok(None) => break,
                 Err(status) => {
-                    // e.g. an oversized message: report it as the call's status.
+                    // e.g. an oversized message or the idle timeout: the call's status.
                     telemetry::stream_failed(Rpc::StreamDetect, &status);
                     let _ = tx.send(Err(status)).await;
                     break;
@@ -354,6 +358,7 @@ async fn run_fleet_stream(
     shutdown: CancellationToken,
     mut inbound: Streaming<v1::FleetBatch>,
     tx: mpsc::Sender<FleetReply>,
+    idle: StreamIdle,
 ) {
     let max_samples = sessions.limits().max_batch_samples;
     loop {
@@ -363,7 +368,7 @@ async fn run_fleet_stream(
                 let _ = tx.send(Err(shutting_down())).await;
                 break;
             }
-            message = inbound.message() => message,
+            message = idle.next(&mut inbound) => message,
         };
         let batch = match message {
             Ok(Some(batch)) => batch,
@@ -423,6 +428,7 @@ impl DetectionApi {
             CancellationToken,
             Streaming<In>,
             mpsc::Sender<Result<Out, Status>>,
+            StreamIdle,
         ) -> Fut,
     ) -> Result<Response<ReceiverStream<Result<Out, Status>>>, Status>
     where
@@ -437,6 +443,7 @@ impl DetectionApi {
             self.shutdown.clone(),
             inbound,
             tx,
+            self.stream_idle,
         ));
         Ok(Response::new(ReceiverStream::new(rx)))
     }

@@ -19,6 +19,7 @@ use tonic::{Request, Response, Status, Streaming};
 use super::registry::{ModelMetadata, Registry};
 use crate::detection::SessionManager;
 use crate::edge::{display_name, model_name, page_request};
+use crate::idle::StreamIdle;
 use crate::status::invalid_field;
 use crate::store::{ModelRow, ModelSource};
 
@@ -73,6 +74,8 @@ pub struct ModelApi {
     pub registry: Arc<Registry>,
     /// Deleting a model ends the sessions that use it.
     pub sessions: Arc<SessionManager>,
+    /// How long an import may send nothing.
+    pub stream_idle: StreamIdle,
 }
 
 type ChunkStream = Pin<Box<dyn Stream<Item = Result<v1::ModelChunk, Status>> + Send>>;
@@ -144,14 +147,14 @@ impl ModelService for ModelApi {
     ) -> Result<Response<v1::Model>, Status> {
         use v1::import_model_request::Kind;
         let mut stream = request.into_inner();
-        let header = match stream.message().await? {
+        let header = match self.stream_idle.next(&mut stream).await? {
             Some(v1::ImportModelRequest {
                 kind: Some(Kind::Header(h)),
             }) => h,
             _ => return Err(crate::status::header_first()),
         };
         let mut bytes = Vec::new();
-        while let Some(message) = stream.message().await? {
+        while let Some(message) = self.stream_idle.next(&mut stream).await? {
             match message.kind {
                 Some(Kind::Chunk(chunk)) => {
                     // Refused before the chunk is buffered: memory per import stays bounded.

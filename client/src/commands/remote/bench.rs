@@ -19,7 +19,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use spoofwatch_client::error::ClientError;
 use spoofwatch_client::synthetic::LoopDriver;
-use spoofwatch_client::{Connection, DetectStream, FleetDetectStream};
+use spoofwatch_client::{ConnectOptions, Connection, DetectStream, FleetDetectStream};
 use spoofwatch_proto::v1;
 #[cfg(feature = "inprocess")]
 use spoofwatch_server::inprocess::InProcessServer;
@@ -44,6 +44,8 @@ pub struct Args {
     /// Bearer token for --server.
     #[arg(long, env = "SPOOFWATCH_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
+    #[command(flatten)]
+    pub transport: super::TransportArgs,
     /// Concurrent stream counts, one throughput phase each.
     #[arg(long, value_delimiter = ',', default_value = "1,100,1000",
           value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_STREAMS)))]
@@ -181,7 +183,10 @@ struct PhaseResult {
 
 pub async fn run(args: Args) -> Result<()> {
     match &args.server {
-        Some(url) => bench(&args, url, args.token.clone(), args.server_pid).await,
+        Some(url) => {
+            let options = args.transport.options(args.token.clone());
+            bench(&args, url, options, args.server_pid).await
+        }
         None => bench_in_process(&args).await,
     }
 }
@@ -195,7 +200,8 @@ async fn bench_in_process(args: &Args) -> Result<()> {
         "in-process server on {url} (temporary database); client and server share this \
          process, so its CPU and memory numbers include the client"
     );
-    let result = bench(args, &url, None, Some(std::process::id())).await;
+    let options = ConnectOptions::default();
+    let result = bench(args, &url, options, Some(std::process::id())).await;
     server.shutdown().await?;
     result
 }
@@ -205,9 +211,9 @@ async fn bench_in_process(_args: &Args) -> Result<()> {
     Err(super::no_in_process_server("bench without --server"))
 }
 
-async fn bench(args: &Args, url: &str, token: Option<String>, pid: Option<u32>) -> Result<()> {
+async fn bench(args: &Args, url: &str, options: ConnectOptions, pid: Option<u32>) -> Result<()> {
     // Fail early and readably when the server is not there.
-    Connection::connect(url, token.clone()).await?;
+    Connection::connect_with(url, &options).await?;
     if !(args.rate.is_finite() && args.rate >= 0.0) {
         anyhow::bail!("--rate must be a non-negative number of samples per second");
     }
@@ -240,7 +246,7 @@ async fn bench(args: &Args, url: &str, token: Option<String>, pid: Option<u32>) 
             prefix: &args.vehicle_prefix,
             server_pid: pid,
         };
-        let phase = throughput_phase(url, token.clone(), shape);
+        let phase = throughput_phase(url, options.clone(), shape);
         let limit = Duration::from_secs_f64(args.seconds) + PHASE_SLACK;
         let result = tokio::time::timeout(limit, phase)
             .await
@@ -256,7 +262,7 @@ async fn bench(args: &Args, url: &str, token: Option<String>, pid: Option<u32>) 
             prefix: &args.vehicle_prefix,
             server_pid: pid,
         };
-        memory_phase(url, token, shape).await?;
+        memory_phase(url, options, shape).await?;
     }
     Ok(())
 }
@@ -297,14 +303,14 @@ fn results_table(results: &[PhaseResult], batch: usize) -> String {
 /// Connections for `streams` streams, `per_connection` on each.
 async fn connections(
     url: &str,
-    token: Option<String>,
+    options: ConnectOptions,
     streams: usize,
     per_connection: usize,
 ) -> Result<Vec<Connection>> {
     let count = streams.div_ceil(per_connection.max(1)).max(1);
     let mut out = Vec::with_capacity(count);
     for _ in 0..count {
-        out.push(Connection::connect(url, token.clone()).await?);
+        out.push(Connection::connect_with(url, &options).await?);
     }
     Ok(out)
 }
@@ -326,13 +332,13 @@ struct PhaseShape<'a> {
 
 async fn throughput_phase(
     url: &str,
-    token: Option<String>,
+    options: ConnectOptions,
     shape: PhaseShape<'_>,
 ) -> Result<PhaseResult> {
     let streams = shape.streams;
     let per_message = shape.per_message as usize;
     let count = (streams as usize).div_ceil(per_message);
-    let pool = connections(url, token, count, shape.per_connection).await?;
+    let pool = connections(url, options, count, shape.per_connection).await?;
     // Everyone (and this task) starts measuring once all streams are open.
     let barrier = Arc::new(Barrier::new(count + 1));
     let length = Duration::from_secs_f64(shape.seconds);
@@ -599,7 +605,7 @@ struct MemoryShape<'a> {
     server_pid: Option<u32>,
 }
 
-async fn memory_phase(url: &str, token: Option<String>, shape: MemoryShape<'_>) -> Result<()> {
+async fn memory_phase(url: &str, options: ConnectOptions, shape: MemoryShape<'_>) -> Result<()> {
     let MemoryShape {
         sessions,
         batch,
@@ -607,7 +613,7 @@ async fn memory_phase(url: &str, token: Option<String>, shape: MemoryShape<'_>) 
         server_pid: pid,
     } = shape;
     let before = pid.map(resident_kb).transpose()?;
-    let pool = connections(url, token, MEMORY_PHASE_CONCURRENCY, 1).await?;
+    let pool = connections(url, options, MEMORY_PHASE_CONCURRENCY, 1).await?;
     let permits = Arc::new(Semaphore::new(MEMORY_PHASE_CONCURRENCY));
     let started = Instant::now();
     let work = async {

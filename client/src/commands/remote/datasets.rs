@@ -6,6 +6,7 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use spoofwatch_client::error::reply;
+use spoofwatch_client::retry::{self, Idempotency};
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::upload_dataset_request::Kind as UploadKind;
 
@@ -101,8 +102,13 @@ pub async fn run(args: Args) -> Result<()> {
                 path: path.clone(),
                 display_name: name.unwrap_or_default(),
             };
-            let dataset =
-                reply(format!("importing {path}"), client.import_dataset(request)).await?;
+            // Not idempotent (each import makes a dataset): retried only when refused.
+            let dataset = retry::unary(
+                format!("importing {path}"),
+                Idempotency::NotIdempotent,
+                async || client.import_dataset(request.clone()).await,
+            )
+            .await?;
             println!("imported {}", describe(&dataset));
         }
         Command::List => {
@@ -140,12 +146,22 @@ pub async fn run(args: Args) -> Result<()> {
         }
         Command::Get { name } => {
             let request = v1::GetDatasetRequest { name: name.clone() };
-            let dataset = reply(format!("getting {name}"), client.get_dataset(request)).await?;
+            let dataset = retry::unary(
+                format!("getting {name}"),
+                Idempotency::Idempotent,
+                async || client.get_dataset(request.clone()).await,
+            )
+            .await?;
             println!("{}", describe(&dataset));
         }
         Command::Delete { name } => {
             let request = v1::DeleteDatasetRequest { name: name.clone() };
-            reply(format!("deleting {name}"), client.delete_dataset(request)).await?;
+            retry::unary(
+                format!("deleting {name}"),
+                Idempotency::Idempotent,
+                async || client.delete_dataset(request.clone()).await,
+            )
+            .await?;
             println!("deleted {name}");
         }
     }

@@ -2,8 +2,8 @@
 //! its metrics printed.
 
 use anyhow::Result;
-use spoofwatch_client::Connection;
 use spoofwatch_client::error::reply;
+use spoofwatch_client::{ConnectOptions, Connection};
 use spoofwatch_proto::v1;
 
 use super::jobs::{describe_result, ensure_succeeded, wait_until_done};
@@ -12,7 +12,8 @@ use super::jobs::{describe_result, ensure_succeeded, wait_until_done};
 #[derive(Debug)]
 pub struct Job {
     pub server: String,
-    pub token: Option<String>,
+    /// Token, TLS files, compression.
+    pub connect: ConnectOptions,
     /// `models/{id}` or `{id}`; empty: the active model.
     pub model: String,
     pub datasets: Vec<String>,
@@ -20,7 +21,7 @@ pub struct Job {
 
 /// Creates the job, waits for it and prints its metrics (an error unless it succeeded).
 pub async fn run(job: Job) -> Result<()> {
-    let connection = Connection::connect(job.server, job.token).await?;
+    let connection = Connection::connect_with(&job.server, &job.connect).await?;
     let request = v1::CreateEvaluationJobRequest {
         model: job.model,
         datasets: job.datasets,

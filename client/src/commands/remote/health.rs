@@ -5,7 +5,7 @@
 use std::time::Duration;
 
 use anyhow::{Result, bail};
-use spoofwatch_client::error::reply;
+use spoofwatch_client::retry::{self, Idempotency};
 use tonic_health::pb::HealthCheckRequest;
 use tonic_health::pb::health_check_response::ServingStatus;
 
@@ -23,11 +23,15 @@ pub struct Args {
 /// Checks service "" (the server as a whole); succeeds only when it is SERVING.
 pub async fn run(args: Args) -> Result<()> {
     let connection = args.server.connect().await?;
-    let mut request = tonic::Request::new(HealthCheckRequest {
-        service: String::new(),
-    });
-    request.set_timeout(CHECK_TIMEOUT);
-    let answer = reply("checking health", connection.health().check(request)).await?;
+    let mut health = connection.health();
+    let answer = retry::unary("checking health", Idempotency::Idempotent, async || {
+        let mut request = tonic::Request::new(HealthCheckRequest {
+            service: String::new(),
+        });
+        request.set_timeout(CHECK_TIMEOUT);
+        health.check(request).await
+    })
+    .await?;
     let status = ServingStatus::try_from(answer.status).unwrap_or(ServingStatus::Unknown);
     println!("{}: {}", connection.url(), status.as_str_name());
     if status != ServingStatus::Serving {

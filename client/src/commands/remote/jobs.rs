@@ -8,7 +8,8 @@ use std::time::{Duration, Instant};
 use anyhow::{Result, bail};
 use prost::Message;
 use spoofwatch_client::Connection;
-use spoofwatch_client::error::{describe_rpc_status, reply};
+use spoofwatch_client::error::describe_rpc_status;
+use spoofwatch_client::retry::{self, Idempotency};
 use spoofwatch_proto::longrunning;
 use spoofwatch_proto::longrunning::operation::Result as OperationResult;
 use spoofwatch_proto::v1;
@@ -207,9 +208,10 @@ pub async fn wait_until_done(
                 nanos: this_call.subsec_nanos() as i32,
             }),
         };
-        let operation = reply(
+        let operation = retry::unary(
             format!("waiting for {name}"),
-            client.wait_operation(request),
+            Idempotency::Idempotent,
+            async || client.wait_operation(request.clone()).await,
         )
         .await?;
         if operation.done || remaining.is_some_and(|r| r <= this_call) {
@@ -252,14 +254,20 @@ pub async fn run(args: Args) -> Result<()> {
         }
         Command::Get { name } => {
             let request = longrunning::GetOperationRequest { name: name.clone() };
-            let operation = reply(format!("getting {name}"), client.get_operation(request)).await?;
+            let operation = retry::unary(
+                format!("getting {name}"),
+                Idempotency::Idempotent,
+                async || client.get_operation(request.clone()).await,
+            )
+            .await?;
             print!("{}", describe_operation(&operation));
         }
         Command::Cancel { name } => {
             let request = longrunning::CancelOperationRequest { name: name.clone() };
-            reply(
+            retry::unary(
                 format!("cancelling {name}"),
-                client.cancel_operation(request),
+                Idempotency::Idempotent,
+                async || client.cancel_operation(request.clone()).await,
             )
             .await?;
             println!("cancellation of {name} requested");

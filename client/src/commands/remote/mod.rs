@@ -18,13 +18,13 @@ pub mod sessions;
 pub mod train;
 
 use std::future::Future;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::{Context, Result};
-use spoofwatch_client::Connection;
-use spoofwatch_client::connection::DEFAULT_SERVER_URL;
-use spoofwatch_client::error::reply;
+use spoofwatch_client::connection::DEFAULT_SERVER_ADDRESS;
+use spoofwatch_client::retry::{self, Idempotency};
+use spoofwatch_client::{ConnectOptions, Connection};
 
 /// Upload chunk size for datasets and model artifacts (the server's documented chunk size).
 pub const UPLOAD_CHUNK_BYTES: usize = 1 << 20;
@@ -33,12 +33,56 @@ pub const UPLOAD_CHUNK_BYTES: usize = 1 << 20;
 /// subcommand (`spoofwatch models list --server …`).
 #[derive(Debug, Clone, clap::Args)]
 pub struct ServerArgs {
-    /// Spoofwatch server URL.
-    #[arg(long, global = true, env = "SPOOFWATCH_SERVER", default_value = DEFAULT_SERVER_URL)]
+    /// Spoofwatch server: a URL (`http://…`, `https://…`) or `host:port` (https when a TLS flag is
+    /// given, else http).
+    #[arg(long, global = true, env = "SPOOFWATCH_SERVER", default_value = DEFAULT_SERVER_ADDRESS)]
     pub server: String,
     /// Bearer token sent as `authorization: Bearer <token>` with every request.
     #[arg(long, global = true, env = "SPOOFWATCH_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
+    #[command(flatten)]
+    pub transport: TransportArgs,
+}
+
+/// TLS files and compression of a connection (shared by every command that takes `--server`).
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct TransportArgs {
+    /// CA certificate(s) (PEM) to trust for the server; without it `https://` trusts the
+    /// built-in web PKI roots (Mozilla's).
+    #[arg(long, global = true, env = "SPOOFWATCH_CA_CERT")]
+    pub ca_cert: Option<PathBuf>,
+    /// Client certificate (PEM) for a server that requires mutual TLS; needs --client-key.
+    #[arg(
+        long,
+        global = true,
+        env = "SPOOFWATCH_CLIENT_CERT",
+        requires = "client_key"
+    )]
+    pub client_cert: Option<PathBuf>,
+    /// Private key (PEM) of --client-cert.
+    #[arg(
+        long,
+        global = true,
+        env = "SPOOFWATCH_CLIENT_KEY",
+        requires = "client_cert"
+    )]
+    pub client_key: Option<PathBuf>,
+    /// Compress requests with gzip and ask for gzip replies (for slow links; costs CPU).
+    #[arg(long, global = true)]
+    pub gzip: bool,
+}
+
+impl TransportArgs {
+    /// Connection options with these files and `token`.
+    pub fn options(&self, token: Option<String>) -> ConnectOptions {
+        ConnectOptions {
+            token,
+            ca_cert: self.ca_cert.clone(),
+            client_cert: self.client_cert.clone(),
+            client_key: self.client_key.clone(),
+            gzip: self.gzip,
+        }
+    }
 }
 
 /// A resource command (`datasets`, `jobs`, `models`): the server flags and one subcommand.
@@ -53,7 +97,8 @@ pub struct ResourceArgs<C: clap::Subcommand> {
 impl ServerArgs {
     /// Connects (within the connect timeout).
     pub async fn connect(&self) -> Result<Connection> {
-        Ok(Connection::connect(self.server.clone(), self.token.clone()).await?)
+        let options = self.transport.options(self.token.clone());
+        Ok(Connection::connect_with(&self.server, &options).await?)
     }
 }
 
@@ -120,9 +165,9 @@ pub fn bytes(n: u64) -> String {
     }
 }
 
-/// Every item of a paged listing, fetched page after page under one error `context`.
-/// `fetch(page_token)` makes one List call; `split` takes its page apart into the items and the
-/// next page token, which is empty after the last page.
+/// Every item of a paged listing, fetched page after page under one error `context` (each page
+/// retried as [`retry::unary`] does). `fetch(page_token)` makes one List call; `split` takes its
+/// page apart into the items and the next page token, which is empty after the last page.
 pub async fn all_pages<P, T>(
     context: &str,
     mut fetch: impl AsyncFnMut(String) -> Result<tonic::Response<P>, tonic::Status>,
@@ -131,7 +176,11 @@ pub async fn all_pages<P, T>(
     let mut items = Vec::new();
     let mut page_token = String::new();
     loop {
-        let (page, next_page_token) = split(reply(context, fetch(page_token)).await?);
+        let page = retry::unary(context, Idempotency::Idempotent, async || {
+            fetch(page_token.clone()).await
+        })
+        .await?;
+        let (page, next_page_token) = split(page);
         items.extend(page);
         if next_page_token.is_empty() {
             return Ok(items);

@@ -7,6 +7,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use spoofwatch_client::error::{reply, rpc};
+use spoofwatch_client::retry::{self, Idempotency};
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::import_model_request::Kind as ImportKind;
 
@@ -174,21 +175,32 @@ pub async fn run(args: Args) -> Result<()> {
         }
         Command::Get { name } => {
             let request = v1::GetModelRequest { name: name.clone() };
-            let model = reply(format!("getting {name}"), client.get_model(request)).await?;
+            let model = retry::unary(
+                format!("getting {name}"),
+                Idempotency::Idempotent,
+                async || client.get_model(request.clone()).await,
+            )
+            .await?;
             print!("{}", describe(&model));
         }
         Command::Activate { name } => {
             let request = v1::SetActiveModelRequest { name: name.clone() };
-            let model = reply(
+            let model = retry::unary(
                 format!("activating {name}"),
-                client.set_active_model(request),
+                Idempotency::Idempotent,
+                async || client.set_active_model(request.clone()).await,
             )
             .await?;
             println!("{} is now the active model", model.name);
         }
         Command::Delete { name } => {
             let request = v1::DeleteModelRequest { name: name.clone() };
-            reply(format!("deleting {name}"), client.delete_model(request)).await?;
+            retry::unary(
+                format!("deleting {name}"),
+                Idempotency::Idempotent,
+                async || client.delete_model(request.clone()).await,
+            )
+            .await?;
             println!("deleted {name}");
         }
         Command::Export { name, out } => {

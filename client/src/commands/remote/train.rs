@@ -1,5 +1,5 @@
 //! `spoofwatch train --server URL --dataset …`: a training job on the server, followed with a
-//! progress bar; Ctrl-C offers to cancel it.
+//! progress bar on a terminal (nothing into pipes); Ctrl-C offers to cancel it.
 
 use std::io::{IsTerminal, Write};
 use std::time::Duration;
@@ -8,6 +8,7 @@ use anyhow::{Result, bail};
 use spoofwatch_client::Connection;
 use spoofwatch_client::error::{reply, rpc};
 use spoofwatch_client::progress;
+use spoofwatch_client::retry::{self, Idempotency};
 use spoofwatch_proto::longrunning;
 use spoofwatch_proto::v1;
 
@@ -53,10 +54,16 @@ pub async fn run(remote: RemoteTrainingFlags, flags: TrainingFlags) -> Result<()
     let Some(server) = remote.server.clone() else {
         bail!("remote training needs --server");
     };
-    let connection = Connection::connect(server, remote.token.clone()).await?;
+    let options = remote.transport.options(remote.token.clone());
+    let connection = Connection::connect_with(&server, &options).await?;
     let mut training = connection.training();
-    let create = training.create_training_job(request);
-    let operation = reply("creating the training job", create).await?;
+    // Not idempotent (a second job would train twice): retried only when refused.
+    let operation = retry::unary(
+        "creating the training job",
+        Idempotency::NotIdempotent,
+        async || training.create_training_job(request.clone()).await,
+    )
+    .await?;
     let name = operation.name.clone();
     println!("created training job {name}");
     match follow(&connection, &name, flags.epochs).await? {
@@ -77,9 +84,11 @@ pub async fn run(remote: RemoteTrainingFlags, flags: TrainingFlags) -> Result<()
         }
     }
     let request = longrunning::GetOperationRequest { name: name.clone() };
-    let operation = reply(
+    let mut operations = connection.operations();
+    let operation = retry::unary(
         format!("getting {name}"),
-        connection.operations().get_operation(request),
+        Idempotency::Idempotent,
+        async || operations.get_operation(request.clone()).await,
     )
     .await?;
     if let Some(result) = describe_result(&operation) {
@@ -98,7 +107,8 @@ enum Followed {
 /// Shows WatchJob progress until the job is done or the user interrupts.
 async fn follow(connection: &Connection, name: &str, max_epochs: u32) -> Result<Followed> {
     let bar = progress::bar(u64::from(max_epochs), "training");
-    let interactive = progress::interactive();
+    // Without a bar but on a terminal (CI logs), one line per change; into a pipe, nothing.
+    let lines = !progress::interactive() && progress::on_terminal();
     let request = v1::WatchJobRequest {
         name: name.to_string(),
     };
@@ -118,8 +128,7 @@ async fn follow(connection: &Connection, name: &str, max_epochs: u32) -> Result<
                     bar.set_position(u64::from(m.epoch));
                     let line = progress_line(&m);
                     bar.set_message(bar_message(&m));
-                    // Without a bar (CI, pipes), one line per change keeps logs informative.
-                    if !interactive && line != last_line {
+                    if lines && line != last_line {
                         eprintln!("{name}: {line}");
                     }
                     last_line = line;
@@ -160,9 +169,11 @@ async fn on_interrupt(connection: &Connection, name: &str) -> Result<Followed> {
     let request = longrunning::CancelOperationRequest {
         name: name.to_string(),
     };
-    reply(
+    let mut operations = connection.operations();
+    retry::unary(
         format!("cancelling {name}"),
-        connection.operations().cancel_operation(request),
+        Idempotency::Idempotent,
+        async || operations.cancel_operation(request.clone()).await,
     )
     .await?;
     eprintln!("cancellation of {name} requested");
@@ -200,6 +211,7 @@ mod tests {
         RemoteTrainingFlags {
             server: Some("http://127.0.0.1:1".into()),
             token: None,
+            transport: Default::default(),
             datasets: datasets.iter().map(|s| s.to_string()).collect(),
             val_datasets: vec!["datasets/v".into()],
             activate: true,
