@@ -60,7 +60,7 @@ pub fn theta_grid() -> Vec<f64> {
 }
 
 /// Streaming persistence confirmation of one vehicle's raw alarms c_t.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct PersistenceAlarm {
     n_p: u32,
     /// Consecutive valid steps with c = 1 so far in this trajectory.

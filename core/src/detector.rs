@@ -1,11 +1,14 @@
 //! The streaming per-vehicle detector: evidence → scaled ξ → HO-LLN step → persistence alarm.
 //! The offline whole-trajectory pass (`run_records`) is this same step in a loop.
 //!
-//! Owns running a model artifact on a stream (one vehicle, one sample at a time). Must not train, score
-//! metrics or choose operating points.
+//! Owns running a model artifact on a stream (one vehicle, one sample at a time), and the stream's
+//! state as a value ([`DetectorState`]) that can be stored and continued elsewhere, bit for bit.
+//! Must not train, score metrics or choose operating points.
 
 use std::cell::RefCell;
 use std::sync::Arc;
+
+use serde::{Deserialize, Serialize};
 
 use crate::alarm::PersistenceAlarm;
 use crate::evidence::{Evidence, EvidenceBuilder, Features};
@@ -99,6 +102,76 @@ impl Detector {
         };
         self.alarm_on = alarm;
         decision
+    }
+}
+
+/// Everything a [`Detector`] carries from one sample to the next, without the model: evidence
+/// builder (drift calibration included), liquid state (h, v), persistence run and alarm flag.
+/// Continuing from it with [`Detector::restore`] gives the outputs of an uninterrupted detector.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct DetectorState {
+    evidence: EvidenceBuilder,
+    liquid: LiquidState,
+    alarm: PersistenceAlarm,
+    alarm_on: bool,
+}
+
+/// Why a [`DetectorState`] cannot continue under a model.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum RestoreError {
+    /// The state was made by a model with (or without) the drift channels, and this one differs.
+    #[error(
+        "the state {} drift evidence, the model {}",
+        if *.in_snapshot { "has" } else { "has no" },
+        if *.in_snapshot { "has none" } else { "needs it" }
+    )]
+    DriftChannels { in_snapshot: bool },
+    /// The liquid state's width is not the model's d_h.
+    #[error("the liquid state has width {found}, the model needs {expected}")]
+    StateWidth { expected: usize, found: usize },
+    /// The persistence N_p differs from the model's operating point.
+    #[error("the alarm persistence is N_p = {found}, the model's is {expected}")]
+    Persistence { expected: u32, found: u32 },
+}
+
+impl Detector {
+    /// The state to continue from (see [`DetectorState`]).
+    pub fn save(&self) -> DetectorState {
+        DetectorState {
+            evidence: self.evidence.clone(),
+            liquid: self.state.clone(),
+            alarm: self.alarm.clone(),
+            alarm_on: self.alarm_on,
+        }
+    }
+
+    /// A detector of `artifact` continuing from `saved`. The state must fit the model (drift
+    /// channels, d_h, N_p); the caller checks that it is the same model.
+    pub fn restore(
+        artifact: Arc<ModelArtifact>,
+        saved: DetectorState,
+    ) -> Result<Self, RestoreError> {
+        let config = artifact.model.config();
+        if !saved.liquid.fits(config) {
+            return Err(RestoreError::StateWidth {
+                expected: config.d_h,
+                found: saved.liquid.h().len().max(saved.liquid.v().len()),
+            });
+        }
+        let n_p = artifact.operating_point.n_p;
+        if saved.alarm.n_p() != n_p {
+            return Err(RestoreError::Persistence {
+                expected: n_p,
+                found: saved.alarm.n_p(),
+            });
+        }
+        Ok(Self {
+            evidence: EvidenceBuilder::restore(artifact.evidence, saved.evidence)?,
+            state: saved.liquid,
+            alarm: saved.alarm,
+            alarm_on: saved.alarm_on,
+            artifact,
+        })
     }
 }
 

@@ -6,7 +6,7 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
 use spoofwatch_core::alarm::{OperatingPoint, PersistenceAlarm};
-use spoofwatch_core::detector::{Detector, run_records};
+use spoofwatch_core::detector::{Detector, DetectorState, RestoreError, run_records};
 use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::geo::Projection;
 use spoofwatch_core::model::artifact::{
@@ -48,14 +48,21 @@ fn attacked_with(seed: u64, kind: AttackKind) -> Track {
 
 /// An untrained (but valid) artifact: evidence fitted on normal drives, random weights.
 fn artifact(op: OperatingPoint) -> Arc<ModelArtifact> {
+    artifact_of(op, FeatureSchema::default(), ModelConfig::default())
+}
+
+fn artifact_of(
+    op: OperatingPoint,
+    schema: FeatureSchema,
+    config: ModelConfig,
+) -> Arc<ModelArtifact> {
     let normal: Vec<Track> = (0..2).map(|s| drive(s, 400.0)).collect();
-    let schema = FeatureSchema::default();
     let fit =
         fit_evidence(&normal, Projection::Wgs84Local, 0.0, 0.98, schema).expect("enough rows");
     Arc::new(ModelArtifact {
         schema_version: ARTIFACT_SCHEMA_VERSION,
         feature_names: ModelArtifact::feature_names_of(schema),
-        model: Model::init(ModelConfig::default(), 7).expect("valid config"),
+        model: Model::init(config, 7).expect("valid config"),
         evidence: fit.params,
         scaler: fit.scaler,
         operating_point: op,
@@ -99,6 +106,101 @@ fn streaming_detector_equals_the_whole_trajectory_pass_and_the_model_forward() {
         }
     }
     assert_eq!(offline[300].evidence.trajectory, 1);
+}
+
+/// The state through the session snapshot's encoding (postcard) and back.
+fn through_bytes(state: &DetectorState) -> DetectorState {
+    let bytes = postcard::to_allocvec(state).expect("encodes");
+    postcard::from_bytes(&bytes).expect("decodes")
+}
+
+#[test]
+fn a_detector_restored_from_its_saved_state_continues_bit_for_bit() {
+    for schema in [FeatureSchema::Paper, FeatureSchema::V2] {
+        // A permissive θ so that the run crosses alarm onsets and ends.
+        let artifact = artifact_of(
+            OperatingPoint { theta: 0.3, n_p: 2 },
+            schema,
+            ModelConfig::default(),
+        );
+        let mut track = attacked(12);
+        track.records[420].trajectory_break = true;
+        let offline = run_records(&artifact, &track.records);
+        assert!(
+            offline.iter().any(|d| d.alarm_onset),
+            "{schema:?}: the run alarms"
+        );
+        // Hand-offs before the drift calibration is warm, during the attack, right after a
+        // trajectory break, and at the very start.
+        for cut in [0, 1, 150, 230, 260, 421, 499] {
+            let mut before = Detector::new(Arc::clone(&artifact));
+            for record in &track.records[..cut] {
+                before.step(&record.sample, record.trajectory_break);
+            }
+            let mut after = Detector::restore(Arc::clone(&artifact), through_bytes(&before.save()))
+                .expect("the same model takes its own state");
+            for (record, expected) in track.records[cut..].iter().zip(&offline[cut..]) {
+                let live = after.step(&record.sample, record.trajectory_break);
+                let bits = |d: &spoofwatch_core::detector::Decision| {
+                    let features: Vec<u64> = d.features.iter().map(|f| f.to_bits()).collect();
+                    (
+                        d.probability.to_bits(),
+                        features,
+                        d.alarm,
+                        d.alarm_onset,
+                        d.alarm_end,
+                    )
+                };
+                assert_eq!(bits(&live), bits(expected), "{schema:?}, restored at {cut}");
+            }
+        }
+    }
+}
+
+#[test]
+fn a_state_that_does_not_fit_the_model_is_refused() {
+    let op = OperatingPoint { theta: 0.5, n_p: 3 };
+    let v2 = artifact_of(op, FeatureSchema::V2, ModelConfig::default());
+    let paper = artifact_of(op, FeatureSchema::Paper, ModelConfig::default());
+    let narrow = artifact_of(
+        op,
+        FeatureSchema::V2,
+        ModelConfig {
+            d_h: 8,
+            ..ModelConfig::default()
+        },
+    );
+    let other_persistence = artifact_of(
+        OperatingPoint { theta: 0.5, n_p: 4 },
+        FeatureSchema::V2,
+        ModelConfig::default(),
+    );
+    let saved = Detector::new(Arc::clone(&v2)).save();
+    let refusal = |artifact: &Arc<ModelArtifact>, state: DetectorState| {
+        Detector::restore(Arc::clone(artifact), state).err()
+    };
+    assert_eq!(
+        refusal(&paper, saved.clone()),
+        Some(RestoreError::DriftChannels { in_snapshot: true })
+    );
+    assert_eq!(
+        refusal(&v2, Detector::new(Arc::clone(&paper)).save()),
+        Some(RestoreError::DriftChannels { in_snapshot: false })
+    );
+    assert_eq!(
+        refusal(&narrow, saved.clone()),
+        Some(RestoreError::StateWidth {
+            expected: 8,
+            found: ModelConfig::default().d_h
+        })
+    );
+    assert_eq!(
+        refusal(&other_persistence, saved),
+        Some(RestoreError::Persistence {
+            expected: 4,
+            found: 3
+        })
+    );
 }
 
 #[test]

@@ -11,6 +11,7 @@ use super::linalg::{
 };
 use super::params::{EvidenceParams, SIGMA_EPSILON};
 use super::{DRIFT_FEATURES_START, FEATURE_CAPACITY, Features, NU_INDEX};
+use crate::detector::RestoreError;
 use crate::geo::{LatLon, Projection};
 use crate::sample::{MAX_SPEED_MPS, Record, Sample};
 
@@ -91,7 +92,7 @@ impl Evidence {
 }
 
 /// What the builder remembers about the previous sample of the current trajectory.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Serialize, Deserialize)]
 struct Previous {
     sample: Sample,
     fix: LatLon,
@@ -106,16 +107,25 @@ struct Previous {
 
 /// Streaming per-vehicle builder of ξ_t. `push` never allocates; the same builder serves a live
 /// stream and a recorded track ([`build_track`]).
-#[derive(Clone, Debug)]
+///
+/// Serialised (a session snapshot) it holds only the stream's state: what comes from the
+/// parameters is skipped and filled in again by [`EvidenceBuilder::restore`].
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct EvidenceBuilder {
     /// What `push` uses of the [`EvidenceParams`] (not a copy of them: a server holds one builder
     /// per vehicle, and the drift parameters alone are larger than the builder's state).
+    #[serde(skip)]
     projection: Projection,
+    #[serde(skip)]
     mu_e: f64,
+    #[serde(skip)]
     kappa: f64,
+    #[serde(skip)]
     rho: f64,
     /// (Σ̂ + εI)^{-1/2} and (Σ̂ + εI)^{1/2}, computed once.
+    #[serde(skip)]
     sigma_hat_inv_sqrt: Mat2,
+    #[serde(skip)]
     sigma_hat_sqrt: Mat2,
     previous: Option<Previous>,
     /// First valid fix of the current trajectory (the equirectangular origin).
@@ -159,6 +169,27 @@ impl EvidenceBuilder {
                 mul(root, &mul(&floored, root))
             }
         }
+    }
+
+    /// A builder of `params` continuing the stream `saved` holds (a deserialised builder, whose
+    /// parameter-derived fields are empty). Fails when `saved` was made with or without the drift
+    /// channels and `params` disagree.
+    pub fn restore(params: EvidenceParams, saved: EvidenceBuilder) -> Result<Self, RestoreError> {
+        let fresh = Self::new(params);
+        let drift = match (&fresh.drift, saved.drift) {
+            (Some(fresh), Some(saved)) => Some(DriftTracker::restore(fresh, saved)),
+            (None, None) => None,
+            (Some(_), None) => return Err(RestoreError::DriftChannels { in_snapshot: false }),
+            (None, Some(_)) => return Err(RestoreError::DriftChannels { in_snapshot: true }),
+        };
+        Ok(Self {
+            previous: saved.previous,
+            reference: saved.reference,
+            accum: saved.accum,
+            trajectory: saved.trajectory,
+            drift,
+            ..fresh
+        })
     }
 
     /// Forgets the stream: the next sample starts trajectory 0, as in a new builder.

@@ -280,7 +280,7 @@ pub struct DriftInput {
 }
 
 /// A calibration snapshot: θ after `clock_s` seconds of valid data.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize)]
 struct Snapshot {
     clock_s: f64,
     theta: [f64; 3],
@@ -288,7 +288,7 @@ struct Snapshot {
 }
 
 /// A vehicle's χ² level per scale, uncalibrated and calibrated (1 = the training population's).
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 struct Levels {
     raw: [f64; SCALE_COUNT],
     calibrated: [f64; SCALE_COUNT],
@@ -305,8 +305,12 @@ impl Default for Levels {
 
 /// The per-vehicle drift state: calibration (θ, P, snapshots) that persists across trajectories of a
 /// stream, and EWMAs that restart with every trajectory. `push` never allocates.
-#[derive(Clone, Debug)]
+///
+/// Serialised (inside a session snapshot) it holds only the vehicle's state; the constants come
+/// from the parameters again ([`DriftTracker::restore`]).
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct DriftTracker {
+    #[serde(skip)]
     constants: TrackerConstants,
     /// The block being summed for the calibration: Σ r^c, Σ H and Σ δ.
     block_residual: [f64; 2],
@@ -337,7 +341,7 @@ pub struct DriftTracker {
 
 /// What a tracker derives from its [`DriftParams`] once; a tracker keeps only these, not the
 /// parameters (a server holds one tracker per vehicle).
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default)]
 struct TrackerConstants {
     clip_m: f64,
     noise_variance: f64,
@@ -361,6 +365,15 @@ impl DriftTracker {
             calibrated_threshold: params.calibrated_threshold,
             vehicle_levels: params.vehicle_levels,
         })
+    }
+
+    /// `saved` (a deserialised tracker, without constants) with the constants of `fresh`, a new
+    /// tracker of the parameters it continues under.
+    pub fn restore(fresh: &DriftTracker, saved: DriftTracker) -> DriftTracker {
+        DriftTracker {
+            constants: fresh.constants,
+            ..saved
+        }
     }
 
     /// Forgets the stream (calibration included), as a new tracker of the same parameters.
