@@ -1,13 +1,16 @@
 //! The alarm outbox: alarm onsets and ends leave the detection path at once (no database call while
 //! a session is locked), are sent to live watchers and logged, and one background writer stores them
 //! in batches, one transaction per batch, retried with backoff until the store accepts them, and
-//! drained at shutdown.
+//! drained at shutdown. The same writer stores session snapshots (the hand-off of a vehicle's
+//! detection state): only the latest unstored snapshot of each vehicle is kept, and it is stored in
+//! the same transaction as, or after, every alarm event emitted before it, so a session continued
+//! from a stored snapshot never emits a stored event again.
 //!
-//! Ids and cursors are assigned here. Ids continue after the largest stored id, so a retried batch is
+//! Ids and cursors are assigned here. Each server start (a run, numbered by the store) takes a block
+//! of both ([`first_seq_of_run`]), so processes sharing a database never collide, a retried batch is
 //! idempotent and an end always names its own onset. Cursors (the WatchAlarms positions) increase in
 //! emission order under the queue's lock, so the queue, the live channel and the stored event log
-//! all hold events in cursor order; each server start takes a new block of cursors
-//! ([`first_seq_of_run`]), so a cursor a crash kept from being stored is never reused.
+//! all hold events in cursor order, and a cursor a crash kept from being stored is never reused.
 //!
 //! The queue is bounded: when it is full a new onset is dropped (counted and logged; never sent or
 //! stored, and its end neither) rather than stall detection; ends are always queued (one per open
@@ -25,11 +28,12 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use spoofwatch_proto::wire::convert::timestamp_from_ms;
-use tokio::sync::{Notify, broadcast};
+use tokio::sync::{Notify, broadcast, oneshot};
 use tokio_util::sync::CancellationToken;
 
 use crate::store::{
-    AlarmEvent, AlarmEventKind, AlarmEventRow, Store, StoreError, first_seq_of_run, now_unix_ms,
+    AlarmEvent, AlarmEventKind, AlarmEventRow, SnapshotRow, Store, StoreError, first_seq_of_run,
+    now_unix_ms,
 };
 use crate::telemetry;
 
@@ -40,6 +44,8 @@ pub const OUTBOX_CAPACITY: usize = 100_000;
 const LIVE_BUFFER: usize = 4_096;
 /// Most writes per transaction.
 const BATCH: usize = 512;
+/// Most session snapshots per transaction (about 2 KB each).
+const SNAPSHOT_BATCH: usize = 256;
 /// Most unstored writes logged one by one at shutdown.
 const MAX_LOGGED_UNSTORED: usize = 10_000;
 /// Retry delays after a failed batch: doubling from the first to the last.
@@ -60,6 +66,10 @@ pub struct OutboxStats {
     pub failed_batches: u64,
     /// The last batch was refused: writes wait for the database to accept them again.
     pub failing: bool,
+    /// Session snapshots waiting to be stored (at most one per vehicle).
+    pub snapshot_backlog: usize,
+    /// Session snapshots stored so far.
+    pub snapshots_written: u64,
 }
 
 /// What the queue's lock guards.
@@ -71,6 +81,21 @@ struct Pending {
     open: HashMap<i64, AlarmEventRow>,
     next_id: i64,
     next_seq: i64,
+    /// The latest unstored snapshot of each vehicle's session.
+    snapshots: HashMap<String, QueuedSnapshot>,
+    next_generation: u64,
+}
+
+/// A session snapshot waiting for the writer.
+#[derive(Debug)]
+struct QueuedSnapshot {
+    row: SnapshotRow,
+    /// The latest cursor emitted when it was taken: it is stored only with or after that event.
+    emitted_through: i64,
+    /// Tells a newer snapshot of the vehicle apart from the one a write in flight holds.
+    generation: u64,
+    /// Told once this snapshot (or a newer one of the vehicle) is stored.
+    waiters: Vec<oneshot::Sender<()>>,
 }
 
 /// Where a watcher joins the event sequence (see [`AlarmOutbox::subscribe`]).
@@ -98,15 +123,18 @@ pub struct AlarmOutbox {
     invalid: AtomicU64,
     failed_batches: AtomicU64,
     failing: AtomicBool,
+    snapshots_written: AtomicU64,
+    run: i64,
 }
 
 impl AlarmOutbox {
-    /// The outbox of a server starting on `store`: it starts a new cursor run, ends the alarms a
-    /// previous run left open (a crash, or a drain that could not store them) with logged end
-    /// events, and continues ids after the largest stored one.
+    /// The outbox of a server starting on `store`: it starts a new run (a block of ids and
+    /// cursors), and ends the alarms that were left open and that no stored session snapshot holds
+    /// (a crash, or a drain that could not store them) with logged end events.
     pub async fn new(store: &Store, capacity: usize) -> Result<Self, StoreError> {
         let now = now_unix_ms();
-        let first_seq = first_seq_of_run(store.start_alarm_run(now).await?);
+        let run = store.start_alarm_run(now).await?;
+        let first_seq = first_seq_of_run(run);
         let closed = store.close_open_alarms(now, first_seq).await?;
         for event in &closed {
             log_event(event);
@@ -116,8 +144,10 @@ impl AlarmOutbox {
             pending: Mutex::new(Pending {
                 queue: VecDeque::new(),
                 open: HashMap::new(),
-                next_id: store.max_alarm_id().await? + 1,
+                next_id: first_seq,
                 next_seq,
+                snapshots: HashMap::new(),
+                next_generation: 0,
             }),
             live: broadcast::channel(LIVE_BUFFER).0,
             capacity,
@@ -127,7 +157,14 @@ impl AlarmOutbox {
             invalid: AtomicU64::new(0),
             failed_batches: AtomicU64::new(0),
             failing: AtomicBool::new(false),
+            snapshots_written: AtomicU64::new(0),
+            run,
         })
+    }
+
+    /// This server start's run number: unique among the processes sharing the database.
+    pub fn run_id(&self) -> i64 {
+        self.run
     }
 
     fn pending(&self) -> std::sync::MutexGuard<'_, Pending> {
@@ -142,6 +179,7 @@ impl AlarmOutbox {
         vehicle_id: &str,
         model_id: &str,
         timestamp_s: f64,
+        onset_at_ms: i64,
         probability: f64,
     ) -> i64 {
         let mut pending = self.pending();
@@ -155,7 +193,7 @@ impl AlarmOutbox {
                 vehicle_id,
                 model_id,
                 timestamp_s,
-                now_unix_ms(),
+                onset_at_ms,
                 probability,
             ),
         };
@@ -183,6 +221,29 @@ impl AlarmOutbox {
     /// Queues the end of alarm `id` at its last alarming sample (nothing when its onset was
     /// dropped or refused).
     pub fn end(&self, id: i64, end_timestamp_s: f64, peak_probability: f64, samples: u32) {
+        self.end_at(
+            id,
+            Some(end_timestamp_s),
+            peak_probability,
+            i64::from(samples),
+        );
+    }
+
+    /// Takes over an alarm that a session restored from a snapshot holds open (its onset was
+    /// emitted by the process that wrote the snapshot), so that its end is emitted here.
+    pub fn adopt(&self, alarm: AlarmEventRow) {
+        self.pending().open.insert(alarm.id, alarm);
+    }
+
+    /// Ends an alarm whose session will not continue it (its snapshot expired): the end has no
+    /// sample time, like an alarm closed at a start.
+    pub fn end_abandoned(&self, alarm: AlarmEventRow) {
+        let (id, peak, samples) = (alarm.id, alarm.peak_probability, alarm.samples);
+        self.adopt(alarm);
+        self.end_at(id, None, peak, samples);
+    }
+
+    fn end_at(&self, id: i64, end_timestamp_s: Option<f64>, peak_probability: f64, samples: i64) {
         let mut pending = self.pending();
         let Some(onset) = pending.open.remove(&id) else {
             return;
@@ -190,12 +251,7 @@ impl AlarmOutbox {
         let event = AlarmEvent {
             seq: 0, // assigned when queued
             kind: AlarmEventKind::End,
-            alarm: onset.ended(
-                Some(end_timestamp_s),
-                now_unix_ms(),
-                peak_probability,
-                i64::from(samples),
-            ),
+            alarm: onset.ended(end_timestamp_s, now_unix_ms(), peak_probability, samples),
         };
         if self.acceptable(&event) {
             let event = self.emit(&mut pending, event);
@@ -215,6 +271,43 @@ impl AlarmOutbox {
         let _ = self.live.send(Arc::clone(&event));
         self.wake.notify_one();
         event
+    }
+
+    /// Queues `row` as its vehicle's latest session snapshot, replacing an unstored older one. The
+    /// receiver completes once it (or a newer one of the vehicle) is stored; it is dropped
+    /// unanswered when a shutdown could not store it.
+    pub fn save_snapshot(&self, row: SnapshotRow) -> oneshot::Receiver<()> {
+        let (told, receipt) = oneshot::channel();
+        let mut pending = self.pending();
+        let emitted_through = pending.next_seq - 1;
+        let generation = pending.next_generation;
+        pending.next_generation += 1;
+        let mut waiters = pending
+            .snapshots
+            .remove(&row.vehicle_id)
+            .map(|older| older.waiters)
+            .unwrap_or_default();
+        waiters.push(told);
+        pending.snapshots.insert(
+            row.vehicle_id.clone(),
+            QueuedSnapshot {
+                row,
+                emitted_through,
+                generation,
+                waiters,
+            },
+        );
+        drop(pending);
+        self.wake.notify_one();
+        receipt
+    }
+
+    /// The vehicle's snapshot that is queued and not stored yet, if any.
+    pub fn queued_snapshot(&self, vehicle_id: &str) -> Option<SnapshotRow> {
+        self.pending()
+            .snapshots
+            .get(vehicle_id)
+            .map(|queued| queued.row.clone())
     }
 
     /// Whether the store will take `event`'s values; a refusal is counted and logged.
@@ -250,13 +343,19 @@ impl AlarmOutbox {
 
     /// The counters as they are now.
     pub fn stats(&self) -> OutboxStats {
+        let (backlog, snapshot_backlog) = {
+            let pending = self.pending();
+            (pending.queue.len(), pending.snapshots.len())
+        };
         OutboxStats {
-            backlog: self.pending().queue.len(),
+            backlog,
             written: self.written.load(Ordering::Relaxed),
             dropped_onsets: self.dropped_onsets.load(Ordering::Relaxed),
             invalid: self.invalid.load(Ordering::Relaxed),
             failed_batches: self.failed_batches.load(Ordering::Relaxed),
             failing: self.failing.load(Ordering::Relaxed),
+            snapshot_backlog,
+            snapshots_written: self.snapshots_written.load(Ordering::Relaxed),
         }
     }
 
@@ -271,6 +370,56 @@ impl AlarmOutbox {
         for event in pending.queue.iter().take(MAX_LOGGED_UNSTORED) {
             tracing::error!(?event, "alarm event not stored");
         }
+        if !pending.snapshots.is_empty() {
+            tracing::error!(
+                sessions = pending.snapshots.len(),
+                "shutting down with session snapshots the database did not accept: these \
+                 vehicles continue from their previous snapshot, or afresh"
+            );
+        }
+    }
+
+    /// The next write: up to [`BATCH`] queued events and the snapshots that may be stored with
+    /// them (every event emitted before each snapshot is in the batch or already stored).
+    fn next_write(&self) -> (Vec<Arc<AlarmEvent>>, Vec<SnapshotRow>, Vec<u64>) {
+        let pending = self.pending();
+        let events: Vec<Arc<AlarmEvent>> = pending.queue.iter().take(BATCH).cloned().collect();
+        let horizon = match events.last() {
+            Some(last) if events.len() < pending.queue.len() => last.seq,
+            _ => i64::MAX,
+        };
+        let (snapshots, generations) = pending
+            .snapshots
+            .values()
+            .filter(|queued| queued.emitted_through <= horizon)
+            .take(SNAPSHOT_BATCH)
+            .map(|queued| (queued.row.clone(), queued.generation))
+            .unzip();
+        (events, snapshots, generations)
+    }
+
+    /// After a committed write: its events leave the queue; its snapshots leave the map unless a
+    /// newer one of the vehicle arrived meanwhile, and their waiters are told.
+    fn committed(&self, events: usize, snapshots: &[SnapshotRow], generations: &[u64]) {
+        let mut pending = self.pending();
+        // Removed only once committed: a watcher finds each event queued or stored.
+        pending.queue.drain(..events);
+        for (row, generation) in snapshots.iter().zip(generations) {
+            if pending
+                .snapshots
+                .get(&row.vehicle_id)
+                .is_some_and(|queued| queued.generation == *generation)
+                && let Some(stored) = pending.snapshots.remove(&row.vehicle_id)
+            {
+                for waiter in stored.waiters {
+                    let _ = waiter.send(());
+                }
+            }
+        }
+        drop(pending);
+        self.written.fetch_add(events as u64, Ordering::Relaxed);
+        self.snapshots_written
+            .fetch_add(snapshots.len() as u64, Ordering::Relaxed);
     }
 
     /// The writer: stores queued writes until `stop` is cancelled and the queue is empty, or until
@@ -279,9 +428,8 @@ impl AlarmOutbox {
         let mut backoff = BACKOFF.0;
         let mut deadline = None;
         loop {
-            let batch: Vec<Arc<AlarmEvent>> =
-                self.pending().queue.iter().take(BATCH).cloned().collect();
-            if batch.is_empty() {
+            let (batch, snapshots, generations) = self.next_write();
+            if batch.is_empty() && snapshots.is_empty() {
                 if stop.is_cancelled() {
                     return;
                 }
@@ -291,12 +439,10 @@ impl AlarmOutbox {
                 }
                 continue;
             }
-            match telemetry::db_timed("alarm_batch_write", store.write_alarms(&batch)).await {
+            let write = store.write_alarms_and_snapshots(&batch, &snapshots);
+            match telemetry::db_timed("alarm_batch_write", write).await {
                 Ok(()) => {
-                    // Removed only once committed: a watcher finds each event queued or stored.
-                    self.pending().queue.drain(..batch.len());
-                    self.written
-                        .fetch_add(batch.len() as u64, Ordering::Relaxed);
+                    self.committed(batch.len(), &snapshots, &generations);
                     if self.failing.swap(false, Ordering::Relaxed) {
                         tracing::info!(
                             failed_batches = self.failed_batches.load(Ordering::Relaxed),
@@ -413,13 +559,14 @@ mod tests {
             async move { outbox.run(store, stop, Duration::from_secs(5)).await }
         });
 
-        let first = outbox.onset("car-1", "m", 10.0, 0.9);
-        let second = outbox.onset("car-2", "m", 11.0, 0.8);
+        let first = outbox.onset("car-1", "m", 10.0, 1, 0.9);
+        let second = outbox.onset("car-2", "m", 11.0, 1, 0.8);
         outbox.end(first, 14.0, 0.95, 5);
+        let base = first_seq_of_run(outbox.run_id());
         assert_eq!(
             (first, second),
-            (42, 43),
-            "ids continue after the stored ones"
+            (base, base + 1),
+            "each start takes its own block of ids, above every earlier one"
         );
         wait_until("two batches failed", || outbox.stats().failed_batches >= 2).await;
         assert_eq!(outbox.stats().backlog, 3);
@@ -437,8 +584,8 @@ mod tests {
         assert_eq!(
             stored,
             [
-                (43, "car-2", None, 1),
-                (42, "car-1", Some(14.0), 5),
+                (base + 1, "car-2", None, 1),
+                (base, "car-1", Some(14.0), 5),
                 (41, "old", None, 1)
             ]
         );
@@ -452,9 +599,14 @@ mod tests {
         let (_dir, store) = temp_store().await;
         let outbox = AlarmOutbox::new(&store, 2).await.unwrap();
         let ids: Vec<i64> = (0..3)
-            .map(|i| outbox.onset("car", "m", f64::from(i), 0.9))
+            .map(|i| outbox.onset("car", "m", f64::from(i), 1, 0.9))
             .collect();
-        assert_eq!(ids, [1, 2, 3], "a dropped onset still gets its own id");
+        let base = first_seq_of_run(outbox.run_id());
+        assert_eq!(
+            ids,
+            [base, base + 1, base + 2],
+            "a dropped onset still gets its own id"
+        );
         outbox.end(ids[0], 5.0, 0.9, 2);
         let stats = outbox.stats();
         assert_eq!((stats.backlog, stats.dropped_onsets), (3, 1));
@@ -464,9 +616,9 @@ mod tests {
     async fn invalid_values_are_refused_before_they_can_block_the_queue() {
         let (_dir, store) = temp_store().await;
         let outbox = AlarmOutbox::new(&store, 10).await.unwrap();
-        let refused = outbox.onset("car", "m", f64::NAN, 0.9);
+        let refused = outbox.onset("car", "m", f64::NAN, 1, 0.9);
         outbox.end(refused, 2.0, 0.9, 2); // its onset was refused: nothing to end
-        let id = outbox.onset("car", "m", 3.0, 0.9);
+        let id = outbox.onset("car", "m", 3.0, 1, 0.9);
         outbox.end(id, 4.0, f64::NAN, 2);
         let stats = outbox.stats();
         assert_eq!((stats.backlog, stats.invalid), (1, 2));
@@ -480,8 +632,8 @@ mod tests {
         assert!(empty.unstored.is_empty());
         assert_eq!(empty.stored_below, empty.head + 1);
 
-        let first = outbox.onset("car-1", "m", 1.0, 0.9);
-        let second = outbox.onset("car-2", "m", 2.0, 0.8);
+        let first = outbox.onset("car-1", "m", 1.0, 1, 0.9);
+        let second = outbox.onset("car-2", "m", 2.0, 1, 0.8);
         let mut subscription = outbox.subscribe(empty.head + 1);
         let queued: Vec<_> = subscription.unstored.iter().map(|e| e.alarm.id).collect();
         assert_eq!(queued, [second], "only the events after the cursor");
@@ -503,14 +655,14 @@ mod tests {
     async fn a_restart_continues_above_every_earlier_cursor_and_ends_the_alarms_left_open() {
         let (_dir, store) = temp_store().await;
         let before = AlarmOutbox::new(&store, 10).await.unwrap();
-        let left_open = before.onset("car", "m", 1.0, 0.9);
+        let left_open = before.onset("car", "m", 1.0, 1, 0.9);
         let stop = CancellationToken::new();
         stop.cancel();
         before
             .run(store.clone(), stop, Duration::from_secs(5))
             .await;
         // A cursor only a live watcher saw (the crash lost it before it was stored).
-        let unstored = before.onset("car-2", "m", 2.0, 0.9);
+        let unstored = before.onset("car-2", "m", 2.0, 1, 0.9);
         let seen_live = before.subscribe(0).head;
         assert_ne!(unstored, left_open);
 
@@ -546,7 +698,7 @@ mod tests {
         let (_dir, store) = temp_store().await;
         let outbox = AlarmOutbox::new(&store, 10_000).await.unwrap();
         for i in 0..1_500 {
-            let id = outbox.onset(&format!("car-{i}"), "m", 1.0, 0.9);
+            let id = outbox.onset(&format!("car-{i}"), "m", 1.0, 1, 0.9);
             outbox.end(id, 2.0, 0.9, 2);
         }
         let stop = CancellationToken::new();

@@ -29,6 +29,11 @@ pub mod defaults {
     /// importable (`limits::MAX_ARTIFACT_BYTES`).
     pub const MODEL_CACHE_BYTES: usize = 256 << 20;
     pub const LOG_FORMAT: super::LogFormat = super::LogFormat::Text;
+    /// Ten minutes of a 1 Hz vehicle, or a minute: what a crashed process's vehicles resend.
+    pub const SNAPSHOT_EVERY_SAMPLES: u64 = 600;
+    pub const SNAPSHOT_EVERY_SECS: u64 = 60;
+    /// A day: a vehicle parked overnight loses its calibration, one back from lunch keeps it.
+    pub const SNAPSHOT_TTL_SECS: u64 = 86_400;
 }
 
 /// How the server binary writes its log lines to stderr.
@@ -117,6 +122,21 @@ pub struct Config {
     #[arg(long, env = "SPOOFWATCH_STREAM_IDLE_SECS", default_value_t = defaults::STREAM_IDLE_SECS,
           value_parser = clap::value_parser!(u64).range(1..=86_400))]
     pub stream_idle_secs: u64,
+    /// Snapshot a session (for hand-off to another replica or a restart) after this many samples
+    /// since its last snapshot; 0: only by time. Sessions are also snapshotted when their stream
+    /// ends, on eviction, at shutdown and with every alarm onset or end.
+    #[arg(long, env = "SPOOFWATCH_SNAPSHOT_EVERY_SAMPLES", default_value_t = defaults::SNAPSHOT_EVERY_SAMPLES)]
+    pub snapshot_every_samples: u64,
+    /// Snapshot a session at its first batch this many seconds after its last snapshot.
+    #[arg(long, env = "SPOOFWATCH_SNAPSHOT_EVERY_SECS", default_value_t = defaults::SNAPSHOT_EVERY_SECS,
+          value_parser = clap::value_parser!(u64).range(1..=86_400))]
+    pub snapshot_every_secs: u64,
+    /// Seconds a stored session snapshot is kept without being rewritten (its vehicle gone); then
+    /// it is deleted and the alarm it held open ends. Must exceed --session-idle-secs and
+    /// --snapshot-every-secs.
+    #[arg(long, env = "SPOOFWATCH_SNAPSHOT_TTL_SECS", default_value_t = defaults::SNAPSHOT_TTL_SECS,
+          value_parser = clap::value_parser!(u64).range(60..=31_536_000))]
+    pub snapshot_ttl_secs: u64,
 }
 
 /// A bearer token: 1–4,096 visible ASCII characters (what an `authorization` header can carry).
@@ -155,6 +175,9 @@ impl Default for Config {
             tls_key: None,
             tls_client_ca: None,
             stream_idle_secs: defaults::STREAM_IDLE_SECS,
+            snapshot_every_samples: defaults::SNAPSHOT_EVERY_SAMPLES,
+            snapshot_every_secs: defaults::SNAPSHOT_EVERY_SECS,
+            snapshot_ttl_secs: defaults::SNAPSHOT_TTL_SECS,
         }
     }
 }
@@ -171,6 +194,24 @@ impl Config {
     /// The database size limit in bytes.
     pub fn database_max_bytes(&self) -> Option<u64> {
         self.database_max_mib.map(|mib| mib * 1024 * 1024)
+    }
+
+    /// The snapshot policy; `Err` names the flag when the TTL would expire the snapshots of
+    /// sessions still held in memory.
+    pub fn snapshot_policy(&self) -> Result<crate::detection::SnapshotPolicy, String> {
+        let shortest = self.session_idle_secs.max(self.snapshot_every_secs);
+        if self.snapshot_ttl_secs <= shortest {
+            return Err(format!(
+                "--snapshot-ttl-secs {} must exceed --session-idle-secs and --snapshot-every-secs \
+                 ({shortest}): a snapshot could expire while its session is still held",
+                self.snapshot_ttl_secs
+            ));
+        }
+        Ok(crate::detection::SnapshotPolicy {
+            every_samples: self.snapshot_every_samples,
+            every: Duration::from_secs(self.snapshot_every_secs),
+            ttl: Duration::from_secs(self.snapshot_ttl_secs),
+        })
     }
 
     pub fn session_idle(&self) -> Duration {

@@ -86,6 +86,8 @@ pub enum ServerError {
     },
     #[error("installing the metrics recorder: {0}")]
     Metrics(#[from] metrics_exporter_prometheus::BuildError),
+    #[error("configuration: {0}")]
+    Config(String),
 }
 
 /// A generated service server that accepts gzip-compressed requests and compresses its replies
@@ -187,6 +189,7 @@ pub async fn serve_with_metrics(
     // First, so that a wrong TLS file (or a key that is not the certificate's) stops the server
     // before it touches the database.
     let builder = tls::configure(Server::builder(), &config)?;
+    let snapshot_policy = config.snapshot_policy().map_err(ServerError::Config)?;
     tracing::info!(
         transport = tls::transport(&config).as_str(),
         auth = if config.auth_token.is_some() {
@@ -232,11 +235,13 @@ pub async fn serve_with_metrics(
     let sessions = Arc::new(SessionManager::new(
         Arc::clone(&registry),
         Arc::clone(&alarms),
+        store.clone(),
         SessionLimits {
             max_sessions: config.max_sessions,
             idle: config.session_idle(),
             max_batch_samples: config.max_batch_samples,
         },
+        snapshot_policy,
     ));
     let jobs = JobManager::new(
         Runner {
@@ -344,6 +349,10 @@ pub async fn serve_with_metrics(
                         if evicted > 0 {
                             tracing::info!(evicted, "evicted idle sessions");
                         }
+                        let abandoned = sessions.expire_snapshots().await;
+                        if abandoned > 0 {
+                            tracing::info!(abandoned, "ended the alarms of session snapshots that expired");
+                        }
                     }
                 }
             }
@@ -396,7 +405,7 @@ pub async fn serve_with_metrics(
                 .await;
             draining.cancel();
             jobs.shutdown(grace).await;
-            sessions.close_all_alarms().await;
+            sessions.save_all().await;
             stop_alarm_writer.cancel();
             let _ = stop_tx.send(());
         });

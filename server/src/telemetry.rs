@@ -49,6 +49,8 @@ pub const ALARM_STORED: &str = "spoofwatch_alarm_outbox_stored_writes_total";
 pub const ALARM_FAILED_BATCHES: &str = "spoofwatch_alarm_outbox_failed_batches_total";
 pub const ALARM_DROPPED_ONSETS: &str = "spoofwatch_alarm_outbox_dropped_onsets_total";
 pub const ALARM_INVALID: &str = "spoofwatch_alarm_outbox_invalid_writes_total";
+pub const SNAPSHOT_BACKLOG: &str = "spoofwatch_session_snapshots_backlog";
+pub const SNAPSHOT_STORED: &str = "spoofwatch_session_snapshots_stored_total";
 pub const SESSIONS_OPEN: &str = "spoofwatch_sessions_open";
 pub const SESSIONS_CONNECTED: &str = "spoofwatch_sessions_connected";
 pub const SESSIONS_EVICTED: &str = "spoofwatch_sessions_evicted_total";
@@ -149,6 +151,16 @@ pub const METRICS: &[(&str, Kind, &str)] = &[
         ALARM_INVALID,
         Kind::Counter,
         "Alarm events not stored because of invalid values.",
+    ),
+    (
+        SNAPSHOT_BACKLOG,
+        Kind::Gauge,
+        "Session snapshots waiting to be stored (at most one per vehicle).",
+    ),
+    (
+        SNAPSHOT_STORED,
+        Kind::Counter,
+        "Session snapshots stored (hand-off state of vehicle sessions).",
     ),
     (
         SESSIONS_OPEN,
@@ -449,6 +461,8 @@ impl Endpoint {
         counter!(ALARM_FAILED_BATCHES).absolute(outbox.failed_batches);
         counter!(ALARM_DROPPED_ONSETS).absolute(outbox.dropped_onsets);
         counter!(ALARM_INVALID).absolute(outbox.invalid);
+        gauge!(SNAPSHOT_BACKLOG).set(outbox.snapshot_backlog as f64);
+        counter!(SNAPSHOT_STORED).absolute(outbox.snapshots_written);
         let (queued, running) = jobs.counts();
         gauge!(JOBS, "state" => "queued").set(queued as f64);
         gauge!(JOBS, "state" => "running").set(running as f64);

@@ -21,7 +21,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
-use super::sessions::{Decisions, SessionError, SessionManager, SessionSummary};
+use super::sessions::{Decisions, SNAPSHOT_WAIT, SessionError, SessionManager, SessionSummary};
 use super::validate::vehicle_id_violation;
 use crate::edge::{model_name, optional_model_name};
 use crate::idle::StreamIdle;
@@ -164,8 +164,17 @@ async fn run_stream(
             .as_ref()
             .map(ToString::to_string)
             .unwrap_or_default(),
+        from_snapshot: accepted.from_snapshot,
+        snapshot_refused: accepted
+            .snapshot_refused
+            .as_ref()
+            .map(ToString::to_string)
+            .unwrap_or_default(),
     };
     tracing::debug!(vehicle = %start.vehicle_id, resumed = accepted.resumed, "stream attached");
+    // The call's final status (None: OK), sent only after the session's snapshot is stored, so a
+    // client that reconnects elsewhere at once finds it.
+    let mut end = None;
     if tx
         .send(reply(ResponseKind::Accepted(accepted)))
         .await
@@ -175,17 +184,17 @@ async fn run_stream(
             let message = tokio::select! {
                 biased;
                 _ = shutdown.cancelled() => {
-                    let _ = tx.send(Err(shutting_down())).await;
+                    end = Some(shutting_down());
                     break;
                 }
                 _ = attachment.evicted.cancelled() => {
-                    let _ = tx.send(Err(Status::aborted(
+                    end = Some(Status::aborted(
                         "another stream for this vehicle took the session over",
-                    ))).await;
+                    ));
                     break;
                 }
                 _ = attachment.slot.model_deleted.cancelled() => {
-                    let _ = tx.send(Err(SessionError::ModelDeleted(attachment.accepted.model.clone()).into())).await;
+                    end = Some(SessionError::ModelDeleted(attachment.accepted.model.clone()).into());
                     break;
                 }
                 message = idle.next(&mut inbound) => message,
@@ -234,7 +243,7 @@ async fn run_stream(
                 Err(status) => {
                     // e.g. an oversized message or the idle timeout: the call's status.
                     telemetry::stream_failed(Rpc::StreamDetect, &status);
-                    let _ = tx.send(Err(status)).await;
+                    end = Some(status);
                     break;
                 }
             };
@@ -243,7 +252,14 @@ async fn run_stream(
             }
         }
     }
-    sessions.detach(&attachment);
+    if let Some(stored) = sessions.detach(&attachment).await
+        && tokio::time::timeout(SNAPSHOT_WAIT, stored).await.is_err()
+    {
+        tracing::warn!(vehicle = %start.vehicle_id, "the session's snapshot is not stored yet; ending the stream anyway (it stays queued)");
+    }
+    if let Some(status) = end {
+        let _ = tx.send(Err(status)).await;
+    }
     tracing::debug!(vehicle = %start.vehicle_id, "stream detached");
 }
 

@@ -2,6 +2,13 @@
 //! over), a bounded count, idle eviction, and alarm onsets/ends handed to the alarm outbox (never a
 //! database call while a session is locked).
 //!
+//! Hand-off: a session's complete state is snapshotted ([`super::handoff`]) through the outbox when
+//! its stream ends, when it is evicted, at shutdown, when it starts afresh, with every alarm onset or
+//! end, and every [`SnapshotPolicy::every_samples`] samples or [`SnapshotPolicy::every`]. A stream
+//! that starts for a vehicle this process does not hold (or holds an older copy of) continues from
+//! the stored snapshot; one that cannot be used (corrupt, another schema or model) is refused with
+//! its reason and the session starts afresh. An alarm stays open across a hand-off.
+//!
 //! Roll-out: a session started or resumed without a model follows the active model (a fresh
 //! detector when it changed); deleting a model ends the sessions that use it.
 //! Speaks core types ([`Sample`], [`Decision`]) and [`SessionError`]; it must not know about gRPC
@@ -10,17 +17,19 @@
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use spoofwatch_core::detector::{Decision, Detector};
 use spoofwatch_core::sample::Sample;
 use spoofwatch_proto::wire::ModelName;
+use tokio::sync::oneshot;
 use tokio_util::sync::CancellationToken;
 
+use super::handoff::{OpenAlarmSnapshot, SNAPSHOT_SCHEMA, SessionSnapshot, SnapshotRefused};
 use super::validate::validate_batch;
 use crate::alarms::AlarmOutbox;
 use crate::models::{LoadedModel, Registry, RegistryError};
-use crate::store::now_unix_ms;
+use crate::store::{AlarmEventRow, SnapshotRow, Store, now_unix_ms};
 use crate::telemetry;
 
 /// Everything a session operation can fail with.
@@ -55,6 +64,10 @@ pub struct Accepted {
     pub last_seq: u64,
     /// The session existed with this other model and started afresh with `model`.
     pub replaced_model: Option<ModelName>,
+    /// The session continued from its stored snapshot (not from this process's memory).
+    pub from_snapshot: bool,
+    /// Why the vehicle's stored snapshot was not used (the session started afresh).
+    pub snapshot_refused: Option<SnapshotRefused>,
 }
 
 /// A processed batch: one decision per sample, in order, by `model`.
@@ -79,6 +92,21 @@ pub struct SessionSummary {
     pub last_activity_ms: i64,
 }
 
+/// When sessions are snapshotted besides their stream's end, eviction, shutdown and alarm changes.
+#[derive(Clone, Copy, Debug)]
+pub struct SnapshotPolicy {
+    /// After this many samples since the last snapshot (0: never by count).
+    pub every_samples: u64,
+    /// At the first batch this long after the last snapshot.
+    pub every: Duration,
+    /// A stored snapshot not rewritten for this long is deleted, and the alarm it held ends.
+    pub ttl: Duration,
+}
+
+/// Most a stream's end waits for its session's snapshot to be stored before the call ends (longer
+/// only while the database refuses; the snapshot stays queued).
+pub const SNAPSHOT_WAIT: Duration = Duration::from_secs(2);
+
 /// Bounds on the in-memory session table.
 #[derive(Clone, Copy, Debug)]
 pub struct SessionLimits {
@@ -93,6 +121,8 @@ pub struct SessionLimits {
 #[derive(Debug)]
 struct OpenAlarm {
     id: i64,
+    onset_timestamp_s: f64,
+    onset_at_ms: i64,
     peak: f64,
     samples: u32,
     /// Sample time of the latest alarming sample: the event's end time (`alarm_events` semantics).
@@ -111,6 +141,10 @@ struct SessionState {
     alarm_active: bool,
     alarms_raised: u64,
     open_alarm: Option<OpenAlarm>,
+    /// Samples since the last snapshot, and when it was taken (monotonic, and wall ms).
+    since_snapshot: u64,
+    snapshot_taken: Instant,
+    snapshot_taken_ms: i64,
 }
 
 impl SessionState {
@@ -125,7 +159,82 @@ impl SessionState {
             alarm_active: false,
             alarms_raised: 0,
             open_alarm: None,
+            since_snapshot: 0,
+            snapshot_taken: Instant::now(),
+            snapshot_taken_ms: 0,
         }
+    }
+
+    /// The session continuing from `snapshot` under `model` (the snapshot's model, checked).
+    fn restore(model: LoadedModel, snapshot: SessionSnapshot) -> Result<Self, SnapshotRefused> {
+        if snapshot.model_id != model.name.id() {
+            return Err(SnapshotRefused::Model {
+                snapshot: snapshot.model_id,
+                session: model.name.id().to_string(),
+            });
+        }
+        let detector = Detector::restore(Arc::clone(&model.artifact), snapshot.detector).map_err(
+            |reason| SnapshotRefused::Unfit {
+                model: model.name.to_string(),
+                reason,
+            },
+        )?;
+        Ok(Self {
+            detector,
+            samples: snapshot.samples,
+            trajectories: snapshot.trajectories,
+            last_seq: snapshot.last_seq,
+            last_timestamp_s: snapshot.last_timestamp_s,
+            alarm_active: snapshot.alarm_active,
+            alarms_raised: snapshot.alarms_raised,
+            open_alarm: snapshot.open_alarm.map(|open| OpenAlarm {
+                id: open.id,
+                onset_timestamp_s: open.onset_timestamp_s,
+                onset_at_ms: open.onset_at_ms,
+                peak: open.peak,
+                samples: open.samples,
+                last_timestamp_s: open.last_timestamp_s,
+            }),
+            ..Self::new(model)
+        })
+    }
+
+    /// This session as a snapshot.
+    fn snapshot(&self) -> SessionSnapshot {
+        SessionSnapshot {
+            model_id: self.model.name.id().to_string(),
+            samples: self.samples,
+            trajectories: self.trajectories,
+            last_seq: self.last_seq,
+            last_timestamp_s: self.last_timestamp_s,
+            alarm_active: self.alarm_active,
+            alarms_raised: self.alarms_raised,
+            open_alarm: self.open_alarm.as_ref().map(|open| OpenAlarmSnapshot {
+                id: open.id,
+                onset_timestamp_s: open.onset_timestamp_s,
+                onset_at_ms: open.onset_at_ms,
+                peak: open.peak,
+                samples: open.samples,
+                last_timestamp_s: open.last_timestamp_s,
+            }),
+            detector: self.detector.save(),
+        }
+    }
+
+    /// The stored alarm row of the alarm this session holds open, as the outbox knows it.
+    fn open_alarm_row(&self, vehicle_id: &str) -> Option<AlarmEventRow> {
+        self.open_alarm.as_ref().map(|open| AlarmEventRow {
+            peak_probability: open.peak,
+            samples: i64::from(open.samples),
+            ..AlarmEventRow::opened(
+                open.id,
+                vehicle_id,
+                self.model.name.id(),
+                open.onset_timestamp_s,
+                open.onset_at_ms,
+                open.peak,
+            )
+        })
     }
 }
 
@@ -173,7 +282,10 @@ pub struct SessionManager {
     slots: Mutex<HashMap<String, Arc<SessionSlot>>>,
     registry: Arc<Registry>,
     alarms: Arc<AlarmOutbox>,
+    /// Where snapshots are read from (they are written through `alarms`).
+    store: Store,
     limits: SessionLimits,
+    snapshots: SnapshotPolicy,
     next_stream_id: AtomicU64,
     /// Held (shared) while a model is resolved and installed in a session, and exclusively while a
     /// model is deleted and its sessions end, so that no session can start on a deleted model.
@@ -181,12 +293,20 @@ pub struct SessionManager {
 }
 
 impl SessionManager {
-    pub fn new(registry: Arc<Registry>, alarms: Arc<AlarmOutbox>, limits: SessionLimits) -> Self {
+    pub fn new(
+        registry: Arc<Registry>,
+        alarms: Arc<AlarmOutbox>,
+        store: Store,
+        limits: SessionLimits,
+        snapshots: SnapshotPolicy,
+    ) -> Self {
         Self {
             slots: Mutex::new(HashMap::new()),
             registry,
             alarms,
+            store,
             limits,
+            snapshots,
             next_stream_id: AtomicU64::new(1),
             model_gate: tokio::sync::RwLock::new(()),
         }
@@ -237,6 +357,12 @@ impl SessionManager {
     ) -> Result<Attachment, SessionError> {
         let _gate = self.model_gate.read().await;
         let model = self.registry.resolve(model).await?;
+        // Read before any lock is taken: it may wait for the database.
+        let stored = if reset {
+            Ok(None)
+        } else {
+            self.stored_snapshot(vehicle_id).await
+        };
         let (slot, existed) = self.slot_for(vehicle_id, &model)?;
         let evicted = CancellationToken::new();
         let stream_id = self.next_stream_id.fetch_add(1, Ordering::Relaxed);
@@ -251,12 +377,45 @@ impl SessionManager {
         }
         slot.touch();
         let mut state = slot.state.lock().await;
-        let replaced_model =
-            (existed && state.model.name != model.name).then(|| state.model.name.clone());
-        let resumed = existed && !reset && replaced_model.is_none();
+        // A copy another process wrote after this one last snapshotted the session is newer.
+        let stored = stored.map(|row| {
+            row.filter(|row| {
+                !existed
+                    || (row.writer != self.writer() && row.updated_at_ms > state.snapshot_taken_ms)
+            })
+        });
+        let mut from_snapshot = false;
+        let mut snapshot_refused = None;
+        let mut replaced_model = None;
+        let in_memory = existed && !reset && state.model.name == model.name;
+        let resumed = match stored {
+            Ok(Some(row)) if !reset => match self.restore(&row, &model) {
+                Ok(restored) => {
+                    self.replace_state(vehicle_id, &mut state, restored);
+                    from_snapshot = true;
+                    true
+                }
+                Err(refused) => {
+                    if let SnapshotRefused::Model { snapshot, .. } = &refused {
+                        replaced_model = ModelName::parse(snapshot).ok();
+                    }
+                    tracing::warn!(vehicle = %vehicle_id, reason = %refused, "session snapshot not used: the session starts afresh");
+                    snapshot_refused = Some(refused);
+                    false
+                }
+            },
+            Err(refused) if !in_memory => {
+                tracing::warn!(vehicle = %vehicle_id, reason = %refused, "session snapshot not read: the session starts afresh");
+                snapshot_refused = Some(refused);
+                false
+            }
+            _ => in_memory,
+        };
         if !resumed {
-            self.close_alarm(&mut state);
-            *state = SessionState::new(model);
+            if existed && state.model.name != model.name {
+                replaced_model = Some(state.model.name.clone());
+            }
+            self.replace_state(vehicle_id, &mut state, SessionState::new(model));
         }
         let accepted = Accepted {
             vehicle_id: vehicle_id.to_string(),
@@ -265,6 +424,8 @@ impl SessionManager {
             samples_seen: state.samples,
             last_seq: state.last_seq,
             replaced_model,
+            from_snapshot,
+            snapshot_refused,
         };
         drop(state);
         Ok(Attachment {
@@ -275,15 +436,105 @@ impl SessionManager {
         })
     }
 
-    /// Releases a stream's hold (if it still holds the session).
-    pub fn detach(&self, attachment: &Attachment) {
+    /// Releases a stream's hold (if it still holds the session) and snapshots the session; the
+    /// receiver completes once the snapshot is stored. `None` when another stream took the
+    /// session over or its model was deleted (nothing to hand off).
+    pub async fn detach(&self, attachment: &Attachment) -> Option<oneshot::Receiver<()>> {
         let slot = &attachment.slot;
-        if let Ok(mut owner) = slot.owner.lock()
-            && owner.as_ref().is_some_and(|o| o.id == attachment.stream_id)
-        {
-            *owner = None;
-        }
+        let held = match slot.owner.lock() {
+            Ok(mut owner) if owner.as_ref().is_some_and(|o| o.id == attachment.stream_id) => {
+                *owner = None;
+                true
+            }
+            _ => false,
+        };
         slot.touch();
+        if !held || slot.model_deleted.is_cancelled() {
+            return None;
+        }
+        let mut state = slot.state.lock().await;
+        Some(self.save(&slot.vehicle_id, &mut state))
+    }
+
+    /// The process id written with snapshots (this start's alarm run: unique per process).
+    fn writer(&self) -> String {
+        self.alarms.run_id().to_string()
+    }
+
+    /// Queues a snapshot of the session (see [`AlarmOutbox::save_snapshot`]).
+    fn save(&self, vehicle_id: &str, state: &mut SessionState) -> oneshot::Receiver<()> {
+        let now_ms = now_unix_ms();
+        state.since_snapshot = 0;
+        state.snapshot_taken = Instant::now();
+        state.snapshot_taken_ms = now_ms;
+        let snapshot = state.snapshot();
+        let open_alarm_id = snapshot.open_alarm.as_ref().map(|open| open.id);
+        self.alarms.save_snapshot(SnapshotRow {
+            vehicle_id: vehicle_id.to_string(),
+            model_id: snapshot.model_id.clone(),
+            schema_version: i64::from(SNAPSHOT_SCHEMA),
+            samples: i64::try_from(state.samples).unwrap_or(i64::MAX),
+            last_seq: i64::try_from(state.last_seq).unwrap_or(i64::MAX),
+            open_alarm_id,
+            writer: self.writer(),
+            updated_at_ms: now_ms,
+            snapshot: snapshot.encode(),
+        })
+    }
+
+    /// Whether the policy wants a snapshot now (checked after each batch).
+    fn snapshot_due(&self, state: &SessionState) -> bool {
+        let policy = &self.snapshots;
+        (policy.every_samples > 0 && state.since_snapshot >= policy.every_samples)
+            || state.snapshot_taken.elapsed() >= policy.every
+    }
+
+    /// Replaces a session's state: the alarm the old state held ends (unless the new state holds
+    /// it: a restore), and the new state is snapshotted at once, so that no process continues the
+    /// old one.
+    fn replace_state(&self, vehicle_id: &str, state: &mut SessionState, new: SessionState) {
+        let kept = new.open_alarm.as_ref().map(|open| open.id);
+        if state.open_alarm.as_ref().map(|open| open.id) != kept {
+            self.close_alarm(state);
+        }
+        *state = new;
+        if let Some(row) = state.open_alarm_row(vehicle_id) {
+            self.alarms.adopt(row);
+        }
+        self.save(vehicle_id, state);
+    }
+
+    /// The vehicle's latest snapshot: queued here and not stored yet, else stored.
+    async fn stored_snapshot(
+        &self,
+        vehicle_id: &str,
+    ) -> Result<Option<SnapshotRow>, SnapshotRefused> {
+        if let Some(queued) = self.alarms.queued_snapshot(vehicle_id) {
+            return Ok(Some(queued));
+        }
+        match tokio::time::timeout(SNAPSHOT_WAIT, self.store.load_snapshot(vehicle_id)).await {
+            Ok(Ok(row)) => Ok(row),
+            Ok(Err(error)) => Err(SnapshotRefused::Unreadable(error.to_string())),
+            Err(_) => Err(SnapshotRefused::Unreadable(format!(
+                "no answer within {} s",
+                SNAPSHOT_WAIT.as_secs()
+            ))),
+        }
+    }
+
+    /// The session a stored snapshot continues under `model`.
+    fn restore(
+        &self,
+        row: &SnapshotRow,
+        model: &LoadedModel,
+    ) -> Result<SessionState, SnapshotRefused> {
+        if row.schema_version != i64::from(SNAPSHOT_SCHEMA) {
+            return Err(SnapshotRefused::Schema {
+                found: row.schema_version,
+            });
+        }
+        let snapshot = SessionSnapshot::decode(&row.snapshot)?;
+        SessionState::restore(model.clone(), snapshot)
     }
 
     /// Validates and runs one batch on a session. A rejected batch changes nothing.
@@ -348,6 +599,13 @@ impl SessionManager {
             decisions.push(decision);
         }
         state.last_seq = seq;
+        state.since_snapshot += samples.len() as u64;
+        // An alarm onset or end is stored together with a snapshot that includes it, so that a
+        // session continued elsewhere neither repeats nor loses it.
+        let alarm_changed = decisions.iter().any(|d| d.alarm_onset || d.alarm_end);
+        if alarm_changed || self.snapshot_due(state) {
+            self.save(&slot.vehicle_id, state);
+        }
         slot.touch();
         Ok(Decisions {
             model: state.model.name.clone(),
@@ -357,12 +615,15 @@ impl SessionManager {
 
     /// Queues an alarm onset.
     fn open_alarm(&self, state: &mut SessionState, vehicle: &str, timestamp_s: f64, p: f64) {
+        let onset_at_ms = now_unix_ms();
         let id = self
             .alarms
-            .onset(vehicle, state.model.name.id(), timestamp_s, p);
+            .onset(vehicle, state.model.name.id(), timestamp_s, onset_at_ms, p);
         telemetry::alarm_onset();
         state.open_alarm = Some(OpenAlarm {
             id,
+            onset_timestamp_s: timestamp_s,
+            onset_at_ms,
             peak: p,
             samples: 1,
             last_timestamp_s: timestamp_s,
@@ -426,11 +687,10 @@ impl SessionManager {
         // and leaves no new session behind.
         validate_batch(samples, None, self.limits.max_batch_samples, field)
             .map_err(SessionError::InvalidBatch)?;
-        let (slot, _) = self.slot_for(vehicle_id, &model)?;
+        let (slot, existed) = self.slot_for(vehicle_id, &model)?;
         let mut state = slot.state.lock().await;
-        if reset || state.model.name != model.name {
-            self.close_alarm(&mut state);
-            *state = SessionState::new(model);
+        if !existed || reset || state.model.name != model.name {
+            self.replace_state(vehicle_id, &mut state, SessionState::new(model));
         }
         let seq = seq.unwrap_or(state.last_seq);
         self.process_locked(&slot, &mut state, seq, samples, field)
@@ -470,6 +730,10 @@ impl SessionManager {
         }
         if ended > 0 {
             tracing::info!(model = %name, sessions = ended, "ended the sessions of a deleted model");
+        }
+        // Stored snapshots of the model would be refused anyway; a failure only leaves them so.
+        if let Err(error) = self.store.delete_snapshots_of_model(name.id()).await {
+            tracing::warn!(%error, model = %name, "could not delete the deleted model's session snapshots");
         }
         Ok(ended)
     }
@@ -533,9 +797,8 @@ impl SessionManager {
             .ok_or_else(|| SessionError::NotFound(vehicle_id.to_string()))?;
         {
             let mut state = slot.state.lock().await;
-            self.close_alarm(&mut state);
             let model = state.model.clone();
-            *state = SessionState::new(model);
+            self.replace_state(vehicle_id, &mut state, SessionState::new(model));
         }
         slot.touch();
         Ok(self.describe(&slot).await)
@@ -553,12 +816,38 @@ impl SessionManager {
                 .collect();
             ids.iter().filter_map(|id| slots.remove(id)).collect()
         };
+        // The session leaves memory but not the fleet: its snapshot (with any open alarm) is where
+        // it continues, here or on another process.
         for slot in &idle {
             let mut state = slot.state.lock().await;
-            self.close_alarm(&mut state);
+            self.save(&slot.vehicle_id, &mut state);
         }
         telemetry::sessions_evicted(idle.len());
         idle.len()
+    }
+
+    /// Deletes the stored snapshots older than the policy's TTL and ends the alarms they held
+    /// open (their vehicles did not come back); returns how many alarms ended.
+    pub async fn expire_snapshots(&self) -> usize {
+        let ttl_ms = i64::try_from(self.snapshots.ttl.as_millis()).unwrap_or(i64::MAX);
+        match self
+            .store
+            .expire_snapshots(now_unix_ms().saturating_sub(ttl_ms))
+            .await
+        {
+            Ok(abandoned) => {
+                let ended = abandoned.len();
+                for alarm in abandoned {
+                    self.alarms.end_abandoned(alarm);
+                    telemetry::alarm_end();
+                }
+                ended
+            }
+            Err(error) => {
+                tracing::warn!(%error, "could not expire old session snapshots; retrying later");
+                0
+            }
+        }
     }
 
     /// Sessions held, and how many of them have a live stream (for metrics; one pass under the
@@ -569,12 +858,15 @@ impl SessionManager {
         (slots.len(), connected)
     }
 
-    /// Closes every open alarm (shutdown).
-    pub async fn close_all_alarms(&self) {
+    /// Snapshots every session (shutdown): each continues from it, here after a restart or on
+    /// another process, and its open alarm stays open.
+    pub async fn save_all(&self) {
         let slots: Vec<Arc<SessionSlot>> = self.slots().values().cloned().collect();
         for slot in slots {
             let mut state = slot.state.lock().await;
-            self.close_alarm(&mut state);
+            if !slot.model_deleted.is_cancelled() {
+                self.save(&slot.vehicle_id, &mut state);
+            }
         }
     }
 }

@@ -7,6 +7,7 @@ use std::borrow::Borrow;
 use sqlx::{Sqlite, Transaction};
 
 use super::error::{require_finite, require_probability};
+use super::snapshots::{SnapshotRow, upsert_snapshot};
 use super::{Page, PageRequest, Store, StoreError};
 
 /// A stored alarm episode.
@@ -212,6 +213,17 @@ impl Store {
         &self,
         events: &[E],
     ) -> Result<(), StoreError> {
+        self.write_alarms_and_snapshots(events, &[]).await
+    }
+
+    /// [`Store::write_alarms`], then `snapshots` (each its vehicle's latest), in the same
+    /// transaction: a stored alarm event is never newer than the stored snapshot of its session,
+    /// so a session continued from that snapshot never emits it again.
+    pub async fn write_alarms_and_snapshots<E: Borrow<AlarmEvent>>(
+        &self,
+        events: &[E],
+        snapshots: &[SnapshotRow],
+    ) -> Result<(), StoreError> {
         for event in events {
             event.borrow().validate()?;
         }
@@ -250,6 +262,9 @@ impl Store {
             if applied > 0 {
                 log_event(&mut tx, event).await?;
             }
+        }
+        for snapshot in snapshots {
+            upsert_snapshot(&mut tx, snapshot).await?;
         }
         tx.commit().await?;
         Ok(())
@@ -326,9 +341,11 @@ impl Store {
         .await?)
     }
 
-    /// Shutdown/crash recovery: ends every open alarm at wall time `ended_at_ms`, leaving
-    /// `end_timestamp_s` NULL ("the session ended while alarming"), and logs each end with the
-    /// cursors `first_seq`, `first_seq + 1`, … in id order. Returns the end events.
+    /// Start-up recovery: ends every open alarm that no stored session snapshot holds open (left
+    /// by a crash, or by a session whose snapshot could not be stored) at wall time
+    /// `ended_at_ms`, leaving `end_timestamp_s` NULL ("the session ended while alarming"), and
+    /// logs each end with the cursors `first_seq`, `first_seq + 1`, … in id order. Returns the end
+    /// events. An alarm a snapshot holds stays open: its session continues it wherever it resumes.
     pub async fn close_open_alarms(
         &self,
         ended_at_ms: i64,
@@ -336,7 +353,8 @@ impl Store {
     ) -> Result<Vec<AlarmEvent>, StoreError> {
         let mut tx = self.begin_write().await?;
         let open = sqlx::query_as::<_, AlarmEventRow>(select_alarms!(
-            "WHERE ended_at IS NULL ORDER BY id"
+            "WHERE ended_at IS NULL AND id NOT IN (SELECT open_alarm_id FROM session_snapshots \
+             WHERE open_alarm_id IS NOT NULL) ORDER BY id"
         ))
         .fetch_all(&mut *tx)
         .await?;

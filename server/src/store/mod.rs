@@ -1,8 +1,8 @@
 //! Persistence for the service: SQLite through sqlx (runtime queries, `FromRow` rows).
 //!
 //! One [`Store`] wraps a connection pool. Tables: models (+ artifact blobs in their own table so list
-//! queries never read blobs), datasets (+ content blobs), jobs (+ per-epoch history) and alarm events
-//! (+ the event log behind WatchAlarms).
+//! queries never read blobs), datasets (+ content blobs), jobs (+ per-epoch history), alarm events
+//! (+ the event log behind WatchAlarms) and session snapshots (the hand-off of detection state).
 //! The schema lives in `migrations/` at the workspace root and is applied by [`Store::open`].
 //!
 //! Conventions:
@@ -20,6 +20,7 @@ mod error;
 mod jobs;
 mod models;
 mod paging;
+mod snapshots;
 
 #[cfg(test)]
 mod tests;
@@ -45,6 +46,7 @@ pub use error::{FaultKind, StoreError, StoreFault};
 pub use jobs::{EpochRow, JobFilter, JobKind, JobOutcome, JobRow, JobState, NewJob};
 pub use models::{ModelRow, ModelSource, NewModel};
 pub use paging::{DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE, Page, PageRequest};
+pub use snapshots::SnapshotRow;
 
 /// How long a connection waits for another writer's lock before failing with SQLITE_BUSY.
 const BUSY_TIMEOUT: Duration = Duration::from_secs(5);

@@ -1,0 +1,190 @@
+//! The session snapshot: a vehicle session's complete state as bytes, so that a stream starting on
+//! any server process (another replica, or this one after a restart) continues the session exactly.
+//!
+//! Encoding: `SWSS` magic, the schema version (u16, little-endian), the postcard encoding of a
+//! [`SessionSnapshot`] (f64s as their bit patterns, so a continued session is bit-exact), and the
+//! first 8 bytes of the SHA-256 of everything before them. A snapshot that fails any of these is
+//! refused with a [`SnapshotRefused`] naming why; the session then starts afresh.
+
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use spoofwatch_core::detector::{DetectorState, RestoreError};
+
+/// The encoding this server writes and reads. Bump it when [`SessionSnapshot`] or anything inside
+/// [`DetectorState`] changes shape: older snapshots are then refused (fresh sessions), never misread.
+pub const SNAPSHOT_SCHEMA: u16 = 1;
+
+const MAGIC: &[u8; 4] = b"SWSS";
+const HEADER: usize = MAGIC.len() + 2;
+const CHECKSUM: usize = 8;
+
+/// An alarm the session holds open (its onset stored, its end not yet).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct OpenAlarmSnapshot {
+    pub id: i64,
+    pub onset_timestamp_s: f64,
+    pub onset_at_ms: i64,
+    pub peak: f64,
+    pub samples: u32,
+    pub last_timestamp_s: f64,
+}
+
+/// Everything a session carries besides its model.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct SessionSnapshot {
+    /// The model id the session ran; it continues only under that model.
+    pub model_id: String,
+    pub samples: u64,
+    pub trajectories: u32,
+    pub last_seq: u64,
+    pub last_timestamp_s: Option<f64>,
+    pub alarm_active: bool,
+    pub alarms_raised: u64,
+    pub open_alarm: Option<OpenAlarmSnapshot>,
+    pub detector: DetectorState,
+}
+
+/// Why a stored snapshot was not used (the session started afresh).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SnapshotRefused {
+    #[error("the stored session snapshot is corrupt ({0})")]
+    Corrupt(String),
+    #[error(
+        "the stored session snapshot has schema version {found}; this server reads version {SNAPSHOT_SCHEMA}"
+    )]
+    Schema { found: i64 },
+    #[error("the stored session snapshot ran model {snapshot}, this stream runs {session}")]
+    Model { snapshot: String, session: String },
+    #[error("the stored session snapshot does not fit model {model}: {reason}")]
+    Unfit { model: String, reason: RestoreError },
+    #[error("the session store could not be read ({0})")]
+    Unreadable(String),
+}
+
+impl SessionSnapshot {
+    /// The snapshot's bytes (see the module docs).
+    pub fn encode(&self) -> Vec<u8> {
+        let mut bytes = Vec::with_capacity(2048);
+        bytes.extend_from_slice(MAGIC);
+        bytes.extend_from_slice(&SNAPSHOT_SCHEMA.to_le_bytes());
+        // Serialising plain structs of numbers, strings and vectors into a Vec cannot fail.
+        let payload = postcard::to_extend(self, bytes).unwrap_or_default();
+        let mut bytes = payload;
+        let checksum = Sha256::digest(&bytes);
+        bytes.extend_from_slice(&checksum[..CHECKSUM]);
+        bytes
+    }
+
+    /// Decodes `bytes` written by [`SessionSnapshot::encode`] of this schema version.
+    pub fn decode(bytes: &[u8]) -> Result<Self, SnapshotRefused> {
+        let corrupt = |why: &str| SnapshotRefused::Corrupt(why.to_string());
+        if bytes.len() < HEADER + CHECKSUM || !bytes.starts_with(MAGIC) {
+            return Err(corrupt("not a Spoofwatch session snapshot"));
+        }
+        let version = u16::from_le_bytes([bytes[4], bytes[5]]);
+        if version != SNAPSHOT_SCHEMA {
+            return Err(SnapshotRefused::Schema {
+                found: i64::from(version),
+            });
+        }
+        let (body, checksum) = bytes.split_at(bytes.len() - CHECKSUM);
+        if Sha256::digest(body)[..CHECKSUM] != *checksum {
+            return Err(corrupt("checksum mismatch"));
+        }
+        postcard::from_bytes(&body[HEADER..])
+            .map_err(|error| SnapshotRefused::Corrupt(format!("undecodable: {error}")))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use spoofwatch_core::detector::Detector;
+    use spoofwatch_core::model::artifact::ModelArtifact;
+
+    use super::*;
+
+    fn snapshot() -> SessionSnapshot {
+        let artifact: Arc<ModelArtifact> = Arc::new(
+            ModelArtifact::from_slice(crate::models::registry::BUNDLED_MODEL)
+                .expect("the bundled model"),
+        );
+        SessionSnapshot {
+            model_id: "default".to_string(),
+            samples: 42,
+            trajectories: 2,
+            last_seq: 7,
+            last_timestamp_s: Some(1_700_000_000.5),
+            alarm_active: true,
+            alarms_raised: 1,
+            open_alarm: Some(OpenAlarmSnapshot {
+                id: 5 << 32,
+                onset_timestamp_s: 1_700_000_000.0,
+                onset_at_ms: 1_700_000_000_123,
+                peak: 0.97,
+                samples: 3,
+                last_timestamp_s: 1_700_000_000.5,
+            }),
+            detector: Detector::new(artifact).save(),
+        }
+    }
+
+    #[test]
+    fn a_snapshot_decodes_to_what_was_encoded() {
+        let original = snapshot();
+        let bytes = original.encode();
+        assert!(bytes.starts_with(b"SWSS\x01\x00"), "magic, then version 1");
+        let decoded = SessionSnapshot::decode(&bytes).expect("decodes");
+        // The detector state has no PartialEq (NaNs inside); its re-encoding must be identical.
+        assert_eq!(decoded.encode(), bytes);
+        assert_eq!(decoded.open_alarm, original.open_alarm);
+        assert_eq!(
+            (decoded.samples, decoded.last_seq, decoded.model_id.as_str()),
+            (42, 7, "default")
+        );
+    }
+
+    #[test]
+    fn corrupt_and_foreign_snapshots_are_refused_with_their_reason() {
+        let bytes = snapshot().encode();
+        let refusal = |bytes: &[u8]| SessionSnapshot::decode(bytes).err().map(|e| e.to_string());
+
+        let mut flipped = bytes.clone();
+        flipped[40] ^= 0x10;
+        assert_eq!(
+            refusal(&flipped).as_deref(),
+            Some("the stored session snapshot is corrupt (checksum mismatch)")
+        );
+        assert_eq!(
+            refusal(&bytes[..bytes.len() - 1]).as_deref(),
+            Some("the stored session snapshot is corrupt (checksum mismatch)")
+        );
+        assert_eq!(
+            refusal(b"{\"vehicle\": 1}").as_deref(),
+            Some("the stored session snapshot is corrupt (not a Spoofwatch session snapshot)")
+        );
+        assert_eq!(
+            refusal(&[]).as_deref(),
+            Some("the stored session snapshot is corrupt (not a Spoofwatch session snapshot)")
+        );
+
+        let mut newer = bytes.clone();
+        newer[4] = 2;
+        assert_eq!(
+            refusal(&newer).as_deref(),
+            Some("the stored session snapshot has schema version 2; this server reads version 1")
+        );
+
+        // A well-formed envelope around a payload of another shape (checksum recomputed).
+        let mut foreign = b"SWSS\x01\x00".to_vec();
+        foreign.extend_from_slice(&[0xff; 12]);
+        let checksum = Sha256::digest(&foreign);
+        foreign.extend_from_slice(&checksum[..CHECKSUM]);
+        let reason = refusal(&foreign).expect("refused");
+        assert!(
+            reason.starts_with("the stored session snapshot is corrupt (undecodable"),
+            "{reason}"
+        );
+    }
+}

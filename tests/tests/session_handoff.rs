@@ -1,0 +1,202 @@
+//! Session hand-off between server processes sharing a database: a vehicle's stream continues on
+//! another server (here: a second server started on the same database after the first stopped)
+//! from the stored snapshot, `SessionAccepted` says so and reports `last_seq`, and once the client
+//! resends the batches after it, every detection and the alarm history equal an uninterrupted run's,
+//! bit for bit. A corrupt, foreign or other-model snapshot is refused with its reason; the session
+//! starts afresh and nothing else is lost.
+
+use spoofwatch_core::scenario::AttackKind;
+use spoofwatch_proto::v1;
+use spoofwatch_server::store::{AlarmEvent, SnapshotRow, Store};
+use spoofwatch_tests::{
+    Clients, TestServer, attacked_drive, normal_drive, start_stream, test_config, track_samples,
+};
+
+const BATCH: usize = 10;
+
+/// Sends `batches` (numbered from `first_seq`) on a stream and returns their detections.
+async fn stream_batches(
+    clients: &Clients,
+    vehicle: &str,
+    batches: &[Vec<v1::Sample>],
+    first_seq: u64,
+) -> (v1::SessionAccepted, Vec<v1::Detection>) {
+    let (mut stream, accepted) = start_stream(clients, vehicle, "").await;
+    let mut detections = Vec::new();
+    for (seq, batch) in (first_seq..).zip(batches) {
+        detections.extend(
+            stream
+                .detect(seq, batch.clone())
+                .await
+                .expect("one detection per sample"),
+        );
+    }
+    stream.finish().await.expect("the stream ends cleanly");
+    (accepted, detections)
+}
+
+/// What must be identical: the bits of every output the model computes, and the alarm flags.
+fn fingerprint(detections: &[v1::Detection]) -> Vec<(u64, u64, bool, bool, bool)> {
+    detections
+        .iter()
+        .map(|d| {
+            (
+                d.timestamp_s.to_bits(),
+                d.probability.to_bits(),
+                d.alarm,
+                d.alarm_onset,
+                d.alarm_end,
+            )
+        })
+        .collect()
+}
+
+/// The stored alarms of `vehicle` as (onset, end, peak, samples, open), oldest first.
+async fn alarms_of(
+    clients: &mut Clients,
+    vehicle: &str,
+) -> Vec<(f64, Option<f64>, f64, u64, bool)> {
+    let mut alarms = clients
+        .alarms
+        .list_alarms(v1::ListAlarmsRequest {
+            vehicle_id: vehicle.to_string(),
+            ..Default::default()
+        })
+        .await
+        .expect("ListAlarms")
+        .into_inner()
+        .alarms;
+    alarms.sort_by(|a, b| a.onset_timestamp_s.total_cmp(&b.onset_timestamp_s));
+    alarms
+        .into_iter()
+        .map(|a| {
+            (
+                a.onset_timestamp_s,
+                a.end_timestamp_s,
+                a.peak_probability,
+                a.samples,
+                a.end_time.is_none(),
+            )
+        })
+        .collect()
+}
+
+/// An attacked drive, batched, with a hand-off point inside the alarm.
+fn attacked_batches(vehicle: &str) -> Vec<Vec<v1::Sample>> {
+    let track = attacked_drive(vehicle, 400.0, 31, AttackKind::FrozenPosition, 150.0, 120.0);
+    track_samples(&track)
+        .chunks(BATCH)
+        .map(<[v1::Sample]>::to_vec)
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_continues_on_another_server_exactly_as_if_uninterrupted() {
+    let vehicle = "handoff-1";
+    let batches = attacked_batches(vehicle);
+
+    // The uninterrupted run, on its own database.
+    let reference_dir = tempfile::tempdir().expect("temp dir");
+    let reference = TestServer::start(test_config(reference_dir.path())).await;
+    let mut reference_clients = Clients::of(&reference).await;
+    let (_, uninterrupted) = stream_batches(&reference_clients, vehicle, &batches, 1).await;
+    let expected_alarms = alarms_of(&mut reference_clients, vehicle).await;
+    assert!(
+        uninterrupted.iter().any(|d| d.alarm_onset),
+        "the drive alarms (else the test shows nothing)"
+    );
+    drop(reference_clients);
+    reference.stop().await;
+
+    // First server: the stream stops inside the alarm (the cut is a batch boundary in the attack).
+    let dir = tempfile::tempdir().expect("temp dir");
+    let cut = 20; // batches, 200 s: the frozen fix started at 150 s
+    let first = TestServer::start(test_config(dir.path())).await;
+    let clients = Clients::of(&first).await;
+    let (_, before) = stream_batches(&clients, vehicle, &batches[..cut], 1).await;
+    assert!(before.iter().any(|d| d.alarm), "the alarm is on at the cut");
+    drop(clients);
+    first.stop().await;
+
+    // Second server, same database: the session continues from the snapshot.
+    let second = TestServer::start(test_config(dir.path())).await;
+    let mut clients = Clients::of(&second).await;
+    let (accepted, after) =
+        stream_batches(&clients, vehicle, &batches[cut..], cut as u64 + 1).await;
+    assert!(accepted.resumed && accepted.from_snapshot, "{accepted:?}");
+    assert_eq!(accepted.last_seq, cut as u64);
+    assert_eq!(accepted.samples_seen, (cut * BATCH) as u64);
+    assert_eq!(accepted.snapshot_refused, "");
+
+    let handed_off: Vec<v1::Detection> = before.into_iter().chain(after).collect();
+    assert_eq!(fingerprint(&handed_off), fingerprint(&uninterrupted));
+    // The alarm that was open at the hand-off is one alarm, ended once, as in the uninterrupted run.
+    assert_eq!(alarms_of(&mut clients, vehicle).await, expected_alarms);
+    drop(clients);
+    second.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn corrupt_foreign_and_other_model_snapshots_start_afresh_with_their_reason() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let first = TestServer::start(test_config(dir.path())).await;
+    let clients = Clients::of(&first).await;
+    let vehicles = ["corrupt", "foreign", "intact"];
+    for (seed, vehicle) in (1..).zip(vehicles) {
+        let samples = track_samples(&normal_drive(vehicle, 60.0, seed));
+        let batches: Vec<Vec<v1::Sample>> = samples.chunks(BATCH).map(<[_]>::to_vec).collect();
+        stream_batches(&clients, vehicle, &batches, 1).await;
+    }
+    drop(clients);
+    first.stop().await;
+
+    // Damage two snapshots behind the server's back (through the store, as another writer would).
+    let database = test_config(dir.path()).database;
+    let store = Store::open(&database).await.expect("open the database");
+    let stored = |vehicle: &'static str| {
+        let store = store.clone();
+        async move {
+            store
+                .load_snapshot(vehicle)
+                .await
+                .expect("readable")
+                .expect("the stream's end stored a snapshot")
+        }
+    };
+    let mut corrupt = stored("corrupt").await;
+    let middle = corrupt.snapshot.len() / 2;
+    corrupt.snapshot[middle] ^= 0x01;
+    let foreign = SnapshotRow {
+        schema_version: 99,
+        ..stored("foreign").await
+    };
+    store
+        .write_alarms_and_snapshots::<AlarmEvent>(&[], &[corrupt, foreign])
+        .await
+        .expect("written");
+    store.close().await;
+
+    let second = TestServer::start(test_config(dir.path())).await;
+    let clients = Clients::of(&second).await;
+    let (_corrupt_stream, corrupt) = start_stream(&clients, "corrupt", "").await;
+    assert!(!corrupt.resumed && !corrupt.from_snapshot);
+    assert_eq!(corrupt.last_seq, 0);
+    assert_eq!(
+        corrupt.snapshot_refused,
+        "the stored session snapshot is corrupt (checksum mismatch)"
+    );
+    let (_foreign_stream, foreign) = start_stream(&clients, "foreign", "").await;
+    assert!(!foreign.resumed);
+    assert_eq!(
+        foreign.snapshot_refused,
+        "the stored session snapshot has schema version 99; this server reads version 1"
+    );
+    let (_intact_stream, intact) = start_stream(&clients, "intact", "").await;
+    assert!(
+        intact.resumed && intact.from_snapshot,
+        "the others are unaffected"
+    );
+    assert_eq!(intact.last_seq, 6);
+    drop(clients);
+    second.stop().await;
+}
