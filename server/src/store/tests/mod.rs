@@ -38,6 +38,7 @@ mod connection;
 mod datasets;
 mod jobs;
 mod models;
+mod postgres;
 
 use serde_json::json;
 use tempfile::TempDir;
