@@ -7,7 +7,7 @@
 //! Layout, one home per concept: `models` (registry + ModelService), `datasets` (catalog +
 //! DatasetService), `detection` (sessions + DetectionService), `alarms` (the outbox, background
 //! writer and live feed of alarm events + AlarmService), `jobs` (service → manager → runner),
-//! `store` (the only SQL), `watch` (database file and alarm-writer health), `error` (the one error → status mapping), `fault` (a server-side fault
+//! `store` (the only SQL, on SQLite or PostgreSQL), `watch` (database file and alarm-writer health), `error` (the one error → status mapping), `fault` (a server-side fault
 //! inside a subsystem's error), `edge` (request decoding shared by the services), `identity` (ids
 //! and digests), `telemetry` (every Prometheus metric and the `/metrics` endpoint). Wire
 //! conversions live in `spoofwatch_proto::wire`.

@@ -5,14 +5,36 @@
 
 use std::time::Duration;
 
+use spoofwatch_core::sample::Track;
+use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::longrunning::{self, operation};
 use spoofwatch_proto::v1;
 use spoofwatch_server::Config;
 use spoofwatch_server::store::test_database::TestDatabase;
 use spoofwatch_tests::{
-    Clients, TestServer, metadata_of, training_fleet, training_request, upload_tracks, wait_done,
+    Clients, TestServer, attacked_drive, metadata_of, normal_drive, training_request,
+    upload_tracks, wait_done,
 };
 use tonic::Code;
+
+/// Twenty-four 20-minute drives (about 28,800 rows), half of them attacked early, mid-way or late,
+/// so that training runs several times longer than a lease renewal (measured: about 8 s after the cancellation point here, against at most a second or two for the cancellation to arrive) and
+/// the cancellation through the other replica reaches the job while it runs (a job on the small
+/// `training_fleet` can finish first).
+fn long_training_fleet() -> Vec<Track> {
+    let ramp = AttackKind::RampDrift { velocity_mps: 1.5 };
+    (0..24u64)
+        .map(|i| {
+            let vehicle = format!("long-{i}");
+            if i % 2 == 0 {
+                normal_drive(&vehicle, 1200.0, 100 + i)
+            } else {
+                let onset = [300.0, 600.0, 880.0][(i as usize / 2) % 3];
+                attacked_drive(&vehicle, 1200.0, 100 + i, ramp, onset, 120.0)
+            }
+        })
+        .collect()
+}
 
 /// A replica named `instance` on the database at `url`.
 fn replica(url: &str, instance: &str) -> Config {
@@ -56,7 +78,7 @@ async fn a_job_on_one_replica_is_seen_cancelled_and_awaited_through_another() {
     };
     let first = TestServer::start(replica(&database.url, "replica-a")).await;
     let mut on_first = Clients::of(&first).await;
-    let dataset = upload_tracks(&mut on_first, "fleet", &training_fleet()).await;
+    let dataset = upload_tracks(&mut on_first, "long fleet", &long_training_fleet()).await;
     let job = on_first
         .training
         .create_training_job(training_request(&dataset.name, 200, false))

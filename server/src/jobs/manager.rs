@@ -30,7 +30,7 @@ use crate::telemetry;
 
 /// How often a server renews the leases of its jobs (and looks for cancellations and abandoned
 /// jobs): the delay of a cancellation requested through another replica.
-pub const LEASE_RENEWAL: Duration = Duration::from_secs(2);
+pub const LEASE_RENEWAL: Duration = Duration::from_secs(1);
 
 /// A job whose lease was not renewed for this long has lost its owner and is failed. Many renewals
 /// long, so that a slow database or a busy owner is not taken for a dead one.
