@@ -56,9 +56,15 @@ pub struct Config {
     /// Address to listen on.
     #[arg(long, env = "SPOOFWATCH_LISTEN", default_value_t = defaults::LISTEN)]
     pub listen: SocketAddr,
-    /// SQLite database (file path or sqlite:// URL); created and migrated on first start.
+    /// Database: a SQLite file path or sqlite:// URL (created if missing), or a postgres:// URL of
+    /// an existing PostgreSQL database that replicas share; migrated on start.
     #[arg(long, env = "SPOOFWATCH_DATABASE", default_value = defaults::DATABASE)]
     pub database: String,
+    /// This server's name among replicas sharing a database: it owns the jobs it admits. Default:
+    /// the host name. Replicas on one host need distinct names; a restart under the same name fails
+    /// at once the jobs its previous run left (others fail once their lease expires).
+    #[arg(long, env = "SPOOFWATCH_INSTANCE_ID", value_parser = parse_instance_id)]
+    pub instance_id: Option<String>,
     /// Most MiB the database may grow to; beyond it writes fail RESOURCE_EXHAUSTED until deletions
     /// free space (detection and alarms in memory go on). Unset: only the disk limits it.
     #[arg(long, env = "SPOOFWATCH_DATABASE_MAX_MIB", value_parser = clap::value_parser!(u64).range(1..=16_777_216))]
@@ -151,6 +157,14 @@ pub fn parse_token(text: &str) -> Result<String, String> {
     Ok(text.to_string())
 }
 
+/// An instance id: 1–128 visible ASCII characters (it is stored with every job and logged).
+pub fn parse_instance_id(text: &str) -> Result<String, String> {
+    if text.is_empty() || text.len() > 128 || !text.bytes().all(|b| b.is_ascii_graphic()) {
+        return Err("must be 1 to 128 visible ASCII characters, without spaces".into());
+    }
+    Ok(text.to_string())
+}
+
 /// The defaults, without reading the environment (no data directory, no auth token).
 impl Default for Config {
     fn default() -> Self {
@@ -158,6 +172,7 @@ impl Default for Config {
             listen: defaults::LISTEN,
             database: defaults::DATABASE.to_string(),
             database_max_mib: None,
+            instance_id: None,
             data_dir: None,
             max_sessions: defaults::MAX_SESSIONS,
             session_idle_secs: defaults::SESSION_IDLE_SECS,
@@ -189,6 +204,19 @@ impl Config {
             database: database.into(),
             ..Self::default()
         }
+    }
+
+    /// The instance id: the configured one, else the host name (else "spoofwatch").
+    pub fn instance(&self) -> String {
+        self.instance_id.clone().unwrap_or_else(|| {
+            let name = rustix::system::uname();
+            let host = name.nodename().to_string_lossy();
+            if host.is_empty() {
+                "spoofwatch".to_string()
+            } else {
+                host.into_owned()
+            }
+        })
     }
 
     /// The database size limit in bytes.

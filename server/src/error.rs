@@ -50,6 +50,7 @@ impl From<StoreError> for Status {
 fn store_fault(fault: &StoreFault) -> Status {
     let retry_after = match fault.kind {
         FaultKind::Busy | FaultKind::Closed => Duration::from_secs(1),
+        FaultKind::Unreachable => Duration::from_secs(5),
         FaultKind::Full | FaultKind::ReadOnly | FaultKind::Io | FaultKind::CantOpen => {
             Duration::from_secs(30)
         }

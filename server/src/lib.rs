@@ -7,7 +7,7 @@
 //! Layout, one home per concept: `models` (registry + ModelService), `datasets` (catalog +
 //! DatasetService), `detection` (sessions + DetectionService), `alarms` (the outbox, background
 //! writer and live feed of alarm events + AlarmService), `jobs` (service → manager → runner),
-//! `store` (the only SQL), `watch` (database file and alarm-writer health), `error` (the one error → status mapping), `fault` (a server-side fault
+//! `store` (the only SQL, on SQLite or PostgreSQL), `watch` (database file and alarm-writer health), `error` (the one error → status mapping), `fault` (a server-side fault
 //! inside a subsystem's error), `edge` (request decoding shared by the services), `identity` (ids
 //! and digests), `telemetry` (every Prometheus metric and the `/metrics` endpoint). Wire
 //! conversions live in `spoofwatch_proto::wire`.
@@ -207,15 +207,8 @@ pub async fn serve_with_metrics(
         },
     )
     .await?;
-    let interrupted = store
-        .fail_interrupted_jobs("server restarted while the job was queued or running")
-        .await?;
-    if interrupted > 0 {
-        tracing::warn!(
-            interrupted,
-            "marked jobs left over by a previous run as failed"
-        );
-    }
+    let instance = config.instance();
+    tracing::info!(%instance, backend = ?store.kind(), "database opened");
     let registry = Arc::new(Registry::new(store.clone(), config.model_cache_bytes));
     registry.ensure_default_model().await?;
     let catalog = Catalog::new(store.clone(), config.data_dir.clone());
@@ -253,7 +246,15 @@ pub async fn serve_with_metrics(
             max_running: config.max_running_jobs,
             max_pending: config.max_pending_jobs,
         },
+        instance.clone(),
     );
+    let interrupted = jobs.fail_abandoned_at_start().await?;
+    if interrupted > 0 {
+        tracing::warn!(
+            interrupted,
+            "marked jobs left over by a previous run (or a stopped replica) as failed"
+        );
+    }
     let job_services = jobs::Jobs {
         manager: Arc::clone(&jobs),
         registry: Arc::clone(&registry),
@@ -332,6 +333,10 @@ pub async fn serve_with_metrics(
         served[1..].to_vec(),
         draining.clone(),
     ));
+
+    // Job leases: renewed, and other replicas' abandoned jobs failed, until the drain starts (the
+    // drain is far shorter than a lease).
+    let job_leases = tokio::spawn(Arc::clone(&jobs).keep_leases(draining.clone()));
 
     // Idle sessions without a stream are evicted in the background.
     let evictor = {
@@ -438,6 +443,7 @@ pub async fn serve_with_metrics(
     };
     evictor.abort();
     storage_watch.abort();
+    job_leases.abort();
     // The writer stores what is queued (bounded by the grace while the database refuses).
     stop_alarm_writer.cancel();
     if let Err(error) = alarm_writer.await {

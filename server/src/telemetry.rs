@@ -195,7 +195,7 @@ pub const METRICS: &[(&str, Kind, &str)] = &[
     (
         STORE_FAULTS,
         Kind::Counter,
-        "Database faults seen, by `kind` (full, read_only, io, busy, cant_open, corrupt, lost, closed).",
+        "Database faults seen, by `kind` (full, read_only, io, busy, cant_open, corrupt, lost, closed, unreachable).",
     ),
     (
         DB_SECONDS,

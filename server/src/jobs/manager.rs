@@ -1,6 +1,13 @@
 //! The job manager: admission (datasets exist, the queue has room), the queue and its concurrency
 //! limit, cancellation, waiting, and reads of job rows. It hands admitted jobs to the
 //! [`Runner`]; it must not execute use cases itself nor know about wire messages.
+//!
+//! Replicas sharing one database: a job is owned by the server instance that admitted it, which
+//! queues and runs it in memory and renews its lease in the store every [`LEASE_RENEWAL`]
+//! ([`JobManager::keep_leases`]). The same loop applies cancellations requested through another
+//! replica, and fails the jobs of replicas whose lease expired ([`JOB_LEASE`]): a replica that dies
+//! mid-job leaves it failed with [`INTERRUPTED_REASON`], as a restart always did. Reads, cancel and
+//! wait work from any replica (waiting polls the store for jobs that live elsewhere).
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -8,6 +15,7 @@ use std::time::{Duration, Instant};
 
 use spoofwatch_proto::wire::{DatasetName, ModelName, OperationName};
 use tokio::sync::{Semaphore, watch};
+use tokio_util::sync::CancellationToken;
 
 use super::records::{EvaluationRequest, JobRequest, Progress, to_json};
 use super::runner::{JobFailure, LiveJob, Runner};
@@ -15,8 +23,24 @@ use crate::datasets::DatasetError;
 use crate::fault::Fault;
 use crate::identity::new_id;
 use crate::models::RegistryError;
-use crate::store::{EpochRow, JobFilter, JobKind, JobRow, NewJob, Page, PageRequest, StoreError};
+use crate::store::{
+    EpochRow, JobFilter, JobKind, JobRow, NewJob, Page, PageRequest, StoreError, now_unix_ms,
+};
 use crate::telemetry;
+
+/// How often a server renews the leases of its jobs (and looks for cancellations and abandoned
+/// jobs): the delay of a cancellation requested through another replica.
+pub const LEASE_RENEWAL: Duration = Duration::from_secs(1);
+
+/// A job whose lease was not renewed for this long has lost its owner and is failed. Many renewals
+/// long, so that a slow database or a busy owner is not taken for a dead one.
+pub const JOB_LEASE: Duration = Duration::from_secs(30);
+
+/// The reason recorded for a job whose server stopped or died while it was queued or running.
+pub const INTERRUPTED_REASON: &str = "server restarted while the job was queued or running";
+
+/// How often a wait re-reads a job that runs on another replica.
+const REMOTE_POLL: Duration = Duration::from_millis(250);
 
 /// Limits of the job manager.
 #[derive(Clone, Copy, Debug)]
@@ -60,16 +84,19 @@ pub enum JobError {
 pub struct JobManager {
     runner: Runner,
     settings: JobSettings,
+    /// This server's instance id: the owner of the jobs it admits.
+    instance: String,
     slots: Arc<Semaphore>,
     live: Mutex<HashMap<OperationName, Arc<LiveJob>>>,
 }
 
 impl JobManager {
-    pub fn new(runner: Runner, settings: JobSettings) -> Arc<Self> {
+    pub fn new(runner: Runner, settings: JobSettings, instance: String) -> Arc<Self> {
         Arc::new(Self {
             slots: Arc::new(Semaphore::new(settings.max_running.max(1))),
             runner,
             settings,
+            instance,
             live: Mutex::new(HashMap::new()),
         })
     }
@@ -128,6 +155,7 @@ impl JobManager {
             kind,
             request: to_json(&request),
             metadata: to_json(&progress),
+            owner: self.instance.clone(),
         });
         let row = telemetry::db_timed("job_create", insert).await?;
         let live = Arc::new(LiveJob::new());
@@ -201,22 +229,84 @@ impl JobManager {
         Ok(())
     }
 
-    /// Waits until the job finishes or `timeout` passes; returns its latest row.
+    /// Waits until the job finishes or `timeout` passes; returns its latest row. A job live in this
+    /// process is watched; one that runs on another replica is polled.
     pub async fn wait(&self, name: &OperationName, timeout: Duration) -> Result<JobRow, JobError> {
         let deadline = tokio::time::Instant::now() + timeout;
         let mut changes = self.subscribe(name);
         loop {
             let row = self.get(name).await?;
-            if row.state.is_finished() {
+            let now = tokio::time::Instant::now();
+            if row.state.is_finished() || now >= deadline {
                 return Ok(row);
             }
-            let Some(rx) = changes.as_mut() else {
-                return Ok(row);
+            match changes.as_mut() {
+                Some(rx) => match tokio::time::timeout_at(deadline, rx.changed()).await {
+                    Ok(Ok(())) => {}
+                    Ok(Err(_)) => changes = None, // the job left the live set: read the final row
+                    Err(_) => return Ok(row),
+                },
+                None => tokio::time::sleep_until(deadline.min(now + REMOTE_POLL)).await,
+            }
+        }
+    }
+
+    /// Startup recovery: fails the jobs an earlier run of this instance left, and those of
+    /// replicas whose lease expired. Returns how many were failed.
+    pub async fn fail_abandoned_at_start(&self) -> Result<u64, StoreError> {
+        let cutoff = now_unix_ms() - JOB_LEASE.as_millis() as i64;
+        let store = &self.runner.store;
+        store
+            .fail_abandoned_jobs(INTERRUPTED_REASON, &self.instance, true, cutoff)
+            .await
+    }
+
+    /// Until `stop`: every [`LEASE_RENEWAL`], renews this instance's job leases, cancels the live
+    /// jobs flagged for cancellation (through any replica) or finished elsewhere, and fails the
+    /// jobs of other instances whose lease expired. A failing database is logged and retried.
+    pub async fn keep_leases(self: Arc<Self>, stop: CancellationToken) {
+        let mut tick = tokio::time::interval(LEASE_RENEWAL);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            tokio::select! {
+                _ = stop.cancelled() => return,
+                _ = tick.tick() => {}
+            }
+            let store = &self.runner.store;
+            match store.renew_job_leases(&self.instance, now_unix_ms()).await {
+                Ok(owned) => self.apply_stored_state(&owned),
+                Err(error) => {
+                    tracing::warn!(%error, "could not renew the leases of this server's jobs");
+                    continue; // never judge others' leases while ours may be lapsing
+                }
+            }
+            let cutoff = now_unix_ms() - JOB_LEASE.as_millis() as i64;
+            match store
+                .fail_abandoned_jobs(INTERRUPTED_REASON, &self.instance, false, cutoff)
+                .await
+            {
+                Ok(0) => {}
+                Ok(failed) => tracing::warn!(
+                    failed,
+                    "failed jobs whose server stopped renewing their lease"
+                ),
+                Err(error) => tracing::warn!(%error, "could not look for abandoned jobs"),
+            }
+        }
+    }
+
+    /// Cancels the live jobs that `owned` (this instance's unfinished jobs in the store, with
+    /// their cancel flag) flags, or no longer lists because they were finished elsewhere.
+    fn apply_stored_state(&self, owned: &[(String, bool)]) {
+        for (name, job) in self.live().iter() {
+            let stored = owned.iter().find(|(id, _)| id == name.id());
+            let cancel = match stored {
+                Some((_, cancel_requested)) => *cancel_requested,
+                None => true,
             };
-            match tokio::time::timeout_at(deadline, rx.changed()).await {
-                Ok(Ok(())) => {}
-                Ok(Err(_)) => changes = None, // the job left the live set: read the final row
-                Err(_) => return Ok(row),
+            if cancel && !job.cancel.is_cancelled() {
+                tracing::info!(job = %name, "cancelling a job as the store says");
+                job.cancel.cancel();
             }
         }
     }

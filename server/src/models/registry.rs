@@ -189,14 +189,22 @@ impl Registry {
         let artifact = ModelArtifact::from_slice(BUNDLED_MODEL)
             .map_err(|e| Fault::new("loading the bundled default model", e))?;
         let artifact = Arc::new(artifact);
-        self.register(
-            BUNDLED_MODEL_ID,
-            "bundled default (subtle experiment, v2 evidence)",
-            ModelSource::Bundled,
-            None,
-            &artifact,
-        )
-        .await?;
+        let registered = self
+            .register(
+                BUNDLED_MODEL_ID,
+                "bundled default (subtle experiment, v2 evidence)",
+                ModelSource::Bundled,
+                None,
+                &artifact,
+            )
+            .await;
+        match registered {
+            Ok(_) => {}
+            // A replica starting at the same moment on the same database registered it first (and
+            // activates it): the active model is then read from the store like any other.
+            Err(RegistryError::Store(StoreError::AlreadyExists { .. })) => return Ok(()),
+            Err(error) => return Err(error),
+        }
         self.store.set_active_model(BUNDLED_MODEL_ID).await?;
         *self.active() = Some(LoadedModel {
             name: ModelName::from_id(BUNDLED_MODEL_ID),

@@ -4,9 +4,8 @@
 
 use std::borrow::Borrow;
 
-use sqlx::{Sqlite, Transaction};
-
 use super::error::{require_finite, require_probability};
+use super::paging::PagePlan;
 use super::snapshots::{SnapshotRow, upsert_snapshot};
 use super::{Page, PageRequest, Store, StoreError};
 
@@ -37,14 +36,33 @@ pub struct AlarmEventRow {
 }
 
 /// What an alarm event did to its alarm.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, sqlx::Type)]
-#[sqlx(rename_all = "lowercase")]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum AlarmEventKind {
     /// The alarm started: its row is inserted.
     Onset,
     /// The alarm ended: its row is closed.
     End,
 }
+
+impl AlarmEventKind {
+    /// The lowercase name stored in the database.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            AlarmEventKind::Onset => "onset",
+            AlarmEventKind::End => "end",
+        }
+    }
+
+    fn from_str_opt(name: &str) -> Option<Self> {
+        match name {
+            "onset" => Some(AlarmEventKind::Onset),
+            "end" => Some(AlarmEventKind::End),
+            _ => None,
+        }
+    }
+}
+
+text_enum!(AlarmEventKind);
 
 /// One alarm onset or end, as the server emits it: stored by the background writer (the alarm row
 /// and the event log), sent live to watchers and replayed from the log. Ids and cursors come from
@@ -181,25 +199,50 @@ macro_rules! select_alarms {
     };
 }
 
-impl Store {
-    /// The largest alarm id stored (0 when there is none): where server-assigned ids continue.
-    pub async fn max_alarm_id(&self) -> Result<i64, StoreError> {
-        Ok(
-            sqlx::query_scalar::<_, i64>("SELECT COALESCE(MAX(id), 0) FROM alarm_events")
-                .fetch_one(self.pool()?)
-                .await?,
+/// Appends `event` to the event log inside the write transaction `tx` (skipped when its cursor is
+/// already there: a retry). A macro so that it compiles for either backend's transaction.
+macro_rules! log_event {
+    ($tx:ident, $event:expr) => {{
+        let event: &AlarmEvent = $event;
+        let alarm = &event.alarm;
+        sqlx::query(
+            "INSERT INTO alarm_event_log (seq, alarm_id, kind, end_timestamp_s, ended_at, \
+             peak_probability, samples) VALUES ($1, $2, $3, $4, $5, $6, $7) \
+             ON CONFLICT DO NOTHING",
         )
+        .bind(event.seq)
+        .bind(alarm.id)
+        .bind(event.kind)
+        .bind(alarm.end_timestamp_s)
+        .bind(alarm.ended_at_ms)
+        .bind(alarm.peak_probability)
+        .bind(alarm.samples)
+        .execute(&mut *$tx)
+        .await?;
+    }};
+}
+
+impl Store {
+    /// The largest alarm id stored (0 when there is none).
+    pub async fn max_alarm_id(&self) -> Result<i64, StoreError> {
+        Ok(on_pool!(self, |pool| {
+            sqlx::query_scalar::<_, i64>("SELECT COALESCE(MAX(id), 0) FROM alarm_events")
+                .fetch_one(pool)
+                .await?
+        }))
     }
 
     /// Records a server start and returns its run number (never reused, increasing): the run's
     /// alarm event cursors start at [`first_seq_of_run`].
     pub async fn start_alarm_run(&self, started_at_ms: i64) -> Result<i64, StoreError> {
-        Ok(sqlx::query_scalar::<_, i64>(
-            "INSERT INTO alarm_runs (started_at) VALUES (?1) RETURNING run",
-        )
-        .bind(started_at_ms)
-        .fetch_one(self.pool()?)
-        .await?)
+        Ok(on_pool!(self, |pool| {
+            sqlx::query_scalar::<_, i64>(
+                "INSERT INTO alarm_runs (started_at) VALUES ($1) RETURNING run",
+            )
+            .bind(started_at_ms)
+            .fetch_one(pool)
+            .await?
+        }))
     }
 
     /// Applies `events` in order in one transaction, all or nothing: an onset inserts its alarm, an
@@ -227,47 +270,48 @@ impl Store {
         for event in events {
             event.borrow().validate()?;
         }
-        let mut tx = self.begin_write().await?;
-        for event in events {
-            let event = event.borrow();
-            let alarm = &event.alarm;
-            let applied = match event.kind {
-                AlarmEventKind::Onset => sqlx::query(
-                    "INSERT OR IGNORE INTO alarm_events (id, vehicle_id, model_id, \
-                     onset_timestamp_s, onset_at, peak_probability, samples) \
-                     VALUES (?1, ?2, ?3, ?4, ?5, ?6, 1)",
-                )
-                .bind(alarm.id)
-                .bind(&alarm.vehicle_id)
-                .bind(&alarm.model_id)
-                .bind(alarm.onset_timestamp_s)
-                .bind(alarm.onset_at_ms)
-                .bind(alarm.peak_probability)
-                .execute(&mut *tx)
-                .await?
-                .rows_affected(),
-                AlarmEventKind::End => sqlx::query(
-                    "UPDATE alarm_events SET end_timestamp_s = ?2, ended_at = ?3, \
-                     peak_probability = ?4, samples = ?5 WHERE id = ?1 AND ended_at IS NULL",
-                )
-                .bind(alarm.id)
-                .bind(alarm.end_timestamp_s)
-                .bind(alarm.ended_at_ms)
-                .bind(alarm.peak_probability)
-                .bind(alarm.samples)
-                .execute(&mut *tx)
-                .await?
-                .rows_affected(),
-            };
-            if applied > 0 {
-                log_event(&mut tx, event).await?;
+        in_write_tx!(self, |tx| {
+            for event in events {
+                let event = event.borrow();
+                let alarm = &event.alarm;
+                let applied = match event.kind {
+                    AlarmEventKind::Onset => sqlx::query(
+                        "INSERT INTO alarm_events (id, vehicle_id, model_id, \
+                         onset_timestamp_s, onset_at, peak_probability, samples) \
+                         VALUES ($1, $2, $3, $4, $5, $6, 1) ON CONFLICT DO NOTHING",
+                    )
+                    .bind(alarm.id)
+                    .bind(&alarm.vehicle_id)
+                    .bind(&alarm.model_id)
+                    .bind(alarm.onset_timestamp_s)
+                    .bind(alarm.onset_at_ms)
+                    .bind(alarm.peak_probability)
+                    .execute(&mut *tx)
+                    .await?
+                    .rows_affected(),
+                    AlarmEventKind::End => sqlx::query(
+                        "UPDATE alarm_events SET end_timestamp_s = $2, ended_at = $3, \
+                         peak_probability = $4, samples = $5 WHERE id = $1 AND ended_at IS NULL",
+                    )
+                    .bind(alarm.id)
+                    .bind(alarm.end_timestamp_s)
+                    .bind(alarm.ended_at_ms)
+                    .bind(alarm.peak_probability)
+                    .bind(alarm.samples)
+                    .execute(&mut *tx)
+                    .await?
+                    .rows_affected(),
+                };
+                if applied > 0 {
+                    log_event!(tx, event);
+                }
             }
-        }
-        for snapshot in snapshots {
-            upsert_snapshot(&mut tx, snapshot).await?;
-        }
-        tx.commit().await?;
-        Ok(())
+            for snapshot in snapshots {
+                upsert_snapshot!(tx, snapshot);
+            }
+            tx.commit().await?;
+            Ok(())
+        })
     }
 
     /// The most recently opened alarm events first, optionally for one vehicle, at most `limit`.
@@ -276,13 +320,15 @@ impl Store {
         vehicle_id: Option<&str>,
         limit: u32,
     ) -> Result<Vec<AlarmEventRow>, StoreError> {
-        Ok(sqlx::query_as::<_, AlarmEventRow>(select_alarms!(
-            "WHERE ?1 IS NULL OR vehicle_id = ?1 ORDER BY id DESC LIMIT ?2"
-        ))
-        .bind(vehicle_id)
-        .bind(limit)
-        .fetch_all(self.pool()?)
-        .await?)
+        Ok(on_pool!(self, |pool| {
+            sqlx::query_as::<_, AlarmEventRow>(select_alarms!(
+                "WHERE $1 IS NULL OR vehicle_id = $1 ORDER BY id DESC LIMIT $2"
+            ))
+            .bind(vehicle_id)
+            .bind(i64::from(limit))
+            .fetch_all(pool)
+            .await?
+        }))
     }
 
     /// One page of the alarms `filter` selects, in id (opening) order.
@@ -294,27 +340,32 @@ impl Store {
         page: &PageRequest,
     ) -> Result<Page<AlarmEventRow>, StoreError> {
         let sql = select_alarms!(
-            "WHERE (?1 IS NULL OR vehicle_id = ?1) AND (?2 IS NULL OR model_id = ?2) \
-             AND (?3 IS NULL OR onset_at >= ?3) AND (?4 IS NULL OR onset_at < ?4) \
-             AND (?5 = 'any' OR (?5 = 'open') = (ended_at IS NULL)) \
-             AND (?6 IS NULL OR id > ?6) \
-             ORDER BY id LIMIT ?8"
+            "WHERE ($1 IS NULL OR vehicle_id = $1) AND ($2 IS NULL OR model_id = $2) \
+             AND ($3 IS NULL OR onset_at >= $3) AND ($4 IS NULL OR onset_at < $4) \
+             AND ($5 = 'any' OR ($5 = 'open') = (ended_at IS NULL)) \
+             AND ($6 IS NULL OR id > $6) \
+             ORDER BY id LIMIT $7"
         );
         let state = match filter.state {
             AlarmState::Any => "any",
             AlarmState::Open => "open",
             AlarmState::Closed => "closed",
         };
-        let query = sqlx::query_as::<_, AlarmEventRow>(sql)
-            .bind(filter.vehicle_id.as_deref())
-            .bind(filter.model_id.as_deref())
-            .bind(filter.onset_from_ms)
-            .bind(filter.onset_before_ms)
-            .bind(state);
-        // Alarms page by id alone: the token's time slot carries the last id; its id slot (?7) is
-        // bound but unused.
-        self.fetch_page(LISTING, page, query, |row| (row.id, ""))
-            .await
+        let plan = PagePlan::new(LISTING, page)?;
+        // Alarms page by id alone: the token's time slot carries the last id; its id slot is unused.
+        let rows = on_pool!(self, |pool| {
+            sqlx::query_as::<_, AlarmEventRow>(sql)
+                .bind(filter.vehicle_id.as_deref())
+                .bind(filter.model_id.as_deref())
+                .bind(filter.onset_from_ms)
+                .bind(filter.onset_before_ms)
+                .bind(state)
+                .bind(plan.after_created_at())
+                .bind(plan.fetch_limit())
+                .fetch_all(pool)
+                .await?
+        });
+        Ok(plan.finish(LISTING, rows, |row| (row.id, "")))
     }
 
     /// The logged events with `after < seq < before`, optionally of one vehicle, in cursor order,
@@ -326,19 +377,21 @@ impl Store {
         vehicle_id: Option<&str>,
         limit: u32,
     ) -> Result<Vec<AlarmEvent>, StoreError> {
-        Ok(sqlx::query_as::<_, AlarmEvent>(
-            "SELECT l.seq, l.kind, a.id, a.vehicle_id, a.model_id, a.onset_timestamp_s, \
-             l.end_timestamp_s, a.onset_at, l.ended_at, l.peak_probability, l.samples \
-             FROM alarm_event_log l JOIN alarm_events a ON a.id = l.alarm_id \
-             WHERE l.seq > ?1 AND l.seq < ?2 AND (?3 IS NULL OR a.vehicle_id = ?3) \
-             ORDER BY l.seq LIMIT ?4",
-        )
-        .bind(after)
-        .bind(before)
-        .bind(vehicle_id)
-        .bind(limit)
-        .fetch_all(self.pool()?)
-        .await?)
+        Ok(on_pool!(self, |pool| {
+            sqlx::query_as::<_, AlarmEvent>(
+                "SELECT l.seq, l.kind, a.id, a.vehicle_id, a.model_id, a.onset_timestamp_s, \
+                 l.end_timestamp_s, a.onset_at, l.ended_at, l.peak_probability, l.samples \
+                 FROM alarm_event_log l JOIN alarm_events a ON a.id = l.alarm_id \
+                 WHERE l.seq > $1 AND l.seq < $2 AND ($3 IS NULL OR a.vehicle_id = $3) \
+                 ORDER BY l.seq LIMIT $4",
+            )
+            .bind(after)
+            .bind(before)
+            .bind(vehicle_id)
+            .bind(i64::from(limit))
+            .fetch_all(pool)
+            .await?
+        }))
     }
 
     /// Start-up recovery: ends every open alarm that no stored session snapshot holds open (left
@@ -351,51 +404,30 @@ impl Store {
         ended_at_ms: i64,
         first_seq: i64,
     ) -> Result<Vec<AlarmEvent>, StoreError> {
-        let mut tx = self.begin_write().await?;
-        let open = sqlx::query_as::<_, AlarmEventRow>(select_alarms!(
-            "WHERE ended_at IS NULL AND id NOT IN (SELECT open_alarm_id FROM session_snapshots \
-             WHERE open_alarm_id IS NOT NULL) ORDER BY id"
-        ))
-        .fetch_all(&mut *tx)
-        .await?;
-        let mut events = Vec::with_capacity(open.len());
-        for (seq, alarm) in (first_seq..).zip(open) {
-            sqlx::query("UPDATE alarm_events SET ended_at = ?2 WHERE id = ?1")
-                .bind(alarm.id)
-                .bind(ended_at_ms)
-                .execute(&mut *tx)
-                .await?;
-            let event = AlarmEvent {
-                seq,
-                kind: AlarmEventKind::End,
-                alarm: alarm.ended(None, ended_at_ms, alarm.peak_probability, alarm.samples),
-            };
-            log_event(&mut tx, &event).await?;
-            events.push(event);
-        }
-        tx.commit().await?;
-        Ok(events)
+        in_write_tx!(self, |tx| {
+            let open = sqlx::query_as::<_, AlarmEventRow>(select_alarms!(
+                "WHERE ended_at IS NULL AND id NOT IN (SELECT open_alarm_id FROM session_snapshots \
+                 WHERE open_alarm_id IS NOT NULL) ORDER BY id"
+            ))
+            .fetch_all(&mut *tx)
+            .await?;
+            let mut events = Vec::with_capacity(open.len());
+            for (seq, alarm) in (first_seq..).zip(open) {
+                sqlx::query("UPDATE alarm_events SET ended_at = $2 WHERE id = $1")
+                    .bind(alarm.id)
+                    .bind(ended_at_ms)
+                    .execute(&mut *tx)
+                    .await?;
+                let event = AlarmEvent {
+                    seq,
+                    kind: AlarmEventKind::End,
+                    alarm: alarm.ended(None, ended_at_ms, alarm.peak_probability, alarm.samples),
+                };
+                log_event!(tx, &event);
+                events.push(event);
+            }
+            tx.commit().await?;
+            Ok(events)
+        })
     }
-}
-
-/// Appends `event` to the event log (skipped when its cursor is already there: a retry).
-async fn log_event(
-    tx: &mut Transaction<'static, Sqlite>,
-    event: &AlarmEvent,
-) -> Result<(), StoreError> {
-    let alarm = &event.alarm;
-    sqlx::query(
-        "INSERT OR IGNORE INTO alarm_event_log (seq, alarm_id, kind, end_timestamp_s, ended_at, \
-         peak_probability, samples) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
-    )
-    .bind(event.seq)
-    .bind(alarm.id)
-    .bind(event.kind)
-    .bind(alarm.end_timestamp_s)
-    .bind(alarm.ended_at_ms)
-    .bind(alarm.peak_probability)
-    .bind(alarm.samples)
-    .execute(&mut **tx)
-    .await?;
-    Ok(())
 }

@@ -1,6 +1,7 @@
 //! Uploaded or imported datasets: summary rows and content blobs.
 
 use super::error::{byte_length, insert_error};
+use super::paging::PagePlan;
 use super::{Page, PageRequest, Store, StoreError, now_unix_ms};
 
 /// A dataset to store; `size_bytes` is taken from the content.
@@ -76,32 +77,33 @@ impl Store {
     ) -> Result<DatasetRow, StoreError> {
         validate_counts(&dataset)?;
         let size_bytes = byte_length("content", &dataset.content)?;
-        let mut tx = self.begin_write().await?;
-        let inserted = sqlx::query(
-            "INSERT INTO datasets (id, display_name, source, format, rows, vehicles, \
-             labelled_rows, spoofed_rows, size_bytes, sha256, created_at) \
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11)",
-        )
-        .bind(&dataset.id)
-        .bind(&dataset.display_name)
-        .bind(&dataset.source)
-        .bind(&dataset.format)
-        .bind(dataset.rows)
-        .bind(dataset.vehicles)
-        .bind(dataset.labelled_rows)
-        .bind(dataset.spoofed_rows)
-        .bind(size_bytes)
-        .bind(&dataset.sha256)
-        .bind(created_at_ms)
-        .execute(&mut *tx)
-        .await;
-        inserted.map_err(|error| insert_error(error, "dataset", &dataset.id))?;
-        sqlx::query("INSERT INTO dataset_contents (dataset_id, content) VALUES (?1, ?2)")
+        in_write_tx!(self, |tx| {
+            let inserted = sqlx::query(
+                "INSERT INTO datasets (id, display_name, source, format, rows, vehicles, \
+                 labelled_rows, spoofed_rows, size_bytes, sha256, created_at) \
+                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11)",
+            )
             .bind(&dataset.id)
-            .bind(&dataset.content)
+            .bind(&dataset.display_name)
+            .bind(&dataset.source)
+            .bind(&dataset.format)
+            .bind(dataset.rows)
+            .bind(dataset.vehicles)
+            .bind(dataset.labelled_rows)
+            .bind(dataset.spoofed_rows)
+            .bind(size_bytes)
+            .bind(&dataset.sha256)
+            .bind(created_at_ms)
             .execute(&mut *tx)
-            .await?;
-        tx.commit().await?;
+            .await;
+            inserted.map_err(|error| insert_error(error, "dataset", &dataset.id))?;
+            sqlx::query("INSERT INTO dataset_contents (dataset_id, content) VALUES ($1, $2)")
+                .bind(&dataset.id)
+                .bind(&dataset.content)
+                .execute(&mut *tx)
+                .await?;
+            tx.commit().await?;
+        });
         Ok(DatasetRow {
             id: dataset.id,
             display_name: dataset.display_name,
@@ -119,12 +121,15 @@ impl Store {
 
     /// The dataset with this id, without its content.
     pub async fn get_dataset(&self, id: &str) -> Result<Option<DatasetRow>, StoreError> {
-        self.fetch_by_id(
-            "SELECT id, display_name, source, format, rows, vehicles, labelled_rows, \
-             spoofed_rows, size_bytes, sha256, created_at FROM datasets WHERE id = ?1",
-            id,
-        )
-        .await
+        Ok(on_pool!(self, |pool| {
+            sqlx::query_as::<_, DatasetRow>(
+                "SELECT id, display_name, source, format, rows, vehicles, labelled_rows, \
+                 spoofed_rows, size_bytes, sha256, created_at FROM datasets WHERE id = $1",
+            )
+            .bind(id)
+            .fetch_optional(pool)
+            .await?
+        }))
     }
 
     /// One page of datasets, newest first.
@@ -134,35 +139,46 @@ impl Store {
         &self,
         request: &PageRequest,
     ) -> Result<Page<DatasetRow>, StoreError> {
-        let query = sqlx::query_as(
-            "SELECT id, display_name, source, format, rows, vehicles, labelled_rows, \
-             spoofed_rows, size_bytes, sha256, created_at FROM datasets \
-             WHERE ?1 IS NULL OR (created_at, id) < (?1, ?2) \
-             ORDER BY created_at DESC, id DESC LIMIT ?3",
-        );
-        self.fetch_page(LISTING, request, query, |row: &DatasetRow| {
+        let plan = PagePlan::new(LISTING, request)?;
+        let rows = on_pool!(self, |pool| {
+            sqlx::query_as::<_, DatasetRow>(
+                "SELECT id, display_name, source, format, rows, vehicles, labelled_rows, \
+                 spoofed_rows, size_bytes, sha256, created_at FROM datasets \
+                 WHERE $1 IS NULL OR (created_at, id) < ($1, $2) \
+                 ORDER BY created_at DESC, id DESC LIMIT $3",
+            )
+            .bind(plan.after_created_at())
+            .bind(plan.after_id())
+            .bind(plan.fetch_limit())
+            .fetch_all(pool)
+            .await?
+        });
+        Ok(plan.finish(LISTING, rows, |row: &DatasetRow| {
             (row.created_at_ms, row.id.as_str())
-        })
-        .await
+        }))
     }
 
     /// The dataset bytes, or `None` if no dataset has this id.
     pub async fn dataset_content(&self, id: &str) -> Result<Option<Vec<u8>>, StoreError> {
-        self.fetch_blob(
-            "SELECT content FROM dataset_contents WHERE dataset_id = ?1",
-            id,
-        )
-        .await
+        Ok(on_pool!(self, |pool| {
+            sqlx::query_scalar("SELECT content FROM dataset_contents WHERE dataset_id = $1")
+                .bind(id)
+                .fetch_optional(pool)
+                .await?
+        }))
     }
 
     /// Deletes a dataset and its content; [`StoreError::NotFound`] for an unknown id.
     pub async fn delete_dataset(&self, id: &str) -> Result<(), StoreError> {
         // One statement (the content goes by ON DELETE CASCADE), so no explicit transaction.
-        let deleted = sqlx::query("DELETE FROM datasets WHERE id = ?1")
-            .bind(id)
-            .execute(self.pool()?)
-            .await?;
-        if deleted.rows_affected() == 0 {
+        let deleted = on_pool!(self, |pool| {
+            sqlx::query("DELETE FROM datasets WHERE id = $1")
+                .bind(id)
+                .execute(pool)
+                .await?
+                .rows_affected()
+        });
+        if deleted == 0 {
             return Err(StoreError::NotFound {
                 kind: "dataset",
                 id: id.to_owned(),

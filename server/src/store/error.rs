@@ -100,7 +100,8 @@ pub enum FaultKind {
     ReadOnly,
     /// SQLITE_IOERR: the file system failed a read or write.
     Io,
-    /// SQLITE_BUSY/LOCKED or no pooled connection in time: another writer holds the database.
+    /// SQLITE_BUSY/LOCKED, a PostgreSQL lock or statement timeout, or no pooled connection in time
+    /// (also while a PostgreSQL server cannot be reached: the pool keeps trying until its timeout).
     Busy,
     /// SQLITE_CANTOPEN: the database file or its directory cannot be opened.
     CantOpen,
@@ -110,11 +111,13 @@ pub enum FaultKind {
     Lost,
     /// The store was closed (the server is shutting down).
     Closed,
+    /// The database server (PostgreSQL) refused or dropped the connection, or is shutting down.
+    Unreachable,
 }
 
 impl FaultKind {
     /// Every kind (the label values of the store-fault metric).
-    pub const ALL: [FaultKind; 8] = [
+    pub const ALL: [FaultKind; 9] = [
         FaultKind::Full,
         FaultKind::ReadOnly,
         FaultKind::Io,
@@ -123,16 +126,20 @@ impl FaultKind {
         FaultKind::Corrupt,
         FaultKind::Lost,
         FaultKind::Closed,
+        FaultKind::Unreachable,
     ];
 
-    /// The kind of a sqlx error that is a fault of the database rather than of the query, from the
-    /// SQLite primary result code (the low byte of the extended code).
+    /// The kind of a sqlx error that is a fault of the database rather than of the query: from the
+    /// SQLite primary result code (the low byte of the extended code) or the PostgreSQL SQLSTATE.
     pub fn of(error: &sqlx::Error) -> Option<FaultKind> {
         match error {
             sqlx::Error::PoolTimedOut => Some(FaultKind::Busy),
             sqlx::Error::PoolClosed | sqlx::Error::WorkerCrashed => Some(FaultKind::Closed),
-            sqlx::Error::Io(_) => Some(FaultKind::Io),
+            sqlx::Error::Io(io) => Some(Self::of_io(io)),
             sqlx::Error::Database(db_error) => {
+                if let Some(pg) = db_error.try_downcast_ref::<sqlx::postgres::PgDatabaseError>() {
+                    return Self::of_sqlstate(pg.code());
+                }
                 let code: i32 = db_error.code()?.parse().ok()?;
                 match code {
                     // SQLITE_READONLY_DBMOVED: the file was unlinked or renamed under us.
@@ -148,6 +155,50 @@ impl FaultKind {
                     },
                 }
             }
+            _ => None,
+        }
+    }
+
+    /// An I/O error talking to the database: a lost or refused connection to a database server is
+    /// [`FaultKind::Unreachable`]; anything else (SQLite's own file I/O) is [`FaultKind::Io`].
+    fn of_io(error: &std::io::Error) -> FaultKind {
+        use std::io::ErrorKind;
+        match error.kind() {
+            ErrorKind::ConnectionRefused
+            | ErrorKind::ConnectionReset
+            | ErrorKind::ConnectionAborted
+            | ErrorKind::NotConnected
+            | ErrorKind::BrokenPipe
+            | ErrorKind::UnexpectedEof
+            | ErrorKind::TimedOut
+            | ErrorKind::HostUnreachable
+            | ErrorKind::NetworkUnreachable
+            | ErrorKind::AddrNotAvailable => FaultKind::Unreachable,
+            _ => FaultKind::Io,
+        }
+    }
+
+    /// The kind of a PostgreSQL error from its SQLSTATE (None: the query's own fault, e.g. a
+    /// constraint violation or a bug).
+    fn of_sqlstate(code: &str) -> Option<FaultKind> {
+        match code {
+            // disk_full
+            "53100" => Some(FaultKind::Full),
+            // insufficient_resources, out_of_memory, too_many_connections, query_canceled (the
+            // statement timeout), serialization_failure, deadlock_detected, lock_not_available
+            "53000" | "53200" | "53300" | "57014" | "40001" | "40P01" | "55P03" => {
+                Some(FaultKind::Busy)
+            }
+            // admin_shutdown, crash_shutdown, cannot_connect_now (starting or stopping), database
+            // dropped; class 08: connection exceptions
+            "57P01" | "57P02" | "57P03" | "57P04" => Some(FaultKind::Unreachable),
+            _ if code.starts_with("08") => Some(FaultKind::Unreachable),
+            // read_only_sql_transaction: a hot standby or a read-only default
+            "25006" => Some(FaultKind::ReadOnly),
+            // io_error (system_error class)
+            "58030" => Some(FaultKind::Io),
+            // data_corrupted, index_corrupted
+            "XX001" | "XX002" => Some(FaultKind::Corrupt),
             _ => None,
         }
     }
@@ -173,6 +224,7 @@ impl FaultKind {
             FaultKind::Corrupt => "corrupt",
             FaultKind::Lost => "lost",
             FaultKind::Closed => "closed",
+            FaultKind::Unreachable => "unreachable",
         }
     }
 
@@ -182,13 +234,16 @@ impl FaultKind {
             FaultKind::Full => "the database is full (disk or --database-max-mib limit)",
             FaultKind::ReadOnly => "the database is read-only",
             FaultKind::Io => "the database file system is failing (I/O error)",
-            FaultKind::Busy => "the database is busy (locked by another writer)",
+            FaultKind::Busy => {
+                "the database is busy (locked by another writer, or no connection free in time)"
+            }
             FaultKind::CantOpen => "the database file cannot be opened",
             FaultKind::Corrupt => "the database file is corrupt",
             FaultKind::Lost => {
                 "the database file was deleted or replaced while the server ran; restore it and restart"
             }
             FaultKind::Closed => "the database is closed (the server is shutting down)",
+            FaultKind::Unreachable => "the database server cannot be reached",
         }
     }
 }
@@ -305,5 +360,31 @@ mod tests {
         assert!(outlived_no_fault(Duration::ZERO), "opened after it");
         assert!(FaultKind::ReadOnly.may_spoil_connections());
         assert!(!FaultKind::Full.may_spoil_connections());
+    }
+
+    #[test]
+    fn postgres_states_and_lost_connections_are_classified() {
+        assert_eq!(FaultKind::of_sqlstate("53100"), Some(FaultKind::Full));
+        assert_eq!(
+            FaultKind::of_sqlstate("57P01"),
+            Some(FaultKind::Unreachable)
+        );
+        assert_eq!(
+            FaultKind::of_sqlstate("08006"),
+            Some(FaultKind::Unreachable)
+        );
+        assert_eq!(FaultKind::of_sqlstate("57014"), Some(FaultKind::Busy));
+        assert_eq!(
+            FaultKind::of_sqlstate("23505"),
+            None,
+            "unique violation: the query's"
+        );
+        let refused = std::io::Error::from(std::io::ErrorKind::ConnectionRefused);
+        assert_eq!(
+            FaultKind::of(&sqlx::Error::Io(refused)),
+            Some(FaultKind::Unreachable)
+        );
+        let disk = std::io::Error::other("disk I/O");
+        assert_eq!(FaultKind::of(&sqlx::Error::Io(disk)), Some(FaultKind::Io));
     }
 }

@@ -3,19 +3,22 @@
 //! States: `queued → running → {succeeded, failed, cancelled}`, and `queued → {failed, cancelled}`.
 //! Finished states are terminal. Cancellation is cooperative: [`Store::request_cancel`] only raises a
 //! flag; the job's runner sees it and finishes the job as [`JobOutcome::Cancelled`].
+//!
+//! Ownership, for replicas sharing one database: a job belongs to the server instance that admitted
+//! it ([`NewJob::owner`]), which runs it and refreshes its lease ([`Store::renew_job_leases`]) while
+//! it is queued or running. [`Store::fail_abandoned_jobs`] fails the jobs whose owner is gone.
 
 use serde_json::Value;
-use sqlx::Sqlite;
-use sqlx::query::Query;
-use sqlx::sqlite::SqliteArguments;
 use sqlx::types::Json;
 
 use super::error::{insert_error, require_finite};
-use super::{ABORTED_CODE, CANCELLED_CODE, Page, PageRequest, Store, StoreError, now_unix_ms};
+use super::paging::PagePlan;
+use super::{
+    ABORTED_CODE, BackendKind, CANCELLED_CODE, Page, PageRequest, Store, StoreError, now_unix_ms,
+};
 
 /// What a job does.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, sqlx::Type)]
-#[sqlx(rename_all = "lowercase")]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum JobKind {
     /// Trains a new model.
     Training,
@@ -23,9 +26,28 @@ pub enum JobKind {
     Evaluation,
 }
 
+impl JobKind {
+    /// The lowercase name stored in the database.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobKind::Training => "training",
+            JobKind::Evaluation => "evaluation",
+        }
+    }
+
+    fn from_str_opt(name: &str) -> Option<Self> {
+        match name {
+            "training" => Some(JobKind::Training),
+            "evaluation" => Some(JobKind::Evaluation),
+            _ => None,
+        }
+    }
+}
+
+text_enum!(JobKind);
+
 /// Where a job is in its life.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, sqlx::Type)]
-#[sqlx(rename_all = "lowercase")]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum JobState {
     /// Waiting for a worker.
     Queued,
@@ -58,7 +80,21 @@ impl JobState {
             JobState::Cancelled => "cancelled",
         }
     }
+
+    fn from_str_opt(name: &str) -> Option<Self> {
+        [
+            JobState::Queued,
+            JobState::Running,
+            JobState::Succeeded,
+            JobState::Failed,
+            JobState::Cancelled,
+        ]
+        .into_iter()
+        .find(|state| state.as_str() == name)
+    }
 }
+
+text_enum!(JobState);
 
 /// A job to enqueue; it starts `queued`.
 #[derive(Debug, Clone, PartialEq)]
@@ -71,6 +107,8 @@ pub struct NewJob {
     pub request: Value,
     /// Initial progress metadata.
     pub metadata: Value,
+    /// The server instance that admitted the job and will run it (see the module docs).
+    pub owner: String,
 }
 
 /// How a job ended.
@@ -134,6 +172,7 @@ pub struct JobRow {
 #[derive(Debug, Clone, PartialEq, sqlx::FromRow)]
 pub struct EpochRow {
     /// Epoch number (unique per job).
+    #[sqlx(try_from = "i64")]
     pub epoch: u32,
     /// Mean training loss.
     pub train_loss: f64,
@@ -161,10 +200,67 @@ const LISTING: &str = "jobs";
 
 const JOB_COLUMNS_BY_ID: &str = "SELECT id, kind, state, request_json, metadata_json, result_json, \
      error_code, error_message, created_at, started_at, finished_at, cancel_requested \
-     FROM jobs WHERE id = ?1";
+     FROM jobs WHERE id = $1";
+
+/// The UPDATE of [`Store::fail_abandoned_jobs`], with `$lock` closing the row selection: on
+/// PostgreSQL `FOR UPDATE SKIP LOCKED`, so a replica never waits for (nor fails) a job whose owner
+/// is renewing its lease at this very moment, and concurrent sweeps never block each other.
+macro_rules! fail_abandoned_sql {
+    ($lock:literal) => {
+        concat!(
+            "UPDATE jobs SET state = 'failed', error_code = $1, error_message = $2, \
+             finished_at = $3 WHERE id IN (SELECT id FROM jobs \
+             WHERE state IN ('queued', 'running') \
+             AND (owner IS NULL OR heartbeat_at IS NULL \
+                  OR (owner = $5 AND $6) OR (owner <> $5 AND heartbeat_at < $4)) ",
+            $lock,
+            ")"
+        )
+    };
+}
+
+/// The job's current state inside the write transaction `$tx`; [`StoreError::NotFound`] if absent.
+macro_rules! job_state {
+    ($tx:ident, $id:expr) => {
+        sqlx::query_scalar::<_, JobState>("SELECT state FROM jobs WHERE id = $1")
+            .bind($id)
+            .fetch_optional(&mut *$tx)
+            .await?
+            .ok_or_else(|| job_not_found($id))
+    };
+}
+
+/// Runs, in one write transaction, the UPDATE `$sql` (binding the id as `$1`, then `$bind`s) on a
+/// job whose current state `$allowed` accepts, and returns the updated row.
+/// [`StoreError::NotFound`] for an unknown id, [`StoreError::InvalidState`] (naming `$action`) for
+/// a state `$allowed` refuses. The binds are evaluated after the write lock is taken, so any time
+/// they carry is the time of the change.
+macro_rules! update_job {
+    ($store:expr, $id:expr, $action:expr, $allowed:expr, $sql:expr $(, $bind:expr)* $(,)?) => {
+        in_write_tx!($store, |tx| {
+            let state = job_state!(tx, $id)?;
+            if !($allowed)(state) {
+                return Err(invalid_state($id, $action, state));
+            }
+            sqlx::query($sql)
+                .bind($id)
+                $(.bind($bind))*
+                .execute(&mut *tx)
+                .await?;
+            let row = sqlx::query_as::<_, JobRow>(JOB_COLUMNS_BY_ID)
+                .bind($id)
+                .fetch_optional(&mut *tx)
+                .await?
+                .ok_or_else(|| job_not_found($id))?;
+            tx.commit().await?;
+            Ok(row)
+        })
+    };
+}
 
 impl Store {
-    /// Enqueues a job in state `queued`; [`StoreError::AlreadyExists`] if the id is taken.
+    /// Enqueues a job in state `queued`, owned by `job.owner` with a fresh lease;
+    /// [`StoreError::AlreadyExists`] if the id is taken.
     pub async fn insert_job(&self, job: NewJob) -> Result<JobRow, StoreError> {
         self.insert_job_at(job, now_unix_ms()).await
     }
@@ -175,17 +271,23 @@ impl Store {
         job: NewJob,
         created_at_ms: i64,
     ) -> Result<JobRow, StoreError> {
-        let inserted = sqlx::query(
-            "INSERT INTO jobs (id, kind, state, request_json, metadata_json, created_at, \
-             cancel_requested) VALUES (?1, ?2, 'queued', ?3, ?4, ?5, 0)",
-        )
-        .bind(&job.id)
-        .bind(job.kind)
-        .bind(Json(&job.request))
-        .bind(Json(&job.metadata))
-        .bind(created_at_ms)
-        .execute(self.pool()?)
-        .await;
+        let inserted = on_pool!(self, |pool| {
+            sqlx::query(
+                "INSERT INTO jobs (id, kind, state, request_json, metadata_json, created_at, \
+                 cancel_requested, owner, heartbeat_at) \
+                 VALUES ($1, $2, 'queued', $3, $4, $5, FALSE, $6, $7)",
+            )
+            .bind(&job.id)
+            .bind(job.kind)
+            .bind(Json(&job.request))
+            .bind(Json(&job.metadata))
+            .bind(created_at_ms)
+            .bind(&job.owner)
+            .bind(now_unix_ms())
+            .execute(pool)
+            .await
+            .map(drop)
+        });
         match inserted {
             Ok(_) => Ok(JobRow {
                 id: job.id,
@@ -207,18 +309,25 @@ impl Store {
 
     /// The job with this id.
     pub async fn get_job(&self, id: &str) -> Result<Option<JobRow>, StoreError> {
-        self.fetch_by_id(JOB_COLUMNS_BY_ID, id).await
+        Ok(on_pool!(self, |pool| {
+            sqlx::query_as::<_, JobRow>(JOB_COLUMNS_BY_ID)
+                .bind(id)
+                .fetch_optional(pool)
+                .await?
+        }))
     }
 
     /// The job's epoch history in epoch order (empty for an unknown job or one without epochs).
     pub async fn job_epochs(&self, id: &str) -> Result<Vec<EpochRow>, StoreError> {
-        Ok(sqlx::query_as::<_, EpochRow>(
-            "SELECT epoch, train_loss, val_loss, val_auroc, learning_rate, elapsed_s \
-             FROM job_epochs WHERE job_id = ?1 ORDER BY epoch",
-        )
-        .bind(id)
-        .fetch_all(self.pool()?)
-        .await?)
+        Ok(on_pool!(self, |pool| {
+            sqlx::query_as::<_, EpochRow>(
+                "SELECT epoch, train_loss, val_loss, val_auroc, learning_rate, elapsed_s \
+                 FROM job_epochs WHERE job_id = $1 ORDER BY epoch",
+            )
+            .bind(id)
+            .fetch_all(pool)
+            .await?
+        }))
     }
 
     /// One page of jobs matching `filter`, newest first.
@@ -229,33 +338,42 @@ impl Store {
         filter: &JobFilter,
         request: &PageRequest,
     ) -> Result<Page<JobRow>, StoreError> {
-        let query = sqlx::query_as(
-            "SELECT id, kind, state, request_json, metadata_json, result_json, error_code, \
-             error_message, created_at, started_at, finished_at, cancel_requested FROM jobs \
-             WHERE (?1 IS NULL OR kind = ?1) \
-             AND (?2 IS NULL OR (state IN ('succeeded', 'failed', 'cancelled')) = ?2) \
-             AND (?3 IS NULL OR (created_at, id) < (?3, ?4)) \
-             ORDER BY created_at DESC, id DESC LIMIT ?5",
-        )
-        .bind(filter.kind)
-        .bind(filter.done);
-        self.fetch_page(LISTING, request, query, |row: &JobRow| {
+        let plan = PagePlan::new(LISTING, request)?;
+        let rows = on_pool!(self, |pool| {
+            sqlx::query_as::<_, JobRow>(
+                "SELECT id, kind, state, request_json, metadata_json, result_json, error_code, \
+                 error_message, created_at, started_at, finished_at, cancel_requested FROM jobs \
+                 WHERE ($1 IS NULL OR kind = $1) \
+                 AND ($2 IS NULL OR (state IN ('succeeded', 'failed', 'cancelled')) = $2) \
+                 AND ($3 IS NULL OR (created_at, id) < ($3, $4)) \
+                 ORDER BY created_at DESC, id DESC LIMIT $5",
+            )
+            .bind(filter.kind)
+            .bind(filter.done)
+            .bind(plan.after_created_at())
+            .bind(plan.after_id())
+            .bind(plan.fetch_limit())
+            .fetch_all(pool)
+            .await?
+        });
+        Ok(plan.finish(LISTING, rows, |row: &JobRow| {
             (row.created_at_ms, row.id.as_str())
-        })
-        .await
+        }))
     }
 
-    /// Moves a queued job to `running` and records its start time.
+    /// Moves a queued job to `running`, records its start time and renews its lease.
     ///
     /// [`StoreError::NotFound`] for an unknown id, [`StoreError::InvalidState`] unless it is queued.
     pub async fn mark_running(&self, id: &str) -> Result<JobRow, StoreError> {
         let queued = |state| state == JobState::Queued;
-        self.update_job(id, "mark running", queued, || {
-            sqlx::query("UPDATE jobs SET state = 'running', started_at = ?2 WHERE id = ?1")
-                .bind(id)
-                .bind(now_unix_ms())
-        })
-        .await
+        update_job!(
+            self,
+            id,
+            "mark running",
+            queued,
+            "UPDATE jobs SET state = 'running', started_at = $2, heartbeat_at = $2 WHERE id = $1",
+            now_unix_ms(),
+        )
     }
 
     /// Records one epoch of a running job.
@@ -265,37 +383,42 @@ impl Store {
     /// non-finite number.
     pub async fn append_epoch(&self, id: &str, epoch: &EpochRow) -> Result<(), StoreError> {
         validate_epoch(epoch)?;
-        let mut tx = self.begin_write().await?;
-        let state = job_state(&mut tx, id).await?;
-        if state != JobState::Running {
-            return Err(invalid_state(id, "append an epoch to", state));
-        }
-        let inserted = sqlx::query(
-            "INSERT INTO job_epochs (job_id, epoch, train_loss, val_loss, val_auroc, \
-             learning_rate, elapsed_s) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7)",
-        )
-        .bind(id)
-        .bind(epoch.epoch)
-        .bind(epoch.train_loss)
-        .bind(epoch.val_loss)
-        .bind(epoch.val_auroc)
-        .bind(epoch.learning_rate)
-        .bind(epoch.elapsed_s)
-        .execute(&mut *tx)
-        .await;
-        inserted.map_err(|error| insert_error(error, "epoch", &format!("{id}/{}", epoch.epoch)))?;
-        tx.commit().await?;
-        Ok(())
+        in_write_tx!(self, |tx| {
+            let state = job_state!(tx, id)?;
+            if state != JobState::Running {
+                return Err(invalid_state(id, "append an epoch to", state));
+            }
+            let inserted = sqlx::query(
+                "INSERT INTO job_epochs (job_id, epoch, train_loss, val_loss, val_auroc, \
+                 learning_rate, elapsed_s) VALUES ($1, $2, $3, $4, $5, $6, $7)",
+            )
+            .bind(id)
+            .bind(i64::from(epoch.epoch))
+            .bind(epoch.train_loss)
+            .bind(epoch.val_loss)
+            .bind(epoch.val_auroc)
+            .bind(epoch.learning_rate)
+            .bind(epoch.elapsed_s)
+            .execute(&mut *tx)
+            .await;
+            inserted
+                .map_err(|error| insert_error(error, "epoch", &format!("{id}/{}", epoch.epoch)))?;
+            tx.commit().await?;
+            Ok(())
+        })
     }
 
     /// Replaces the job's progress metadata (any state); [`StoreError::NotFound`] for an unknown id.
     pub async fn update_job_metadata(&self, id: &str, metadata: &Value) -> Result<(), StoreError> {
-        let updated = sqlx::query("UPDATE jobs SET metadata_json = ?2 WHERE id = ?1")
-            .bind(id)
-            .bind(Json(metadata))
-            .execute(self.pool()?)
-            .await?;
-        if updated.rows_affected() == 0 {
+        let updated = on_pool!(self, |pool| {
+            sqlx::query("UPDATE jobs SET metadata_json = $2 WHERE id = $1")
+                .bind(id)
+                .bind(Json(metadata))
+                .execute(pool)
+                .await?
+                .rows_affected()
+        });
+        if updated == 0 {
             return Err(job_not_found(id));
         }
         Ok(())
@@ -318,19 +441,19 @@ impl Store {
             ),
         };
         let unfinished = |state: JobState| !state.is_finished();
-        self.update_job(id, "finish", unfinished, || {
-            sqlx::query(
-                "UPDATE jobs SET state = ?2, result_json = ?3, error_code = ?4, \
-                 error_message = ?5, finished_at = ?6 WHERE id = ?1",
-            )
-            .bind(id)
-            .bind(state)
-            .bind(result.map(Json))
-            .bind(code)
-            .bind(message)
-            .bind(now_unix_ms())
-        })
-        .await
+        update_job!(
+            self,
+            id,
+            "finish",
+            unfinished,
+            "UPDATE jobs SET state = $2, result_json = $3, error_code = $4, \
+             error_message = $5, finished_at = $6 WHERE id = $1",
+            state,
+            result.map(Json),
+            code,
+            message,
+            now_unix_ms(),
+        )
     }
 
     /// Flags a queued or running job for cancellation (idempotent); its runner finishes it.
@@ -338,92 +461,87 @@ impl Store {
     /// [`StoreError::NotFound`] for an unknown id, [`StoreError::InvalidState`] if already finished.
     pub async fn request_cancel(&self, id: &str) -> Result<JobRow, StoreError> {
         let unfinished = |state: JobState| !state.is_finished();
-        self.update_job(id, "cancel", unfinished, || {
-            sqlx::query("UPDATE jobs SET cancel_requested = 1 WHERE id = ?1").bind(id)
-        })
-        .await
+        update_job!(
+            self,
+            id,
+            "cancel",
+            unfinished,
+            "UPDATE jobs SET cancel_requested = TRUE WHERE id = $1",
+        )
     }
 
     /// Deletes a finished job and its epochs.
     ///
     /// [`StoreError::NotFound`] for an unknown id, [`StoreError::JobNotFinished`] if queued or running.
     pub async fn delete_job(&self, id: &str) -> Result<(), StoreError> {
-        let mut tx = self.begin_write().await?;
-        let state = job_state(&mut tx, id).await?;
-        if !state.is_finished() {
-            return Err(StoreError::JobNotFinished {
-                id: id.to_owned(),
-                state: state.as_str(),
-            });
-        }
-        sqlx::query("DELETE FROM jobs WHERE id = ?1")
-            .bind(id)
-            .execute(&mut *tx)
-            .await?;
-        tx.commit().await?;
-        Ok(())
+        in_write_tx!(self, |tx| {
+            let state = job_state!(tx, id)?;
+            if !state.is_finished() {
+                return Err(StoreError::JobNotFinished {
+                    id: id.to_owned(),
+                    state: state.as_str(),
+                });
+            }
+            sqlx::query("DELETE FROM jobs WHERE id = $1")
+                .bind(id)
+                .execute(&mut *tx)
+                .await?;
+            tx.commit().await?;
+            Ok(())
+        })
     }
 
-    /// Runs the UPDATE `build` makes on a job whose current state `allowed` accepts, in one write
-    /// transaction, and returns the updated row. [`StoreError::NotFound`] for an unknown id,
-    /// [`StoreError::InvalidState`] (naming `action`) for a state `allowed` refuses. `build` runs
-    /// after the write lock is taken, so any time it binds is the time of the change.
-    async fn update_job<'q>(
+    /// Renews the lease of every queued or running job `owner` holds (its heartbeat, at wall time
+    /// `now_ms`) and returns them with their cancel flag: the owner cancels those flagged through
+    /// another replica, and stops those no longer listed (finished elsewhere).
+    pub async fn renew_job_leases(
         &self,
-        id: &str,
-        action: &'static str,
-        allowed: impl Fn(JobState) -> bool,
-        build: impl FnOnce() -> Query<'q, Sqlite, SqliteArguments>,
-    ) -> Result<JobRow, StoreError> {
-        let mut tx = self.begin_write().await?;
-        let state = job_state(&mut tx, id).await?;
-        if !allowed(state) {
-            return Err(invalid_state(id, action, state));
-        }
-        build().execute(&mut *tx).await?;
-        let row = fetch_job(&mut tx, id).await?;
-        tx.commit().await?;
-        Ok(row)
+        owner: &str,
+        now_ms: i64,
+    ) -> Result<Vec<(String, bool)>, StoreError> {
+        Ok(on_pool!(self, |pool| {
+            sqlx::query_as::<_, (String, bool)>(
+                "UPDATE jobs SET heartbeat_at = $2 \
+                 WHERE owner = $1 AND state IN ('queued', 'running') \
+                 RETURNING id, cancel_requested",
+            )
+            .bind(owner)
+            .bind(now_ms)
+            .fetch_all(pool)
+            .await?
+        }))
     }
 
-    /// Startup recovery: every queued or running job becomes `failed` with code ABORTED (10) and
-    /// `reason`, since no worker survives a restart. Returns how many jobs were failed.
-    pub async fn fail_interrupted_jobs(&self, reason: &str) -> Result<u64, StoreError> {
-        let updated = sqlx::query(
-            "UPDATE jobs SET state = 'failed', error_code = ?1, error_message = ?2, finished_at = ?3 \
-             WHERE state IN ('queued', 'running')",
-        )
-        .bind(ABORTED_CODE)
-        .bind(reason)
-        .bind(now_unix_ms())
-        .execute(self.pool()?)
-        .await?;
-        Ok(updated.rows_affected())
+    /// Recovery: every queued or running job whose owner is gone becomes `failed` with code ABORTED
+    /// (10) and `reason`, since no worker survives its server. A job's owner is gone when its lease
+    /// was last renewed before `lease_cutoff_ms`, when it has no owner (stored before owners were),
+    /// and, with `restarting`, when the owner is `instance` itself: its jobs are from an earlier run
+    /// of this instance. Jobs of `instance` are never failed otherwise. Returns how many jobs were
+    /// failed.
+    pub async fn fail_abandoned_jobs(
+        &self,
+        reason: &str,
+        instance: &str,
+        restarting: bool,
+        lease_cutoff_ms: i64,
+    ) -> Result<u64, StoreError> {
+        let sql = match self.kind() {
+            BackendKind::Sqlite => fail_abandoned_sql!(""),
+            BackendKind::Postgres => fail_abandoned_sql!("FOR UPDATE SKIP LOCKED"),
+        };
+        Ok(on_pool!(self, |pool| {
+            sqlx::query(sql)
+                .bind(ABORTED_CODE)
+                .bind(reason)
+                .bind(now_unix_ms())
+                .bind(lease_cutoff_ms)
+                .bind(instance)
+                .bind(restarting)
+                .execute(pool)
+                .await?
+                .rows_affected()
+        }))
     }
-}
-
-/// The job's current state inside a write transaction; [`StoreError::NotFound`] if absent.
-async fn job_state(
-    tx: &mut sqlx::Transaction<'static, sqlx::Sqlite>,
-    id: &str,
-) -> Result<JobState, StoreError> {
-    sqlx::query_scalar::<_, JobState>("SELECT state FROM jobs WHERE id = ?1")
-        .bind(id)
-        .fetch_optional(&mut **tx)
-        .await?
-        .ok_or_else(|| job_not_found(id))
-}
-
-/// The full job row inside a transaction; [`StoreError::NotFound`] if absent.
-async fn fetch_job(
-    tx: &mut sqlx::Transaction<'static, sqlx::Sqlite>,
-    id: &str,
-) -> Result<JobRow, StoreError> {
-    sqlx::query_as::<_, JobRow>(JOB_COLUMNS_BY_ID)
-        .bind(id)
-        .fetch_optional(&mut **tx)
-        .await?
-        .ok_or_else(|| job_not_found(id))
 }
 
 fn job_not_found(id: &str) -> StoreError {

@@ -2,14 +2,11 @@
 //!
 //! Keyset (rather than offset) pages stay correct while rows are inserted or deleted between calls:
 //! the token names the last row returned and the next page starts strictly after it. This module
-//! owns the token format and the one way a listing query is cut into a page ([`Store::fetch_page`]);
+//! owns the token format and the one way a listing query is cut into a page ([`PagePlan`]: a
+//! listing binds its cursor and `LIMIT`, then [`PagePlan::finish`] cuts the rows);
 //! it must not know any table.
 
-use sqlx::query::QueryAs;
-use sqlx::sqlite::{SqliteArguments, SqliteRow};
-use sqlx::{FromRow, Sqlite};
-
-use super::{Store, StoreError};
+use super::StoreError;
 
 /// Page size used when a request asks for 0.
 pub const DEFAULT_PAGE_SIZE: u32 = 50;
@@ -128,32 +125,6 @@ impl PagePlan {
             items: rows,
             next_page_token,
         }
-    }
-}
-
-impl Store {
-    /// Runs the listing `query` from the page `request` names and cuts its rows into a page keyed by
-    /// `key` (the row's `(created_at, id)`). The query has bound its own filters, if any; its next
-    /// three parameters are the cursor's `created_at`, the cursor's id (both NULL on the first page)
-    /// and the `LIMIT`, in that order.
-    pub(super) async fn fetch_page<R>(
-        &self,
-        listing: &'static str,
-        request: &PageRequest,
-        query: QueryAs<'_, Sqlite, R, SqliteArguments>,
-        key: fn(&R) -> (i64, &str),
-    ) -> Result<Page<R>, StoreError>
-    where
-        R: for<'r> FromRow<'r, SqliteRow> + Send + Unpin,
-    {
-        let plan = PagePlan::new(listing, request)?;
-        let rows = query
-            .bind(plan.after_created_at())
-            .bind(plan.after_id().map(str::to_owned))
-            .bind(plan.fetch_limit())
-            .fetch_all(self.pool()?)
-            .await?;
-        Ok(plan.finish(listing, rows, key))
     }
 }
 

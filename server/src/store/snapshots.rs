@@ -2,8 +2,6 @@
 //! writer (in the same transactions as the alarm events that preceded it, see `crate::alarms`) and
 //! read when a stream for the vehicle starts on any server process.
 
-use sqlx::{Sqlite, Transaction};
-
 use super::alarms::AlarmEventRow;
 use super::{Store, StoreError};
 
@@ -31,75 +29,81 @@ pub struct SnapshotRow {
     pub snapshot: Vec<u8>,
 }
 
+/// Stores `$row` (a `&SnapshotRow`) as its vehicle's latest snapshot inside the write transaction
+/// `$tx` (the alarm writer's, see [`Store::write_alarms_and_snapshots`]).
+macro_rules! upsert_snapshot {
+    ($tx:ident, $row:expr) => {{
+        let row: &SnapshotRow = $row;
+        sqlx::query(
+            "INSERT INTO session_snapshots (vehicle_id, model_id, schema_version, samples, \
+             last_seq, open_alarm_id, writer, updated_at, snapshot) \
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9) \
+             ON CONFLICT (vehicle_id) DO UPDATE SET model_id = excluded.model_id, \
+             schema_version = excluded.schema_version, samples = excluded.samples, \
+             last_seq = excluded.last_seq, open_alarm_id = excluded.open_alarm_id, \
+             writer = excluded.writer, updated_at = excluded.updated_at, \
+             snapshot = excluded.snapshot",
+        )
+        .bind(&row.vehicle_id)
+        .bind(&row.model_id)
+        .bind(row.schema_version)
+        .bind(row.samples)
+        .bind(row.last_seq)
+        .bind(row.open_alarm_id)
+        .bind(&row.writer)
+        .bind(row.updated_at_ms)
+        .bind(&row.snapshot)
+        .execute(&mut *$tx)
+        .await?;
+    }};
+}
+pub(super) use upsert_snapshot;
+
 impl Store {
     /// The latest snapshot of `vehicle_id`'s session, if one is stored.
     pub async fn load_snapshot(&self, vehicle_id: &str) -> Result<Option<SnapshotRow>, StoreError> {
-        Ok(sqlx::query_as::<_, SnapshotRow>(
-            "SELECT vehicle_id, model_id, schema_version, samples, last_seq, open_alarm_id, writer, \
-             updated_at, snapshot FROM session_snapshots WHERE vehicle_id = ?1",
-        )
-        .bind(vehicle_id)
-        .fetch_optional(self.pool()?)
-        .await?)
+        Ok(on_pool!(self, |pool| {
+            sqlx::query_as::<_, SnapshotRow>(
+                "SELECT vehicle_id, model_id, schema_version, samples, last_seq, open_alarm_id, \
+                 writer, updated_at, snapshot FROM session_snapshots WHERE vehicle_id = $1",
+            )
+            .bind(vehicle_id)
+            .fetch_optional(pool)
+            .await?
+        }))
     }
 
     /// Deletes the snapshots of sessions that ran `model_id` (the model was deleted); returns how
     /// many.
     pub async fn delete_snapshots_of_model(&self, model_id: &str) -> Result<u64, StoreError> {
-        Ok(
-            sqlx::query("DELETE FROM session_snapshots WHERE model_id = ?1")
+        Ok(on_pool!(self, |pool| {
+            sqlx::query("DELETE FROM session_snapshots WHERE model_id = $1")
                 .bind(model_id)
-                .execute(self.pool()?)
+                .execute(pool)
                 .await?
-                .rows_affected(),
-        )
+                .rows_affected()
+        }))
     }
 
     /// Deletes the snapshots written before `cutoff_ms` (their vehicles did not come back) and
     /// returns the alarms they held open, still open: the caller ends them.
     pub async fn expire_snapshots(&self, cutoff_ms: i64) -> Result<Vec<AlarmEventRow>, StoreError> {
-        let mut tx = self.begin_write().await?;
-        let abandoned = sqlx::query_as::<_, AlarmEventRow>(
-            "SELECT a.id, a.vehicle_id, a.model_id, a.onset_timestamp_s, a.end_timestamp_s, \
-             a.onset_at, a.ended_at, a.peak_probability, a.samples \
-             FROM session_snapshots s JOIN alarm_events a ON a.id = s.open_alarm_id \
-             WHERE s.updated_at < ?1 AND a.ended_at IS NULL ORDER BY a.id",
-        )
-        .bind(cutoff_ms)
-        .fetch_all(&mut *tx)
-        .await?;
-        sqlx::query("DELETE FROM session_snapshots WHERE updated_at < ?1")
+        in_write_tx!(self, |tx| {
+            let abandoned = sqlx::query_as::<_, AlarmEventRow>(
+                "SELECT a.id, a.vehicle_id, a.model_id, a.onset_timestamp_s, a.end_timestamp_s, \
+                 a.onset_at, a.ended_at, a.peak_probability, a.samples \
+                 FROM session_snapshots s JOIN alarm_events a ON a.id = s.open_alarm_id \
+                 WHERE s.updated_at < $1 AND a.ended_at IS NULL ORDER BY a.id",
+            )
             .bind(cutoff_ms)
-            .execute(&mut *tx)
+            .fetch_all(&mut *tx)
             .await?;
-        tx.commit().await?;
-        Ok(abandoned)
+            sqlx::query("DELETE FROM session_snapshots WHERE updated_at < $1")
+                .bind(cutoff_ms)
+                .execute(&mut *tx)
+                .await?;
+            tx.commit().await?;
+            Ok(abandoned)
+        })
     }
-}
-
-/// Stores `row` as its vehicle's latest snapshot, inside the alarm writer's transaction.
-pub(super) async fn upsert_snapshot(
-    tx: &mut Transaction<'static, Sqlite>,
-    row: &SnapshotRow,
-) -> Result<(), StoreError> {
-    sqlx::query(
-        "INSERT INTO session_snapshots (vehicle_id, model_id, schema_version, samples, last_seq, \
-         open_alarm_id, writer, updated_at, snapshot) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9) \
-         ON CONFLICT (vehicle_id) DO UPDATE SET model_id = excluded.model_id, \
-         schema_version = excluded.schema_version, samples = excluded.samples, \
-         last_seq = excluded.last_seq, open_alarm_id = excluded.open_alarm_id, \
-         writer = excluded.writer, updated_at = excluded.updated_at, snapshot = excluded.snapshot",
-    )
-    .bind(&row.vehicle_id)
-    .bind(&row.model_id)
-    .bind(row.schema_version)
-    .bind(row.samples)
-    .bind(row.last_seq)
-    .bind(row.open_alarm_id)
-    .bind(&row.writer)
-    .bind(row.updated_at_ms)
-    .bind(&row.snapshot)
-    .execute(&mut **tx)
-    .await?;
-    Ok(())
 }

@@ -1,9 +1,9 @@
 //! Alarm events: batched onsets and ends with server-assigned ids, retries, list, recovery of open
 //! alarms.
 
-use super::temp_store;
 use crate::store::{
-    AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, PageRequest, StoreError,
+    AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, PageRequest, Store,
+    StoreError,
 };
 
 /// The onset of alarm `id` (cursor `id`), opened at wall time `1_000 + id`.
@@ -41,9 +41,7 @@ fn ids(rows: Vec<AlarmEventRow>) -> Vec<i64> {
     rows.into_iter().map(|r| r.id).collect()
 }
 
-#[tokio::test]
-async fn an_onset_and_its_end_are_stored_under_the_given_id() {
-    let (_dir, store) = temp_store().await;
+async fn an_onset_and_its_end_are_stored_under_the_given_id(store: Store) {
     assert_eq!(store.max_alarm_id().await.unwrap(), 0);
     store
         .write_alarms(&[onset(7, "car-7", 120.5, 0.81)])
@@ -74,9 +72,7 @@ async fn an_onset_and_its_end_are_stored_under_the_given_id() {
     assert!(!closed.is_open());
 }
 
-#[tokio::test]
-async fn a_retried_batch_stores_everything_exactly_once() {
-    let (_dir, store) = temp_store().await;
+async fn a_retried_batch_stores_everything_exactly_once(store: Store) {
     let batch = [
         onset(1, "a", 10.0, 0.9),
         onset(2, "b", 11.0, 0.8),
@@ -92,9 +88,7 @@ async fn a_retried_batch_stores_everything_exactly_once() {
     assert_eq!(ids(first), [2, 1]);
 }
 
-#[tokio::test]
-async fn a_batch_with_an_invalid_value_writes_nothing() {
-    let (_dir, store) = temp_store().await;
+async fn a_batch_with_an_invalid_value_writes_nothing(store: Store) {
     let cases = [
         (onset(1, "car", f64::NAN, 0.5), "onset_timestamp_s"),
         (onset(1, "car", 1.0, 1.5), "probability"),
@@ -114,9 +108,7 @@ async fn a_batch_with_an_invalid_value_writes_nothing() {
     }
 }
 
-#[tokio::test]
-async fn list_alarm_events_filters_by_vehicle_newest_first_with_limit() {
-    let (_dir, store) = temp_store().await;
+async fn list_alarm_events_filters_by_vehicle_newest_first_with_limit(store: Store) {
     store
         .write_alarms(&[
             onset(1, "a", 10.0, 0.9),
@@ -147,9 +139,7 @@ async fn list_alarm_events_filters_by_vehicle_newest_first_with_limit() {
     assert!(store.list_alarm_events(None, 0).await.unwrap().is_empty());
 }
 
-#[tokio::test]
-async fn close_open_alarms_ends_only_open_ones_without_an_end_timestamp() {
-    let (_dir, store) = temp_store().await;
+async fn close_open_alarms_ends_only_open_ones_without_an_end_timestamp(store: Store) {
     store
         .write_alarms(&[
             onset(1, "a", 1.0, 0.9),
@@ -185,9 +175,7 @@ async fn close_open_alarms_ends_only_open_ones_without_an_end_timestamp() {
     );
 }
 
-#[tokio::test]
-async fn the_event_log_replays_each_event_as_it_was_emitted_in_cursor_order() {
-    let (_dir, store) = temp_store().await;
+async fn the_event_log_replays_each_event_as_it_was_emitted_in_cursor_order(store: Store) {
     let events = [
         onset(1, "a", 10.0, 0.6),
         onset(2, "b", 11.0, 0.7),
@@ -216,9 +204,7 @@ async fn the_event_log_replays_each_event_as_it_was_emitted_in_cursor_order() {
     assert_eq!(seqs(first.unwrap()), [1]);
 }
 
-#[tokio::test]
-async fn alarm_runs_increase_and_start_blocks_of_cursors_above_the_previous_ones() {
-    let (_dir, store) = temp_store().await;
+async fn alarm_runs_increase_and_start_blocks_of_cursors_above_the_previous_ones(store: Store) {
     let first = store.start_alarm_run(1).await.unwrap();
     let second = store.start_alarm_run(2).await.unwrap();
     assert!(second > first);
@@ -228,9 +214,7 @@ async fn alarm_runs_increase_and_start_blocks_of_cursors_above_the_previous_ones
     );
 }
 
-#[tokio::test]
-async fn list_alarms_filters_and_pages_in_id_order() {
-    let (_dir, store) = temp_store().await;
+async fn list_alarms_filters_and_pages_in_id_order(store: Store) {
     let mut other_model = onset(4, "a", 40.0, 0.9);
     other_model.alarm.model_id = "m2".to_string();
     store
@@ -305,3 +289,14 @@ async fn list_alarms_filters_and_pages_in_id_order() {
         Err(StoreError::InvalidPageToken)
     ));
 }
+
+on_both_backends!(
+    an_onset_and_its_end_are_stored_under_the_given_id,
+    a_retried_batch_stores_everything_exactly_once,
+    a_batch_with_an_invalid_value_writes_nothing,
+    list_alarm_events_filters_by_vehicle_newest_first_with_limit,
+    close_open_alarms_ends_only_open_ones_without_an_end_timestamp,
+    the_event_log_replays_each_event_as_it_was_emitted_in_cursor_order,
+    alarm_runs_increase_and_start_blocks_of_cursors_above_the_previous_ones,
+    list_alarms_filters_and_pages_in_id_order,
+);

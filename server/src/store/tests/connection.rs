@@ -14,23 +14,23 @@ async fn open_creates_the_file_and_applies_the_pragmas() {
     let (dir, store) = temp_store().await;
     assert!(dir.path().join("spoofwatch.db").is_file());
     let journal_mode = sqlx::query_scalar::<_, String>("PRAGMA journal_mode")
-        .fetch_one(&store.pool)
+        .fetch_one(store.sqlite_pool())
         .await
         .unwrap();
     assert_eq!(journal_mode, "wal");
     let foreign_keys = sqlx::query_scalar::<_, i64>("PRAGMA foreign_keys")
-        .fetch_one(&store.pool)
+        .fetch_one(store.sqlite_pool())
         .await
         .unwrap();
     assert_eq!(foreign_keys, 1);
     // 1 = NORMAL (0 OFF, 2 FULL, 3 EXTRA).
     let synchronous = sqlx::query_scalar::<_, i64>("PRAGMA synchronous")
-        .fetch_one(&store.pool)
+        .fetch_one(store.sqlite_pool())
         .await
         .unwrap();
     assert_eq!(synchronous, 1);
     let busy_timeout_ms = sqlx::query_scalar::<_, i64>("PRAGMA busy_timeout")
-        .fetch_one(&store.pool)
+        .fetch_one(store.sqlite_pool())
         .await
         .unwrap();
     assert_eq!(busy_timeout_ms, 5_000);
@@ -85,9 +85,7 @@ async fn opening_an_unusable_path_is_a_cant_open_fault() {
     assert_eq!(fault_kind(error), FaultKind::CantOpen);
 }
 
-#[tokio::test]
-async fn a_closed_store_fails_with_a_closed_fault() {
-    let (_dir, store) = temp_store().await;
+async fn a_closed_store_fails_with_a_closed_fault(store: Store) {
     store.close().await;
     let error = store.model_count().await.unwrap_err();
     assert_eq!(
@@ -333,8 +331,10 @@ async fn concurrent_writers_on_one_file_never_fail_busy() {
     assert_eq!(count_rows(&second, "model_artifacts").await, 100);
     assert_eq!(count_rows(&second, "alarm_events").await, 100);
     let active: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM models WHERE active = 1")
-        .fetch_one(&first.pool)
+        .fetch_one(first.sqlite_pool())
         .await
         .unwrap();
     assert_eq!(active, 1);
 }
+
+on_both_backends!(a_closed_store_fails_with_a_closed_fault,);

@@ -1,11 +1,9 @@
 //! Datasets: insert/get/list/paginate/delete and content blobs.
 
-use super::{count_rows, new_dataset, temp_store};
-use crate::store::{PageRequest, StoreError};
+use super::{count_rows, new_dataset};
+use crate::store::{PageRequest, Store, StoreError};
 
-#[tokio::test]
-async fn insert_then_get_round_trips_every_field_and_the_content() {
-    let (_dir, store) = temp_store().await;
+async fn insert_then_get_round_trips_every_field_and_the_content(store: Store) {
     let inserted = store
         .insert_dataset_at(new_dataset("d1"), 1_234)
         .await
@@ -36,9 +34,7 @@ async fn insert_then_get_round_trips_every_field_and_the_content() {
     assert_eq!(store.dataset_content("d1").await.unwrap(), Some(content));
 }
 
-#[tokio::test]
-async fn unknown_dataset_reads_as_none_and_deletes_as_not_found() {
-    let (_dir, store) = temp_store().await;
+async fn unknown_dataset_reads_as_none_and_deletes_as_not_found(store: Store) {
     assert_eq!(store.get_dataset("nope").await.unwrap(), None);
     assert_eq!(store.dataset_content("nope").await.unwrap(), None);
     let error = store.delete_dataset("nope").await.unwrap_err();
@@ -48,9 +44,7 @@ async fn unknown_dataset_reads_as_none_and_deletes_as_not_found() {
     );
 }
 
-#[tokio::test]
-async fn duplicate_dataset_id_is_refused() {
-    let (_dir, store) = temp_store().await;
+async fn duplicate_dataset_id_is_refused(store: Store) {
     store.insert_dataset(new_dataset("d1")).await.unwrap();
     let error = store.insert_dataset(new_dataset("d1")).await.unwrap_err();
     assert!(
@@ -61,9 +55,7 @@ async fn duplicate_dataset_id_is_refused() {
     assert_eq!(count_rows(&store, "dataset_contents").await, 1);
 }
 
-#[tokio::test]
-async fn negative_counts_are_refused_before_touching_the_database() {
-    let (_dir, store) = temp_store().await;
+async fn negative_counts_are_refused_before_touching_the_database(store: Store) {
     let mut dataset = new_dataset("d1");
     dataset.spoofed_rows = -1;
     let error = store.insert_dataset(dataset).await.unwrap_err();
@@ -80,9 +72,7 @@ async fn negative_counts_are_refused_before_touching_the_database() {
     assert_eq!(count_rows(&store, "datasets").await, 0);
 }
 
-#[tokio::test]
-async fn list_datasets_pages_newest_first() {
-    let (_dir, store) = temp_store().await;
+async fn list_datasets_pages_newest_first(store: Store) {
     for (id, created_at) in [("a", 10), ("b", 30), ("c", 20)] {
         store
             .insert_dataset_at(new_dataset(id), created_at)
@@ -108,9 +98,7 @@ async fn list_datasets_pages_newest_first() {
     assert!(matches!(error, StoreError::InvalidPageToken), "{error:?}");
 }
 
-#[tokio::test]
-async fn deleting_a_dataset_cascades_to_its_content() {
-    let (_dir, store) = temp_store().await;
+async fn deleting_a_dataset_cascades_to_its_content(store: Store) {
     for id in ["a", "b"] {
         store.insert_dataset(new_dataset(id)).await.unwrap();
     }
@@ -120,3 +108,12 @@ async fn deleting_a_dataset_cascades_to_its_content() {
     assert_eq!(count_rows(&store, "dataset_contents").await, 1);
     assert!(store.dataset_content("b").await.unwrap().is_some());
 }
+
+on_both_backends!(
+    insert_then_get_round_trips_every_field_and_the_content,
+    unknown_dataset_reads_as_none_and_deletes_as_not_found,
+    duplicate_dataset_id_is_refused,
+    negative_counts_are_refused_before_touching_the_database,
+    list_datasets_pages_newest_first,
+    deleting_a_dataset_cascades_to_its_content,
+);

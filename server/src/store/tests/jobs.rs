@@ -2,9 +2,9 @@
 
 use serde_json::json;
 
-use super::{count_rows, new_job, temp_store};
+use super::{count_rows, new_job};
 use crate::store::{
-    EpochRow, JobFilter, JobKind, JobOutcome, JobState, PageRequest, Store, StoreError,
+    EpochRow, JobFilter, JobKind, JobOutcome, JobState, PageRequest, Store, StoreError, now_unix_ms,
 };
 
 fn epoch(number: u32) -> EpochRow {
@@ -26,9 +26,7 @@ async fn running_job(store: &Store, id: &str) {
     store.mark_running(id).await.unwrap();
 }
 
-#[tokio::test]
-async fn insert_then_get_round_trips_a_queued_job() {
-    let (_dir, store) = temp_store().await;
+async fn insert_then_get_round_trips_a_queued_job(store: Store) {
     let inserted = store
         .insert_job_at(new_job("j1", JobKind::Evaluation), 77)
         .await
@@ -53,9 +51,7 @@ async fn insert_then_get_round_trips_a_queued_job() {
     assert_eq!(store.get_job("nope").await.unwrap(), None);
 }
 
-#[tokio::test]
-async fn duplicate_job_id_is_refused() {
-    let (_dir, store) = temp_store().await;
+async fn duplicate_job_id_is_refused(store: Store) {
     store
         .insert_job(new_job("j1", JobKind::Training))
         .await
@@ -72,9 +68,7 @@ async fn duplicate_job_id_is_refused() {
     assert_eq!(kept.kind, JobKind::Training);
 }
 
-#[tokio::test]
-async fn job_runs_records_epochs_and_succeeds_once() {
-    let (_dir, store) = temp_store().await;
+async fn job_runs_records_epochs_and_succeeds_once(store: Store) {
     store
         .insert_job(new_job("j1", JobKind::Training))
         .await
@@ -157,9 +151,7 @@ async fn job_runs_records_epochs_and_succeeds_once() {
     assert_eq!(store.job_epochs("j1").await.unwrap().len(), 3);
 }
 
-#[tokio::test]
-async fn mark_running_twice_is_refused() {
-    let (_dir, store) = temp_store().await;
+async fn mark_running_twice_is_refused(store: Store) {
     running_job(&store, "j1").await;
     let error = store.mark_running("j1").await.unwrap_err();
     assert!(
@@ -178,9 +170,7 @@ async fn mark_running_twice_is_refused() {
     ));
 }
 
-#[tokio::test]
-async fn failed_and_cancelled_outcomes_record_code_and_message() {
-    let (_dir, store) = temp_store().await;
+async fn failed_and_cancelled_outcomes_record_code_and_message(store: Store) {
     running_job(&store, "failing").await;
     let failed = store
         .finish_job(
@@ -233,9 +223,7 @@ async fn failed_and_cancelled_outcomes_record_code_and_message() {
     assert_eq!(cancelled.started_at_ms, None);
 }
 
-#[tokio::test]
-async fn unknown_job_operations_are_not_found() {
-    let (_dir, store) = temp_store().await;
+async fn unknown_job_operations_are_not_found(store: Store) {
     let outcome = JobOutcome::Succeeded { result: json!({}) };
     assert!(matches!(
         store.finish_job("nope", outcome).await,
@@ -260,9 +248,7 @@ async fn unknown_job_operations_are_not_found() {
     assert_eq!(store.job_epochs("nope").await.unwrap(), vec![]);
 }
 
-#[tokio::test]
-async fn epochs_need_a_running_job_unique_numbers_and_finite_values() {
-    let (_dir, store) = temp_store().await;
+async fn epochs_need_a_running_job_unique_numbers_and_finite_values(store: Store) {
     store
         .insert_job(new_job("j1", JobKind::Training))
         .await
@@ -312,9 +298,7 @@ async fn epochs_need_a_running_job_unique_numbers_and_finite_values() {
     assert_eq!(store.job_epochs("j1").await.unwrap(), vec![epoch(0)]);
 }
 
-#[tokio::test]
-async fn unfinished_jobs_cannot_be_deleted_and_finished_ones_cascade() {
-    let (_dir, store) = temp_store().await;
+async fn unfinished_jobs_cannot_be_deleted_and_finished_ones_cascade(store: Store) {
     store
         .insert_job(new_job("queued", JobKind::Training))
         .await
@@ -341,9 +325,7 @@ async fn unfinished_jobs_cannot_be_deleted_and_finished_ones_cascade() {
     assert_eq!(count_rows(&store, "jobs").await, 1);
 }
 
-#[tokio::test]
-async fn fail_interrupted_jobs_fails_queued_and_running_only() {
-    let (_dir, store) = temp_store().await;
+async fn a_restart_fails_its_own_and_ownerless_jobs_but_not_live_replicas_ones(store: Store) {
     store
         .insert_job(new_job("queued", JobKind::Training))
         .await
@@ -359,9 +341,21 @@ async fn fail_interrupted_jobs_fails_queued_and_running_only() {
         )
         .await
         .unwrap();
+    let mut other = new_job("other-replica", JobKind::Training);
+    other.owner = "other-server".to_owned();
+    store.insert_job(other).await.unwrap();
+    store
+        .execute_for_test("UPDATE jobs SET owner = NULL, heartbeat_at = NULL WHERE id = 'queued'")
+        .await;
 
     let reason = "server restarted while the job was running";
-    assert_eq!(store.fail_interrupted_jobs(reason).await.unwrap(), 2);
+    let cutoff = now_unix_ms() - 30_000;
+    let failed = store.fail_abandoned_jobs(reason, "this-server", true, cutoff);
+    assert_eq!(
+        failed.await.unwrap(),
+        2,
+        "its own running job and the ownerless queued one"
+    );
     for id in ["queued", "running"] {
         let job = store.get_job(id).await.unwrap().expect("job kept");
         assert_eq!(job.state, JobState::Failed, "{id}");
@@ -370,13 +364,76 @@ async fn fail_interrupted_jobs_fails_queued_and_running_only() {
         assert!(job.finished_at_ms.is_some(), "{id}");
     }
     assert_eq!(store.get_job("done").await.unwrap(), Some(done));
+    let live = store.get_job("other-replica").await.unwrap().expect("kept");
+    assert_eq!(
+        live.state,
+        JobState::Queued,
+        "a live replica's job is left alone"
+    );
     // Nothing is left to fail the second time.
-    assert_eq!(store.fail_interrupted_jobs(reason).await.unwrap(), 0);
+    let again = store.fail_abandoned_jobs(reason, "this-server", true, cutoff);
+    assert_eq!(again.await.unwrap(), 0);
 }
 
-#[tokio::test]
-async fn list_jobs_filters_by_kind_and_done_and_pages_newest_first() {
-    let (_dir, store) = temp_store().await;
+async fn jobs_whose_lease_expired_are_failed_by_other_servers_only(store: Store) {
+    for (id, owner) in [("mine", "this-server"), ("theirs", "other-server")] {
+        let mut job = new_job(id, JobKind::Evaluation);
+        job.owner = owner.to_owned();
+        store.insert_job(job).await.unwrap();
+    }
+    store.request_cancel("theirs").await.unwrap();
+    // Both leases were last renewed a minute ago.
+    let long_ago = now_unix_ms() - 60_000;
+    assert_eq!(
+        store
+            .renew_job_leases("this-server", long_ago)
+            .await
+            .unwrap(),
+        vec![("mine".to_owned(), false)]
+    );
+    assert_eq!(
+        store
+            .renew_job_leases("other-server", long_ago)
+            .await
+            .unwrap(),
+        vec![("theirs".to_owned(), true)],
+        "the owner learns of a cancellation requested anywhere"
+    );
+
+    let cutoff = now_unix_ms() - 30_000;
+    let reason = "gone";
+    let failed = store.fail_abandoned_jobs(reason, "this-server", false, cutoff);
+    assert_eq!(failed.await.unwrap(), 1);
+    let theirs = store.get_job("theirs").await.unwrap().expect("kept");
+    assert_eq!(
+        (theirs.state, theirs.error_code),
+        (JobState::Failed, Some(10))
+    );
+    let mine = store.get_job("mine").await.unwrap().expect("kept");
+    assert_eq!(
+        mine.state,
+        JobState::Queued,
+        "a server never fails its own live jobs"
+    );
+    assert_eq!(
+        store
+            .renew_job_leases("other-server", now_unix_ms())
+            .await
+            .unwrap(),
+        vec![],
+        "a failed job is no longer the owner's"
+    );
+
+    // A renewed lease protects a job from everyone else.
+    store
+        .renew_job_leases("this-server", now_unix_ms())
+        .await
+        .unwrap();
+    let failed = store.fail_abandoned_jobs(reason, "other-server", false, cutoff);
+    assert_eq!(failed.await.unwrap(), 0);
+}
+
+async fn list_jobs_filters_by_kind_and_done_and_pages_newest_first(store: Store) {
     let jobs = [
         ("t1", JobKind::Training, 10),
         ("e1", JobKind::Evaluation, 20),
@@ -456,3 +513,17 @@ async fn list_jobs_filters_by_kind_and_done_and_pages_newest_first() {
         Err(StoreError::InvalidPageToken)
     ));
 }
+
+on_both_backends!(
+    insert_then_get_round_trips_a_queued_job,
+    duplicate_job_id_is_refused,
+    job_runs_records_epochs_and_succeeds_once,
+    mark_running_twice_is_refused,
+    failed_and_cancelled_outcomes_record_code_and_message,
+    unknown_job_operations_are_not_found,
+    epochs_need_a_running_job_unique_numbers_and_finite_values,
+    unfinished_jobs_cannot_be_deleted_and_finished_ones_cascade,
+    a_restart_fails_its_own_and_ownerless_jobs_but_not_live_replicas_ones,
+    jobs_whose_lease_expired_are_failed_by_other_servers_only,
+    list_jobs_filters_by_kind_and_done_and_pages_newest_first,
+);

@@ -1,10 +1,44 @@
-//! Store tests: every query against real, tempfile-backed SQLite databases.
+//! Store tests: every query against a real, tempfile-backed SQLite database and, when
+//! `SPOOFWATCH_TEST_POSTGRES_URL` names a server, against a fresh PostgreSQL database too
+//! ([`on_both_backends!`]); tests of SQLite's own faults and files run on SQLite only.
+
+/// For each named `async fn(Store)`, a module of two tests: `sqlite` on a fresh database file and
+/// `postgres` on a fresh PostgreSQL database (skipped, or failed under
+/// `SPOOFWATCH_REQUIRE_POSTGRES=1`, without a server: see `store::test_database`).
+macro_rules! on_both_backends {
+    ($($test:ident),+ $(,)?) => {
+        $(
+            mod $test {
+                #[tokio::test]
+                async fn sqlite() {
+                    let (_dir, store) = $crate::store::tests::temp_store().await;
+                    super::$test(store).await;
+                }
+
+                #[tokio::test]
+                async fn postgres() {
+                    use $crate::store::test_database::TestDatabase;
+                    let Some(database) = TestDatabase::create(stringify!($test)).await else {
+                        return;
+                    };
+                    let store = $crate::store::Store::open(&database.url)
+                        .await
+                        .expect("open the PostgreSQL test database");
+                    super::$test(store.clone()).await;
+                    store.close().await;
+                    database.drop_database().await;
+                }
+            }
+        )+
+    };
+}
 
 mod alarms;
 mod connection;
 mod datasets;
 mod jobs;
 mod models;
+mod postgres;
 
 use serde_json::json;
 use tempfile::TempDir;
@@ -12,7 +46,7 @@ use tempfile::TempDir;
 use super::{JobKind, ModelSource, NewDataset, NewJob, NewModel, Store};
 
 /// A fresh, migrated database file in its own temporary directory (kept alive by the returned guard).
-async fn temp_store() -> (TempDir, Store) {
+pub(super) async fn temp_store() -> (TempDir, Store) {
     let dir = tempfile::tempdir().expect("create temp dir");
     let store = Store::open(&db_path(&dir)).await.expect("open store");
     (dir, store)
@@ -63,6 +97,7 @@ fn new_job(id: &str, kind: JobKind) -> NewJob {
         kind,
         request: json!({"dataset": "d1", "epochs": 5}),
         metadata: json!({"epoch": 0}),
+        owner: "this-server".to_owned(),
     }
 }
 
@@ -78,8 +113,5 @@ async fn count_rows(store: &Store, table: &'static str) -> i64 {
         "alarm_events" => "SELECT COUNT(*) FROM alarm_events",
         other => panic!("unknown table {other}"),
     };
-    sqlx::query_scalar::<_, i64>(sql)
-        .fetch_one(&store.pool)
-        .await
-        .expect("count rows")
+    store.scalar_for_test(sql).await
 }

@@ -2,12 +2,10 @@
 
 use serde_json::json;
 
-use super::{count_rows, new_model, temp_store};
-use crate::store::{ModelSource, PageRequest, StoreError};
+use super::{count_rows, new_model};
+use crate::store::{ModelSource, PageRequest, Store, StoreError};
 
-#[tokio::test]
-async fn insert_then_get_round_trips_every_field_and_the_artifact() {
-    let (_dir, store) = temp_store().await;
+async fn insert_then_get_round_trips_every_field_and_the_artifact(store: Store) {
     let mut model = new_model("m1");
     model.source = ModelSource::Bundled;
     model.training_operation = None;
@@ -38,9 +36,7 @@ async fn insert_then_get_round_trips_every_field_and_the_artifact() {
     );
 }
 
-#[tokio::test]
-async fn insert_stamps_the_current_time() {
-    let (_dir, store) = temp_store().await;
+async fn insert_stamps_the_current_time(store: Store) {
     let before = crate::store::now_unix_ms();
     let inserted = store.insert_model(new_model("m1")).await.unwrap();
     let after = crate::store::now_unix_ms();
@@ -48,18 +44,14 @@ async fn insert_stamps_the_current_time() {
     assert_eq!(store.get_model("m1").await.unwrap(), Some(inserted));
 }
 
-#[tokio::test]
-async fn unknown_model_reads_as_none() {
-    let (_dir, store) = temp_store().await;
+async fn unknown_model_reads_as_none(store: Store) {
     assert_eq!(store.get_model("nope").await.unwrap(), None);
     assert_eq!(store.model_artifact("nope").await.unwrap(), None);
     assert_eq!(store.active_model().await.unwrap(), None);
     assert_eq!(store.model_count().await.unwrap(), 0);
 }
 
-#[tokio::test]
-async fn duplicate_model_id_is_refused_and_keeps_the_original() {
-    let (_dir, store) = temp_store().await;
+async fn duplicate_model_id_is_refused_and_keeps_the_original(store: Store) {
     store.insert_model(new_model("m1")).await.unwrap();
     let mut duplicate = new_model("m1");
     duplicate.display_name = "impostor".to_owned();
@@ -80,9 +72,7 @@ async fn duplicate_model_id_is_refused_and_keeps_the_original() {
     assert_eq!(store.model_count().await.unwrap(), 1);
 }
 
-#[tokio::test]
-async fn list_models_pages_newest_first_with_ties_broken_by_id() {
-    let (_dir, store) = temp_store().await;
+async fn list_models_pages_newest_first_with_ties_broken_by_id(store: Store) {
     for (id, created_at) in [("a", 200), ("b", 200), ("c", 300), ("d", 50), ("e", 100)] {
         store
             .insert_model_at(new_model(id), created_at)
@@ -117,9 +107,7 @@ async fn list_models_pages_newest_first_with_ties_broken_by_id() {
     );
 }
 
-#[tokio::test]
-async fn keyset_pages_skip_nothing_when_rows_change_between_pages() {
-    let (_dir, store) = temp_store().await;
+async fn keyset_pages_skip_nothing_when_rows_change_between_pages(store: Store) {
     for (id, created_at) in [("a", 100), ("b", 200), ("c", 300)] {
         store
             .insert_model_at(new_model(id), created_at)
@@ -140,9 +128,7 @@ async fn keyset_pages_skip_nothing_when_rows_change_between_pages() {
     assert_eq!(ids, ["b", "a"]);
 }
 
-#[tokio::test]
-async fn invalid_or_foreign_page_tokens_are_refused() {
-    let (_dir, store) = temp_store().await;
+async fn invalid_or_foreign_page_tokens_are_refused(store: Store) {
     for id in ["a", "b"] {
         store.insert_model(new_model(id)).await.unwrap();
         store.insert_dataset(super::new_dataset(id)).await.unwrap();
@@ -173,9 +159,7 @@ async fn invalid_or_foreign_page_tokens_are_refused() {
     assert_eq!(first.items.len(), 1);
 }
 
-#[tokio::test]
-async fn set_active_model_switches_so_exactly_one_is_active() {
-    let (_dir, store) = temp_store().await;
+async fn set_active_model_switches_so_exactly_one_is_active(store: Store) {
     for id in ["a", "b", "c"] {
         store.insert_model(new_model(id)).await.unwrap();
     }
@@ -202,15 +186,13 @@ async fn set_active_model_switches_so_exactly_one_is_active() {
     assert_eq!(active_ids(&store).await, ["b"]);
 }
 
-#[tokio::test]
-async fn schema_forbids_two_active_models_even_for_raw_updates() {
-    let (_dir, store) = temp_store().await;
+async fn schema_forbids_two_active_models_even_for_raw_updates(store: Store) {
     for id in ["a", "b"] {
         store.insert_model(new_model(id)).await.unwrap();
     }
     store.set_active_model("a").await.unwrap();
-    let raw = sqlx::query("UPDATE models SET active = 1 WHERE id = 'b'")
-        .execute(&store.pool)
+    let raw = store
+        .try_execute_for_test("UPDATE models SET active = TRUE WHERE id = 'b'")
         .await
         .unwrap_err();
     assert!(
@@ -223,9 +205,7 @@ async fn schema_forbids_two_active_models_even_for_raw_updates() {
     assert_eq!(active_ids(&store).await, ["a"]);
 }
 
-#[tokio::test]
-async fn deleting_the_active_model_is_refused_and_nothing_is_lost() {
-    let (_dir, store) = temp_store().await;
+async fn deleting_the_active_model_is_refused_and_nothing_is_lost(store: Store) {
     store.insert_model(new_model("a")).await.unwrap();
     store.set_active_model("a").await.unwrap();
 
@@ -243,9 +223,7 @@ async fn deleting_the_active_model_is_refused_and_nothing_is_lost() {
     assert_eq!(count_rows(&store, "model_artifacts").await, 1);
 }
 
-#[tokio::test]
-async fn deleting_a_model_cascades_to_its_artifact() {
-    let (_dir, store) = temp_store().await;
+async fn deleting_a_model_cascades_to_its_artifact(store: Store) {
     for id in ["a", "b"] {
         store.insert_model(new_model(id)).await.unwrap();
     }
@@ -269,9 +247,7 @@ async fn deleting_a_model_cascades_to_its_artifact() {
     assert_eq!(error.to_string(), "model 'a' not found");
 }
 
-#[tokio::test]
-async fn model_count_counts_registered_models() {
-    let (_dir, store) = temp_store().await;
+async fn model_count_counts_registered_models(store: Store) {
     for id in ["a", "b", "c"] {
         store.insert_model(new_model(id)).await.unwrap();
     }
@@ -282,8 +258,22 @@ async fn model_count_counts_registered_models() {
 
 /// Ids of every active model, straight from the table.
 async fn active_ids(store: &crate::store::Store) -> Vec<String> {
-    sqlx::query_scalar::<_, String>("SELECT id FROM models WHERE active = 1 ORDER BY id")
-        .fetch_all(&store.pool)
+    store
+        .strings_for_test("SELECT id FROM models WHERE active ORDER BY id")
         .await
-        .unwrap()
 }
+
+on_both_backends!(
+    insert_then_get_round_trips_every_field_and_the_artifact,
+    insert_stamps_the_current_time,
+    unknown_model_reads_as_none,
+    duplicate_model_id_is_refused_and_keeps_the_original,
+    list_models_pages_newest_first_with_ties_broken_by_id,
+    keyset_pages_skip_nothing_when_rows_change_between_pages,
+    invalid_or_foreign_page_tokens_are_refused,
+    set_active_model_switches_so_exactly_one_is_active,
+    schema_forbids_two_active_models_even_for_raw_updates,
+    deleting_the_active_model_is_refused_and_nothing_is_lost,
+    deleting_a_model_cascades_to_its_artifact,
+    model_count_counts_registered_models,
+);

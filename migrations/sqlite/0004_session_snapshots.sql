@@ -1,4 +1,4 @@
--- Spoofwatch schema, version 3: session snapshots, the hand-off of a vehicle's detection state between
+-- Spoofwatch schema, version 4: session snapshots, the hand-off of a vehicle's detection state between
 -- server processes (replicas, restarts). One row per vehicle: the latest snapshot its session wrote.
 -- The snapshot blob is the server's own versioned, checksummed encoding; the other columns are what
 -- the store reads without decoding it.
@@ -12,7 +12,7 @@ CREATE TABLE session_snapshots (
     last_seq       INTEGER NOT NULL CHECK (last_seq >= 0),
     -- The alarm the session holds open: it stays open across a hand-off (never closed at a start).
     open_alarm_id  INTEGER REFERENCES alarm_events (id),
-    -- The server process that wrote it (a random id per start).
+    -- The server process that wrote it (its alarm run).
     writer         TEXT    NOT NULL,
     updated_at     INTEGER NOT NULL,
     snapshot       BLOB    NOT NULL

@@ -1,0 +1,135 @@
+//! Two replicas on one PostgreSQL database: a job admitted by one is seen through the other, a
+//! replica that starts leaves the other's running job alone, and a cancellation and a wait through
+//! the other replica reach the job where it runs. Needs `SPOOFWATCH_TEST_POSTGRES_URL` (skipped
+//! without it, failed without it under `SPOOFWATCH_REQUIRE_POSTGRES=1`).
+
+use std::time::Duration;
+
+use spoofwatch_core::sample::Track;
+use spoofwatch_core::scenario::AttackKind;
+use spoofwatch_proto::longrunning::{self, operation};
+use spoofwatch_proto::v1;
+use spoofwatch_server::Config;
+use spoofwatch_server::store::test_database::TestDatabase;
+use spoofwatch_tests::{
+    Clients, TestServer, attacked_drive, metadata_of, normal_drive, training_request,
+    upload_tracks, wait_done,
+};
+use tonic::Code;
+
+/// Twenty-four 20-minute drives (about 28,800 rows), half of them attacked early, mid-way or late,
+/// so that training runs several times longer than a lease renewal (measured: about 8 s after the cancellation point here, against at most a second or two for the cancellation to arrive) and
+/// the cancellation through the other replica reaches the job while it runs (a job on the small
+/// `training_fleet` can finish first).
+fn long_training_fleet() -> Vec<Track> {
+    let ramp = AttackKind::RampDrift { velocity_mps: 1.5 };
+    (0..24u64)
+        .map(|i| {
+            let vehicle = format!("long-{i}");
+            if i % 2 == 0 {
+                normal_drive(&vehicle, 1200.0, 100 + i)
+            } else {
+                let onset = [300.0, 600.0, 880.0][(i as usize / 2) % 3];
+                attacked_drive(&vehicle, 1200.0, 100 + i, ramp, onset, 120.0)
+            }
+        })
+        .collect()
+}
+
+/// A replica named `instance` on the database at `url`.
+fn replica(url: &str, instance: &str) -> Config {
+    let mut config = Config::with_database(url);
+    config.shutdown_grace_secs = 2;
+    config.instance_id = Some(instance.to_string());
+    config
+}
+
+fn state_of(operation: &longrunning::Operation) -> v1::JobState {
+    v1::JobState::try_from(metadata_of(operation).state).expect("a known job state")
+}
+
+async fn get(clients: &mut Clients, name: &str) -> longrunning::Operation {
+    clients
+        .operations
+        .get_operation(longrunning::GetOperationRequest {
+            name: name.to_string(),
+        })
+        .await
+        .expect("GetOperation works")
+        .into_inner()
+}
+
+/// Polls until the job leaves QUEUED (bounded generously for debug builds on shared cores).
+async fn wait_until_started(clients: &mut Clients, name: &str) -> v1::JobState {
+    for _ in 0..3_000 {
+        let state = state_of(&get(clients, name).await);
+        if state != v1::JobState::Queued {
+            return state;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    panic!("{name} never started");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_on_one_replica_is_seen_cancelled_and_awaited_through_another() {
+    let Some(database) = TestDatabase::create("replicas_share_one_database").await else {
+        return;
+    };
+    let first = TestServer::start(replica(&database.url, "replica-a")).await;
+    let mut on_first = Clients::of(&first).await;
+    let dataset = upload_tracks(&mut on_first, "long fleet", &long_training_fleet()).await;
+    let job = on_first
+        .training
+        .create_training_job(training_request(&dataset.name, 200, false))
+        .await
+        .expect("the training job is accepted")
+        .into_inner();
+    assert_eq!(
+        wait_until_started(&mut on_first, &job.name).await,
+        v1::JobState::Running
+    );
+
+    // A second replica starts on the same database: the first's job keeps running, and the
+    // second sees it, alone and in listings.
+    let second = TestServer::start(replica(&database.url, "replica-b")).await;
+    let mut on_second = Clients::of(&second).await;
+    let seen = get(&mut on_second, &job.name).await;
+    assert_eq!(
+        (state_of(&seen), seen.done),
+        (v1::JobState::Running, false),
+        "starting a replica must not fail another replica's running job"
+    );
+    let listed = on_second
+        .operations
+        .list_operations(longrunning::ListOperationsRequest {
+            filter: "done=false".to_string(),
+            ..longrunning::ListOperationsRequest::default()
+        })
+        .await
+        .expect("ListOperations works")
+        .into_inner();
+    let names: Vec<_> = listed.operations.iter().map(|o| o.name.as_str()).collect();
+    assert_eq!(names, [job.name.as_str()]);
+
+    // Cancelled and awaited through the second replica; the first, which ran it, agrees.
+    on_second
+        .operations
+        .cancel_operation(longrunning::CancelOperationRequest {
+            name: job.name.clone(),
+        })
+        .await
+        .expect("CancelOperation works");
+    let cancelled = wait_done(&mut on_second.operations, &job.name).await;
+    let Some(operation::Result::Error(error)) = &cancelled.result else {
+        panic!("a cancelled operation ends with an error: {cancelled:?}");
+    };
+    assert_eq!(error.code, Code::Cancelled as i32);
+    assert_eq!(state_of(&cancelled), v1::JobState::Cancelled);
+    assert_eq!(get(&mut on_first, &job.name).await, cancelled);
+
+    drop((on_first, on_second));
+    first.stop().await;
+    second.stop().await;
+    database.drop_database().await;
+}
