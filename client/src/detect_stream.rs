@@ -19,6 +19,7 @@ use tonic::Streaming;
 
 use crate::connection::Connection;
 use crate::error::{ClientError, reply, rpc};
+use crate::routing::for_vehicle;
 
 /// Batches sent but not yet answered, by default. Without a window, "as fast as possible" would
 /// queue a whole recording in buffers and the measured latency would be mostly queueing.
@@ -88,17 +89,20 @@ pub struct DetectStream {
 }
 
 impl DetectStream {
-    /// Opens a call whose first message is `first` (normally a [`start_request`]). `Err` when the
-    /// call itself is refused; a refusal of the first message may also arrive as the first reply.
+    /// Opens a call whose first message is `first` (normally a [`start_request`], whose vehicle id
+    /// the call's `x-vehicle-id` header names). `Err` when the call itself is refused; a refusal of the first message may also arrive as the first reply.
     pub async fn open(
         connection: &Connection,
         first: v1::StreamDetectRequest,
     ) -> Result<Self, ClientError> {
-        let context = match &first.kind {
-            Some(RequestKind::Start(start)) => {
-                format!("streaming detections for {}", start.vehicle_id)
-            }
-            _ => "streaming detections".to_string(),
+        let vehicle_id = match &first.kind {
+            Some(RequestKind::Start(start)) => start.vehicle_id.clone(),
+            _ => String::new(),
+        };
+        let context = if vehicle_id.is_empty() {
+            "streaming detections".to_string()
+        } else {
+            format!("streaming detections for {vehicle_id}")
         };
         let (requests, outbound) = mpsc::channel(REQUEST_BUFFER);
         // The channel was just created with room for this message.
@@ -106,7 +110,8 @@ impl DetectStream {
             .try_send(first)
             .map_err(|_| ClientError::Protocol("request channel closed before the start".into()))?;
         let mut detection = connection.detection();
-        let opening = detection.stream_detect(ReceiverStream::new(outbound));
+        let opening =
+            detection.stream_detect(for_vehicle(&vehicle_id, ReceiverStream::new(outbound)));
         let replies = reply(context.clone(), opening).await?;
         Ok(Self {
             requests,
@@ -166,10 +171,9 @@ impl DetectStream {
     /// Sends any message as it is, without tracking a reply (e.g. to test how the server treats
     /// one). Batches should go through [`DetectStream::send_batch`].
     pub async fn send(&self, request: v1::StreamDetectRequest) -> Result<(), ClientError> {
-        self.requests
-            .send(request)
-            .await
-            .map_err(|_| ClientError::Protocol(format!("{}: the stream is closed", self.context)))
+        self.requests.send(request).await.map_err(|_| {
+            ClientError::StreamEnded(format!("{}: the stream is closed", self.context))
+        })
     }
 
     /// Sends a batch whose reply [`DetectStream::recv`] will return. Refused when the window is full.
@@ -242,7 +246,7 @@ impl DetectStream {
                 BatchOutcome::Rejected(error.status.unwrap_or_default())
             }
             None => {
-                return Err(ClientError::Protocol(format!(
+                return Err(ClientError::StreamEnded(format!(
                     "{}: the stream ended with {} batches unanswered",
                     self.context,
                     self.in_flight.len() + 1

@@ -33,6 +33,17 @@ pub enum ClientError {
     /// The server answered something the protocol does not allow (e.g. a detection count mismatch).
     #[error("protocol violation from the server: {0}")]
     Protocol(String),
+    /// A stream ended before its protocol allows (its request side closed, or it ended with OK and
+    /// batches unanswered) without a status saying why: the connection or a proxy dropped it.
+    #[error("{0}")]
+    StreamEnded(String),
+    /// A stream kept failing over (reconnecting after its server went away) until the deadline.
+    #[error("gave up failing over after {:.0} s and {attempts} attempts; last error: {last}", after.as_secs_f64())]
+    FailoverExhausted {
+        after: std::time::Duration,
+        attempts: u32,
+        last: Box<ClientError>,
+    },
     /// No reply arrived in time.
     #[error("{context}: no reply within {after:?}")]
     Timeout {

@@ -116,6 +116,8 @@ pub struct VehicleTally {
     pub streams: u32,
     /// Reconnects on which the server resumed the session.
     pub resumed_reconnects: u32,
+    /// Streams reopened after a failure (a replica went away).
+    pub failovers: u32,
     /// Steps of more than 5 s between consecutive samples.
     pub gaps: u64,
     pub false_alarms: OnsetCounts,
@@ -208,6 +210,17 @@ impl FleetTally {
                 vehicle.stream_resumed = *stream > 0 && accepted.resumed;
                 vehicle.resumed_reconnects += u32::from(vehicle.stream_resumed);
             }
+            ReplayEvent::Failover {
+                vehicle_id,
+                accepted,
+                ..
+            } => {
+                let vehicle = self.vehicle(vehicle_id);
+                vehicle.streams += 1;
+                vehicle.failovers += 1;
+                vehicle.stream_resumed = accepted.resumed;
+                vehicle.resumed_reconnects += u32::from(accepted.resumed);
+            }
             ReplayEvent::Detection(d) => self.vehicle(&d.vehicle_id).push(d),
             ReplayEvent::ItemError { .. } => {}
         }
@@ -235,6 +248,7 @@ impl FleetTally {
             summary.streams += u64::from(v.streams);
             summary.reconnects += u64::from(v.streams.saturating_sub(1));
             summary.resumed_reconnects += u64::from(v.resumed_reconnects);
+            summary.failovers += u64::from(v.failovers);
             summary.gaps += v.gaps;
             summary.false_alarms.add_all(&v.false_alarms);
             summary.session_start_onsets_on_resumed_streams += v
@@ -292,6 +306,8 @@ pub struct FleetSummary {
     pub reconnects: u64,
     /// Reconnects on which the server resumed the vehicle's session.
     pub resumed_reconnects: u64,
+    /// Streams reopened after a failure (included in `reconnects`).
+    pub failovers: u64,
     /// Steps of more than `gap_step_s` between a vehicle's consecutive samples.
     pub gaps: u64,
     /// Onsets on attack-free rows, by where they start.

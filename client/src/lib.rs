@@ -1,8 +1,10 @@
 //! Spoofwatch client library: a typed gRPC connection to the Spoofwatch service (TLS, token, gzip),
 //! retries of unary calls ([`retry`]), one client-side
-//! `StreamDetect` call ([`DetectStream`]) and one gateway `StreamDetectFleet` call
-//! ([`FleetDetectStream`]), a resumable alarm feed ([`AlarmWatch`]), replay of recorded telemetry over it and its fleet
-//! summary ([`fleet`]), and the small helpers the `spoofwatch` CLI shares between its offline and
+//! `StreamDetect` call ([`DetectStream`], routed by the `x-vehicle-id` header of [`routing`]) and
+//! one gateway `StreamDetectFleet` call
+//! ([`FleetDetectStream`]), a resumable alarm feed ([`AlarmWatch`]), replay of recorded telemetry over it
+//! (failing over to a new stream when a server goes away: [`failover`]; its final rows: [`replay_log`])
+//! and its fleet summary ([`fleet`]), and the small helpers the `spoofwatch` CLI shares between its offline and
 //! remote commands.
 //!
 //! The `spoofwatch` binary (`main.rs`) adds the clap command line on top; nothing here depends on
@@ -13,13 +15,16 @@ pub mod alarm_watch;
 pub mod connection;
 pub mod detect_stream;
 pub mod error;
+pub mod failover;
 pub mod fleet;
 pub mod fleet_stream;
 pub mod input;
 pub mod progress;
 pub mod replay;
+pub mod replay_log;
 pub mod report;
 pub mod retry;
+pub mod routing;
 pub mod synthetic;
 
 pub use alarm_watch::{AlarmWatch, WatchOptions};

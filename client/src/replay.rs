@@ -8,6 +8,13 @@
 //! resumes the vehicle's in-memory session (same detector state, `SessionAccepted.resumed`), and the
 //! replay continues with the next sample. The first stream always starts afresh (`reset: true`).
 //!
+//! Failover: a stream that fails because its server went away (a replica died or drained, a
+//! balancer cut it) is reopened with `reset: false` within [`ReplayOptions::failover_s`]. Batch seq
+//! numbers are positions in the recording, so the session's `SessionAccepted.last_seq` says exactly
+//! what to resend; a session that was not resumed (a replica that never had it) is started over
+//! with `reset: true` and the whole recording resent, which yields the same detections as the
+//! first time. Resent detections replace the earlier ones ([`crate::replay_log`]).
+//!
 //! The server sees only timestamps: it cannot see a recording's own trajectory breaks, and it rejects
 //! time going backwards. [`replay_timestamps`] therefore shifts later timestamps so that each break
 //! becomes a 10 s forward gap, which makes the server start a new trajectory exactly where offline
@@ -27,6 +34,7 @@ use tokio::sync::mpsc;
 use crate::connection::Connection;
 use crate::detect_stream::{BatchOutcome, DetectStream};
 use crate::error::ClientError;
+use crate::failover::{DEFAULT_FAILOVER_S, FailoverEpisode};
 
 /// The forward gap (s) a recorded trajectory break becomes in a replay; anything above the 5 s
 /// gap rule of SPEC §3 starts a new trajectory on the server.
@@ -112,6 +120,9 @@ pub struct ReplayOptions {
     pub reconnect_every_s: f64,
     /// Seed of the per-vehicle jitter of reconnect times.
     pub reconnect_seed: u64,
+    /// After a stream fails because its server went away, keep reconnecting (with backoff) for
+    /// up to this many seconds, then resend what the server has not seen; 0 = fail at once.
+    pub failover_s: f64,
 }
 
 impl Default for ReplayOptions {
@@ -122,6 +133,7 @@ impl Default for ReplayOptions {
             model: String::new(),
             reconnect_every_s: 0.0,
             reconnect_seed: 1,
+            failover_s: DEFAULT_FAILOVER_S,
         }
     }
 }
@@ -153,6 +165,15 @@ impl ReplayOptions {
                 reason: format!(
                     "must be a finite, non-negative time in seconds, got {}",
                     self.reconnect_every_s
+                ),
+            });
+        }
+        if !(self.failover_s.is_finite() && self.failover_s >= 0.0) {
+            return Err(ClientError::InvalidOption {
+                option: "failover-secs",
+                reason: format!(
+                    "must be a finite, non-negative time in seconds, got {}",
+                    self.failover_s
                 ),
             });
         }
@@ -231,12 +252,26 @@ pub enum ReplayEvent {
         stream: u32,
         accepted: v1::SessionAccepted,
     },
+    /// A stream failed (its server went away) and a new one was accepted: the detections that
+    /// follow, from record `resend_from` on, replace any received before for those records.
+    Failover {
+        vehicle_id: String,
+        /// Which of the vehicle's streams (counting every stream opened).
+        stream: u32,
+        /// The reconnect's answer: `resumed` with `last_seq`, or a session started afresh (then
+        /// the whole recording is resent, on a `reset: true` session).
+        accepted: v1::SessionAccepted,
+        /// Index of the first record resent.
+        resend_from: usize,
+    },
     /// One sample's detection, in sample order.
     Detection(ReplayedDetection),
     /// The server rejected a batch (its samples get no detection; the stream goes on).
     ItemError {
         vehicle_id: String,
         seq: u64,
+        /// Index of the batch's first record.
+        index: usize,
         /// Lines of the batch's first and last record.
         lines: (u64, u64),
         status: tonic_types::Status,
@@ -248,18 +283,21 @@ pub enum ReplayEvent {
 pub struct ReplaySummary {
     /// The vehicle id sent to the server.
     pub vehicle_id: String,
-    /// Samples sent.
+    /// Samples in the recording.
     pub samples_sent: u64,
-    /// Detections received.
+    /// Detections in the final output (one per sample of every batch not rejected; resent
+    /// batches count once).
     pub detections: u64,
     /// Batches rejected with an ItemError.
     pub rejected_batches: u64,
-    /// Confirmed alarm onsets.
+    /// Confirmed alarm onsets in the final output.
     pub alarm_onsets: u64,
-    /// Streams opened (1 + reconnects).
+    /// Streams opened (1 + reconnects, failovers included).
     pub streams: u32,
     /// Reconnects the server answered by resuming the session (`SessionAccepted.resumed`).
     pub resumed_reconnects: u32,
+    /// Streams reopened after a failure (each a [`ReplayEvent::Failover`]).
+    pub failovers: u32,
     /// Round trip of each answered batch (sent → its reply).
     pub batch_latencies: Vec<Duration>,
 }
@@ -280,11 +318,34 @@ impl ReplaySummary {
     }
 }
 
-/// A batch ready to send, with the index of its first record.
+/// A batch ready to send, with the index of its first record. Its seq is its position in the
+/// recording's batches plus one, so a session's `last_seq` says exactly which batches it has seen.
 #[derive(Clone, Debug)]
 struct PlannedBatch {
     first_index: usize,
+    /// A planned reconnect opens a new stream with this batch.
+    opens_stream: bool,
     batch: v1::SampleBatch,
+}
+
+/// What the server answered to one batch, kept until the summary (a failover may redo it).
+#[derive(Clone, Copy, Debug)]
+struct BatchResult {
+    detections: u64,
+    alarm_onsets: u64,
+    rejected: bool,
+}
+
+/// How the next stream of a vehicle starts.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Opening {
+    /// The replay's first stream: `reset: true`.
+    First,
+    /// A planned reconnect ([`ReplayOptions::reconnect_every_s`]): `reset: false`, go on.
+    Planned,
+    /// After a failure: `reset: false`, then resend from the session's `last_seq` (or from the
+    /// start with `reset: true` when the session was not resumed).
+    Failover,
 }
 
 /// Replays one track: its records with [`replay_timestamps`], in batches of `options.batch_size`
@@ -292,6 +353,12 @@ struct PlannedBatch {
 /// unanswered), over one `StreamDetect` call per [`stream_starts`] segment. The first call sends
 /// `SessionStart{reset: true}`, every reconnect `reset: false`; each call is finished (all its
 /// batches answered) before the next opens. Every reply is forwarded to `events` as it arrives.
+///
+/// A stream that fails because its server went away ([`crate::failover::is_failover_error`]) is
+/// reopened with backoff for up to `options.failover_s`: resumed, the batches after the session's
+/// `last_seq` are resent; not resumed (a replica without the session), the whole recording is
+/// resent on a `reset: true` session. A [`ReplayEvent::Failover`] says from which record on the
+/// detections that follow replace those received before (see [`crate::replay_log::ReplayLog`]).
 pub async fn replay_track(
     connection: &Connection,
     track: &Track,
@@ -303,39 +370,285 @@ pub async fn replay_track(
     let timestamps = replay_timestamps(&track.records);
     let mut rng = reconnect_rng(options.reconnect_seed, &vehicle_id);
     let starts = stream_starts(&timestamps, options.reconnect_every_s, &mut rng);
-    let plan = plan_streams(&track.records, &timestamps, options.batch_size, &starts);
-    let mut summary = ReplaySummary {
-        vehicle_id: vehicle_id.clone(),
-        samples_sent: track.records.len() as u64,
-        ..ReplaySummary::default()
+    let plan: Vec<PlannedBatch> =
+        plan_streams(&track.records, &timestamps, options.batch_size, &starts)
+            .into_iter()
+            .flatten()
+            .collect();
+    let replay = VehicleReplay {
+        track,
+        results: vec![None; plan.len()],
+        plan,
+        summary: ReplaySummary {
+            vehicle_id: vehicle_id.clone(),
+            samples_sent: track.records.len() as u64,
+            ..ReplaySummary::default()
+        },
+        vehicle_id,
+        options,
+        events,
+        pacer: Pacer::new(options),
+        streams_opened: 0,
     };
-    let mut pacer = Pacer::new(options);
-    for (stream_number, batches) in (0_u32..).zip(plan) {
-        let reset = stream_number == 0;
-        let (stream, accepted) =
-            DetectStream::start(connection, &vehicle_id, &options.model, reset).await?;
-        summary.streams += 1;
-        if !reset && accepted.resumed {
-            summary.resumed_reconnects += 1;
+    replay.run(connection).await
+}
+
+/// One vehicle's replay in progress.
+struct VehicleReplay<'a> {
+    track: &'a Track,
+    vehicle_id: String,
+    options: &'a ReplayOptions,
+    events: mpsc::Sender<ReplayEvent>,
+    plan: Vec<PlannedBatch>,
+    /// The latest answer to each planned batch.
+    results: Vec<Option<BatchResult>>,
+    summary: ReplaySummary,
+    pacer: Pacer,
+    streams_opened: u32,
+}
+
+impl VehicleReplay<'_> {
+    /// Streams every planned batch, failing over when a stream's server goes away.
+    async fn run(mut self, connection: &Connection) -> Result<ReplaySummary, ClientError> {
+        let failover_total = Duration::from_secs_f64(self.options.failover_s);
+        let mut opening = Opening::First;
+        let mut position = 0;
+        // Set while streams keep failing without an answer; cleared by progress.
+        let mut episode: Option<FailoverEpisode> = None;
+        loop {
+            let stream = match self.open(connection, opening, &mut position).await {
+                Ok(stream) => stream,
+                Err(error) => {
+                    Self::fail_over(&mut episode, failover_total, error).await?;
+                    continue;
+                }
+            };
+            let end = self.segment_end(position);
+            let mut answered = 0;
+            let outcome = self
+                .stream_batches(stream, position, end, &mut answered)
+                .await;
+            if answered > 0 {
+                episode = None;
+            }
+            match outcome {
+                Ok(()) if end == self.plan.len() => break,
+                Ok(()) => {
+                    position = end;
+                    opening = Opening::Planned;
+                }
+                Err(error) => {
+                    Self::fail_over(&mut episode, failover_total, error).await?;
+                    opening = Opening::Failover;
+                }
+            }
         }
-        let _ = events
-            .send(ReplayEvent::Accepted {
-                vehicle_id: vehicle_id.clone(),
-                stream: stream_number,
-                accepted,
-            })
-            .await;
-        let on_stream = StreamReplay {
-            track,
-            vehicle_id: &vehicle_id,
-            stream_number,
-            events: &events,
-        };
-        on_stream
-            .run(stream, batches, &mut pacer, &mut summary)
-            .await?;
+        for result in self.results.iter().flatten() {
+            self.summary.detections += result.detections;
+            self.summary.alarm_onsets += result.alarm_onsets;
+            self.summary.rejected_batches += u64::from(result.rejected);
+        }
+        Ok(self.summary)
     }
-    Ok(summary)
+
+    /// Waits before the next attempt after `error`, or returns it when it is final (failover off,
+    /// not a lost server, or past the deadline).
+    async fn fail_over(
+        episode: &mut Option<FailoverEpisode>,
+        total: Duration,
+        error: ClientError,
+    ) -> Result<(), ClientError> {
+        if total.is_zero() {
+            return Err(error);
+        }
+        episode
+            .get_or_insert_with(|| FailoverEpisode::new(total))
+            .wait_before_retry(error)
+            .await
+    }
+
+    /// The batch after the last one of the stream that starts at `position`.
+    fn segment_end(&self, position: usize) -> usize {
+        (position + 1..self.plan.len())
+            .find(|&k| self.plan[k].opens_stream)
+            .unwrap_or(self.plan.len())
+    }
+
+    /// The record a replay resumed at batch `position` resends from.
+    fn first_index_of(&self, position: usize) -> usize {
+        self.plan
+            .get(position)
+            .map_or(self.track.records.len(), |b| b.first_index)
+    }
+
+    /// Opens the next stream and reports it; after a failure, moves `position` to the first batch
+    /// the server has not seen (see [`Opening::Failover`]).
+    async fn open(
+        &mut self,
+        connection: &Connection,
+        opening: Opening,
+        position: &mut usize,
+    ) -> Result<DetectStream, ClientError> {
+        let reset = opening == Opening::First;
+        let model = &self.options.model;
+        let (stream, accepted) =
+            DetectStream::start(connection, &self.vehicle_id, model, reset).await?;
+        let stream_number = self.streams_opened;
+        let event = match opening {
+            Opening::First | Opening::Planned => {
+                self.summary.resumed_reconnects += u32::from(!reset && accepted.resumed);
+                (
+                    stream,
+                    ReplayEvent::Accepted {
+                        vehicle_id: self.vehicle_id.clone(),
+                        stream: stream_number,
+                        accepted,
+                    },
+                )
+            }
+            Opening::Failover => {
+                // A session that kept its state: exactly the batches after its last_seq are missing.
+                let resumable =
+                    accepted.resumed && (accepted.last_seq > 0 || accepted.samples_seen == 0);
+                let stream = if resumable {
+                    let last_seq = usize::try_from(accepted.last_seq).unwrap_or(usize::MAX);
+                    if last_seq > self.plan.len() {
+                        return Err(ClientError::Protocol(format!(
+                            "the session of {} reports last_seq {last_seq}, beyond this recording's {} batches",
+                            self.vehicle_id,
+                            self.plan.len()
+                        )));
+                    }
+                    self.summary.resumed_reconnects += 1;
+                    *position = last_seq;
+                    stream
+                } else {
+                    // A replica without the session: start the vehicle over, exactly as the first
+                    // stream did (once sessions are handed over, this happens only when none was).
+                    stream.finish().await?;
+                    let (fresh, _) =
+                        DetectStream::start(connection, &self.vehicle_id, model, true).await?;
+                    *position = 0;
+                    fresh
+                };
+                self.summary.failovers += 1;
+                for result in &mut self.results[*position..] {
+                    *result = None;
+                }
+                let resend_from = self.first_index_of(*position);
+                (
+                    stream,
+                    ReplayEvent::Failover {
+                        vehicle_id: self.vehicle_id.clone(),
+                        stream: stream_number,
+                        accepted,
+                        resend_from,
+                    },
+                )
+            }
+        };
+        let (stream, event) = event;
+        self.streams_opened += 1;
+        self.summary.streams += 1;
+        let _ = self.events.send(event).await;
+        Ok(stream)
+    }
+
+    /// Sends batches `from..to` on `stream`, forwards every reply, then finishes the call;
+    /// `answered` counts the replies received (also when the stream fails).
+    async fn stream_batches(
+        &mut self,
+        mut stream: DetectStream,
+        from: usize,
+        to: usize,
+        answered: &mut usize,
+    ) -> Result<(), ClientError> {
+        let stream_number = self.streams_opened - 1;
+        // Replies come in order: the positions of the batches awaiting one, oldest first.
+        let mut awaiting: VecDeque<usize> = VecDeque::new();
+        let mut next = from;
+        let mut first_on_stream = true;
+        loop {
+            let can_send = next < to && stream.has_room();
+            let waiting = stream.in_flight() > 0;
+            if !can_send && !waiting {
+                break;
+            }
+            tokio::select! {
+                // A reply that is already there is taken before more is sent, so latencies stay true.
+                biased;
+                reply = stream.recv(), if waiting => {
+                    let reply = reply?;
+                    *answered += 1;
+                    self.summary.batch_latencies.push(reply.latency);
+                    let position = awaiting.pop_front().ok_or_else(|| {
+                        ClientError::Protocol("a reply to a batch that was never sent".into())
+                    })?;
+                    let first_index = self.plan[position].first_index;
+                    let mut result = BatchResult { detections: 0, alarm_onsets: 0, rejected: false };
+                    match reply.outcome {
+                        BatchOutcome::Detections(detections) => {
+                            for (offset, detection) in detections.into_iter().enumerate() {
+                                result.detections += 1;
+                                result.alarm_onsets += u64::from(detection.alarm_onset);
+                                self.forward(first_index + offset, stream_number, first_on_stream, detection)
+                                    .await;
+                                first_on_stream = false;
+                            }
+                        }
+                        BatchOutcome::Rejected(status) => {
+                            result.rejected = true;
+                            let first = &self.track.records[first_index];
+                            let last = &self.track.records[first_index + reply.batch.len - 1];
+                            let _ = self
+                                .events
+                                .send(ReplayEvent::ItemError {
+                                    vehicle_id: self.vehicle_id.clone(),
+                                    seq: reply.batch.seq,
+                                    index: first_index,
+                                    lines: (first.line, last.line),
+                                    status,
+                                })
+                                .await;
+                        }
+                    }
+                    self.results[position] = Some(result);
+                }
+                () = tokio::time::sleep_until(self.pacer.next_send_at()), if can_send => {
+                    let planned = &self.plan[next];
+                    stream.send_batch(planned.batch.seq, planned.batch.samples.clone()).await?;
+                    awaiting.push_back(next);
+                    self.pacer.sent += 1;
+                    next += 1;
+                }
+            }
+        }
+        stream.finish().await
+    }
+
+    /// Sends the detection of record `index` to the events.
+    async fn forward(
+        &self,
+        index: usize,
+        stream: u32,
+        first_on_stream: bool,
+        detection: v1::Detection,
+    ) {
+        let record = &self.track.records[index];
+        let _ = self
+            .events
+            .send(ReplayEvent::Detection(ReplayedDetection {
+                vehicle_id: self.vehicle_id.clone(),
+                index,
+                line: record.line,
+                recorded_timestamp_s: record.sample.timestamp_s,
+                label: record.label,
+                stream,
+                first_on_stream,
+                detection,
+            }))
+            .await;
+    }
 }
 
 /// When batch k of a vehicle may leave: at k × pace from the replay's start, or at once.
@@ -360,104 +673,9 @@ impl Pacer {
     }
 }
 
-/// One stream of a vehicle's replay: where its replies go.
-struct StreamReplay<'a> {
-    track: &'a Track,
-    vehicle_id: &'a str,
-    stream_number: u32,
-    events: &'a mpsc::Sender<ReplayEvent>,
-}
-
-impl StreamReplay<'_> {
-    /// Sends `batches` on `stream`, forwards every reply, then finishes the call.
-    async fn run(
-        &self,
-        mut stream: DetectStream,
-        batches: Vec<PlannedBatch>,
-        pacer: &mut Pacer,
-        summary: &mut ReplaySummary,
-    ) -> Result<(), ClientError> {
-        // Replies come in order: the first indices of the batches awaiting one, oldest first.
-        let mut awaiting_first_index: VecDeque<usize> = VecDeque::new();
-        let mut batches = batches.into_iter();
-        let mut next_batch = batches.next();
-        let mut first_on_stream = true;
-        loop {
-            let can_send = next_batch.is_some() && stream.has_room();
-            let awaiting = stream.in_flight() > 0;
-            if !can_send && !awaiting {
-                break;
-            }
-            tokio::select! {
-                // A reply that is already there is taken before more is sent, so latencies stay true.
-                biased;
-                reply = stream.recv(), if awaiting => {
-                    let reply = reply?;
-                    summary.batch_latencies.push(reply.latency);
-                    let first_index = awaiting_first_index.pop_front().ok_or_else(|| {
-                        ClientError::Protocol("a reply to a batch that was never sent".into())
-                    })?;
-                    match reply.outcome {
-                        BatchOutcome::Detections(detections) => {
-                            for (offset, detection) in detections.into_iter().enumerate() {
-                                summary.detections += 1;
-                                summary.alarm_onsets += u64::from(detection.alarm_onset);
-                                self.forward(first_index + offset, first_on_stream, detection)
-                                    .await;
-                                first_on_stream = false;
-                            }
-                        }
-                        BatchOutcome::Rejected(status) => {
-                            summary.rejected_batches += 1;
-                            let first = &self.track.records[first_index];
-                            let last = &self.track.records[first_index + reply.batch.len - 1];
-                            let _ = self
-                                .events
-                                .send(ReplayEvent::ItemError {
-                                    vehicle_id: self.vehicle_id.to_string(),
-                                    seq: reply.batch.seq,
-                                    lines: (first.line, last.line),
-                                    status,
-                                })
-                                .await;
-                        }
-                    }
-                }
-                () = tokio::time::sleep_until(pacer.next_send_at()), if can_send => {
-                    if let Some(planned) = next_batch.take() {
-                        stream.send_batch(planned.batch.seq, planned.batch.samples).await?;
-                        awaiting_first_index.push_back(planned.first_index);
-                        pacer.sent += 1;
-                        next_batch = batches.next();
-                    }
-                }
-            }
-        }
-        stream.finish().await
-    }
-
-    /// Sends the detection of record `index` to the events.
-    async fn forward(&self, index: usize, first_on_stream: bool, detection: v1::Detection) {
-        let record = &self.track.records[index];
-        let _ = self
-            .events
-            .send(ReplayEvent::Detection(ReplayedDetection {
-                vehicle_id: self.vehicle_id.to_string(),
-                index,
-                line: record.line,
-                recorded_timestamp_s: record.sample.timestamp_s,
-                label: record.label,
-                stream: self.stream_number,
-                first_on_stream,
-                detection,
-            }))
-            .await;
-    }
-}
-
 /// The batches of each stream: the records from one stream start to the next, in batches of at
 /// most `batch_size` that never span a stream start; seq counts from 1 across all streams (a
-/// resumed session keeps its last seq).
+/// resumed session keeps its last seq), so seq − 1 is a batch's position in the whole recording.
 fn plan_streams(
     records: &[Record],
     timestamps: &[f64],
@@ -486,6 +704,7 @@ fn plan_streams(
                         .collect();
                     PlannedBatch {
                         first_index,
+                        opens_stream: first_index == start,
                         batch: v1::SampleBatch { seq, samples },
                     }
                 })

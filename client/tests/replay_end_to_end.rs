@@ -65,6 +65,7 @@ async fn every_sample_gets_one_detection_in_order_and_breaks_start_trajectories(
                 detections[vehicle].push(d);
             }
             ReplayEvent::ItemError { status, .. } => panic!("rejected batch: {status:?}"),
+            ReplayEvent::Failover { .. } => panic!("no server went away"),
         }
     }
     let summaries = replay.await.expect("replay task");
@@ -140,6 +141,7 @@ async fn a_bad_sample_is_an_item_error_and_the_stream_goes_on() {
             } => item_errors.push((seq, lines, status)),
             ReplayEvent::Detection(_) => detected += 1,
             ReplayEvent::Accepted { .. } => {}
+            ReplayEvent::Failover { .. } => panic!("no server went away"),
         }
     }
     let summary = replay.await.expect("task").remove(0).expect("stream ok");
@@ -239,6 +241,7 @@ async fn a_reconnecting_vehicle_resumes_its_session_and_gets_the_same_detections
                 detections.push(d);
             }
             ReplayEvent::ItemError { status, .. } => panic!("rejected batch: {status:?}"),
+            ReplayEvent::Failover { .. } => panic!("no server went away"),
         }
     }
     assert_eq!(streams_accepted, (0..summary.streams).collect::<Vec<u32>>());

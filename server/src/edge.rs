@@ -1,10 +1,12 @@
-//! Request decoding shared by the gRPC service impls (the edge): resource names and paging fields
-//! turned into validated domain values, with field-level INVALID_ARGUMENT errors. Owns no logic and
-//! touches no storage.
+//! Request decoding shared by the gRPC service impls (the edge): resource names, paging fields and
+//! the `x-vehicle-id` routing header turned into validated domain values, with field-level
+//! INVALID_ARGUMENT errors. Owns no logic and touches no storage.
 
 use spoofwatch_proto::wire::limits::MAX_DISPLAY_NAME_CHARS;
+use spoofwatch_proto::wire::routing::VEHICLE_ID_HEADER;
 use spoofwatch_proto::wire::{DatasetName, ModelName, NameError, OperationName};
 use tonic::Status;
+use tonic::metadata::MetadataMap;
 
 use crate::status::invalid_field;
 use crate::store::PageRequest;
@@ -66,4 +68,81 @@ pub fn page_request(size: i32, token: &str) -> Result<PageRequest, Status> {
         page_size,
         page_token: (!token.is_empty()).then(|| token.to_string()),
     })
+}
+
+/// The vehicle a per-vehicle call was routed by: its `x-vehicle-id` header values (usually one; none
+/// when the client talks to one server directly). A value that is not printable ASCII is refused.
+pub fn routed_vehicle_ids(metadata: &MetadataMap) -> Result<Vec<String>, Status> {
+    metadata
+        .get_all(VEHICLE_ID_HEADER)
+        .iter()
+        .map(|value| {
+            value.to_str().map(str::to_string).map_err(|_| {
+                invalid_field(
+                    format!("{VEHICLE_ID_HEADER} header"),
+                    "must be printable ASCII (the vehicle id)",
+                )
+            })
+        })
+        .collect()
+}
+
+/// Checks that the `x-vehicle-id` header values (see [`routed_vehicle_ids`]) name `vehicle_id`, the
+/// message's `field`. A balancer hashes on the header: a different id would pin this vehicle's
+/// session to another vehicle's replica, where its next stream would not find it.
+pub fn check_routed_vehicle(
+    routed: &[String],
+    field: &str,
+    vehicle_id: &str,
+) -> Result<(), Status> {
+    match routed.iter().find(|routed| routed.as_str() != vehicle_id) {
+        None => Ok(()),
+        Some(routed) => Err(invalid_field(
+            field,
+            format!(
+                "{vehicle_id:?} differs from the {VEHICLE_ID_HEADER} header {routed:?} the call was \
+                 routed by; send the same vehicle id in both"
+            ),
+        )),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn metadata(values: &[&str]) -> MetadataMap {
+        let mut metadata = MetadataMap::new();
+        for value in values {
+            metadata.append(
+                VEHICLE_ID_HEADER,
+                value.parse().expect("an ASCII metadata value"),
+            );
+        }
+        metadata
+    }
+
+    #[test]
+    fn an_absent_or_matching_header_passes() {
+        let none = routed_vehicle_ids(&metadata(&[])).expect("no header");
+        assert!(none.is_empty());
+        check_routed_vehicle(&none, "start.vehicle_id", "car-1").expect("absent is fine");
+        let same = routed_vehicle_ids(&metadata(&["car-1"])).expect("one header");
+        check_routed_vehicle(&same, "start.vehicle_id", "car-1").expect("the same vehicle");
+    }
+
+    #[test]
+    fn a_header_naming_another_vehicle_is_refused_naming_the_field_and_the_header() {
+        let routed = routed_vehicle_ids(&metadata(&["car-1", "car-2"])).expect("two headers");
+        let status = check_routed_vehicle(&routed, "start.vehicle_id", "car-1")
+            .expect_err("one header names another vehicle");
+        assert_eq!(status.code(), tonic::Code::InvalidArgument);
+        assert!(
+            status.message().starts_with(
+                "start.vehicle_id: \"car-1\" differs from the x-vehicle-id header \"car-2\""
+            ),
+            "{}",
+            status.message()
+        );
+    }
 }

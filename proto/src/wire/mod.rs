@@ -4,6 +4,7 @@
 //! - [`convert`]: core types (samples, decisions, metrics, operating points) to and from messages.
 //! - [`names`]: resource names (`models/{id}`, `datasets/{id}`, `operations/{id}`) as newtypes.
 //! - [`limits`]: the bounds both the server's validation and well-behaved clients respect.
+//! - [`routing`]: the `x-vehicle-id` metadata a load balancer hashes on.
 //!
 //! It owns no behaviour of its own: no I/O, no validation policy beyond the shared limits, and it must
 //! not depend on the server or the client (both depend on it).
@@ -11,5 +12,6 @@
 pub mod convert;
 pub mod limits;
 pub mod names;
+pub mod routing;
 
 pub use names::{DatasetName, ModelName, NameError, OperationName};

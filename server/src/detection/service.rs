@@ -1,7 +1,8 @@
 //! The DetectionService RPCs: the edge between the wire and the [`SessionManager`]. Validates
 //! vehicle ids and paging, converts wire samples to core samples and decisions back to wire
 //! detections, and maps [`super::SessionError`] once (through `crate::error`); it must not hold
-//! session state. Each StreamDetect and StreamDetectFleet call runs in its own task that reads the
+//! session state. Per-vehicle calls may carry the `x-vehicle-id` routing header
+//! ([`crate::edge::routed_vehicle_ids`]); it must name the message's vehicle. Each StreamDetect and StreamDetectFleet call runs in its own task that reads the
 //! inbound stream and writes replies into a small bounded channel: a slow client fills only its own
 //! channel, which pauses only its own task. Each batch, scored or refused, is counted here for the
 //! metrics (`crate::telemetry`), once per batch.
@@ -23,7 +24,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use super::sessions::{Decisions, SNAPSHOT_WAIT, SessionError, SessionManager, SessionSummary};
 use super::validate::vehicle_id_violation;
-use crate::edge::{model_name, optional_model_name};
+use crate::edge::{check_routed_vehicle, model_name, optional_model_name, routed_vehicle_ids};
 use crate::idle::StreamIdle;
 use crate::status::{invalid_field, shutting_down, to_rpc_status};
 use crate::telemetry::{self, Rpc};
@@ -103,13 +104,14 @@ fn item_error(seq: u64, status: &Status) -> Reply {
     }))
 }
 
-/// Drives one StreamDetect call to its end.
+/// Drives one StreamDetect call to its end; `routed` are the call's `x-vehicle-id` header values.
 async fn run_stream(
     sessions: Arc<SessionManager>,
     shutdown: CancellationToken,
     mut inbound: Streaming<v1::StreamDetectRequest>,
     tx: mpsc::Sender<Reply>,
     idle: StreamIdle,
+    routed: Vec<String>,
 ) {
     let first = tokio::select! {
         _ = shutdown.cancelled() => Err(shutting_down()),
@@ -137,6 +139,7 @@ async fn run_stream(
     };
     let attached = async {
         let vehicle = vehicle_id("start.vehicle_id", &start.vehicle_id)?;
+        check_routed_vehicle(&routed, "start.vehicle_id", vehicle)?;
         let model = optional_model_name("start.model", &start.model)?;
         Ok::<_, Status>(
             sessions
@@ -465,15 +468,22 @@ impl DetectionApi {
     }
 
     /// One Detect call: the request's samples and their decisions, or its refusal.
-    async fn detect_once(&self, r: v1::DetectRequest) -> Result<(Vec<Sample>, Decisions), Status> {
+    async fn detect_once(
+        &self,
+        request: Request<v1::DetectRequest>,
+    ) -> Result<(Vec<Sample>, Decisions), Status> {
         if self.shutdown.is_cancelled() {
             return Err(shutting_down());
         }
+        let routed = routed_vehicle_ids(request.metadata())?;
+        let r = request.into_inner();
         let vehicle = if r.vehicle_id.is_empty() {
             None
         } else {
             Some(vehicle_id("vehicle_id", &r.vehicle_id)?)
         };
+        // A stateless call (no vehicle id) routed as a vehicle's is a mismatch too.
+        check_routed_vehicle(&routed, "vehicle_id", vehicle.unwrap_or_default())?;
         let model = optional_model_name("model", &r.model)?;
         let samples = samples_from_proto(&r.samples);
         let decisions = match vehicle {
@@ -508,7 +518,13 @@ impl DetectionService for DetectionApi {
         &self,
         request: Request<Streaming<v1::StreamDetectRequest>>,
     ) -> Result<Response<Self::StreamDetectStream>, Status> {
-        self.spawn_call(request.into_inner(), run_stream)
+        let routed = routed_vehicle_ids(request.metadata())?;
+        self.spawn_call(
+            request.into_inner(),
+            |sessions, shutdown, inbound, tx, idle| {
+                run_stream(sessions, shutdown, inbound, tx, idle, routed)
+            },
+        )
     }
 
     async fn detect(
@@ -517,7 +533,7 @@ impl DetectionService for DetectionApi {
     ) -> Result<Response<v1::DetectResponse>, Status> {
         let started = Instant::now();
         let sample_count = request.get_ref().samples.len();
-        let detected = self.detect_once(request.into_inner()).await;
+        let detected = self.detect_once(request).await;
         match &detected {
             Ok((samples, decisions)) => {
                 telemetry::batch_scored(Rpc::Detect, samples.len(), alarming(decisions), started)
@@ -552,11 +568,10 @@ impl DetectionService for DetectionApi {
         &self,
         request: Request<v1::GetSessionRequest>,
     ) -> Result<Response<v1::Session>, Status> {
-        let r = request.into_inner();
-        let session = self
-            .sessions
-            .get(vehicle_id("vehicle_id", &r.vehicle_id)?)
-            .await?;
+        let routed = routed_vehicle_ids(request.metadata())?;
+        let vehicle = vehicle_id("vehicle_id", &request.get_ref().vehicle_id)?;
+        check_routed_vehicle(&routed, "vehicle_id", vehicle)?;
+        let session = self.sessions.get(vehicle).await?;
         Ok(Response::new(session_to_proto(session)))
     }
 
@@ -564,10 +579,10 @@ impl DetectionService for DetectionApi {
         &self,
         request: Request<v1::ResetSessionRequest>,
     ) -> Result<Response<v1::Session>, Status> {
-        let session = self
-            .sessions
-            .reset(vehicle_id("vehicle_id", &request.get_ref().vehicle_id)?)
-            .await?;
+        let routed = routed_vehicle_ids(request.metadata())?;
+        let vehicle = vehicle_id("vehicle_id", &request.get_ref().vehicle_id)?;
+        check_routed_vehicle(&routed, "vehicle_id", vehicle)?;
+        let session = self.sessions.reset(vehicle).await?;
         Ok(Response::new(session_to_proto(session)))
     }
 }

@@ -3,18 +3,22 @@
 //!
 //! Replay and the stream protocol belong to `spoofwatch_client::replay` and `DetectStream`, the
 //! summary's tally to `spoofwatch_client::fleet`; this module owns only the flags and the
-//! console/CSV/JSON output.
+//! console/CSV/JSON output. The console shows replies as they arrive (failovers included); the CSV
+//! and the fleet summary are made at the end from the final rows (`ReplayLog`: one detection per
+//! recorded row, resent rows replacing earlier ones).
 
 use std::collections::HashMap;
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use spoofwatch_client::error::describe_rpc_status;
+use spoofwatch_client::failover::DEFAULT_FAILOVER_S;
 use spoofwatch_client::fleet::{FleetSummary, FleetTally, OnsetCounts, WorstVehicle};
 use spoofwatch_client::input::load_tracks;
 use spoofwatch_client::replay::{
     ReplayEvent, ReplayOptions, ReplaySummary, ReplayedDetection, replay_tracks, server_vehicle_id,
 };
+use spoofwatch_client::replay_log::ReplayLog;
 use spoofwatch_core::sample::Track;
 use spoofwatch_proto::wire::limits::MAX_BATCH_SAMPLES;
 use tokio::sync::mpsc;
@@ -56,6 +60,12 @@ pub struct Args {
     /// same samples).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// When a vehicle's stream fails because its server went away (a replica died or drained),
+    /// keep reconnecting for up to this many seconds (with backoff), then resend every batch the
+    /// server's session has not seen (from SessionAccepted.last_seq; the whole recording on a
+    /// replica without the session). 0: fail at once.
+    #[arg(long, value_name = "SECONDS", default_value_t = DEFAULT_FAILOVER_S, value_parser = parse_failover_secs)]
+    pub failover_secs: f64,
     /// Also write the fleet summary (samples, attack-free hours, false-alarm onsets by where they
     /// start, detections, worst vehicles) as JSON.
     #[arg(long, value_name = "PATH")]
@@ -71,6 +81,11 @@ pub fn parse_reconnect_every(text: &str) -> Result<f64, String> {
         return Err(format!("must be a finite time ≥ 0 in seconds, got {text}"));
     }
     Ok(seconds)
+}
+
+/// A failover deadline in seconds: finite and ≥ 0.
+pub fn parse_failover_secs(text: &str) -> Result<f64, String> {
+    parse_reconnect_every(text)
 }
 
 /// A rate in Hz: finite and ≥ 0.
@@ -159,8 +174,12 @@ pub fn summary_line(s: &ReplaySummary) -> String {
         0 => String::new(),
         n => format!(", {n} reconnects ({} resumed)", s.resumed_reconnects),
     };
+    let failovers = match s.failovers {
+        0 => String::new(),
+        n => format!(", {n} failovers"),
+    };
     format!(
-        "{}: {} samples, {} detections, {} alarms, {} rejected batches{reconnects}, mean batch latency {latency}",
+        "{}: {} samples, {} detections, {} alarms, {} rejected batches{reconnects}{failovers}, mean batch latency {latency}",
         s.vehicle_id, s.samples_sent, s.detections, s.alarm_onsets, s.rejected_batches
     )
 }
@@ -212,13 +231,14 @@ pub fn fleet_lines(s: &FleetSummary) -> Vec<String> {
         .map_or_else(|| "-".to_string(), |r| format!("{r:.2}"));
     let mut lines = vec![
         format!(
-            "fleet: {} vehicles, {} samples, {:.2} attack-free hours; {} streams ({} reconnects, {} resumed); {} GNSS gaps (> {} s)",
+            "fleet: {} vehicles, {} samples, {:.2} attack-free hours; {} streams ({} reconnects, {} resumed, {} failovers); {} GNSS gaps (> {} s)",
             s.vehicles,
             s.samples,
             s.attack_free_hours,
             s.streams,
             s.reconnects,
             s.resumed_reconnects,
+            s.failovers,
             s.gaps,
             s.gap_step_s
         ),
@@ -282,6 +302,7 @@ pub async fn run(args: Args) -> Result<()> {
         model: args.model.clone().unwrap_or_default(),
         reconnect_every_s: args.reconnect_every,
         reconnect_seed: args.seed,
+        failover_s: args.failover_secs,
     };
     let mut csv = match &args.out {
         Some(path) => {
@@ -298,16 +319,15 @@ pub async fn run(args: Args) -> Result<()> {
         let connection = connection.clone();
         tokio::spawn(async move { replay_tracks(&connection, tracks, &options, events_tx).await })
     };
-    let mut fleet = FleetTally::default();
+    let mut log = ReplayLog::default();
     while let Some(event) = events.recv().await {
-        fleet.record(&event);
-        match event {
+        match &event {
             ReplayEvent::Accepted {
                 vehicle_id,
                 stream,
                 accepted,
             } => {
-                if !args.quiet && stream == 0 {
+                if !args.quiet && *stream == 0 {
                     println!("{vehicle_id}: session accepted, model {}", accepted.model);
                 } else if !args.quiet {
                     let how = if accepted.resumed {
@@ -321,13 +341,25 @@ pub async fn run(args: Args) -> Result<()> {
                     );
                 }
             }
+            ReplayEvent::Failover {
+                vehicle_id,
+                accepted,
+                resend_from,
+                ..
+            } => {
+                let how = if accepted.resumed {
+                    format!("session resumed at seq {}", accepted.last_seq)
+                } else {
+                    "no session there: started afresh".to_string()
+                };
+                eprintln!(
+                    "{vehicle_id}: stream failed; reconnected ({how}), resending from record {resend_from}"
+                );
+            }
             ReplayEvent::Detection(detection) => {
                 let det = &detection.detection;
                 if !args.quiet || det.alarm_onset || det.alarm_end {
-                    println!("{}", console_line(&detection));
-                }
-                if let Some(writer) = csv.as_mut() {
-                    writer.write_record(csv_row(&detection))?;
+                    println!("{}", console_line(detection));
                 }
             }
             ReplayEvent::ItemError {
@@ -335,12 +367,24 @@ pub async fn run(args: Args) -> Result<()> {
                 seq,
                 lines,
                 status,
+                ..
             } => eprintln!(
                 "{vehicle_id}: batch {seq} (lines {}–{}) rejected: {}",
                 lines.0,
                 lines.1,
-                describe_rpc_status(&status)
+                describe_rpc_status(status)
             ),
+        }
+        log.record(event);
+    }
+    // The final rows: the CSV (vehicle by vehicle) and the fleet tally.
+    let mut fleet = FleetTally::default();
+    for (_, events) in log.vehicles() {
+        for event in events {
+            fleet.record(event);
+            if let (Some(writer), ReplayEvent::Detection(detection)) = (csv.as_mut(), event) {
+                writer.write_record(csv_row(detection))?;
+            }
         }
     }
     if let Some(mut writer) = csv {

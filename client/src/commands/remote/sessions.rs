@@ -4,6 +4,7 @@
 
 use anyhow::Result;
 use spoofwatch_client::error::reply;
+use spoofwatch_client::routing::for_vehicle;
 use spoofwatch_proto::v1;
 
 use super::{ResourceArgs, all_pages, print_table, time};
@@ -93,7 +94,7 @@ pub async fn run(args: Args) -> Result<()> {
             };
             let session = reply(
                 format!("getting the session of {vehicle_id}"),
-                client.get_session(request),
+                client.get_session(for_vehicle(&vehicle_id, request)),
             )
             .await?;
             print!("{}", describe(&session));
@@ -104,7 +105,7 @@ pub async fn run(args: Args) -> Result<()> {
             };
             let session = reply(
                 format!("resetting the session of {vehicle_id}"),
-                client.reset_session(request),
+                client.reset_session(for_vehicle(&vehicle_id, request)),
             )
             .await?;
             print!("reset {}", describe(&session));

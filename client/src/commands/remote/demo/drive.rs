@@ -116,6 +116,8 @@ async fn stream_drive(url: &str, track: &Track, attack: &AttackSpec, rate: f64) 
     let options = ReplayOptions {
         rate_hz: rate,
         batch_size: 1,
+        // The demo's own in-process server: if it fails, there is nothing to fail over to.
+        failover_s: 0.0,
         ..ReplayOptions::default()
     };
     let (events_tx, mut events) = mpsc::channel(256);
@@ -162,6 +164,8 @@ async fn stream_drive(url: &str, track: &Track, attack: &AttackSpec, rate: f64) 
             ReplayEvent::ItemError { seq, status, .. } => {
                 eprintln!("batch {seq} rejected: {}", describe_rpc_status(&status));
             }
+            // Failover is off: never sent.
+            ReplayEvent::Failover { .. } => {}
         }
     }
     let summary = replay.await.context("the replay task failed")??;
