@@ -1,0 +1,176 @@
+#!/usr/bin/env bash
+# Fleet fault test (README "Running a fleet"): PostgreSQL + two server replicas + HAProxy on loopback.
+# ~100 vehicles (a real AV-GPS recording and simulated drives, half of them attacked) stream through the
+# balancer while
+#   1. one replica is killed with SIGKILL mid-stream (its vehicles fail over to the other, which continues
+#      their sessions from the stored snapshots, and the clients resend from SessionAccepted.last_seq);
+#   2. both replicas are restarted one after the other (SIGTERM, rolling restart).
+# Each time every vehicle's detections must equal those of one uninterrupted single server (SQLite), bit for
+# bit, and the stored alarms (ListAlarms through the balancer) must equal that server's: none lost, none
+# duplicated, none left open. Models and jobs read the same through both replicas.
+#
+# Usage: scripts/fleet-fault-test.sh [BIN_DIR]   (default target/debug: spoofwatch and spoofwatch-server)
+# Needs PostgreSQL (Debian's postgresql package) and HAProxy (Debian's haproxy); installs them when missing.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+root=$(pwd)
+bin=$(cd "${1:-target/debug}" && pwd)
+data="${SPOOFWATCH_AVGPS_DIR:-$root/../shared/data/av-gps}"
+sudo=""; [ "$(id -u)" -eq 0 ] || sudo="sudo"
+
+for package in postgresql:pg_ctl haproxy:haproxy; do
+  if ! command -v "${package#*:}" >/dev/null && ! ls /usr/lib/postgresql/*/bin/"${package#*:}" /usr/sbin/"${package#*:}" >/dev/null 2>&1; then
+    $sudo apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${package%%:*}" >/dev/null
+  fi
+done
+haproxy=$(command -v haproxy || echo /usr/sbin/haproxy)
+
+work=$(mktemp -d /tmp/spoofwatch-fault.XXXXXX)
+chmod 755 "$work"
+declare -A pid=()
+cleanup() {
+  for p in "${pid[@]}"; do kill -9 "$p" 2>/dev/null || true; done
+  scripts/postgres-ephemeral.sh stop "$work/pg" >/dev/null 2>&1 || true
+  if [ "${KEEP_WORK:-0}" = 1 ]; then echo "work directory kept: $work"; else rm -rf "$work"; fi
+}
+trap cleanup EXIT
+fail() { echo "FAIL: $*" >&2; exit 1; }
+step() { echo "== $(date +%T) $*"; }
+
+# Ports: a block per run of the script, so that no leftover process of an earlier run answers.
+base=$((20000 + RANDOM % 20000))
+pg_port=$base; reference_port=$((base + 1)); lb_port=$((base + 2))
+declare -A port=([1]=$((base + 3)) [2]=$((base + 4)))
+
+step "inputs: a real recording and simulated drives (half of them attacked)"
+[ -f "$data/AV-GPS-Dataset-3.csv" ] || fail "AV-GPS Dataset-3 not found under $data (set SPOOFWATCH_AVGPS_DIR)"
+"$bin/spoofwatch" scenario simulate --out "$work/normal.csv" --vehicles 50 --duration 240 --seed 100
+"$bin/spoofwatch" scenario simulate --out "$work/attacked.csv" --vehicles 49 --duration 240 --seed 200 \
+  --attack frozen --onset 90 --attack-duration 80
+inputs=("$data/AV-GPS-Dataset-3.csv" "$work/normal.csv" "$work/attacked.csv")
+# Paced (10 samples/s per vehicle, batches of 5) so that a run lasts ~25 s and the faults land mid-stream.
+detect_flags=(--batch 5 --quiet --failover-secs 60)
+
+wait_serving() { # host:port
+  for _ in $(seq 1 300); do
+    "$bin/spoofwatch" health --server "$1" >/dev/null 2>&1 && return 0
+    sleep 0.1
+  done
+  fail "nothing serves on $1"
+}
+
+start_server() { # name port database [flags...]
+  local name=$1 listen=$2 database=$3
+  shift 3
+  "$bin/spoofwatch-server" --listen "127.0.0.1:$listen" --database "$database" \
+    --snapshot-every-samples 20 --shutdown-grace-secs 5 "$@" >>"$work/$name.log" 2>&1 &
+  pid[$name]=$!
+  wait_serving "127.0.0.1:$listen"
+}
+
+stop() { # name [signal]
+  kill "-${2:-TERM}" "${pid[$1]}" 2>/dev/null || true
+  wait "${pid[$1]}" 2>/dev/null || true
+  unset "pid[$1]"
+}
+
+stored_alarms() { # host:port → one line per alarm (vehicle onset end peak samples open), sorted
+  "$bin/spoofwatch" alarms list --server "$1" --json --limit 100000 | python3 -c '
+import json, sys
+rows = []
+for line in sys.stdin:
+    if line.strip():
+        a = json.loads(line)
+        rows.append((a["vehicle_id"], repr(a["onset_timestamp_s"]), repr(a.get("end_timestamp_s")),
+                     repr(a["peak_probability"]), str(a["samples"]), str(a.get("open", False))))
+for row in sorted(rows):
+    print(" ".join(row))'
+}
+
+step "reference: one uninterrupted server (SQLite)"
+start_server reference "$reference_port" "$work/reference.db"
+"$bin/spoofwatch" detect --server "127.0.0.1:$reference_port" --data "${inputs[@]}" --batch 5 --quiet \
+  --out "$work/reference.csv"
+stored_alarms "127.0.0.1:$reference_port" >"$work/reference-alarms.txt"
+stop reference
+rows=$(($(wc -l <"$work/reference.csv") - 1))
+alarms=$(wc -l <"$work/reference-alarms.txt")
+[ "$alarms" -gt 0 ] || fail "the reference run raised no alarm: the comparison would show nothing"
+echo "reference: $rows detections, $alarms alarms"
+
+step "PostgreSQL"
+pg_url=$(scripts/postgres-ephemeral.sh start "$work/pg" "$pg_port")
+psql=$(command -v psql || ls -d /usr/lib/postgresql/*/bin/psql | sort -V | tail -1)
+new_database() { # name → URL of a new, empty database
+  "$psql" "$pg_url" -qc "CREATE DATABASE $1" >/dev/null
+  echo "${pg_url%/*}/$1"
+}
+
+start_balancer() {
+  SPOOFWATCH_LB_LISTEN="127.0.0.1:$lb_port" SPOOFWATCH_REPLICA_1="127.0.0.1:${port[1]}" \
+    SPOOFWATCH_REPLICA_2="127.0.0.1:${port[2]}" SPOOFWATCH_LB_ADMIN_SOCKET="$work/lb.sock" \
+    "$haproxy" -db -f deploy/haproxy/spoofwatch.cfg >>"$work/haproxy.log" 2>&1 &
+  pid[balancer]=$!
+  wait_serving "127.0.0.1:$lb_port"
+}
+
+compare() { # run
+  local run=$1
+  cmp -s "$work/reference.csv" "$work/$run.csv" || {
+    diff "$work/reference.csv" "$work/$run.csv" | head -20 >&2
+    fail "$run: the detections differ from the uninterrupted run's"
+  }
+  stored_alarms "127.0.0.1:$lb_port" >"$work/$run-alarms.txt"
+  cmp -s "$work/reference-alarms.txt" "$work/$run-alarms.txt" || {
+    diff "$work/reference-alarms.txt" "$work/$run-alarms.txt" | head -20 >&2
+    fail "$run: the stored alarms differ from the uninterrupted run's (lost, duplicated or left open)"
+  }
+  for what in models jobs; do
+    "$bin/spoofwatch" "$what" list --server "127.0.0.1:${port[1]}" >"$work/$run-$what-1.txt"
+    "$bin/spoofwatch" "$what" list --server "127.0.0.1:${port[2]}" >"$work/$run-$what-2.txt"
+    cmp -s "$work/$run-$what-1.txt" "$work/$run-$what-2.txt" || fail "$run: the replicas list different $what"
+  done
+  echo "$run: $rows detections and $alarms alarms equal the uninterrupted run's"
+}
+
+run_with() { # run fault
+  local run=$1 fault=$2
+  url=$(new_database "$run")
+  start_server replica-1 "${port[1]}" "$url" --instance-id replica-1
+  start_server replica-2 "${port[2]}" "$url" --instance-id replica-2
+  start_balancer
+  "$bin/spoofwatch" detect --server "127.0.0.1:$lb_port" --data "${inputs[@]}" "${detect_flags[@]}" \
+    --rate 10 --out "$work/$run.csv" --summary "$work/$run-summary.json" >"$work/$run-detect.log" 2>&1 &
+  local client=$!
+  "$fault"
+  wait "$client" || { tail -20 "$work/$run-detect.log" >&2; fail "$run: the client gave up"; }
+  python3 -c 'import json, sys; print("failovers:", json.load(open(sys.argv[1])).get("failovers"))' \
+    "$work/$run-summary.json"
+  compare "$run"
+  stop balancer; stop replica-1; stop replica-2
+}
+
+kill_one_replica() {
+  sleep 8
+  step "kill -9 replica 1 mid-stream"
+  stop replica-1 KILL
+  sleep 5
+  step "replica 1 back"
+  start_server replica-1 "${port[1]}" "$url" --instance-id replica-1
+}
+
+rolling_restart() {
+  for replica in 1 2; do
+    sleep 5
+    step "rolling restart: replica $replica"
+    stop "replica-$replica" TERM
+    start_server "replica-$replica" "${port[$replica]}" "$url" --instance-id "replica-$replica"
+  done
+}
+
+step "run 1: kill -9 one replica mid-stream"
+run_with killed kill_one_replica
+step "run 2: rolling restart of both replicas"
+run_with rolling rolling_restart
+step "fleet fault test passed"
