@@ -91,7 +91,7 @@ for row in sorted(rows):
 step "reference: one uninterrupted server (SQLite)"
 start_server reference "$reference_port" "$work/reference.db"
 "$bin/spoofwatch" detect --server "127.0.0.1:$reference_port" --data "${inputs[@]}" --batch 5 --quiet \
-  --out "$work/reference.csv"
+  --out "$work/reference.csv" >"$work/reference-detect.log" 2>&1
 stored_alarms "127.0.0.1:$reference_port" >"$work/reference-alarms.txt"
 stop reference
 rows=$(($(wc -l <"$work/reference.csv") - 1))
@@ -145,8 +145,15 @@ run_with() { # run fault
   local client=$!
   "$fault"
   wait "$client" || { tail -20 "$work/$run-detect.log" >&2; fail "$run: the client gave up"; }
-  python3 -c 'import json, sys; print("failovers:", json.load(open(sys.argv[1])).get("failovers"))' \
-    "$work/$run-summary.json"
+  # Every failover must have continued the session (from its snapshot: the replica that took the
+  # vehicle over never held it), not started it afresh and resent the whole drive.
+  python3 - "$work/$run-summary.json" <<'PY' || fail "$run: a failover did not continue its session"
+import json, sys
+summary = json.load(open(sys.argv[1]))
+failovers, resumed = summary["failovers"], summary["resumed_reconnects"]
+print(f"failovers: {failovers}, of which continued from the session snapshot: {resumed}")
+sys.exit(0 if failovers > 0 and resumed == failovers else 1)
+PY
   compare "$run"
   stop balancer; stop replica-1; stop replica-2
 }

@@ -18,14 +18,15 @@ const MAGIC: &[u8; 4] = b"SWSS";
 const HEADER: usize = MAGIC.len() + 2;
 const CHECKSUM: usize = 8;
 
-/// An alarm the session holds open (its onset stored, its end not yet).
+/// An alarm a session holds open (its onset emitted, its end not yet).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct OpenAlarmSnapshot {
+pub struct OpenAlarm {
     pub id: i64,
     pub onset_timestamp_s: f64,
     pub onset_at_ms: i64,
     pub peak: f64,
     pub samples: u32,
+    /// Sample time of the latest alarming sample: the event's end time (`alarm_events` semantics).
     pub last_timestamp_s: f64,
 }
 
@@ -40,7 +41,7 @@ pub struct SessionSnapshot {
     pub last_timestamp_s: Option<f64>,
     pub alarm_active: bool,
     pub alarms_raised: u64,
-    pub open_alarm: Option<OpenAlarmSnapshot>,
+    pub open_alarm: Option<OpenAlarm>,
     pub detector: DetectorState,
 }
 
@@ -118,7 +119,7 @@ mod tests {
             last_timestamp_s: Some(1_700_000_000.5),
             alarm_active: true,
             alarms_raised: 1,
-            open_alarm: Some(OpenAlarmSnapshot {
+            open_alarm: Some(OpenAlarm {
                 id: 5 << 32,
                 onset_timestamp_s: 1_700_000_000.0,
                 onset_at_ms: 1_700_000_000_123,

@@ -25,7 +25,7 @@ use spoofwatch_proto::wire::ModelName;
 use tokio::sync::oneshot;
 use tokio_util::sync::CancellationToken;
 
-use super::handoff::{OpenAlarmSnapshot, SNAPSHOT_SCHEMA, SessionSnapshot, SnapshotRefused};
+use super::handoff::{OpenAlarm, SNAPSHOT_SCHEMA, SessionSnapshot, SnapshotRefused};
 use super::validate::validate_batch;
 use crate::alarms::AlarmOutbox;
 use crate::models::{LoadedModel, Registry, RegistryError};
@@ -117,18 +117,6 @@ pub struct SessionLimits {
     pub max_batch_samples: usize,
 }
 
-/// An alarm currently on (its onset queued for `alarm_events` under `id`).
-#[derive(Debug)]
-struct OpenAlarm {
-    id: i64,
-    onset_timestamp_s: f64,
-    onset_at_ms: i64,
-    peak: f64,
-    samples: u32,
-    /// Sample time of the latest alarming sample: the event's end time (`alarm_events` semantics).
-    last_timestamp_s: f64,
-}
-
 /// Everything a session knows; guarded by the slot's async mutex (batches of a vehicle serialise).
 #[derive(Debug)]
 struct SessionState {
@@ -187,14 +175,7 @@ impl SessionState {
             last_timestamp_s: snapshot.last_timestamp_s,
             alarm_active: snapshot.alarm_active,
             alarms_raised: snapshot.alarms_raised,
-            open_alarm: snapshot.open_alarm.map(|open| OpenAlarm {
-                id: open.id,
-                onset_timestamp_s: open.onset_timestamp_s,
-                onset_at_ms: open.onset_at_ms,
-                peak: open.peak,
-                samples: open.samples,
-                last_timestamp_s: open.last_timestamp_s,
-            }),
+            open_alarm: snapshot.open_alarm,
             ..Self::new(model)
         })
     }
@@ -209,14 +190,7 @@ impl SessionState {
             last_timestamp_s: self.last_timestamp_s,
             alarm_active: self.alarm_active,
             alarms_raised: self.alarms_raised,
-            open_alarm: self.open_alarm.as_ref().map(|open| OpenAlarmSnapshot {
-                id: open.id,
-                onset_timestamp_s: open.onset_timestamp_s,
-                onset_at_ms: open.onset_at_ms,
-                peak: open.peak,
-                samples: open.samples,
-                last_timestamp_s: open.last_timestamp_s,
-            }),
+            open_alarm: self.open_alarm.clone(),
             detector: self.detector.save(),
         }
     }
