@@ -118,12 +118,12 @@ start_balancer() {
 compare() { # run
   local run=$1
   cmp -s "$work/reference.csv" "$work/$run.csv" || {
-    diff "$work/reference.csv" "$work/$run.csv" | head -20 >&2
+    diff "$work/reference.csv" "$work/$run.csv" | sed -n 1,20p >&2
     fail "$run: the detections differ from the uninterrupted run's"
   }
   stored_alarms "127.0.0.1:$lb_port" >"$work/$run-alarms.txt"
   cmp -s "$work/reference-alarms.txt" "$work/$run-alarms.txt" || {
-    diff "$work/reference-alarms.txt" "$work/$run-alarms.txt" | head -20 >&2
+    diff "$work/reference-alarms.txt" "$work/$run-alarms.txt" | sed -n 1,20p >&2
     fail "$run: the stored alarms differ from the uninterrupted run's (lost, duplicated or left open)"
   }
   for what in models jobs; do
