@@ -599,6 +599,52 @@ pub fn stored_episodes(events: &[AlarmEventRow]) -> Vec<Episode> {
         .collect()
 }
 
+/// What must be identical: the bits of every output the model computes, and the alarm flags.
+pub fn fingerprint(detections: &[v1::Detection]) -> Vec<(u64, u64, bool, bool, bool)> {
+    detections
+        .iter()
+        .map(|d| {
+            (
+                d.timestamp_s.to_bits(),
+                d.probability.to_bits(),
+                d.alarm,
+                d.alarm_onset,
+                d.alarm_end,
+            )
+        })
+        .collect()
+}
+
+/// The stored alarms of `vehicle` as (onset, end, peak, samples, open), oldest first.
+pub async fn alarms_of(
+    clients: &mut Clients,
+    vehicle: &str,
+) -> Vec<(f64, Option<f64>, f64, u64, bool)> {
+    let mut alarms = clients
+        .alarms
+        .list_alarms(v1::ListAlarmsRequest {
+            vehicle_id: vehicle.to_string(),
+            ..Default::default()
+        })
+        .await
+        .expect("ListAlarms")
+        .into_inner()
+        .alarms;
+    alarms.sort_by(|a, b| a.onset_timestamp_s.total_cmp(&b.onset_timestamp_s));
+    alarms
+        .into_iter()
+        .map(|a| {
+            (
+                a.onset_timestamp_s,
+                a.end_timestamp_s,
+                a.peak_probability,
+                a.samples,
+                a.end_time.is_none(),
+            )
+        })
+        .collect()
+}
+
 /// The health status the server reports for `service` ("" = overall).
 pub async fn health_of(server: &TestServer, service: &str) -> ServingStatus {
     let status = HealthClient::new(server.channel().await)

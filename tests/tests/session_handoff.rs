@@ -9,7 +9,8 @@ use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::v1;
 use spoofwatch_server::store::{AlarmEvent, SnapshotRow, Store};
 use spoofwatch_tests::{
-    Clients, TestServer, attacked_drive, normal_drive, start_stream, test_config, track_samples,
+    Clients, TestServer, alarms_of, attacked_drive, fingerprint, normal_drive, start_stream,
+    test_config, track_samples,
 };
 
 const BATCH: usize = 10;
@@ -33,52 +34,6 @@ async fn stream_batches(
     }
     stream.finish().await.expect("the stream ends cleanly");
     (accepted, detections)
-}
-
-/// What must be identical: the bits of every output the model computes, and the alarm flags.
-fn fingerprint(detections: &[v1::Detection]) -> Vec<(u64, u64, bool, bool, bool)> {
-    detections
-        .iter()
-        .map(|d| {
-            (
-                d.timestamp_s.to_bits(),
-                d.probability.to_bits(),
-                d.alarm,
-                d.alarm_onset,
-                d.alarm_end,
-            )
-        })
-        .collect()
-}
-
-/// The stored alarms of `vehicle` as (onset, end, peak, samples, open), oldest first.
-async fn alarms_of(
-    clients: &mut Clients,
-    vehicle: &str,
-) -> Vec<(f64, Option<f64>, f64, u64, bool)> {
-    let mut alarms = clients
-        .alarms
-        .list_alarms(v1::ListAlarmsRequest {
-            vehicle_id: vehicle.to_string(),
-            ..Default::default()
-        })
-        .await
-        .expect("ListAlarms")
-        .into_inner()
-        .alarms;
-    alarms.sort_by(|a, b| a.onset_timestamp_s.total_cmp(&b.onset_timestamp_s));
-    alarms
-        .into_iter()
-        .map(|a| {
-            (
-                a.onset_timestamp_s,
-                a.end_timestamp_s,
-                a.peak_probability,
-                a.samples,
-                a.end_time.is_none(),
-            )
-        })
-        .collect()
 }
 
 /// An attacked drive, batched, with a hand-off point inside the alarm.
