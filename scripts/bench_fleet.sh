@@ -1,22 +1,25 @@
 #!/usr/bin/env bash
 # README "Running a fleet" numbers (issue #12): one replica's throughput on SQLite and on PostgreSQL
-# (alternating within each of 3 rounds), and the session snapshot write load of 10,000 vehicles at 1 Hz.
+# (alternating within each of 3 rounds), the session snapshot write load of 10,000 vehicles at 1 Hz, and
+# the hand-off time between two replicas on PostgreSQL (3 rounds).
 # One release build; server on core 0, load generator on core 1; `uptime` load noted before each run.
-# Usage: scripts/bench_fleet.sh target/release > bench.log
+# Usage: scripts/bench_fleet.sh target/release [all|handoff] > bench.log
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bin=$(cd "${1:?directory of spoofwatch-server and spoofwatch}" && pwd)
-port=50083 metrics=9483 pg_port=55483
+parts=${2:-all}
+port=50083 metrics=9483 pg_port=55483 second_port=50084
 work=$(mktemp -d /tmp/spoofwatch-bench.XXXXXX)
 chmod 755 "$work"
 trap 'pkill -f "spoofwatch-server --listen 127.0.0.1:$port" || true
+      pkill -f "spoofwatch-server --listen 127.0.0.1:$second_port" || true
       scripts/postgres-ephemeral.sh stop "$work/pg" >/dev/null 2>&1 || true; rm -rf "$work"' EXIT
 pg_url=$(scripts/postgres-ephemeral.sh start "$work/pg" "$pg_port")
 psql=$(command -v psql || ls -d /usr/lib/postgresql/*/bin/psql | sort -V | tail -1)
 runs=0
 
 start() { # sqlite|postgres, then server flags
-  local backend=$1 database; shift
+  local backend=$1; shift
   runs=$((runs + 1))
   pkill -f "spoofwatch-server --listen 127.0.0.1:$port" || true; sleep 1
   if [ "$backend" = postgres ]; then
@@ -42,6 +45,27 @@ bench() { # backend, then bench flags
   scrape
 }
 
+# Hand-off: the bench's vehicles stream to a replica on core 1 (beside the load generator) and end their
+# streams; then they start on a second replica (core 0) on the same database, each alone and all at once.
+handoff() {
+  start postgres
+  taskset -c 1 "$bin/spoofwatch-server" --listen "127.0.0.1:$second_port" --database "$database" \
+    >"$work/second.log" 2>&1 &
+  sleep 2
+  for concurrency in 1 1000; do
+    echo "## $(date +%T) load: $(cut -d' ' -f1-3 /proc/loadavg) :: postgres hand-off, 1,000 vehicles, $concurrency at a time"
+    taskset -c 1 "$bin/spoofwatch" bench --server "http://127.0.0.1:$second_port" \
+      --handoff-to "http://127.0.0.1:$port" --handoff 1000 --handoff-concurrency "$concurrency" \
+      2>&1 | grep -E "^\| (from|fresh)|refused|failed|error" || true
+  done
+  pkill -f "spoofwatch-server --listen 127.0.0.1:$second_port" || true
+}
+
+if [ "$parts" = handoff ]; then
+  for round in 1 2 3; do handoff; done
+  exit 0
+fi
+
 for round in 1 2 3; do
   for backend in sqlite postgres; do
     bench "$backend" --streams 100 --batch 10 --seconds 10
@@ -62,3 +86,5 @@ for backend in sqlite postgres; do
   wait "$client" || true
   echo "# after the run"; scrape
 done
+
+for round in 1 2 3; do handoff; done

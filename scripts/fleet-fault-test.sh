@@ -15,6 +15,9 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
 bin=$(cd "${1:-target/debug}" && pwd)
+for program in spoofwatch spoofwatch-server; do
+  [ -x "$bin/$program" ] || { echo "no $bin/$program: build it first (cargo build, or cargo test --workspace)" >&2; exit 1; }
+done
 data="${SPOOFWATCH_AVGPS_DIR:-$root/../shared/data/av-gps}"
 sudo=""; [ "$(id -u)" -eq 0 ] || sudo="sudo"
 

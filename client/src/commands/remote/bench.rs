@@ -10,6 +10,8 @@
 //! Memory phase: opens many short sessions (start + one batch, then the stream closes; the session
 //! stays in memory until idle eviction) and reports the server's resident memory before and after.
 //!
+//! Hand-off phase (`--handoff N`, instead of the others): see [`handoff`].
+//!
 //! Streams are driven through the client's `DetectStream` and `FleetDetectStream`; this module owns
 //! only the load shape and the measurements. Without `--server` it needs the `inprocess` feature.
 
@@ -26,6 +28,8 @@ use spoofwatch_server::inprocess::InProcessServer;
 use tokio::sync::{Barrier, Semaphore};
 
 use super::detect::parse_batch;
+
+mod handoff;
 
 /// Sessions opened at once in the memory phase.
 const MEMORY_PHASE_CONCURRENCY: usize = 64;
@@ -77,6 +81,20 @@ pub struct Args {
     /// StreamDetectFleet (gateway) streams instead of one StreamDetect stream each.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=1000))]
     pub vehicles_per_message: u32,
+    /// Runs only the hand-off phase, with this many vehicles: they stream to --server, then start
+    /// on --handoff-to (a replica on the same database), timed to their first detection, beside as
+    /// many fresh starts. Without --server, two in-process servers share one temporary database.
+    #[arg(long, default_value_t = 0,
+          value_parser = clap::value_parser!(u32).range(0..=i64::from(MAX_SESSIONS)))]
+    pub handoff: u32,
+    /// The replica the --handoff vehicles move to.
+    #[arg(long, requires = "server")]
+    pub handoff_to: Option<String>,
+    /// --handoff vehicles starting on the new replica at once (1: each alone; N: a whole replica's
+    /// vehicles failing over together).
+    #[arg(long, default_value_t = 1,
+          value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_SESSIONS)))]
+    pub handoff_concurrency: u32,
 }
 
 /// A vehicle-id prefix: 1–64 characters that keep the ids valid (letters, digits, `-`, `_`, `.`, `:`).
@@ -182,6 +200,9 @@ struct PhaseResult {
 }
 
 pub async fn run(args: Args) -> Result<()> {
+    if args.handoff > 0 {
+        return run_handoff(&args).await;
+    }
     match &args.server {
         Some(url) => {
             let options = args.transport.options(args.token.clone());
@@ -204,6 +225,75 @@ async fn bench_in_process(args: &Args) -> Result<()> {
     let result = bench(args, &url, options, Some(std::process::id())).await;
     server.shutdown().await?;
     result
+}
+
+/// The hand-off phase, between --server and --handoff-to or two in-process servers.
+async fn run_handoff(args: &Args) -> Result<()> {
+    // A tag of this run keeps its vehicles apart from an earlier run's on the same database.
+    let run = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    let prefix = format!("{}-{run}", args.vehicle_prefix);
+    let shape = handoff::HandoffShape {
+        vehicles: args.handoff,
+        concurrency: args.handoff_concurrency,
+        batch: args.batch,
+        prefix: &prefix,
+        per_connection: args.streams_per_connection as usize,
+    };
+    match (&args.server, &args.handoff_to) {
+        (Some(from), Some(to)) => {
+            let options = args.transport.options(args.token.clone());
+            handoff::handoff_phase(from, to, options, shape).await
+        }
+        (Some(_), None) => bail!("--handoff with --server needs --handoff-to (another replica)"),
+        (None, _) => handoff_in_process(shape).await,
+    }
+}
+
+/// Two servers in this process on one temporary SQLite database.
+#[cfg(feature = "inprocess")]
+async fn handoff_in_process(shape: handoff::HandoffShape<'_>) -> Result<()> {
+    let first = InProcessServer::start(|_| {}).await?;
+    // The second server may open the database only once the first has created it.
+    wait_until_serving(&first.url()).await?;
+    let database = first
+        .database_dir()
+        .context("the in-process server has a temporary database")?
+        .join("spoofwatch.db");
+    let mut config = spoofwatch_server::Config::with_database(database.display().to_string());
+    config.shutdown_grace_secs = 2;
+    let second = InProcessServer::start_with(config).await?;
+    println!(
+        "two in-process servers on one temporary database ({}); they share this process's CPU",
+        database.display()
+    );
+    let options = ConnectOptions::default();
+    let result = handoff::handoff_phase(&first.url(), &second.url(), options, shape).await;
+    second.shutdown().await?;
+    first.shutdown().await?;
+    result
+}
+
+/// Polls the overall health of the server at `url` until it is SERVING (at most 30 s).
+#[cfg(feature = "inprocess")]
+async fn wait_until_serving(url: &str) -> Result<()> {
+    use tonic_health::pb::HealthCheckRequest;
+    use tonic_health::pb::health_check_response::ServingStatus;
+    let mut health = Connection::connect(url, None).await?.health();
+    for _ in 0..300 {
+        let reply = health.check(HealthCheckRequest::default()).await;
+        if reply.is_ok_and(|r| r.into_inner().status == ServingStatus::Serving as i32) {
+            return Ok(());
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    bail!("the in-process server at {url} did not become SERVING within 30 s")
+}
+
+#[cfg(not(feature = "inprocess"))]
+async fn handoff_in_process(_shape: handoff::HandoffShape<'_>) -> Result<()> {
+    Err(super::no_in_process_server("bench --handoff without --server"))
 }
 
 #[cfg(not(feature = "inprocess"))]
@@ -267,7 +357,7 @@ async fn bench(args: &Args, url: &str, options: ConnectOptions, pid: Option<u32>
     Ok(())
 }
 
-fn ms(d: Option<Duration>) -> String {
+pub(super) fn ms(d: Option<Duration>) -> String {
     d.map_or_else(|| "-".into(), |d| format!("{:.2}", d.as_secs_f64() * 1e3))
 }
 
@@ -301,7 +391,7 @@ fn results_table(results: &[PhaseResult], batch: usize) -> String {
 }
 
 /// Connections for `streams` streams, `per_connection` on each.
-async fn connections(
+pub(super) async fn connections(
     url: &str,
     options: ConnectOptions,
     streams: usize,
