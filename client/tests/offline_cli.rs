@@ -417,3 +417,34 @@ fn bench_drives_one_stream_per_vehicle_or_gateway_streams_without_errors() {
         assert!(messages > 0, "{output}");
     }
 }
+
+#[test]
+fn bench_hands_every_vehicle_over_from_its_snapshot() {
+    // The phase fails unless every vehicle resumes on the second server at its last seq.
+    let output = stdout(&spoofwatch(&[
+        "bench",
+        "--handoff",
+        "12",
+        "--handoff-concurrency",
+        "4",
+        "--batch",
+        "3",
+    ]));
+    let vehicles_in = |label: &str| {
+        output
+            .lines()
+            .find(|l| l.starts_with(&format!("| {label} |")))
+            .and_then(|l| l.split('|').nth(2))
+            .map(|c| c.trim().to_string())
+    };
+    assert_eq!(
+        vehicles_in("from the snapshot").as_deref(),
+        Some("12"),
+        "{output}"
+    );
+    assert_eq!(
+        vehicles_in("fresh (never seen)").as_deref(),
+        Some("12"),
+        "{output}"
+    );
+}

@@ -293,7 +293,9 @@ async fn wait_until_serving(url: &str) -> Result<()> {
 
 #[cfg(not(feature = "inprocess"))]
 async fn handoff_in_process(_shape: handoff::HandoffShape<'_>) -> Result<()> {
-    Err(super::no_in_process_server("bench --handoff without --server"))
+    Err(super::no_in_process_server(
+        "bench --handoff without --server",
+    ))
 }
 
 #[cfg(not(feature = "inprocess"))]

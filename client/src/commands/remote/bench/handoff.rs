@@ -155,7 +155,15 @@ async fn timed_starts(
         connections,
         shape.vehicles,
         shape.concurrency as usize,
-        |i, connection| start(connection, format!("{prefix}-{i}"), u64::from(i), batch, resume_at),
+        |i, connection| {
+            start(
+                connection,
+                format!("{prefix}-{i}"),
+                u64::from(i),
+                batch,
+                resume_at,
+            )
+        },
     )
     .await
 }
@@ -204,9 +212,12 @@ pub async fn handoff_phase(
         shape.per_connection,
     )
     .await?;
-    for_each_vehicle(&first, shape.vehicles, PREPARE_CONCURRENCY, |i, connection| {
-        prepare(connection, format!("{handed}-{i}"), u64::from(i), batch)
-    })
+    for_each_vehicle(
+        &first,
+        shape.vehicles,
+        PREPARE_CONCURRENCY,
+        |i, connection| prepare(connection, format!("{handed}-{i}"), u64::from(i), batch),
+    )
     .await
     .context("preparing the vehicles on the first server")?;
 
