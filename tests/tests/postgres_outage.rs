@@ -38,12 +38,17 @@ fn postgres_available() -> bool {
     false
 }
 
+fn script(args: &[&str]) -> Command {
+    let mut command = Command::new("bash");
+    command
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/postgres-ephemeral.sh"))
+        .args(args);
+    command
+}
+
 /// `scripts/postgres-ephemeral.sh <args>`; returns its stdout, panics when it fails.
 fn cluster(args: &[&str]) -> String {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/postgres-ephemeral.sh");
-    let output = Command::new("bash")
-        .arg(script)
-        .args(args)
+    let output = script(args)
         .output()
         .expect("run scripts/postgres-ephemeral.sh");
     assert!(
@@ -93,10 +98,7 @@ impl Cluster {
 
 impl Drop for Cluster {
     fn drop(&mut self) {
-        let _ = Command::new("bash")
-            .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/postgres-ephemeral.sh"))
-            .args(["stop", self.dir.to_str().unwrap_or_default()])
-            .output();
+        let _ = script(&["stop", self.dir.to_str().unwrap_or_default()]).output();
     }
 }
 
