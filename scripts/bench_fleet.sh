@@ -55,7 +55,7 @@ handoff() {
   for concurrency in 1 1000; do
     echo "## $(date +%T) load: $(cut -d' ' -f1-3 /proc/loadavg) :: postgres hand-off, 1,000 vehicles, $concurrency at a time"
     taskset -c 1 "$bin/spoofwatch" bench --server "http://127.0.0.1:$second_port" \
-      --handoff-to "http://127.0.0.1:$port" --handoff 1000 --handoff-concurrency "$concurrency" \
+      --handoff-to "http://127.0.0.1:$port" --handoff "${HANDOFF_VEHICLES:-1000}" --handoff-concurrency "$concurrency" \
       2>&1 | grep -E "^\| (from|fresh)|refused|failed|error" || true
   done
   pkill -f "spoofwatch-server --listen 127.0.0.1:$second_port" || true

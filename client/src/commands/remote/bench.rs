@@ -232,8 +232,8 @@ async fn run_handoff(args: &Args) -> Result<()> {
     // A tag of this run keeps its vehicles apart from an earlier run's on the same database.
     let run = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs());
-    let prefix = format!("{}-{run}", args.vehicle_prefix);
+        .map_or(0, |d| d.as_millis());
+    let prefix = format!("{}-{run}-{}", args.vehicle_prefix, std::process::id());
     let shape = handoff::HandoffShape {
         vehicles: args.handoff,
         concurrency: args.handoff_concurrency,
