@@ -10,6 +10,9 @@
 //! 3. Baseline, side by side: N vehicles the database has never seen start the same way on the
 //!    second server (the snapshot lookup finds nothing).
 //!
+//! Before 2, as many fresh vehicles as start at once warm the second server up, untimed (its
+//! database pool opens connections on demand: a cold pool would be charged to the hand-off).
+//!
 //! Without `--server`, both servers run in this process on one temporary SQLite database.
 
 use std::sync::Arc;
@@ -31,6 +34,7 @@ const PREPARE_CONCURRENCY: usize = 64;
 const VEHICLE_LIMIT: Duration = Duration::from_secs(120);
 
 /// What the phase is given.
+#[derive(Clone, Copy)]
 pub struct HandoffShape<'a> {
     pub vehicles: u32,
     /// Vehicles starting on the second server at once.
@@ -228,6 +232,14 @@ pub async fn handoff_phase(
         shape.per_connection,
     )
     .await?;
+    // Untimed: the second server's database connections and the streams' connections warm up.
+    let warm_up = HandoffShape {
+        vehicles: shape.concurrency.min(shape.vehicles),
+        ..shape
+    };
+    timed_starts(&second, &warm_up, "warm-up", None)
+        .await
+        .context("warming up the second server")?;
     let resumed = timed_starts(&second, &shape, "handoff", Some(PREPARE_BATCHES))
         .await
         .context("the hand-off to the second server")?;
