@@ -1,25 +1,29 @@
 //! The alarm outbox: alarm onsets and ends leave the detection path at once (no database call while
-//! a session is locked), are sent to live watchers and logged, and one background writer stores them
-//! in batches, one transaction per batch, retried with backoff until the store accepts them, and
-//! drained at shutdown. The same writer stores session snapshots (the hand-off of a vehicle's
-//! detection state): only the latest unstored snapshot of each vehicle is kept, and it is stored in
-//! the same transaction as, or after, every alarm event emitted before it, so a session continued
-//! from a stored snapshot never emits a stored event again.
+//! a session is locked) and are logged, and one background writer stores them in batches, one
+//! transaction per batch, retried with backoff until the store accepts them, and drained at
+//! shutdown; after each commit it tells the live feed ([`feed`]) to read the new rows. The same
+//! writer stores session snapshots (the hand-off of a vehicle's detection state): only the latest
+//! unstored snapshot of each vehicle is kept, and it is stored in the same transaction as, or after,
+//! every alarm event emitted before it, so a session continued from a stored snapshot never emits
+//! a stored event again.
 //!
-//! Ids and cursors are assigned here. Each server start (a run, numbered by the store) takes a block
-//! of both ([`first_seq_of_run`]), so processes sharing a database never collide, a retried batch is
-//! idempotent and an end always names its own onset. Cursors (the WatchAlarms positions) increase in
-//! emission order under the queue's lock, so the queue, the live channel and the stored event log
-//! all hold events in cursor order, and a cursor a crash kept from being stored is never reused.
+//! Alarm ids and event seqs are assigned here. Each server start (a run, numbered by the store)
+//! takes a block of both ([`first_seq_of_run`]), so processes sharing a database never collide, a
+//! retried batch is idempotent and an end always names its own onset. Seqs increase in emission
+//! order under the queue's lock, so the queue holds events in emission order. The WatchAlarms
+//! cursor is not assigned here but by the database when an event is stored (its log position, in
+//! commit order across every process sharing the database).
 //!
 //! The queue is bounded: when it is full a new onset is dropped (counted and logged; never sent or
 //! stored, and its end neither) rather than stall detection; ends are always queued (one per open
 //! alarm, so they are bounded by the session limit). A write the store would refuse by its values
 //! (a non-finite time, a probability outside [0, 1]) is refused here, so it cannot block the queue.
 //!
-//! [`service`] serves the events: ListAlarms from the store, WatchAlarms from the store, then this
-//! queue, then the live channel.
+//! [`service`] serves the events: ListAlarms from the store, WatchAlarms from the event log, then
+//! the live [`feed`] of newly stored events (of every replica). Events queued here and not stored
+//! yet are not sent to watchers.
 
+pub mod feed;
 pub mod service;
 
 use std::collections::{HashMap, VecDeque};
@@ -28,7 +32,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use spoofwatch_proto::wire::convert::timestamp_from_ms;
-use tokio::sync::{Notify, broadcast, oneshot};
+use tokio::sync::{Notify, oneshot};
 use tokio_util::sync::CancellationToken;
 
 use crate::store::{
@@ -39,9 +43,6 @@ use crate::telemetry;
 
 /// Most writes queued before new onsets are dropped.
 pub const OUTBOX_CAPACITY: usize = 100_000;
-/// Events a live watcher may fall behind before it is told it lagged (it then replays from the
-/// database and this queue).
-const LIVE_BUFFER: usize = 4_096;
 /// Most writes per transaction.
 const BATCH: usize = 512;
 /// Most session snapshots per transaction (about 2 KB each).
@@ -75,7 +76,7 @@ pub struct OutboxStats {
 /// What the queue's lock guards.
 #[derive(Debug)]
 struct Pending {
-    /// Emitted events not stored yet, in cursor order.
+    /// Emitted events not stored yet, in seq (emission) order.
     queue: VecDeque<Arc<AlarmEvent>>,
     /// Alarms whose onset was emitted and whose end was not: an end is emitted only for these.
     open: HashMap<i64, AlarmEventRow>,
@@ -90,7 +91,7 @@ struct Pending {
 #[derive(Debug)]
 struct QueuedSnapshot {
     row: SnapshotRow,
-    /// The latest cursor emitted when it was taken: it is stored only with or after that event.
+    /// The latest seq emitted when it was taken: it is stored only with or after that event.
     emitted_through: i64,
     /// Tells a newer snapshot of the vehicle apart from the one a write in flight holds.
     generation: u64,
@@ -98,26 +99,14 @@ struct QueuedSnapshot {
     waiters: Vec<oneshot::Sender<()>>,
 }
 
-/// Where a watcher joins the event sequence (see [`AlarmOutbox::subscribe`]).
-#[derive(Debug)]
-pub struct Subscription {
-    /// Every event emitted after the subscription.
-    pub live: broadcast::Receiver<Arc<AlarmEvent>>,
-    /// The emitted events after the requested cursor that are not stored yet, in cursor order.
-    pub unstored: Vec<Arc<AlarmEvent>>,
-    /// Every emitted event with a lower cursor is stored.
-    pub stored_below: i64,
-    /// The latest cursor emitted so far (the one before this run's first when none was).
-    pub head: i64,
-}
-
 /// The queue between the sessions and the writer.
 #[derive(Debug)]
 pub struct AlarmOutbox {
     pending: Mutex<Pending>,
-    live: broadcast::Sender<Arc<AlarmEvent>>,
     capacity: usize,
     wake: Notify,
+    /// Told after each committed batch of events (the live feed reads the new rows).
+    stored: Notify,
     written: AtomicU64,
     dropped_onsets: AtomicU64,
     invalid: AtomicU64,
@@ -129,7 +118,7 @@ pub struct AlarmOutbox {
 
 impl AlarmOutbox {
     /// The outbox of a server starting on `store`: it starts a new run (a block of ids and
-    /// cursors), and ends the alarms that were left open and that no stored session snapshot holds
+    /// seqs), and ends the alarms that were left open and that no stored session snapshot holds
     /// (a crash, or a drain that could not store them) with logged end events.
     pub async fn new(store: &Store, capacity: usize) -> Result<Self, StoreError> {
         let now = now_unix_ms();
@@ -149,9 +138,9 @@ impl AlarmOutbox {
                 snapshots: HashMap::new(),
                 next_generation: 0,
             }),
-            live: broadcast::channel(LIVE_BUFFER).0,
             capacity,
             wake: Notify::new(),
+            stored: Notify::new(),
             written: AtomicU64::new(0),
             dropped_onsets: AtomicU64::new(0),
             invalid: AtomicU64::new(0),
@@ -165,6 +154,11 @@ impl AlarmOutbox {
     /// This server start's run number: unique among the processes sharing the database.
     pub fn run_id(&self) -> i64 {
         self.run
+    }
+
+    /// Told (one permit kept) after each batch of events the writer committed.
+    pub fn stored_events(&self) -> &Notify {
+        &self.stored
     }
 
     fn pending(&self) -> std::sync::MutexGuard<'_, Pending> {
@@ -260,15 +254,13 @@ impl AlarmOutbox {
         }
     }
 
-    /// Gives `event` the next cursor, queues it for the writer and sends it to live watchers, all
-    /// under the lock, so that every watcher sees cursor order.
+    /// Gives `event` the next seq and queues it for the writer, under the lock, so that the queue
+    /// is in seq order.
     fn emit(&self, pending: &mut Pending, mut event: AlarmEvent) -> Arc<AlarmEvent> {
         event.seq = pending.next_seq;
         pending.next_seq += 1;
         let event = Arc::new(event);
         pending.queue.push_back(Arc::clone(&event));
-        // No watcher is not an error.
-        let _ = self.live.send(Arc::clone(&event));
         self.wake.notify_one();
         event
     }
@@ -318,27 +310,6 @@ impl AlarmOutbox {
         self.invalid.fetch_add(1, Ordering::Relaxed);
         tracing::error!(%error, ?event, "an alarm event with invalid values was not stored");
         false
-    }
-
-    /// Joins the event sequence after cursor `after`: the live receiver is created under the
-    /// queue's lock, so every event after `head` reaches it, every queued event after `after` is
-    /// in `unstored`, and every earlier one is in the database.
-    pub fn subscribe(&self, after: i64) -> Subscription {
-        let pending = self.pending();
-        let live = self.live.subscribe();
-        let stored_below = pending.queue.front().map_or(pending.next_seq, |e| e.seq);
-        let unstored = pending
-            .queue
-            .iter()
-            .filter(|e| e.seq > after)
-            .cloned()
-            .collect();
-        Subscription {
-            live,
-            unstored,
-            stored_below,
-            head: pending.next_seq - 1,
-        }
     }
 
     /// The counters as they are now.
@@ -402,7 +373,7 @@ impl AlarmOutbox {
     /// newer one of the vehicle arrived meanwhile, and their waiters are told.
     fn committed(&self, events: usize, snapshots: &[SnapshotRow], generations: &[u64]) {
         let mut pending = self.pending();
-        // Removed only once committed: a watcher finds each event queued or stored.
+        // Removed only once committed: a failed write is retried from the queue.
         pending.queue.drain(..events);
         for (row, generation) in snapshots.iter().zip(generations) {
             if pending
@@ -443,6 +414,9 @@ impl AlarmOutbox {
             match telemetry::db_timed("alarm_batch_write", write).await {
                 Ok(()) => {
                     self.committed(batch.len(), &snapshots, &generations);
+                    if !batch.is_empty() {
+                        self.stored.notify_one();
+                    }
                     if self.failing.swap(false, Ordering::Relaxed) {
                         tracing::info!(
                             failed_batches = self.failed_batches.load(Ordering::Relaxed),
@@ -488,7 +462,6 @@ fn log_event(event: &AlarmEvent) {
             vehicle_id = %alarm.vehicle_id,
             model = %alarm.model_id,
             alarm_id = alarm.id,
-            cursor = event.seq,
             probability = alarm.peak_probability,
             onset_timestamp_s = alarm.onset_timestamp_s,
             onset_at = %timestamp_from_ms(alarm.onset_at_ms),
@@ -498,7 +471,6 @@ fn log_event(event: &AlarmEvent) {
             vehicle_id = %alarm.vehicle_id,
             model = %alarm.model_id,
             alarm_id = alarm.id,
-            cursor = event.seq,
             peak_probability = alarm.peak_probability,
             samples = alarm.samples,
             onset_timestamp_s = alarm.onset_timestamp_s,
@@ -625,34 +597,7 @@ mod tests {
     }
 
     #[tokio::test]
-    async fn a_subscriber_gets_the_queued_events_after_its_cursor_then_live_ones_in_order() {
-        let (_dir, store) = temp_store().await;
-        let outbox = AlarmOutbox::new(&store, 10).await.unwrap();
-        let empty = outbox.subscribe(0);
-        assert!(empty.unstored.is_empty());
-        assert_eq!(empty.stored_below, empty.head + 1);
-
-        let first = outbox.onset("car-1", "m", 1.0, 1, 0.9);
-        let second = outbox.onset("car-2", "m", 2.0, 1, 0.8);
-        let mut subscription = outbox.subscribe(empty.head + 1);
-        let queued: Vec<_> = subscription.unstored.iter().map(|e| e.alarm.id).collect();
-        assert_eq!(queued, [second], "only the events after the cursor");
-        assert_eq!(subscription.stored_below, empty.head + 1);
-        assert_eq!(subscription.head, empty.head + 2);
-
-        outbox.end(first, 3.0, 0.95, 3);
-        let live = subscription.live.recv().await.unwrap();
-        assert_eq!((live.seq, live.kind), (empty.head + 3, AlarmEventKind::End));
-        assert_eq!(
-            (live.alarm.vehicle_id.as_str(), live.alarm.onset_timestamp_s),
-            ("car-1", 1.0),
-            "an end carries its alarm"
-        );
-        assert_eq!(live.alarm.end_timestamp_s, Some(3.0));
-    }
-
-    #[tokio::test]
-    async fn a_restart_continues_above_every_earlier_cursor_and_ends_the_alarms_left_open() {
+    async fn a_restart_continues_above_every_earlier_seq_and_ends_the_alarms_left_open() {
         let (_dir, store) = temp_store().await;
         let before = AlarmOutbox::new(&store, 10).await.unwrap();
         let left_open = before.onset("car", "m", 1.0, 1, 0.9);
@@ -661,36 +606,30 @@ mod tests {
         before
             .run(store.clone(), stop, Duration::from_secs(5))
             .await;
-        // A cursor only a live watcher saw (the crash lost it before it was stored).
+        // An event a crash kept from being stored: its seq is never reused.
         let unstored = before.onset("car-2", "m", 2.0, 1, 0.9);
-        let seen_live = before.subscribe(0).head;
         assert_ne!(unstored, left_open);
 
         let after = AlarmOutbox::new(&store, 10).await.unwrap();
-        let restarted = after.subscribe(i64::MAX);
-        assert!(restarted.head > seen_live);
+        assert!(first_seq_of_run(after.run_id()) > unstored);
         let logged = store
-            .alarm_events_between(0, i64::MAX, None, 10)
+            .alarm_events_after(0, i64::MAX, None, 10)
             .await
             .unwrap();
-        let logged: Vec<_> = logged.iter().map(|e| (e.kind, e.alarm.id)).collect();
+        let logged: Vec<_> = logged
+            .iter()
+            .map(|e| (e.position, e.event.kind, e.event.alarm.id))
+            .collect();
         assert_eq!(
             logged,
             [
-                (AlarmEventKind::Onset, left_open),
-                (AlarmEventKind::End, left_open)
-            ]
+                (1, AlarmEventKind::Onset, left_open),
+                (2, AlarmEventKind::End, left_open)
+            ],
+            "the end is logged after the onset, with a seq of the new run"
         );
-        let end = store
-            .alarm_events_between(seen_live, i64::MAX, None, 10)
-            .await
-            .unwrap();
-        assert_eq!(
-            end.len(),
-            1,
-            "the end is logged with a cursor of the new run"
-        );
-        assert_eq!(end[0].seq, restarted.head);
+        let end = store.alarm_events_after(1, 2, None, 10).await.unwrap();
+        assert_eq!(end[0].event.seq, first_seq_of_run(after.run_id()));
     }
 
     #[tokio::test]

@@ -5,8 +5,8 @@
 //! up logging, binds and waits for a signal; [`inprocess`] runs it inside another process.
 //!
 //! Layout, one home per concept: `models` (registry + ModelService), `datasets` (catalog +
-//! DatasetService), `detection` (sessions + DetectionService), `alarms` (the outbox, background
-//! writer and live feed of alarm events + AlarmService), `jobs` (service → manager → runner),
+//! DatasetService), `detection` (sessions + DetectionService), `alarms` (the outbox and background
+//! writer of alarm events, the live feed that follows the stored event log + AlarmService), `jobs` (service → manager → runner),
 //! `store` (the only SQL, on SQLite or PostgreSQL), `watch` (database file and alarm-writer health), `error` (the one error → status mapping), `fault` (a server-side fault
 //! inside a subsystem's error), `edge` (request decoding shared by the services), `identity` (ids
 //! and digests), `telemetry` (every Prometheus metric and the `/metrics` endpoint). Wire
@@ -56,6 +56,7 @@ use tonic_health::ServingStatus;
 
 pub use config::Config;
 
+use crate::alarms::feed::AlarmFeed;
 use crate::alarms::service::AlarmApi;
 use crate::alarms::{AlarmOutbox, OUTBOX_CAPACITY};
 use crate::datasets::{Catalog, DatasetApi};
@@ -223,6 +224,15 @@ pub async fn serve_with_metrics(
         let stop = stop_alarm_writer.clone();
         tokio::spawn(async move { alarms.run(store, stop, grace).await })
     };
+    // WatchAlarms' live events: the stored event log of every replica, read after each local
+    // commit and every 200 ms.
+    let alarm_feed = Arc::new(AlarmFeed::new(&store).await?);
+    let stop_alarm_feed = CancellationToken::new();
+    let alarm_follower = {
+        let (feed, alarms, store) = (Arc::clone(&alarm_feed), Arc::clone(&alarms), store.clone());
+        let stop = stop_alarm_feed.clone();
+        tokio::spawn(async move { feed.follow(store, alarms.stored_events(), stop).await })
+    };
 
     let draining = CancellationToken::new();
     let sessions = Arc::new(SessionManager::new(
@@ -306,7 +316,7 @@ pub async fn serve_with_metrics(
         .max_decoding_message_size(limit);
     let alarm_service = gzip!(AlarmServiceServer::new(AlarmApi {
         store: store.clone(),
-        outbox: Arc::clone(&alarms),
+        feed: Arc::clone(&alarm_feed),
         shutdown: draining.clone(),
     }))
     .max_decoding_message_size(limit);
@@ -317,7 +327,7 @@ pub async fn serve_with_metrics(
         DatasetServiceServer::<DatasetApi>::NAME,
         TrainingServiceServer::<TrainingApi>::NAME,
         OperationsServer::<OperationsApi>::NAME,
-        // Live alarm events come from memory, but listing and replay need the database.
+        // Listing, replay and live alarm events all read the database.
         AlarmServiceServer::<AlarmApi>::NAME,
     ];
     for service in served.iter().copied().chain([watch::STORAGE_HEALTH]) {
@@ -443,6 +453,8 @@ pub async fn serve_with_metrics(
     };
     evictor.abort();
     storage_watch.abort();
+    stop_alarm_feed.cancel();
+    let _ = alarm_follower.await;
     job_leases.abort();
     // The writer stores what is queued (bounded by the grace while the database refuses).
     stop_alarm_writer.cancel();

@@ -1,6 +1,7 @@
 //! Two replicas on one PostgreSQL database: a job admitted by one is seen through the other, a
 //! replica that starts leaves the other's running job alone, and a cancellation and a wait through
-//! the other replica reach the job where it runs. Needs `SPOOFWATCH_TEST_POSTGRES_URL` (skipped
+//! the other replica reach the job where it runs; a WatchAlarms call on one replica follows both
+//! replicas' alarms, and its cursors resume on the other. Needs `SPOOFWATCH_TEST_POSTGRES_URL` (skipped
 //! without it, failed without it under `SPOOFWATCH_REQUIRE_POSTGRES=1`).
 
 use std::time::Duration;
@@ -12,10 +13,11 @@ use spoofwatch_proto::v1;
 use spoofwatch_server::Config;
 use spoofwatch_server::store::test_database::TestDatabase;
 use spoofwatch_tests::{
-    Clients, TestServer, attacked_drive, metadata_of, normal_drive, training_request,
-    upload_tracks, wait_done,
+    Clients, REPLY_TIMEOUT, TestServer, attacked_drive, metadata_of, normal_drive,
+    stream_frozen_fix_drive, training_request, upload_tracks, wait_done,
 };
 use tonic::Code;
+use tonic::codec::Streaming;
 
 /// Twenty-four 20-minute drives (about 28,800 rows), half of them attacked early, mid-way or late,
 /// so that training runs several times longer than a lease renewal (measured: about 8 s after the cancellation point here, against at most a second or two for the cancellation to arrive) and
@@ -129,6 +131,120 @@ async fn a_job_on_one_replica_is_seen_cancelled_and_awaited_through_another() {
     assert_eq!(get(&mut on_first, &job.name).await, cancelled);
 
     drop((on_first, on_second));
+    first.stop().await;
+    second.stop().await;
+    database.drop_database().await;
+}
+
+const ONSET: i32 = v1::AlarmEventKind::Onset as i32;
+const END: i32 = v1::AlarmEventKind::End as i32;
+const CAUGHT_UP: i32 = v1::AlarmEventKind::CaughtUp as i32;
+
+async fn watch_alarms(
+    clients: &Clients,
+    after_cursor: Option<i64>,
+    stop_when_caught_up: bool,
+) -> Streaming<v1::AlarmEvent> {
+    let request = v1::WatchAlarmsRequest {
+        vehicle_id: String::new(),
+        after_cursor,
+        stop_when_caught_up,
+    };
+    clients
+        .alarms
+        .clone()
+        .watch_alarms(request)
+        .await
+        .expect("WatchAlarms works")
+        .into_inner()
+}
+
+async fn next_event(watch: &mut Streaming<v1::AlarmEvent>) -> Option<v1::AlarmEvent> {
+    tokio::time::timeout(REPLY_TIMEOUT, watch.message())
+        .await
+        .expect("an alarm event within the reply timeout")
+        .expect("the watch goes on")
+}
+
+/// The events after `cursor` up to CAUGHT_UP (left out), through `clients`' replica.
+async fn stored_after(clients: &Clients, cursor: i64) -> Vec<v1::AlarmEvent> {
+    let mut watch = watch_alarms(clients, Some(cursor), true).await;
+    let mut events = Vec::new();
+    while let Some(event) = next_event(&mut watch).await {
+        events.push(event);
+    }
+    assert_eq!(events.pop().map(|e| e.kind), Some(CAUGHT_UP));
+    events
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_watcher_on_one_replica_follows_both_and_resumes_on_the_other() {
+    let Some(database) = TestDatabase::create("replicas_watch_alarms").await else {
+        return;
+    };
+    let first = TestServer::start(replica(&database.url, "replica-a")).await;
+    let second = TestServer::start(replica(&database.url, "replica-b")).await;
+    let (mut on_first, on_second) = (Clients::of(&first).await, Clients::of(&second).await);
+    let mut live = watch_alarms(&on_first, None, false).await;
+    let start = next_event(&mut live).await.expect("CAUGHT_UP");
+    assert_eq!(start.kind, CAUGHT_UP);
+
+    // One vehicle on each replica, at the same time.
+    let (episodes_a, episodes_b) = tokio::join!(
+        stream_frozen_fix_drive(&on_first, "on-a"),
+        stream_frozen_fix_drive(&on_second, "on-b")
+    );
+    assert!(!episodes_a.is_empty() && !episodes_b.is_empty());
+    let mut seen = Vec::new();
+    while seen.len() < 2 * (episodes_a.len() + episodes_b.len()) {
+        let event = next_event(&mut live).await.expect("the watch goes on");
+        assert_ne!(event.kind, CAUGHT_UP, "one CAUGHT_UP per call");
+        seen.push(event);
+    }
+    assert!(
+        seen.windows(2).all(|w| w[0].cursor < w[1].cursor),
+        "strictly increasing cursors: {seen:?}"
+    );
+    assert!(seen[0].cursor > start.cursor);
+    for (vehicle, episodes) in [("on-a", &episodes_a), ("on-b", &episodes_b)] {
+        let of_vehicle: Vec<_> = seen
+            .iter()
+            .filter(|e| e.alarm.as_ref().is_some_and(|a| a.vehicle_id == vehicle))
+            .collect();
+        let shown: Vec<_> = of_vehicle
+            .iter()
+            .map(|e| (e.kind, e.alarm.as_ref().map(|a| a.onset_timestamp_s)))
+            .collect();
+        let expected: Vec<_> = episodes
+            .iter()
+            .flat_map(|e| [(ONSET, Some(e.onset_s)), (END, Some(e.onset_s))])
+            .collect();
+        assert_eq!(shown, expected, "every onset and end of {vehicle}, once");
+    }
+
+    // Everything stored is what the watcher saw, and a cursor from the first replica resumes on
+    // the second with exactly the events after it.
+    assert_eq!(stored_after(&on_second, start.cursor).await, seen);
+    let middle = seen.len() / 2;
+    assert_eq!(
+        stored_after(&on_second, seen[middle].cursor).await,
+        seen[middle + 1..]
+    );
+    let listed = on_first
+        .alarms
+        .list_alarms(v1::ListAlarmsRequest::default())
+        .await
+        .expect("ListAlarms works")
+        .into_inner();
+    let mut ended: Vec<_> = seen
+        .iter()
+        .filter(|e| e.kind == END)
+        .filter_map(|e| e.alarm.clone())
+        .collect();
+    ended.sort_by_key(|a| a.id);
+    assert_eq!(listed.alarms, ended, "the alarms as their ends showed them");
+
+    drop((live, on_first, on_second));
     first.stop().await;
     second.stop().await;
     database.drop_database().await;

@@ -1,17 +1,22 @@
-//! The AlarmService RPCs: ListAlarms reads the store; WatchAlarms joins the outbox's event sequence.
+//! The AlarmService RPCs: ListAlarms reads the store; WatchAlarms reads the event log and follows
+//! the live feed.
 //!
-//! A watch replays what the caller missed, then follows live events:
-//! 1. it subscribes to the outbox (the live receiver, the queued events and `stored_below` are taken
-//!    together under the queue's lock);
-//! 2. it sends the stored events after its position and below `stored_below` (paged from the log),
-//!    then the queued ones, then CAUGHT_UP;
-//! 3. it follows the live receiver, skipping any cursor it has already passed (de-duplication).
+//! The cursor is the event log position the database assigned when the event was stored (commit
+//! order across every replica writing into the database; see `store::alarms`), so a cursor from
+//! any replica resumes on any other. A watch replays what the caller missed, then follows live
+//! events:
+//! 1. it subscribes to the feed (the live receiver and the feed's head are taken together);
+//! 2. it sends the stored events after its position up to the head (paged from the log), then
+//!    CAUGHT_UP;
+//! 3. it follows the live receiver, skipping any position it has already passed (de-duplication).
 //!
 //! A watcher that falls more than the live buffer behind (`Lagged`) goes back to step 1 from its
-//! position: the missed events are in the database or the queue, so a slow dashboard is slowed
-//! down, never given a gap. Only the replay needs the database; if it fails, or the server
-//! drains, the stream ends with UNAVAILABLE naming the cursor to resume from. Each call runs in
-//! its own task writing into a small bounded channel (as DetectionService streams do).
+//! position: the missed events are in the log, so a slow dashboard is slowed down, never given a
+//! gap. A watch sends only stored events: while the database is down, watchers see nothing new
+//! (the detection stream still carries each alarm at once) and get the events once it is back. If
+//! a replay cannot read the log, or the server drains, the stream ends with UNAVAILABLE naming the
+//! cursor to resume from. Each call runs in its own task writing into a small bounded channel (as
+//! DetectionService streams do).
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -28,11 +33,13 @@ use tokio_util::sync::CancellationToken;
 use tonic::{Code, Request, Response, Status};
 use tonic_types::{ErrorDetails, StatusExt};
 
-use super::{AlarmOutbox, Subscription};
+use super::feed::{AlarmFeed, FeedSubscription};
 use crate::detection::vehicle_id_violation;
 use crate::edge::{optional_model_name, page_request};
 use crate::status::{invalid_field, shutting_down};
-use crate::store::{AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, Store};
+use crate::store::{
+    AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent, Store,
+};
 
 /// Events buffered per watch before its task waits for the client.
 const OUTBOUND_BUFFER: usize = 16;
@@ -45,7 +52,7 @@ type WatchReply = Result<v1::AlarmEvent, Status>;
 #[derive(Debug, Clone)]
 pub struct AlarmApi {
     pub store: Store,
-    pub outbox: Arc<AlarmOutbox>,
+    pub feed: Arc<AlarmFeed>,
     /// Cancelled when the server starts draining.
     pub shutdown: CancellationToken,
 }
@@ -66,15 +73,15 @@ fn alarm_to_proto(alarm: &AlarmEventRow) -> v1::Alarm {
     }
 }
 
-fn event_to_proto(event: &AlarmEvent) -> v1::AlarmEvent {
-    let kind = match event.kind {
+fn event_to_proto(logged: &LoggedAlarmEvent) -> v1::AlarmEvent {
+    let kind = match logged.event.kind {
         AlarmEventKind::Onset => v1::AlarmEventKind::Onset,
         AlarmEventKind::End => v1::AlarmEventKind::End,
     };
     v1::AlarmEvent {
-        cursor: event.seq,
+        cursor: logged.position,
         kind: kind as i32,
-        alarm: Some(alarm_to_proto(&event.alarm)),
+        alarm: Some(alarm_to_proto(&logged.event.alarm)),
     }
 }
 
@@ -180,13 +187,13 @@ fn draining(cursor: i64) -> Status {
 /// One WatchAlarms call.
 struct Watch {
     store: Store,
-    outbox: Arc<AlarmOutbox>,
+    feed: Arc<AlarmFeed>,
     shutdown: CancellationToken,
     vehicle_id: Option<String>,
     /// End the call after CAUGHT_UP.
     stop_when_caught_up: bool,
     tx: mpsc::Sender<WatchReply>,
-    /// Every event up to this cursor has been sent or filtered out.
+    /// Every event up to this log position has been sent or filtered out.
     position: i64,
 }
 
@@ -199,20 +206,20 @@ enum Stop {
 }
 
 impl Watch {
-    fn wanted(&self, event: &AlarmEvent) -> bool {
+    fn wanted(&self, logged: &LoggedAlarmEvent) -> bool {
         self.vehicle_id
             .as_deref()
-            .is_none_or(|v| v == event.alarm.vehicle_id)
+            .is_none_or(|v| v == logged.event.alarm.vehicle_id)
     }
 
-    /// Sends `event` if it is past the position and wanted; advances the position.
-    async fn offer(&mut self, event: &AlarmEvent) -> Result<(), Stop> {
-        if event.seq <= self.position {
+    /// Sends `logged` if it is past the position and wanted; advances the position.
+    async fn offer(&mut self, logged: &LoggedAlarmEvent) -> Result<(), Stop> {
+        if logged.position <= self.position {
             return Ok(());
         }
-        self.position = event.seq;
-        if self.wanted(event) {
-            self.send(event_to_proto(event)).await?;
+        self.position = logged.position;
+        if self.wanted(logged) {
+            self.send(event_to_proto(logged)).await?;
         }
         Ok(())
     }
@@ -221,17 +228,17 @@ impl Watch {
         self.tx.send(Ok(message)).await.map_err(|_| Stop::Gone)
     }
 
-    /// Sends the stored events after the position and below `stored_below`.
-    async fn replay_stored(&mut self, stored_below: i64) -> Result<(), Stop> {
-        while self.position < stored_below - 1 {
+    /// Sends the stored events after the position, up to `through`.
+    async fn replay_stored(&mut self, through: i64) -> Result<(), Stop> {
+        while self.position < through {
             if self.shutdown.is_cancelled() {
                 return Err(Stop::Fail(draining(self.position)));
             }
             let page = self
                 .store
-                .alarm_events_between(
+                .alarm_events_after(
                     self.position,
-                    stored_below,
+                    through,
                     self.vehicle_id.as_deref(),
                     REPLAY_PAGE,
                 )
@@ -250,25 +257,21 @@ impl Watch {
                     ))
                 })?;
             let complete = page.len() < REPLAY_PAGE as usize;
-            for event in &page {
-                self.offer(event).await?;
+            for logged in &page {
+                self.offer(logged).await?;
             }
             if complete {
-                self.position = stored_below - 1;
+                self.position = through;
             }
         }
         Ok(())
     }
 
     /// Replays, then follows live events until the client goes away or the call must end.
-    async fn run(mut self, mut subscription: Subscription) -> Result<(), Stop> {
+    async fn run(mut self, mut subscription: FeedSubscription) -> Result<(), Stop> {
         let mut announced = false;
         loop {
-            self.replay_stored(subscription.stored_below).await?;
-            for event in std::mem::take(&mut subscription.unstored) {
-                self.offer(&event).await?;
-            }
-            self.position = self.position.max(subscription.head);
+            self.replay_stored(subscription.head).await?;
             if !announced {
                 self.send(caught_up(self.position)).await?;
                 announced = true;
@@ -284,7 +287,7 @@ impl Watch {
                     received = subscription.live.recv() => received,
                 };
                 match received {
-                    Ok(event) => self.offer(&event).await?,
+                    Ok(logged) => self.offer(&logged).await?,
                     Err(RecvError::Lagged(missed)) => {
                         tracing::debug!(
                             missed,
@@ -293,11 +296,11 @@ impl Watch {
                         );
                         break;
                     }
-                    // The outbox lives as long as the server: it is going away.
+                    // The feed lives as long as the server: it is going away.
                     Err(RecvError::Closed) => return Err(Stop::Fail(draining(self.position))),
                 }
             }
-            subscription = self.outbox.subscribe(self.position);
+            subscription = self.feed.subscribe();
         }
     }
 }
@@ -336,16 +339,22 @@ impl AlarmService for AlarmApi {
         {
             return Err(invalid_field("after_cursor", "must not be negative"));
         }
-        let subscription = self.outbox.subscribe(r.after_cursor.unwrap_or(i64::MAX));
+        let subscription = self.feed.subscribe();
         let position = match r.after_cursor {
+            // The feed may be a poll behind the log (an event another replica just stored and
+            // sent): only the log itself tells that a cursor is from the future.
             Some(after) if after > subscription.head => {
-                return Err(invalid_field(
-                    "after_cursor",
-                    format!(
-                        "{after} is beyond the latest event ({}); resume with a cursor this server sent",
-                        subscription.head
-                    ),
-                ));
+                let latest = self.store.latest_alarm_position().await?;
+                if after > latest {
+                    return Err(invalid_field(
+                        "after_cursor",
+                        format!(
+                            "{after} is beyond the latest event ({latest}); resume with a cursor \
+                             WatchAlarms sent, or without one (ListAlarms lists what is stored)"
+                        ),
+                    ));
+                }
+                after
             }
             Some(after) => after,
             None => subscription.head,
@@ -353,7 +362,7 @@ impl AlarmService for AlarmApi {
         let (tx, rx) = mpsc::channel(OUTBOUND_BUFFER);
         let watch = Watch {
             store: self.store.clone(),
-            outbox: Arc::clone(&self.outbox),
+            feed: Arc::clone(&self.feed),
             shutdown: self.shutdown.clone(),
             vehicle_id,
             stop_when_caught_up: r.stop_when_caught_up,

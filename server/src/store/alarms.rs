@@ -1,6 +1,7 @@
 //! Confirmed-alarm history: one row per alarm episode of a vehicle, written at onset and at end (by
 //! the server's background alarm writer, in batches) so an alarm is never lost even if the
-//! in-memory session is.
+//! in-memory session is. Each onset and end is also appended to the event log behind WatchAlarms,
+//! at a position the database assigns in commit order (see `log_event!`).
 
 use std::borrow::Borrow;
 
@@ -65,17 +66,30 @@ impl AlarmEventKind {
 text_enum!(AlarmEventKind);
 
 /// One alarm onset or end, as the server emits it: stored by the background writer (the alarm row
-/// and the event log), sent live to watchers and replayed from the log. Ids and cursors come from
-/// the server (never from an insert), so a write can be retried and an end always names its onset.
+/// and the event log). Ids and seqs come from the server (never from an insert), so a write can be
+/// retried and an end always names its onset.
 #[derive(Debug, Clone, PartialEq, sqlx::FromRow)]
 pub struct AlarmEvent {
-    /// The WatchAlarms cursor: increasing in emission order, also across restarts.
+    /// The writer's key of the event: increasing in emission order within one server run, also
+    /// across restarts, and unique among the processes sharing the database (a retried write is
+    /// skipped by it). Not the WatchAlarms cursor: see [`LoggedAlarmEvent::position`].
     pub seq: i64,
     /// Onset or end.
     pub kind: AlarmEventKind,
     /// The alarm as this event left it (open with one sample for an onset, closed for an end).
     #[sqlx(flatten)]
     pub alarm: AlarmEventRow,
+}
+
+/// An event as the event log holds it: with the position the database gave it when it was stored.
+#[derive(Debug, Clone, PartialEq, sqlx::FromRow)]
+pub struct LoggedAlarmEvent {
+    /// The WatchAlarms cursor: 1, 2, 3, … in commit order across every process writing into the
+    /// database (see [`Store::write_alarms_and_snapshots`]).
+    pub position: i64,
+    /// The event.
+    #[sqlx(flatten)]
+    pub event: AlarmEvent,
 }
 
 impl AlarmEventRow {
@@ -182,7 +196,7 @@ pub struct AlarmFilter {
 /// Listing name inside page tokens.
 const LISTING: &str = "alarms";
 
-/// Where the cursors of alarm run `run` start: a run's cursors are `(run << 32) + n`.
+/// Where the alarm ids and event seqs of alarm run `run` start: they are `(run << 32) + n`.
 pub fn first_seq_of_run(run: i64) -> i64 {
     run << 32
 }
@@ -199,16 +213,24 @@ macro_rules! select_alarms {
     };
 }
 
-/// Appends `event` to the event log inside the write transaction `tx` (skipped when its cursor is
-/// already there: a retry). A macro so that it compiles for either backend's transaction.
+/// Appends `event` to the event log inside the write transaction `tx` (skipped when its seq is
+/// already there: a retry), at the next log position. A macro so that it compiles for either
+/// backend's transaction.
+///
+/// The position is `MAX(position) + 1` read inside the write transaction, which holds the
+/// database's write lock (SQLite's `BEGIN IMMEDIATE`, PostgreSQL's advisory lock) until it has
+/// committed: the next writer gets the lock only once these rows are visible, so positions
+/// increase in commit order. A reader that has seen position p therefore never later finds a newly
+/// committed row below p, on any replica: the invariant WatchAlarms' cursors rest on.
 macro_rules! log_event {
     ($tx:ident, $event:expr) => {{
         let event: &AlarmEvent = $event;
         let alarm = &event.alarm;
         sqlx::query(
-            "INSERT INTO alarm_event_log (seq, alarm_id, kind, end_timestamp_s, ended_at, \
-             peak_probability, samples) VALUES ($1, $2, $3, $4, $5, $6, $7) \
-             ON CONFLICT DO NOTHING",
+            "INSERT INTO alarm_event_log (position, seq, alarm_id, kind, end_timestamp_s, \
+             ended_at, peak_probability, samples) VALUES \
+             ((SELECT COALESCE(MAX(position), 0) + 1 FROM alarm_event_log), \
+             $1, $2, $3, $4, $5, $6, $7) ON CONFLICT DO NOTHING",
         )
         .bind(event.seq)
         .bind(alarm.id)
@@ -233,7 +255,7 @@ impl Store {
     }
 
     /// Records a server start and returns its run number (never reused, increasing): the run's
-    /// alarm event cursors start at [`first_seq_of_run`].
+    /// alarm ids and event seqs start at [`first_seq_of_run`].
     pub async fn start_alarm_run(&self, started_at_ms: i64) -> Result<i64, StoreError> {
         Ok(on_pool!(self, |pool| {
             sqlx::query_scalar::<_, i64>(
@@ -368,25 +390,27 @@ impl Store {
         Ok(plan.finish(LISTING, rows, |row| (row.id, "")))
     }
 
-    /// The logged events with `after < seq < before`, optionally of one vehicle, in cursor order,
-    /// at most `limit`.
-    pub async fn alarm_events_between(
+    /// The logged events with `after < position <= through`, optionally of one vehicle, in
+    /// position order, at most `limit`.
+    pub async fn alarm_events_after(
         &self,
         after: i64,
-        before: i64,
+        through: i64,
         vehicle_id: Option<&str>,
         limit: u32,
-    ) -> Result<Vec<AlarmEvent>, StoreError> {
+    ) -> Result<Vec<LoggedAlarmEvent>, StoreError> {
         Ok(on_pool!(self, |pool| {
-            sqlx::query_as::<_, AlarmEvent>(
-                "SELECT l.seq, l.kind, a.id, a.vehicle_id, a.model_id, a.onset_timestamp_s, \
-                 l.end_timestamp_s, a.onset_at, l.ended_at, l.peak_probability, l.samples \
+            sqlx::query_as::<_, LoggedAlarmEvent>(
+                "SELECT l.position, l.seq, l.kind, a.id, a.vehicle_id, a.model_id, \
+                 a.onset_timestamp_s, l.end_timestamp_s, a.onset_at, l.ended_at, \
+                 l.peak_probability, l.samples \
                  FROM alarm_event_log l JOIN alarm_events a ON a.id = l.alarm_id \
-                 WHERE l.seq > $1 AND l.seq < $2 AND ($3 IS NULL OR a.vehicle_id = $3) \
-                 ORDER BY l.seq LIMIT $4",
+                 WHERE l.position > $1 AND l.position <= $2 \
+                 AND ($3 IS NULL OR a.vehicle_id = $3) \
+                 ORDER BY l.position LIMIT $4",
             )
             .bind(after)
-            .bind(before)
+            .bind(through)
             .bind(vehicle_id)
             .bind(i64::from(limit))
             .fetch_all(pool)
@@ -394,10 +418,19 @@ impl Store {
         }))
     }
 
+    /// The latest event log position (0 when the log is empty).
+    pub async fn latest_alarm_position(&self) -> Result<i64, StoreError> {
+        Ok(on_pool!(self, |pool| {
+            sqlx::query_scalar::<_, i64>("SELECT COALESCE(MAX(position), 0) FROM alarm_event_log")
+                .fetch_one(pool)
+                .await?
+        }))
+    }
+
     /// Start-up recovery: ends every open alarm that no stored session snapshot holds open (left
     /// by a crash, or by a session whose snapshot could not be stored) at wall time
     /// `ended_at_ms`, leaving `end_timestamp_s` NULL ("the session ended while alarming"), and
-    /// logs each end with the cursors `first_seq`, `first_seq + 1`, … in id order. Returns the end
+    /// logs each end with the seqs `first_seq`, `first_seq + 1`, … in id order. Returns the end
     /// events. An alarm a snapshot holds stays open: its session continues it wherever it resumes.
     pub async fn close_open_alarms(
         &self,

@@ -1,12 +1,12 @@
 //! Alarm events: batched onsets and ends with server-assigned ids, retries, list, recovery of open
-//! alarms.
+//! alarms, and the event log's positions (assigned by the database in commit order).
 
 use crate::store::{
-    AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, PageRequest, Store,
-    StoreError,
+    AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent,
+    PageRequest, Store, StoreError,
 };
 
-/// The onset of alarm `id` (cursor `id`), opened at wall time `1_000 + id`.
+/// The onset of alarm `id` (seq `id`), opened at wall time `1_000 + id`.
 fn onset(id: i64, vehicle_id: &str, onset_timestamp_s: f64, probability: f64) -> AlarmEvent {
     AlarmEvent {
         seq: id,
@@ -22,7 +22,7 @@ fn onset(id: i64, vehicle_id: &str, onset_timestamp_s: f64, probability: f64) ->
     }
 }
 
-/// The end of alarm `id` (cursor `1_000 + id`) at wall time `2_000 + id`. The store reads only the
+/// The end of alarm `id` (seq `1_000 + id`) at wall time `2_000 + id`. The store reads only the
 /// id and the end's own values of an end.
 fn end(id: i64, end_timestamp_s: f64, peak_probability: f64, samples: i64) -> AlarmEvent {
     AlarmEvent {
@@ -164,18 +164,21 @@ async fn close_open_alarms_ends_only_open_ones_without_an_end_timestamp(store: S
     );
     assert!(store.close_open_alarms(5_000, 78).await.unwrap().is_empty());
     let logged = store
-        .alarm_events_between(0, i64::MAX, None, 10)
+        .alarm_events_after(0, i64::MAX, None, 10)
         .await
         .unwrap();
-    let logged: Vec<_> = logged.iter().map(|e| (e.seq, e.alarm.id)).collect();
-    assert_eq!(logged, [(1, 1), (2, 2), (77, 2), (1_001, 1)]);
+    let logged: Vec<_> = logged
+        .iter()
+        .map(|e| (e.position, e.event.seq, e.event.alarm.id))
+        .collect();
+    assert_eq!(logged, [(1, 1, 1), (2, 1_001, 1), (3, 2, 2), (4, 77, 2)]);
     assert_eq!(
         closed[0].alarm, *recovered,
         "the logged end is the alarm as closed"
     );
 }
 
-async fn the_event_log_replays_each_event_as_it_was_emitted_in_cursor_order(store: Store) {
+async fn the_event_log_replays_each_event_as_it_was_emitted_in_position_order(store: Store) {
     let events = [
         onset(1, "a", 10.0, 0.6),
         onset(2, "b", 11.0, 0.7),
@@ -183,25 +186,86 @@ async fn the_event_log_replays_each_event_as_it_was_emitted_in_cursor_order(stor
     ];
     store.write_alarms(&events).await.unwrap();
     let replayed = store
-        .alarm_events_between(0, i64::MAX, None, 10)
+        .alarm_events_after(0, i64::MAX, None, 10)
         .await
         .unwrap();
     // The onset of alarm 1 is replayed as it opened, although its row has ended since.
-    assert_eq!(replayed[0], events[0]);
-    assert_eq!(replayed[1], events[1]);
-    assert_eq!(replayed[2].seq, 1_001);
-    assert_eq!(replayed[2].kind, AlarmEventKind::End);
+    let logged = |position: i64, event: &AlarmEvent| LoggedAlarmEvent {
+        position,
+        event: event.clone(),
+    };
+    assert_eq!(replayed[0], logged(1, &events[0]));
+    assert_eq!(replayed[1], logged(2, &events[1]));
+    assert_eq!((replayed[2].position, replayed[2].event.seq), (3, 1_001));
+    assert_eq!(replayed[2].event.kind, AlarmEventKind::End);
     assert_eq!(
-        replayed[2].alarm,
+        replayed[2].event.alarm,
         events[0].alarm.ended(Some(15.0), 2_001, 0.95, 6)
     );
-    let seqs = |events: Vec<AlarmEvent>| events.iter().map(|e| e.seq).collect::<Vec<_>>();
-    let between = store.alarm_events_between(1, 1_001, None, 10).await;
-    assert_eq!(seqs(between.unwrap()), [2]);
-    let of_a = store.alarm_events_between(0, i64::MAX, Some("a"), 10).await;
-    assert_eq!(seqs(of_a.unwrap()), [1, 1_001]);
-    let first = store.alarm_events_between(0, i64::MAX, None, 1).await;
-    assert_eq!(seqs(first.unwrap()), [1]);
+    let positions =
+        |events: Vec<LoggedAlarmEvent>| events.iter().map(|e| e.position).collect::<Vec<_>>();
+    let between = store.alarm_events_after(1, 2, None, 10).await;
+    assert_eq!(
+        positions(between.unwrap()),
+        [2],
+        "after is exclusive, through inclusive"
+    );
+    let of_a = store.alarm_events_after(0, i64::MAX, Some("a"), 10).await;
+    assert_eq!(positions(of_a.unwrap()), [1, 3]);
+    let first = store.alarm_events_after(0, i64::MAX, None, 1).await;
+    assert_eq!(positions(first.unwrap()), [1]);
+    assert_eq!(store.latest_alarm_position().await.unwrap(), 3);
+}
+
+async fn log_positions_follow_commit_order_not_seq_order(store: Store) {
+    assert_eq!(store.latest_alarm_position().await.unwrap(), 0);
+    // Two writers' runs: the later run's events (high seqs) commit first, then the earlier run's.
+    let later_run = [onset(1 << 33, "b", 1.0, 0.9)];
+    let earlier_run = [onset(1 << 32, "a", 2.0, 0.9), end(1 << 32, 3.0, 0.9, 2)];
+    store.write_alarms(&later_run).await.unwrap();
+    store.write_alarms(&earlier_run).await.unwrap();
+    // A retried batch is skipped by seq and takes no position.
+    store.write_alarms(&earlier_run).await.unwrap();
+    let logged = store
+        .alarm_events_after(0, i64::MAX, None, 10)
+        .await
+        .unwrap();
+    let logged: Vec<_> = logged.iter().map(|e| (e.position, e.event.seq)).collect();
+    assert_eq!(
+        logged,
+        [(1, 1 << 33), (2, 1 << 32), (3, 1_000 + (1 << 32))],
+        "a row committed later never gets a position below an earlier commit's"
+    );
+    assert_eq!(store.latest_alarm_position().await.unwrap(), 3);
+}
+
+async fn concurrent_writers_get_distinct_positions_without_gaps(store: Store) {
+    // Eight writers (separate pooled connections) racing, five batches of two events each.
+    let writers: Vec<_> = (0..8i64)
+        .map(|writer| {
+            let store = store.clone();
+            tokio::spawn(async move {
+                for batch in 0..5i64 {
+                    let id = 100 * writer + 10 * batch + 1;
+                    let events = [onset(id, "car", 1.0, 0.9), onset(id + 1, "car", 1.0, 0.9)];
+                    store.write_alarms(&events).await.expect("a racing write");
+                }
+            })
+        })
+        .collect();
+    for writer in writers {
+        writer.await.expect("the writer finishes");
+    }
+    let logged = store
+        .alarm_events_after(0, i64::MAX, None, 500)
+        .await
+        .unwrap();
+    let positions: Vec<_> = logged.iter().map(|e| e.position).collect();
+    assert_eq!(positions, (1..=80).collect::<Vec<_>>());
+    // Each batch's two events are adjacent: a transaction's rows are never interleaved.
+    for pair in logged.chunks(2) {
+        assert_eq!(pair[0].event.seq + 1, pair[1].event.seq, "{pair:?}");
+    }
 }
 
 async fn alarm_runs_increase_and_start_blocks_of_cursors_above_the_previous_ones(store: Store) {
@@ -296,7 +360,78 @@ on_both_backends!(
     a_batch_with_an_invalid_value_writes_nothing,
     list_alarm_events_filters_by_vehicle_newest_first_with_limit,
     close_open_alarms_ends_only_open_ones_without_an_end_timestamp,
-    the_event_log_replays_each_event_as_it_was_emitted_in_cursor_order,
+    the_event_log_replays_each_event_as_it_was_emitted_in_position_order,
+    log_positions_follow_commit_order_not_seq_order,
+    concurrent_writers_get_distinct_positions_without_gaps,
     alarm_runs_increase_and_start_blocks_of_cursors_above_the_previous_ones,
     list_alarms_filters_and_pages_in_id_order,
 );
+
+/// Migration 0005 on a log written before it: positions 1, 2, 3 in seq order, whatever order the
+/// rows were inserted in; the next event stored takes the next position.
+mod positions_are_backfilled_in_seq_order {
+    use crate::store::Store;
+    use crate::store::test_database::TestDatabase;
+
+    /// Three events of two runs (inserted out of seq order) and their alarms, as schema version 4
+    /// holds them.
+    const OLD_LOG: [&str; 3] = [
+        "INSERT INTO alarm_events (id, vehicle_id, model_id, onset_timestamp_s, onset_at, \
+         ended_at, peak_probability, samples) VALUES (4294967296, 'a', 'm', 1.0, 1, 5, 0.9, 1), \
+         (8589934592, 'b', 'm', 2.0, 2, NULL, 0.9, 1)",
+        "INSERT INTO alarm_event_log (seq, alarm_id, kind, peak_probability, samples) VALUES \
+         (8589934592, 8589934592, 'onset', 0.9, 1), (4294967297, 4294967296, 'end', 0.9, 1)",
+        "INSERT INTO alarm_event_log (seq, alarm_id, kind, peak_probability, samples) VALUES \
+         (4294967296, 4294967296, 'onset', 0.9, 1)",
+    ];
+
+    async fn check(store: Store) {
+        let logged = store
+            .alarm_events_after(0, i64::MAX, None, 10)
+            .await
+            .unwrap();
+        let logged: Vec<_> = logged.iter().map(|e| (e.position, e.event.seq)).collect();
+        assert_eq!(logged, [(1, 4294967296), (2, 4294967297), (3, 8589934592)]);
+        store.close_open_alarms(3, 3 << 32).await.unwrap();
+        let next = store.alarm_events_after(3, i64::MAX, None, 10).await;
+        let next: Vec<_> = next.unwrap().iter().map(|e| e.position).collect();
+        assert_eq!(next, [4], "b's alarm ended at the next position");
+    }
+
+    #[tokio::test]
+    async fn sqlite() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join("v4.db");
+        let url = format!("sqlite://{}?mode=rwc", path.display());
+        let pool = sqlx::SqlitePool::connect(&url).await.expect("connect");
+        sqlx::migrate!("../migrations/sqlite")
+            .run_to(4, &pool)
+            .await
+            .expect("schema version 4");
+        for sql in OLD_LOG {
+            sqlx::query(sql).execute(&pool).await.expect(sql);
+        }
+        pool.close().await;
+        check(Store::open(&path.to_string_lossy()).await.expect("open")).await;
+    }
+
+    #[tokio::test]
+    async fn postgres() {
+        let Some(database) = TestDatabase::create("positions_are_backfilled").await else {
+            return;
+        };
+        let pool = sqlx::PgPool::connect(&database.url).await.expect("connect");
+        sqlx::migrate!("../migrations/postgres")
+            .run_to(4, &pool)
+            .await
+            .expect("schema version 4");
+        for sql in OLD_LOG {
+            sqlx::query(sql).execute(&pool).await.expect(sql);
+        }
+        pool.close().await;
+        let store = Store::open(&database.url).await.expect("open");
+        check(store.clone()).await;
+        store.close().await;
+        database.drop_database().await;
+    }
+}
