@@ -18,10 +18,17 @@ pg_url=$(scripts/postgres-ephemeral.sh start "$work/pg" "$pg_port")
 psql=$(command -v psql || ls -d /usr/lib/postgresql/*/bin/psql | sort -V | tail -1)
 runs=0
 
+# Stops the server listening on 127.0.0.1:<port> and waits until it has drained and exited (its ports
+# are free again for the next start).
+stop_server() {
+  pkill -f "spoofwatch-server --listen 127.0.0.1:$1" || true
+  while pgrep -f "spoofwatch-server --listen 127.0.0.1:$1" >/dev/null; do sleep 0.2; done
+}
+
 start() { # sqlite|postgres, then server flags
   local backend=$1; shift
   runs=$((runs + 1))
-  pkill -f "spoofwatch-server --listen 127.0.0.1:$port" || true; sleep 1
+  stop_server "$port"
   if [ "$backend" = postgres ]; then
     "$psql" "$pg_url" -qc "CREATE DATABASE bench$runs"
     database="${pg_url%/*}/bench$runs"
@@ -58,7 +65,7 @@ handoff() {
       --handoff-to "http://127.0.0.1:$port" --handoff "${HANDOFF_VEHICLES:-1000}" --handoff-concurrency "$concurrency" \
       2>&1 | grep -E "^\| (from|fresh)|refused|failed|error" || true
   done
-  pkill -f "spoofwatch-server --listen 127.0.0.1:$second_port" || true
+  stop_server "$second_port"
 }
 
 if [ "$parts" = handoff ]; then
