@@ -1,7 +1,7 @@
 //! Storage faults, injected for real and without root: a full database (the `--database-max-mib`
 //! limit, which SQLite enforces as SQLITE_FULL), a database file made immutable (`chattr +i`: an
-//! I/O error or a read-only refusal on every write, where the file system and privileges allow it) and a deleted database
-//! file. While the fault lasts, writes are refused with RESOURCE_EXHAUSTED/UNAVAILABLE and a retry
+//! I/O error or a read-only refusal on every write, where the file system and privileges allow it)
+//! and a deleted database file. While the fault lasts, writes are refused with RESOURCE_EXHAUSTED/UNAVAILABLE and a retry
 //! hint, detection goes on from memory and `spoofwatch.storage` health is NOT_SERVING; once it
 //! clears, without a restart, every alarm a client was shown is stored exactly once with its own
 //! end, and writes work again. A deleted file is detected and turns the server NOT_SERVING.
