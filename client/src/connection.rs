@@ -236,6 +236,38 @@ impl Connection {
     pub fn health(&self) -> HealthClient<AuthenticatedChannel> {
         client!(self, HealthClient)
     }
+
+    /// Polls the overall health of the server at `address` every 50 ms (connecting again each time)
+    /// until it reports SERVING; [`ClientError::Timeout`] once `bound` has passed. For a server that
+    /// was just started: its port may accept connections before its database is open.
+    pub async fn wait_until_serving(
+        address: &str,
+        options: &ConnectOptions,
+        bound: Duration,
+    ) -> Result<(), ClientError> {
+        use tonic_health::pb::HealthCheckRequest;
+        use tonic_health::pb::health_check_response::ServingStatus;
+        let deadline = tokio::time::Instant::now() + bound;
+        loop {
+            if let Ok(connection) = Connection::connect_with(address, options).await {
+                let status = connection
+                    .health()
+                    .check(HealthCheckRequest::default())
+                    .await
+                    .map(|r| r.into_inner().status);
+                if matches!(status, Ok(s) if s == ServingStatus::Serving as i32) {
+                    return Ok(());
+                }
+            }
+            if tokio::time::Instant::now() >= deadline {
+                return Err(ClientError::Timeout {
+                    context: format!("waiting for {address} to report SERVING"),
+                    after: bound,
+                });
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
 }
 
 /// The TLS settings of `options`, with every file read and checked (named in the error).

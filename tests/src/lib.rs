@@ -171,26 +171,11 @@ impl TestServer {
     }
 }
 
-/// Polls health `Check("")` over connections made with `client` until SERVING or `bound` passes
-/// (then panics).
+/// Waits (see [`Connection::wait_until_serving`]) until the server at `url` reports SERVING to a
+/// client connecting with `client`; panics after `bound`.
 pub async fn wait_until_serving_with(url: &str, client: &ConnectOptions, bound: Duration) {
-    let deadline = tokio::time::Instant::now() + bound;
-    loop {
-        if let Ok(connection) = Connection::connect_with(url, client).await {
-            let status = connection
-                .health()
-                .check(HealthCheckRequest::default())
-                .await
-                .map(|r| r.into_inner().status);
-            if matches!(status, Ok(s) if s == ServingStatus::Serving as i32) {
-                return;
-            }
-        }
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "the server at {url} did not report SERVING within {bound:?}"
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
+    if let Err(error) = Connection::wait_until_serving(url, client, bound).await {
+        panic!("{error}");
     }
 }
 

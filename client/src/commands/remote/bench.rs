@@ -256,7 +256,12 @@ async fn run_handoff(args: &Args) -> Result<()> {
 async fn handoff_in_process(shape: handoff::HandoffShape<'_>) -> Result<()> {
     let first = InProcessServer::start(|_| {}).await?;
     // The second server may open the database only once the first has created it.
-    wait_until_serving(&first.url()).await?;
+    Connection::wait_until_serving(
+        &first.url(),
+        &ConnectOptions::default(),
+        Duration::from_secs(30),
+    )
+    .await?;
     let database = first
         .database_dir()
         .context("the in-process server has a temporary database")?
@@ -273,22 +278,6 @@ async fn handoff_in_process(shape: handoff::HandoffShape<'_>) -> Result<()> {
     second.shutdown().await?;
     first.shutdown().await?;
     result
-}
-
-/// Polls the overall health of the server at `url` until it is SERVING (at most 30 s).
-#[cfg(feature = "inprocess")]
-async fn wait_until_serving(url: &str) -> Result<()> {
-    use tonic_health::pb::HealthCheckRequest;
-    use tonic_health::pb::health_check_response::ServingStatus;
-    let mut health = Connection::connect(url, None).await?.health();
-    for _ in 0..300 {
-        let reply = health.check(HealthCheckRequest::default()).await;
-        if reply.is_ok_and(|r| r.into_inner().status == ServingStatus::Serving as i32) {
-            return Ok(());
-        }
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-    bail!("the in-process server at {url} did not become SERVING within 30 s")
 }
 
 #[cfg(not(feature = "inprocess"))]
