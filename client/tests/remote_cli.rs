@@ -70,16 +70,28 @@ fn detect(url: &str, data: &Path) {
     ]);
 }
 
-#[test]
-fn alarms_are_listed_and_watched_from_the_command_line() {
+/// A runtime, an in-process server on it, and the simulated drives (in a directory that must
+/// outlive the test).
+fn server_and_drives() -> (
+    tokio::runtime::Runtime,
+    InProcessServer,
+    tempfile::TempDir,
+    std::path::PathBuf,
+) {
     let runtime = tokio::runtime::Runtime::new().expect("a runtime");
     let server = runtime
         .block_on(InProcessServer::start(|_| {}))
         .expect("the server starts");
-    let url = server.url();
     let dir = tempfile::tempdir().expect("temp dir");
     let drives = dir.path().join("drives.csv");
     simulate(&drives);
+    (runtime, server, dir, drives)
+}
+
+#[test]
+fn alarms_are_listed_and_watched_from_the_command_line() {
+    let (runtime, server, _dir, drives) = server_and_drives();
+    let url = server.url();
 
     // A watcher connected before the drives: it prints CAUGHT_UP, then the events as they happen.
     let mut watcher = Command::new(env!("CARGO_BIN_EXE_spoofwatch"))
@@ -228,14 +240,8 @@ fn alarms_are_listed_and_watched_from_the_command_line() {
 
 #[test]
 fn sessions_and_remote_evaluation_from_the_command_line() {
-    let runtime = tokio::runtime::Runtime::new().expect("a runtime");
-    let server = runtime
-        .block_on(InProcessServer::start(|_| {}))
-        .expect("the server starts");
+    let (runtime, server, _dir, drives) = server_and_drives();
     let url = server.url();
-    let dir = tempfile::tempdir().expect("temp dir");
-    let drives = dir.path().join("drives.csv");
-    simulate(&drives);
 
     // The replay leaves one session per vehicle behind.
     detect(&url, &drives);
