@@ -416,7 +416,11 @@ async fn after_a_crash_the_running_job_is_failed_and_open_alarms_are_closed() {
         .list_alarm_events(Some("crash-car"), 100)
         .await
         .expect("alarm events");
-    assert_eq!(events, std::slice::from_ref(&onset), "a held alarm stays open");
+    assert_eq!(
+        events,
+        std::slice::from_ref(&onset),
+        "a held alarm stays open"
+    );
 
     // Second restart, as after a crash that came before the snapshot was stored: no snapshot holds
     // the alarm, so the start ends it, without an end sample.
