@@ -16,7 +16,7 @@ use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::dataset_service_client::DatasetServiceClient;
 use spoofwatch_proto::v1::detection_service_client::DetectionServiceClient;
 use spoofwatch_proto::v1::training_service_client::TrainingServiceClient;
-use spoofwatch_server::store::Store;
+use spoofwatch_server::store::{AlarmEventRow, Store};
 use tonic::transport::Channel;
 use tonic_health::pb::HealthCheckRequest;
 use tonic_health::pb::health_check_response::ServingStatus;
@@ -356,15 +356,10 @@ async fn after_a_crash_the_running_job_is_failed_and_open_alarms_are_closed() {
     drop((watch, detection, channel));
     // The onset is stored, and the session snapshot taken with it holds the alarm open, before the
     // kill: what the writer had not stored yet is lost in a crash by design.
-    let store = Store::open(&database.display().to_string())
-        .await
-        .expect("the database opens");
+    let store = open_store(&database).await;
     let deadline = Instant::now() + Duration::from_secs(10);
     let onset = loop {
-        let events = store
-            .list_alarm_events(Some("crash-car"), 100)
-            .await
-            .expect("alarm events");
+        let events = crash_car_alarms(&store).await;
         let snapshot = store.load_snapshot("crash-car").await.expect("snapshot");
         if let ([event], Some(snapshot)) = (events.as_slice(), &snapshot)
             && snapshot.open_alarm_id == Some(event.id)
@@ -409,13 +404,8 @@ async fn after_a_crash_the_running_job_is_failed_and_open_alarms_are_closed() {
         signal_and_wait(&mut restarted, "-TERM").await.code(),
         Some(0)
     );
-    let store = Store::open(&database.display().to_string())
-        .await
-        .expect("the database opens");
-    let events = store
-        .list_alarm_events(Some("crash-car"), 100)
-        .await
-        .expect("alarm events");
+    let store = open_store(&database).await;
+    let events = crash_car_alarms(&store).await;
     assert_eq!(
         events,
         std::slice::from_ref(&onset),
@@ -442,13 +432,8 @@ async fn after_a_crash_the_running_job_is_failed_and_open_alarms_are_closed() {
         signal_and_wait(&mut restarted, "-TERM").await.code(),
         Some(0)
     );
-    let store = Store::open(&database.display().to_string())
-        .await
-        .expect("the database opens");
-    let events = store
-        .list_alarm_events(Some("crash-car"), 100)
-        .await
-        .expect("alarm events");
+    let store = open_store(&database).await;
+    let events = crash_car_alarms(&store).await;
     store.close().await;
     let [closed] = events.as_slice() else {
         panic!("one alarm: {events:?}");
@@ -456,6 +441,21 @@ async fn after_a_crash_the_running_job_is_failed_and_open_alarms_are_closed() {
     assert_eq!(closed.id, onset.id);
     assert!(!closed.is_open(), "the restart ended it: {closed:?}");
     assert_eq!(closed.end_timestamp_s, None, "no end sample: {closed:?}");
+}
+
+/// The store of the server's database file, opened beside (or after) the server.
+async fn open_store(database: &Path) -> Store {
+    Store::open(&database.display().to_string())
+        .await
+        .expect("the database opens")
+}
+
+/// The stored alarms of the crash test's vehicle, newest first.
+async fn crash_car_alarms(store: &Store) -> Vec<AlarmEventRow> {
+    store
+        .list_alarm_events(Some("crash-car"), 100)
+        .await
+        .expect("alarm events")
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
