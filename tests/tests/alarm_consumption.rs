@@ -481,7 +481,7 @@ async fn a_watcher_resumes_after_its_last_cursor_without_gaps_or_duplicates_also
 {
     let dir = tempfile::tempdir().expect("temp dir");
     let server = TestServer::start(test_config(dir.path())).await;
-    let clients = Clients::of(&server).await;
+    let mut clients = Clients::of(&server).await;
     let mut seen = Vec::new();
 
     // Connected while the first vehicle alarms.
@@ -492,8 +492,10 @@ async fn a_watcher_resumes_after_its_last_cursor_without_gaps_or_duplicates_also
     let cursor = first.cursor().expect("a cursor after events");
     drop(first);
 
-    // Away while the second one alarms; back with the last cursor: exactly what was missed.
+    // Away while the second one alarms; back with the last cursor: exactly what was missed (once
+    // the writer has stored it: a watcher sees only stored events).
     let missed = stream_frozen_fix_drive(&clients, "car-2").await;
+    wait_until_stored(&mut clients, episodes.len() + missed.len()).await;
     let mut second = watch(&clients, "", Some(cursor));
     let replayed = until_caught_up(&mut second).await;
     assert_events_match(&replayed, "car-2", &missed);
