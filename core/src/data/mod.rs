@@ -102,28 +102,7 @@ pub fn read<R: Read>(reader: R, source: &str) -> Result<Recording, DataError> {
 }
 
 fn read_named<R: Read>(reader: R, source: &str, vehicle_id: &str) -> Result<Recording, DataError> {
-    let mut reader = BufReader::with_capacity(1 << 16, reader);
-    let first_chunk = reader.fill_buf().map_err(|source_error| DataError::Io {
-        file: source.to_string(),
-        source: source_error,
-    })?;
-    let crlf = uses_crlf(first_chunk);
-    let mut csv = csv::ReaderBuilder::new()
-        .has_headers(true)
-        // Field counts are checked per row so the error can name the line and column.
-        .flexible(true)
-        .from_reader(reader);
-    let header: Vec<String> = csv
-        .headers()
-        .map_err(|e| csv_error(source, e, 0))?
-        .iter()
-        .map(|name| name.trim_start_matches('\u{feff}').trim().to_string())
-        .collect();
-    if header.iter().all(|name| name.is_empty()) {
-        return Err(DataError::Empty {
-            file: source.to_string(),
-        });
-    }
+    let (mut csv, header, crlf) = open_csv(reader, source)?;
     let table = Table {
         source,
         header: &header,
@@ -152,6 +131,92 @@ fn read_named<R: Read>(reader: R, source: &str, vehicle_id: &str) -> Result<Reco
         source: source.to_string(),
         format,
         tracks,
+    })
+}
+
+/// A CSV reader past its header, the trimmed header names and whether lines end in CRLF.
+type OpenCsv<R> = (csv::Reader<BufReader<R>>, Vec<String>, bool);
+
+/// Opens `reader` as a CSV with a header row (a BOM and surrounding spaces are trimmed from names).
+fn open_csv<R: Read>(reader: R, source: &str) -> Result<OpenCsv<R>, DataError> {
+    let mut reader = BufReader::with_capacity(1 << 16, reader);
+    let first_chunk = reader.fill_buf().map_err(|source_error| DataError::Io {
+        file: source.to_string(),
+        source: source_error,
+    })?;
+    let crlf = uses_crlf(first_chunk);
+    let mut csv = csv::ReaderBuilder::new()
+        .has_headers(true)
+        // Field counts are checked per row so the error can name the line and column.
+        .flexible(true)
+        .from_reader(reader);
+    let header: Vec<String> = csv
+        .headers()
+        .map_err(|e| csv_error(source, e, 0))?
+        .iter()
+        .map(|name| name.trim_start_matches('\u{feff}').trim().to_string())
+        .collect();
+    if header.iter().all(|name| name.is_empty()) {
+        return Err(DataError::Empty {
+            file: source.to_string(),
+        });
+    }
+    Ok((csv, header, crlf))
+}
+
+/// Numeric columns of a recorded file, row by row, keyed by the rows' 1-based source lines (the
+/// [`Record::line`](crate::sample::Record::line)s of the tracks read from the same file).
+#[derive(Clone, Debug, PartialEq)]
+pub struct NumericColumns {
+    /// The column names, in the order of each row's values.
+    pub names: Vec<String>,
+    /// (line, values) per data row; an empty or `nan` field is NaN.
+    pub rows: Vec<(u64, Vec<f64>)>,
+}
+
+impl NumericColumns {
+    /// The values of the row at `line`, if the file has it.
+    pub fn at_line(&self, line: u64) -> Option<&[f64]> {
+        self.rows
+            .binary_search_by_key(&line, |(l, _)| *l)
+            .ok()
+            .map(|i| self.rows[i].1.as_slice())
+    }
+}
+
+/// Reads the columns `names` (exact header names) of every row of a CSV. A missing column is an
+/// [`DataError::UnknownFormat`] naming it; a non-numeric field a [`DataError::Field`].
+pub fn read_numeric_columns<R: Read>(
+    reader: R,
+    source: &str,
+    names: &[&str],
+) -> Result<NumericColumns, DataError> {
+    let (mut csv, header, crlf) = open_csv(reader, source)?;
+    let table = Table {
+        source,
+        header: &header,
+        crlf,
+    };
+    let missing = missing_columns(&header, names);
+    if !missing.is_empty() {
+        return Err(DataError::UnknownFormat {
+            file: source.to_string(),
+            detail: format!("missing {}", missing.join(", ")),
+        });
+    }
+    let indices: Vec<usize> = names.iter().filter_map(|n| table.column(n)).collect();
+    let mut rows = Vec::new();
+    let mut record = csv::StringRecord::new();
+    while let Some(line) = table.next_row(&mut csv, &mut record)? {
+        let values = indices
+            .iter()
+            .map(|&i| parse_measurement(&record[i]).map_err(|p| table.field_error(line, i, p)))
+            .collect::<Result<Vec<f64>, DataError>>()?;
+        rows.push((line, values));
+    }
+    Ok(NumericColumns {
+        names: names.iter().map(|n| n.to_string()).collect(),
+        rows,
     })
 }
 

@@ -277,3 +277,36 @@ fn telemetry_round_trips_through_write_tracks() {
     let rec = read(bytes.as_slice(), "uncertain").expect("read back");
     assert_eq!(rec.tracks, uncertain);
 }
+
+#[test]
+fn numeric_columns_are_keyed_by_the_lines_of_the_track_rows() {
+    let text = avgps(&[
+        "10,-170,1.5,0:00:00,15:03:55,10:55:59,5/24/2022,32.23,-110.9,0,",
+        "11,,1.6,0:00:01,15:03:55,10:56:00,5/24/2022,32.2301,-110.9,0,1",
+        "12,-168,nan,0:00:02,15:03:55,10:56:01,5/24/2022,32.2302,-110.9,1,1",
+    ]);
+    let track = &read_str(&text, "D").expect("valid file").tracks[0];
+    let columns = read_numeric_columns(text.as_bytes(), "D", &["Velocity (m/s)", "Yaw (deg)"])
+        .expect("both columns exist");
+    assert_eq!(columns.names, ["Velocity (m/s)", "Yaw (deg)"]);
+    for (record, expected_velocity) in track.records.iter().zip([1.5, 1.6, f64::NAN]) {
+        let values = columns
+            .at_line(record.line)
+            .expect("every track row has its columns");
+        assert_eq!(values[0].to_bits(), expected_velocity.to_bits());
+    }
+    assert!(columns.at_line(track.records[1].line).expect("row 2")[1].is_nan());
+    assert_eq!(columns.at_line(1), None, "the header is not a row");
+
+    let missing = read_numeric_columns(text.as_bytes(), "D", &["Satellite Count"]);
+    assert!(
+        matches!(&missing, Err(DataError::UnknownFormat { detail, .. }) if detail.contains("\"Satellite Count\"")),
+        "{missing:?}"
+    );
+    let bad = avgps(&["10,-170,fast,0:00:00,15:03:55,10:55:59,5/24/2022,32.23,-110.9,0,"]);
+    let error = read_numeric_columns(bad.as_bytes(), "D", &["Velocity (m/s)"]);
+    assert!(
+        matches!(&error, Err(DataError::Field { line: 2, column, .. }) if column == "Velocity (m/s)"),
+        "{error:?}"
+    );
+}

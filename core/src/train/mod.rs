@@ -232,6 +232,12 @@ impl ClassWeights {
                 }
             }
         }
+        Self::from_counts(normal, spoofed, min, max)
+    }
+
+    /// Balanced weights for `normal` and `spoofed` valid rows, clipped to `[min, max]`; `None` when
+    /// a count is 0. (The baselines count their rows themselves and weigh them the same way.)
+    pub fn from_counts(normal: usize, spoofed: usize, min: f64, max: f64) -> Option<Self> {
         if normal == 0 || spoofed == 0 {
             return None;
         }

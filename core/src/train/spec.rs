@@ -98,18 +98,23 @@ pub const SMALL_DATA_BATCH: usize = 2;
 pub const SMALL_DATA_LEARNING_RATE: f64 = 3e-3;
 
 impl Recipe {
+    /// Whether this recipe uses the small-data batch and learning rate for `windows` training
+    /// windows.
+    pub fn is_small_data(self, windows: usize) -> bool {
+        match self {
+            Recipe::Spec => false,
+            Recipe::SmallData => true,
+            Recipe::Auto => windows < SMALL_DATA_WINDOWS,
+        }
+    }
+
     /// The training configuration this recipe gives for `sequences`.
     pub fn apply(self, base: &TrainConfig, sequences: &[Sequence]) -> TrainConfig {
         let windows: usize = sequences
             .iter()
             .map(|s| s.features.len().div_ceil(base.window.max(1)))
             .sum();
-        let small = match self {
-            Recipe::Spec => false,
-            Recipe::SmallData => true,
-            Recipe::Auto => windows < SMALL_DATA_WINDOWS,
-        };
-        if small {
+        if self.is_small_data(windows) {
             TrainConfig {
                 batch_size: SMALL_DATA_BATCH,
                 learning_rate: SMALL_DATA_LEARNING_RATE,
