@@ -65,3 +65,69 @@ pub fn delays(m: &Metrics) -> String {
         .collect::<Vec<_>>()
         .join(", ")
 }
+
+/// Mean and sample standard deviation (n − 1) of the values; `None` for no values, std 0 for one.
+pub fn mean_std(values: &[f64]) -> Option<(f64, f64)> {
+    let n = values.len();
+    if n == 0 {
+        return None;
+    }
+    let mean = values.iter().sum::<f64>() / n as f64;
+    let variance = if n > 1 {
+        values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64
+    } else {
+        0.0
+    };
+    Some((mean, variance.sqrt()))
+}
+
+fn mean_std_cell(values: &[f64], digits: usize) -> String {
+    match mean_std(values) {
+        None => "-".into(),
+        Some((mean, _)) if values.len() == 1 => format!("{mean:.digits$}"),
+        Some((mean, std)) => format!("{mean:.digits$} ± {std:.digits$}"),
+    }
+}
+
+/// A markdown table of metrics over seeds, one row per named detector: mean ± sample std of each
+/// SPEC §8 column (AUROC, AUPRC and the delay over the seeds that have them).
+pub fn seeds_table<N: AsRef<str>>(rows: &[(N, Vec<&Metrics>)]) -> String {
+    let mut out = String::from(
+        "| detector | AUROC | AUPRC | F1 | Prec. | Recall | FPR | ADR | delay (s) | FA events |\n\
+         |---|---|---|---|---|---|---|---|---|---|\n",
+    );
+    for (name, seeds) in rows {
+        let column = |f: &dyn Fn(&Metrics) -> Option<f64>| -> Vec<f64> {
+            seeds.iter().filter_map(|m| f(m)).collect()
+        };
+        out.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            name.as_ref(),
+            mean_std_cell(&column(&|m| m.auroc), 4),
+            mean_std_cell(&column(&|m| m.auprc), 4),
+            mean_std_cell(&column(&|m| Some(m.f1)), 4),
+            mean_std_cell(&column(&|m| Some(m.precision)), 4),
+            mean_std_cell(&column(&|m| Some(m.recall)), 4),
+            mean_std_cell(&column(&|m| Some(m.fpr)), 4),
+            mean_std_cell(&column(&|m| Some(m.adr)), 2),
+            mean_std_cell(&column(&|m| m.mean_delay_s), 1),
+            mean_std_cell(&column(&|m| Some(m.false_alarm_events as f64)), 1),
+        ));
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mean_and_sample_std_by_hand() {
+        assert_eq!(mean_std(&[]), None);
+        assert_eq!(mean_std(&[3.0]), Some((3.0, 0.0)));
+        // mean 2, squared deviations 1 + 0 + 1 = 2, / (3 − 1) = 1.
+        assert_eq!(mean_std(&[1.0, 2.0, 3.0]), Some((2.0, 1.0)));
+        assert_eq!(mean_std_cell(&[1.0, 2.0, 3.0], 2), "2.00 ± 1.00");
+        assert_eq!(mean_std_cell(&[0.5], 2), "0.50");
+    }
+}

@@ -5,8 +5,10 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use serde::Serialize;
+use spoofwatch_baselines::{Baseline, Dataset, Epoch, GPS_IDS_COLUMNS, Learner, Protocol};
 use spoofwatch_core::alarm::{OperatingPoint, OperatingPointRule};
 use spoofwatch_core::cusum::{CusumComparator, fit_cusum_comparator};
+use spoofwatch_core::data::{NumericColumns, read_numeric_columns};
 use spoofwatch_core::evaluation::{Scored, evaluate_tracks, trajectory_key};
 use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::metrics::{EventRules, Metrics, ScoredRow};
@@ -16,10 +18,10 @@ use spoofwatch_core::train::detector::TrainingData;
 use spoofwatch_core::train::spec::{KappaRho, Recipe, TrainingSpec};
 
 use super::parallel::{default_threads, map_parallel};
-use super::{CommonArgs, prepare, with_injections};
+use super::{CommonArgs, prepare, seed_list, with_injections};
 use crate::commands::train::train_with_progress;
 use crate::commands::write_json;
-use crate::report::{delays, metrics_table};
+use crate::report::{delays, metrics_table, seeds_table};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -32,6 +34,14 @@ pub struct Args {
     /// Skip the retrained ablations (faster).
     #[arg(long)]
     no_ablations: bool,
+    /// Train the comparison (HO-LLN in both feature schemas and every baseline) with this many
+    /// seeds (`--seed`, `--seed` + 1, ...) and report mean ± std; variants and ablations use
+    /// `--seed` only.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=20))]
+    seeds: u64,
+    /// Leave out the learned baselines (MLP, GRU, LSTM, trees, GPS-IDS).
+    #[arg(long)]
+    no_baselines: bool,
 }
 
 /// One trained configuration.
@@ -46,16 +56,37 @@ struct Variant {
     select_kappa_rho: bool,
 }
 
+/// One model to train: an HO-LLN variant or a baseline, with its seed.
+#[derive(Clone, Debug)]
+enum Job {
+    HoLln(Variant, u64),
+    Baseline(Baseline, u64),
+}
+
+impl Job {
+    /// Rough relative cost, to start the longest fits first on the worker threads.
+    fn cost(&self) -> u32 {
+        match self {
+            Job::Baseline(b, _) if matches!(b.learner, Learner::Lstm | Learner::Gru) => 3,
+            Job::HoLln(..) => 2,
+            Job::Baseline(..) => 1,
+        }
+    }
+}
+
 /// Scores of one detector on the two test sets.
 #[derive(Clone, Debug, Serialize)]
 pub struct VariantReport {
     pub name: String,
+    pub seed: u64,
     pub subtle_training: bool,
     pub operating_point: OperatingPoint,
     pub train_wall_time_s: f64,
     pub epochs_run: u32,
     pub dataset2_test: Metrics,
     pub dataset3: Metrics,
+    /// Loss and validation AUROC per epoch (per tree for the tree ensembles).
+    pub training_curve: Vec<Epoch>,
 }
 
 #[derive(Debug, Serialize)]
@@ -78,15 +109,24 @@ struct Report {
     dataset3: Metrics,
     ekf_dataset3: Metrics,
     cusum: CusumReport,
+    /// Every trained model: the variants (first seed) and the comparison (every seed).
     variants: Vec<VariantReport>,
     dataset3_delays_s: Vec<Option<f64>>,
+    seeds: Vec<u64>,
+    /// Detectors trained with every seed, in table order.
+    compared: Vec<String>,
 }
+
+/// The two HO-LLN rows of the comparison (trained with every seed; the other variants with the first).
+const HOLLN_PAPER: &str = "HO-LLN (ξ paper)";
+const HOLLN_V2: &str = "HO-LLN (ξ v2)";
+const HOLLN_SUBTLE: &str = "HO-LLN + subtle training";
 
 fn variants(ablations: bool, headline_subtle: bool) -> Vec<Variant> {
     let full = Ablation::default();
     let mut list = vec![
         Variant {
-            name: "HO-LLN",
+            name: HOLLN_PAPER,
             schema: FeatureSchema::Paper,
             ablation: full,
             subtle_training: false,
@@ -94,7 +134,15 @@ fn variants(ablations: bool, headline_subtle: bool) -> Vec<Variant> {
             select_kappa_rho: false,
         },
         Variant {
-            name: "HO-LLN + subtle training",
+            name: HOLLN_V2,
+            schema: FeatureSchema::V2,
+            ablation: full,
+            subtle_training: false,
+            recipe: Recipe::Auto,
+            select_kappa_rho: false,
+        },
+        Variant {
+            name: HOLLN_SUBTLE,
             schema: FeatureSchema::Paper,
             ablation: full,
             subtle_training: true,
@@ -199,63 +247,171 @@ fn ekf_metrics(dataset3: &[Track]) -> Metrics {
     scored.metrics(EventRules::Spec)
 }
 
+/// The jobs of the experiment: every variant with the first seed, and the comparison (HO-LLN in
+/// both schemas and the baselines) with every seed.
+fn jobs(args: &Args, seeds: &[u64]) -> Vec<Job> {
+    let all = variants(!args.no_ablations, args.subtle_training);
+    let mut jobs: Vec<Job> = Vec::new();
+    for (k, &seed) in seeds.iter().enumerate() {
+        for variant in &all {
+            if k == 0 || [HOLLN_PAPER, HOLLN_V2].contains(&variant.name) {
+                jobs.push(Job::HoLln(variant.clone(), seed));
+            }
+        }
+        if !args.no_baselines {
+            for schema in [FeatureSchema::Paper, FeatureSchema::V2] {
+                jobs.extend(Baseline::on_evidence(schema).map(|b| Job::Baseline(b, seed)));
+            }
+            jobs.push(Job::Baseline(Baseline::GPS_IDS, seed));
+        }
+    }
+    // Longest first (a stable sort keeps the report order within a cost class).
+    jobs.sort_by_key(|job| std::cmp::Reverse(job.cost()));
+    jobs
+}
+
+/// The comparison's detectors, in table order.
+fn compared_names(baselines: bool) -> Vec<String> {
+    let mut names = vec![HOLLN_PAPER.to_string(), HOLLN_V2.to_string()];
+    if baselines {
+        for schema in [FeatureSchema::Paper, FeatureSchema::V2] {
+            names.extend(Baseline::on_evidence(schema).map(|b| b.name()));
+        }
+        names.push(Baseline::GPS_IDS.name());
+    }
+    names
+}
+
+/// Reads the GPS-IDS columns of one of the AV-GPS files.
+fn raw_columns(common: &CommonArgs, file: &str) -> Result<NumericColumns> {
+    let path = common.data_dir.join(file);
+    let reader =
+        std::fs::File::open(&path).with_context(|| format!("opening {}", path.display()))?;
+    Ok(read_numeric_columns(reader, file, &GPS_IDS_COLUMNS)?)
+}
+
 pub fn run(args: Args) -> Result<()> {
     let started = Instant::now();
     let (data, split) = prepare(&args.common)?;
     let subtle_train = with_injections(&split.train, args.common.seed)?;
-    let headline_subtle = args.subtle_training;
-    let variants = variants(!args.no_ablations, headline_subtle);
+    let columns2 = raw_columns(&args.common, "AV-GPS-Dataset-2.csv")?;
+    let columns3 = raw_columns(&args.common, "AV-GPS-Dataset-3.csv")?;
+    let seeds = seed_list(args.common.seed, args.seeds);
+    let jobs = jobs(&args, &seeds);
     let threads = args.common.threads.unwrap_or_else(default_threads);
     eprintln!(
         "av-gps: training {} models on {} threads ({} D2 training rows, {} with injected attacks)",
-        variants.len(),
+        jobs.len(),
         threads,
         rows(&split.train),
         rows(&subtle_train)
     );
-    let results = map_parallel(&variants, threads, |variant| -> Result<_> {
-        let train = if variant.subtle_training {
-            &subtle_train
-        } else {
-            &split.train
-        };
-        let mut data_description =
-            vec!["AV-GPS-Dataset-2.csv chronological 70% (train) / 15% (validation)".into()];
-        if variant.subtle_training {
-            data_description.push("plus injected subtle attacks in the training part".into());
+    let on_d2 = |tracks| Dataset {
+        tracks,
+        columns: Some(&columns2),
+    };
+    let results = map_parallel(&jobs, threads, |job| -> Result<_> {
+        match job {
+            Job::HoLln(variant, seed) => {
+                let train = if variant.subtle_training {
+                    &subtle_train
+                } else {
+                    &split.train
+                };
+                let mut data_description = vec![
+                    "AV-GPS-Dataset-2.csv chronological 70% (train) / 15% (validation)".into(),
+                ];
+                if variant.subtle_training {
+                    data_description
+                        .push("plus injected subtle attacks in the training part".into());
+                }
+                let spec = TrainingSpec {
+                    recipe: variant.recipe,
+                    data_description,
+                    ..TrainingSpec::with(
+                        *seed,
+                        args.common.epochs,
+                        variant.schema,
+                        variant.ablation,
+                        KappaRho::selected_if(variant.select_kappa_rho),
+                    )
+                };
+                let training_data = TrainingData::Explicit {
+                    train: train.clone(),
+                    validation: split.validation.clone(),
+                };
+                let trained = train_with_progress(&spec, training_data, false)
+                    .with_context(|| format!("training variant {} (seed {seed})", variant.name))?;
+                let training_curve = trained
+                    .history
+                    .iter()
+                    .map(|e| Epoch {
+                        epoch: e.epoch,
+                        train_loss: e.train_loss,
+                        val_loss: e.val_loss,
+                        val_auroc: e.val_auroc,
+                    })
+                    .collect();
+                let artifact = Arc::new(trained.artifact);
+                let report = VariantReport {
+                    name: variant.name.to_string(),
+                    seed: *seed,
+                    subtle_training: variant.subtle_training,
+                    operating_point: artifact.operating_point,
+                    train_wall_time_s: artifact.provenance.train_wall_time_s,
+                    epochs_run: artifact.provenance.epochs_run,
+                    dataset2_test: evaluate_tracks(&artifact, &split.test, EventRules::Spec)
+                        .overall,
+                    dataset3: evaluate_tracks(&artifact, &data.dataset3, EventRules::Spec).overall,
+                    training_curve,
+                };
+                Ok((report, Some(artifact)))
+            }
+            Job::Baseline(baseline, seed) => {
+                let fit_started = Instant::now();
+                let protocol = Protocol::new(
+                    *seed,
+                    args.common.epochs as usize,
+                    OperatingPointRule::BestValidationF1,
+                );
+                let fitted = spoofwatch_baselines::fit(
+                    *baseline,
+                    on_d2(&split.train),
+                    on_d2(&split.validation),
+                    &protocol,
+                )
+                .with_context(|| format!("fitting {} (seed {seed})", baseline.name()))?;
+                let score =
+                    |data| -> Result<Metrics> { Ok(fitted.score(data)?.metrics(EventRules::Spec)) };
+                let report = VariantReport {
+                    name: baseline.name(),
+                    seed: *seed,
+                    subtle_training: false,
+                    operating_point: fitted.operating_point,
+                    train_wall_time_s: fit_started.elapsed().as_secs_f64(),
+                    epochs_run: fitted.history.len() as u32,
+                    dataset2_test: score(on_d2(&split.test))?,
+                    dataset3: score(Dataset {
+                        tracks: &data.dataset3,
+                        columns: Some(&columns3),
+                    })?,
+                    training_curve: fitted.history,
+                };
+                Ok((report, None))
+            }
         }
-        let spec = TrainingSpec {
-            recipe: variant.recipe,
-            data_description,
-            ..TrainingSpec::with(
-                args.common.seed,
-                args.common.epochs,
-                variant.schema,
-                variant.ablation,
-                KappaRho::selected_if(variant.select_kappa_rho),
-            )
-        };
-        let training_data = TrainingData::Explicit {
-            train: train.clone(),
-            validation: split.validation.clone(),
-        };
-        let trained = train_with_progress(&spec, training_data, false)
-            .with_context(|| format!("training variant {}", variant.name))?;
-        let artifact = Arc::new(trained.artifact);
-        let report = VariantReport {
-            name: variant.name.to_string(),
-            subtle_training: variant.subtle_training,
-            operating_point: artifact.operating_point,
-            train_wall_time_s: artifact.provenance.train_wall_time_s,
-            epochs_run: artifact.provenance.epochs_run,
-            dataset2_test: evaluate_tracks(&artifact, &split.test, EventRules::Spec).overall,
-            dataset3: evaluate_tracks(&artifact, &data.dataset3, EventRules::Spec).overall,
-        };
-        Ok((report, artifact))
     });
     let results = results.into_iter().collect::<Result<Vec<_>>>()?;
-    let headline_index = usize::from(headline_subtle);
-    let (headline, artifact) = &results[headline_index];
+    let headline_name = if args.subtle_training {
+        HOLLN_SUBTLE
+    } else {
+        HOLLN_PAPER
+    };
+    let (headline, artifact) = results
+        .iter()
+        .find(|(r, _)| r.name == headline_name && r.seed == seeds[0])
+        .and_then(|(r, a)| Some((r, a.as_ref()?)))
+        .context("the headline model is among the trained variants")?;
     let model_path = args.common.out.join("model.json");
     let file = std::fs::File::create(&model_path)
         .with_context(|| format!("creating {}", model_path.display()))?;
@@ -288,6 +444,8 @@ pub fn run(args: Args) -> Result<()> {
         ekf_dataset3: ekf_metrics(&data.dataset3),
         cusum,
         variants: results.into_iter().map(|(r, _)| r).collect(),
+        compared: compared_names(!args.no_baselines),
+        seeds,
     };
     write_json(&args.common.out.join("report.json"), &report)?;
     let markdown = render_markdown(&report);
@@ -343,13 +501,55 @@ fn render_markdown(report: &Report) -> String {
         ("CUSUM, Dataset-2 test", &report.cusum.dataset2_test),
         ("CUSUM, Dataset-3", &report.cusum.dataset3),
     ]));
-    md.push_str("\n## Variants (each retrained; subtle = injected subtle attacks in training)\n\n");
+    md.push_str(&comparison_markdown(report));
+    md.push_str(&format!(
+        "\n## Variants (seed {}, each retrained; subtle = injected subtle attacks in training)\n\n",
+        report.seed
+    ));
     let mut rows = Vec::new();
-    for v in &report.variants {
+    for v in report.variants.iter().filter(|v| v.seed == report.seed) {
         let tag = if v.subtle_training { " [subtle]" } else { "" };
         rows.push((format!("{}{tag}, D2 test", v.name), &v.dataset2_test));
         rows.push((format!("{}{tag}, D3", v.name), &v.dataset3));
     }
     md.push_str(&metrics_table(&rows));
+    md
+}
+
+/// HO-LLN against every baseline on both test sets, mean ± std over the seeds (paper layout).
+fn comparison_markdown(report: &Report) -> String {
+    let seeds: Vec<String> = report.seeds.iter().map(u64::to_string).collect();
+    let mut md = format!(
+        "\n## HO-LLN and the learned baselines: mean ± std over {} seed(s) ({})\n\n\
+         Same training and validation parts, class weights, early stopping and validation-chosen \
+         operating point for every detector; ξ paper / ξ v2 = the paper's evidence / with the drift \
+         channels; GPS-IDS = trees on raw AV-GPS vehicle-dynamics columns. Standard deviations are \
+         sample (n − 1) over seeds.\n",
+        seeds.len(),
+        seeds.join(", ")
+    );
+    let of = |name: &str, pick: fn(&VariantReport) -> &Metrics| -> Vec<&Metrics> {
+        report
+            .variants
+            .iter()
+            .filter(|v| v.name == name && report.seeds.contains(&v.seed))
+            .map(pick)
+            .collect()
+    };
+    for (title, pick) in [
+        (
+            "Dataset-2 test",
+            (|v| &v.dataset2_test) as fn(&VariantReport) -> &Metrics,
+        ),
+        ("Dataset-3", |v| &v.dataset3),
+    ] {
+        let rows: Vec<(String, Vec<&Metrics>)> = report
+            .compared
+            .iter()
+            .map(|name| (name.clone(), of(name, pick)))
+            .collect();
+        md.push_str(&format!("\n### {title}\n\n"));
+        md.push_str(&seeds_table(&rows));
+    }
     md
 }

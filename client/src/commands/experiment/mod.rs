@@ -87,6 +87,11 @@ pub fn prepare(common: &CommonArgs) -> Result<(AvGpsData, ChronologicalSplit)> {
     Ok((data, split))
 }
 
+/// The training seeds of a multi-seed run: `first`, `first` + 1, ..., `count` of them.
+pub fn seed_list(first: u64, count: u64) -> Vec<u64> {
+    (0..count).map(|k| first.wrapping_add(k)).collect()
+}
+
 /// `tracks` followed by copies of their normal pieces with injected subtle attacks.
 pub fn with_injections(tracks: &[Track], seed: u64) -> Result<Vec<Track>> {
     Ok([tracks.to_vec(), subtle::training_injections(tracks, seed)?].concat())

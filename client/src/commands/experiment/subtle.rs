@@ -11,6 +11,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use serde::Serialize;
+use spoofwatch_baselines::{Baseline, BaselineError, Dataset, Fitted, Protocol};
 use spoofwatch_core::alarm::{N_P_GRID, OperatingPointRule, choose_operating_point, theta_grid};
 use spoofwatch_core::cusum::fit_cusum_comparator;
 use spoofwatch_core::evaluation::{Scored, score_tracks};
@@ -26,11 +27,12 @@ use spoofwatch_core::scenario::{
     AttackDuration, AttackKind, AttackSpec, DriveDistribution, InjectedTrack, Outages,
     ScenarioPlan, generate, inject, simulate_drive,
 };
+use spoofwatch_core::train::TrainConfig;
 use spoofwatch_core::train::detector::TrainingData;
 use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
 
 use super::parallel::{default_threads, map_parallel};
-use super::{CommonArgs, prepare, with_injections};
+use super::{CommonArgs, prepare, seed_list, with_injections};
 use crate::commands::evaluate::load_artifact;
 use crate::commands::train::train_with_progress;
 use crate::commands::training_flags::feature_groups;
@@ -130,10 +132,39 @@ pub struct Args {
     /// Evidence groups given to the v2 model (a retrained ablation; the paper model keeps its ξ).
     #[arg(long, default_value = FeatureGroups::All.name(), value_parser = feature_groups())]
     features: FeatureGroups,
+    /// Train every learned detector with this many seeds (the training seed, + 1, ...; the drives
+    /// stay those of `--seed`) and report mean ± std over them.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=20))]
+    seeds: u64,
+    /// Leave out the learned baselines (MLP, GRU, LSTM, trees on ξ).
+    #[arg(long)]
+    no_baselines: bool,
     /// Also score these model artifacts (e.g. one trained on other data), each at its own operating
     /// point chosen on this experiment's validation data within the same budget.
     #[arg(long)]
     also: Vec<PathBuf>,
+}
+
+/// One learned detector to train, with its training seed.
+#[derive(Clone, Copy, Debug)]
+enum Job {
+    HoLln(FeatureSchema, u64),
+    Baseline(Baseline, u64),
+}
+
+impl Job {
+    fn seed(&self) -> u64 {
+        match *self {
+            Job::HoLln(_, seed) | Job::Baseline(_, seed) => seed,
+        }
+    }
+}
+
+/// A trained detector at its budgeted operating point (`None`: no point within the budget).
+enum Trained {
+    /// With the validation's attack-free hours.
+    HoLln(String, Option<Arc<ModelArtifact>>, f64),
+    Baseline(String, Option<Fitted>),
 }
 
 /// Length of a simulated training/validation/clean test drive (s).
@@ -293,6 +324,8 @@ pub(super) struct DetectorReport {
     smallest_ramp_mps_within_30s: Option<f64>,
     smallest_ramp_mps_within_60s: Option<f64>,
     smallest_acceleration_mps2_within_60s: Option<f64>,
+    /// The training seed of a trained detector (`None` for the fitted comparators).
+    pub(super) seed: Option<u64>,
 }
 
 #[derive(Debug, Serialize)]
@@ -300,6 +333,8 @@ struct Report {
     protocol: &'static str,
     seed: u64,
     training_seed: u64,
+    /// Every trained detector is trained once per seed (the drives stay those of `seed`).
+    training_seeds: Vec<u64>,
     /// Evidence groups of the v2 model (`all` unless an ablation).
     features: &'static str,
     false_alarm_budget_per_hour: f64,
@@ -324,6 +359,7 @@ impl DetectorReport {
             smallest_ramp_mps_within_30s: None,
             smallest_ramp_mps_within_60s: None,
             smallest_acceleration_mps2_within_60s: None,
+            seed: None,
         }
     }
 }
@@ -404,8 +440,36 @@ pub(super) struct TestSet {
     pub(super) threads: usize,
 }
 
+/// `score` applied to `tracks` in one call per worker thread (so a batched scorer sees many tracks
+/// at once), split back into one [`Scored`] per track by the tracks' trajectory keys.
+fn scored_per_track(
+    tracks: &[Track],
+    threads: usize,
+    score: &(impl Fn(&[Track]) -> Result<Scored> + Sync),
+) -> Result<Vec<Scored>> {
+    let per_chunk = tracks.len().div_ceil(threads.max(1)).max(1);
+    let chunks: Vec<&[Track]> = tracks.chunks(per_chunk).collect();
+    let mut out = Vec::with_capacity(tracks.len());
+    for (chunk, scored) in chunks
+        .iter()
+        .zip(map_parallel(&chunks, threads, |c| score(c)))
+    {
+        let scored = scored?;
+        let mut split: Vec<Scored> = vec![Scored::default(); chunk.len()];
+        for (row, alarm) in scored.rows.into_iter().zip(scored.alarms) {
+            let track = (row.trajectory >> 32) as usize;
+            let target = split
+                .get_mut(track)
+                .context("a scored row names a track outside the scored chunk")?;
+            target.rows.push(row);
+            target.alarms.push(alarm);
+        }
+        out.extend(split);
+    }
+    Ok(out)
+}
+
 impl TestSet {
-    /// Scores every scenario and the clean drives with `score` (one fresh detector per track).
     /// An HO-LLN model's report at its budgeted operating point, or "none within the budget" when
     /// validation admitted none (`artifact` `None`, as [`within_budget`] returns it).
     pub(super) fn model_report(
@@ -416,33 +480,33 @@ impl TestSet {
         let Some(artifact) = artifact else {
             return Ok(DetectorReport::none_within_budget(name));
         };
-        Ok(self.report(
+        self.report(
             name,
             serde_json::to_value(artifact.operating_point)?,
-            |tracks| score_tracks(artifact, tracks),
-        ))
+            |tracks| Ok(score_tracks(artifact, tracks)),
+        )
     }
 
+    /// Scores every scenario and the clean drives with `score` (a fresh detector per track).
     pub(super) fn report(
         &self,
         name: &str,
         operating_point: serde_json::Value,
-        score: impl Fn(&[Track]) -> Scored + Sync,
-    ) -> DetectorReport {
-        let delays = map_parallel(&self.scenarios, self.threads, |s| {
-            first_delay(score(std::slice::from_ref(&s.track)).metrics(EventRules::Spec))
-        });
-        let clean = map_parallel(&self.clean, self.threads, |t| {
-            score(std::slice::from_ref(t))
-        });
+        score: impl Fn(&[Track]) -> Result<Scored> + Sync,
+    ) -> Result<DetectorReport> {
+        let attacked: Vec<Track> = self.scenarios.iter().map(|s| s.track.clone()).collect();
+        let delays: Vec<Option<f64>> = scored_per_track(&attacked, self.threads, &score)?
+            .into_iter()
+            .map(|s| first_delay(s.metrics(EventRules::Spec)))
+            .collect();
         let mut scored = Scored::default();
-        for part in clean {
+        for part in scored_per_track(&self.clean, self.threads, &score)? {
             scored.append(part);
         }
         let attack_free = scored.metrics(EventRules::Spec);
         let attack_free_hours = normal_hours(&scored.rows);
         let attacks = attack_rows(&self.scenarios, &delays);
-        DetectorReport {
+        Ok(DetectorReport {
             name: name.to_string(),
             operating_point,
             smallest_ramp_mps_within_30s: smallest_reached(&attacks, "ramp_drift", |r| r.adr_30s),
@@ -456,7 +520,8 @@ impl TestSet {
             attack_free_hours,
             false_alarm_events: attack_free.false_alarm_events,
             false_alarms_per_hour: attack_free.false_alarm_events as f64 / attack_free_hours,
-        }
+            seed: None,
+        })
     }
 }
 
@@ -531,8 +596,8 @@ pub(super) fn comparator_reports(
         Ok(glr) => reports.push(test.report(
             "directional GLR",
             serde_json::to_value(glr.operating_point)?,
-            |tracks| glr.score_tracks(tracks),
-        )),
+            |tracks| Ok(glr.score_tracks(tracks)),
+        )?),
         Err(error) => {
             eprintln!("directional GLR: {error}");
             reports.push(DetectorReport::none_within_budget("directional GLR"));
@@ -542,8 +607,8 @@ pub(super) fn comparator_reports(
         Ok(cusum) => reports.push(test.report(
             "CUSUM",
             serde_json::to_value(&cusum.cusum)?,
-            |tracks| cusum.score_tracks(tracks),
-        )),
+            |tracks| Ok(cusum.score_tracks(tracks)),
+        )?),
         Err(error) => {
             eprintln!("CUSUM: {error}");
             reports.push(DetectorReport::none_within_budget("CUSUM"));
@@ -609,30 +674,86 @@ pub fn run(args: Args) -> Result<()> {
             KappaRho::default(),
         )
     };
+    let training_seeds = seed_list(args.training_seed.unwrap_or(seed), args.seeds);
     let schemas = [FeatureSchema::V2, FeatureSchema::Paper];
-    let trained = map_parallel(&schemas, threads, |&schema| {
-        let data = TrainingData::Explicit {
-            train: train.clone(),
-            validation: validation.clone(),
-        };
-        train_with_progress(&spec_for(schema), data, false)
-            .with_context(|| format!("training HO-LLN ({})", schema.name()))
+    let mut jobs: Vec<Job> = Vec::new();
+    for &training_seed in &training_seeds {
+        jobs.extend(schemas.map(|schema| Job::HoLln(schema, training_seed)));
+        if !args.no_baselines {
+            for schema in schemas {
+                jobs.extend(Baseline::on_evidence(schema).map(|b| Job::Baseline(b, training_seed)));
+            }
+        }
+    }
+    let trained = map_parallel(&jobs, threads, |job| -> Result<Trained> {
+        match *job {
+            Job::HoLln(schema, training_seed) => {
+                let data = TrainingData::Explicit {
+                    train: train.clone(),
+                    validation: validation.clone(),
+                };
+                let spec = TrainingSpec {
+                    train: TrainConfig {
+                        seed: training_seed,
+                        ..spec_for(schema).train
+                    },
+                    ..spec_for(schema)
+                };
+                let trained = train_with_progress(&spec, data, false)
+                    .with_context(|| format!("training HO-LLN ({})", schema.name()))?;
+                let name = format!("HO-LLN {}", schema.name());
+                let (artifact, hours) = within_budget(&name, trained.artifact, &validation);
+                Ok(Trained::HoLln(name, artifact.map(Arc::new), hours))
+            }
+            Job::Baseline(baseline, training_seed) => {
+                let protocol = Protocol {
+                    projection: spec_for(FeatureSchema::V2).projection,
+                    ..Protocol::new(training_seed, args.common.epochs as usize, BUDGET)
+                };
+                let fitted = spoofwatch_baselines::fit(
+                    baseline,
+                    Dataset::tracks(&train),
+                    Dataset::tracks(&validation),
+                    &protocol,
+                );
+                match fitted {
+                    Ok(fitted) => Ok(Trained::Baseline(baseline.name(), Some(fitted))),
+                    // As for HO-LLN: no point within the budget is a result, not a failure.
+                    Err(BaselineError::OperatingPoint(error)) => {
+                        eprintln!("{}: {error}", baseline.name());
+                        Ok(Trained::Baseline(baseline.name(), None))
+                    }
+                    Err(error) => Err(error).context(format!("fitting {}", baseline.name())),
+                }
+            }
+        }
     });
     let mut detectors = Vec::new();
     let mut validation_hours = 0.0;
-    for (schema, result) in schemas.iter().zip(trained) {
-        let name = format!("HO-LLN {}", schema.name());
-        let (artifact, hours) = within_budget(&name, result?.artifact, &validation);
-        validation_hours = hours;
-        let artifact = artifact.map(Arc::new);
-        if let Some(artifact) = &artifact {
-            let file = format!("model-{}.json", schema.name());
-            artifact.write(std::io::BufWriter::new(
-                std::fs::File::create(args.common.out.join(&file))
-                    .with_context(|| format!("creating {file}"))?,
-            ))?;
-        }
-        detectors.push(test.model_report(&name, artifact.as_ref())?);
+    for (job, trained) in jobs.iter().zip(trained) {
+        let training_seed = job.seed();
+        let first_seed = training_seed == training_seeds[0];
+        let mut report = match trained? {
+            Trained::HoLln(name, artifact, hours) => {
+                validation_hours = hours;
+                if let (Some(artifact), true) = (&artifact, first_seed) {
+                    let file = format!("model-{}.json", artifact.schema().name());
+                    artifact.write(std::io::BufWriter::new(
+                        std::fs::File::create(args.common.out.join(&file))
+                            .with_context(|| format!("creating {file}"))?,
+                    ))?;
+                }
+                test.model_report(&name, artifact.as_ref())?
+            }
+            Trained::Baseline(name, None) => DetectorReport::none_within_budget(&name),
+            Trained::Baseline(name, Some(fitted)) => test.report(
+                &name,
+                serde_json::to_value(fitted.operating_point)?,
+                |tracks| Ok(fitted.score(Dataset::tracks(tracks))?),
+            )?,
+        };
+        report.seed = Some(training_seed);
+        detectors.push(report);
     }
     for path in &args.also {
         let name = path.display().to_string(); // the path, as given on the command line
@@ -645,6 +766,7 @@ pub fn run(args: Args) -> Result<()> {
         protocol: "subtle",
         seed,
         training_seed: args.training_seed.unwrap_or(seed),
+        training_seeds,
         features: args.features.name(),
         false_alarm_budget_per_hour: FALSE_ALARM_BUDGET_PER_HOUR,
         drive_distribution: DriveDistribution::realistic(),
