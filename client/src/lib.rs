@@ -4,8 +4,8 @@
 //! one gateway `StreamDetectFleet` call
 //! ([`FleetDetectStream`]), a resumable alarm feed ([`AlarmWatch`]), replay of recorded telemetry over it
 //! (failing over to a new stream when a server goes away: [`failover`]; its final rows: [`replay_log`])
-//! and its fleet summary ([`fleet`]), and the small helpers the `spoofwatch` CLI shares between its offline and
-//! remote commands.
+//! and its fleet summary ([`fleet`]), the SVG figures of the offline commands ([`figures`]), and the
+//! small helpers the `spoofwatch` CLI shares between its offline and remote commands.
 //!
 //! The `spoofwatch` binary (`main.rs`) adds the clap command line on top; nothing here depends on
 //! it. Nothing here depends on the server crate: only the binary's `demo` and in-process `bench`
@@ -16,6 +16,7 @@ pub mod connection;
 pub mod detect_stream;
 pub mod error;
 pub mod failover;
+pub mod figures;
 pub mod fleet;
 pub mod fleet_stream;
 pub mod input;

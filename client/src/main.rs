@@ -8,7 +8,7 @@ use std::process::ExitCode;
 
 use clap::Parser;
 // The offline commands refer to these as `crate::input` etc.; they live in the library.
-use spoofwatch_client::{input, progress, report};
+use spoofwatch_client::{figures, input, progress, report};
 
 fn main() -> ExitCode {
     let cli = commands::Cli::parse();

@@ -103,6 +103,111 @@ fn simulate_train_evaluate_and_evidence_work_together() {
     assert_eq!(&first[1..5], ["2", "0", "NaN", "0"], "{}", lines[1]);
 }
 
+/// The legend and title texts of an SVG figure (trimmed), after checking that it parses.
+fn svg_texts(file: &str) -> Vec<String> {
+    let svg = std::fs::read_to_string(file).expect("the figure is written");
+    let doc = roxmltree::Document::parse(&svg).expect("the figure is well-formed XML");
+    doc.descendants()
+        .filter(|n| n.is_element() && n.tag_name().name() == "text")
+        .map(|n| n.text().unwrap_or_default().trim().to_string())
+        .collect()
+}
+
+#[test]
+fn evaluate_plots_the_trace_of_a_chosen_vehicle() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = path(dir.path(), "drives.csv");
+    spoofwatch(&[
+        "scenario",
+        "simulate",
+        "--out",
+        &data,
+        "--vehicles",
+        "2",
+        "--duration",
+        "300",
+        "--seed",
+        "7",
+        "--attack",
+        "frozen",
+        "--onset",
+        "150",
+        "--attack-duration",
+        "100",
+    ]);
+    let vehicles: Vec<String> = spoofwatch_core::data::read_path(Path::new(&data))
+        .expect("readable")
+        .tracks
+        .into_iter()
+        .map(|t| t.vehicle_id)
+        .collect();
+    assert_eq!(vehicles.len(), 2);
+    // The bundled v2 model: no training needed, and its evidence has the drift channels.
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/default.json");
+
+    let first = path(dir.path(), "first.svg");
+    let printed = stdout(&spoofwatch(&[
+        "evaluate", "--model", model, "--data", &data, "--plot", &first,
+    ]));
+    assert!(
+        printed.contains(&format!("trace figure written to {first}")),
+        "{printed}"
+    );
+    let texts = svg_texts(&first);
+    assert!(
+        texts.iter().any(|t| t.starts_with(&vehicles[0])),
+        "{texts:?}"
+    );
+    for legend in [
+        "ground truth: spoofed",
+        "confirmed alarm",
+        "p̂ (spoofing probability)",
+        "ln(1 + ‖η‖) (whitened residual)",
+        "ã = ln(1 + a)",
+        "ln(1 + drift statistic)",
+        "ln(1 + stale fix s)",
+    ] {
+        assert!(texts.iter().any(|t| t == legend), "{legend}: {texts:?}");
+    }
+    assert!(texts.iter().any(|t| t.starts_with("θ = ")), "{texts:?}");
+    // Simulated telemetry has no detector verdict of its own.
+    assert!(!texts.iter().any(|t| t == "EKF Detector"), "{texts:?}");
+
+    let second = path(dir.path(), "second.svg");
+    spoofwatch(&[
+        "evaluate",
+        "--model",
+        model,
+        "--data",
+        &data,
+        "--plot",
+        &second,
+        "--plot-vehicle",
+        &vehicles[1],
+    ]);
+    assert!(
+        svg_texts(&second)
+            .iter()
+            .any(|t| t.starts_with(&vehicles[1]))
+    );
+
+    let unknown = Command::new(env!("CARGO_BIN_EXE_spoofwatch"))
+        .args([
+            "evaluate", "--model", model, "--data", &data, "--plot", &second,
+        ])
+        .args(["--plot-vehicle", "nobody"])
+        .output()
+        .expect("runs");
+    assert!(!unknown.status.success());
+    let stderr = String::from_utf8_lossy(&unknown.stderr);
+    assert!(
+        stderr.contains("\"nobody\"")
+            && stderr.contains(&vehicles[0])
+            && stderr.contains(&vehicles[1]),
+        "{stderr}"
+    );
+}
+
 #[test]
 fn simulated_drives_take_a_rate_and_realistic_ones_round_trip_through_the_reader() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -209,9 +314,14 @@ fn cusum_and_the_bundled_model_on_the_av_gps_data() {
     let bundled = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/paper.json");
     let dir = tempfile::tempdir().expect("tempdir");
     let json = path(dir.path(), "d3.json");
+    let plot = path(dir.path(), "d3.svg");
     spoofwatch(&[
-        "evaluate", "--model", bundled, "--data", &d3, "--json", &json,
+        "evaluate", "--model", bundled, "--data", &d3, "--json", &json, "--plot", &plot,
     ]);
+    // The case-study figure: Dataset-3 carries AV-GPS's own detector, drawn against the truth.
+    let texts = svg_texts(&plot);
+    assert!(texts.iter().any(|t| t == "EKF Detector"), "{texts:?}");
+    assert!(texts.iter().any(|t| t == "θ = 0.90"), "{texts:?}");
     let metrics: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json).expect("json")).expect("valid");
     let overall = &metrics["overall"];

@@ -1,14 +1,16 @@
 //! `spoofwatch evaluate`: score a model artifact on labelled data, or (`--server`) run an
 //! evaluation job on a server (`remote::evaluate`).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use spoofwatch_core::evaluation::{Evaluation, evaluate_tracks};
 use spoofwatch_core::model::artifact::ModelArtifact;
+use spoofwatch_core::sample::Track;
 
 use super::{RulesArg, write_json};
+use crate::figures;
 use crate::input::load_tracks;
 use crate::report::{delays, metrics_table};
 
@@ -39,6 +41,13 @@ pub struct Args {
     /// Write per-row probabilities and alarms as CSV here.
     #[arg(long, conflicts_with = "server")]
     rows: Option<PathBuf>,
+    /// Draw the trace of one vehicle (p̂ with θ, confirmed alarm, truth, the recording's own
+    /// detector when it has one, evidence channels) as SVG here.
+    #[arg(long, conflicts_with = "server")]
+    plot: Option<PathBuf>,
+    /// The vehicle whose trace --plot draws (default: the first).
+    #[arg(long, requires = "plot")]
+    plot_vehicle: Option<String>,
     /// Event rules for ADR and delays (offline; a server job uses SPEC §8's).
     #[arg(long, value_enum, default_value_t)]
     rules: RulesArg,
@@ -66,6 +75,12 @@ pub fn run(args: Args) -> Result<()> {
     };
     let artifact = load_artifact(&model)?;
     let tracks = load_tracks(&args.data)?;
+    // Before evaluating, so that a wrong --plot-vehicle fails at once.
+    let plot_index = args
+        .plot
+        .as_ref()
+        .map(|_| plot_track_index(&tracks, args.plot_vehicle.as_deref()))
+        .transpose()?;
     let evaluation = evaluate_tracks(&artifact, &tracks, args.rules.into());
     let op = artifact.operating_point;
     println!("operating point: theta = {:.2}, N_p = {}", op.theta, op.n_p);
@@ -90,7 +105,47 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(path) = &args.rows {
         write_rows(path, &evaluation)?;
     }
+    if let (Some(path), Some(index)) = (&args.plot, plot_index) {
+        let svg = vehicle_trace_svg(&tracks, index, &evaluation, &model, op.theta)?;
+        std::fs::write(path, svg).with_context(|| format!("writing {}", path.display()))?;
+        println!("trace figure written to {}", path.display());
+    }
     Ok(())
+}
+
+/// The index of the track of `vehicle` (default: the first track).
+fn plot_track_index(tracks: &[Track], vehicle: Option<&str>) -> Result<usize> {
+    let Some(id) = vehicle else {
+        anyhow::ensure!(!tracks.is_empty(), "the data has no vehicle to plot");
+        return Ok(0);
+    };
+    tracks
+        .iter()
+        .position(|t| t.vehicle_id == id)
+        .with_context(|| {
+            let known: Vec<&str> = tracks.iter().map(|t| t.vehicle_id.as_str()).collect();
+            format!("no vehicle {id:?} in the data; it has {}", known.join(", "))
+        })
+}
+
+/// The SVG trace of the `index`-th track.
+fn vehicle_trace_svg(
+    tracks: &[Track],
+    index: usize,
+    evaluation: &Evaluation,
+    model: &Path,
+    theta: f64,
+) -> Result<String> {
+    let track = tracks.get(index).context("no track to plot")?;
+    // `evaluate_tracks` writes the rows track after track.
+    let start: usize = tracks[..index].iter().map(|t| t.records.len()).sum();
+    let rows = evaluation
+        .rows
+        .get(start..start + track.records.len())
+        .context("the evaluation has fewer rows than the data")?;
+    let title = format!("{} — model {}", track.vehicle_id, model.display());
+    let trace = figures::trace_of(title, rows, &track.records, theta)?;
+    figures::trace_svg(&trace)
 }
 
 fn write_rows(path: &PathBuf, evaluation: &Evaluation) -> Result<()> {
