@@ -106,6 +106,18 @@ pub struct Epoch {
     pub val_auroc: Option<f64>,
 }
 
+impl From<&spoofwatch_core::train::EpochProgress> for Epoch {
+    /// HO-LLN's own epoch, for curves drawn beside the baselines'.
+    fn from(e: &spoofwatch_core::train::EpochProgress) -> Self {
+        Self {
+            epoch: e.epoch,
+            train_loss: e.train_loss,
+            val_loss: e.val_loss,
+            val_auroc: e.val_auroc,
+        }
+    }
+}
+
 /// How every baseline is trained and calibrated: HO-LLN's settings.
 #[derive(Clone, Debug)]
 pub struct Protocol {

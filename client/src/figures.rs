@@ -94,6 +94,9 @@ const PALETTE: [RGBColor; 8] = [
     RGBColor(240, 228, 66),
 ];
 
+/// Series a panel can tell apart by colour alone.
+pub const DISTINCT_COLOURS: usize = PALETTE.len();
+
 const WIDTH: u32 = 1100;
 const TITLE_HEIGHT: u32 = 40;
 const PANEL_HEIGHT: u32 = 260;

@@ -81,7 +81,8 @@ pub fn mean_std(values: &[f64]) -> Option<(f64, f64)> {
     Some((mean, variance.sqrt()))
 }
 
-fn mean_std_cell(values: &[f64], digits: usize) -> String {
+/// `mean ± std` of the values with `digits` decimals (just the value for one, `-` for none).
+pub fn mean_std_cell(values: &[f64], digits: usize) -> String {
     match mean_std(values) {
         None => "-".into(),
         Some((mean, _)) if values.len() == 1 => format!("{mean:.digits$}"),

@@ -358,9 +358,61 @@ fn run_experiment(name: &str, args: &[&str]) -> Option<(tempfile::TempDir, serde
 
 #[test]
 fn the_av_gps_experiment_runs_end_to_end() {
-    let Some((out, report)) = run_experiment("av-gps", &["--epochs", "1", "--no-ablations"]) else {
+    let args = ["--epochs", "1", "--no-ablations", "--seeds", "2"];
+    let Some((out, report)) = run_experiment("av-gps", &args) else {
         return;
     };
+    // HO-LLN in both schemas and every baseline, each trained with both seeds.
+    let compared: Vec<&str> = report["compared"]
+        .as_array()
+        .expect("compared detectors")
+        .iter()
+        .filter_map(|n| n.as_str())
+        .collect();
+    let mut expected = vec!["HO-LLN (ξ paper)", "HO-LLN (ξ v2)"];
+    for schema in ["paper", "v2"] {
+        for learner in ["XGBoost-style trees", "MLP", "LSTM", "GRU"] {
+            expected.push(Box::leak(
+                format!("{learner} (ξ {schema})").into_boxed_str(),
+            ));
+        }
+    }
+    expected.push("GPS-IDS trees (AV-GPS columns)");
+    assert_eq!(compared, expected);
+    assert_eq!(report["seeds"], serde_json::json!([42, 43]));
+    let variants = report["variants"].as_array().expect("trained models");
+    for name in &compared {
+        let seeds: Vec<&serde_json::Value> = variants
+            .iter()
+            .filter(|v| v["name"] == *name)
+            .map(|v| &v["seed"])
+            .collect();
+        assert_eq!(seeds, [42, 43], "{name}");
+    }
+    let markdown = std::fs::read_to_string(out.path().join("report.md")).expect("report.md");
+    assert!(
+        markdown.contains("mean ± std over 2 seed(s) (42, 43)"),
+        "{markdown}"
+    );
+    // The figures report.md links: the Dataset-3 case study and the training curves of every model.
+    let dir = out.path().display().to_string();
+    let case_study = svg_texts(&format!("{dir}/case-study-dataset3.svg"));
+    for series in ["p̂", "truth", "EKF Detector"] {
+        assert!(
+            case_study.iter().any(|t| t.contains(series)),
+            "{series}: {case_study:?}"
+        );
+    }
+    let curves = svg_texts(&format!("{dir}/training-curves.svg"));
+    let trees = svg_texts(&format!("{dir}/training-curves-trees.svg"));
+    for name in &compared {
+        let figure = if name.contains("trees") {
+            &trees
+        } else {
+            &curves
+        };
+        assert!(figure.iter().any(|t| t == name), "{name}: {figure:?}");
+    }
     for key in ["dataset2_test", "dataset3", "ekf_dataset3"] {
         for field in [
             "auroc",
@@ -410,16 +462,16 @@ fn the_subtle_experiment_reports_every_detector_within_the_budget() {
         .iter()
         .filter_map(|d| d["name"].as_str())
         .collect();
-    assert_eq!(
-        names,
-        [
-            "HO-LLN v2",
-            "HO-LLN paper",
-            bundled,
-            "directional GLR",
-            "CUSUM"
-        ]
-    );
+    let mut expected = vec!["HO-LLN v2", "HO-LLN paper"];
+    for schema in ["v2", "paper"] {
+        for learner in ["XGBoost-style trees", "MLP", "LSTM", "GRU"] {
+            expected.push(Box::leak(
+                format!("{learner} (ξ {schema})").into_boxed_str(),
+            ));
+        }
+    }
+    expected.extend([bundled, "directional GLR", "CUSUM"]);
+    assert_eq!(names, expected);
     for d in detectors {
         assert!(d["false_alarms_per_hour"].is_number(), "{d}");
         assert!(d.get("smallest_ramp_mps_within_60s").is_some(), "{d}");
@@ -440,6 +492,18 @@ fn the_subtle_experiment_reports_every_detector_within_the_budget() {
     }
     let markdown = std::fs::read_to_string(out.path().join("report.md")).expect("report.md");
     assert!(markdown.contains("smallest ramp within 30 s"));
+    // One frontier curve per detector with a budgeted operating point.
+    let dir = out.path().display().to_string();
+    for figure in ["frontier-ramps.svg", "frontier-accelerating.svg"] {
+        let texts = svg_texts(&format!("{dir}/{figure}"));
+        for d in detectors.iter().filter(|d| !d["operating_point"].is_null()) {
+            let name = d["name"].as_str().expect("name");
+            assert!(
+                texts.iter().any(|t| t == name),
+                "{figure}: {name}: {texts:?}"
+            );
+        }
+    }
 }
 
 #[test]

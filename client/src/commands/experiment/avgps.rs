@@ -18,10 +18,13 @@ use spoofwatch_core::train::detector::TrainingData;
 use spoofwatch_core::train::spec::{KappaRho, Recipe, TrainingSpec};
 
 use super::parallel::{default_threads, map_parallel};
+use super::plots;
 use super::{CommonArgs, prepare, seed_list, with_injections};
 use crate::commands::train::train_with_progress;
 use crate::commands::write_json;
+use crate::figures;
 use crate::report::{delays, metrics_table, seeds_table};
+use spoofwatch_core::model::artifact::ModelArtifact;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -342,16 +345,7 @@ pub fn run(args: Args) -> Result<()> {
                 };
                 let trained = train_with_progress(&spec, training_data, false)
                     .with_context(|| format!("training variant {} (seed {seed})", variant.name))?;
-                let training_curve = trained
-                    .history
-                    .iter()
-                    .map(|e| Epoch {
-                        epoch: e.epoch,
-                        train_loss: e.train_loss,
-                        val_loss: e.val_loss,
-                        val_auroc: e.val_auroc,
-                    })
-                    .collect();
+                let training_curve = trained.history.iter().map(Epoch::from).collect();
                 let artifact = Arc::new(trained.artifact);
                 let report = VariantReport {
                     name: variant.name.to_string(),
@@ -416,6 +410,14 @@ pub fn run(args: Args) -> Result<()> {
     let file = std::fs::File::create(&model_path)
         .with_context(|| format!("creating {}", model_path.display()))?;
     artifact.write(std::io::BufWriter::new(file))?;
+    write_figures(
+        &args.common.out,
+        artifact,
+        &data.dataset3,
+        &results,
+        &compared_names(!args.no_baselines),
+        seeds[0],
+    )?;
 
     let comparator = fit_cusum_comparator(
         &split.train,
@@ -455,6 +457,55 @@ pub fn run(args: Args) -> Result<()> {
     Ok(())
 }
 
+/// The figures of report.md: the headline model's Dataset-3 trace (the paper's case study) and the
+/// first seed's training curves (epochs of HO-LLN and the nets; trees of the ensembles).
+fn write_figures(
+    out: &std::path::Path,
+    headline: &Arc<ModelArtifact>,
+    dataset3: &[Track],
+    results: &[(VariantReport, Option<Arc<ModelArtifact>>)],
+    compared: &[String],
+    first_seed: u64,
+) -> Result<()> {
+    let track = dataset3.first().context("Dataset-3 has a track")?;
+    let evaluation = evaluate_tracks(headline, std::slice::from_ref(track), EventRules::Spec);
+    let trace = figures::trace_of(
+        "Dataset-3 case study: headline HO-LLN (ξ paper)",
+        &evaluation.rows,
+        &track.records,
+        headline.operating_point.theta,
+    )?;
+    plots::write_svg(out, CASE_STUDY_SVG, &figures::trace_svg(&trace)?)?;
+    let curves = |trees: bool| -> Vec<(String, &[Epoch])> {
+        results
+            .iter()
+            .map(|(r, _)| r)
+            .filter(|r| r.seed == first_seed && compared.contains(&r.name))
+            .filter(|r| r.name.contains("trees") == trees)
+            .map(|r| (r.name.clone(), r.training_curve.as_slice()))
+            .collect()
+    };
+    let title = format!("Training on Dataset-2 (seed {first_seed})");
+    plots::write_svg(
+        out,
+        CURVES_SVG,
+        &plots::training_curves_svg(&title, "epoch", &curves(false))?,
+    )?;
+    let trees = curves(true);
+    if !trees.is_empty() {
+        plots::write_svg(
+            out,
+            TREE_CURVES_SVG,
+            &plots::training_curves_svg(&title, "trees", &trees)?,
+        )?;
+    }
+    Ok(())
+}
+
+const CASE_STUDY_SVG: &str = "case-study-dataset3.svg";
+const CURVES_SVG: &str = "training-curves.svg";
+const TREE_CURVES_SVG: &str = "training-curves-trees.svg";
+
 fn rows(tracks: &[Track]) -> usize {
     tracks.iter().map(|t| t.records.len()).sum()
 }
@@ -480,6 +531,10 @@ fn render_markdown(report: &Report) -> String {
         report.train_wall_time_s,
         report.experiment_wall_time_s
     );
+    md.push_str(&format!(
+        "Figures: [Dataset-3 case study]({CASE_STUDY_SVG}), [training curves]({CURVES_SVG}), \
+         [tree ensembles' curves]({TREE_CURVES_SVG}).\n\n"
+    ));
     let table = metrics_table(&[
         ("HO-LLN, Dataset-2 test (ours)", &report.dataset2_test),
         ("HO-LLN, Dataset-3 (ours)", &report.dataset3),

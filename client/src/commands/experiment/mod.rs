@@ -4,6 +4,7 @@
 
 mod avgps;
 mod parallel;
+mod plots;
 mod subtle;
 mod subtle_d2;
 

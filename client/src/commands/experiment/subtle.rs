@@ -11,7 +11,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use serde::Serialize;
-use spoofwatch_baselines::{Baseline, BaselineError, Dataset, Fitted, Protocol};
+use spoofwatch_baselines::{Baseline, BaselineError, Dataset, Epoch, Fitted, Protocol};
 use spoofwatch_core::alarm::{N_P_GRID, OperatingPointRule, choose_operating_point, theta_grid};
 use spoofwatch_core::cusum::fit_cusum_comparator;
 use spoofwatch_core::evaluation::{Scored, score_tracks};
@@ -32,11 +32,14 @@ use spoofwatch_core::train::detector::TrainingData;
 use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
 
 use super::parallel::{default_threads, map_parallel};
+use super::plots;
 use super::{CommonArgs, prepare, seed_list, with_injections};
 use crate::commands::evaluate::load_artifact;
 use crate::commands::train::train_with_progress;
 use crate::commands::training_flags::feature_groups;
 use crate::commands::write_json;
+use crate::figures::{Panel, Series, line_chart_svg};
+use crate::report::mean_std_cell;
 
 /// Attacks injected into training (and, in the subtle experiment, validation) data: magnitudes a
 /// metre-level GNSS/odometry residual can reveal, so the labels are learnable.
@@ -162,9 +165,9 @@ impl Job {
 
 /// A trained detector at its budgeted operating point (`None`: no point within the budget).
 enum Trained {
-    /// With the validation's attack-free hours.
-    HoLln(String, Option<Arc<ModelArtifact>>, f64),
-    Baseline(String, Option<Fitted>),
+    /// With the validation's attack-free hours and the training curve.
+    HoLln(String, Option<Arc<ModelArtifact>>, f64, Vec<Epoch>),
+    Baseline(String, Option<Box<Fitted>>),
 }
 
 /// Length of a simulated training/validation/clean test drive (s).
@@ -702,8 +705,9 @@ pub fn run(args: Args) -> Result<()> {
                 let trained = train_with_progress(&spec, data, false)
                     .with_context(|| format!("training HO-LLN ({})", schema.name()))?;
                 let name = format!("HO-LLN {}", schema.name());
+                let curve = trained.history.iter().map(Epoch::from).collect();
                 let (artifact, hours) = within_budget(&name, trained.artifact, &validation);
-                Ok(Trained::HoLln(name, artifact.map(Arc::new), hours))
+                Ok(Trained::HoLln(name, artifact.map(Arc::new), hours, curve))
             }
             Job::Baseline(baseline, training_seed) => {
                 let protocol = Protocol {
@@ -717,7 +721,7 @@ pub fn run(args: Args) -> Result<()> {
                     &protocol,
                 );
                 match fitted {
-                    Ok(fitted) => Ok(Trained::Baseline(baseline.name(), Some(fitted))),
+                    Ok(fitted) => Ok(Trained::Baseline(baseline.name(), Some(Box::new(fitted)))),
                     // As for HO-LLN: no point within the budget is a result, not a failure.
                     Err(BaselineError::OperatingPoint(error)) => {
                         eprintln!("{}: {error}", baseline.name());
@@ -730,11 +734,15 @@ pub fn run(args: Args) -> Result<()> {
     });
     let mut detectors = Vec::new();
     let mut validation_hours = 0.0;
+    let mut curves: Vec<(String, Vec<Epoch>)> = Vec::new();
     for (job, trained) in jobs.iter().zip(trained) {
         let training_seed = job.seed();
         let first_seed = training_seed == training_seeds[0];
         let mut report = match trained? {
-            Trained::HoLln(name, artifact, hours) => {
+            Trained::HoLln(name, artifact, hours, curve) => {
+                if first_seed {
+                    curves.push((name.clone(), curve));
+                }
                 validation_hours = hours;
                 if let (Some(artifact), true) = (&artifact, first_seed) {
                     let file = format!("model-{}.json", artifact.schema().name());
@@ -746,11 +754,16 @@ pub fn run(args: Args) -> Result<()> {
                 test.model_report(&name, artifact.as_ref())?
             }
             Trained::Baseline(name, None) => DetectorReport::none_within_budget(&name),
-            Trained::Baseline(name, Some(fitted)) => test.report(
-                &name,
-                serde_json::to_value(fitted.operating_point)?,
-                |tracks| Ok(fitted.score(Dataset::tracks(tracks))?),
-            )?,
+            Trained::Baseline(name, Some(fitted)) => {
+                if first_seed {
+                    curves.push((name.clone(), fitted.history.clone()));
+                }
+                test.report(
+                    &name,
+                    serde_json::to_value(fitted.operating_point)?,
+                    |tracks| Ok(fitted.score(Dataset::tracks(tracks))?),
+                )?
+            }
         };
         report.seed = Some(training_seed);
         detectors.push(report);
@@ -777,9 +790,117 @@ pub fn run(args: Args) -> Result<()> {
         experiment_wall_time_s: started.elapsed().as_secs_f64(),
     };
     write_json(&args.common.out.join("report.json"), &report)?;
+    write_figures(&args.common.out, &report, &curves)?;
     let markdown = render_markdown(&report);
     std::fs::write(args.common.out.join("report.md"), &markdown).context("writing report.md")?;
     print!("{markdown}");
+    Ok(())
+}
+
+const FRONTIER_RAMPS_SVG: &str = "frontier-ramps.svg";
+const FRONTIER_ACCELERATING_SVG: &str = "frontier-accelerating.svg";
+const CURVES_SVG: &str = "training-curves.svg";
+const TREE_CURVES_SVG: &str = "training-curves-trees.svg";
+
+/// Per detector name (in report order), its reports over the seeds that have an operating point.
+fn by_detector(report: &Report) -> Vec<(String, Vec<&DetectorReport>)> {
+    let mut out: Vec<(String, Vec<&DetectorReport>)> = Vec::new();
+    for d in &report.detectors {
+        let index = match out.iter().position(|(name, _)| *name == d.name) {
+            Some(i) => i,
+            None => {
+                out.push((d.name.clone(), Vec::new()));
+                out.len() - 1
+            }
+        };
+        if !d.operating_point.is_null() {
+            out[index].1.push(d);
+        }
+    }
+    out
+}
+
+/// The detection frontier of one attack family: share detected within 30 s and 60 s against the
+/// magnitude, one series per detector (mean over seeds; detectors without an admissible operating
+/// point are left out).
+fn frontier_svg(report: &Report, family: &str, unit: &str) -> Result<String> {
+    let series = |adr: fn(&AttackRow) -> f64| -> Vec<Series> {
+        by_detector(report)
+            .into_iter()
+            .filter(|(_, seeds)| !seeds.is_empty())
+            .map(|(name, seeds)| {
+                let mut points: Vec<(f64, f64)> = Vec::new();
+                for row in seeds[0].attacks.iter().filter(|r| r.family == family) {
+                    let shares: Vec<f64> = seeds
+                        .iter()
+                        .filter_map(|d| {
+                            d.attacks
+                                .iter()
+                                .find(|r| r.family == family && r.magnitude == row.magnitude)
+                        })
+                        .map(adr)
+                        .collect();
+                    let mean = shares.iter().sum::<f64>() / shares.len().max(1) as f64;
+                    points.push((row.magnitude.unwrap_or(f64::NAN), mean));
+                }
+                Series::line(name, points)
+            })
+            .collect()
+    };
+    let budget = report.false_alarm_budget_per_hour;
+    let seeds = report.training_seeds.len();
+    let panel = |window: &str, adr| Panel {
+        title: format!(
+            "detected within {window} (≤ {budget} false alarm per hour; mean of {seeds} seed(s))"
+        ),
+        y_label: "share of drives".into(),
+        series: plots::distinct(series(adr)),
+        y_range: Some((0.0, 1.0)),
+    };
+    line_chart_svg(
+        &format!("Subtle suite: {} frontier", family.replace('_', " ")),
+        &format!("magnitude ({unit})"),
+        &[panel("30 s", |r| r.adr_30s), panel("60 s", |r| r.adr_60s)],
+    )
+}
+
+/// The frontier figures and the first seed's training curves.
+fn write_figures(
+    out: &std::path::Path,
+    report: &Report,
+    curves: &[(String, Vec<Epoch>)],
+) -> Result<()> {
+    plots::write_svg(
+        out,
+        FRONTIER_RAMPS_SVG,
+        &frontier_svg(report, "ramp_drift", "m/s")?,
+    )?;
+    plots::write_svg(
+        out,
+        FRONTIER_ACCELERATING_SVG,
+        &frontier_svg(report, "accelerating_drift", "m/s²")?,
+    )?;
+    let title = format!("Training on the subtle mix (seed {})", report.training_seed);
+    let pick = |trees: bool| -> Vec<(String, &[Epoch])> {
+        curves
+            .iter()
+            .filter(|(name, _)| name.contains("trees") == trees)
+            .map(|(name, c)| (name.clone(), c.as_slice()))
+            .collect()
+    };
+    plots::write_svg(
+        out,
+        CURVES_SVG,
+        &plots::training_curves_svg(&title, "epoch", &pick(false))?,
+    )?;
+    let trees = pick(true);
+    if !trees.is_empty() {
+        plots::write_svg(
+            out,
+            TREE_CURVES_SVG,
+            &plots::training_curves_svg(&title, "trees", &trees)?,
+        )?;
+    }
     Ok(())
 }
 
@@ -801,7 +922,13 @@ fn render_markdown(report: &Report) -> String {
         report.false_alarm_budget_per_hour,
         report.validation_attack_free_hours,
     );
-    for d in &report.detectors {
+    // The tables show the first training seed; the summary below covers all of them.
+    let detectors: Vec<&DetectorReport> = report
+        .detectors
+        .iter()
+        .filter(|d| d.seed.is_none_or(|s| s == report.training_seed))
+        .collect();
+    for d in &detectors {
         if d.operating_point.is_null() {
             md.push_str(&format!(
                 "| {} | no operating point within the budget on validation | | | |\n",
@@ -820,14 +947,23 @@ fn render_markdown(report: &Report) -> String {
             d.attack_free_hours,
         ));
     }
-    md.push_str("\n## Detection within 30 s / 60 s per attack\n\n| attack | magnitude |");
-    for d in &report.detectors {
+    md.push_str(&seeds_summary(report));
+    md.push_str(&format!(
+        "\nFigures: [ramp frontier]({FRONTIER_RAMPS_SVG}), [accelerating-drift frontier]\
+         ({FRONTIER_ACCELERATING_SVG}), [training curves]({CURVES_SVG}), [tree ensembles' curves]\
+         ({TREE_CURVES_SVG}).\n"
+    ));
+    md.push_str(&format!(
+        "\n## Detection within 30 s / 60 s per attack (training seed {})\n\n| attack | magnitude |",
+        report.training_seed
+    ));
+    for d in &detectors {
         md.push_str(&format!(" {} |", d.name));
     }
     md.push_str("\n|---|---|");
-    md.push_str(&"---|".repeat(report.detectors.len()));
+    md.push_str(&"---|".repeat(detectors.len()));
     md.push('\n');
-    let Some(first) = report.detectors.iter().find(|d| !d.attacks.is_empty()) else {
+    let Some(first) = detectors.iter().find(|d| !d.attacks.is_empty()) else {
         return md;
     };
     for (i, row) in first.attacks.iter().enumerate() {
@@ -836,7 +972,7 @@ fn render_markdown(report: &Report) -> String {
             row.family,
             row.magnitude.map_or("-".into(), |v| v.to_string())
         ));
-        for d in &report.detectors {
+        for d in &detectors {
             match d.attacks.get(i) {
                 Some(r) => md.push_str(&format!(" {:.2} / {:.2} |", r.adr_30s, r.adr_60s)),
                 None => md.push_str(" - |"),
@@ -845,12 +981,57 @@ fn render_markdown(report: &Report) -> String {
         md.push('\n');
     }
     md.push_str("\nOperating points: ");
-    let points: Vec<String> = report
-        .detectors
+    let points: Vec<String> = detectors
         .iter()
         .map(|d| format!("{} {}", d.name, d.operating_point))
         .collect();
     md.push_str(&points.join("; "));
     md.push('\n');
+    md
+}
+
+/// Share of `d`'s drives with this attack detected within the window (`None` if not tested).
+fn share(
+    d: &DetectorReport,
+    family: &str,
+    magnitude: Option<f64>,
+    within_60s: bool,
+) -> Option<f64> {
+    d.attacks
+        .iter()
+        .find(|r| r.family == family && r.magnitude == magnitude)
+        .map(|r| if within_60s { r.adr_60s } else { r.adr_30s })
+}
+
+/// Mean ± sample std over the training seeds of the headline shares and the false-alarm rate.
+fn seeds_summary(report: &Report) -> String {
+    let seeds: Vec<String> = report.training_seeds.iter().map(u64::to_string).collect();
+    let mut md = format!(
+        "\n## Over training seeds {}: mean ± std (sample, n − 1)\n\n\
+         | detector | seeds with a point in budget | 0.5 m/s ramp in 30 s | 0.3 m/s ramp in 60 s | \
+         1 m/s ramp in 30 s | 0.02 m/s² in 60 s | frozen in 30 s | false alarms per hour |\n\
+         |---|---|---|---|---|---|---|---|\n",
+        seeds.join(", ")
+    );
+    let columns: [(&str, Option<f64>, bool); 5] = [
+        ("ramp_drift", Some(0.5), false),
+        ("ramp_drift", Some(0.3), true),
+        ("ramp_drift", Some(1.0), false),
+        ("accelerating_drift", Some(0.02), true),
+        ("frozen_position", None, false),
+    ];
+    for (name, detectors) in by_detector(report) {
+        let trained = report.detectors.iter().filter(|d| d.name == name).count();
+        md.push_str(&format!("| {name} | {} of {trained} |", detectors.len()));
+        for (family, magnitude, within_60s) in columns {
+            let values: Vec<f64> = detectors
+                .iter()
+                .filter_map(|d| share(d, family, magnitude, within_60s))
+                .collect();
+            md.push_str(&format!(" {} |", mean_std_cell(&values, 2)));
+        }
+        let rates: Vec<f64> = detectors.iter().map(|d| d.false_alarms_per_hour).collect();
+        md.push_str(&format!(" {} |\n", mean_std_cell(&rates, 2)));
+    }
     md
 }
