@@ -92,6 +92,16 @@ pub struct VariantReport {
     pub training_curve: Vec<Epoch>,
 }
 
+impl VariantReport {
+    /// Progress on stderr: the experiment trains dozens of models.
+    fn log_trained(&self) {
+        eprintln!(
+            "av-gps: {} (seed {}) trained in {:.1} s",
+            self.name, self.seed, self.train_wall_time_s
+        );
+    }
+}
+
 #[derive(Debug, Serialize)]
 struct CusumReport {
     comparator: CusumComparator,
@@ -359,6 +369,7 @@ pub fn run(args: Args) -> Result<()> {
                     dataset3: evaluate_tracks(&artifact, &data.dataset3, EventRules::Spec).overall,
                     training_curve,
                 };
+                report.log_trained();
                 Ok((report, Some(artifact)))
             }
             Job::Baseline(baseline, seed) => {
@@ -391,6 +402,7 @@ pub fn run(args: Args) -> Result<()> {
                     })?,
                     training_curve: fitted.history,
                 };
+                report.log_trained();
                 Ok((report, None))
             }
         }
@@ -476,35 +488,21 @@ fn write_figures(
         headline.operating_point.theta,
     )?;
     plots::write_svg(out, CASE_STUDY_SVG, &figures::trace_svg(&trace)?)?;
-    let curves = |trees: bool| -> Vec<(String, &[Epoch])> {
-        results
-            .iter()
-            .map(|(r, _)| r)
-            .filter(|r| r.seed == first_seed && compared.contains(&r.name))
-            .filter(|r| r.name.contains("trees") == trees)
-            .map(|r| (r.name.clone(), r.training_curve.as_slice()))
-            .collect()
-    };
+    // In table order, the first seed's run of each compared detector.
+    let curves: Vec<(String, &[Epoch])> = compared
+        .iter()
+        .filter_map(|name| {
+            results
+                .iter()
+                .find(|(r, _)| r.seed == first_seed && r.name == *name)
+        })
+        .map(|(r, _)| (r.name.clone(), r.training_curve.as_slice()))
+        .collect();
     let title = format!("Training on Dataset-2 (seed {first_seed})");
-    plots::write_svg(
-        out,
-        CURVES_SVG,
-        &plots::training_curves_svg(&title, "epoch", &curves(false))?,
-    )?;
-    let trees = curves(true);
-    if !trees.is_empty() {
-        plots::write_svg(
-            out,
-            TREE_CURVES_SVG,
-            &plots::training_curves_svg(&title, "trees", &trees)?,
-        )?;
-    }
-    Ok(())
+    plots::write_training_curves(out, &title, &curves)
 }
 
 const CASE_STUDY_SVG: &str = "case-study-dataset3.svg";
-const CURVES_SVG: &str = "training-curves.svg";
-const TREE_CURVES_SVG: &str = "training-curves-trees.svg";
 
 fn rows(tracks: &[Track]) -> usize {
     tracks.iter().map(|t| t.records.len()).sum()
@@ -532,8 +530,10 @@ fn render_markdown(report: &Report) -> String {
         report.experiment_wall_time_s
     );
     md.push_str(&format!(
-        "Figures: [Dataset-3 case study]({CASE_STUDY_SVG}), [training curves]({CURVES_SVG}), \
-         [tree ensembles' curves]({TREE_CURVES_SVG}).\n\n"
+        "Figures: [Dataset-3 case study]({CASE_STUDY_SVG}), [training curves]({}), \
+         [tree ensembles' curves]({}).\n\n",
+        plots::CURVES_SVG,
+        plots::TREE_CURVES_SVG
     ));
     let table = metrics_table(&[
         ("HO-LLN, Dataset-2 test (ours)", &report.dataset2_test),

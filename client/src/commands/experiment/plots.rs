@@ -69,3 +69,30 @@ pub fn training_curves_svg(
     }
     line_chart_svg(title, x_label, &panels)
 }
+
+/// File of the nets' and HO-LLN's training curves (per epoch).
+pub const CURVES_SVG: &str = "training-curves.svg";
+/// File of the tree ensembles' curves (per tree).
+pub const TREE_CURVES_SVG: &str = "training-curves-trees.svg";
+
+/// Writes the training curves of `curves` (in legend order): the tree ensembles (named "… trees
+/// …") to [`TREE_CURVES_SVG`], every other model to [`CURVES_SVG`].
+pub fn write_training_curves(out: &Path, title: &str, curves: &[(String, &[Epoch])]) -> Result<()> {
+    let (trees, epochs): (Vec<_>, Vec<_>) = curves
+        .iter()
+        .cloned()
+        .partition(|(name, _)| name.contains("trees"));
+    write_svg(
+        out,
+        CURVES_SVG,
+        &training_curves_svg(title, "epoch", &epochs)?,
+    )?;
+    if !trees.is_empty() {
+        write_svg(
+            out,
+            TREE_CURVES_SVG,
+            &training_curves_svg(title, "trees", &trees)?,
+        )?;
+    }
+    Ok(())
+}

@@ -156,6 +156,13 @@ enum Job {
 }
 
 impl Job {
+    fn name(&self) -> String {
+        match *self {
+            Job::HoLln(schema, _) => format!("HO-LLN {}", schema.name()),
+            Job::Baseline(baseline, _) => baseline.name(),
+        }
+    }
+
     fn seed(&self) -> u64 {
         match *self {
             Job::HoLln(_, seed) | Job::Baseline(_, seed) => seed,
@@ -688,7 +695,7 @@ pub fn run(args: Args) -> Result<()> {
             }
         }
     }
-    let trained = map_parallel(&jobs, threads, |job| -> Result<Trained> {
+    let train_job = |job: &Job| -> Result<Trained> {
         match *job {
             Job::HoLln(schema, training_seed) => {
                 let data = TrainingData::Explicit {
@@ -704,7 +711,7 @@ pub fn run(args: Args) -> Result<()> {
                 };
                 let trained = train_with_progress(&spec, data, false)
                     .with_context(|| format!("training HO-LLN ({})", schema.name()))?;
-                let name = format!("HO-LLN {}", schema.name());
+                let name = job.name();
                 let curve = trained.history.iter().map(Epoch::from).collect();
                 let (artifact, hours) = within_budget(&name, trained.artifact, &validation);
                 Ok(Trained::HoLln(name, artifact.map(Arc::new), hours, curve))
@@ -731,6 +738,17 @@ pub fn run(args: Args) -> Result<()> {
                 }
             }
         }
+    };
+    let trained = map_parallel(&jobs, threads, |job| -> Result<Trained> {
+        let job_started = Instant::now();
+        let trained = train_job(job);
+        eprintln!(
+            "subtle: {} (seed {}) trained in {:.1} s",
+            job.name(),
+            job.seed(),
+            job_started.elapsed().as_secs_f64()
+        );
+        trained
     });
     let mut detectors = Vec::new();
     let mut validation_hours = 0.0;
@@ -799,8 +817,6 @@ pub fn run(args: Args) -> Result<()> {
 
 const FRONTIER_RAMPS_SVG: &str = "frontier-ramps.svg";
 const FRONTIER_ACCELERATING_SVG: &str = "frontier-accelerating.svg";
-const CURVES_SVG: &str = "training-curves.svg";
-const TREE_CURVES_SVG: &str = "training-curves-trees.svg";
 
 /// Per detector name (in report order), its reports over the seeds that have an operating point.
 fn by_detector(report: &Report) -> Vec<(String, Vec<&DetectorReport>)> {
@@ -881,27 +897,11 @@ fn write_figures(
         &frontier_svg(report, "accelerating_drift", "m/s²")?,
     )?;
     let title = format!("Training on the subtle mix (seed {})", report.training_seed);
-    let pick = |trees: bool| -> Vec<(String, &[Epoch])> {
-        curves
-            .iter()
-            .filter(|(name, _)| name.contains("trees") == trees)
-            .map(|(name, c)| (name.clone(), c.as_slice()))
-            .collect()
-    };
-    plots::write_svg(
-        out,
-        CURVES_SVG,
-        &plots::training_curves_svg(&title, "epoch", &pick(false))?,
-    )?;
-    let trees = pick(true);
-    if !trees.is_empty() {
-        plots::write_svg(
-            out,
-            TREE_CURVES_SVG,
-            &plots::training_curves_svg(&title, "trees", &trees)?,
-        )?;
-    }
-    Ok(())
+    let curves: Vec<(String, &[Epoch])> = curves
+        .iter()
+        .map(|(name, c)| (name.clone(), c.as_slice()))
+        .collect();
+    plots::write_training_curves(out, &title, &curves)
 }
 
 fn fmt_opt(x: Option<f64>, unit: &str) -> String {
@@ -950,8 +950,10 @@ fn render_markdown(report: &Report) -> String {
     md.push_str(&seeds_summary(report));
     md.push_str(&format!(
         "\nFigures: [ramp frontier]({FRONTIER_RAMPS_SVG}), [accelerating-drift frontier]\
-         ({FRONTIER_ACCELERATING_SVG}), [training curves]({CURVES_SVG}), [tree ensembles' curves]\
-         ({TREE_CURVES_SVG}).\n"
+         ({FRONTIER_ACCELERATING_SVG}), [training curves]({}), [tree ensembles' curves]\
+         ({}).\n",
+        plots::CURVES_SVG,
+        plots::TREE_CURVES_SVG
     ));
     md.push_str(&format!(
         "\n## Detection within 30 s / 60 s per attack (training seed {})\n\n| attack | magnitude |",
