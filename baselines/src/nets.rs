@@ -280,7 +280,7 @@ impl Net {
                         kind,
                         params: params.snapshot()?,
                     };
-                    current.window_start_states(train, &windows)?
+                    current.window_start_states(train, &windows, config.window)?
                 }
             };
             rng.shuffle(&mut items);
@@ -431,8 +431,9 @@ impl Net {
         &self,
         train: &RowTable,
         windows: &[Window],
+        window: usize,
     ) -> Result<StartStates, BaselineError> {
-        let window = windows.first().map_or(1, |w| w.end - w.start).max(1);
+        let window = window.max(1);
         let (_, starts) = self.run_trajectories(train, Some(window))?;
         Ok(windows
             .iter()
@@ -604,7 +605,141 @@ pub fn validation_loss(
 
 #[cfg(test)]
 mod tests {
+    use spoofwatch_core::metrics::ScoredRow;
+
     use super::*;
+
+    /// A table of two trajectories (3 and 9 rows) of random 2-wide features, every row valid.
+    fn two_trajectories() -> RowTable {
+        let mut rng = Rng::seed_from_u64(5);
+        let rows = 12;
+        RowTable {
+            rows: (0..rows)
+                .map(|i| ScoredRow {
+                    trajectory: u64::from(i >= 3),
+                    time_s: i as f64,
+                    valid: true,
+                    label: i % 2 == 0,
+                    score: f64::NAN,
+                })
+                .collect(),
+            features: (0..rows * 2).map(|_| rng.normal() as f32).collect(),
+            width: 2,
+            trajectories: vec![0..3, 3..12],
+        }
+    }
+
+    /// Each window starts from the state a zero-state pass reaches at its first row, also when the
+    /// first trajectory is shorter than a window.
+    #[test]
+    fn windows_start_from_the_carried_state() {
+        let table = two_trajectories();
+        let mut rng = Rng::seed_from_u64(1);
+        for kind in [NetKind::Gru, NetKind::Lstm] {
+            let params = Params::new(kind, table.width, &mut rng).expect("params");
+            let net = Net {
+                kind,
+                params: params.snapshot().expect("snapshot"),
+            };
+            let windows = plan_windows(&table, 4);
+            let spans: Vec<(usize, usize)> = windows.iter().map(|w| (w.start, w.end)).collect();
+            assert_eq!(spans, [(0, 3), (3, 7), (7, 11), (11, 12)]);
+            let starts = net
+                .window_start_states(&table, &windows, 4)
+                .expect("start states");
+            for (window, start) in windows.iter().zip(&starts) {
+                let first = table.trajectories[window.trajectory].start;
+                let before = window.start - first;
+                let expected: Vec<f32> = if before == 0 {
+                    vec![0.0; RECURRENT_HIDDEN]
+                } else {
+                    let x = Tensor::from_vec(
+                        table.features[first * 2..window.start * 2].to_vec(),
+                        (1, before, 2),
+                        &Device::Cpu,
+                    )
+                    .expect("x");
+                    let zero = zero_state(kind, 1).expect("zero state");
+                    let (_, state) = recurrent_logits(kind, &net.params, &x, zero).expect("run");
+                    state[0].to_vec2::<f32>().expect("h")[0].clone()
+                };
+                for (a, b) in start[0].iter().zip(&expected) {
+                    assert!(
+                        (a - b).abs() < 1e-5,
+                        "{kind:?} window at {}: {a} vs {b}",
+                        window.start
+                    );
+                }
+            }
+        }
+    }
+
+    /// candle's gradients of our cells and loss agree with central differences (f32, so loose).
+    #[test]
+    fn gradients_match_finite_differences() {
+        let table = two_trajectories();
+        let labels: Vec<f32> = table
+            .rows
+            .iter()
+            .map(|r| f32::from(u8::from(r.label)))
+            .collect();
+        let mut rng = Rng::seed_from_u64(3);
+        for kind in [NetKind::Mlp, NetKind::Gru, NetKind::Lstm] {
+            let params = Params::new(kind, table.width, &mut rng).expect("params");
+            // The weighted loss of the whole table as one batch (MLP) or one sequence.
+            let loss = || -> Tensor {
+                let p: Vec<Tensor> = params.vars.iter().map(|v| v.as_tensor().clone()).collect();
+                let features = table.features.clone();
+                let (logits, shape) = if kind == NetKind::Mlp {
+                    let x = batch_tensor(features, (12, 2)).expect("x");
+                    (mlp_logits(&p, &x, None).expect("logits"), vec![12])
+                } else {
+                    let x = Tensor::from_vec(features, (1, 12, 2), &Device::Cpu).expect("x");
+                    let zero = zero_state(kind, 1).expect("zero");
+                    (
+                        recurrent_logits(kind, &p, &x, zero).expect("run").0,
+                        vec![1, 12],
+                    )
+                };
+                let y = Tensor::from_vec(labels.clone(), shape.clone(), &Device::Cpu).expect("y");
+                let w = Tensor::from_vec(vec![1.5f32; 12], shape, &Device::Cpu).expect("w");
+                weighted_bce(&logits, &y, &w, 12.0).expect("loss")
+            };
+            let grads = loss().backward().expect("backward");
+            for (index, var) in params.vars.iter().enumerate() {
+                let first = |t: &Tensor| -> (Vec<f32>, f32) {
+                    let values = t
+                        .flatten_all()
+                        .and_then(|f| f.to_vec1::<f32>())
+                        .expect("values");
+                    let v0 = values[0];
+                    (values, v0)
+                };
+                let (_, analytic) = first(grads.get(var).expect("every parameter has a gradient"));
+                let (original, _) = first(var.as_tensor());
+                // Moves the parameter tensor's first entry by `delta` and evaluates the loss.
+                let loss_at = |delta: f32| -> f32 {
+                    let mut values = original.clone();
+                    values[0] += delta;
+                    let set = |v: Vec<f32>| {
+                        let t = Tensor::from_vec(v, var.shape(), &Device::Cpu).expect("tensor");
+                        var.set(&t).expect("set");
+                    };
+                    set(values);
+                    let l = loss().to_scalar::<f32>().expect("scalar");
+                    set(original.clone());
+                    l
+                };
+                let eps = 1e-2;
+                let numeric = (loss_at(eps) - loss_at(-eps)) / (2.0 * eps);
+                let tolerance = 2e-3 + 2e-2 * numeric.abs().max(analytic.abs());
+                assert!(
+                    (numeric - analytic).abs() < tolerance,
+                    "{kind:?} parameter {index}: analytic {analytic} vs numeric {numeric}"
+                );
+            }
+        }
+    }
 
     /// The stable BCE form equals the textbook −[y ln σ(z) + (1−y) ln(1−σ(z))].
     #[test]
