@@ -30,6 +30,11 @@ fn path(dir: &Path, name: &str) -> String {
     dir.join(name).display().to_string()
 }
 
+/// `spoofwatch scenario simulate --out <out> <options>`.
+fn simulate(out: &str, options: &[&str]) {
+    spoofwatch(&[&["scenario", "simulate", "--out", out], options].concat());
+}
+
 #[test]
 fn simulate_train_evaluate_and_evidence_work_together() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -40,24 +45,23 @@ fn simulate_train_evaluate_and_evidence_work_together() {
         path(dir.path(), "model.json"),
     );
     for (file, seed) in [(&train, "1"), (&val, "50"), (&test, "90")] {
-        spoofwatch(&[
-            "scenario",
-            "simulate",
-            "--out",
+        simulate(
             file,
-            "--vehicles",
-            "2",
-            "--duration",
-            "400",
-            "--seed",
-            seed,
-            "--attack",
-            "frozen",
-            "--onset",
-            "150",
-            "--attack-duration",
-            "120",
-        ]);
+            &[
+                "--vehicles",
+                "2",
+                "--duration",
+                "400",
+                "--seed",
+                seed,
+                "--attack",
+                "frozen",
+                "--onset",
+                "150",
+                "--attack-duration",
+                "120",
+            ],
+        );
     }
     let csv = std::fs::read_to_string(&train).expect("written");
     assert!(csv.starts_with("vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg,label"));
@@ -117,24 +121,23 @@ fn svg_texts(file: &str) -> Vec<String> {
 fn evaluate_plots_the_trace_of_a_chosen_vehicle() {
     let dir = tempfile::tempdir().expect("tempdir");
     let data = path(dir.path(), "drives.csv");
-    spoofwatch(&[
-        "scenario",
-        "simulate",
-        "--out",
+    simulate(
         &data,
-        "--vehicles",
-        "2",
-        "--duration",
-        "300",
-        "--seed",
-        "7",
-        "--attack",
-        "frozen",
-        "--onset",
-        "150",
-        "--attack-duration",
-        "100",
-    ]);
+        &[
+            "--vehicles",
+            "2",
+            "--duration",
+            "300",
+            "--seed",
+            "7",
+            "--attack",
+            "frozen",
+            "--onset",
+            "150",
+            "--attack-duration",
+            "100",
+        ],
+    );
     let vehicles: Vec<String> = spoofwatch_core::data::read_path(Path::new(&data))
         .expect("readable")
         .tracks
@@ -212,33 +215,23 @@ fn evaluate_plots_the_trace_of_a_chosen_vehicle() {
 fn simulated_drives_take_a_rate_and_realistic_ones_round_trip_through_the_reader() {
     let dir = tempfile::tempdir().expect("tempdir");
     let ten_hz = path(dir.path(), "ten-hz.csv");
-    spoofwatch(&[
-        "scenario",
-        "simulate",
-        "--out",
-        &ten_hz,
-        "--duration",
-        "30",
-        "--rate",
-        "10",
-    ]);
+    simulate(&ten_hz, &["--duration", "30", "--rate", "10"]);
     let csv = std::fs::read_to_string(&ten_hz).expect("written");
     assert_eq!(csv.lines().count(), 1 + 301);
 
     let realistic = path(dir.path(), "realistic.csv");
-    spoofwatch(&[
-        "scenario",
-        "simulate",
-        "--out",
+    simulate(
         &realistic,
-        "--vehicles",
-        "4",
-        "--duration",
-        "900",
-        "--seed",
-        "3",
-        "--realistic",
-    ]);
+        &[
+            "--vehicles",
+            "4",
+            "--duration",
+            "900",
+            "--seed",
+            "3",
+            "--realistic",
+        ],
+    );
     let read = spoofwatch_core::data::read_path(Path::new(&realistic)).expect("readable");
     assert_eq!(read.tracks.len(), 4);
     let distribution = DriveDistribution::realistic();

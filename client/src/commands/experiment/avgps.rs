@@ -295,20 +295,23 @@ fn compared_names(baselines: bool) -> Vec<String> {
     names
 }
 
-/// Reads the GPS-IDS columns of one of the AV-GPS files.
-fn raw_columns(common: &CommonArgs, file: &str) -> Result<NumericColumns> {
-    let path = common.data_dir.join(file);
+/// Reads the GPS-IDS columns of one of the AV-GPS files (only the GPS-IDS baseline uses them).
+fn raw_columns(args: &Args, file: &str) -> Result<Option<NumericColumns>> {
+    if args.no_baselines {
+        return Ok(None);
+    }
+    let path = args.common.data_dir.join(file);
     let reader =
         std::fs::File::open(&path).with_context(|| format!("opening {}", path.display()))?;
-    Ok(read_numeric_columns(reader, file, &GPS_IDS_COLUMNS)?)
+    Ok(Some(read_numeric_columns(reader, file, &GPS_IDS_COLUMNS)?))
 }
 
 pub fn run(args: Args) -> Result<()> {
     let started = Instant::now();
     let (data, split) = prepare(&args.common)?;
     let subtle_train = with_injections(&split.train, args.common.seed)?;
-    let columns2 = raw_columns(&args.common, "AV-GPS-Dataset-2.csv")?;
-    let columns3 = raw_columns(&args.common, "AV-GPS-Dataset-3.csv")?;
+    let columns2 = raw_columns(&args, "AV-GPS-Dataset-2.csv")?;
+    let columns3 = raw_columns(&args, "AV-GPS-Dataset-3.csv")?;
     let seeds = seed_list(args.common.seed, args.seeds);
     let jobs = jobs(&args, &seeds);
     let threads = args.common.threads.unwrap_or_else(default_threads);
@@ -321,7 +324,7 @@ pub fn run(args: Args) -> Result<()> {
     );
     let on_d2 = |tracks| Dataset {
         tracks,
-        columns: Some(&columns2),
+        columns: columns2.as_ref(),
     };
     let results = map_parallel(&jobs, threads, |job| -> Result<_> {
         match job {
@@ -398,7 +401,7 @@ pub fn run(args: Args) -> Result<()> {
                     dataset2_test: score(on_d2(&split.test))?,
                     dataset3: score(Dataset {
                         tracks: &data.dataset3,
-                        columns: Some(&columns3),
+                        columns: columns3.as_ref(),
                     })?,
                     training_curve: fitted.history,
                 };
