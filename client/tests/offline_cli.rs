@@ -8,18 +8,29 @@ use spoofwatch_core::sample::Sample;
 use spoofwatch_core::scenario::{DriveDistribution, DriveSpec, simulate_drive};
 use spoofwatch_core::testdata::{AVGPS_DIR_VAR, data_file};
 
-fn spoofwatch(args: &[&str]) -> Output {
-    let output = Command::new(env!("CARGO_BIN_EXE_spoofwatch"))
+fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_spoofwatch"))
         .args(args)
         .env_remove("CI")
         .output()
-        .expect("the spoofwatch binary runs");
+        .expect("the spoofwatch binary runs")
+}
+
+fn spoofwatch(args: &[&str]) -> Output {
+    let output = run(args);
     assert!(
         output.status.success(),
         "spoofwatch {args:?} failed:\n{}",
         String::from_utf8_lossy(&output.stderr)
     );
     output
+}
+
+/// Runs `spoofwatch` expecting it to refuse; returns what it said on standard error.
+fn spoofwatch_refuses(args: &[&str]) -> String {
+    let output = run(args);
+    assert!(!output.status.success(), "spoofwatch {args:?} succeeded");
+    String::from_utf8_lossy(&output.stderr).into_owned()
 }
 
 fn stdout(output: &Output) -> String {
@@ -194,15 +205,17 @@ fn evaluate_plots_the_trace_of_a_chosen_vehicle() {
             .any(|t| t.starts_with(&vehicles[1]))
     );
 
-    let unknown = Command::new(env!("CARGO_BIN_EXE_spoofwatch"))
-        .args([
-            "evaluate", "--model", model, "--data", &data, "--plot", &second,
-        ])
-        .args(["--plot-vehicle", "nobody"])
-        .output()
-        .expect("runs");
-    assert!(!unknown.status.success());
-    let stderr = String::from_utf8_lossy(&unknown.stderr);
+    let stderr = spoofwatch_refuses(&[
+        "evaluate",
+        "--model",
+        model,
+        "--data",
+        &data,
+        "--plot",
+        &second,
+        "--plot-vehicle",
+        "nobody",
+    ]);
     assert!(
         stderr.contains("\"nobody\"")
             && stderr.contains(&vehicles[0])
@@ -258,13 +271,15 @@ fn simulated_drives_take_a_rate_and_realistic_ones_round_trip_through_the_reader
         "seeds 3–6 include drives with outages"
     );
 
-    let refused = Command::new(env!("CARGO_BIN_EXE_spoofwatch"))
-        .args(["scenario", "simulate", "--out", &realistic, "--realistic"])
-        .args(["--rate", "10"])
-        .output()
-        .expect("runs");
-    assert!(!refused.status.success());
-    let stderr = String::from_utf8_lossy(&refused.stderr);
+    let stderr = spoofwatch_refuses(&[
+        "scenario",
+        "simulate",
+        "--out",
+        &realistic,
+        "--realistic",
+        "--rate",
+        "10",
+    ]);
     assert!(
         stderr.contains("--realistic") && stderr.contains("--rate"),
         "{stderr}"
@@ -280,12 +295,7 @@ fn bad_input_names_file_line_and_column() {
         "vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg\nv,0,32.2,-110.9,1,0\nv,1,abc,-110.9,1,0\n",
     )
     .expect("write");
-    let output = Command::new(env!("CARGO_BIN_EXE_spoofwatch"))
-        .args(["evidence", "--data", &file])
-        .output()
-        .expect("runs");
-    assert!(!output.status.success());
-    let stderr = String::from_utf8_lossy(&output.stderr);
+    let stderr = spoofwatch_refuses(&["evidence", "--data", &file]);
     assert!(stderr.contains("bad.csv:3"), "{stderr}");
     assert!(stderr.contains("latitude"), "{stderr}");
 }
