@@ -6,8 +6,9 @@
 //! any replica resumes on any other. A watch replays what the caller missed, then follows live
 //! events:
 //! 1. it subscribes to the feed (the live receiver and the feed's head are taken together);
-//! 2. it sends the stored events after its position up to the head (paged from the log), then
-//!    CAUGHT_UP;
+//! 2. it sends the stored events after its position (paged from the log), then CAUGHT_UP: with a
+//!    cursor, through the latest event in the log when the call started (the feed may be a poll
+//!    behind events other replicas stored); without one, from the feed's head;
 //! 3. it follows the live receiver, skipping any position it has already passed (de-duplication).
 //!
 //! A watcher that falls more than the live buffer behind (`Lagged`) goes back to step 1 from its
@@ -267,18 +268,21 @@ impl Watch {
         Ok(())
     }
 
-    /// Replays, then follows live events until the client goes away or the call must end.
-    async fn run(mut self, mut subscription: FeedSubscription) -> Result<(), Stop> {
-        let mut announced = false;
+    /// Replays through `replay_through` (at least the subscription's head), sends CAUGHT_UP, then
+    /// follows live events until the client goes away or the call must end.
+    async fn run(
+        mut self,
+        mut subscription: FeedSubscription,
+        replay_through: i64,
+    ) -> Result<(), Stop> {
+        self.replay_stored(replay_through).await?;
+        self.send(caught_up(self.position)).await?;
+        if self.stop_when_caught_up {
+            return Ok(());
+        }
         loop {
+            // Live events up to the position are skipped by `offer`.
             self.replay_stored(subscription.head).await?;
-            if !announced {
-                self.send(caught_up(self.position)).await?;
-                announced = true;
-                if self.stop_when_caught_up {
-                    return Ok(());
-                }
-            }
             loop {
                 let received = tokio::select! {
                     biased;
@@ -340,10 +344,12 @@ impl AlarmService for AlarmApi {
             return Err(invalid_field("after_cursor", "must not be negative"));
         }
         let subscription = self.feed.subscribe();
-        let position = match r.after_cursor {
-            // The feed may be a poll behind the log (an event another replica just stored and
-            // sent): only the log itself tells that a cursor is from the future.
-            Some(after) if after > subscription.head => {
+        let (position, replay_through) = match r.after_cursor {
+            // A replay runs through the log's latest event, not the feed's head: the feed may be a
+            // poll behind the log (an event another replica just stored), and a cursor seen on
+            // one replica must resume on another with every stored event after it. Only the log
+            // itself tells that a cursor is from the future.
+            Some(after) => {
                 let latest = self.store.latest_alarm_position().await?;
                 if after > latest {
                     return Err(invalid_field(
@@ -354,10 +360,9 @@ impl AlarmService for AlarmApi {
                         ),
                     ));
                 }
-                after
+                (after, latest.max(subscription.head))
             }
-            Some(after) => after,
-            None => subscription.head,
+            None => (subscription.head, subscription.head),
         };
         let (tx, rx) = mpsc::channel(OUTBOUND_BUFFER);
         let watch = Watch {
@@ -370,10 +375,83 @@ impl AlarmService for AlarmApi {
             position,
         };
         tokio::spawn(async move {
-            if let Err(Stop::Fail(status)) = watch.run(subscription).await {
+            if let Err(Stop::Fail(status)) = watch.run(subscription, replay_through).await {
                 let _ = tx.send(Err(status)).await;
             }
         });
         Ok(Response::new(ReceiverStream::new(rx)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::Duration;
+
+    use tokio_stream::StreamExt;
+
+    use super::*;
+    use crate::alarms::AlarmOutbox;
+
+    async fn watch(api: &AlarmApi, after_cursor: Option<i64>) -> Vec<(i32, i64)> {
+        let request = v1::WatchAlarmsRequest {
+            after_cursor,
+            stop_when_caught_up: true,
+            ..Default::default()
+        };
+        let stream = api
+            .watch_alarms(Request::new(request))
+            .await
+            .expect("WatchAlarms")
+            .into_inner();
+        stream
+            .map(|reply| reply.expect("an event"))
+            .map(|event| (event.kind, event.cursor))
+            .collect()
+            .await
+    }
+
+    /// The feed is a poll behind the log (the events were stored by another replica and not read
+    /// yet): a watch with a cursor still replays every stored event after it; one without a
+    /// cursor starts at the feed's head and gets the rest live.
+    #[tokio::test]
+    async fn a_cursor_replays_through_the_log_even_when_the_feed_is_behind() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let store = Store::open(&dir.path().join("w.db").to_string_lossy())
+            .await
+            .expect("open");
+        let feed = Arc::new(AlarmFeed::new(&store).await.expect("feed"));
+        let other_replica = AlarmOutbox::new(&store, 10).await.expect("outbox");
+        let stop = CancellationToken::new();
+        stop.cancel();
+        let alarm = other_replica.onset("car-1", "m", 1.0, 1, 0.9);
+        other_replica.end(alarm, 3.0, 0.95, 3);
+        other_replica
+            .run(store.clone(), stop, Duration::from_secs(1))
+            .await;
+        let api = AlarmApi {
+            store,
+            feed,
+            shutdown: CancellationToken::new(),
+        };
+
+        let (onset, end, caught_up) = (
+            v1::AlarmEventKind::Onset as i32,
+            v1::AlarmEventKind::End as i32,
+            v1::AlarmEventKind::CaughtUp as i32,
+        );
+        assert_eq!(
+            watch(&api, Some(0)).await,
+            [(onset, 1), (end, 2), (caught_up, 2)]
+        );
+        assert_eq!(watch(&api, Some(1)).await, [(end, 2), (caught_up, 2)]);
+        assert_eq!(watch(&api, None).await, [(caught_up, 0)]);
+        let beyond = api
+            .watch_alarms(Request::new(v1::WatchAlarmsRequest {
+                after_cursor: Some(3),
+                ..Default::default()
+            }))
+            .await
+            .expect_err("a cursor from the future");
+        assert_eq!(beyond.code(), Code::InvalidArgument);
     }
 }
