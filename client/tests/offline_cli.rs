@@ -41,10 +41,6 @@ fn path(dir: &Path, name: &str) -> String {
     dir.join(name).display().to_string()
 }
 
-fn strs(args: &[String]) -> Vec<&str> {
-    args.iter().map(String::as_str).collect()
-}
-
 /// `spoofwatch scenario simulate --out <out> <options>`.
 fn simulate(out: &str, options: &[&str]) {
     spoofwatch(&[&["scenario", "simulate", "--out", out], options].concat());
@@ -192,29 +188,24 @@ fn evaluate_plots_the_trace_of_a_chosen_vehicle() {
     assert!(!texts.iter().any(|t| t == "EKF Detector"), "{texts:?}");
 
     let second = path(dir.path(), "second.svg");
-    let plot_vehicle = |vehicle: &str| -> Vec<String> {
-        [
-            "evaluate",
-            "--model",
-            model,
-            "--data",
-            &data,
-            "--plot",
-            &second,
-            "--plot-vehicle",
-            vehicle,
-        ]
-        .map(String::from)
-        .to_vec()
-    };
-    spoofwatch(&strs(&plot_vehicle(&vehicles[1])));
+    let plot = [
+        "evaluate",
+        "--model",
+        model,
+        "--data",
+        &data,
+        "--plot",
+        &second,
+        "--plot-vehicle",
+    ];
+    spoofwatch(&[&plot[..], &[vehicles[1].as_str()]].concat());
     assert!(
         svg_texts(&second)
             .iter()
             .any(|t| t.starts_with(&vehicles[1]))
     );
 
-    let stderr = spoofwatch_refuses(&strs(&plot_vehicle("nobody")));
+    let stderr = spoofwatch_refuses(&[&plot[..], &["nobody"]].concat());
     assert!(
         stderr.contains("\"nobody\"")
             && stderr.contains(&vehicles[0])
