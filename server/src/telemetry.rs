@@ -1,5 +1,7 @@
-//! Prometheus metrics, one home: every metric's name, type and help text ([`METRICS`]), the cheap
-//! recording calls the subsystems make, and the `GET /metrics` endpoint on `--metrics-listen`.
+//! Prometheus metrics, recording side: every metric's name, type and help text ([`METRICS`]) and
+//! the cheap recording calls the subsystems make. It imports nothing of the server, so every
+//! subsystem (the store included) may record; the `GET /metrics` endpoint, which reads the
+//! subsystems' state at scrape time, is `crate::metrics_endpoint`.
 //!
 //! Recording goes through the `metrics` facade. Until [`install`] sets the process-wide Prometheus
 //! recorder (only when a metrics listener is configured), every call is a no-op. Counting is per
@@ -8,29 +10,21 @@
 //! few atomic additions with metrics on and one atomic load with them off; rarer events use the
 //! facade's macros (a registry lookup each).
 //!
-//! Gauges that mirror state kept elsewhere (open sessions, the alarm backlog, jobs by state, the
-//! active model) are read from that state at scrape time ([`Sources`]) rather than updated on every
-//! change. The recorder is per process: several servers in one process (tests) share the counters.
+//! Gauges that mirror state kept elsewhere (open sessions, the outbox backlog, jobs by state, the
+//! active model) are set by the endpoint at scrape time rather than updated on every change. The
+//! recorder is per process: several servers in one process (tests) share the counters.
 
 use std::future::Future;
-use std::sync::{Arc, Mutex, OnceLock, PoisonError};
-use std::time::{Duration, Instant};
+use std::sync::{Mutex, OnceLock, PoisonError};
+use std::time::Instant;
 
 use metrics::{
     Counter, Histogram, counter, describe_counter, describe_gauge, describe_histogram, gauge,
     histogram,
 };
 use metrics_exporter_prometheus::{BuildError, Matcher, PrometheusBuilder, PrometheusHandle};
-use tokio::net::TcpListener;
-use tokio_util::sync::CancellationToken;
 use tonic::{Code, Status};
 use tonic_types::StatusExt;
-
-use crate::alarms::AlarmOutbox;
-use crate::detection::SessionManager;
-use crate::jobs::JobManager;
-use crate::models::Registry;
-use crate::store::FaultKind;
 
 pub const BUILD_INFO: &str = "spoofwatch_build_info";
 pub const ACTIVE_MODEL_INFO: &str = "spoofwatch_active_model_info";
@@ -279,8 +273,6 @@ const BATCH_BUCKETS: [f64; 14] = [
 const DB_BUCKETS: [f64; 12] = [
     0.000_5, 0.001, 0.002_5, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 5.0,
 ];
-/// How often histogram samples are folded into their buckets between scrapes.
-const UPKEEP_PERIOD: Duration = Duration::from_secs(5);
 
 /// The process-wide recorder's handle, once installed.
 static HANDLE: Mutex<Option<PrometheusHandle>> = Mutex::new(None);
@@ -297,8 +289,10 @@ static HOT: OnceLock<[BatchHandles; 3]> = OnceLock::new();
 
 /// Installs the Prometheus recorder (once per process; later calls return the same handle),
 /// describes every metric and sets the labelled counters to zero so that they are scraped before
-/// their first event.
-pub fn install() -> Result<PrometheusHandle, BuildError> {
+/// their first event; `store_fault_kinds` are the `kind` labels of [`STORE_FAULTS`].
+pub fn install(
+    store_fault_kinds: impl IntoIterator<Item = &'static str>,
+) -> Result<PrometheusHandle, BuildError> {
     let mut installed = HANDLE.lock().unwrap_or_else(PoisonError::into_inner);
     if let Some(handle) = installed.as_ref() {
         return Ok(handle.clone());
@@ -343,8 +337,8 @@ pub fn install() -> Result<PrometheusHandle, BuildError> {
         counter!(name).increment(0);
     }
     gauge!(ALARMS_OPEN).increment(0.0);
-    for kind in FaultKind::ALL {
-        counter!(STORE_FAULTS, "kind" => kind.label()).increment(0);
+    for kind in store_fault_kinds {
+        counter!(STORE_FAULTS, "kind" => kind).increment(0);
     }
     for state in ["succeeded", "failed", "cancelled"] {
         counter!(JOBS_FINISHED, "state" => state).increment(0);
@@ -423,115 +417,6 @@ pub async fn db_timed<F: Future>(op: &'static str, operation: F) -> F::Output {
     let output = operation.await;
     histogram!(DB_SECONDS, "op" => op).record(started.elapsed());
     output
-}
-
-/// The server state the scrape-time gauges mirror.
-#[derive(Debug, Clone)]
-pub struct Sources {
-    pub sessions: Arc<SessionManager>,
-    pub alarms: Arc<AlarmOutbox>,
-    pub jobs: Arc<JobManager>,
-    pub registry: Arc<Registry>,
-}
-
-/// What the endpoint holds: the recorder's handle, the sources, and the last active model shown
-/// (so that a change sets the old model's series to 0).
-#[derive(Debug)]
-struct Endpoint {
-    handle: PrometheusHandle,
-    sources: Sources,
-    shown_model: Mutex<Option<String>>,
-}
-
-impl Endpoint {
-    /// Sets the mirrored gauges from the server's state, then renders every metric.
-    fn scrape(&self) -> String {
-        let Sources {
-            sessions,
-            alarms,
-            jobs,
-            registry,
-        } = &self.sources;
-        let (open, connected) = sessions.counts();
-        gauge!(SESSIONS_OPEN).set(open as f64);
-        gauge!(SESSIONS_CONNECTED).set(connected as f64);
-        let outbox = alarms.stats();
-        gauge!(ALARM_BACKLOG).set(outbox.backlog as f64);
-        counter!(ALARM_STORED).absolute(outbox.written);
-        counter!(ALARM_FAILED_BATCHES).absolute(outbox.failed_batches);
-        counter!(ALARM_DROPPED_ONSETS).absolute(outbox.dropped_onsets);
-        counter!(ALARM_INVALID).absolute(outbox.invalid);
-        gauge!(SNAPSHOT_BACKLOG).set(outbox.snapshot_backlog as f64);
-        counter!(SNAPSHOT_STORED).absolute(outbox.snapshots_written);
-        let (queued, running) = jobs.counts();
-        gauge!(JOBS, "state" => "queued").set(queued as f64);
-        gauge!(JOBS, "state" => "running").set(running as f64);
-        let active = registry.active_name().map(|name| name.to_string());
-        let mut shown = self
-            .shown_model
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner);
-        if *shown != active {
-            if let Some(old) = shown.take() {
-                gauge!(ACTIVE_MODEL_INFO, "model" => old).set(0);
-            }
-            if let Some(new) = &active {
-                gauge!(ACTIVE_MODEL_INFO, "model" => new.clone()).set(1);
-            }
-            *shown = active;
-        }
-        drop(shown);
-        self.handle.render()
-    }
-}
-
-async fn metrics_page(
-    axum::extract::State(endpoint): axum::extract::State<Arc<Endpoint>>,
-) -> impl axum::response::IntoResponse {
-    (
-        [(
-            axum::http::header::CONTENT_TYPE,
-            "text/plain; version=0.0.4; charset=utf-8",
-        )],
-        endpoint.scrape(),
-    )
-}
-
-/// Serves `GET /metrics` on `listener` until `stop` is cancelled, and folds histogram samples into
-/// their buckets every few seconds meanwhile.
-pub async fn serve_metrics(
-    listener: TcpListener,
-    handle: PrometheusHandle,
-    sources: Sources,
-    stop: CancellationToken,
-) {
-    let upkeep = {
-        let (handle, stop) = (handle.clone(), stop.clone());
-        tokio::spawn(async move {
-            let mut tick = tokio::time::interval(UPKEEP_PERIOD);
-            loop {
-                tokio::select! {
-                    _ = stop.cancelled() => break,
-                    _ = tick.tick() => handle.run_upkeep(),
-                }
-            }
-        })
-    };
-    let endpoint = Arc::new(Endpoint {
-        handle,
-        sources,
-        shown_model: Mutex::new(None),
-    });
-    let app = axum::Router::new()
-        .route("/metrics", axum::routing::get(metrics_page))
-        .with_state(endpoint);
-    let served = axum::serve(listener, app)
-        .with_graceful_shutdown(stop.clone().cancelled_owned())
-        .await;
-    if let Err(error) = served {
-        tracing::error!(%error, "the metrics endpoint failed");
-    }
-    upkeep.abort();
 }
 
 #[cfg(test)]

@@ -9,7 +9,7 @@ use rustls_pki_types::pem::PemObject;
 use rustls_pki_types::{CertificateDer, PrivateKeyDer};
 use tonic::transport::{Certificate, Identity, Server, ServerTlsConfig};
 
-use crate::Config;
+use crate::config::Config;
 
 /// Why the TLS settings cannot be used.
 #[derive(Debug, thiserror::Error)]

@@ -14,7 +14,7 @@ use tokio_util::sync::CancellationToken;
 use tonic_health::ServingStatus;
 use tonic_health::server::HealthReporter;
 
-use crate::alarms::AlarmOutbox;
+use crate::outbox::SessionOutbox;
 use crate::store::Store;
 
 /// The health service name that reports the database's state.
@@ -27,7 +27,7 @@ const PERIOD: Duration = Duration::from_secs(1);
 /// cannot work without the database.
 pub async fn watch_storage(
     store: Store,
-    alarms: Arc<AlarmOutbox>,
+    outbox: Arc<SessionOutbox>,
     health: HealthReporter,
     store_services: Vec<&'static str>,
     stop: CancellationToken,
@@ -53,7 +53,7 @@ pub async fn watch_storage(
                     .await;
             }
         }
-        let stats = alarms.stats();
+        let stats = outbox.stats();
         let now_serving = !lost && !stats.failing;
         if now_serving != serving {
             serving = now_serving;

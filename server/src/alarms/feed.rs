@@ -129,7 +129,7 @@ impl AlarmFeed {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::alarms::AlarmOutbox;
+    use crate::outbox::SessionOutbox;
     use crate::store::AlarmEventKind;
 
     /// Two outboxes on one database (two replicas) and one feed: the feed broadcasts both one's
@@ -142,8 +142,8 @@ mod tests {
             .await
             .expect("open");
         let (here, there) = (
-            AlarmOutbox::new(&store, 10).await.unwrap(),
-            AlarmOutbox::new(&store, 10).await.unwrap(),
+            SessionOutbox::new(&store, 10).await.unwrap(),
+            SessionOutbox::new(&store, 10).await.unwrap(),
         );
         let feed = AlarmFeed::new(&store).await.unwrap();
         let mut subscription = feed.subscribe();

@@ -390,7 +390,7 @@ mod tests {
     use tokio_stream::StreamExt;
 
     use super::*;
-    use crate::alarms::AlarmOutbox;
+    use crate::outbox::SessionOutbox;
 
     async fn watch(api: &AlarmApi, after_cursor: Option<i64>) -> Vec<(i32, i64)> {
         let request = v1::WatchAlarmsRequest {
@@ -420,7 +420,7 @@ mod tests {
             .await
             .expect("open");
         let feed = Arc::new(AlarmFeed::new(&store).await.expect("feed"));
-        let other_replica = AlarmOutbox::new(&store, 10).await.expect("outbox");
+        let other_replica = SessionOutbox::new(&store, 10).await.expect("outbox");
         let stop = CancellationToken::new();
         stop.cancel();
         let alarm = other_replica.onset("car-1", "m", 1.0, 1, 0.9);

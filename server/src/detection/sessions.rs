@@ -27,8 +27,8 @@ use tokio_util::sync::CancellationToken;
 
 use super::handoff::{OpenAlarm, SNAPSHOT_SCHEMA, SessionSnapshot, SnapshotRefused};
 use super::validate::validate_batch;
-use crate::alarms::AlarmOutbox;
 use crate::models::{LoadedModel, Registry, RegistryError};
+use crate::outbox::SessionOutbox;
 use crate::store::{AlarmEventRow, SnapshotRow, Store, now_unix_ms};
 use crate::telemetry;
 
@@ -255,7 +255,7 @@ pub struct Attachment {
 pub struct SessionManager {
     slots: Mutex<HashMap<String, Arc<SessionSlot>>>,
     registry: Arc<Registry>,
-    alarms: Arc<AlarmOutbox>,
+    alarms: Arc<SessionOutbox>,
     /// Where snapshots are read from (they are written through `alarms`).
     store: Store,
     limits: SessionLimits,
@@ -269,7 +269,7 @@ pub struct SessionManager {
 impl SessionManager {
     pub fn new(
         registry: Arc<Registry>,
-        alarms: Arc<AlarmOutbox>,
+        alarms: Arc<SessionOutbox>,
         store: Store,
         limits: SessionLimits,
         snapshots: SnapshotPolicy,
@@ -435,7 +435,7 @@ impl SessionManager {
         self.alarms.run_id().to_string()
     }
 
-    /// Queues a snapshot of the session (see [`AlarmOutbox::save_snapshot`]).
+    /// Queues a snapshot of the session (see [`SessionOutbox::save_snapshot`]).
     fn save(&self, vehicle_id: &str, state: &mut SessionState) -> oneshot::Receiver<()> {
         let now_ms = now_unix_ms();
         state.since_snapshot = 0;

@@ -27,7 +27,7 @@ use tonic::{Request, Response, Status};
 use super::manager::JobManager;
 use super::records::{JobRequest, JobResult, Progress, TrainingRequest};
 use crate::edge::{dataset_names, display_name, operation_name, optional_model_name, page_request};
-use crate::models::service::model_to_proto;
+use crate::models::wire::model_to_proto;
 use crate::models::{Registry, RegistryError};
 use crate::status::invalid_field;
 use crate::store::{EpochRow, JobFilter, JobKind, JobRow, JobState};

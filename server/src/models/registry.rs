@@ -1,6 +1,6 @@
 //! The model registry: models in the store, parsed artifacts cached in memory, the bundled default
 //! model registered on first start. It speaks domain types ([`ModelName`], [`ModelArtifact`], store
-//! rows) and [`RegistryError`]; it must not know about gRPC (the edge is `models::service`) nor
+//! rows) and [`RegistryError`]; it must not know about gRPC (the edge is `crate::model_service`) nor
 //! write SQL (that is `store`).
 
 use std::sync::{Arc, Mutex};

@@ -1,13 +1,13 @@
 //! Confirmed-alarm history: one row per alarm episode of a vehicle, written at onset and at end (by
-//! the server's background alarm writer, in batches) so an alarm is never lost even if the
-//! in-memory session is. Each onset and end is also appended to the event log behind WatchAlarms,
-//! at a position the database assigns in commit order (see `log_event!`).
-
-use std::borrow::Borrow;
+//! the server's session outbox, in batches: see `super::outbox`) so an alarm is never lost even if
+//! the in-memory session is. Each onset and end is also appended to the event log behind
+//! WatchAlarms, at a position the database assigns in commit order (see `log_event!`).
+//!
+//! It owns the alarm tables and their reads; it must not know session snapshots (their table is
+//! `super::snapshots`, the joint write `super::outbox`).
 
 use super::error::{require_finite, require_probability};
 use super::paging::PagePlan;
-use super::snapshots::{SnapshotRow, upsert_snapshot};
 use super::{Page, PageRequest, Store, StoreError};
 
 /// A stored alarm episode.
@@ -85,7 +85,7 @@ pub struct AlarmEvent {
 #[derive(Debug, Clone, PartialEq, sqlx::FromRow)]
 pub struct LoggedAlarmEvent {
     /// The WatchAlarms cursor: 1, 2, 3, … in commit order across every process writing into the
-    /// database (see [`Store::write_alarms_and_snapshots`]).
+    /// database (see `Store::write_alarms_and_snapshots`).
     pub position: i64,
     /// The event.
     #[sqlx(flatten)]
@@ -243,6 +243,50 @@ macro_rules! log_event {
         .await?;
     }};
 }
+pub(super) use log_event;
+
+/// Applies `event` inside the write transaction `$tx`: an onset inserts its alarm, an end closes it
+/// (only while it is open), and an event that changed its alarm is appended to the event log. A
+/// retry of a stored event changes nothing. A macro so that it compiles for either backend's
+/// transaction (used by the joint write, `super::outbox`).
+macro_rules! apply_event {
+    ($tx:ident, $event:expr) => {{
+        let event: &AlarmEvent = $event;
+        let alarm = &event.alarm;
+        let applied = match event.kind {
+            AlarmEventKind::Onset => sqlx::query(
+                "INSERT INTO alarm_events (id, vehicle_id, model_id, \
+                 onset_timestamp_s, onset_at, peak_probability, samples) \
+                 VALUES ($1, $2, $3, $4, $5, $6, 1) ON CONFLICT DO NOTHING",
+            )
+            .bind(alarm.id)
+            .bind(&alarm.vehicle_id)
+            .bind(&alarm.model_id)
+            .bind(alarm.onset_timestamp_s)
+            .bind(alarm.onset_at_ms)
+            .bind(alarm.peak_probability)
+            .execute(&mut *$tx)
+            .await?
+            .rows_affected(),
+            AlarmEventKind::End => sqlx::query(
+                "UPDATE alarm_events SET end_timestamp_s = $2, ended_at = $3, \
+                 peak_probability = $4, samples = $5 WHERE id = $1 AND ended_at IS NULL",
+            )
+            .bind(alarm.id)
+            .bind(alarm.end_timestamp_s)
+            .bind(alarm.ended_at_ms)
+            .bind(alarm.peak_probability)
+            .bind(alarm.samples)
+            .execute(&mut *$tx)
+            .await?
+            .rows_affected(),
+        };
+        if applied > 0 {
+            $crate::store::alarms::log_event!($tx, event);
+        }
+    }};
+}
+pub(super) use apply_event;
 
 impl Store {
     /// The largest alarm id stored (0 when there is none).
@@ -265,75 +309,6 @@ impl Store {
             .fetch_one(pool)
             .await?
         }))
-    }
-
-    /// Applies `events` in order in one transaction, all or nothing: an onset inserts its alarm, an
-    /// end closes it, and each is appended to the event log. Idempotent, so a batch whose outcome
-    /// is unknown can be retried: an onset or log entry already stored is skipped and an end only
-    /// touches its alarm (and is only logged) while the alarm is open.
-    ///
-    /// [`StoreError::InvalidValue`] (before anything is written) for the values
-    /// [`AlarmEvent::validate`] refuses.
-    pub async fn write_alarms<E: Borrow<AlarmEvent>>(
-        &self,
-        events: &[E],
-    ) -> Result<(), StoreError> {
-        self.write_alarms_and_snapshots(events, &[]).await
-    }
-
-    /// [`Store::write_alarms`], then `snapshots` (each its vehicle's latest), in the same
-    /// transaction: a stored alarm event is never newer than the stored snapshot of its session,
-    /// so a session continued from that snapshot never emits it again.
-    pub async fn write_alarms_and_snapshots<E: Borrow<AlarmEvent>>(
-        &self,
-        events: &[E],
-        snapshots: &[SnapshotRow],
-    ) -> Result<(), StoreError> {
-        for event in events {
-            event.borrow().validate()?;
-        }
-        in_write_tx!(self, |tx| {
-            for event in events {
-                let event = event.borrow();
-                let alarm = &event.alarm;
-                let applied = match event.kind {
-                    AlarmEventKind::Onset => sqlx::query(
-                        "INSERT INTO alarm_events (id, vehicle_id, model_id, \
-                         onset_timestamp_s, onset_at, peak_probability, samples) \
-                         VALUES ($1, $2, $3, $4, $5, $6, 1) ON CONFLICT DO NOTHING",
-                    )
-                    .bind(alarm.id)
-                    .bind(&alarm.vehicle_id)
-                    .bind(&alarm.model_id)
-                    .bind(alarm.onset_timestamp_s)
-                    .bind(alarm.onset_at_ms)
-                    .bind(alarm.peak_probability)
-                    .execute(&mut *tx)
-                    .await?
-                    .rows_affected(),
-                    AlarmEventKind::End => sqlx::query(
-                        "UPDATE alarm_events SET end_timestamp_s = $2, ended_at = $3, \
-                         peak_probability = $4, samples = $5 WHERE id = $1 AND ended_at IS NULL",
-                    )
-                    .bind(alarm.id)
-                    .bind(alarm.end_timestamp_s)
-                    .bind(alarm.ended_at_ms)
-                    .bind(alarm.peak_probability)
-                    .bind(alarm.samples)
-                    .execute(&mut *tx)
-                    .await?
-                    .rows_affected(),
-                };
-                if applied > 0 {
-                    log_event!(tx, event);
-                }
-            }
-            for snapshot in snapshots {
-                upsert_snapshot!(tx, snapshot);
-            }
-            tx.commit().await?;
-            Ok(())
-        })
     }
 
     /// The most recently opened alarm events first, optionally for one vehicle, at most `limit`.

@@ -113,6 +113,7 @@ mod datasets;
 mod error;
 mod jobs;
 mod models;
+mod outbox;
 mod paging;
 mod postgres;
 mod snapshots;

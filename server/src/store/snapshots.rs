@@ -1,6 +1,9 @@
-//! Session snapshots: the latest detection state of each vehicle's session, written by the alarm
-//! writer (in the same transactions as the alarm events that preceded it, see `crate::alarms`) and
+//! Session snapshots: the latest detection state of each vehicle's session, written by the session
+//! outbox (in the same transactions as the alarm events that preceded it, see `super::outbox`) and
 //! read when a stream for the vehicle starts on any server process.
+//!
+//! It owns the snapshot table; the alarm rows it returns are `super::alarms`'s, and it must not
+//! write alarm events.
 
 use super::alarms::AlarmEventRow;
 use super::{Store, StoreError};
@@ -30,7 +33,7 @@ pub struct SnapshotRow {
 }
 
 /// Stores `$row` (a `&SnapshotRow`) as its vehicle's latest snapshot inside the write transaction
-/// `$tx` (the alarm writer's, see [`Store::write_alarms_and_snapshots`]).
+/// `$tx` (the joint write of `super::outbox`).
 macro_rules! upsert_snapshot {
     ($tx:ident, $row:expr) => {{
         let row: &SnapshotRow = $row;

@@ -1,11 +1,12 @@
-//! The alarm outbox: alarm onsets and ends leave the detection path at once (no database call while
-//! a session is locked) and are logged, and one background writer stores them in batches, one
-//! transaction per batch, retried with backoff until the store accepts them, and drained at
-//! shutdown; after each commit it tells the live feed ([`feed`]) to read the new rows. The same
-//! writer stores session snapshots (the hand-off of a vehicle's detection state): only the latest
-//! unstored snapshot of each vehicle is kept, and it is stored in the same transaction as, or after,
-//! every alarm event emitted before it, so a session continued from a stored snapshot never emits
-//! a stored event again.
+//! The session outbox: what detection sessions must store, alarm onsets and ends and session
+//! snapshots, leaves the detection path at once (no database call while a session is locked), and
+//! one background writer stores it in batches, one transaction per batch, retried with backoff
+//! until the store accepts them, and drained at shutdown; after each commit it tells the live alarm
+//! feed (`crate::alarms::feed`) to read the new rows. Alarm events are also logged as they are
+//! queued. Only the latest unstored snapshot of each vehicle is kept, and it is stored in the same
+//! transaction as, or after, every alarm event emitted before it, so a session continued from a
+//! stored snapshot never emits a stored event again (the joint write is
+//! `Store::write_alarms_and_snapshots`).
 //!
 //! Alarm ids and event seqs are assigned here. Each server start (a run, numbered by the store)
 //! takes a block of both ([`first_seq_of_run`]), so processes sharing a database never collide, a
@@ -19,12 +20,8 @@
 //! alarm, so they are bounded by the session limit). A write the store would refuse by its values
 //! (a non-finite time, a probability outside [0, 1]) is refused here, so it cannot block the queue.
 //!
-//! [`service`] serves the events: ListAlarms from the store, WatchAlarms from the event log, then
-//! the live [`feed`] of newly stored events (of every replica). Events queued here and not stored
-//! yet are not sent to watchers.
-
-pub mod feed;
-pub mod service;
+//! It owns the queue and the writer; it must not serve anything (the alarm API is `crate::alarms`)
+//! nor know how a session decides when an alarm starts or ends (`crate::detection`).
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -101,7 +98,7 @@ struct QueuedSnapshot {
 
 /// The queue between the sessions and the writer.
 #[derive(Debug)]
-pub struct AlarmOutbox {
+pub struct SessionOutbox {
     pending: Mutex<Pending>,
     capacity: usize,
     wake: Notify,
@@ -116,7 +113,7 @@ pub struct AlarmOutbox {
     run: i64,
 }
 
-impl AlarmOutbox {
+impl SessionOutbox {
     /// The outbox of a server starting on `store`: it starts a new run (a block of ids and
     /// seqs), and ends the alarms that were left open and that no stored session snapshot holds
     /// (a crash, or a drain that could not store them) with logged end events.
@@ -517,7 +514,7 @@ mod tests {
             }])
             .await
             .unwrap();
-        let outbox = Arc::new(AlarmOutbox::new(&store, 100).await.unwrap());
+        let outbox = Arc::new(SessionOutbox::new(&store, 100).await.unwrap());
         // The fault: every insert into alarm_events aborts (no root or full disk needed).
         store
             .execute_for_test(
@@ -569,7 +566,7 @@ mod tests {
     #[tokio::test]
     async fn a_full_queue_drops_new_onsets_but_keeps_ends() {
         let (_dir, store) = temp_store().await;
-        let outbox = AlarmOutbox::new(&store, 2).await.unwrap();
+        let outbox = SessionOutbox::new(&store, 2).await.unwrap();
         let ids: Vec<i64> = (0..3)
             .map(|i| outbox.onset("car", "m", f64::from(i), 1, 0.9))
             .collect();
@@ -587,7 +584,7 @@ mod tests {
     #[tokio::test]
     async fn invalid_values_are_refused_before_they_can_block_the_queue() {
         let (_dir, store) = temp_store().await;
-        let outbox = AlarmOutbox::new(&store, 10).await.unwrap();
+        let outbox = SessionOutbox::new(&store, 10).await.unwrap();
         let refused = outbox.onset("car", "m", f64::NAN, 1, 0.9);
         outbox.end(refused, 2.0, 0.9, 2); // its onset was refused: nothing to end
         let id = outbox.onset("car", "m", 3.0, 1, 0.9);
@@ -599,7 +596,7 @@ mod tests {
     #[tokio::test]
     async fn a_restart_continues_above_every_earlier_seq_and_ends_the_alarms_left_open() {
         let (_dir, store) = temp_store().await;
-        let before = AlarmOutbox::new(&store, 10).await.unwrap();
+        let before = SessionOutbox::new(&store, 10).await.unwrap();
         let left_open = before.onset("car", "m", 1.0, 1, 0.9);
         let stop = CancellationToken::new();
         stop.cancel();
@@ -610,7 +607,7 @@ mod tests {
         let unstored = before.onset("car-2", "m", 2.0, 1, 0.9);
         assert_ne!(unstored, left_open);
 
-        let after = AlarmOutbox::new(&store, 10).await.unwrap();
+        let after = SessionOutbox::new(&store, 10).await.unwrap();
         assert!(first_seq_of_run(after.run_id()) > unstored);
         let logged = store
             .alarm_events_after(0, i64::MAX, None, 10)
@@ -635,7 +632,7 @@ mod tests {
     #[tokio::test]
     async fn stopping_the_writer_stores_what_is_queued_first() {
         let (_dir, store) = temp_store().await;
-        let outbox = AlarmOutbox::new(&store, 10_000).await.unwrap();
+        let outbox = SessionOutbox::new(&store, 10_000).await.unwrap();
         for i in 0..1_500 {
             let id = outbox.onset(&format!("car-{i}"), "m", 1.0, 1, 0.9);
             outbox.end(id, 2.0, 0.9, 2);

@@ -1,0 +1,108 @@
+//! App assembly: opens the store and builds every subsystem of one server from its configuration,
+//! in dependency order (model registry, dataset catalog, session outbox, alarm feed, sessions,
+//! jobs), and recovers what a previous run left behind (open alarms, abandoned jobs).
+//!
+//! It owns construction only: what is served is `crate::router`, the tasks that run beside the
+//! server `crate::background`, and the shutdown `crate::drain`.
+
+use std::sync::Arc;
+
+use tokio_util::sync::CancellationToken;
+
+use crate::alarms::feed::AlarmFeed;
+use crate::config::Config;
+use crate::datasets::Catalog;
+use crate::detection::{SessionLimits, SessionManager};
+use crate::jobs::{JobManager, JobSettings, Runner};
+use crate::models::Registry;
+use crate::outbox::{OUTBOX_CAPACITY, SessionOutbox};
+use crate::server_error::ServerError;
+use crate::store::{Store, StoreOptions};
+use crate::tls;
+
+/// Every subsystem of one running server.
+pub struct App {
+    pub store: Store,
+    pub registry: Arc<Registry>,
+    pub catalog: Catalog,
+    pub outbox: Arc<SessionOutbox>,
+    pub alarm_feed: Arc<AlarmFeed>,
+    pub sessions: Arc<SessionManager>,
+    pub jobs: Arc<JobManager>,
+    /// Cancelled when the drain starts: streams end and the background loops stop.
+    pub draining: CancellationToken,
+}
+
+impl App {
+    /// Opens the database named by `config` and builds every subsystem on it.
+    pub async fn assemble(config: &Config) -> Result<Self, ServerError> {
+        let snapshot_policy = config.snapshot_policy().map_err(ServerError::Config)?;
+        tracing::info!(
+            transport = tls::transport(config).as_str(),
+            auth = if config.auth_token.is_some() {
+                "bearer token"
+            } else {
+                "none"
+            },
+            stream_idle_s = config.stream_idle_secs,
+            "transport settings"
+        );
+        let store = Store::open_with(
+            &config.database,
+            StoreOptions {
+                max_bytes: config.database_max_bytes(),
+            },
+        )
+        .await?;
+        let instance = config.instance();
+        tracing::info!(%instance, backend = ?store.kind(), "database opened");
+        let registry = Arc::new(Registry::new(store.clone(), config.model_cache_bytes));
+        registry.ensure_default_model().await?;
+        let catalog = Catalog::new(store.clone(), config.data_dir.clone());
+
+        // Also ends the alarms a previous run left open.
+        let outbox = Arc::new(SessionOutbox::new(&store, OUTBOX_CAPACITY).await?);
+        // WatchAlarms' live events: the stored event log of every replica.
+        let alarm_feed = Arc::new(AlarmFeed::new(&store).await?);
+        let sessions = Arc::new(SessionManager::new(
+            Arc::clone(&registry),
+            Arc::clone(&outbox),
+            store.clone(),
+            SessionLimits {
+                max_sessions: config.max_sessions,
+                idle: config.session_idle(),
+                max_batch_samples: config.max_batch_samples,
+            },
+            snapshot_policy,
+        ));
+        let jobs = JobManager::new(
+            Runner {
+                store: store.clone(),
+                registry: Arc::clone(&registry),
+                catalog: catalog.clone(),
+            },
+            JobSettings {
+                max_running: config.max_running_jobs,
+                max_pending: config.max_pending_jobs,
+            },
+            instance,
+        );
+        let interrupted = jobs.fail_abandoned_at_start().await?;
+        if interrupted > 0 {
+            tracing::warn!(
+                interrupted,
+                "marked jobs left over by a previous run (or a stopped replica) as failed"
+            );
+        }
+        Ok(Self {
+            store,
+            registry,
+            catalog,
+            outbox,
+            alarm_feed,
+            sessions,
+            jobs,
+            draining: CancellationToken::new(),
+        })
+    }
+}

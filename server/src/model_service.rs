@@ -1,0 +1,130 @@
+//! The ModelService RPCs: the edge between the wire and the model [`Registry`]. Decodes and
+//! validates requests, calls the registry and maps its errors once (through `crate::error`); it
+//! must not hold registry logic or touch the store directly. It sits above both the registry and
+//! the detection sessions because deleting a model ends the sessions that run it.
+
+use std::pin::Pin;
+use std::sync::Arc;
+
+use spoofwatch_proto::v1;
+use spoofwatch_proto::v1::model_service_server::ModelService;
+use spoofwatch_proto::wire::limits::{EXPORT_CHUNK_BYTES, MAX_ARTIFACT_BYTES};
+use tokio_stream::Stream;
+use tonic::{Request, Response, Status, Streaming};
+
+use crate::detection::SessionManager;
+use crate::edge::{display_name, model_name, page_request};
+use crate::idle::StreamIdle;
+use crate::models::Registry;
+use crate::models::wire::{model_summary_to_proto, model_to_proto};
+use crate::status::invalid_field;
+
+/// The ModelService implementation.
+#[derive(Debug, Clone)]
+pub struct ModelApi {
+    pub registry: Arc<Registry>,
+    /// Deleting a model ends the sessions that use it.
+    pub sessions: Arc<SessionManager>,
+    /// How long an import may send nothing.
+    pub stream_idle: StreamIdle,
+}
+
+type ChunkStream = Pin<Box<dyn Stream<Item = Result<v1::ModelChunk, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl ModelService for ModelApi {
+    async fn list_models(
+        &self,
+        request: Request<v1::ListModelsRequest>,
+    ) -> Result<Response<v1::ListModelsResponse>, Status> {
+        let r = request.into_inner();
+        let page = self
+            .registry
+            .list(&page_request(r.page_size, &r.page_token)?)
+            .await?;
+        Ok(Response::new(v1::ListModelsResponse {
+            models: page.items.iter().map(model_summary_to_proto).collect(),
+            next_page_token: page.next_page_token.unwrap_or_default(),
+        }))
+    }
+
+    async fn get_model(
+        &self,
+        request: Request<v1::GetModelRequest>,
+    ) -> Result<Response<v1::Model>, Status> {
+        let name = model_name("name", &request.into_inner().name)?;
+        Ok(Response::new(model_to_proto(
+            &self.registry.get(&name).await?,
+        )))
+    }
+
+    async fn set_active_model(
+        &self,
+        request: Request<v1::SetActiveModelRequest>,
+    ) -> Result<Response<v1::Model>, Status> {
+        let name = model_name("name", &request.into_inner().name)?;
+        Ok(Response::new(model_to_proto(
+            &self.registry.activate(&name).await?,
+        )))
+    }
+
+    async fn delete_model(
+        &self,
+        request: Request<v1::DeleteModelRequest>,
+    ) -> Result<Response<()>, Status> {
+        let name = model_name("name", &request.into_inner().name)?;
+        self.sessions.delete_model(&name).await?;
+        Ok(Response::new(()))
+    }
+
+    type ExportModelStream = ChunkStream;
+
+    async fn export_model(
+        &self,
+        request: Request<v1::ExportModelRequest>,
+    ) -> Result<Response<Self::ExportModelStream>, Status> {
+        let name = model_name("name", &request.into_inner().name)?;
+        let bytes = self.registry.artifact_bytes(&name).await?;
+        let chunks: Vec<Result<v1::ModelChunk, Status>> = bytes
+            .chunks(EXPORT_CHUNK_BYTES)
+            .map(|c| Ok(v1::ModelChunk { data: c.to_vec() }))
+            .collect();
+        Ok(Response::new(Box::pin(tokio_stream::iter(chunks))))
+    }
+
+    async fn import_model(
+        &self,
+        request: Request<Streaming<v1::ImportModelRequest>>,
+    ) -> Result<Response<v1::Model>, Status> {
+        use v1::import_model_request::Kind;
+        let mut stream = request.into_inner();
+        let header = match self.stream_idle.next(&mut stream).await? {
+            Some(v1::ImportModelRequest {
+                kind: Some(Kind::Header(h)),
+            }) => h,
+            _ => return Err(crate::status::header_first()),
+        };
+        let mut bytes = Vec::new();
+        while let Some(message) = self.stream_idle.next(&mut stream).await? {
+            match message.kind {
+                Some(Kind::Chunk(chunk)) => {
+                    // Refused before the chunk is buffered: memory per import stays bounded.
+                    if bytes.len() + chunk.len() > MAX_ARTIFACT_BYTES {
+                        return Err(invalid_field(
+                            "artifact",
+                            format!(
+                                "must be at most {} MiB; the upload went past it",
+                                MAX_ARTIFACT_BYTES >> 20
+                            ),
+                        ));
+                    }
+                    bytes.extend_from_slice(&chunk);
+                }
+                _ => return Err(crate::status::header_not_first()),
+            }
+        }
+        let name = display_name("header.display_name", &header.display_name)?;
+        let row = self.registry.import(&bytes, name, header.activate).await?;
+        Ok(Response::new(model_to_proto(&row)))
+    }
+}
