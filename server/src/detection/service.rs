@@ -101,6 +101,7 @@ fn item_error(seq: u64, status: &Status) -> Reply {
     }))
 }
 
+/// What a stream is told when its session is attached.
 fn accepted_to_proto(accepted: &Accepted) -> v1::SessionAccepted {
     v1::SessionAccepted {
         vehicle_id: accepted.vehicle_id.to_string(),
