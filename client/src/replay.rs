@@ -28,6 +28,7 @@ use spoofwatch_core::rng::Rng;
 use spoofwatch_core::sample::{Record, Sample, Track};
 use spoofwatch_proto::v1;
 use spoofwatch_proto::wire::convert::sample_to_proto;
+use spoofwatch_proto::wire::is_vehicle_id_char;
 use spoofwatch_proto::wire::limits::{MAX_BATCH_SAMPLES, MAX_FORWARD_JUMP_S, MAX_VEHICLE_ID_LEN};
 use tokio::sync::mpsc;
 
@@ -90,13 +91,7 @@ pub fn replayed_sample(sample: &Sample, timestamp_s: f64) -> v1::Sample {
 pub fn server_vehicle_id(id: &str) -> String {
     let cleaned: String = id
         .chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | ':' | '-') {
-                c
-            } else {
-                '_'
-            }
-        })
+        .map(|c| if is_vehicle_id_char(c) { c } else { '_' })
         .take(MAX_VEHICLE_ID_LEN)
         .collect();
     if cleaned.is_empty() {
@@ -750,6 +745,8 @@ pub async fn replay_tracks(
 
 #[cfg(test)]
 mod tests {
+    use spoofwatch_proto::wire::VehicleId;
+
     use super::*;
 
     fn record(t: f64, trajectory_break: bool) -> Record {
@@ -898,6 +895,10 @@ mod tests {
         );
         assert_eq!(server_vehicle_id(""), "vehicle");
         assert_eq!(server_vehicle_id(&"x".repeat(300)).len(), 128);
+        for recorded in ["", "sim/normal0#ramp-1mps", "é 🚗", &"x/".repeat(300)] {
+            let sent = server_vehicle_id(recorded);
+            assert!(VehicleId::parse(&sent).is_ok(), "{recorded:?} -> {sent:?}");
+        }
     }
 
     #[test]

@@ -1,10 +1,10 @@
-//! Request decoding shared by the gRPC service impls (the edge): resource names, paging fields and
-//! the `x-vehicle-id` routing header turned into validated domain values, with field-level
-//! INVALID_ARGUMENT errors. Owns no logic and touches no storage.
+//! Request decoding shared by the gRPC service impls (the edge): resource names, vehicle ids, paging
+//! fields and the `x-vehicle-id` routing header turned into validated domain values, with
+//! field-level INVALID_ARGUMENT errors. Owns no logic and touches no storage.
 
 use spoofwatch_proto::wire::limits::MAX_DISPLAY_NAME_CHARS;
 use spoofwatch_proto::wire::routing::VEHICLE_ID_HEADER;
-use spoofwatch_proto::wire::{DatasetName, ModelName, NameError, OperationName};
+use spoofwatch_proto::wire::{DatasetName, ModelName, NameError, OperationName, VehicleId};
 use tonic::Status;
 use tonic::metadata::MetadataMap;
 
@@ -22,6 +22,19 @@ pub fn optional_model_name(field: &str, name: &str) -> Result<Option<ModelName>,
         return Ok(None);
     }
     model_name(field, name).map(Some)
+}
+
+/// A required vehicle id field (see [`VehicleId::parse`]).
+pub fn vehicle_id(field: &str, id: &str) -> Result<VehicleId, Status> {
+    VehicleId::parse(id).map_err(|e| invalid_field(field, e.to_string()))
+}
+
+/// An optional vehicle id field: empty means none (a stateless call, or every vehicle).
+pub fn optional_vehicle_id(field: &str, id: &str) -> Result<Option<VehicleId>, Status> {
+    if id.is_empty() {
+        return Ok(None);
+    }
+    vehicle_id(field, id).map(Some)
 }
 
 /// A free-text display name (may be empty), at most [`MAX_DISPLAY_NAME_CHARS`] characters: it is

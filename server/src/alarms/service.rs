@@ -25,8 +25,8 @@ use std::time::Duration;
 
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::alarm_service_server::AlarmService;
-use spoofwatch_proto::wire::ModelName;
 use spoofwatch_proto::wire::convert::timestamp_from_ms;
+use spoofwatch_proto::wire::{ModelName, VehicleId};
 use tokio::sync::broadcast::error::RecvError;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
@@ -35,8 +35,7 @@ use tonic::{Code, Request, Response, Status};
 use tonic_types::{ErrorDetails, StatusExt};
 
 use super::feed::{AlarmFeed, FeedSubscription};
-use crate::detection::vehicle_id_violation;
-use crate::edge::{optional_model_name, page_request};
+use crate::edge::{optional_model_name, optional_vehicle_id, page_request};
 use crate::status::{invalid_field, shutting_down};
 use crate::store::{
     AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent, Store,
@@ -96,13 +95,7 @@ fn caught_up(cursor: i64) -> v1::AlarmEvent {
 
 /// A `vehicle_id` filter: empty = every vehicle.
 fn vehicle_filter(vehicle_id: &str) -> Result<Option<String>, Status> {
-    if vehicle_id.is_empty() {
-        return Ok(None);
-    }
-    match vehicle_id_violation(vehicle_id) {
-        Some(problem) => Err(invalid_field("vehicle_id", problem)),
-        None => Ok(Some(vehicle_id.to_string())),
-    }
+    Ok(optional_vehicle_id("vehicle_id", vehicle_id)?.map(VehicleId::into_string))
 }
 
 /// An optional timestamp field as unix milliseconds (sub-millisecond parts are truncated).

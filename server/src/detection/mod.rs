@@ -1,12 +1,15 @@
-//! Detection: per-vehicle in-memory sessions ([`sessions`], the logic), request validation declared
-//! once ([`validate`]) and the DetectionService RPCs ([`service`], the edge). Models come from
-//! `models`; alarm persistence goes through `store`.
+//! Detection: per-vehicle in-memory sessions ([`sessions`], the logic), with the pure decisions it
+//! carries out kept apart: alarm episodes ([`episodes`]) and where a new stream's session continues
+//! from ([`resume`]); the session snapshot ([`handoff`]); batch validation declared once
+//! ([`validate`]) and the DetectionService RPCs ([`service`], the edge). Models come from `models`;
+//! alarm persistence goes through `store`.
 
+mod episodes;
 mod handoff;
+mod resume;
 mod service;
 mod sessions;
 mod validate;
 
 pub use service::DetectionApi;
 pub use sessions::{SessionError, SessionLimits, SessionManager, SnapshotPolicy};
-pub use validate::vehicle_id_violation;

@@ -1,9 +1,9 @@
 //! The DetectionService RPCs: the edge between the wire and the [`SessionManager`]. Validates
-//! vehicle ids and paging, converts wire samples to core samples and decisions back to wire
+//! vehicle ids ([`VehicleId`]) and paging, converts wire samples to core samples and decisions back to wire
 //! detections, and maps [`super::SessionError`] once (through `crate::error`); it must not hold
 //! session state. Per-vehicle calls may carry the `x-vehicle-id` routing header
-//! ([`crate::edge::routed_vehicle_ids`]); it must name the message's vehicle. Each StreamDetect and StreamDetectFleet call runs in its own task that reads the
-//! inbound stream and writes replies into a small bounded channel: a slow client fills only its own
+//! ([`crate::edge::routed_vehicle_ids`]); it must name the message's vehicle. Each StreamDetect and
+//! StreamDetectFleet call runs in its own task that reads the inbound stream and writes replies into a small bounded channel: a slow client fills only its own
 //! channel, which pauses only its own task. Each batch, scored or refused, is counted here for the
 //! metrics (`crate::telemetry`), once per batch.
 
@@ -15,6 +15,7 @@ use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::detection_service_server::DetectionService;
 use spoofwatch_proto::v1::stream_detect_request::Kind as RequestKind;
 use spoofwatch_proto::v1::stream_detect_response::Kind as ResponseKind;
+use spoofwatch_proto::wire::VehicleId;
 use spoofwatch_proto::wire::convert::{detection_to_proto, sample_from_proto, timestamp_from_ms};
 use spoofwatch_proto::wire::limits::{DEFAULT_SESSION_PAGE_SIZE, MAX_SESSION_PAGE_SIZE};
 use tokio::sync::mpsc;
@@ -22,9 +23,13 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
-use super::sessions::{Decisions, SNAPSHOT_WAIT, SessionError, SessionManager, SessionSummary};
-use super::validate::vehicle_id_violation;
-use crate::edge::{check_routed_vehicle, model_name, optional_model_name, routed_vehicle_ids};
+use super::sessions::{
+    Accepted, Attachment, Decisions, SNAPSHOT_WAIT, SessionError, SessionManager, SessionSummary,
+};
+use crate::edge::{
+    check_routed_vehicle, model_name, optional_model_name, optional_vehicle_id, routed_vehicle_ids,
+    vehicle_id,
+};
 use crate::idle::StreamIdle;
 use crate::status::{invalid_field, shutting_down, to_rpc_status};
 use crate::telemetry::{self, Rpc};
@@ -48,14 +53,6 @@ fn reply(kind: ResponseKind) -> Reply {
     Ok(v1::StreamDetectResponse { kind: Some(kind) })
 }
 
-/// A vehicle id that passed [`vehicle_id_violation`].
-fn vehicle_id<'a>(field: &str, id: &'a str) -> Result<&'a str, Status> {
-    match vehicle_id_violation(id) {
-        Some(problem) => Err(invalid_field(field, problem)),
-        None => Ok(id),
-    }
-}
-
 /// Wire samples as core samples (validated later, against the session).
 fn samples_from_proto(samples: &[v1::Sample]) -> Vec<Sample> {
     samples.iter().map(sample_from_proto).collect()
@@ -73,7 +70,7 @@ fn detections_to_proto(samples: &[Sample], batch: &Decisions) -> Vec<v1::Detecti
 
 fn session_to_proto(s: SessionSummary) -> v1::Session {
     v1::Session {
-        vehicle_id: s.vehicle_id,
+        vehicle_id: s.vehicle_id.into_string(),
         model: s.model.to_string(),
         connected: s.connected,
         samples: s.samples,
@@ -104,60 +101,10 @@ fn item_error(seq: u64, status: &Status) -> Reply {
     }))
 }
 
-/// Drives one StreamDetect call to its end; `routed` are the call's `x-vehicle-id` header values.
-async fn run_stream(
-    sessions: Arc<SessionManager>,
-    shutdown: CancellationToken,
-    mut inbound: Streaming<v1::StreamDetectRequest>,
-    tx: mpsc::Sender<Reply>,
-    idle: StreamIdle,
-    routed: Vec<String>,
-) {
-    let first = tokio::select! {
-        _ = shutdown.cancelled() => Err(shutting_down()),
-        message = idle.next(&mut inbound) => message,
-    };
-    let start = match first {
-        Ok(Some(v1::StreamDetectRequest {
-            kind: Some(RequestKind::Start(start)),
-        })) => start,
-        Ok(Some(_)) => {
-            let status = invalid_field(
-                "start",
-                "the first message of a stream must be a SessionStart",
-            );
-            telemetry::batch_rejected(Rpc::StreamDetect, &status, 0);
-            let _ = tx.send(Err(status)).await;
-            return;
-        }
-        Ok(None) => return,
-        Err(status) => {
-            telemetry::stream_failed(Rpc::StreamDetect, &status);
-            let _ = tx.send(Err(status)).await;
-            return;
-        }
-    };
-    let attached = async {
-        let vehicle = vehicle_id("start.vehicle_id", &start.vehicle_id)?;
-        check_routed_vehicle(&routed, "start.vehicle_id", vehicle)?;
-        let model = optional_model_name("start.model", &start.model)?;
-        Ok::<_, Status>(
-            sessions
-                .attach(vehicle, model.as_ref(), start.reset)
-                .await?,
-        )
-    };
-    let attachment = match attached.await {
-        Ok(a) => a,
-        Err(status) => {
-            telemetry::batch_rejected(Rpc::StreamDetect, &status, 0);
-            let _ = tx.send(Err(status)).await;
-            return;
-        }
-    };
-    let accepted = &attachment.accepted;
-    let accepted = v1::SessionAccepted {
-        vehicle_id: accepted.vehicle_id.clone(),
+/// What a stream is told when its session is attached.
+fn accepted_to_proto(accepted: &Accepted) -> v1::SessionAccepted {
+    v1::SessionAccepted {
+        vehicle_id: accepted.vehicle_id.to_string(),
         model: accepted.model.to_string(),
         resumed: accepted.resumed,
         samples_seen: accepted.samples_seen,
@@ -173,8 +120,134 @@ async fn run_stream(
             .as_ref()
             .map(ToString::to_string)
             .unwrap_or_default(),
+    }
+}
+
+/// Reads a StreamDetect call's first message and attaches the session it starts; `routed` are the
+/// call's `x-vehicle-id` header values. `Ok(None)`: the client closed the stream without
+/// starting. A refusal is counted here and becomes the call's status.
+async fn start_stream(
+    sessions: &SessionManager,
+    shutdown: &CancellationToken,
+    inbound: &mut Streaming<v1::StreamDetectRequest>,
+    idle: &StreamIdle,
+    routed: &[String],
+) -> Result<Option<Attachment>, Status> {
+    let first = tokio::select! {
+        _ = shutdown.cancelled() => Err(shutting_down()),
+        message = idle.next(inbound) => message,
     };
-    tracing::debug!(vehicle = %start.vehicle_id, resumed = accepted.resumed, "stream attached");
+    let start = match first {
+        Ok(Some(v1::StreamDetectRequest {
+            kind: Some(RequestKind::Start(start)),
+        })) => start,
+        Ok(Some(_)) => {
+            let status = invalid_field(
+                "start",
+                "the first message of a stream must be a SessionStart",
+            );
+            telemetry::batch_rejected(Rpc::StreamDetect, &status, 0);
+            return Err(status);
+        }
+        Ok(None) => return Ok(None),
+        Err(status) => {
+            telemetry::stream_failed(Rpc::StreamDetect, &status);
+            return Err(status);
+        }
+    };
+    let attached = async {
+        let vehicle = vehicle_id("start.vehicle_id", &start.vehicle_id)?;
+        check_routed_vehicle(routed, "start.vehicle_id", vehicle.as_str())?;
+        let model = optional_model_name("start.model", &start.model)?;
+        Ok::<_, Status>(
+            sessions
+                .attach(&vehicle, model.as_ref(), start.reset)
+                .await?,
+        )
+    };
+    attached.await.map(Some).inspect_err(|status| {
+        telemetry::batch_rejected(Rpc::StreamDetect, status, 0);
+    })
+}
+
+/// The next message of an attached stream. `Ok(None)`: the client closed its side (the call ends
+/// with OK). `Err`: the call ends with that status (the server drains, a newer stream took the
+/// session over, the session's model was deleted, or the inbound stream failed).
+async fn next_request(
+    shutdown: &CancellationToken,
+    attachment: &Attachment,
+    idle: &StreamIdle,
+    inbound: &mut Streaming<v1::StreamDetectRequest>,
+) -> Result<Option<v1::StreamDetectRequest>, Status> {
+    tokio::select! {
+        biased;
+        _ = shutdown.cancelled() => Err(shutting_down()),
+        _ = attachment.evicted.cancelled() => Err(Status::aborted(
+            "another stream for this vehicle took the session over",
+        )),
+        _ = attachment.slot.model_deleted.cancelled() => {
+            Err(SessionError::ModelDeleted(attachment.accepted.model.clone()).into())
+        }
+        // e.g. an oversized message or the idle timeout: the call's status.
+        message = idle.next(inbound) => message.inspect_err(|status| {
+            telemetry::stream_failed(Rpc::StreamDetect, status);
+        }),
+    }
+}
+
+/// One batch of an attached stream, run on its session: its detections or its item error.
+async fn batch_reply(
+    sessions: &SessionManager,
+    attachment: &Attachment,
+    batch: v1::SampleBatch,
+) -> Reply {
+    let started = Instant::now();
+    let samples = samples_from_proto(&batch.samples);
+    match sessions
+        .process(&attachment.slot, batch.seq, &samples, "batch.samples")
+        .await
+    {
+        Ok(decisions) => {
+            let detections = detections_to_proto(&samples, &decisions);
+            telemetry::batch_scored(
+                Rpc::StreamDetect,
+                samples.len(),
+                alarming(&decisions),
+                started,
+            );
+            reply(ResponseKind::Detections(v1::DetectionBatch {
+                seq: batch.seq,
+                detections,
+            }))
+        }
+        Err(error) => {
+            let status = error.into();
+            telemetry::batch_rejected(Rpc::StreamDetect, &status, samples.len());
+            item_error(batch.seq, &status)
+        }
+    }
+}
+
+/// Drives one StreamDetect call to its end; `routed` are the call's `x-vehicle-id` header values.
+async fn run_stream(
+    sessions: Arc<SessionManager>,
+    shutdown: CancellationToken,
+    mut inbound: Streaming<v1::StreamDetectRequest>,
+    tx: mpsc::Sender<Reply>,
+    idle: StreamIdle,
+    routed: Vec<String>,
+) {
+    let attachment = match start_stream(&sessions, &shutdown, &mut inbound, &idle, &routed).await {
+        Ok(Some(attachment)) => attachment,
+        Ok(None) => return,
+        Err(status) => {
+            let _ = tx.send(Err(status)).await;
+            return;
+        }
+    };
+    let vehicle = &attachment.accepted.vehicle_id;
+    let accepted = accepted_to_proto(&attachment.accepted);
+    tracing::debug!(vehicle = %vehicle, resumed = accepted.resumed, "stream attached");
     // The call's final status (None: OK), sent only after the session's snapshot is stored, so a
     // client that reconnects elsewhere at once finds it.
     let mut end = None;
@@ -184,71 +257,21 @@ async fn run_stream(
         .is_ok()
     {
         loop {
-            let message = tokio::select! {
-                biased;
-                _ = shutdown.cancelled() => {
-                    end = Some(shutting_down());
-                    break;
-                }
-                _ = attachment.evicted.cancelled() => {
-                    end = Some(Status::aborted(
-                        "another stream for this vehicle took the session over",
-                    ));
-                    break;
-                }
-                _ = attachment.slot.model_deleted.cancelled() => {
-                    end = Some(SessionError::ModelDeleted(attachment.accepted.model.clone()).into());
-                    break;
-                }
-                message = idle.next(&mut inbound) => message,
-            };
-            let outcome = match message {
-                Ok(Some(v1::StreamDetectRequest {
-                    kind: Some(RequestKind::Batch(batch)),
-                })) => {
-                    let started = Instant::now();
-                    let samples = samples_from_proto(&batch.samples);
-                    match sessions
-                        .process(&attachment.slot, batch.seq, &samples, "batch.samples")
-                        .await
-                    {
-                        Ok(decisions) => {
-                            let detections = detections_to_proto(&samples, &decisions);
-                            telemetry::batch_scored(
-                                Rpc::StreamDetect,
-                                samples.len(),
-                                alarming(&decisions),
-                                started,
-                            );
-                            reply(ResponseKind::Detections(v1::DetectionBatch {
-                                seq: batch.seq,
-                                detections,
-                            }))
-                        }
-                        Err(error) => {
-                            let status = error.into();
-                            telemetry::batch_rejected(Rpc::StreamDetect, &status, samples.len());
-                            item_error(batch.seq, &status)
-                        }
-                    }
-                }
-                Ok(Some(v1::StreamDetectRequest {
-                    kind: Some(RequestKind::Start(_)),
-                })) => stream_misuse(invalid_field(
-                    "start",
-                    "the session has already started on this stream",
-                )),
-                Ok(Some(v1::StreamDetectRequest { kind: None })) => {
-                    stream_misuse(invalid_field("kind", "empty message: send a batch"))
-                }
-                // The client closed its side: the call ends with OK.
+            let kind = match next_request(&shutdown, &attachment, &idle, &mut inbound).await {
+                Ok(Some(message)) => message.kind,
                 Ok(None) => break,
                 Err(status) => {
-                    // e.g. an oversized message or the idle timeout: the call's status.
-                    telemetry::stream_failed(Rpc::StreamDetect, &status);
                     end = Some(status);
                     break;
                 }
+            };
+            let outcome = match kind {
+                Some(RequestKind::Batch(batch)) => batch_reply(&sessions, &attachment, batch).await,
+                Some(RequestKind::Start(_)) => stream_misuse(invalid_field(
+                    "start",
+                    "the session has already started on this stream",
+                )),
+                None => stream_misuse(invalid_field("kind", "empty message: send a batch")),
             };
             if tx.send(outcome).await.is_err() {
                 break; // the client went away
@@ -258,12 +281,12 @@ async fn run_stream(
     if let Some(stored) = sessions.detach(&attachment).await
         && tokio::time::timeout(SNAPSHOT_WAIT, stored).await.is_err()
     {
-        tracing::warn!(vehicle = %start.vehicle_id, "the session's snapshot is not stored yet; ending the stream anyway (it stays queued)");
+        tracing::warn!(vehicle = %vehicle, "the session's snapshot is not stored yet; ending the stream anyway (it stays queued)");
     }
     if let Some(status) = end {
         let _ = tx.send(Err(status)).await;
     }
-    tracing::debug!(vehicle = %start.vehicle_id, "stream detached");
+    tracing::debug!(vehicle = %vehicle, "stream detached");
 }
 
 type FleetReply = Result<v1::FleetDetections, Status>;
@@ -313,9 +336,8 @@ async fn detect_vehicle(
     let at = |field: &str| format!("vehicles[{index}].{field}");
     let sample_count = vehicle.samples.len();
     let outcome = async {
-        if let Some(problem) = vehicle_id_violation(&vehicle.vehicle_id) {
-            return Err(invalid_field(at("vehicle_id"), problem));
-        }
+        let vehicle_id = VehicleId::parse(&vehicle.vehicle_id)
+            .map_err(|problem| invalid_field(at("vehicle_id"), problem.to_string()))?;
         let model = match vehicle.model.as_str() {
             "" => None,
             name => Some(model_name(&at("model"), name)?),
@@ -323,7 +345,7 @@ async fn detect_vehicle(
         let samples = samples_from_proto(&vehicle.samples);
         let decisions = sessions
             .detect_unattached(
-                &vehicle.vehicle_id,
+                &vehicle_id,
                 model.as_ref(),
                 vehicle.reset,
                 Some(seq),
@@ -477,16 +499,16 @@ impl DetectionApi {
         }
         let routed = routed_vehicle_ids(request.metadata())?;
         let r = request.into_inner();
-        let vehicle = if r.vehicle_id.is_empty() {
-            None
-        } else {
-            Some(vehicle_id("vehicle_id", &r.vehicle_id)?)
-        };
+        let vehicle = optional_vehicle_id("vehicle_id", &r.vehicle_id)?;
         // A stateless call (no vehicle id) routed as a vehicle's is a mismatch too.
-        check_routed_vehicle(&routed, "vehicle_id", vehicle.unwrap_or_default())?;
+        check_routed_vehicle(
+            &routed,
+            "vehicle_id",
+            vehicle.as_ref().map_or("", VehicleId::as_str),
+        )?;
         let model = optional_model_name("model", &r.model)?;
         let samples = samples_from_proto(&r.samples);
-        let decisions = match vehicle {
+        let decisions = match &vehicle {
             Some(vehicle) => {
                 self.sessions
                     .detect_unattached(vehicle, model.as_ref(), false, None, &samples, "samples")
@@ -570,8 +592,8 @@ impl DetectionService for DetectionApi {
     ) -> Result<Response<v1::Session>, Status> {
         let routed = routed_vehicle_ids(request.metadata())?;
         let vehicle = vehicle_id("vehicle_id", &request.get_ref().vehicle_id)?;
-        check_routed_vehicle(&routed, "vehicle_id", vehicle)?;
-        let session = self.sessions.get(vehicle).await?;
+        check_routed_vehicle(&routed, "vehicle_id", vehicle.as_str())?;
+        let session = self.sessions.get(&vehicle).await?;
         Ok(Response::new(session_to_proto(session)))
     }
 
@@ -581,8 +603,8 @@ impl DetectionService for DetectionApi {
     ) -> Result<Response<v1::Session>, Status> {
         let routed = routed_vehicle_ids(request.metadata())?;
         let vehicle = vehicle_id("vehicle_id", &request.get_ref().vehicle_id)?;
-        check_routed_vehicle(&routed, "vehicle_id", vehicle)?;
-        let session = self.sessions.reset(vehicle).await?;
+        check_routed_vehicle(&routed, "vehicle_id", vehicle.as_str())?;
+        let session = self.sessions.reset(&vehicle).await?;
         Ok(Response::new(session_to_proto(session)))
     }
 }

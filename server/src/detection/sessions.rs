@@ -1,5 +1,5 @@
 //! Per-vehicle sessions: a detector each, ownership by at most one stream (a newer stream takes
-//! over), a bounded count, idle eviction, and alarm onsets/ends handed to the alarm outbox (never a
+//! over), a bounded count, idle eviction, and alarm onsets/ends handed to the session outbox (never a
 //! database call while a session is locked).
 //!
 //! Hand-off: a session's complete state is snapshotted ([`super::handoff`]) through the outbox when
@@ -7,7 +7,10 @@
 //! end, and every [`SnapshotPolicy::every_samples`] samples or [`SnapshotPolicy::every`]. A stream
 //! that starts for a vehicle this process does not hold (or holds an older copy of) continues from
 //! the stored snapshot; one that cannot be used (corrupt, another schema or model) is refused with
-//! its reason and the session starts afresh. An alarm stays open across a hand-off.
+//! its reason and the session starts afresh (the decision is [`super::resume`]'s). An alarm stays
+//! open across a hand-off.
+//!
+//! Alarm episodes are followed by [`super::episodes`]; this module records what they report.
 //!
 //! Roll-out: a session started or resumed without a model follows the active model (a fresh
 //! detector when it changed); deleting a model ends the sessions that use it.
@@ -21,15 +24,17 @@ use std::time::{Duration, Instant};
 
 use spoofwatch_core::detector::{Decision, Detector};
 use spoofwatch_core::sample::Sample;
-use spoofwatch_proto::wire::ModelName;
+use spoofwatch_proto::wire::{ModelName, VehicleId};
 use tokio::sync::oneshot;
 use tokio_util::sync::CancellationToken;
 
+use super::episodes::{AlarmSignal, AlarmTrack, EpisodeChange};
 use super::handoff::{OpenAlarm, SNAPSHOT_SCHEMA, SessionSnapshot, SnapshotRefused};
+use super::resume::{Held, Origin, Resumption, Start};
 use super::validate::validate_batch;
 use crate::models::{LoadedModel, Registry, RegistryError};
 use crate::outbox::SessionOutbox;
-use crate::store::{AlarmEventRow, SnapshotRow, Store, now_unix_ms};
+use crate::store::{SnapshotRow, Store, now_unix_ms};
 use crate::telemetry;
 
 /// Everything a session operation can fail with.
@@ -57,7 +62,7 @@ pub enum SessionError {
 /// What a stream learns when it attaches.
 #[derive(Clone, Debug)]
 pub struct Accepted {
-    pub vehicle_id: String,
+    pub vehicle_id: VehicleId,
     pub model: ModelName,
     pub resumed: bool,
     pub samples_seen: u64,
@@ -80,7 +85,7 @@ pub struct Decisions {
 /// A session as reported by ListSessions/GetSession.
 #[derive(Clone, Debug)]
 pub struct SessionSummary {
-    pub vehicle_id: String,
+    pub vehicle_id: VehicleId,
     pub model: ModelName,
     pub connected: bool,
     pub samples: u64,
@@ -126,9 +131,7 @@ struct SessionState {
     trajectories: u32,
     last_seq: u64,
     last_timestamp_s: Option<f64>,
-    alarm_active: bool,
-    alarms_raised: u64,
-    open_alarm: Option<OpenAlarm>,
+    alarm: AlarmTrack,
     /// Samples since the last snapshot, and when it was taken (monotonic, and wall ms).
     since_snapshot: u64,
     snapshot_taken: Instant,
@@ -144,9 +147,7 @@ impl SessionState {
             trajectories: 0,
             last_seq: 0,
             last_timestamp_s: None,
-            alarm_active: false,
-            alarms_raised: 0,
-            open_alarm: None,
+            alarm: AlarmTrack::default(),
             since_snapshot: 0,
             snapshot_taken: Instant::now(),
             snapshot_taken_ms: 0,
@@ -173,9 +174,11 @@ impl SessionState {
             trajectories: snapshot.trajectories,
             last_seq: snapshot.last_seq,
             last_timestamp_s: snapshot.last_timestamp_s,
-            alarm_active: snapshot.alarm_active,
-            alarms_raised: snapshot.alarms_raised,
-            open_alarm: snapshot.open_alarm,
+            alarm: AlarmTrack {
+                active: snapshot.alarm_active,
+                raised: snapshot.alarms_raised,
+                open: snapshot.open_alarm,
+            },
             ..Self::new(model)
         })
     }
@@ -188,27 +191,19 @@ impl SessionState {
             trajectories: self.trajectories,
             last_seq: self.last_seq,
             last_timestamp_s: self.last_timestamp_s,
-            alarm_active: self.alarm_active,
-            alarms_raised: self.alarms_raised,
-            open_alarm: self.open_alarm.clone(),
+            alarm_active: self.alarm.active,
+            alarms_raised: self.alarm.raised,
+            open_alarm: self.alarm.open.clone(),
             detector: self.detector.save(),
         }
     }
 
-    /// The stored alarm row of the alarm this session holds open, as the outbox knows it.
-    fn open_alarm_row(&self, vehicle_id: &str) -> Option<AlarmEventRow> {
-        self.open_alarm.as_ref().map(|open| AlarmEventRow {
-            peak_probability: open.peak,
-            samples: i64::from(open.samples),
-            ..AlarmEventRow::opened(
-                open.id,
-                vehicle_id,
-                self.model.name.id(),
-                open.onset_timestamp_s,
-                open.onset_at_ms,
-                open.peak,
-            )
-        })
+    /// What a new stream or batch under `model` finds this session to be.
+    fn held(&self) -> Held {
+        Held {
+            model: self.model.name.clone(),
+            snapshot_taken_ms: self.snapshot_taken_ms,
+        }
     }
 }
 
@@ -221,7 +216,7 @@ struct StreamOwner {
 /// One vehicle's session.
 #[derive(Debug)]
 pub struct SessionSlot {
-    vehicle_id: String,
+    vehicle_id: VehicleId,
     state: tokio::sync::Mutex<SessionState>,
     owner: Mutex<Option<StreamOwner>>,
     last_activity_ms: AtomicI64,
@@ -253,9 +248,9 @@ pub struct Attachment {
 /// The session table.
 #[derive(Debug)]
 pub struct SessionManager {
-    slots: Mutex<HashMap<String, Arc<SessionSlot>>>,
+    slots: Mutex<HashMap<VehicleId, Arc<SessionSlot>>>,
     registry: Arc<Registry>,
-    alarms: Arc<SessionOutbox>,
+    outbox: Arc<SessionOutbox>,
     /// Where snapshots are read from (they are written through `alarms`).
     store: Store,
     limits: SessionLimits,
@@ -269,7 +264,7 @@ pub struct SessionManager {
 impl SessionManager {
     pub fn new(
         registry: Arc<Registry>,
-        alarms: Arc<SessionOutbox>,
+        outbox: Arc<SessionOutbox>,
         store: Store,
         limits: SessionLimits,
         snapshots: SnapshotPolicy,
@@ -277,7 +272,7 @@ impl SessionManager {
         Self {
             slots: Mutex::new(HashMap::new()),
             registry,
-            alarms,
+            outbox,
             store,
             limits,
             snapshots,
@@ -286,19 +281,19 @@ impl SessionManager {
         }
     }
 
-    fn slots(&self) -> std::sync::MutexGuard<'_, HashMap<String, Arc<SessionSlot>>> {
+    fn slots(&self) -> std::sync::MutexGuard<'_, HashMap<VehicleId, Arc<SessionSlot>>> {
         // A panic while holding this lock cannot leave the map inconsistent (single inserts/removes).
         self.slots.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    fn lookup(&self, vehicle_id: &str) -> Option<Arc<SessionSlot>> {
+    fn lookup(&self, vehicle_id: &VehicleId) -> Option<Arc<SessionSlot>> {
         self.slots().get(vehicle_id).cloned()
     }
 
     /// Finds or creates the slot of a vehicle, within the session limit.
     fn slot_for(
         &self,
-        vehicle_id: &str,
+        vehicle_id: &VehicleId,
         model: &LoadedModel,
     ) -> Result<(Arc<SessionSlot>, bool), SessionError> {
         let mut slots = self.slots();
@@ -310,22 +305,22 @@ impl SessionManager {
             return Err(SessionError::Full(self.limits.max_sessions));
         }
         let slot = Arc::new(SessionSlot {
-            vehicle_id: vehicle_id.to_string(),
+            vehicle_id: vehicle_id.clone(),
             state: tokio::sync::Mutex::new(SessionState::new(model.clone())),
             owner: Mutex::new(None),
             last_activity_ms: AtomicI64::new(now_unix_ms()),
             model_deleted: CancellationToken::new(),
         });
-        slots.insert(vehicle_id.to_string(), Arc::clone(&slot));
+        slots.insert(vehicle_id.clone(), Arc::clone(&slot));
         Ok((slot, false))
     }
 
     /// Attaches a stream to a vehicle's session (creating or resuming it); an older stream on the same
-    /// session is told to end. `vehicle_id` must be valid (checked at the edge); `model` `None`
-    /// is the active model. A session on another model starts afresh.
+    /// session is told to end. `model` `None` is the active model. A session on another model
+    /// starts afresh.
     pub async fn attach(
         &self,
-        vehicle_id: &str,
+        vehicle_id: &VehicleId,
         model: Option<&ModelName>,
         reset: bool,
     ) -> Result<Attachment, SessionError> {
@@ -351,55 +346,42 @@ impl SessionManager {
         }
         slot.touch();
         let mut state = slot.state.lock().await;
-        // A copy another process wrote after this one last snapshotted the session is newer.
-        let stored = stored.map(|row| {
-            row.filter(|row| {
-                !existed
-                    || (row.writer != self.writer() && row.updated_at_ms > state.snapshot_taken_ms)
-            })
-        });
-        let mut from_snapshot = false;
-        let mut snapshot_refused = None;
-        let mut replaced_model = None;
-        let in_memory = existed && !reset && state.model.name == model.name;
-        let resumed = match stored {
-            Ok(Some(row)) if !reset => match self.restore(&row, &model) {
+        let start = Start {
+            model: model.name.clone(),
+            reset,
+            held: existed.then(|| state.held()),
+        };
+        let resumption = match start.origin(stored, &self.writer()) {
+            Origin::Snapshot(row) => match self.restore(&row, &model) {
                 Ok(restored) => {
                     self.replace_state(vehicle_id, &mut state, restored);
-                    from_snapshot = true;
-                    true
+                    Resumption::from_snapshot()
                 }
                 Err(refused) => {
-                    if let SnapshotRefused::Model { snapshot, .. } = &refused {
-                        replaced_model = ModelName::parse(snapshot).ok();
-                    }
                     tracing::warn!(vehicle = %vehicle_id, reason = %refused, "session snapshot not used: the session starts afresh");
-                    snapshot_refused = Some(refused);
-                    false
+                    start.afresh(Some(refused))
                 }
             },
-            Err(refused) if !in_memory => {
-                tracing::warn!(vehicle = %vehicle_id, reason = %refused, "session snapshot not read: the session starts afresh");
-                snapshot_refused = Some(refused);
-                false
+            Origin::Memory => Resumption::in_memory(),
+            Origin::Fresh(refused) => {
+                if let Some(refused) = &refused {
+                    tracing::warn!(vehicle = %vehicle_id, reason = %refused, "session snapshot not read: the session starts afresh");
+                }
+                start.afresh(refused)
             }
-            _ => in_memory,
         };
-        if !resumed {
-            if existed && state.model.name != model.name {
-                replaced_model = Some(state.model.name.clone());
-            }
+        if !resumption.resumed {
             self.replace_state(vehicle_id, &mut state, SessionState::new(model));
         }
         let accepted = Accepted {
-            vehicle_id: vehicle_id.to_string(),
+            vehicle_id: vehicle_id.clone(),
             model: state.model.name.clone(),
-            resumed,
+            resumed: resumption.resumed,
             samples_seen: state.samples,
             last_seq: state.last_seq,
-            replaced_model,
-            from_snapshot,
-            snapshot_refused,
+            replaced_model: resumption.replaced_model,
+            from_snapshot: resumption.from_snapshot,
+            snapshot_refused: resumption.snapshot_refused,
         };
         drop(state);
         Ok(Attachment {
@@ -432,18 +414,18 @@ impl SessionManager {
 
     /// The process id written with snapshots (this start's alarm run: unique per process).
     fn writer(&self) -> String {
-        self.alarms.run_id().to_string()
+        self.outbox.run_id().to_string()
     }
 
     /// Queues a snapshot of the session (see [`SessionOutbox::save_snapshot`]).
-    fn save(&self, vehicle_id: &str, state: &mut SessionState) -> oneshot::Receiver<()> {
+    fn save(&self, vehicle_id: &VehicleId, state: &mut SessionState) -> oneshot::Receiver<()> {
         let now_ms = now_unix_ms();
         state.since_snapshot = 0;
         state.snapshot_taken = Instant::now();
         state.snapshot_taken_ms = now_ms;
         let snapshot = state.snapshot();
         let open_alarm_id = snapshot.open_alarm.as_ref().map(|open| open.id);
-        self.alarms.save_snapshot(SnapshotRow {
+        self.outbox.save_snapshot(SnapshotRow {
             vehicle_id: vehicle_id.to_string(),
             model_id: snapshot.model_id.clone(),
             schema_version: i64::from(SNAPSHOT_SCHEMA),
@@ -466,14 +448,16 @@ impl SessionManager {
     /// Replaces a session's state: the alarm the old state held ends (unless the new state holds
     /// it: a restore), and the new state is snapshotted at once, so that no process continues the
     /// old one.
-    fn replace_state(&self, vehicle_id: &str, state: &mut SessionState, new: SessionState) {
-        let kept = new.open_alarm.as_ref().map(|open| open.id);
-        if state.open_alarm.as_ref().map(|open| open.id) != kept {
+    fn replace_state(&self, vehicle_id: &VehicleId, state: &mut SessionState, new: SessionState) {
+        if state.alarm.ends_when_replaced_by(&new.alarm) {
             self.close_alarm(state);
         }
         *state = new;
-        if let Some(row) = state.open_alarm_row(vehicle_id) {
-            self.alarms.adopt(row);
+        if let Some(row) = state
+            .alarm
+            .open_row(vehicle_id.as_str(), state.model.name.id())
+        {
+            self.outbox.adopt(row);
         }
         self.save(vehicle_id, state);
     }
@@ -481,12 +465,13 @@ impl SessionManager {
     /// The vehicle's latest snapshot: queued here and not stored yet, else stored.
     async fn stored_snapshot(
         &self,
-        vehicle_id: &str,
+        vehicle_id: &VehicleId,
     ) -> Result<Option<SnapshotRow>, SnapshotRefused> {
-        if let Some(queued) = self.alarms.queued_snapshot(vehicle_id) {
+        if let Some(queued) = self.outbox.queued_snapshot(vehicle_id.as_str()) {
             return Ok(Some(queued));
         }
-        match tokio::time::timeout(SNAPSHOT_WAIT, self.store.load_snapshot(vehicle_id)).await {
+        let load = self.store.load_snapshot(vehicle_id.as_str());
+        match tokio::time::timeout(SNAPSHOT_WAIT, load).await {
             Ok(Ok(row)) => Ok(row),
             Ok(Err(error)) => Err(SnapshotRefused::Unreadable(error.to_string())),
             Err(_) => Err(SnapshotRefused::Unreadable(format!(
@@ -551,25 +536,20 @@ impl SessionManager {
                     .last_timestamp_s
                     .map_or(sample.timestamp_s, |t| t.max(sample.timestamp_s)),
             );
-            if decision.alarm_onset {
-                state.alarms_raised += 1;
-                self.open_alarm(
+            let signal = AlarmSignal::of(&decision);
+            match state
+                .alarm
+                .step(signal, sample.timestamp_s, decision.probability)
+            {
+                Some(EpisodeChange::Onset) => self.record_onset(
                     state,
                     &slot.vehicle_id,
                     sample.timestamp_s,
                     decision.probability,
-                );
-            } else if decision.alarm {
-                if let Some(open) = state.open_alarm.as_mut() {
-                    open.peak = open.peak.max(decision.probability);
-                    open.samples += 1;
-                    open.last_timestamp_s = sample.timestamp_s;
-                }
-            } else if decision.alarm_end {
-                // This sample is the first non-alarming one; the event ends at the previous sample.
-                self.close_alarm(state);
+                ),
+                Some(EpisodeChange::Ended(episode)) => self.record_end(episode),
+                None => {}
             }
-            state.alarm_active = decision.alarm;
             decisions.push(decision);
         }
         state.last_seq = seq;
@@ -587,30 +567,42 @@ impl SessionManager {
         })
     }
 
-    /// Queues an alarm onset.
-    fn open_alarm(&self, state: &mut SessionState, vehicle: &str, timestamp_s: f64, p: f64) {
+    /// Queues an alarm onset and opens its episode under the id the outbox gave it.
+    fn record_onset(
+        &self,
+        state: &mut SessionState,
+        vehicle: &VehicleId,
+        timestamp_s: f64,
+        p: f64,
+    ) {
         let onset_at_ms = now_unix_ms();
-        let id = self
-            .alarms
-            .onset(vehicle, state.model.name.id(), timestamp_s, onset_at_ms, p);
-        telemetry::alarm_onset();
-        state.open_alarm = Some(OpenAlarm {
-            id,
-            onset_timestamp_s: timestamp_s,
+        let id = self.outbox.onset(
+            vehicle.as_str(),
+            state.model.name.id(),
+            timestamp_s,
             onset_at_ms,
-            peak: p,
-            samples: 1,
-            last_timestamp_s: timestamp_s,
-        });
+            p,
+        );
+        telemetry::alarm_onset();
+        state.alarm.open(id, timestamp_s, onset_at_ms, p);
     }
 
-    /// Queues the end of the current alarm at its last alarming sample (also when the session
-    /// ends, resets or changes model while alarming).
+    /// Queues the end of an episode at its last alarming sample.
+    fn record_end(&self, episode: OpenAlarm) {
+        self.outbox.end(
+            episode.id,
+            episode.last_timestamp_s,
+            episode.peak,
+            episode.samples,
+        );
+        telemetry::alarm_end();
+    }
+
+    /// Ends the session's open episode, if any (when the session ends, resets or changes model
+    /// while alarming).
     fn close_alarm(&self, state: &mut SessionState) {
-        if let Some(open) = state.open_alarm.take() {
-            self.alarms
-                .end(open.id, open.last_timestamp_s, open.peak, open.samples);
-            telemetry::alarm_end();
+        if let Some(episode) = state.alarm.close() {
+            self.record_end(episode);
         }
     }
 
@@ -634,10 +626,10 @@ impl SessionManager {
     /// Runs a batch for a vehicle without attaching a stream (creating the session if needed).
     /// `model` `None` is the active model; a session on another model, or with `reset`, starts
     /// afresh if the batch is valid. `seq` becomes the session's `last_seq` (`None` keeps it).
-    /// `vehicle_id` must be valid (checked at the edge); `field` names the samples in violations.
+    /// `field` names the samples in violations.
     pub async fn detect_unattached(
         &self,
-        vehicle_id: &str,
+        vehicle_id: &VehicleId,
         model: Option<&ModelName>,
         reset: bool,
         seq: Option<u64>,
@@ -663,7 +655,12 @@ impl SessionManager {
             .map_err(SessionError::InvalidBatch)?;
         let (slot, existed) = self.slot_for(vehicle_id, &model)?;
         let mut state = slot.state.lock().await;
-        if !existed || reset || state.model.name != model.name {
+        let start = Start {
+            model: model.name.clone(),
+            reset,
+            held: existed.then(|| state.held()),
+        };
+        if !start.held_continues() {
             self.replace_state(vehicle_id, &mut state, SessionState::new(model));
         }
         let seq = seq.unwrap_or(state.last_seq);
@@ -725,8 +722,8 @@ impl SessionManager {
             connected: slot.connected(),
             samples: state.samples,
             trajectories: state.trajectories,
-            alarm_active: state.alarm_active,
-            alarms_raised: state.alarms_raised,
+            alarm_active: state.alarm.active,
+            alarms_raised: state.alarm.raised,
             last_seq: state.last_seq,
             last_timestamp_s: state.last_timestamp_s,
             last_activity_ms: slot.last_activity_ms.load(Ordering::Relaxed),
@@ -750,14 +747,14 @@ impl SessionManager {
             sessions.push(self.describe(slot).await);
         }
         let next_page_token = match (more, sessions.last()) {
-            (true, Some(last)) => last.vehicle_id.clone(),
+            (true, Some(last)) => last.vehicle_id.to_string(),
             _ => String::new(),
         };
         (sessions, next_page_token)
     }
 
     /// One vehicle's session.
-    pub async fn get(&self, vehicle_id: &str) -> Result<SessionSummary, SessionError> {
+    pub async fn get(&self, vehicle_id: &VehicleId) -> Result<SessionSummary, SessionError> {
         let slot = self
             .lookup(vehicle_id)
             .ok_or_else(|| SessionError::NotFound(vehicle_id.to_string()))?;
@@ -765,7 +762,7 @@ impl SessionManager {
     }
 
     /// Forgets a session's history but keeps its model.
-    pub async fn reset(&self, vehicle_id: &str) -> Result<SessionSummary, SessionError> {
+    pub async fn reset(&self, vehicle_id: &VehicleId) -> Result<SessionSummary, SessionError> {
         let slot = self
             .lookup(vehicle_id)
             .ok_or_else(|| SessionError::NotFound(vehicle_id.to_string()))?;
@@ -783,7 +780,7 @@ impl SessionManager {
         let cutoff = now_unix_ms() - self.limits.idle.as_millis() as i64;
         let idle: Vec<Arc<SessionSlot>> = {
             let mut slots = self.slots();
-            let ids: Vec<String> = slots
+            let ids: Vec<VehicleId> = slots
                 .values()
                 .filter(|s| !s.connected() && s.last_activity_ms.load(Ordering::Relaxed) < cutoff)
                 .map(|s| s.vehicle_id.clone())
@@ -812,7 +809,7 @@ impl SessionManager {
             Ok(abandoned) => {
                 let ended = abandoned.len();
                 for alarm in abandoned {
-                    self.alarms.end_abandoned(alarm);
+                    self.outbox.end_abandoned(alarm);
                     telemetry::alarm_end();
                 }
                 ended

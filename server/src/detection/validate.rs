@@ -1,28 +1,10 @@
-//! Validation of detection input, declared once: vehicle ids (checked at the edge) and sample
-//! batches (checked by the session against its last timestamp). Every problem becomes a field
-//! violation, and nothing is applied unless the whole batch is valid. Owns no session state.
+//! Validation of sample batches, declared once (checked by the session against its last
+//! timestamp). Every problem becomes a field violation, and nothing is applied unless the whole
+//! batch is valid. Owns no session state; vehicle ids are checked at the edge
+//! (`spoofwatch_proto::wire::VehicleId`).
 
 use spoofwatch_core::sample::{Sample, readable};
-use spoofwatch_proto::wire::limits::{
-    BACKWARD_TOLERANCE_S, MAX_FORWARD_JUMP_S, MAX_VEHICLE_ID_LEN,
-};
-
-/// Checks a vehicle id: 1–128 characters of `[A-Za-z0-9._:-]`.
-pub fn vehicle_id_violation(id: &str) -> Option<String> {
-    if id.is_empty() {
-        return Some("required".into());
-    }
-    if id.len() > MAX_VEHICLE_ID_LEN {
-        return Some(format!("at most {MAX_VEHICLE_ID_LEN} characters"));
-    }
-    if !id
-        .chars()
-        .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | ':' | '-'))
-    {
-        return Some("only letters, digits and . _ : - are allowed".into());
-    }
-    None
-}
+use spoofwatch_proto::wire::limits::{BACKWARD_TOLERANCE_S, MAX_FORWARD_JUMP_S};
 
 /// Validates a batch that follows `last_timestamp_s` (the session's last accepted sample).
 /// `prefix` names the repeated field, e.g. `batch.samples`.
@@ -164,13 +146,5 @@ mod tests {
         assert!(validate_batch(&[], None, 10, "s").is_err());
         let big: Vec<_> = (0..11).map(|i| sample(f64::from(i), 32.0)).collect();
         assert_eq!(validate_batch(&big, None, 10, "s").unwrap_err()[0].0, "s");
-    }
-
-    #[test]
-    fn vehicle_ids_are_checked() {
-        assert_eq!(vehicle_id_violation("truck-7.a:b_c"), None);
-        assert!(vehicle_id_violation("").is_some());
-        assert!(vehicle_id_violation("has space").is_some());
-        assert!(vehicle_id_violation(&"x".repeat(129)).is_some());
     }
 }

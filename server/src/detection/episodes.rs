@@ -1,0 +1,312 @@
+//! A session's alarm episodes: how the detector's confirmed alarm, decision by decision, opens,
+//! extends and ends the episode a session holds open, and that episode as a stored alarm row.
+//!
+//! Pure bookkeeping over [`AlarmTrack`]: it must not queue events, read clocks, take locks or touch
+//! the store. The session manager records what a step reports (an onset gets its id from the alarm
+//! outbox, then opens here).
+
+use spoofwatch_core::detector::Decision;
+
+use super::handoff::OpenAlarm;
+use crate::store::AlarmEventRow;
+
+/// What one decision says about the confirmed alarm.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum AlarmSignal {
+    /// The alarm starts at this sample.
+    Onset,
+    /// The alarm goes on.
+    On,
+    /// The alarm stopped at this sample (the first one not alarming).
+    End,
+    /// No alarm.
+    Off,
+}
+
+impl AlarmSignal {
+    /// The signal of a decision (the detector never sets onset without alarm, nor end with it).
+    pub fn of(decision: &Decision) -> Self {
+        if decision.alarm_onset {
+            Self::Onset
+        } else if decision.alarm {
+            Self::On
+        } else if decision.alarm_end {
+            Self::End
+        } else {
+            Self::Off
+        }
+    }
+}
+
+/// What a step asks the session manager to record.
+#[derive(Debug, PartialEq)]
+pub enum EpisodeChange {
+    /// An episode starts at this sample: record its onset, then [`AlarmTrack::open`] it under the
+    /// onset's id.
+    Onset,
+    /// This episode ended at its last alarming sample: record its end.
+    Ended(OpenAlarm),
+}
+
+/// A session's alarm state.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct AlarmTrack {
+    /// The latest decision alarms.
+    pub active: bool,
+    /// Episodes started over the session's life.
+    pub raised: u64,
+    /// The episode whose onset was recorded and whose end was not yet.
+    pub open: Option<OpenAlarm>,
+}
+
+impl AlarmTrack {
+    /// Follows one decision on a sample at `timestamp_s` with spoofing probability `probability`.
+    pub fn step(
+        &mut self,
+        signal: AlarmSignal,
+        timestamp_s: f64,
+        probability: f64,
+    ) -> Option<EpisodeChange> {
+        self.active = matches!(signal, AlarmSignal::Onset | AlarmSignal::On);
+        match signal {
+            AlarmSignal::Onset => {
+                self.raised += 1;
+                Some(EpisodeChange::Onset)
+            }
+            AlarmSignal::On => {
+                if let Some(open) = self.open.as_mut() {
+                    open.peak = open.peak.max(probability);
+                    open.samples += 1;
+                    open.last_timestamp_s = timestamp_s;
+                }
+                None
+            }
+            AlarmSignal::End => self.close().map(EpisodeChange::Ended),
+            AlarmSignal::Off => None,
+        }
+    }
+
+    /// Opens the episode an [`EpisodeChange::Onset`] announced, under the id its onset was
+    /// recorded with (`onset_at_ms`: the wall time recorded with it).
+    pub fn open(&mut self, id: i64, timestamp_s: f64, onset_at_ms: i64, probability: f64) {
+        self.open = Some(OpenAlarm {
+            id,
+            onset_timestamp_s: timestamp_s,
+            onset_at_ms,
+            peak: probability,
+            samples: 1,
+            last_timestamp_s: timestamp_s,
+        });
+    }
+
+    /// Takes the open episode out, to record its end (also when the session ends, resets or
+    /// changes model while alarming).
+    pub fn close(&mut self) -> Option<OpenAlarm> {
+        self.open.take()
+    }
+
+    /// Whether replacing this track by `next` ends this track's open episode: it does unless
+    /// `next` holds the same one (a session restored from a snapshot of itself).
+    pub fn ends_when_replaced_by(&self, next: &AlarmTrack) -> bool {
+        self.open.is_some() && self.open_id() != next.open_id()
+    }
+
+    fn open_id(&self) -> Option<i64> {
+        self.open.as_ref().map(|open| open.id)
+    }
+
+    /// The open episode as the stored alarm row the outbox knows it by.
+    pub fn open_row(&self, vehicle_id: &str, model_id: &str) -> Option<AlarmEventRow> {
+        self.open.as_ref().map(|open| AlarmEventRow {
+            peak_probability: open.peak,
+            samples: i64::from(open.samples),
+            ..AlarmEventRow::opened(
+                open.id,
+                vehicle_id,
+                model_id,
+                open.onset_timestamp_s,
+                open.onset_at_ms,
+                open.peak,
+            )
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use spoofwatch_core::detector::Detector;
+    use spoofwatch_core::model::artifact::ModelArtifact;
+    use spoofwatch_core::sample::Sample;
+
+    use super::*;
+
+    /// A real decision with the alarm flags set by hand.
+    fn decision(alarm: bool, alarm_onset: bool, alarm_end: bool) -> Decision {
+        let artifact = ModelArtifact::from_slice(crate::models::registry::BUNDLED_MODEL)
+            .expect("the bundled model");
+        let base = Detector::new(Arc::new(artifact))
+            .step(&Sample::new(10.0, 32.0, -110.9, 2.0, 90.0), false);
+        Decision {
+            alarm,
+            alarm_onset,
+            alarm_end,
+            ..base
+        }
+    }
+
+    #[test]
+    fn a_decision_signals_onset_before_alarm_before_end() {
+        assert_eq!(
+            AlarmSignal::of(&decision(true, true, false)),
+            AlarmSignal::Onset
+        );
+        assert_eq!(
+            AlarmSignal::of(&decision(true, false, false)),
+            AlarmSignal::On
+        );
+        assert_eq!(
+            AlarmSignal::of(&decision(false, false, true)),
+            AlarmSignal::End
+        );
+        assert_eq!(
+            AlarmSignal::of(&decision(false, false, false)),
+            AlarmSignal::Off
+        );
+    }
+
+    fn open_alarm(id: i64) -> OpenAlarm {
+        OpenAlarm {
+            id,
+            onset_timestamp_s: 10.0,
+            onset_at_ms: 1_000,
+            peak: 0.9,
+            samples: 2,
+            last_timestamp_s: 11.0,
+        }
+    }
+
+    fn track_with(open: Option<OpenAlarm>) -> AlarmTrack {
+        AlarmTrack {
+            active: open.is_some(),
+            raised: 3,
+            open,
+        }
+    }
+
+    #[test]
+    fn an_onset_counts_the_episode_and_asks_for_it_to_be_recorded() {
+        let mut track = AlarmTrack::default();
+        assert_eq!(
+            track.step(AlarmSignal::Onset, 10.0, 0.8),
+            Some(EpisodeChange::Onset)
+        );
+        assert!(track.active);
+        assert_eq!(track.raised, 1);
+        assert_eq!(
+            track.open, None,
+            "opened only under the recorded onset's id"
+        );
+        track.open(7, 10.0, 1_000, 0.8);
+        assert_eq!(
+            track.open,
+            Some(OpenAlarm {
+                id: 7,
+                onset_timestamp_s: 10.0,
+                onset_at_ms: 1_000,
+                peak: 0.8,
+                samples: 1,
+                last_timestamp_s: 10.0,
+            })
+        );
+    }
+
+    #[test]
+    fn an_ongoing_alarm_extends_the_open_episode() {
+        let mut track = track_with(Some(open_alarm(7)));
+        assert_eq!(track.step(AlarmSignal::On, 12.0, 0.95), None);
+        assert_eq!(track.step(AlarmSignal::On, 13.0, 0.85), None);
+        let open = track.open.clone().expect("still open");
+        assert_eq!(
+            (open.peak, open.samples, open.last_timestamp_s),
+            (0.95, 4, 13.0)
+        );
+        assert_eq!((open.onset_timestamp_s, open.onset_at_ms), (10.0, 1_000));
+        assert!(track.active);
+        assert_eq!(track.raised, 3);
+    }
+
+    #[test]
+    fn an_ongoing_alarm_without_an_open_episode_changes_only_the_flag() {
+        let mut track = track_with(None);
+        assert_eq!(track.step(AlarmSignal::On, 12.0, 0.95), None);
+        assert_eq!(
+            track,
+            AlarmTrack {
+                active: true,
+                raised: 3,
+                open: None
+            }
+        );
+    }
+
+    #[test]
+    fn an_end_hands_back_the_episode_at_its_last_alarming_sample() {
+        let mut track = track_with(Some(open_alarm(7)));
+        assert_eq!(
+            track.step(AlarmSignal::End, 12.0, 0.1),
+            Some(EpisodeChange::Ended(open_alarm(7)))
+        );
+        assert_eq!(track, track_with(None).with_active(false));
+        // Nothing open: nothing to record.
+        assert_eq!(track.step(AlarmSignal::End, 13.0, 0.1), None);
+    }
+
+    #[test]
+    fn no_alarm_changes_nothing_but_the_flag() {
+        let mut track = track_with(Some(open_alarm(7)));
+        assert_eq!(track.step(AlarmSignal::Off, 12.0, 0.1), None);
+        assert_eq!(track, track_with(Some(open_alarm(7))).with_active(false));
+    }
+
+    #[test]
+    fn closing_takes_the_open_episode_once() {
+        let mut track = track_with(Some(open_alarm(7)));
+        assert_eq!(track.close(), Some(open_alarm(7)));
+        assert_eq!(track.close(), None);
+    }
+
+    #[test]
+    fn a_replacement_ends_the_episode_unless_it_holds_the_same_one() {
+        let open = track_with(Some(open_alarm(7)));
+        assert!(open.ends_when_replaced_by(&AlarmTrack::default()));
+        assert!(open.ends_when_replaced_by(&track_with(Some(open_alarm(8)))));
+        assert!(!open.ends_when_replaced_by(&track_with(Some(open_alarm(7)))));
+        assert!(!AlarmTrack::default().ends_when_replaced_by(&AlarmTrack::default()));
+        assert!(!AlarmTrack::default().ends_when_replaced_by(&open));
+    }
+
+    #[test]
+    fn the_open_row_carries_the_episode_so_far() {
+        assert_eq!(AlarmTrack::default().open_row("car-1", "m"), None);
+        let row = track_with(Some(open_alarm(7)))
+            .open_row("car-1", "m")
+            .expect("an open episode");
+        assert_eq!(
+            row,
+            AlarmEventRow {
+                peak_probability: 0.9,
+                samples: 2,
+                ..AlarmEventRow::opened(7, "car-1", "m", 10.0, 1_000, 0.9)
+            }
+        );
+        assert_eq!((row.end_timestamp_s, row.ended_at_ms), (None, None));
+    }
+
+    impl AlarmTrack {
+        fn with_active(self, active: bool) -> Self {
+            Self { active, ..self }
+        }
+    }
+}
