@@ -4,14 +4,20 @@
 //! [`Detector`] to prove it for the artifact at hand, so a value the checks missed is refused at import
 //! instead of blinding detection later.
 //!
-//! Owns the canary drive and the check. Must not parse artifacts nor choose what they may hold.
+//! Owns the canary drive, the check, and the artifact's public ways in and out
+//! ([`ModelArtifact::from_slice`], [`ModelArtifact::read`], [`ModelArtifact::write`],
+//! [`ModelArtifact::to_vec`], [`ModelArtifact::validate`]): each runs the field checks of
+//! [`crate::model::artifact`] and then the canary, so no path into or out of the registry skips it.
+//! They live here because the canary needs the detector, which needs the artifact. Must not parse
+//! artifacts nor choose what they may hold (that is [`crate::model::artifact`]).
 
+use std::io::{Read, Write};
 use std::sync::Arc;
 
 use crate::detector::Detector;
 use crate::geo::displace_fix;
-use crate::model::artifact::ModelArtifact;
-use crate::sample::Sample;
+use crate::model::artifact::{ArtifactError, ModelArtifact};
+use crate::sample::{Sample, readable};
 
 /// Samples in the canary drive (1 Hz): past the v2 evidence's 240 s warm-up, so every drift channel
 /// is switched on for the final samples, and still only a few milliseconds of model steps.
@@ -84,10 +90,58 @@ pub fn check(artifact: Arc<ModelArtifact>) -> Result<(), CanaryFailure> {
     Ok(())
 }
 
+impl ModelArtifact {
+    /// Reads and validates an artifact (see [`ModelArtifact::from_slice`]).
+    pub fn read<R: Read>(mut reader: R) -> Result<Self, ArtifactError> {
+        let mut bytes = Vec::new();
+        reader.read_to_end(&mut bytes)?;
+        Self::from_slice(&bytes)
+    }
+
+    /// Parses and validates an artifact: JSON syntax, then the schema version (before anything else,
+    /// so a newer artifact gets a clear message instead of a field-level parse error), then every
+    /// field's type, then every value's range ([`ModelArtifact::validate`], canary drive included).
+    pub fn from_slice(bytes: &[u8]) -> Result<Self, ArtifactError> {
+        let artifact = Self::parse(bytes)?;
+        artifact.validate()?;
+        Ok(artifact)
+    }
+
+    /// Writes the artifact as pretty JSON (after [`ModelArtifact::validate`]: what is written reads).
+    pub fn write<W: Write>(&self, writer: W) -> Result<(), ArtifactError> {
+        self.validate()?;
+        self.write_json(writer)
+    }
+
+    /// The artifact as JSON bytes.
+    pub fn to_vec(&self) -> Result<Vec<u8>, ArtifactError> {
+        let mut out = Vec::new();
+        self.write(&mut out)?;
+        Ok(out)
+    }
+
+    /// Checks every value is in its documented range (`docs/detector.md` §5.1) and the parts fit
+    /// together, then runs the canary drive, which must yield only finite probabilities in [0, 1].
+    /// A few milliseconds, so it runs on every read and write: no path into the registry skips it.
+    pub fn validate(&self) -> Result<(), ArtifactError> {
+        self.check_fields()?;
+        check(Arc::new(self.clone())).map_err(|failure| {
+            ArtifactError::field_error(
+                "model",
+                format!(
+                    "the canary drive yields probability {} at sample {}; every probability must \
+                     be finite and in [0, 1]",
+                    readable(failure.probability),
+                    failure.sample
+                ),
+            )
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::artifact::ModelArtifact;
 
     fn bundled() -> ModelArtifact {
         ModelArtifact::from_slice(include_bytes!("../../models/default.json"))

@@ -11,7 +11,7 @@ use std::sync::Arc;
 use serde::{Deserialize, Serialize};
 
 use crate::alarm::PersistenceAlarm;
-use crate::evidence::{Evidence, EvidenceBuilder, Features};
+use crate::evidence::{DriftChannelsDiffer, Evidence, EvidenceBuilder, Features};
 use crate::model::artifact::ModelArtifact;
 use crate::model::{LiquidState, StepScratch};
 use crate::sample::{Record, Sample};
@@ -62,16 +62,6 @@ impl Detector {
             alarm_on: false,
             artifact,
         }
-    }
-
-    /// The model this detector serves.
-    pub fn artifact(&self) -> &Arc<ModelArtifact> {
-        &self.artifact
-    }
-
-    /// Forgets all history: the next sample starts a new trajectory.
-    pub fn reset(&mut self) {
-        *self = Self::new(Arc::clone(&self.artifact));
     }
 
     /// Advances by one sample. `trajectory_break` forces a new trajectory (recorded sources only).
@@ -132,6 +122,14 @@ pub enum RestoreError {
     /// The persistence N_p differs from the model's operating point.
     #[error("the alarm persistence is N_p = {found}, the model's is {expected}")]
     Persistence { expected: u32, found: u32 },
+}
+
+impl From<DriftChannelsDiffer> for RestoreError {
+    fn from(differ: DriftChannelsDiffer) -> Self {
+        Self::DriftChannels {
+            in_snapshot: differ.in_snapshot,
+        }
+    }
 }
 
 impl Detector {

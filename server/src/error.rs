@@ -1,7 +1,9 @@
 //! The one deliberate mapping of every subsystem's error to a gRPC status: one
-//! `impl From<XError> for Status` per subsystem, built with `crate::status`. Nothing else in the
-//! server chooses codes for subsystem errors; this module must not hold any logic, and nothing in
-//! the crate imports it (the services reach it through `?`), so it may depend on every subsystem.
+//! `impl From<XError> for Status` per subsystem, built with `crate::status`, and the error a job
+//! that did not succeed records (`impl From<JobFailure> for JobEndError`), which is its operation's
+//! error when read back. Nothing else in the server chooses codes for subsystem errors; this module
+//! must not hold any logic, and nothing in the crate imports it (the services reach it through `?`
+//! and `From`), so it may depend on every subsystem.
 
 use spoofwatch_core::model::artifact::ArtifactError;
 use spoofwatch_core::train::TrainError;
@@ -19,7 +21,7 @@ use crate::status::{
     dependency_failed, failed_precondition, internal, invalid_argument, invalid_field, not_found,
     resource_exhausted,
 };
-use crate::store::{FaultKind, StoreError, StoreFault};
+use crate::store::{FaultKind, JobEndError, StoreError, StoreFault};
 
 impl From<StoreError> for Status {
     fn from(error: StoreError) -> Self {
@@ -146,6 +148,18 @@ impl From<JobFailure> for Status {
             JobFailure::Store(error) => error.into(),
             JobFailure::Training(error) => training_status(error),
             JobFailure::Worker(Fault { context, .. }) => internal(context, &failure),
+            JobFailure::Abandoned => Status::aborted(failure.to_string()),
+        }
+    }
+}
+
+/// The error a job that did not succeed records: the code and message of its operation's error.
+impl From<JobFailure> for JobEndError {
+    fn from(failure: JobFailure) -> Self {
+        let status = Status::from(failure);
+        JobEndError {
+            code: status.code() as i32,
+            message: status.message().to_string(),
         }
     }
 }
@@ -209,5 +223,23 @@ mod tests {
         assert_eq!(code(JobFailure::Store(closed)), Code::Unavailable);
         let bug = StoreError::from(sqlx::Error::RowNotFound);
         assert_eq!(code(JobFailure::Store(bug)), Code::Internal);
+    }
+
+    #[test]
+    fn jobs_that_end_without_a_result_record_fixed_codes() {
+        assert_eq!(
+            JobEndError::from(JobFailure::Cancelled),
+            JobEndError {
+                code: 1,
+                message: "cancelled".into()
+            }
+        );
+        assert_eq!(
+            JobEndError::from(JobFailure::Abandoned),
+            JobEndError {
+                code: 10,
+                message: "server restarted while the job was queued or running".into()
+            }
+        );
     }
 }

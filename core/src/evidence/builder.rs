@@ -11,7 +11,6 @@ use super::linalg::{
 };
 use super::params::{EvidenceParams, SIGMA_EPSILON};
 use super::{DRIFT_FEATURES_START, FEATURE_CAPACITY, Features, NU_INDEX};
-use crate::detector::RestoreError;
 use crate::geo::{LatLon, Projection};
 use crate::sample::{MAX_SPEED_MPS, Record, Sample};
 
@@ -105,6 +104,14 @@ struct Previous {
     delta_t: f64,
 }
 
+/// Why [`EvidenceBuilder::restore`] refuses a saved builder: it was made with (or without) the drift
+/// channels and the parameters differ.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct DriftChannelsDiffer {
+    /// Whether the saved builder has the drift channels.
+    pub in_snapshot: bool,
+}
+
 /// Streaming per-vehicle builder of ξ_t. `push` never allocates; the same builder serves a live
 /// stream and a recorded track ([`build_track`]).
 ///
@@ -174,13 +181,16 @@ impl EvidenceBuilder {
     /// A builder of `params` continuing the stream `saved` holds (a deserialised builder, whose
     /// parameter-derived fields are empty). Fails when `saved` was made with or without the drift
     /// channels and `params` disagree.
-    pub fn restore(params: EvidenceParams, saved: EvidenceBuilder) -> Result<Self, RestoreError> {
+    pub fn restore(
+        params: EvidenceParams,
+        saved: EvidenceBuilder,
+    ) -> Result<Self, DriftChannelsDiffer> {
         let fresh = Self::new(params);
         let drift = match (&fresh.drift, saved.drift) {
             (Some(fresh), Some(saved)) => Some(DriftTracker::restore(fresh, saved)),
             (None, None) => None,
-            (Some(_), None) => return Err(RestoreError::DriftChannels { in_snapshot: false }),
-            (None, Some(_)) => return Err(RestoreError::DriftChannels { in_snapshot: true }),
+            (Some(_), None) => return Err(DriftChannelsDiffer { in_snapshot: false }),
+            (None, Some(_)) => return Err(DriftChannelsDiffer { in_snapshot: true }),
         };
         Ok(Self {
             previous: saved.previous,

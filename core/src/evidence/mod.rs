@@ -2,9 +2,14 @@
 //!
 //! Owns evidence ξ_t (SPEC §4): builder, parameters, statistics, scaler. Must not know about models,
 //! alarms or training.
+//!
+//! Inside, each file uses only those listed before it: `linalg` and `stats` (pure numerics), `drift`
+//! (the v2 channels), `params`, `builder` (the streaming builder), `scaler`, then `fit` (the fits from
+//! training tracks, which run the builder).
 
 mod builder;
 pub mod drift;
+mod fit;
 pub mod linalg;
 mod params;
 mod scaler;
@@ -15,7 +20,13 @@ mod tests;
 
 use serde::{Deserialize, Serialize};
 
-pub use builder::{Evidence, EvidenceBuilder, MAX_BACKWARD_S, MAX_GAP_S, build_track};
+pub use builder::{
+    DriftChannelsDiffer, Evidence, EvidenceBuilder, MAX_BACKWARD_S, MAX_GAP_S, build_track,
+};
+pub use fit::{
+    MIN_NORMAL_ROWS, NormalStats, fit_drift_params, fit_normal_stats, normal_residuals,
+    stats_from_residuals,
+};
 pub(crate) use params::UncheckedParams;
 pub use params::{
     DEFAULT_KAPPA, DEFAULT_RHO, EvidenceParams, MAX_ABS_KAPPA, MAX_MU_E, MAX_SIGMA_M2,
@@ -23,10 +34,7 @@ pub use params::{
 };
 pub(crate) use scaler::UncheckedScaler;
 pub use scaler::{CLIP, MAX_SCALER_VALUE, RobustScaler};
-pub use stats::{
-    MIN_NORMAL_ROWS, NormalStats, fit_drift_params, fit_normal_stats, median, normal_residuals,
-    quantile_sorted, stats_from_residuals,
-};
+pub use stats::{median, quantile_sorted};
 
 /// ξ_t in the locked order of SPEC §4 (the `paper` schema), then the drift channels of evidence v2
 /// (`docs/detector.md` §4.1). A schema reads a prefix of this list.

@@ -2,13 +2,13 @@
 //! with a versioned schema — the trained model plus its evidence statistics, scaler, operating point
 //! and provenance.
 //!
-//! Owns the artifact's schema, (de)serialisation and validation (the documented ranges of
-//! `docs/detector.md` §5.1, with errors that name the field). Must not run the model on data (that is
-//! [`crate::detector`], and the canary drive is [`crate::canary`]) nor produce artifacts (that is
-//! [`crate::train::detector`]).
+//! Owns the artifact's schema, (de)serialisation and field checks (the documented ranges of
+//! `docs/detector.md` §5.1, with errors that name the field). The public ways in and out
+//! (`from_slice`, `read`, `write`, `to_vec`, `validate`) add the canary drive to these checks and live
+//! in [`crate::canary`], above the detector the canary runs. Must not run the model on data (that is
+//! [`crate::detector`]) nor produce artifacts (that is [`crate::train::detector`]).
 
-use std::io::{Read, Write};
-use std::sync::Arc;
+use std::io::Write;
 
 use serde::{Deserialize, Serialize};
 
@@ -16,7 +16,6 @@ use super::{
     MAX_ABS_PARAMETER, MAX_DIMENSION, MAX_TAU_S, MIN_TAU_S, Model, ModelError, ModelParts,
 };
 use crate::alarm::{AlarmError, OperatingPoint};
-use crate::canary;
 use crate::evidence::{
     EvidenceError, EvidenceParams, FeatureSchema, RobustScaler, UncheckedParams, UncheckedScaler,
 };
@@ -184,7 +183,7 @@ impl ArtifactError {
         }
     }
 
-    fn field_error(field: impl Into<String>, reason: impl Into<String>) -> Self {
+    pub(crate) fn field_error(field: impl Into<String>, reason: impl Into<String>) -> Self {
         Self::Field {
             field: field.into(),
             reason: reason.into(),
@@ -315,7 +314,8 @@ struct RawArtifact {
 }
 
 impl RawArtifact {
-    /// The parts built and validated one by one (their cross-checks are [`ModelArtifact::validate`]).
+    /// The parts built and validated one by one (their cross-checks are
+    /// [`ModelArtifact::check_fields`]).
     fn into_checked(self) -> Result<ModelArtifact, ArtifactError> {
         let model = Model::from_parts(self.model.config, self.model.params)
             .map_err(ArtifactError::from_model)?;
@@ -363,17 +363,11 @@ impl ModelArtifact {
         self.model.config().schema
     }
 
-    /// Reads and validates an artifact (see [`ModelArtifact::from_slice`]).
-    pub fn read<R: Read>(mut reader: R) -> Result<Self, ArtifactError> {
-        let mut bytes = Vec::new();
-        reader.read_to_end(&mut bytes)?;
-        Self::from_slice(&bytes)
-    }
-
-    /// Parses and validates an artifact: JSON syntax, then the schema version (before anything else,
-    /// so a newer artifact gets a clear message instead of a field-level parse error), then every
-    /// field's type, then every value's range ([`ModelArtifact::validate`], canary drive included).
-    pub fn from_slice(bytes: &[u8]) -> Result<Self, ArtifactError> {
+    /// Parses an artifact: JSON syntax, then the schema version (before anything else, so a newer
+    /// artifact gets a clear message instead of a field-level parse error), then every field's type
+    /// and each part's own ranges. The parts' cross-checks and the canary drive are left to
+    /// [`ModelArtifact::validate`], which [`ModelArtifact::from_slice`] runs next.
+    pub(crate) fn parse(bytes: &[u8]) -> Result<Self, ArtifactError> {
         let value: serde_json::Value =
             serde_json::from_slice(bytes).map_err(|source| ArtifactError::Json {
                 path: syntax_error_path(bytes),
@@ -404,30 +398,20 @@ impl ModelArtifact {
         }
         let raw: RawArtifact =
             serde_path_to_error::deserialize(&value).map_err(ArtifactError::from_parse)?;
-        let artifact = raw.into_checked()?;
-        artifact.validate()?;
-        Ok(artifact)
+        raw.into_checked()
     }
 
-    /// Writes the artifact as pretty JSON (after [`ModelArtifact::validate`]: what is written reads).
-    pub fn write<W: Write>(&self, writer: W) -> Result<(), ArtifactError> {
-        self.validate()?;
+    /// Writes the artifact as pretty JSON, unchecked (the public [`ModelArtifact::write`] validates
+    /// first).
+    pub(crate) fn write_json<W: Write>(&self, writer: W) -> Result<(), ArtifactError> {
         serde_json::to_writer_pretty(writer, self).map_err(ArtifactError::Write)
-    }
-
-    /// The artifact as JSON bytes.
-    pub fn to_vec(&self) -> Result<Vec<u8>, ArtifactError> {
-        let mut out = Vec::new();
-        self.write(&mut out)?;
-        Ok(out)
     }
 
     /// Checks every value is in its documented range (`docs/detector.md` §5.1) and the parts fit
     /// together: feature order, scaler and evidence parameters against the model's schema, weights
-    /// against the configuration, operating point, provenance bounds; then runs the canary drive
-    /// ([`crate::canary`]), which must yield only finite probabilities in [0, 1]. A few milliseconds,
-    /// so it runs on every read and write: no path into the registry skips it.
-    pub fn validate(&self) -> Result<(), ArtifactError> {
+    /// against the configuration, operating point, provenance bounds. [`ModelArtifact::validate`]
+    /// runs these checks, then the canary drive.
+    pub(crate) fn check_fields(&self) -> Result<(), ArtifactError> {
         let schema = self.schema();
         let expected = Self::feature_names_of(schema);
         if self.feature_names != expected {
@@ -492,17 +476,6 @@ impl ModelArtifact {
         })?;
         self.provenance.validate().map_err(|(field, reason)| {
             ArtifactError::field_error(format!("provenance.{field}"), reason)
-        })?;
-        canary::check(Arc::new(self.clone())).map_err(|failure| {
-            ArtifactError::field_error(
-                "model",
-                format!(
-                    "the canary drive yields probability {} at sample {}; every probability must \
-                     be finite and in [0, 1]",
-                    readable(failure.probability),
-                    failure.sample
-                ),
-            )
         })
     }
 }

@@ -6,7 +6,7 @@
 //! queues and runs it in memory and renews its lease in the store every [`LEASE_RENEWAL`]
 //! ([`JobManager::keep_leases`]). The same loop applies cancellations requested through another
 //! replica, and fails the jobs of replicas whose lease expired ([`JOB_LEASE`]): a replica that dies
-//! mid-job leaves it failed with [`INTERRUPTED_REASON`], as a restart always did. Reads, cancel and
+//! mid-job leaves it failed as [`JobFailure::Abandoned`], as a restart always did. Reads, cancel and
 //! wait work from any replica (waiting polls the store for jobs that live elsewhere).
 
 use std::collections::HashMap;
@@ -24,7 +24,8 @@ use crate::fault::Fault;
 use crate::identity::new_id;
 use crate::models::RegistryError;
 use crate::store::{
-    EpochRow, JobFilter, JobKind, JobRow, NewJob, Page, PageRequest, StoreError, now_unix_ms,
+    EpochRow, JobEndError, JobFilter, JobKind, JobRow, NewJob, Page, PageRequest, StoreError,
+    now_unix_ms,
 };
 use crate::telemetry;
 
@@ -35,9 +36,6 @@ pub const LEASE_RENEWAL: Duration = Duration::from_secs(1);
 /// A job whose lease was not renewed for this long has lost its owner and is failed. Many renewals
 /// long, so that a slow database or a busy owner is not taken for a dead one.
 pub const JOB_LEASE: Duration = Duration::from_secs(30);
-
-/// The reason recorded for a job whose server stopped or died while it was queued or running.
-pub const INTERRUPTED_REASON: &str = "server restarted while the job was queued or running";
 
 /// How often a wait re-reads a job that runs on another replica.
 const REMOTE_POLL: Duration = Duration::from_millis(250);
@@ -257,7 +255,7 @@ impl JobManager {
         let cutoff = now_unix_ms() - JOB_LEASE.as_millis() as i64;
         let store = &self.runner.store;
         store
-            .fail_abandoned_jobs(INTERRUPTED_REASON, &self.instance, true, cutoff)
+            .fail_abandoned_jobs(&abandoned(), &self.instance, true, cutoff)
             .await
     }
 
@@ -282,7 +280,7 @@ impl JobManager {
             }
             let cutoff = now_unix_ms() - JOB_LEASE.as_millis() as i64;
             match store
-                .fail_abandoned_jobs(INTERRUPTED_REASON, &self.instance, false, cutoff)
+                .fail_abandoned_jobs(&abandoned(), &self.instance, false, cutoff)
                 .await
             {
                 Ok(0) => {}
@@ -329,4 +327,9 @@ impl JobManager {
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
     }
+}
+
+/// The error recorded for a job whose server stopped or died while it was queued or running.
+fn abandoned() -> JobEndError {
+    JobEndError::from(JobFailure::Abandoned)
 }

@@ -1,7 +1,8 @@
 //! The job runner: executes one admitted job's use case (training or evaluation) on blocking
 //! threads, persists its progress and its end through the store, and keeps the real cause of a
-//! failure ([`JobFailure`], mapped to a gRPC code once in `crate::error`). It must not queue or admit
-//! jobs (that is `jobs::manager`) nor know about wire messages (that is `jobs::service`).
+//! failure ([`JobFailure`], mapped to a gRPC code and to the error the job records once in
+//! `crate::error`). It must not queue or admit jobs (that is `jobs::manager`) nor know about wire
+//! messages (that is `jobs::service`).
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -25,7 +26,7 @@ use crate::datasets::{Catalog, DatasetError};
 use crate::fault::Fault;
 use crate::identity::new_id;
 use crate::models::{Registry, RegistryError};
-use crate::store::{EpochRow, JobOutcome, ModelSource, Store, StoreError};
+use crate::store::{EpochRow, JobEndError, JobOutcome, ModelSource, Store, StoreError};
 use crate::telemetry;
 
 /// Why a job did not succeed: its real cause, so the operation's error gets the right code.
@@ -49,6 +50,10 @@ pub enum JobFailure {
     /// A worker thread panicked or was aborted, or the job queue closed.
     #[error(transparent)]
     Worker(#[from] Fault),
+    /// Its server stopped or died while it was queued or running (found by the recovery of
+    /// abandoned jobs, never by a runner).
+    #[error("server restarted while the job was queued or running")]
+    Abandoned,
 }
 
 /// A job queued or running in this process.
@@ -97,22 +102,16 @@ impl Runner {
         }
     }
 
-    /// Records how the job ended. A failure is recorded with the code its cause maps to.
+    /// Records how the job ended. A failure is recorded with the error its cause maps to.
     pub async fn record_end(&self, id: &OperationName, result: Result<JobResult, JobFailure>) {
         let outcome = match result {
             Ok(result) => JobOutcome::Succeeded {
                 result: to_json(&result),
             },
-            Err(JobFailure::Cancelled) => JobOutcome::Cancelled {
-                message: "cancelled".into(),
-            },
-            Err(failure) => {
-                let status = tonic::Status::from(failure);
-                JobOutcome::Failed {
-                    code: status.code() as i32,
-                    message: status.message().to_string(),
-                }
+            Err(failure @ JobFailure::Cancelled) => {
+                JobOutcome::Cancelled(JobEndError::from(failure))
             }
+            Err(failure) => JobOutcome::Failed(JobEndError::from(failure)),
         };
         // Nobody waits on this background task's result: the failure is logged with its cause, and
         // the row stays unfinished until the next start marks it failed.

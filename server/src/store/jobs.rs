@@ -13,9 +13,7 @@ use sqlx::types::Json;
 
 use super::error::{insert_error, require_finite};
 use super::paging::PagePlan;
-use super::{
-    ABORTED_CODE, BackendKind, CANCELLED_CODE, Page, PageRequest, Store, StoreError, now_unix_ms,
-};
+use super::{BackendKind, Page, PageRequest, Store, StoreError, now_unix_ms};
 
 /// What a job does.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -111,6 +109,16 @@ pub struct NewJob {
     pub owner: String,
 }
 
+/// The error a job ended with, as the store records it. The store keeps the code without
+/// interpreting it: its callers choose it (the server's mapping of errors to codes is its own).
+#[derive(Debug, Clone, PartialEq)]
+pub struct JobEndError {
+    /// The error code.
+    pub code: i32,
+    /// Human-readable reason.
+    pub message: String,
+}
+
 /// How a job ended.
 #[derive(Debug, Clone, PartialEq)]
 pub enum JobOutcome {
@@ -120,17 +128,9 @@ pub enum JobOutcome {
         result: Value,
     },
     /// Finished with an error.
-    Failed {
-        /// gRPC status code.
-        code: i32,
-        /// Human-readable reason.
-        message: String,
-    },
-    /// Stopped on request; recorded with code CANCELLED (1).
-    Cancelled {
-        /// Human-readable reason.
-        message: String,
-    },
+    Failed(JobEndError),
+    /// Stopped on request.
+    Cancelled(JobEndError),
 }
 
 /// A stored job.
@@ -151,7 +151,7 @@ pub struct JobRow {
     /// The result, once succeeded.
     #[sqlx(json(nullable), rename = "result_json")]
     pub result: Option<Value>,
-    /// gRPC status code, once failed or cancelled.
+    /// The [`JobEndError::code`], once failed or cancelled.
     pub error_code: Option<i32>,
     /// Reason, once failed or cancelled.
     pub error_message: Option<String>,
@@ -428,18 +428,13 @@ impl Store {
     ///
     /// [`StoreError::NotFound`] for an unknown id, [`StoreError::InvalidState`] if already finished.
     pub async fn finish_job(&self, id: &str, outcome: JobOutcome) -> Result<JobRow, StoreError> {
-        let (state, result, code, message) = match outcome {
-            JobOutcome::Succeeded { result } => (JobState::Succeeded, Some(result), None, None),
-            JobOutcome::Failed { code, message } => {
-                (JobState::Failed, None, Some(code), Some(message))
-            }
-            JobOutcome::Cancelled { message } => (
-                JobState::Cancelled,
-                None,
-                Some(CANCELLED_CODE),
-                Some(message),
-            ),
+        let (state, result, error) = match outcome {
+            JobOutcome::Succeeded { result } => (JobState::Succeeded, Some(result), None),
+            JobOutcome::Failed(error) => (JobState::Failed, None, Some(error)),
+            JobOutcome::Cancelled(error) => (JobState::Cancelled, None, Some(error)),
         };
+        let code = error.as_ref().map(|error| error.code);
+        let message = error.map(|error| error.message);
         let unfinished = |state: JobState| !state.is_finished();
         update_job!(
             self,
@@ -512,15 +507,14 @@ impl Store {
         }))
     }
 
-    /// Recovery: every queued or running job whose owner is gone becomes `failed` with code ABORTED
-    /// (10) and `reason`, since no worker survives its server. A job's owner is gone when its lease
-    /// was last renewed before `lease_cutoff_ms`, when it has no owner (stored before owners were),
-    /// and, with `restarting`, when the owner is `instance` itself: its jobs are from an earlier run
-    /// of this instance. Jobs of `instance` are never failed otherwise. Returns how many jobs were
-    /// failed.
+    /// Recovery: every queued or running job whose owner is gone becomes `failed` with `error`, since
+    /// no worker survives its server. A job's owner is gone when its lease was last renewed before
+    /// `lease_cutoff_ms`, when it has no owner (stored before owners were), and, with `restarting`,
+    /// when the owner is `instance` itself: its jobs are from an earlier run of this instance. Jobs
+    /// of `instance` are never failed otherwise. Returns how many jobs were failed.
     pub async fn fail_abandoned_jobs(
         &self,
-        reason: &str,
+        error: &JobEndError,
         instance: &str,
         restarting: bool,
         lease_cutoff_ms: i64,
@@ -531,8 +525,8 @@ impl Store {
         };
         Ok(on_pool!(self, |pool| {
             sqlx::query(sql)
-                .bind(ABORTED_CODE)
-                .bind(reason)
+                .bind(error.code)
+                .bind(&error.message)
                 .bind(now_unix_ms())
                 .bind(lease_cutoff_ms)
                 .bind(instance)

@@ -133,17 +133,11 @@ pub use alarms::{
 };
 pub use datasets::{DatasetRow, NewDataset};
 pub use error::{FaultKind, StoreError, StoreFault};
-pub use jobs::{EpochRow, JobFilter, JobKind, JobOutcome, JobRow, JobState, NewJob};
+pub use jobs::{EpochRow, JobEndError, JobFilter, JobKind, JobOutcome, JobRow, JobState, NewJob};
 pub use models::{ModelRow, ModelSource, NewModel};
 pub use paging::{DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE, Page, PageRequest};
 pub use postgres::{POOL_ACQUIRE_TIMEOUT, POOL_MAX_CONNECTIONS, STATEMENT_TIMEOUT};
 pub use snapshots::SnapshotRow;
-
-/// gRPC status code ABORTED, recorded for jobs interrupted by a server restart.
-pub const ABORTED_CODE: i32 = 10;
-
-/// gRPC status code CANCELLED, recorded for jobs finished as [`JobOutcome::Cancelled`].
-pub const CANCELLED_CODE: i32 = 1;
 
 /// The service's database: a cheap-to-clone handle over a connection pool.
 #[derive(Debug, Clone)]

@@ -3,8 +3,10 @@
 use serde_json::json;
 
 use super::{count_rows, new_job};
+use crate::jobs::JobFailure;
 use crate::store::{
-    EpochRow, JobFilter, JobKind, JobOutcome, JobState, PageRequest, Store, StoreError, now_unix_ms,
+    EpochRow, JobEndError, JobFilter, JobKind, JobOutcome, JobState, PageRequest, Store,
+    StoreError, now_unix_ms,
 };
 
 fn epoch(number: u32) -> EpochRow {
@@ -15,6 +17,14 @@ fn epoch(number: u32) -> EpochRow {
         val_auroc: if number == 0 { None } else { Some(0.9) },
         learning_rate: 1e-3,
         elapsed_s: 2.5 * f64::from(number + 1),
+    }
+}
+
+/// The error the server records for `failure`, with the message `message`.
+fn recorded(failure: JobFailure, message: &str) -> JobEndError {
+    JobEndError {
+        message: message.to_owned(),
+        ..JobEndError::from(failure)
     }
 }
 
@@ -114,10 +124,10 @@ async fn job_runs_records_epochs_and_succeeds_once(store: Store) {
     let again = store
         .finish_job(
             "j1",
-            JobOutcome::Failed {
+            JobOutcome::Failed(JobEndError {
                 code: 13,
                 message: "late".to_owned(),
-            },
+            }),
         )
         .await
         .unwrap_err();
@@ -175,10 +185,10 @@ async fn failed_and_cancelled_outcomes_record_code_and_message(store: Store) {
     let failed = store
         .finish_job(
             "failing",
-            JobOutcome::Failed {
+            JobOutcome::Failed(JobEndError {
                 code: 3,
                 message: "dataset has no spoofed rows".to_owned(),
-            },
+            }),
         )
         .await
         .unwrap();
@@ -208,14 +218,12 @@ async fn failed_and_cancelled_outcomes_record_code_and_message(store: Store) {
     let cancelled = store
         .finish_job(
             "queued",
-            JobOutcome::Cancelled {
-                message: "cancelled by user".to_owned(),
-            },
+            JobOutcome::Cancelled(recorded(JobFailure::Cancelled, "cancelled by user")),
         )
         .await
         .unwrap();
     assert_eq!(cancelled.state, JobState::Cancelled);
-    assert_eq!(cancelled.error_code, Some(crate::store::CANCELLED_CODE));
+    assert_eq!(cancelled.error_code, Some(tonic::Code::Cancelled as i32));
     assert_eq!(
         cancelled.error_message.as_deref(),
         Some("cancelled by user")
@@ -350,7 +358,8 @@ async fn a_restart_fails_its_own_and_ownerless_jobs_but_not_live_replicas_ones(s
 
     let reason = "server restarted while the job was running";
     let cutoff = now_unix_ms() - 30_000;
-    let failed = store.fail_abandoned_jobs(reason, "this-server", true, cutoff);
+    let abandoned = recorded(JobFailure::Abandoned, reason);
+    let failed = store.fail_abandoned_jobs(&abandoned, "this-server", true, cutoff);
     assert_eq!(
         failed.await.unwrap(),
         2,
@@ -371,7 +380,7 @@ async fn a_restart_fails_its_own_and_ownerless_jobs_but_not_live_replicas_ones(s
         "a live replica's job is left alone"
     );
     // Nothing is left to fail the second time.
-    let again = store.fail_abandoned_jobs(reason, "this-server", true, cutoff);
+    let again = store.fail_abandoned_jobs(&abandoned, "this-server", true, cutoff);
     assert_eq!(again.await.unwrap(), 0);
 }
 
@@ -401,8 +410,8 @@ async fn jobs_whose_lease_expired_are_failed_by_other_servers_only(store: Store)
     );
 
     let cutoff = now_unix_ms() - 30_000;
-    let reason = "gone";
-    let failed = store.fail_abandoned_jobs(reason, "this-server", false, cutoff);
+    let abandoned = recorded(JobFailure::Abandoned, "gone");
+    let failed = store.fail_abandoned_jobs(&abandoned, "this-server", false, cutoff);
     assert_eq!(failed.await.unwrap(), 1);
     let theirs = store.get_job("theirs").await.unwrap().expect("kept");
     assert_eq!(
@@ -429,7 +438,7 @@ async fn jobs_whose_lease_expired_are_failed_by_other_servers_only(store: Store)
         .renew_job_leases("this-server", now_unix_ms())
         .await
         .unwrap();
-    let failed = store.fail_abandoned_jobs(reason, "other-server", false, cutoff);
+    let failed = store.fail_abandoned_jobs(&abandoned, "other-server", false, cutoff);
     assert_eq!(failed.await.unwrap(), 0);
 }
 
@@ -454,9 +463,7 @@ async fn list_jobs_filters_by_kind_and_done_and_pages_newest_first(store: Store)
     store
         .finish_job(
             "e2",
-            JobOutcome::Cancelled {
-                message: "stop".to_owned(),
-            },
+            JobOutcome::Cancelled(recorded(JobFailure::Cancelled, "stop")),
         )
         .await
         .unwrap();

@@ -1,0 +1,240 @@
+//! Fitting the evidence parameters on labelled training tracks (SPEC §4, REFERENCE-NOTES §2.5): Σ̂ and
+//! μ_e from normal rows, and evidence v2's drift parameters from their settled drift rates. Both run
+//! the streaming builder over the tracks.
+//!
+//! Owns the fits from tracks and residuals. Must not build evidence (that is `builder.rs`), define the
+//! drift channels' own normalisation fit (that is `drift.rs`) or scale features (that is `scaler.rs`).
+
+use serde::{Deserialize, Serialize};
+
+use super::EvidenceError;
+use super::builder::build_track;
+use super::drift::{
+    DriftParams, SettledRates, covariances_from_rates, robust_residual_sigma, thresholds_from_rates,
+};
+use super::linalg::{IDENTITY, Mat2, inverse_sqrt_symmetric, mul_vec};
+use super::params::{EvidenceParams, SIGMA_EPSILON};
+use super::stats::{covariance, median};
+use crate::geo::Projection;
+use crate::sample::Track;
+
+/// Fewest normal ν = 1 rows accepted for Σ̂ and μ_e. A 2×2 covariance and a median from fewer rows are
+/// too noisy to normalise residuals with; the reference demands 100, we allow smaller test sets
+/// (e.g. a few injected-attack trajectories) but not tiny ones.
+pub const MIN_NORMAL_ROWS: usize = 30;
+
+/// Σ̂ and μ_e fitted on normal, valid training rows.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NormalStats {
+    /// ddof-1 covariance of r (m²), without ε.
+    pub sigma_hat: Mat2,
+    /// Median of rᵀ(Σ̂ + εI)^{-1} r on the same rows.
+    pub mu_e: f64,
+    /// How many rows (label 0, ν = 1) the statistics come from.
+    pub rows: usize,
+}
+
+impl NormalStats {
+    /// Validated evidence parameters with these statistics and the default κ, ρ.
+    pub fn params(&self, projection: Projection) -> Result<EvidenceParams, EvidenceError> {
+        EvidenceParams::new(self.sigma_hat, self.mu_e, projection)
+    }
+}
+
+/// Fits Σ̂ and μ_e on the label-0, ν = 1 rows of `tracks`. Unlabelled and attack rows are ignored.
+pub fn fit_normal_stats(
+    tracks: &[Track],
+    projection: Projection,
+) -> Result<NormalStats, EvidenceError> {
+    stats_from_residuals(&normal_residuals(tracks, projection))
+}
+
+/// r_t of the label-0, ν = 1 rows of `tracks`.
+pub fn normal_residuals(tracks: &[Track], projection: Projection) -> Vec<[f64; 2]> {
+    // ν and r do not depend on Σ̂ or μ_e, so any placeholder statistics give the same residuals.
+    let placeholder = EvidenceParams {
+        sigma_hat: IDENTITY,
+        mu_e: 0.0,
+        kappa: 0.0,
+        rho: 0.0,
+        projection,
+        drift: None,
+    };
+    let mut residuals = Vec::new();
+    for track in tracks {
+        let evidence = build_track(&placeholder, &track.records);
+        for (record, e) in track.records.iter().zip(&evidence) {
+            if record.label == Some(false) && e.valid {
+                residuals.push(e.residual);
+            }
+        }
+    }
+    residuals
+}
+
+/// Evidence v2's drift parameters from the label-0 rows of `tracks` (`params` gives the projection):
+/// the clip from the robust σ of r, then the drift-rate covariances and per-scale thresholds on
+/// settled rows (a row of an attacked track counts once it is normal and valid; its EWMAs may still
+/// carry an earlier attack, which only widens the normalisation).
+pub fn fit_drift_params(
+    tracks: &[Track],
+    projection: Projection,
+) -> Result<DriftParams, EvidenceError> {
+    let residual_sigma = robust_residual_sigma(&normal_residuals(tracks, projection))?;
+    let unwhitened = DriftParams::unwhitened(residual_sigma);
+    let whitened = covariances_from_rates(
+        residual_sigma,
+        &settled_rates(tracks, projection, unwhitened),
+    )?;
+    thresholds_from_rates(whitened, &settled_rates(tracks, projection, whitened))
+}
+
+/// The drift channels of label-0 valid rows under `drift`, one row per second of driving (so a
+/// 10 Hz vehicle weighs as much as a 1 Hz one), with their depth into the trajectory.
+fn settled_rates(
+    tracks: &[Track],
+    projection: Projection,
+    drift: DriftParams,
+) -> Vec<SettledRates> {
+    let params = EvidenceParams {
+        sigma_hat: IDENTITY,
+        mu_e: 0.0,
+        kappa: 0.0,
+        rho: 0.0,
+        projection,
+        drift: Some(drift),
+    };
+    let mut rows = Vec::new();
+    for track in tracks {
+        let mut elapsed_s = 0.0;
+        for (record, e) in track
+            .records
+            .iter()
+            .zip(build_track(&params, &track.records))
+        {
+            if e.trajectory_start {
+                elapsed_s = 0.0;
+            }
+            if e.valid {
+                let new_second = (elapsed_s + e.delta_t).floor() > elapsed_s.floor();
+                elapsed_s += e.delta_t;
+                if let (true, Some(false), Some(drift)) = (new_second, record.label, e.drift) {
+                    rows.push(SettledRates { elapsed_s, drift });
+                }
+            }
+        }
+    }
+    rows
+}
+
+/// Σ̂ (ddof 1) and μ_e (numpy median energy) from residuals; at least [`MIN_NORMAL_ROWS`] of them.
+pub fn stats_from_residuals(residuals: &[[f64; 2]]) -> Result<NormalStats, EvidenceError> {
+    if residuals.len() < MIN_NORMAL_ROWS {
+        return Err(EvidenceError::TooFewNormalRows {
+            rows: residuals.len(),
+            minimum: MIN_NORMAL_ROWS,
+        });
+    }
+    let sigma_hat = covariance(residuals);
+    let mut regularised = sigma_hat;
+    regularised[0][0] += SIGMA_EPSILON;
+    regularised[1][1] += SIGMA_EPSILON;
+    let inv_sqrt = inverse_sqrt_symmetric(&regularised);
+    let mut energies: Vec<f64> = residuals
+        .iter()
+        .map(|r| {
+            let eta = mul_vec(&inv_sqrt, *r);
+            eta[0] * eta[0] + eta[1] * eta[1]
+        })
+        .collect();
+    let mu_e = median(&mut energies).ok_or(EvidenceError::NoRows)?;
+    Ok(NormalStats {
+        sigma_hat,
+        mu_e,
+        rows: residuals.len(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sample::{Record, Sample};
+
+    /// 32 residuals: (±1, 0) × 8, (0, ±2) × 8. Mean 0; Σ̂ = diag(16/31, 64/31).
+    fn cross_residuals() -> Vec<[f64; 2]> {
+        let mut rows = Vec::new();
+        for _ in 0..8 {
+            rows.extend([[1.0, 0.0], [-1.0, 0.0], [0.0, 2.0], [0.0, -2.0]]);
+        }
+        rows
+    }
+
+    #[test]
+    fn stats_from_residuals_by_hand() {
+        let stats = stats_from_residuals(&cross_residuals()).expect("32 rows");
+        assert_eq!(stats.rows, 32);
+        assert!((stats.sigma_hat[0][0] - 16.0 / 31.0).abs() < 1e-14);
+        assert!((stats.sigma_hat[1][1] - 64.0 / 31.0).abs() < 1e-14);
+        assert!(stats.sigma_hat[0][1].abs() < 1e-15);
+        // Every energy is 1/(16/31 + ε) or 4/(64/31 + ε); both ≈ 31/16 = 1.9375.
+        let e1: f64 = 1.0 / (16.0 / 31.0 + 1e-6);
+        let e2: f64 = 4.0 / (64.0 / 31.0 + 1e-6);
+        assert!((stats.mu_e - 0.5 * (e1.min(e2) + e1.max(e2))).abs() < 1e-12);
+        assert!((stats.mu_e - 1.9375).abs() < 1e-5);
+    }
+
+    #[test]
+    fn too_few_rows_is_an_error() {
+        let err = stats_from_residuals(&cross_residuals()[..29]).expect_err("29 rows");
+        assert!(err.to_string().contains("29"), "{err}");
+    }
+
+    #[test]
+    fn fit_normal_stats_uses_only_normal_valid_rows() {
+        // A vehicle heading north at 1 m/s whose GNSS reports 1 m/s north plus a residual pattern;
+        // rows labelled 1 carry huge residuals that must be ignored, as must the invalid first row.
+        let metres_per_degree = crate::geo::EQUIRECTANGULAR_RADIUS_M.to_radians();
+        let pattern = [[1.0, 0.0], [-1.0, 0.0], [0.0, 2.0], [0.0, -2.0]];
+        let mut records = Vec::new();
+        let (mut east, mut north) = (0.0, 0.0);
+        for i in 0..80u32 {
+            let attack = i >= 60;
+            let r = if attack {
+                [500.0, 0.0]
+            } else {
+                pattern[(i as usize) % 4]
+            };
+            if i > 0 {
+                east += r[0];
+                north += 1.0 + r[1];
+            }
+            let lat = north / metres_per_degree;
+            let lon = east / metres_per_degree; // cos(0°) = 1 at the equator
+            records.push(Record {
+                sample: Sample::new(f64::from(i), lat, lon, 1.0, 0.0),
+                label: Some(attack),
+                comparator_alarm: None,
+                line: u64::from(i) + 2,
+                trajectory_break: false,
+            });
+        }
+        let track = Track {
+            vehicle_id: "v".into(),
+            records,
+        };
+        let stats = fit_normal_stats(&[track], Projection::Equirectangular).expect("59 rows");
+        // Rows 1..=59: pattern index 1,2,3,0,… → 15 × (−1,0), 15 × (0,2), 15 × (0,−2), 14 × (1,0).
+        assert_eq!(stats.rows, 59);
+        let n: f64 = 59.0;
+        let mean_e = (14.0 - 15.0) / n;
+        let mean_n = (30.0 - 30.0) / n;
+        let var_e = (14.0 * (1.0 - mean_e).powi(2)
+            + 15.0 * (-1.0 - mean_e).powi(2)
+            + 30.0 * mean_e.powi(2))
+            / (n - 1.0);
+        let var_n = (30.0 * 4.0 + 29.0 * mean_n.powi(2)) / (n - 1.0);
+        assert!((stats.sigma_hat[0][0] - var_e).abs() < 1e-9, "{stats:?}");
+        assert!((stats.sigma_hat[1][1] - var_n).abs() < 1e-9, "{stats:?}");
+        assert!(stats.sigma_hat[0][1].abs() < 1e-9, "{stats:?}");
+    }
+}
