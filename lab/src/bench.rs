@@ -11,7 +11,7 @@ use spoofwatch_client::connection::{ConnectOptions, Connection};
 use spoofwatch_server::inprocess::InProcessServer;
 
 pub async fn run(args: Args) -> Result<()> {
-    if args.server.is_some() {
+    if args.server.server.is_some() {
         bench::run(args).await
     } else if args.handoff > 0 {
         handoff_in_process(&args).await

@@ -8,7 +8,7 @@ use spoofwatch_client::connection::ConnectOptions;
 use spoofwatch_server::inprocess::InProcessServer;
 
 pub async fn run(args: Args) -> Result<()> {
-    if args.server.is_some() {
+    if args.server.server.is_some() {
         return demo::run(args).await;
     }
     let (track, attack) = drive::scenario(args.seed, args.drift)?;

@@ -22,6 +22,28 @@ pub struct ServerArgs {
     pub transport: TransportArgs,
 }
 
+/// A server that `demo` and `bench` may be given: without one the operator's binary refuses and
+/// the research binary starts one in-process.
+#[derive(Debug, Clone, clap::Args)]
+pub struct OptionalServerArgs {
+    /// Run against this server; without it `spoofwatch-lab` starts one in-process (temporary
+    /// database). Deliberately not read from SPOOFWATCH_SERVER.
+    #[arg(long)]
+    pub server: Option<String>,
+    /// Bearer token for --server.
+    #[arg(long, env = "SPOOFWATCH_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    #[command(flatten)]
+    pub transport: TransportArgs,
+}
+
+impl OptionalServerArgs {
+    /// Connection options for --server.
+    pub fn options(&self) -> ConnectOptions {
+        self.transport.options(self.token.clone())
+    }
+}
+
 /// TLS files and compression of a connection (shared by every command that takes `--server`).
 #[derive(Debug, Clone, Default, clap::Args)]
 pub struct TransportArgs {

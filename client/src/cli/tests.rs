@@ -263,7 +263,7 @@ fn bench_has_documented_defaults_and_bounds() {
     };
     assert_eq!(args.streams, vec![1, 100, 1000]);
     assert_eq!((args.batch, args.seconds, args.sessions), (10, 5.0, 10_000));
-    assert_eq!((args.server, args.server_pid), (None, None));
+    assert_eq!((args.server.server, args.server_pid), (None, None));
 
     let Ok(Command::Bench(args)) = parse(&[
         "bench",

@@ -20,9 +20,10 @@ use spoofwatch_core::sample::Track;
 use spoofwatch_core::train::detector::TrainingData;
 use spoofwatch_core::train::spec::{KappaRho, Recipe, TrainingSpec};
 
+use super::common::{CommonArgs, prepare, seed_list};
 use super::parallel::{default_threads, map_parallel};
 use super::plots;
-use super::{CommonArgs, prepare, seed_list, with_injections};
+use super::training_attacks::with_injections;
 use crate::figures;
 use spoofwatch_core::model::artifact::ModelArtifact;
 

@@ -1,4 +1,4 @@
-//! The "subtle" experiment of SPEC §9 and issue #8: detection of slow drifts on realistic simulated
+//! The "subtle" experiment of SPEC §9: detection of slow drifts on realistic simulated
 //! drives (onboard sensor errors, multipath, GNSS outages, 1–30 m/s, 1–10 Hz) at ≤ 1 false alarm per
 //! attack-free hour, for HO-LLN with the v2 and the paper's evidence, the directional GLR and CUSUM;
 //! and the training mix of the bundled default model (Dataset-2's training part plus randomised
@@ -29,85 +29,17 @@ use spoofwatch_core::model::{Ablation, FeatureGroups};
 use spoofwatch_core::rng::Rng;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{
-    AttackDuration, AttackKind, AttackSpec, DriveDistribution, InjectedTrack, Outages,
-    ScenarioPlan, generate, inject, simulate_drive,
+    AttackKind, AttackSpec, DriveDistribution, InjectedTrack, Outages, inject, simulate_drive,
 };
 use spoofwatch_core::train::TrainConfig;
 use spoofwatch_core::train::detector::TrainingData;
 use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
 
+use super::common::{CommonArgs, prepare, seed_list};
 use super::parallel::{default_threads, map_parallel};
 use super::plots;
-use super::{CommonArgs, prepare, seed_list, with_injections};
+use super::training_attacks::with_injections;
 use crate::figures::{Panel, Series, line_chart_svg};
-
-/// Attacks injected into training (and, in the subtle experiment, validation) data: magnitudes a
-/// metre-level GNSS/odometry residual can reveal, so the labels are learnable.
-const TRAINING_KINDS: [AttackKind; 7] = [
-    AttackKind::RampDrift { velocity_mps: 0.5 },
-    AttackKind::RampDrift { velocity_mps: 1.0 },
-    AttackKind::RampDrift { velocity_mps: 2.0 },
-    AttackKind::AcceleratingDrift {
-        acceleration_mps2: 0.05,
-    },
-    AttackKind::AcceleratingDrift {
-        acceleration_mps2: 0.2,
-    },
-    AttackKind::FrozenPosition,
-    AttackKind::Jump { offset_m: 30.0 },
-];
-
-/// Length of the pieces normal tracks are cut into before injection, and of each attack (s).
-const TRAINING_PIECE_S: f64 = 300.0;
-const TRAINING_ATTACK_S: f64 = 90.0;
-
-/// Cuts tracks into consecutive pieces of about `piece_s` seconds (shorter remainders are dropped).
-fn pieces(tracks: &[Track], piece_s: f64) -> Vec<Track> {
-    let mut out = Vec::new();
-    for track in tracks {
-        let mut start = 0;
-        for (i, r) in track.records.iter().enumerate() {
-            let t0 = track.records[start].sample.timestamp_s;
-            if r.sample.timestamp_s - t0 >= piece_s {
-                let mut records = track.records[start..i].to_vec();
-                records[0].trajectory_break = true;
-                out.push(Track {
-                    vehicle_id: format!("{}@{}", track.vehicle_id, out.len()),
-                    records,
-                });
-                start = i;
-            }
-        }
-    }
-    out
-}
-
-fn is_normal(track: &Track) -> bool {
-    track.records.iter().all(|r| r.label != Some(true))
-}
-
-/// Labelled copies of the normal tracks' pieces, every training attack kind injected into each piece
-/// (random onset and direction), for training.
-pub fn training_injections(tracks: &[Track], seed: u64) -> Result<Vec<Track>> {
-    let normal: Vec<Track> = tracks.iter().filter(|t| is_normal(t)).cloned().collect();
-    let bases = pieces(&normal, TRAINING_PIECE_S);
-    let mut out = Vec::new();
-    for (i, base) in bases.iter().enumerate() {
-        let plan = ScenarioPlan {
-            kinds: TRAINING_KINDS.to_vec(),
-            directions_deg: Vec::new(),
-            duration: AttackDuration::Seconds(TRAINING_ATTACK_S),
-            onset_s: None,
-            margin_fraction: 0.15,
-            repeats: 1,
-            seed: seed.wrapping_add(i as u64),
-        };
-        let injected = generate(std::slice::from_ref(base), &plan)
-            .with_context(|| format!("injecting a training attack into {}", base.vehicle_id))?;
-        out.extend(injected.into_iter().map(|i| i.track));
-    }
-    Ok(out)
-}
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -186,7 +118,7 @@ const ONSET_RANGE_S: (f64, f64) = (360.0, 660.0);
 pub(super) const ATTACK_S: f64 = 120.0;
 /// Detection windows of the report (s).
 const WITHIN_S: [f64; 2] = [30.0, 60.0];
-/// The false-alarm budget of issue #8: at most one false alarm per attack-free hour.
+/// The false-alarm budget of the subtle experiment: at most one false alarm per attack-free hour.
 pub(super) const FALSE_ALARM_BUDGET_PER_HOUR: f64 = 1.0;
 /// Every detector's operating-point rule.
 pub(super) const BUDGET: OperatingPointRule = OperatingPointRule::WithinFalseAlarmBudget {

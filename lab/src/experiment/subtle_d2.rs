@@ -1,4 +1,4 @@
-//! `experiment subtle-d2` (issue #8): ramps injected into Dataset-2's real normal trajectories,
+//! `spoofwatch-lab experiment subtle-d2`: ramps injected into Dataset-2's real normal trajectories,
 //! cross-validated by trajectory. Each fold holds one normal trajectory out as the test drive and
 //! trains on the rest of Dataset-2 plus the subtle experiment's simulated mix, exactly as the
 //! bundled default is trained; the operating point is chosen within the same false-alarm budget.
@@ -20,12 +20,13 @@ use spoofwatch_core::train::data::trajectory_ranges;
 use spoofwatch_core::train::detector::TrainingData;
 use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
 
+use super::common::{CommonArgs, load_avgps};
 use super::parallel::{default_threads, map_parallel};
 use super::subtle::{
     ATTACK_S, DetectorReport, FALSE_ALARM_BUDGET_PER_HOUR, Population, TestSet, comparator_reports,
     simulated_mix, within_budget,
 };
-use super::{CommonArgs, load_avgps, with_injections};
+use super::training_attacks::{is_normal, with_injections};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -68,10 +69,6 @@ fn duration_s(track: &Track) -> f64 {
         (Some(first), Some(last)) => last.sample.timestamp_s - first.sample.timestamp_s,
         _ => 0.0,
     }
-}
-
-fn is_normal(track: &Track) -> bool {
-    track.records.iter().all(|r| r.label != Some(true))
 }
 
 /// Splits a track at `share` of its rows; the second part starts a trajectory.

@@ -29,7 +29,7 @@ use spoofwatch_proto::v1;
 use tokio::sync::{Barrier, Semaphore};
 
 use super::detect::parse_batch;
-use crate::cli::server_flags::TransportArgs;
+use crate::cli::server_flags::OptionalServerArgs;
 
 mod handoff;
 
@@ -43,16 +43,8 @@ const MAX_SESSIONS: u32 = 100_000;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Benchmark this server; without it `spoofwatch-lab bench` starts one in-process (temporary
-    /// database).
-    /// Deliberately not read from SPOOFWATCH_SERVER.
-    #[arg(long)]
-    pub server: Option<String>,
-    /// Bearer token for --server.
-    #[arg(long, env = "SPOOFWATCH_TOKEN", hide_env_values = true)]
-    pub token: Option<String>,
     #[command(flatten)]
-    pub transport: TransportArgs,
+    pub server: OptionalServerArgs,
     /// Concurrent stream counts, one throughput phase each.
     #[arg(long, value_delimiter = ',', default_value = "1,100,1000",
           value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_STREAMS)))]
@@ -205,10 +197,10 @@ struct PhaseResult {
 
 /// The benchmark of `--server` (the hand-off phase with `--handoff`).
 pub async fn run(args: Args) -> Result<()> {
-    let Some(url) = args.server.as_deref() else {
+    let Some(url) = args.server.server.as_deref() else {
         return Err(super::needs_server("bench"));
     };
-    let options = args.transport.options(args.token.clone());
+    let options = args.server.options();
     if args.handoff > 0 {
         let Some(to) = args.handoff_to.as_deref() else {
             bail!("--handoff with --server needs --handoff-to (another replica)");

@@ -7,21 +7,14 @@
 use anyhow::Result;
 
 use super::detect::parse_rate;
-use crate::cli::server_flags::TransportArgs;
+use crate::cli::server_flags::OptionalServerArgs;
 
 pub mod drive;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Stream the drive to this server. Deliberately not read from SPOOFWATCH_SERVER: without it
-    /// `spoofwatch-lab demo` starts a server in-process.
-    #[arg(long)]
-    pub server: Option<String>,
-    /// Bearer token for --server.
-    #[arg(long, env = "SPOOFWATCH_TOKEN", hide_env_values = true)]
-    pub token: Option<String>,
     #[command(flatten)]
-    pub transport: TransportArgs,
+    pub server: OptionalServerArgs,
     /// Samples streamed per second (the drive is recorded at 1 Hz; 20 plays it 20× faster).
     #[arg(long, default_value_t = 20.0, value_parser = parse_rate)]
     pub rate: f64,
@@ -35,10 +28,10 @@ pub struct Args {
 
 /// The demo against `--server`.
 pub async fn run(args: Args) -> Result<()> {
-    let Some(url) = args.server.as_deref() else {
+    let Some(url) = args.server.server.as_deref() else {
         return Err(super::needs_server("demo"));
     };
     let (track, attack) = drive::scenario(args.seed, args.drift)?;
-    let options = args.transport.options(args.token.clone());
+    let options = args.server.options();
     drive::stream_drive(url, &options, &track, &attack, args.rate).await
 }
