@@ -11,7 +11,9 @@ use spoofwatch_core::sample::Track;
 
 use crate::figures;
 
+// No group of its own: the flattened operator `Args` already names one `Args`.
 #[derive(Debug, clap::Args)]
+#[group(skip)]
 pub struct Args {
     #[command(flatten)]
     evaluate: operator::Args,

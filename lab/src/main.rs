@@ -53,3 +53,13 @@ fn main() -> ExitCode {
     };
     exit::exit_code(result)
 }
+
+#[cfg(test)]
+mod tests {
+    use clap::CommandFactory;
+
+    #[test]
+    fn the_command_line_is_well_formed() {
+        super::Cli::command().debug_assert();
+    }
+}
