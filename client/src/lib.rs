@@ -4,19 +4,19 @@
 //! one gateway `StreamDetectFleet` call
 //! ([`FleetDetectStream`]), a resumable alarm feed ([`AlarmWatch`]), replay of recorded telemetry over it
 //! (failing over to a new stream when a server goes away: [`failover`]; its final rows: [`replay_log`])
-//! and its fleet summary ([`fleet`]), the SVG figures of the offline commands ([`figures`]), and the
-//! small helpers the `spoofwatch` CLI shares between its offline and remote commands.
+//! and its fleet summary ([`fleet`]), the small helpers the commands share (input, progress bars,
+//! metrics tables), and the commands themselves ([`cli`]).
 //!
-//! The `spoofwatch` binary (`main.rs`) adds the clap command line on top; nothing here depends on
-//! it. Nothing here depends on the server crate: only the binary's `demo` and in-process `bench`
-//! use `spoofwatch_server::inprocess` (feature `inprocess`, on by default).
+//! The `spoofwatch` binary (`main.rs`) only runs [`cli`]; the research binary (`spoofwatch-lab`)
+//! reuses [`cli`] and adds its own commands. Nothing here depends on the server crate, the learned
+//! baselines or a plotting library: the operator's binary links none of them.
 
 pub mod alarm_watch;
+pub mod cli;
 pub mod connection;
 pub mod detect_stream;
 pub mod error;
 pub mod failover;
-pub mod figures;
 pub mod fleet;
 pub mod fleet_stream;
 pub mod input;

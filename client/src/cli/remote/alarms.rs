@@ -1,0 +1,251 @@
+//! `spoofwatch alarms`: the fleet's confirmed alarms (AlarmService): `list` the stored ones as a
+//! table or JSON lines, `watch` onsets and ends as JSON lines, resuming after reconnects.
+//!
+//! It owns the command line and the JSON shape of an alarm; the resumable feed is the library's
+//! [`AlarmWatch`], tables come from `remote`.
+
+use std::io::Write;
+use std::time::Duration;
+
+use crate::alarm_watch::{AlarmWatch, WatchOptions};
+use crate::error::{describe_status, reply};
+use anyhow::{Context, Result};
+use serde_json::{Value, json};
+use spoofwatch_proto::v1;
+
+use super::{ResourceArgs, opt, print_table, time};
+use crate::cli::server_flags::ServerArgs;
+
+/// `spoofwatch alarms <command>` with the server flags.
+pub type Args = ResourceArgs<Command>;
+
+#[derive(Debug, clap::Subcommand)]
+pub enum Command {
+    /// List stored alarms in opening order.
+    List(ListArgs),
+    /// Print alarm onsets and ends as they happen, one JSON object per line, each with its
+    /// cursor; reconnects and resumes after the last cursor when the server is unavailable.
+    Watch(WatchArgs),
+}
+
+/// Which alarms `list` shows.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum StateArg {
+    /// Open and closed.
+    #[default]
+    Any,
+    /// Still on.
+    Open,
+    /// Ended.
+    Closed,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct ListArgs {
+    /// Only this vehicle.
+    #[arg(long)]
+    pub vehicle: Option<String>,
+    /// Only alarms raised by this model (`models/{id}` or `{id}`).
+    #[arg(long)]
+    pub model: Option<String>,
+    /// Only alarms whose onset (server time) is at or after this RFC 3339 time, e.g.
+    /// 2025-06-01T00:00:00Z.
+    #[arg(long, value_parser = parse_time)]
+    pub since: Option<prost_types::Timestamp>,
+    /// Only alarms whose onset (server time) is before this RFC 3339 time.
+    #[arg(long, value_parser = parse_time)]
+    pub until: Option<prost_types::Timestamp>,
+    /// Open, closed or any.
+    #[arg(long, value_enum, default_value_t)]
+    pub state: StateArg,
+    /// At most this many alarms (default: all).
+    #[arg(long)]
+    pub limit: Option<usize>,
+    /// One JSON object per line instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct WatchArgs {
+    /// Only this vehicle's events.
+    #[arg(long)]
+    pub vehicle: Option<String>,
+    /// First replay every event after this cursor (0: every stored event); default: only new
+    /// events. Each printed line carries its cursor; pass the last one to resume.
+    #[arg(long, value_parser = clap::value_parser!(i64).range(0..))]
+    pub after: Option<i64>,
+    /// Keep reconnecting for this many seconds while the server is unavailable (0: never).
+    #[arg(long, default_value_t = 300.0, value_parser = parse_seconds)]
+    pub reconnect_for: f64,
+    /// Stop after this many onsets and ends (default: never).
+    #[arg(long)]
+    pub count: Option<u64>,
+    /// Stop once caught up (after the `caught_up` line): print what happened after `--after`
+    /// and exit.
+    #[arg(long)]
+    pub until_caught_up: bool,
+}
+
+/// Seconds: finite and >= 0.
+fn parse_seconds(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(seconds) if seconds.is_finite() && seconds >= 0.0 => Ok(seconds),
+        _ => Err(format!("must be a number of seconds >= 0, got {text:?}")),
+    }
+}
+
+/// An RFC 3339 time.
+fn parse_time(text: &str) -> Result<prost_types::Timestamp, String> {
+    text.parse()
+        .map_err(|_| format!("{text:?} is not an RFC 3339 time such as 2025-06-01T12:00:00Z"))
+}
+
+pub async fn run(args: Args) -> Result<()> {
+    match args.command {
+        Command::List(list) => run_list(&args.server, list).await,
+        Command::Watch(watch) => run_watch(&args.server, watch).await,
+    }
+}
+
+/// The ListAlarms request of `args` (first page).
+pub fn list_request(args: &ListArgs) -> v1::ListAlarmsRequest {
+    let state = match args.state {
+        StateArg::Any => v1::AlarmStateFilter::Unspecified,
+        StateArg::Open => v1::AlarmStateFilter::Open,
+        StateArg::Closed => v1::AlarmStateFilter::Closed,
+    };
+    v1::ListAlarmsRequest {
+        vehicle_id: args.vehicle.clone().unwrap_or_default(),
+        model: args.model.clone().unwrap_or_default(),
+        onset_after: args.since,
+        onset_before: args.until,
+        state: state as i32,
+        page_size: 0,
+        page_token: String::new(),
+    }
+}
+
+async fn run_list(server: &ServerArgs, args: ListArgs) -> Result<()> {
+    let connection = server.connect().await?;
+    let mut client = connection.alarms();
+    let limit = args.limit.unwrap_or(usize::MAX);
+    let mut request = list_request(&args);
+    let mut alarms = Vec::new();
+    while alarms.len() < limit {
+        let page = reply("listing alarms", client.list_alarms(request.clone())).await?;
+        alarms.extend(page.alarms);
+        if page.next_page_token.is_empty() {
+            break;
+        }
+        request.page_token = page.next_page_token;
+    }
+    alarms.truncate(limit);
+    if args.json {
+        let mut out = std::io::stdout().lock();
+        for alarm in &alarms {
+            writeln!(out, "{}", alarm_json(alarm))?;
+        }
+        return Ok(());
+    }
+    print_table(
+        &[
+            "id", "vehicle", "model", "onset", "end", "onset_s", "end_s", "peak", "samples",
+            "state",
+        ],
+        &alarms,
+        |a| {
+            vec![
+                a.id.to_string(),
+                a.vehicle_id.clone(),
+                a.model.clone(),
+                time(a.onset_time.as_ref()),
+                time(a.end_time.as_ref()),
+                format!("{:.1}", a.onset_timestamp_s),
+                opt(a.end_timestamp_s, 1),
+                format!("{:.3}", a.peak_probability),
+                a.samples.to_string(),
+                if a.open { "open" } else { "closed" }.to_string(),
+            ]
+        },
+    );
+    Ok(())
+}
+
+async fn run_watch(server: &ServerArgs, args: WatchArgs) -> Result<()> {
+    let connection = server.connect().await?;
+    let options = WatchOptions {
+        vehicle_id: args.vehicle.clone().unwrap_or_default(),
+        after_cursor: args.after,
+        reconnect_for: Duration::from_secs_f64(args.reconnect_for),
+    };
+    let mut watch =
+        AlarmWatch::new(connection, options).with_reconnect_notice(Box::new(|status, cursor| {
+            eprintln!(
+                "watch ended ({}); reconnecting{}",
+                describe_status(status),
+                resume_hint(cursor)
+            );
+        }));
+    let mut events = 0;
+    let mut out = std::io::stdout().lock();
+    while args.count.is_none_or(|count| events < count) {
+        let next = tokio::select! {
+            next = watch.next() => next,
+            _ = tokio::signal::ctrl_c() => {
+                eprintln!("stopped{}", resume_hint(watch.cursor()));
+                return Ok(());
+            }
+        };
+        let event =
+            next.with_context(|| format!("the watch ended{}", resume_hint(watch.cursor())))?;
+        let caught_up = event.kind == v1::AlarmEventKind::CaughtUp as i32;
+        if !caught_up {
+            events += 1;
+        }
+        writeln!(out, "{}", event_json(&event))?;
+        out.flush()?;
+        if caught_up && args.until_caught_up {
+            break;
+        }
+    }
+    Ok(())
+}
+
+/// `; resume with --after N` when there is a cursor.
+fn resume_hint(cursor: Option<i64>) -> String {
+    cursor.map_or_else(String::new, |c| format!("; resume with --after {c}"))
+}
+
+/// An alarm as one JSON object (the shape `list --json` and `watch` print).
+pub fn alarm_json(alarm: &v1::Alarm) -> Value {
+    let time = |t: Option<&prost_types::Timestamp>| t.map(ToString::to_string);
+    json!({
+        "id": alarm.id,
+        "vehicle_id": alarm.vehicle_id,
+        "model": alarm.model,
+        "onset_timestamp_s": alarm.onset_timestamp_s,
+        "end_timestamp_s": alarm.end_timestamp_s,
+        "onset_time": time(alarm.onset_time.as_ref()),
+        "end_time": time(alarm.end_time.as_ref()),
+        "peak_probability": alarm.peak_probability,
+        "samples": alarm.samples,
+        "open": alarm.open,
+    })
+}
+
+/// A watch event as one JSON object: `cursor`, `kind` (`onset`, `end`, `caught_up`) and, except
+/// for `caught_up`, the `alarm`.
+pub fn event_json(event: &v1::AlarmEvent) -> Value {
+    let kind = match v1::AlarmEventKind::try_from(event.kind) {
+        Ok(v1::AlarmEventKind::Onset) => "onset",
+        Ok(v1::AlarmEventKind::End) => "end",
+        Ok(v1::AlarmEventKind::CaughtUp) => "caught_up",
+        _ => "unknown",
+    };
+    let mut value = json!({"cursor": event.cursor, "kind": kind});
+    if let Some(alarm) = &event.alarm {
+        value["alarm"] = alarm_json(alarm);
+    }
+    value
+}

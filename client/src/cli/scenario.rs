@@ -1,0 +1,312 @@
+//! `spoofwatch scenario`: labelled subtle-attack scenarios in the telemetry CSV format.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use clap::ValueEnum;
+use spoofwatch_core::data::telemetry::write_tracks;
+use spoofwatch_core::sample::Track;
+use spoofwatch_core::scenario::{
+    AttackDuration, AttackKind, AttackSpec, DriveDistribution, DriveSpec, InjectedTrack,
+    RAMP_SWEEP_VELOCITIES_MPS, ScenarioPlan, generate, inject, normal_runs, simulate_drive,
+};
+
+use crate::cli::json::write_json;
+use crate::input::load_tracks;
+
+#[derive(Debug, clap::Subcommand)]
+pub enum Command {
+    /// Simulated drives (kinematically consistent truth, metre-level GNSS noise), optionally attacked.
+    Simulate(SimulateArgs),
+    /// One attack injected into the normal stretches of recorded data.
+    Inject(InjectArgs),
+    /// A sweep of attacks (default: ramp drifts at 0.05–2 m/s) injected into recorded or simulated bases.
+    Sweep(SweepArgs),
+}
+
+/// Attack family.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum KindArg {
+    /// Offset growing at a constant velocity (magnitude: m/s, 0.05–2).
+    Ramp,
+    /// Offset growing with constant acceleration (magnitude: m/s², 0.01–0.5).
+    Accel,
+    /// GNSS position frozen at the onset fix (no magnitude).
+    Frozen,
+    /// Constant offset from the onset (magnitude: metres).
+    Jump,
+    /// Teleports every `--hold` seconds up to `--magnitude` metres from the onset fix, frozen between.
+    Hop,
+}
+
+fn kind(family: KindArg, magnitude: Option<f64>, hold_s: f64) -> Result<AttackKind> {
+    let need = |what: &str| {
+        magnitude.with_context(|| format!("--magnitude is required for {what} attacks"))
+    };
+    Ok(match family {
+        KindArg::Ramp => AttackKind::RampDrift {
+            velocity_mps: need("ramp")?,
+        },
+        KindArg::Accel => AttackKind::AcceleratingDrift {
+            acceleration_mps2: need("accel")?,
+        },
+        KindArg::Frozen => AttackKind::FrozenPosition,
+        KindArg::Jump => AttackKind::Jump {
+            offset_m: need("jump")?,
+        },
+        KindArg::Hop => AttackKind::Hopping {
+            offset_m: need("hop")?,
+            hold_s,
+        },
+    })
+}
+
+/// Where the attack goes and what it looks like.
+#[derive(Debug, clap::Args)]
+pub struct AttackArgs {
+    /// Attack family.
+    #[arg(long, value_enum)]
+    attack: KindArg,
+    /// Attack magnitude (m/s for ramp, m/s² for accel, m for jump and hop).
+    #[arg(long)]
+    magnitude: Option<f64>,
+    /// Seconds between the hops of a hop attack.
+    #[arg(long, default_value_t = 4.0)]
+    hold: f64,
+    /// Direction of the false displacement, degrees clockwise from north.
+    #[arg(long, default_value_t = 90.0)]
+    direction: f64,
+    /// Attack onset, seconds after each base's first sample.
+    #[arg(long)]
+    onset: f64,
+    /// Attack duration in seconds.
+    #[arg(long, default_value_t = 60.0)]
+    duration: f64,
+}
+
+impl AttackArgs {
+    fn spec(&self) -> Result<AttackSpec> {
+        let spec = AttackSpec {
+            kind: kind(self.attack, self.magnitude, self.hold)?,
+            direction_deg: self.direction,
+            onset_s: self.onset,
+            duration_s: self.duration,
+            seed: None,
+        };
+        spec.validate()?;
+        Ok(spec)
+    }
+}
+
+#[derive(Debug, clap::Args)]
+pub struct SimulateArgs {
+    /// Output telemetry CSV.
+    #[arg(long)]
+    out: PathBuf,
+    /// Number of vehicles (one drive each, seeds seed, seed+1, …).
+    #[arg(long, default_value_t = 1)]
+    vehicles: u64,
+    /// Drive length in seconds.
+    #[arg(long, default_value_t = 600.0)]
+    duration: f64,
+    /// Output sample rate in Hz (the default drive; refused with --realistic, which draws the rate).
+    #[arg(long, default_value_t = 1.0, conflicts_with = "realistic")]
+    rate: f64,
+    /// Draw each vehicle's drive from the realistic distribution (1–30 m/s, 1–10 Hz, varied GNSS noise,
+    /// onboard scale/bias/timing errors, multipath, outages in half the drives) with seed+i. Outages are
+    /// missing rows; an --attack window that spans one is refused.
+    #[arg(long)]
+    realistic: bool,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Optionally attack every drive (see `inject`).
+    #[arg(long, requires = "onset")]
+    attack: Option<KindArg>,
+    #[arg(long)]
+    magnitude: Option<f64>,
+    #[arg(long, default_value_t = 4.0)]
+    hold: f64,
+    #[arg(long, default_value_t = 90.0)]
+    direction: f64,
+    #[arg(long)]
+    onset: Option<f64>,
+    #[arg(long, default_value_t = 60.0)]
+    attack_duration: f64,
+    /// Also write the attacks (onset, direction, magnitude, rows) as JSON.
+    #[arg(long)]
+    manifest: Option<PathBuf>,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct InjectArgs {
+    /// Recorded data; its normal (label 0 or unlabelled) stretches are the bases.
+    #[arg(long, required = true, num_args = 1..)]
+    data: Vec<PathBuf>,
+    /// Output telemetry CSV.
+    #[arg(long)]
+    out: PathBuf,
+    #[command(flatten)]
+    attack: AttackArgs,
+    /// Also write the attacks as JSON.
+    #[arg(long)]
+    manifest: Option<PathBuf>,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct SweepArgs {
+    /// Recorded data whose normal stretches are bases (optional).
+    #[arg(long, num_args = 1..)]
+    data: Vec<PathBuf>,
+    /// Simulated drives added as bases.
+    #[arg(long, default_value_t = 0)]
+    drives: u64,
+    /// Length of each simulated drive (s).
+    #[arg(long, default_value_t = 600.0)]
+    drive_duration: f64,
+    /// Ramp-drift velocities (m/s), comma-separated.
+    #[arg(long, value_delimiter = ',', default_values_t = RAMP_SWEEP_VELOCITIES_MPS)]
+    velocities: Vec<f64>,
+    /// Attack duration (s).
+    #[arg(long, default_value_t = 60.0)]
+    duration: f64,
+    /// Scenarios per (base, velocity), with random onsets and directions.
+    #[arg(long, default_value_t = 1)]
+    repeats: usize,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Output telemetry CSV.
+    #[arg(long)]
+    out: PathBuf,
+    /// Also write the attacks as JSON.
+    #[arg(long)]
+    manifest: Option<PathBuf>,
+}
+
+pub fn run(cmd: Command) -> Result<()> {
+    match cmd {
+        Command::Simulate(args) => simulate(args),
+        Command::Inject(args) => inject_into_data(args),
+        Command::Sweep(args) => sweep(args),
+    }
+}
+
+/// Drives `sim0`, `sim1`, … with the specs `spec_of(seed)`, `spec_of(seed + 1)`, ….
+fn drives(count: u64, seed: u64, spec_of: impl Fn(u64) -> DriveSpec) -> Result<Vec<Track>> {
+    (0..count)
+        .map(|k| {
+            let vehicle_id = format!("sim{k}");
+            simulate_drive(&spec_of(seed.wrapping_add(k)), &vehicle_id)
+                .with_context(|| format!("simulating {vehicle_id}"))
+        })
+        .collect()
+}
+
+fn normal_bases(paths: &[PathBuf]) -> Result<Vec<Track>> {
+    Ok(load_tracks(paths)?.iter().flat_map(normal_runs).collect())
+}
+
+fn simulate(args: SimulateArgs) -> Result<()> {
+    let duration_s = args.duration;
+    let bases = if args.realistic {
+        let distribution = DriveDistribution::realistic();
+        drives(args.vehicles, args.seed, |seed| DriveSpec {
+            duration_s,
+            ..distribution.draw(seed)
+        })?
+    } else {
+        drives(args.vehicles, args.seed, |seed| DriveSpec {
+            duration_s,
+            rate_hz: args.rate,
+            seed,
+            ..DriveSpec::default()
+        })?
+    };
+    let (tracks, injected) = match (args.attack, args.onset) {
+        (Some(family), Some(onset)) => {
+            let spec = AttackArgs {
+                attack: family,
+                magnitude: args.magnitude,
+                hold: args.hold,
+                direction: args.direction,
+                onset,
+                duration: args.attack_duration,
+            }
+            .spec()?;
+            let injected = inject_all(&bases, &spec)?;
+            (injected.iter().map(|i| i.track.clone()).collect(), injected)
+        }
+        _ => (bases, Vec::new()),
+    };
+    write_output(&args.out, &tracks, &injected, args.manifest.as_ref())
+}
+
+fn inject_all(bases: &[Track], spec: &AttackSpec) -> Result<Vec<InjectedTrack>> {
+    bases
+        .iter()
+        .map(|b| inject(b, spec).with_context(|| format!("injecting into {}", b.vehicle_id)))
+        .collect()
+}
+
+fn inject_into_data(args: InjectArgs) -> Result<()> {
+    let spec = args.attack.spec()?;
+    let bases = normal_bases(&args.data)?;
+    let injected = inject_all(&bases, &spec)?;
+    let tracks: Vec<Track> = injected.iter().map(|i| i.track.clone()).collect();
+    write_output(&args.out, &tracks, &injected, args.manifest.as_ref())
+}
+
+fn sweep(args: SweepArgs) -> Result<()> {
+    let mut bases = normal_bases(&args.data)?;
+    bases.extend(drives(args.drives, args.seed, |seed| DriveSpec {
+        duration_s: args.drive_duration,
+        seed,
+        ..DriveSpec::default()
+    })?);
+    if bases.is_empty() {
+        bail!("no bases: give --data with normal rows and/or --drives N");
+    }
+    let plan = ScenarioPlan::ramp_sweep(
+        &args.velocities,
+        AttackDuration::Seconds(args.duration),
+        args.repeats,
+        args.seed,
+    );
+    let injected = generate(&bases, &plan).context("generating the sweep")?;
+    let tracks: Vec<Track> = injected.iter().map(|i| i.track.clone()).collect();
+    write_output(&args.out, &tracks, &injected, args.manifest.as_ref())
+}
+
+fn write_output(
+    out: &PathBuf,
+    tracks: &[Track],
+    injected: &[InjectedTrack],
+    manifest: Option<&PathBuf>,
+) -> Result<()> {
+    let file = std::fs::File::create(out).with_context(|| format!("creating {}", out.display()))?;
+    write_tracks(std::io::BufWriter::new(file), tracks)
+        .with_context(|| format!("writing {}", out.display()))?;
+    let rows: usize = tracks.iter().map(|t| t.records.len()).sum();
+    eprintln!(
+        "wrote {} vehicles, {rows} rows ({} attacked) to {}",
+        tracks.len(),
+        injected.len(),
+        out.display()
+    );
+    if let Some(path) = manifest {
+        let entries: Vec<_> = injected
+            .iter()
+            .map(|i| {
+                serde_json::json!({
+                    "vehicle_id": i.track.vehicle_id,
+                    "base_vehicle_id": i.base_vehicle_id,
+                    "attack": i.attack,
+                    "onset_timestamp_s": i.onset_timestamp_s(),
+                    "first_attack_row": i.first_attack_row,
+                    "last_attack_row": i.last_attack_row,
+                })
+            })
+            .collect();
+        write_json(path, &entries)?;
+    }
+    Ok(())
+}

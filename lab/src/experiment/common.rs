@@ -1,0 +1,68 @@
+//! What every experiment starts from: the common flags, the two AV-GPS recordings, the output
+//! directory and Dataset-2's chronological split (SPEC §9), and the seeds of a multi-seed run.
+//! It owns loading and splitting, not training or scoring.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use spoofwatch_client::input::load_file;
+use spoofwatch_core::sample::Track;
+use spoofwatch_core::train::data::{ChronologicalSplit, split_chronologically};
+use spoofwatch_core::train::spec::SplitFractions;
+use spoofwatch_core::train::{DEFAULT_MAX_EPOCHS, DEFAULT_SEED};
+
+/// Arguments every experiment takes.
+#[derive(Debug, clap::Args)]
+pub struct CommonArgs {
+    /// Directory holding AV-GPS-Dataset-2.csv and AV-GPS-Dataset-3.csv.
+    #[arg(long, env = "SPOOFWATCH_AVGPS_DIR")]
+    pub data_dir: PathBuf,
+    /// Output directory (model.json, report.md, report.json).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Training seed.
+    #[arg(long, default_value_t = DEFAULT_SEED)]
+    pub seed: u64,
+    /// Maximum epochs per model.
+    #[arg(long, default_value_t = DEFAULT_MAX_EPOCHS)]
+    pub epochs: u32,
+    /// Worker threads for independent work (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+}
+
+/// The two AV-GPS recordings the experiments use.
+pub struct AvGpsData {
+    pub dataset2: Vec<Track>,
+    pub dataset3: Vec<Track>,
+}
+
+/// Reads `AV-GPS-Dataset-2.csv` and `AV-GPS-Dataset-3.csv` from `dir`.
+pub fn load_avgps(dir: &Path) -> Result<AvGpsData> {
+    let file = |name: &str| -> PathBuf { dir.join(name) };
+    Ok(AvGpsData {
+        dataset2: load_file(&file("AV-GPS-Dataset-2.csv"))
+            .context("the AV-GPS data directory must hold AV-GPS-Dataset-2.csv")?,
+        dataset3: load_file(&file("AV-GPS-Dataset-3.csv"))
+            .context("the AV-GPS data directory must hold AV-GPS-Dataset-3.csv")?,
+    })
+}
+
+/// Creates the output directory.
+fn prepare_out(dir: &Path) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))
+}
+
+/// What every experiment starts from: both recordings (the output directory created) and Dataset-2
+/// split chronologically 70/15/15 (SPEC §9).
+pub fn prepare(common: &CommonArgs) -> Result<(AvGpsData, ChronologicalSplit)> {
+    let data = load_avgps(&common.data_dir)?;
+    prepare_out(&common.out)?;
+    let split = split_chronologically(&data.dataset2, SplitFractions::default());
+    Ok((data, split))
+}
+
+/// The training seeds of a multi-seed run: `first`, `first` + 1, ..., `count` of them.
+pub fn seed_list(first: u64, count: u64) -> Vec<u64> {
+    (0..count).map(|k| first.wrapping_add(k)).collect()
+}

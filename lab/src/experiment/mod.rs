@@ -1,0 +1,33 @@
+//! `spoofwatch-lab experiment`: the standard experiments of SPEC §9. This file owns their command
+//! line and dispatch; what they share lives in `common` (data loading, the chronological split) and
+//! `training_attacks` (injected training attacks). Training goes through core's `train_detector`
+//! like every other caller; this module must not fit or score detectors itself.
+
+mod avgps;
+mod common;
+mod parallel;
+mod plots;
+mod subtle;
+mod subtle_d2;
+mod training_attacks;
+
+use anyhow::Result;
+
+#[derive(Debug, clap::Subcommand)]
+pub enum Command {
+    /// Train on Dataset-2 (chronological 70/15/15), test on Dataset-2's test part and all of
+    /// Dataset-3; CUSUM, EKF, subtle-attack training and ablations side by side.
+    AvGps(avgps::Args),
+    /// Detection delay and ADR per subtle attack type and magnitude; false alarms per hour.
+    Subtle(subtle::Args),
+    /// Ramps injected into Dataset-2's real normal trajectories, cross-validated by trajectory.
+    SubtleD2(subtle_d2::Args),
+}
+
+pub fn run(cmd: Command) -> Result<()> {
+    match cmd {
+        Command::AvGps(args) => avgps::run(args),
+        Command::Subtle(args) => subtle::run(args),
+        Command::SubtleD2(args) => subtle_d2::run(args),
+    }
+}

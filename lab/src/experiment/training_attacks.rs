@@ -1,0 +1,81 @@
+//! The attacks injected into normal training (and validation) data of the experiments: which kinds,
+//! how the tracks are cut before injection, and the injected copies. It owns only that training
+//! mix, not the scenario generator (core's `scenario`).
+
+use anyhow::{Context, Result};
+use spoofwatch_core::sample::Track;
+use spoofwatch_core::scenario::{AttackDuration, AttackKind, ScenarioPlan, generate};
+
+/// Attacks injected into training (and, in the subtle experiment, validation) data: magnitudes a
+/// metre-level GNSS/odometry residual can reveal, so the labels are learnable.
+const TRAINING_KINDS: [AttackKind; 7] = [
+    AttackKind::RampDrift { velocity_mps: 0.5 },
+    AttackKind::RampDrift { velocity_mps: 1.0 },
+    AttackKind::RampDrift { velocity_mps: 2.0 },
+    AttackKind::AcceleratingDrift {
+        acceleration_mps2: 0.05,
+    },
+    AttackKind::AcceleratingDrift {
+        acceleration_mps2: 0.2,
+    },
+    AttackKind::FrozenPosition,
+    AttackKind::Jump { offset_m: 30.0 },
+];
+
+/// Length of the pieces normal tracks are cut into before injection, and of each attack (s).
+const TRAINING_PIECE_S: f64 = 300.0;
+const TRAINING_ATTACK_S: f64 = 90.0;
+
+/// Cuts tracks into consecutive pieces of about `piece_s` seconds (shorter remainders are dropped).
+fn pieces(tracks: &[Track], piece_s: f64) -> Vec<Track> {
+    let mut out = Vec::new();
+    for track in tracks {
+        let mut start = 0;
+        for (i, r) in track.records.iter().enumerate() {
+            let t0 = track.records[start].sample.timestamp_s;
+            if r.sample.timestamp_s - t0 >= piece_s {
+                let mut records = track.records[start..i].to_vec();
+                records[0].trajectory_break = true;
+                out.push(Track {
+                    vehicle_id: format!("{}@{}", track.vehicle_id, out.len()),
+                    records,
+                });
+                start = i;
+            }
+        }
+    }
+    out
+}
+
+/// Whether no row of `track` is labelled attacked.
+pub fn is_normal(track: &Track) -> bool {
+    track.records.iter().all(|r| r.label != Some(true))
+}
+
+/// Labelled copies of the normal tracks' pieces, every training attack kind injected into each piece
+/// (random onset and direction), for training.
+pub fn training_injections(tracks: &[Track], seed: u64) -> Result<Vec<Track>> {
+    let normal: Vec<Track> = tracks.iter().filter(|t| is_normal(t)).cloned().collect();
+    let bases = pieces(&normal, TRAINING_PIECE_S);
+    let mut out = Vec::new();
+    for (i, base) in bases.iter().enumerate() {
+        let plan = ScenarioPlan {
+            kinds: TRAINING_KINDS.to_vec(),
+            directions_deg: Vec::new(),
+            duration: AttackDuration::Seconds(TRAINING_ATTACK_S),
+            onset_s: None,
+            margin_fraction: 0.15,
+            repeats: 1,
+            seed: seed.wrapping_add(i as u64),
+        };
+        let injected = generate(std::slice::from_ref(base), &plan)
+            .with_context(|| format!("injecting a training attack into {}", base.vehicle_id))?;
+        out.extend(injected.into_iter().map(|i| i.track));
+    }
+    Ok(out)
+}
+
+/// `tracks` followed by copies of their normal pieces with injected subtle attacks.
+pub fn with_injections(tracks: &[Track], seed: u64) -> Result<Vec<Track>> {
+    Ok([tracks.to_vec(), training_injections(tracks, seed)?].concat())
+}
