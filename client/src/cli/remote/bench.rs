@@ -26,6 +26,7 @@ use crate::fleet_stream::FleetDetectStream;
 use crate::synthetic::LoopDriver;
 use anyhow::{Context, Result, bail};
 use spoofwatch_proto::v1;
+use spoofwatch_proto::wire::is_vehicle_id_char;
 use tokio::sync::{Barrier, Semaphore};
 
 use super::detect::parse_batch;
@@ -95,10 +96,8 @@ pub struct Args {
 
 /// A vehicle-id prefix: 1–64 characters that keep the ids valid (letters, digits, `-`, `_`, `.`, `:`).
 pub fn parse_prefix(text: &str) -> Result<String, String> {
-    let valid = (1..=64).contains(&text.len())
-        && text
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.' | ':'));
+    // The prefix starts every vehicle id of the run, so it follows the vehicle-id rule.
+    let valid = (1..=64).contains(&text.len()) && text.chars().all(is_vehicle_id_char);
     if valid {
         Ok(text.to_string())
     } else {
