@@ -1,6 +1,6 @@
 //! Detection: per-vehicle in-memory sessions ([`sessions`], the logic), with the pure decisions it
 //! carries out kept apart: alarm episodes ([`episodes`]) and where a new stream's session continues
-//! from ([`resume`]); the session snapshot ([`handoff`]); batch validation declared once
+//! from ([`resume`]); what a session knows ([`state`]) and its snapshot ([`handoff`]); batch validation declared once
 //! ([`validate`]) and the DetectionService RPCs ([`service`], the edge). Models come from `models`;
 //! alarm persistence goes through `store`.
 
@@ -9,6 +9,7 @@ mod handoff;
 mod resume;
 mod service;
 mod sessions;
+mod state;
 mod validate;
 
 pub use service::DetectionApi;

@@ -28,9 +28,10 @@ use spoofwatch_proto::wire::{ModelName, VehicleId};
 use tokio::sync::oneshot;
 use tokio_util::sync::CancellationToken;
 
-use super::episodes::{AlarmSignal, AlarmTrack, EpisodeChange};
+use super::episodes::{AlarmSignal, EpisodeChange};
 use super::handoff::{OpenAlarm, SNAPSHOT_SCHEMA, SessionSnapshot, SnapshotRefused};
-use super::resume::{Held, Origin, Resumption, Start};
+use super::resume::{Origin, Resumption, Start};
+use super::state::SessionState;
 use super::validate::validate_batch;
 use crate::models::{LoadedModel, Registry, RegistryError};
 use crate::outbox::SessionOutbox;
@@ -120,91 +121,6 @@ pub struct SessionLimits {
     pub idle: Duration,
     /// Most samples in one batch.
     pub max_batch_samples: usize,
-}
-
-/// Everything a session knows; guarded by the slot's async mutex (batches of a vehicle serialise).
-#[derive(Debug)]
-struct SessionState {
-    model: LoadedModel,
-    detector: Detector,
-    samples: u64,
-    trajectories: u32,
-    last_seq: u64,
-    last_timestamp_s: Option<f64>,
-    alarm: AlarmTrack,
-    /// Samples since the last snapshot, and when it was taken (monotonic, and wall ms).
-    since_snapshot: u64,
-    snapshot_taken: Instant,
-    snapshot_taken_ms: i64,
-}
-
-impl SessionState {
-    fn new(model: LoadedModel) -> Self {
-        Self {
-            detector: Detector::new(Arc::clone(&model.artifact)),
-            model,
-            samples: 0,
-            trajectories: 0,
-            last_seq: 0,
-            last_timestamp_s: None,
-            alarm: AlarmTrack::default(),
-            since_snapshot: 0,
-            snapshot_taken: Instant::now(),
-            snapshot_taken_ms: 0,
-        }
-    }
-
-    /// The session continuing from `snapshot` under `model` (the snapshot's model, checked).
-    fn restore(model: LoadedModel, snapshot: SessionSnapshot) -> Result<Self, SnapshotRefused> {
-        if snapshot.model_id != model.name.id() {
-            return Err(SnapshotRefused::Model {
-                snapshot: snapshot.model_id,
-                session: model.name.id().to_string(),
-            });
-        }
-        let detector = Detector::restore(Arc::clone(&model.artifact), snapshot.detector).map_err(
-            |reason| SnapshotRefused::Unfit {
-                model: model.name.to_string(),
-                reason,
-            },
-        )?;
-        Ok(Self {
-            detector,
-            samples: snapshot.samples,
-            trajectories: snapshot.trajectories,
-            last_seq: snapshot.last_seq,
-            last_timestamp_s: snapshot.last_timestamp_s,
-            alarm: AlarmTrack {
-                active: snapshot.alarm_active,
-                raised: snapshot.alarms_raised,
-                open: snapshot.open_alarm,
-            },
-            ..Self::new(model)
-        })
-    }
-
-    /// This session as a snapshot.
-    fn snapshot(&self) -> SessionSnapshot {
-        SessionSnapshot {
-            model_id: self.model.name.id().to_string(),
-            samples: self.samples,
-            trajectories: self.trajectories,
-            last_seq: self.last_seq,
-            last_timestamp_s: self.last_timestamp_s,
-            alarm_active: self.alarm.active,
-            alarms_raised: self.alarm.raised,
-            open_alarm: self.alarm.open.clone(),
-            detector: self.detector.save(),
-        }
-    }
-
-    /// What a new stream or batch under `model` finds this session to be.
-    fn held(&self) -> Held {
-        Held {
-            model: self.model.name.clone(),
-            snapshot_taken_ms: self.snapshot_taken_ms,
-        }
-    }
 }
 
 #[derive(Debug)]
