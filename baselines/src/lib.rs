@@ -271,6 +271,10 @@ impl Fitted {
         let table = RowTable::build(&self.evidence, self.baseline.input, data)?;
         let rows = self.model.scored_rows(table)?;
         let alarms = confirmed_alarms(&rows, self.operating_point);
-        Ok(Scored { rows, alarms })
+        Ok(Scored {
+            rows,
+            alarms,
+            offset: Vec::new(),
+        })
     }
 }

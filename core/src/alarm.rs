@@ -12,6 +12,7 @@ use std::ops::RangeInclusive;
 
 use serde::{Deserialize, Serialize};
 
+use crate::lifecycle::{AlarmLifecycle, Lifecycle, LifecycleInput, OffsetSignal};
 use crate::metrics::{self, EventRules, Metrics, MetricsError, ScoredRow};
 
 /// The alarm threshold θ on the score and the persistence N_p (consecutive valid steps).
@@ -115,6 +116,130 @@ fn fill_confirmed_alarms(rows: &[ScoredRow], op: OperatingPoint, alarms: &mut Ve
         let trajectory_start = i == 0 || rows[i - 1].trajectory != row.trajectory;
         alarms.push(persistence.update(row.score >= op.theta, row.valid, trajectory_start));
     }
+}
+
+/// T_on grid of the lifecycle search (s).
+pub const ON_S_GRID: [f64; 5] = [0.0, 1.0, 2.0, 4.0, 8.0];
+/// T_off grid (s).
+pub const OFF_S_GRID: [f64; 3] = [2.0, 5.0, 10.0];
+/// Grid of the seconds an offset must be held beyond the decisive gate (s).
+pub const DECISIVE_S_GRID: [f64; 4] = [1.0, 2.0, 3.0, 5.0];
+
+/// Confirmed alarms of `rows` under θ and `lifecycle`, with the offset evidence of each row
+/// (`offset` empty: none); a change of trajectory key starts a new trajectory. A NaN score is never
+/// positive.
+pub fn lifecycle_alarms(
+    rows: &[ScoredRow],
+    offset: &[OffsetSignal],
+    theta: f64,
+    lifecycle: &Lifecycle,
+) -> Vec<bool> {
+    let mut alarms = Vec::with_capacity(rows.len());
+    fill_lifecycle_alarms(rows, offset, theta, lifecycle, &mut alarms);
+    alarms
+}
+
+fn fill_lifecycle_alarms(
+    rows: &[ScoredRow],
+    offset: &[OffsetSignal],
+    theta: f64,
+    lifecycle: &Lifecycle,
+    alarms: &mut Vec<bool>,
+) {
+    alarms.clear();
+    let mut state = AlarmLifecycle::default();
+    for (i, row) in rows.iter().enumerate() {
+        alarms.push(state.update(
+            lifecycle,
+            &LifecycleInput {
+                time_s: row.time_s,
+                valid: row.valid,
+                trajectory_start: i == 0 || rows[i - 1].trajectory != row.trajectory,
+                positive: row.score >= theta,
+                offset: offset.get(i).copied().unwrap_or_default(),
+            },
+        ));
+    }
+}
+
+/// A chosen θ and lifecycle with the validation metrics they achieve.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LifecycleSelection {
+    /// θ (N_p is 1: the lifecycle replaces it).
+    pub point: OperatingPoint,
+    pub lifecycle: Lifecycle,
+    pub metrics: Metrics,
+}
+
+/// Chooses θ from `thetas` and the lifecycle from [`ON_S_GRID`] × [`OFF_S_GRID`] ×
+/// [`DECISIVE_S_GRID`] by `rule`, with the objective and tie-breaks of [`choose_operating_point`]
+/// (then the shorter T_on, the longer decisive hold and the shorter T_off).
+pub fn choose_lifecycle(
+    rows: &[ScoredRow],
+    offset: &[OffsetSignal],
+    thetas: &[f64],
+    rules: EventRules,
+    rule: OperatingPointRule,
+) -> Result<LifecycleSelection, AlarmError> {
+    let budget = rule.budget();
+    metrics::check_rows(rows)?;
+    if !rows.iter().any(|row| row.valid) {
+        return Err(AlarmError::NoValidRows);
+    }
+    if let Some(index) = thetas.iter().position(|theta| theta.is_nan()) {
+        return Err(AlarmError::NanThreshold { index });
+    }
+    if thetas.is_empty() {
+        return Err(AlarmError::EmptyGrid { thetas: 0, n_ps: 1 });
+    }
+    let normal_hours = metrics::normal_hours(rows);
+    let mut best: Option<(OperatingPoint, Lifecycle, Metrics)> = None;
+    let mut alarms = Vec::with_capacity(rows.len());
+    for &theta in thetas {
+        for on_s in ON_S_GRID {
+            for off_s in OFF_S_GRID {
+                for decisive_s in DECISIVE_S_GRID {
+                    let point = OperatingPoint { theta, n_p: 1 };
+                    let lifecycle = Lifecycle {
+                        on_s,
+                        off_s,
+                        decisive_s,
+                    };
+                    fill_lifecycle_alarms(rows, offset, theta, &lifecycle, &mut alarms);
+                    let candidate = metrics::alarm_metrics(rows, &alarms, rules);
+                    let within_budget = budget.is_none_or(|per_hour| {
+                        candidate.false_alarm_onsets as f64 <= per_hour * normal_hours
+                    });
+                    let improves = best.as_ref().is_none_or(|(b_point, b_life, b_metrics)| {
+                        compare_candidates((&point, &candidate), (b_point, b_metrics))
+                            .then(b_life.on_s.total_cmp(&lifecycle.on_s))
+                            .then(lifecycle.decisive_s.total_cmp(&b_life.decisive_s))
+                            .then(b_life.off_s.total_cmp(&lifecycle.off_s))
+                            == Ordering::Greater
+                    });
+                    if within_budget && improves {
+                        best = Some((point, lifecycle, candidate));
+                    }
+                }
+            }
+        }
+    }
+    let Some((point, lifecycle, _)) = best else {
+        return Err(AlarmError::OverBudget {
+            per_hour: budget.unwrap_or(f64::INFINITY),
+            normal_hours,
+        });
+    };
+    let metrics = metrics::evaluate(
+        rows,
+        &lifecycle_alarms(rows, offset, point.theta, &lifecycle),
+        rules,
+    );
+    Ok(LifecycleSelection {
+        point,
+        lifecycle,
+        metrics,
+    })
 }
 
 /// A chosen operating point with the validation metrics it achieves (AUROC/AUPRC included).

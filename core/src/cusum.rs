@@ -406,6 +406,7 @@ impl CusumComparator {
             scored.append(Scored {
                 rows: scored_rows(&rows, &steps),
                 alarms: steps.iter().map(|s| s.alarm).collect(),
+                offset: Vec::new(),
             });
         }
         scored

@@ -11,7 +11,10 @@ use std::sync::Arc;
 use serde::{Deserialize, Serialize};
 
 use crate::alarm::PersistenceAlarm;
+use crate::evidence::offset::DECISIVE_GATE;
 use crate::evidence::{DriftChannelsDiffer, Evidence, EvidenceBuilder, Features};
+use crate::explain::Explanation;
+use crate::lifecycle::{AlarmLifecycle, LifecycleInput, OffsetSignal};
 use crate::model::artifact::ModelArtifact;
 use crate::model::{LiquidState, StepScratch};
 use crate::sample::{Record, Sample};
@@ -32,6 +35,8 @@ pub struct Decision {
     pub alarm_onset: bool,
     /// The confirmed alarm ended at this sample (1 → 0).
     pub alarm_end: bool,
+    /// Why: the dominant evidence, the offset from the anchor and the drift rate.
+    pub explanation: Explanation,
 }
 
 thread_local! {
@@ -50,6 +55,7 @@ pub struct Detector {
     evidence: EvidenceBuilder,
     state: LiquidState,
     alarm: PersistenceAlarm,
+    lifecycle: AlarmLifecycle,
     alarm_on: bool,
 }
 
@@ -59,6 +65,7 @@ impl Detector {
             evidence: EvidenceBuilder::new(artifact.evidence),
             state: LiquidState::zeros(artifact.model.config()),
             alarm: PersistenceAlarm::new(artifact.operating_point.n_p),
+            lifecycle: AlarmLifecycle::default(),
             alarm_on: false,
             artifact,
         }
@@ -78,9 +85,21 @@ impl Detector {
                 .step(&mut self.state, &features, evidence.delta_t, scratch)
         });
         let positive = probability >= self.artifact.operating_point.theta;
-        let alarm = self
-            .alarm
-            .update(positive, evidence.valid, evidence.trajectory_start);
+        let alarm = match &self.artifact.lifecycle {
+            Some(lifecycle) => self.lifecycle.update(
+                lifecycle,
+                &LifecycleInput {
+                    time_s: sample.timestamp_s,
+                    valid: evidence.valid,
+                    trajectory_start: evidence.trajectory_start,
+                    positive,
+                    offset: offset_signal(&evidence),
+                },
+            ),
+            None => self
+                .alarm
+                .update(positive, evidence.valid, evidence.trajectory_start),
+        };
         let decision = Decision {
             evidence,
             features,
@@ -89,10 +108,21 @@ impl Detector {
             alarm,
             alarm_onset: alarm && !self.alarm_on,
             alarm_end: !alarm && self.alarm_on,
+            explanation: Explanation::of(&evidence, positive),
         };
         self.alarm_on = alarm;
         decision
     }
+}
+
+/// The lifecycle's reading of the offset evidence (nothing without offset channels).
+pub fn offset_signal(evidence: &Evidence) -> OffsetSignal {
+    evidence
+        .offset
+        .map_or(OffsetSignal::default(), |o| OffsetSignal {
+            held_s: (o.max_nis() >= DECISIVE_GATE).then_some(o.held_s),
+            displaced: o.displaced(),
+        })
 }
 
 /// Everything a [`Detector`] carries from one sample to the next, without the model: evidence
@@ -103,6 +133,8 @@ pub struct DetectorState {
     evidence: EvidenceBuilder,
     liquid: LiquidState,
     alarm: PersistenceAlarm,
+    #[serde(default)]
+    lifecycle: AlarmLifecycle,
     alarm_on: bool,
 }
 
@@ -139,6 +171,7 @@ impl Detector {
             evidence: self.evidence.clone(),
             liquid: self.state.clone(),
             alarm: self.alarm.clone(),
+            lifecycle: self.lifecycle,
             alarm_on: self.alarm_on,
         }
     }
@@ -167,6 +200,7 @@ impl Detector {
             evidence: EvidenceBuilder::restore(artifact.evidence, saved.evidence)?,
             state: saved.liquid,
             alarm: saved.alarm,
+            lifecycle: saved.lifecycle,
             alarm_on: saved.alarm_on,
             artifact,
         })

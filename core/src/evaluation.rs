@@ -7,7 +7,8 @@
 
 use std::sync::Arc;
 
-use crate::detector::{Decision, run_records};
+use crate::detector::{Decision, offset_signal, run_records};
+use crate::lifecycle::OffsetSignal;
 use crate::metrics::{EventRules, Metrics, ScoredRow, evaluate};
 use crate::model::artifact::ModelArtifact;
 use crate::sample::{Record, Track};
@@ -23,6 +24,8 @@ pub fn trajectory_key(track_index: usize, trajectory: u32) -> u64 {
 pub struct Scored {
     pub rows: Vec<ScoredRow>,
     pub alarms: Vec<bool>,
+    /// The offset evidence of each row, for the lifecycle search (empty for detectors without it).
+    pub offset: Vec<OffsetSignal>,
 }
 
 impl Scored {
@@ -35,6 +38,7 @@ impl Scored {
     pub fn append(&mut self, other: Scored) {
         self.rows.extend(other.rows);
         self.alarms.extend(other.alarms);
+        self.offset.extend(other.offset);
     }
 }
 
@@ -74,6 +78,10 @@ fn scored_track(track_index: usize, records: &[Record], decisions: &[Decision]) 
     Scored {
         rows,
         alarms: decisions.iter().map(|d| d.alarm).collect(),
+        offset: decisions
+            .iter()
+            .map(|d| offset_signal(&d.evidence))
+            .collect(),
     }
 }
 

@@ -99,7 +99,11 @@ impl GlrComparator {
                 persistence.update(positive, row.valid, start)
             })
             .collect();
-        Scored { rows, alarms }
+        Scored {
+            rows,
+            alarms,
+            offset: Vec::new(),
+        }
     }
 }
 

@@ -8,7 +8,7 @@
 //!
 //! Where things live: samples and their parsing ([`sample`], [`data`]) → evidence ([`evidence`],
 //! [`geo`]) → the model and its artifact ([`model`], [`model::artifact`]) → running it on a stream
-//! ([`detector`]) → alarms and operating points ([`alarm`]) → scoring and metrics ([`evaluation`],
+//! ([`detector`]) → alarms ([`lifecycle`], [`explain`]) and operating points ([`alarm`]) → scoring and metrics ([`evaluation`],
 //! [`metrics`]). Training is one use case ([`train::detector::train_detector`]); the classical
 //! comparator is [`cusum`]; labelled attack scenarios are [`scenario`].
 
@@ -19,8 +19,10 @@ pub mod data;
 pub mod detector;
 pub mod evaluation;
 pub mod evidence;
+pub mod explain;
 pub mod geo;
 pub mod glr;
+pub mod lifecycle;
 pub mod metrics;
 pub mod model;
 pub mod rng;

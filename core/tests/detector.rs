@@ -6,9 +6,12 @@ use std::sync::Arc;
 use std::sync::atomic::AtomicBool;
 
 use spoofwatch_core::alarm::{OperatingPoint, PersistenceAlarm};
-use spoofwatch_core::detector::{Detector, DetectorState, RestoreError, run_records};
+use spoofwatch_core::detector::{
+    Detector, DetectorState, RestoreError, offset_signal, run_records,
+};
 use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::geo::Projection;
+use spoofwatch_core::lifecycle::{AlarmLifecycle, Lifecycle, LifecycleInput};
 use spoofwatch_core::model::artifact::{
     ARTIFACT_SCHEMA_VERSION, ArtifactError, ModelArtifact, Provenance,
 };
@@ -66,6 +69,11 @@ fn artifact_of(
         evidence: fit.params,
         scaler: fit.scaler,
         operating_point: op,
+        lifecycle: schema.has_offset().then_some(Lifecycle {
+            on_s: 2.0,
+            off_s: 5.0,
+            decisive_s: 2.0,
+        }),
         provenance: Provenance::default(),
     })
 }
@@ -87,9 +95,12 @@ fn streaming_detector_equals_the_whole_trajectory_pass_and_the_model_forward() {
     }
 
     // The same probabilities from the model's sequence pass over the scaled features, trajectory by
-    // trajectory from a zero state, and the same alarms from the persistence rule.
+    // trajectory from a zero state, and the same alarms from the lifecycle (v3, the default schema)
+    // or the persistence rule.
     let mut alarm = PersistenceAlarm::new(op.n_p);
+    let mut lifecycle = AlarmLifecycle::default();
     for range in trajectory_ranges(&track.records) {
+        let records = &track.records[range.clone()];
         let decisions = &offline[range];
         let xs: Vec<_> = decisions.iter().map(|d| d.features).collect();
         let deltas: Vec<f64> = decisions.iter().map(|d| d.evidence.delta_t).collect();
@@ -98,10 +109,21 @@ fn streaming_detector_equals_the_whole_trajectory_pass_and_the_model_forward() {
             .model
             .forward_sequence(&xs, &deltas, &mut state)
             .expect("lengths match");
-        for (d, p) in decisions.iter().zip(probabilities) {
+        for ((d, p), record) in decisions.iter().zip(probabilities).zip(records) {
             assert_eq!(d.probability.to_bits(), p.to_bits());
-            let expected =
-                alarm.update(p >= op.theta, d.evidence.valid, d.evidence.trajectory_start);
+            let expected = match &artifact.lifecycle {
+                Some(durations) => lifecycle.update(
+                    durations,
+                    &LifecycleInput {
+                        time_s: record.sample.timestamp_s,
+                        valid: d.evidence.valid,
+                        trajectory_start: d.evidence.trajectory_start,
+                        positive: p >= op.theta,
+                        offset: offset_signal(&d.evidence),
+                    },
+                ),
+                None => alarm.update(p >= op.theta, d.evidence.valid, d.evidence.trajectory_start),
+            };
             assert_eq!(d.alarm, expected);
         }
     }
@@ -116,7 +138,7 @@ fn through_bytes(state: &DetectorState) -> DetectorState {
 
 #[test]
 fn a_detector_restored_from_its_saved_state_continues_bit_for_bit() {
-    for schema in [FeatureSchema::Paper, FeatureSchema::V2] {
+    for schema in [FeatureSchema::Paper, FeatureSchema::V2, FeatureSchema::V3] {
         // A permissive θ so that the run crosses alarm onsets and ends.
         let artifact = artifact_of(
             OperatingPoint { theta: 0.3, n_p: 2 },
@@ -321,5 +343,5 @@ fn a_small_training_job_learns_a_frozen_position_attack_and_calibrates_an_operat
         FeatureSchema::default(),
     )
     .expect("fits");
-    assert_eq!(sequences(&fit, &train).len(), train.len());
+    assert_eq!(sequences(&fit, &train, true).len(), train.len());
 }

@@ -32,6 +32,10 @@ pub struct TrainingFlags {
     /// Ablation: first-order liquid cell (no evolution state v).
     #[arg(long)]
     pub first_order_cell: bool,
+    /// Ablation: keep the rows right after an attack's end in the loss (by default the first 10 s
+    /// after the spoofer leaves are masked: its exit jump is labelled normal).
+    #[arg(long)]
+    pub no_exit_mask: bool,
     /// Ablation: evidence groups given to the model.
     #[arg(long, default_value = FeatureGroups::All.name(), value_parser = feature_groups())]
     pub features: FeatureGroups,
@@ -96,6 +100,7 @@ impl TrainingFlags {
             no_exchange: false,
             no_third_order: false,
             first_order_cell: false,
+            no_exit_mask: false,
             features: FeatureGroups::default(),
             schema: FeatureSchema::default(),
             select_kappa_rho: false,
@@ -112,6 +117,7 @@ impl TrainingFlags {
             no_third_order: self.no_third_order,
             first_order_cell: self.first_order_cell,
             features: self.features,
+            no_exit_mask: self.no_exit_mask,
         }
     }
 

@@ -9,8 +9,9 @@ use super::linalg::{
     Mat2, floor_at_identity, inverse, inverse_sqrt_positive_definite, inverse_sqrt_symmetric, mul,
     mul_vec,
 };
+use super::offset::{AnchorPoint, MAX_CARRY_GAP_S, OffsetEvidence, OffsetStep, OffsetTracker};
 use super::params::{EvidenceParams, SIGMA_EPSILON};
-use super::{DRIFT_FEATURES_START, FEATURE_CAPACITY, Features, NU_INDEX};
+use super::{DRIFT_FEATURES_START, FEATURE_CAPACITY, Features, NU_INDEX, OFFSET_FEATURES_START};
 use crate::geo::{LatLon, Projection};
 use crate::sample::{MAX_SPEED_MPS, Record, Sample};
 
@@ -51,13 +52,17 @@ pub struct Evidence {
     pub accum_log: f64,
     /// Evidence v2's drift channels (`None` with the paper's parameters).
     pub drift: Option<DriftEvidence>,
+    /// Evidence v3's offset channels (`None` without offset parameters).
+    #[serde(default)]
+    pub offset: Option<OffsetEvidence>,
 }
 
 impl Evidence {
     /// Unscaled ξ_t in the order of `FEATURE_NAMES`: the paper's 9 channels (ν as 0/1), then the drift
     /// channels ln(1 + χ²_k) per scale (uncalibrated, calibrated), ln(1 + drift statistic), ω_t and
-    /// ln(1 + stale-fix seconds) and ln(1 + ‖r‖/c).
-    /// A schema reads its prefix; without drift channels they are 0.
+    /// ln(1 + stale-fix seconds) and ln(1 + ‖r‖/c); then the offset channels ln(1 + NIS) of the fast
+    /// and the slow anchor, ln(1 + held seconds) and the shares of the last 10 s and 60 s beyond the
+    /// follow gate. A schema reads its prefix; channels the parameters lack are 0.
     pub fn raw_features(&self) -> Features {
         let mut features: Features = [0.0; FEATURE_CAPACITY];
         features[..DRIFT_FEATURES_START].copy_from_slice(&[
@@ -86,6 +91,15 @@ impl Evidence {
         channels[2 * SCALE_COUNT + 1] = drift.warm_up;
         channels[2 * SCALE_COUNT + 2] = drift.stale_fix_s.ln_1p();
         channels[2 * SCALE_COUNT + 3] = drift.residual_log;
+        if let Some(offset) = &self.offset {
+            features[OFFSET_FEATURES_START..].copy_from_slice(&[
+                offset.nis[0].ln_1p(),
+                offset.nis[1].ln_1p(),
+                offset.held_s.ln_1p(),
+                offset.share[0],
+                offset.share[1],
+            ]);
+        }
         features
     }
 }
@@ -141,6 +155,9 @@ pub struct EvidenceBuilder {
     trajectory: u32,
     /// Evidence v2's drift tracker (when the parameters carry drift parameters).
     drift: Option<DriftTracker>,
+    /// Evidence v3's anchors (when the parameters carry offset parameters).
+    #[serde(default)]
+    offset: Option<OffsetTracker>,
 }
 
 impl EvidenceBuilder {
@@ -159,6 +176,7 @@ impl EvidenceBuilder {
             accum: 0.0,
             trajectory: 0,
             drift: params.drift.as_ref().map(DriftTracker::new),
+            offset: params.offset.as_ref().map(OffsetTracker::new),
         }
     }
 
@@ -192,12 +210,19 @@ impl EvidenceBuilder {
             (Some(_), None) => return Err(DriftChannelsDiffer { in_snapshot: false }),
             (None, Some(_)) => return Err(DriftChannelsDiffer { in_snapshot: true }),
         };
+        let offset = match (&params.offset, saved.offset) {
+            (Some(params), Some(saved)) => Some(OffsetTracker::restore(params, saved)),
+            (None, None) => None,
+            (Some(_), None) => return Err(DriftChannelsDiffer { in_snapshot: false }),
+            (None, Some(_)) => return Err(DriftChannelsDiffer { in_snapshot: true }),
+        };
         Ok(Self {
             previous: saved.previous,
             reference: saved.reference,
             accum: saved.accum,
             trajectory: saved.trajectory,
             drift,
+            offset,
             ..fresh
         })
     }
@@ -210,6 +235,9 @@ impl EvidenceBuilder {
         self.trajectory = 0;
         if let Some(drift) = &mut self.drift {
             drift.reset();
+        }
+        if let Some(offset) = &mut self.offset {
+            offset.reset();
         }
     }
 
@@ -260,6 +288,7 @@ impl EvidenceBuilder {
             accum: 0.0,
             accum_log: 0.0,
             drift: self.drift.as_ref().map(DriftTracker::hold),
+            offset: None,
         };
 
         // ν needs both samples usable and 0 < δ ≤ 5 s (never true at a start: no previous sample).
@@ -272,6 +301,7 @@ impl EvidenceBuilder {
             self.fill_valid(&mut evidence, &previous, reference, sample, fix, velocity);
         }
         self.fill_accumulator(&mut evidence);
+        evidence.offset = self.move_anchors(sample, fix, velocity, usable, trajectory_break);
 
         self.previous = Some(Previous {
             sample: *sample,
@@ -285,6 +315,72 @@ impl EvidenceBuilder {
             delta_t,
         });
         evidence
+    }
+
+    /// The offset channels: the anchors move from the last usable sample to this one, across
+    /// trajectory breaks of the stream (a gap up to [`MAX_CARRY_GAP_S`] carries them, with the motion
+    /// it may hide as extra uncertainty). The source's own break, time going backwards and a longer
+    /// gap re-anchor at this sample.
+    fn move_anchors(
+        &mut self,
+        sample: &Sample,
+        fix: LatLon,
+        velocity: [f64; 2],
+        usable: bool,
+        source_break: bool,
+    ) -> Option<OffsetEvidence> {
+        let projection = self.projection;
+        let drift = self.drift.as_ref();
+        let offset = self.offset.as_mut()?;
+        if source_break {
+            offset.re_anchor();
+        }
+        if !usable {
+            return Some(offset.hold());
+        }
+        let here = AnchorPoint {
+            fix,
+            velocity,
+            time_s: sample.timestamp_s,
+        };
+        let Some(from) = offset.point() else {
+            offset.set_point(here);
+            return Some(offset.hold());
+        };
+        let delta_t = here.time_s - from.time_s;
+        if delta_t < -MAX_BACKWARD_S || delta_t > MAX_CARRY_GAP_S {
+            offset.re_anchor();
+            offset.set_point(here);
+            return Some(offset.hold());
+        }
+        // Not later than the last usable sample (or a NaN time): nothing to move.
+        if !(delta_t > 0.0) {
+            return Some(offset.hold());
+        }
+        let gnss = projection.displacement(from.fix, from.fix, fix);
+        let motion = [
+            0.5 * (velocity[0] + from.velocity[0]) * delta_t,
+            0.5 * (velocity[1] + from.velocity[1]) * delta_t,
+        ];
+        let mut residual = [gnss[0] - motion[0], gnss[1] - motion[1]];
+        let velocity_change = [
+            velocity[0] - from.velocity[0],
+            velocity[1] - from.velocity[1],
+        ];
+        let correction = drift.and_then(|d| d.calibration_correction(motion, velocity_change));
+        if let Some(correction) = correction {
+            residual = [residual[0] + correction[0], residual[1] + correction[1]];
+        }
+        if !(residual[0].is_finite() && residual[1].is_finite()) {
+            return Some(offset.hold());
+        }
+        offset.set_point(here);
+        Some(offset.push(&OffsetStep {
+            residual,
+            motion,
+            delta_t,
+            calibrated: correction.is_some(),
+        }))
     }
 
     /// ν_{t−1} (before `previous` is overwritten).

@@ -28,6 +28,8 @@ use crate::sample::readable;
 pub const SCALE_COUNT: usize = 4;
 /// EWMA time constants τ_k of the drift-rate channels (s): 10 s catches fast ramps, 120 s slow ones.
 pub const DRIFT_SCALES_S: [f64; SCALE_COUNT] = [10.0, 30.0, 60.0, 120.0];
+/// The scale whose drift rate is reported ([`DriftEvidence::rate_mps`]): 30 s.
+const REPORTED_SCALE: usize = 1;
 /// The clip radius in robust residual sigmas: c = 4 σ̂_r.
 pub const CLIP_SIGMAS: f64 = 4.0;
 /// Memory of the calibration (s): forgetting λ = exp(−δ/600) per row.
@@ -222,6 +224,10 @@ pub struct DriftEvidence {
     /// metres; 0 when ν = 0.
     #[serde(default)]
     pub residual_log: f64,
+    /// The drift rate GNSS shows against the onboard motion, east/north (m/s): the 30 s EWMA of
+    /// r̃/δ once warm, else of r^c/δ; 0 at a trajectory start.
+    #[serde(default)]
+    pub rate_mps: [f64; 2],
 }
 
 impl DriftEvidence {
@@ -236,6 +242,7 @@ impl DriftEvidence {
         statistic: 0.0,
         stale_fix_s: 0.0,
         residual_log: 0.0,
+        rate_mps: [0.0; 2],
     };
 
     /// χ²_k = ‖z_k‖² of the uncalibrated channel per scale.
@@ -421,8 +428,26 @@ impl DriftTracker {
             calibrated_z: [[0.0; 2]; SCALE_COUNT],
             statistic: 0.0,
             stale_fix_s: 0.0,
+            rate_mps: [0.0; 2],
             ..self.last
         };
+    }
+
+    /// H θ of the calibration in use once it is warm: added to a raw residual over an interval with
+    /// onboard displacement `motion` and velocity change `velocity_change`, it gives the calibrated
+    /// residual. `None` before the calibration is warm.
+    pub fn calibration_correction(
+        &self,
+        motion: [f64; 2],
+        velocity_change: [f64; 2],
+    ) -> Option<[f64; 2]> {
+        if self.clock_s < WARM_UP_S {
+            return None;
+        }
+        Some(apply(
+            &regressors(motion, velocity_change),
+            &self.theta_in_use,
+        ))
     }
 
     /// The channels of a row with ν = 0: everything held, residuals undefined.
@@ -438,7 +463,7 @@ impl DriftTracker {
     /// The channels of a valid row (ν = 1, finite inputs, 0 < δ ≤ 5 s).
     pub fn push(&mut self, input: &DriftInput) -> DriftEvidence {
         let clipped = clip(input.residual, self.constants.clip_m);
-        let regressors = regressors(input);
+        let regressors = regressors(input.motion, input.velocity_change);
         let cleaned = add(clipped, apply(&regressors, &self.theta_in_use));
         self.add_to_block(&regressors, clipped, input.delta_t);
         self.update_rates(clipped, cleaned, input.delta_t);
@@ -489,6 +514,11 @@ impl DriftTracker {
             stale_fix_s,
             residual_log: (input.residual[0].hypot(input.residual[1]) / self.constants.clip_m)
                 .ln_1p(),
+            rate_mps: if warm_up >= 1.0 {
+                self.calibrated_rate[REPORTED_SCALE]
+            } else {
+                self.raw_rate[REPORTED_SCALE]
+            },
         };
         self.last
     }
@@ -640,9 +670,7 @@ pub fn clip(residual: [f64; 2], clip_m: f64) -> [f64; 2] {
 
 /// Columns of H_t = [u, J u, −Δv], J(x, y) = (y, −x): to first order a speed scale error ε, a heading
 /// bias β and an onboard lag τ_L make r = −ε u − β J u + τ_L Δv = −H θ.
-fn regressors(input: &DriftInput) -> [[f64; 2]; 3] {
-    let u = input.motion;
-    let dv = input.velocity_change;
+fn regressors(u: [f64; 2], dv: [f64; 2]) -> [[f64; 2]; 3] {
     [u, [u[1], -u[0]], [-dv[0], -dv[1]]]
 }
 
@@ -875,13 +903,7 @@ mod tests {
         drift: (usize, f64),
     ) -> DriftInput {
         let (t, &(motion, velocity_change)) = row;
-        let h = regressors(&DriftInput {
-            residual: [0.0; 2],
-            motion,
-            velocity_change,
-            delta_t: 1.0,
-            fix_repeated: false,
-        });
+        let h = regressors(motion, velocity_change);
         let onboard = apply(&h, &theta_true);
         let east_drift = if t >= drift.0 { drift.1 } else { 0.0 };
         DriftInput {

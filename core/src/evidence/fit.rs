@@ -13,6 +13,7 @@ use super::drift::{
     DriftParams, SettledRates, covariances_from_rates, robust_residual_sigma, thresholds_from_rates,
 };
 use super::linalg::{IDENTITY, Mat2, inverse_sqrt_symmetric, mul_vec};
+use super::offset::{ANCHOR_COUNT, OffsetParams, OffsetPoint, offset_params_from_points};
 use super::params::{EvidenceParams, SIGMA_EPSILON};
 use super::stats::{covariance, median};
 use crate::geo::Projection;
@@ -59,6 +60,7 @@ pub fn normal_residuals(tracks: &[Track], projection: Projection) -> Vec<[f64; 2
         rho: 0.0,
         projection,
         drift: None,
+        offset: None,
     };
     let mut residuals = Vec::new();
     for track in tracks {
@@ -103,6 +105,7 @@ fn settled_rates(
         rho: 0.0,
         projection,
         drift: Some(drift),
+        offset: None,
     };
     let mut rows = Vec::new();
     for track in tracks {
@@ -125,6 +128,57 @@ fn settled_rates(
         }
     }
     rows
+}
+
+/// Evidence v3's anchor parameters from the label-0 rows of `tracks`, with `drift` (the fitted drift
+/// parameters) for the onboard calibration: the anchors run without ever stopping to follow, and
+/// each anchor's offsets, one row per second of driving, give its noise and growth
+/// ([`offset_params_from_points`]). Only normal rows before a track's first attacked row count: an
+/// attack leaves an offset in an anchor that follows it.
+pub fn fit_offset_params(
+    tracks: &[Track],
+    projection: Projection,
+    drift: DriftParams,
+) -> Result<OffsetParams, EvidenceError> {
+    let params = EvidenceParams {
+        sigma_hat: IDENTITY,
+        mu_e: 0.0,
+        kappa: 0.0,
+        rho: 0.0,
+        projection,
+        drift: Some(drift),
+        offset: Some(OffsetParams::unnormalised()),
+    };
+    let mut points: [Vec<OffsetPoint>; ANCHOR_COUNT] = Default::default();
+    for track in tracks {
+        let mut clock_s = 0.0;
+        let mut last_time: Option<f64> = None;
+        let mut attacked = false;
+        for (record, e) in track
+            .records
+            .iter()
+            .zip(build_track(&params, &track.records))
+        {
+            let time = record.sample.timestamp_s;
+            let delta = last_time.map_or(0.0, |last| (time - last).clamp(0.0, 60.0));
+            last_time = Some(time);
+            attacked |= record.label == Some(true);
+            let Some(offset) = e.offset else { continue };
+            let new_second = (clock_s + delta).floor() > clock_s;
+            clock_s += delta;
+            if !new_second || attacked || record.label != Some(false) {
+                continue;
+            }
+            for (k, anchor_points) in points.iter_mut().enumerate() {
+                anchor_points.push(OffsetPoint {
+                    carried_m: offset.carried_m[k],
+                    offset_m: offset.offset_norm_m[k],
+                    calibrated: offset.calibrated,
+                });
+            }
+        }
+    }
+    offset_params_from_points(&points)
 }
 
 /// Σ̂ (ddof 1) and μ_e (numpy median energy) from residuals; at least [`MIN_NORMAL_ROWS`] of them.

@@ -4,13 +4,14 @@
 //! alarms or training.
 //!
 //! Inside, each file uses only those listed before it: `linalg` and `stats` (pure numerics), `drift`
-//! (the v2 channels), `params`, `builder` (the streaming builder), `scaler`, then `fit` (the fits from
+//! (the v2 channels), `offset` (the v3 anchors), `params`, `builder` (the streaming builder), `scaler`, then `fit` (the fits from
 //! training tracks, which run the builder).
 
 mod builder;
 pub mod drift;
 mod fit;
 pub mod linalg;
+pub mod offset;
 mod params;
 mod scaler;
 mod stats;
@@ -24,8 +25,8 @@ pub use builder::{
     DriftChannelsDiffer, Evidence, EvidenceBuilder, MAX_BACKWARD_S, MAX_GAP_S, build_track,
 };
 pub use fit::{
-    MIN_NORMAL_ROWS, NormalStats, fit_drift_params, fit_normal_stats, normal_residuals,
-    stats_from_residuals,
+    MIN_NORMAL_ROWS, NormalStats, fit_drift_params, fit_normal_stats, fit_offset_params,
+    normal_residuals, stats_from_residuals,
 };
 pub(crate) use params::UncheckedParams;
 pub use params::{
@@ -37,7 +38,8 @@ pub use scaler::{CLIP, MAX_SCALER_VALUE, RobustScaler};
 pub use stats::{median, quantile_sorted};
 
 /// ξ_t in the locked order of SPEC §4 (the `paper` schema), then the drift channels of evidence v2
-/// (`docs/detector.md` §4.1). A schema reads a prefix of this list.
+/// (`docs/detector.md` §4.1), then the offset channels of evidence v3 (§4.2). A schema reads a prefix
+/// of this list.
 pub const FEATURE_NAMES: [&str; FEATURE_CAPACITY] = [
     "eta_e",
     "eta_n",
@@ -60,13 +62,20 @@ pub const FEATURE_NAMES: [&str; FEATURE_CAPACITY] = [
     "warm_up",
     "stale_fix",
     "residual_log",
+    "offset_fast",
+    "offset_slow",
+    "offset_held",
+    "offset_share_10s",
+    "offset_share_60s",
 ];
 /// Length of the longest schema's ξ_t.
-pub const FEATURE_CAPACITY: usize = 21;
+pub const FEATURE_CAPACITY: usize = 26;
 /// Index of ν in every schema (it is never scaled).
 pub const NU_INDEX: usize = 8;
 /// First index of the drift channels (v2).
 pub const DRIFT_FEATURES_START: usize = 9;
+/// First index of the offset channels (v3).
+pub const OFFSET_FEATURES_START: usize = 21;
 /// One ξ_t vector (scaled, order of [`FEATURE_NAMES`]); entries beyond the schema's count are 0.
 pub type Features = [f64; FEATURE_CAPACITY];
 
@@ -76,21 +85,24 @@ pub type Features = [f64; FEATURE_CAPACITY];
 pub enum FeatureSchema {
     /// The paper's 9-channel ξ_t, for the faithful reproduction and the paper's tables.
     Paper,
-    /// The paper's ξ_t plus the directional drift channels (the default).
-    #[default]
+    /// The paper's ξ_t plus the directional drift channels.
     V2,
+    /// v2 plus the offset channels of the dead-reckoning anchors (the default).
+    #[default]
+    V3,
 }
 
 impl FeatureSchema {
     /// Every schema with its name on the command line and on the wire.
-    pub const NAMED: [(&'static str, FeatureSchema); 2] =
-        [("paper", Self::Paper), ("v2", Self::V2)];
+    pub const NAMED: [(&'static str, FeatureSchema); 3] =
+        [("paper", Self::Paper), ("v2", Self::V2), ("v3", Self::V3)];
 
     /// The schema's name in [`Self::NAMED`].
     pub fn name(self) -> &'static str {
         match self {
             Self::Paper => "paper",
             Self::V2 => "v2",
+            Self::V3 => "v3",
         }
     }
 
@@ -111,7 +123,8 @@ impl FeatureSchema {
     pub fn feature_count(self) -> usize {
         match self {
             Self::Paper => DRIFT_FEATURES_START,
-            Self::V2 => FEATURE_CAPACITY,
+            Self::V2 => OFFSET_FEATURES_START,
+            Self::V3 => FEATURE_CAPACITY,
         }
     }
 
@@ -122,7 +135,12 @@ impl FeatureSchema {
 
     /// Whether the evidence needs the drift tracker.
     pub fn has_drift(self) -> bool {
-        self == Self::V2
+        matches!(self, Self::V2 | Self::V3)
+    }
+
+    /// Whether the evidence needs the dead-reckoning anchors.
+    pub fn has_offset(self) -> bool {
+        self == Self::V3
     }
 }
 
@@ -164,6 +182,17 @@ pub enum EvidenceError {
         /// Rows found.
         rows: usize,
         /// Rows required.
+        minimum: usize,
+    },
+    /// Too few normal rows to fit the anchors' noise and growth.
+    #[error(
+        "the v3 feature schema needs more normal driving for the offset anchors: {rows} normal \
+         seconds before any attack, need at least {minimum}"
+    )]
+    TooFewOffsetRows {
+        /// Points found.
+        rows: usize,
+        /// Points required.
         minimum: usize,
     },
     /// A fit was given no rows at all.

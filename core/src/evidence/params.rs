@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 use super::EvidenceError;
 use super::drift::{DriftParams, UncheckedDriftParams};
 use super::linalg::{Mat2, add_diagonal, is_symmetric_positive_definite};
+use super::offset::OffsetParams;
 use crate::geo::Projection;
 use crate::sample::readable;
 
@@ -48,6 +49,9 @@ pub struct EvidenceParams {
     /// Evidence v2: the drift channels' parameters (`None` for the paper's ξ_t).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub drift: Option<DriftParams>,
+    /// Evidence v3: the anchors' parameters (`None` before v3).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub offset: Option<OffsetParams>,
 }
 
 /// The serialised form, checked by `TryFrom` before it becomes [`EvidenceParams`] (the artifact
@@ -64,6 +68,8 @@ pub(crate) struct UncheckedParams {
     projection: Projection,
     #[serde(default)]
     drift: Option<UncheckedDriftParams>,
+    #[serde(default)]
+    offset: Option<OffsetParams>,
 }
 
 fn default_kappa() -> f64 {
@@ -85,6 +91,7 @@ impl TryFrom<UncheckedParams> for EvidenceParams {
             rho: raw.rho,
             projection: raw.projection,
             drift: raw.drift.map(DriftParams::unchecked),
+            offset: raw.offset,
         };
         params.validate()?;
         Ok(params)
@@ -112,6 +119,7 @@ impl EvidenceParams {
             rho,
             projection,
             drift: None,
+            offset: None,
         };
         params.validate()?;
         Ok(params)
@@ -171,6 +179,9 @@ impl EvidenceParams {
         }
         if let Some(drift) = &self.drift {
             drift.validate()?;
+        }
+        if let Some(offset) = &self.offset {
+            offset.validate()?;
         }
         Ok(())
     }

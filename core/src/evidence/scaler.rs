@@ -198,6 +198,7 @@ mod tests {
             accum: 0.0,
             accum_log: 0.0,
             drift: None,
+            offset: None,
         }
     }
 

@@ -19,6 +19,7 @@ use crate::alarm::{AlarmError, OperatingPoint};
 use crate::evidence::{
     EvidenceError, EvidenceParams, FeatureSchema, RobustScaler, UncheckedParams, UncheckedScaler,
 };
+use crate::lifecycle::Lifecycle;
 use crate::metrics::Metrics;
 use crate::sample::readable;
 
@@ -40,6 +41,9 @@ pub struct ModelArtifact {
     pub evidence: EvidenceParams,
     pub scaler: RobustScaler,
     pub operating_point: OperatingPoint,
+    /// The alarm lifecycle in seconds (`None`: the persistence N_p of the operating point, in rows).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lifecycle: Option<Lifecycle>,
     pub provenance: Provenance,
 }
 
@@ -310,6 +314,8 @@ struct RawArtifact {
     evidence: UncheckedParams,
     scaler: UncheckedScaler,
     operating_point: OperatingPoint,
+    #[serde(default)]
+    lifecycle: Option<Lifecycle>,
     provenance: Provenance,
 }
 
@@ -330,6 +336,7 @@ impl RawArtifact {
             evidence,
             scaler,
             operating_point: self.operating_point,
+            lifecycle: self.lifecycle,
             provenance: self.provenance,
         })
     }
@@ -468,12 +475,31 @@ impl ModelArtifact {
                 ),
             ));
         }
+        if self.evidence.offset.is_some() != schema.has_offset() {
+            return Err(ArtifactError::field_error(
+                "evidence.offset",
+                format!(
+                    "the {} feature schema {} offset parameters",
+                    schema.name(),
+                    if schema.has_offset() {
+                        "needs"
+                    } else {
+                        "has no use for"
+                    }
+                ),
+            ));
+        }
         self.operating_point.validate().map_err(|e| match e {
             AlarmError::InvalidOperatingPoint { field, reason } => {
                 ArtifactError::field_error(format!("operating_point.{field}"), reason)
             }
             other => ArtifactError::field_error("operating_point", other.to_string()),
         })?;
+        if let Some(lifecycle) = &self.lifecycle {
+            lifecycle.validate().map_err(|(field, reason)| {
+                ArtifactError::field_error(format!("lifecycle.{field}"), reason)
+            })?;
+        }
         self.provenance.validate().map_err(|(field, reason)| {
             ArtifactError::field_error(format!("provenance.{field}"), reason)
         })

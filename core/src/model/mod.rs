@@ -48,11 +48,13 @@ pub const MAX_ABS_PARAMETER: f64 = 1e4;
 pub const INSTANT_INPUTS: [usize; 3] = [0, 1, 6];
 /// ξ indices feeding the evolution role E = [η̇_E, η̇_N, η̈_E, η̈_N].
 pub const EVOLUTION_INPUTS: [usize; 4] = [2, 3, 4, 5];
-/// ξ indices feeding the persistence role P = [ã, ν] and, in the v2 schema, the drift channels: they
-/// are persistence evidence too (integrated over 10–120 s), and P is where the third-order term lets
-/// persistence gate the instantaneous and evolution roles. The paper schema reads the first 2.
-pub const PERSISTENCE_INPUTS: [usize; MAX_PERSISTENCE_INPUTS] =
-    [7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20];
+/// ξ indices feeding the persistence role P = [ã, ν] and, in the v2 and v3 schemas, the drift and
+/// offset channels: they are persistence evidence too (integrated over 10–120 s, or held since a
+/// trusted fix), and P is where the third-order term lets persistence gate the instantaneous and
+/// evolution roles. The paper schema reads the first 2, v2 the first 14.
+pub const PERSISTENCE_INPUTS: [usize; MAX_PERSISTENCE_INPUTS] = [
+    7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25,
+];
 /// Width of P in the widest schema.
 pub const MAX_PERSISTENCE_INPUTS: usize = 2 + FEATURE_CAPACITY - DRIFT_FEATURES_START;
 
@@ -197,11 +199,13 @@ pub enum FeatureGroups {
     NoStaleFix,
     /// Drop the log residual size.
     NoResidualLog,
+    /// Drop every offset channel (v3 reduced to v2, same shapes).
+    NoOffset,
 }
 
 impl FeatureGroups {
     /// Every variant with its name on the command line and on the wire (`TrainingSpec.features`).
-    pub const NAMED: [(&'static str, FeatureGroups); 13] = [
+    pub const NAMED: [(&'static str, FeatureGroups); 14] = [
         ("all", Self::All),
         ("no-accumulation", Self::NoAccumulation),
         ("no-evolution", Self::NoEvolution),
@@ -215,6 +219,7 @@ impl FeatureGroups {
         ("no-warm-up", Self::NoWarmUp),
         ("no-stale-fix", Self::NoStaleFix),
         ("no-residual-log", Self::NoResidualLog),
+        ("no-offset", Self::NoOffset),
     ];
 
     /// The variant's name in [`Self::NAMED`].
@@ -241,12 +246,14 @@ impl FeatureGroups {
             Self::NoEvolution => &[2, 3, 4, 5],
             Self::NoEvolutionNoQ => &[2, 3, 4, 5, 6],
             Self::LowOrderOnly => &[
-                2, 3, 4, 5, 6, 7, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20,
+                2, 3, 4, 5, 6, 7, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24, 25,
             ],
             Self::ValidityOnly => &[
-                0, 1, 2, 3, 4, 5, 6, 7, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20,
+                0, 1, 2, 3, 4, 5, 6, 7, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23,
+                24, 25,
             ],
             Self::NoDrift => &[9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20],
+            Self::NoOffset => &[21, 22, 23, 24, 25],
             Self::NoRawDrift => &[9, 10, 11, 12],
             Self::NoCalibratedDrift => &[13, 14, 15, 16],
             Self::NoDriftStatistic => &[17],
@@ -275,6 +282,10 @@ pub struct Ablation {
     pub first_order_cell: bool,
     /// Evidence groups fed to the encoders.
     pub features: FeatureGroups,
+    /// Train on the rows right after an attack's end too (the spoofer's exit jump labelled normal
+    /// teaches a model that a big step means "attack over"; by default they leave the loss).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub no_exit_mask: bool,
 }
 
 /// Model widths, time-constant range and ablation switches. `Default` = SPEC §5.

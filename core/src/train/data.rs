@@ -8,7 +8,7 @@ use std::ops::Range;
 
 use crate::evidence::{
     EvidenceBuilder, EvidenceParams, FeatureSchema, Features, RobustScaler, build_track,
-    fit_drift_params, fit_normal_stats,
+    fit_drift_params, fit_normal_stats, fit_offset_params,
 };
 use crate::geo::Projection;
 use crate::sample::{Record, Track};
@@ -50,6 +50,7 @@ fn segmentation_params() -> EvidenceParams {
         rho: 0.98,
         projection: Projection::default(),
         drift: None,
+        offset: None,
     }
 }
 
@@ -118,11 +119,17 @@ pub fn fit_evidence(
     schema: FeatureSchema,
 ) -> Result<EvidenceFit, DataError> {
     let stats = fit_normal_stats(train, projection)?;
+    let drift = schema
+        .has_drift()
+        .then(|| fit_drift_params(train, projection))
+        .transpose()?;
+    let offset = match drift {
+        Some(drift) if schema.has_offset() => Some(fit_offset_params(train, projection, drift)?),
+        _ => None,
+    };
     let params = EvidenceParams {
-        drift: schema
-            .has_drift()
-            .then(|| fit_drift_params(train, projection))
-            .transpose()?,
+        drift,
+        offset,
         ..EvidenceParams::with_accumulator(stats.sigma_hat, stats.mu_e, kappa, rho, projection)?
     };
     params.validate()?;
@@ -140,14 +147,28 @@ pub fn fit_evidence(
     })
 }
 
+/// Normal rows within this many seconds after an attack's last row leave the loss (unless
+/// [`Ablation::no_exit_mask`](crate::model::Ablation)): the spoofer's exit (the fix returning to the
+/// truth) is a jump labelled normal, and the evidence of the attack fades over seconds.
+pub const EXIT_MASK_S: f64 = 10.0;
+
 /// Model-ready sequences, one per trajectory (unlabelled rows count as normal only if labelled;
-/// callers pass labelled data for training).
-pub fn sequences(fit: &EvidenceFit, tracks: &[Track]) -> Vec<Sequence> {
+/// callers pass labelled data for training). With `mask_exits`, the normal rows within
+/// [`EXIT_MASK_S`] after an attacked row are marked invalid, so they enter neither loss nor metrics.
+pub fn sequences(fit: &EvidenceFit, tracks: &[Track], mask_exits: bool) -> Vec<Sequence> {
     let mut out = Vec::new();
     for track in tracks {
         let evidence = build_track(&fit.params, &track.records);
         let mut current: Option<Sequence> = None;
+        let mut last_attack_s = f64::NEG_INFINITY;
         for (e, record) in evidence.iter().zip(&track.records) {
+            let time = record.sample.timestamp_s;
+            let label = record.label.unwrap_or(false);
+            if label {
+                last_attack_s = time;
+            }
+            let exit =
+                mask_exits && !label && (0.0..=EXIT_MASK_S).contains(&(time - last_attack_s));
             if e.trajectory_start {
                 out.extend(current.take());
             }
@@ -155,8 +176,8 @@ pub fn sequences(fit: &EvidenceFit, tracks: &[Track]) -> Vec<Sequence> {
             let features: Features = fit.scaler.transform(e);
             seq.features.push(features);
             seq.deltas.push(e.delta_t);
-            seq.labels.push(record.label.unwrap_or(false));
-            seq.valid.push(e.valid);
+            seq.labels.push(label);
+            seq.valid.push(e.valid && !exit);
         }
         out.extend(current);
     }

@@ -12,7 +12,8 @@ use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 use crate::alarm::{
-    AlarmError, N_P_GRID, OperatingPoint, Selection, choose_operating_point, theta_grid,
+    AlarmError, N_P_GRID, OperatingPoint, Selection, choose_lifecycle, choose_operating_point,
+    theta_grid,
 };
 use crate::evaluation::score_tracks;
 use crate::metrics::{EventRules, Metrics};
@@ -144,8 +145,9 @@ fn train_candidate(
     cancel: &AtomicBool,
 ) -> Result<TrainedDetector, TrainDetectorError> {
     let fit = fit_evidence(train_tracks, spec.projection, kappa, rho, spec.model.schema)?;
-    let train_seqs = sequences(&fit, train_tracks);
-    let val_seqs = sequences(&fit, validation);
+    let mask_exits = !spec.model.ablation.no_exit_mask;
+    let train_seqs = sequences(&fit, train_tracks, mask_exits);
+    let val_seqs = sequences(&fit, validation, mask_exits);
     let train_config = spec.recipe.apply(&spec.train, &train_seqs);
     let outcome = train(
         &train_seqs,
@@ -163,6 +165,7 @@ fn train_candidate(
         scaler: fit.scaler,
         // Provisional: probabilities do not depend on it; replaced below.
         operating_point: OperatingPoint { theta: 0.5, n_p: 1 },
+        lifecycle: None,
         provenance: Provenance {
             created_by: format!("spoofwatch {}", env!("CARGO_PKG_VERSION")),
             training_data: Provenance::bounded_training_data(spec.data_description.clone()),
@@ -180,18 +183,38 @@ fn train_candidate(
         },
     };
     let scored = score_tracks(&Arc::new(artifact.clone()), validation);
-    let Selection { point, metrics } = choose_operating_point(
-        &scored.rows,
-        &theta_grid(),
-        N_P_GRID,
-        spec.rules,
-        spec.operating_point,
-    )
-    .map_err(|error| match error {
+    let no_point = |error| match error {
         AlarmError::OverBudget { .. } => TrainDetectorError::OverBudget(error),
         _ => TrainDetectorError::NoOperatingPoint,
-    })?;
+    };
+    // Offset evidence comes with the lifecycle in seconds; older schemas keep the persistence N_p.
+    let (point, lifecycle, metrics) = if spec.model.schema.has_offset() {
+        let selection = choose_lifecycle(
+            &scored.rows,
+            &scored.offset,
+            &theta_grid(),
+            spec.rules,
+            spec.operating_point,
+        )
+        .map_err(no_point)?;
+        (
+            selection.point,
+            Some(selection.lifecycle),
+            selection.metrics,
+        )
+    } else {
+        let Selection { point, metrics } = choose_operating_point(
+            &scored.rows,
+            &theta_grid(),
+            N_P_GRID,
+            spec.rules,
+            spec.operating_point,
+        )
+        .map_err(no_point)?;
+        (point, None, metrics)
+    };
     artifact.operating_point = point;
+    artifact.lifecycle = lifecycle;
     artifact.provenance.validation_metrics = Some(metrics.clone());
     Ok(TrainedDetector {
         artifact,

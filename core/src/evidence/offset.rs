@@ -1,0 +1,819 @@
+//! Evidence v3's offset channels (`docs/detector.md` §4.2): where GNSS puts the vehicle, against
+//! where the vehicle's own motion says it is.
+//!
+//! Every rate channel sees the one-step residual r_t, a velocity: a jump of D metres is one large row
+//! and then normal rows, and the offset it leaves is forgotten. Here each vehicle keeps
+//! dead-reckoning *anchors*: the offset o = g − â of the GNSS fix g from the anchor â is the sum of
+//! the residuals since a trusted fix, o_t = o_{t−1} + r_t. While the fix agrees, the anchor follows
+//! GNSS slowly (o ← e^{−δ/T} o, one anchor per follow time T), so that normal dead-reckoning error
+//! does not pile up; while the fix disagrees beyond a gate, the anchor stops following (it is frozen
+//! at the last trusted fix) until the fix has agreed again for a while. The offset is tested
+//! against its own uncertainty: a GNSS part R and a dead-reckoning part that grows with the net
+//! distance the anchor has been carried (c²‖U‖², U the net dead-reckoned displacement, forgotten at
+//! the same rate as o), plus, after a telemetry gap, the motion the gap may have hidden.
+//!
+//! A multipath spike goes out and comes back in one row; a jump goes out and stays. The channels
+//! keep them apart by time: how long the offset has stayed beyond the decisive gate, and the share
+//! of the last 10 s and 60 s it spent beyond the follow gate (a spoofer that toggles between the
+//! false and the true position fills that share; one spike barely moves it).
+//!
+//! Owns the anchors, their uncertainty and the per-vehicle offset levels. Must not compute the
+//! residual or the onboard calibration (the builder hands them in), scale features or alarm.
+
+use serde::{Deserialize, Serialize};
+
+use super::EvidenceError;
+use crate::geo::LatLon;
+use crate::sample::readable;
+
+/// Anchors per vehicle, one per follow time constant.
+pub const ANCHOR_COUNT: usize = 2;
+/// Follow time constants T_k (s): the fast anchor forgets dead-reckoning error quickly and sees
+/// steps at any speed; the slow one keeps offsets and drifts for minutes.
+pub const FOLLOW_S: [f64; ANCHOR_COUNT] = [10.0, 120.0];
+/// An anchor stops following when its normalised offset reaches this (a χ²₂ tail of 3.4e-4).
+pub const FOLLOW_GATE: f64 = 16.0;
+/// The offset counts as held ([`OffsetEvidence::held_s`]) beyond this (5σ, the autopilots' gate).
+pub const DECISIVE_GATE: f64 = 25.0;
+/// Seconds of agreement (below the follow gate) before a frozen anchor follows again.
+pub const AGREEMENT_S: f64 = 5.0;
+/// A telemetry gap up to this long (s) carries the anchors across; a longer one re-anchors.
+pub const MAX_CARRY_GAP_S: f64 = 300.0;
+/// 1-σ of the unknown acceleration during a gap (m/s²): the motion a gap of δ seconds may hide is
+/// ½·a·δ² per axis beyond the average of the velocities before and after it.
+pub const GAP_ACCELERATION_MPS2: f64 = 0.5;
+/// Time constants (s) of the share of time spent beyond the follow gate.
+pub const SHARE_S: [f64; 2] = [10.0, 60.0];
+/// The vehicle's offset level is taken from a snapshot at least this old (s of valid data), so
+/// that a spoofer cannot teach the detector its own offsets quickly.
+pub const LEVEL_DELAY_S: f64 = 120.0;
+/// The vehicle's level is a running mean over about this long (s).
+const LEVEL_MEMORY_S: f64 = 300.0;
+/// Weight (s) of the population's level 1 in a vehicle's running mean.
+const LEVEL_PRIOR_S: f64 = 120.0;
+/// A vehicle's level stays within these multiples of the training population's.
+pub const LEVEL_RANGE: (f64, f64) = (0.25, 4.0);
+/// One row adds at most this much to the running mean of NIS/2 (so a spike cannot inflate it).
+const LEVEL_ROW_CAP: f64 = 8.0;
+/// Snapshot period of the levels (s of valid data).
+const LEVEL_SNAPSHOT_S: f64 = 30.0;
+const LEVEL_SNAPSHOTS: usize = (LEVEL_DELAY_S / LEVEL_SNAPSHOT_S) as usize + 2;
+/// Accepted range of the fitted GNSS part R (m² per axis).
+pub const NOISE_RANGE_M2: (f64, f64) = (1e-4, 1e8);
+
+/// Fitted on normal training rows; carried by the artifact inside the evidence parameters.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct OffsetParams {
+    /// R_k: per-axis variance of anchor k's offset with no dead reckoning behind it (m²).
+    pub noise_m2: [f64; ANCHOR_COUNT],
+    /// c_k²: its growth per square metre of net dead-reckoned displacement, before the onboard
+    /// calibration is warm (the raw onboard errors: a few degrees of heading bias).
+    pub raw_growth: [f64; ANCHOR_COUNT],
+    /// c_k² once the calibration is warm (the calibrated motion).
+    pub calibrated_growth: [f64; ANCHOR_COUNT],
+    /// Normalise by the vehicle's own level; off only while fitting.
+    pub vehicle_levels: bool,
+}
+
+impl OffsetParams {
+    /// The widest noise and no growth, without vehicle levels: no anchor ever stops following, and
+    /// the fit reads the raw offsets ([`OffsetEvidence::offset_norm_m`]) with it.
+    pub fn unnormalised() -> Self {
+        Self {
+            noise_m2: [NOISE_RANGE_M2.1; ANCHOR_COUNT],
+            raw_growth: [0.0; ANCHOR_COUNT],
+            calibrated_growth: [0.0; ANCHOR_COUNT],
+            vehicle_levels: false,
+        }
+    }
+
+    /// R ∈ [1e-4, 1e8] m² and c² ∈ [0, 1] (a dead-reckoning error as large as the distance is no
+    /// onboard sensor); the error names the field.
+    pub fn validate(&self) -> Result<(), EvidenceError> {
+        let invalid =
+            |field: &'static str, reason: String| EvidenceError::InvalidParams { field, reason };
+        if let Some(&bad) = self
+            .noise_m2
+            .iter()
+            .find(|v| !(NOISE_RANGE_M2.0..=NOISE_RANGE_M2.1).contains(*v))
+        {
+            return Err(invalid(
+                "offset.noise_m2",
+                format!(
+                    "must be finite and in [{:e}, {:e}] m², got {}",
+                    NOISE_RANGE_M2.0,
+                    NOISE_RANGE_M2.1,
+                    readable(bad)
+                ),
+            ));
+        }
+        for (field, growth) in [
+            ("offset.raw_growth", &self.raw_growth),
+            ("offset.calibrated_growth", &self.calibrated_growth),
+        ] {
+            if let Some(&bad) = growth.iter().find(|v| !(0.0..=1.0).contains(*v)) {
+                return Err(invalid(
+                    field,
+                    format!("must be in [0, 1] per square metre, got {}", readable(bad)),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// One step of the anchors, all east/north, from the last usable sample to this one.
+#[derive(Clone, Copy, Debug)]
+pub struct OffsetStep {
+    /// GNSS displacement minus the (calibrated, once warm) onboard displacement (m).
+    pub residual: [f64; 2],
+    /// The onboard displacement (m).
+    pub motion: [f64; 2],
+    /// Seconds since the last usable sample, in (0, [`MAX_CARRY_GAP_S`]].
+    pub delta_t: f64,
+    /// The onboard calibration was warm (the residual is calibrated).
+    pub calibrated: bool,
+}
+
+/// The offset channels of one sample.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct OffsetEvidence {
+    /// o = g − â of the slow anchor, east/north (m): where GNSS puts the vehicle relative to where
+    /// its own motion since the last trusted fix does.
+    pub offset_m: [f64; 2],
+    /// 1-σ per axis of that offset under normal driving (m).
+    pub sigma_m: f64,
+    /// ‖o_k‖²/σ_k² per anchor (fast, slow), in the vehicle's own level.
+    pub nis: [f64; ANCHOR_COUNT],
+    /// Seconds the larger NIS has stayed at or beyond [`DECISIVE_GATE`] without a break (0 on the
+    /// row it first does, 0 below it).
+    pub held_s: f64,
+    /// Share of the last ~10 s and ~60 s (EWMAs) with a NIS at or beyond [`FOLLOW_GATE`].
+    pub share: [f64; 2],
+    /// Some anchor is frozen (the fix disagrees, or agreed again for less than [`AGREEMENT_S`]).
+    pub frozen: bool,
+    /// The offset now held reached the decisive gate within one step: a jump, not a build-up.
+    pub arrived_by_step: bool,
+    /// ‖U_k‖ per anchor: the net dead-reckoned distance its uncertainty grows with (m).
+    pub carried_m: [f64; ANCHOR_COUNT],
+    /// ‖o_k‖ per anchor (m).
+    pub offset_norm_m: [f64; ANCHOR_COUNT],
+    /// The step was dead-reckoned with the warm onboard calibration.
+    pub calibrated: bool,
+}
+
+impl OffsetEvidence {
+    /// The channels before any usable sample.
+    pub const EMPTY: Self = Self {
+        offset_m: [0.0; 2],
+        sigma_m: 0.0,
+        nis: [0.0; ANCHOR_COUNT],
+        held_s: 0.0,
+        share: [0.0; 2],
+        frozen: false,
+        arrived_by_step: false,
+        carried_m: [0.0; ANCHOR_COUNT],
+        offset_norm_m: [0.0; ANCHOR_COUNT],
+        calibrated: false,
+    };
+
+    /// The larger of the anchors' NIS.
+    pub fn max_nis(&self) -> f64 {
+        self.nis[0].max(self.nis[1])
+    }
+
+    /// The fix is displaced from an anchor beyond the follow gate.
+    pub fn displaced(&self) -> bool {
+        self.max_nis() >= FOLLOW_GATE
+    }
+}
+
+/// One anchor's state.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+struct Anchor {
+    /// o: GNSS minus anchor (m).
+    offset: [f64; 2],
+    /// U: net dead-reckoned displacement behind the anchor, forgotten with o (m).
+    carried: [f64; 2],
+    /// Variance a telemetry gap added (m² per axis), forgotten with o².
+    gap_m2: f64,
+    frozen: bool,
+    /// Seconds of agreement since the fix last disagreed (while frozen).
+    agreement_s: f64,
+}
+
+/// A level snapshot after `clock_s` seconds of valid data.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+struct LevelSnapshot {
+    clock_s: f64,
+    levels: [f64; ANCHOR_COUNT],
+}
+
+/// The per-vehicle anchor state. Persists across the trajectory breaks of a stream (a gap up to
+/// [`MAX_CARRY_GAP_S`] carries the anchors across); `push` never allocates.
+///
+/// Serialised (inside a session snapshot) it holds only the vehicle's state; the parameters come
+/// back with [`OffsetTracker::restore`].
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct OffsetTracker {
+    #[serde(skip, default = "OffsetParams::unnormalised")]
+    params: OffsetParams,
+    anchors: [Anchor; ANCHOR_COUNT],
+    /// Seconds the larger NIS has been at or beyond the decisive gate (NaN below it).
+    held_s: f64,
+    arrived_by_step: bool,
+    share: [f64; 2],
+    /// Running mean of min(NIS/2, cap) per anchor, its clock, and the delayed snapshots.
+    levels: [f64; ANCHOR_COUNT],
+    level_clock_s: f64,
+    snapshots: [LevelSnapshot; LEVEL_SNAPSHOTS],
+    snapshot_count: usize,
+    levels_in_use: [f64; ANCHOR_COUNT],
+    last: OffsetEvidence,
+    /// The last usable sample the anchors moved to.
+    point: Option<AnchorPoint>,
+}
+
+/// The last usable sample: where the next step starts.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AnchorPoint {
+    pub fix: LatLon,
+    /// Onboard velocity east/north (m/s).
+    pub velocity: [f64; 2],
+    pub time_s: f64,
+}
+
+impl OffsetTracker {
+    /// A tracker at the start of a stream.
+    pub fn new(params: &OffsetParams) -> Self {
+        Self {
+            params: *params,
+            anchors: [Anchor::default(); ANCHOR_COUNT],
+            held_s: f64::NAN,
+            arrived_by_step: false,
+            share: [0.0; 2],
+            levels: [1.0; ANCHOR_COUNT],
+            level_clock_s: 0.0,
+            snapshots: [LevelSnapshot::default(); LEVEL_SNAPSHOTS],
+            snapshot_count: 0,
+            levels_in_use: [1.0; ANCHOR_COUNT],
+            last: OffsetEvidence::EMPTY,
+            point: None,
+        }
+    }
+
+    /// `saved` (deserialised, without parameters) continuing under `params`.
+    pub fn restore(params: &OffsetParams, saved: OffsetTracker) -> OffsetTracker {
+        OffsetTracker {
+            params: *params,
+            ..saved
+        }
+    }
+
+    /// Forgets the stream, as a new tracker of the same parameters.
+    pub fn reset(&mut self) {
+        *self = Self::new(&self.params);
+    }
+
+    /// A new anchor at the current fix: the next offsets start from 0 with the GNSS noise as their
+    /// uncertainty. The vehicle's levels are kept (they describe its receiver).
+    pub fn re_anchor(&mut self) {
+        self.anchors = [Anchor::default(); ANCHOR_COUNT];
+        self.held_s = f64::NAN;
+        self.arrived_by_step = false;
+        self.share = [0.0; 2];
+        self.last = OffsetEvidence::EMPTY;
+        self.point = None;
+    }
+
+    /// Where the next step starts (`None` before the first usable sample and after a re-anchor).
+    pub fn point(&self) -> Option<AnchorPoint> {
+        self.point
+    }
+
+    /// The next step starts at `point` (the current usable sample).
+    pub fn set_point(&mut self, point: AnchorPoint) {
+        self.point = Some(point);
+    }
+
+    /// The channels of a sample that moves no anchor (unusable, or not later than the last one).
+    pub fn hold(&self) -> OffsetEvidence {
+        self.last
+    }
+
+    /// Moves the anchors by one step and tests the offsets.
+    pub fn push(&mut self, step: &OffsetStep) -> OffsetEvidence {
+        let delta_t = step.delta_t;
+        let gap_m2 = if delta_t > super::MAX_GAP_S {
+            let hidden = 0.5 * GAP_ACCELERATION_MPS2 * delta_t * delta_t;
+            hidden * hidden
+        } else {
+            0.0
+        };
+        let growth = if step.calibrated {
+            self.params.calibrated_growth
+        } else {
+            self.params.raw_growth
+        };
+        let mut nis = [0.0; ANCHOR_COUNT];
+        let mut population_nis = [0.0; ANCHOR_COUNT];
+        let mut sigma_m = 0.0;
+        for (k, anchor) in self.anchors.iter_mut().enumerate() {
+            let keep = if anchor.frozen {
+                1.0
+            } else {
+                (-delta_t / FOLLOW_S[k]).exp()
+            };
+            for axis in 0..2 {
+                anchor.offset[axis] = keep * (anchor.offset[axis] + step.residual[axis]);
+                anchor.carried[axis] = keep * (anchor.carried[axis] + step.motion[axis]);
+            }
+            anchor.gap_m2 = keep * keep * (anchor.gap_m2 + gap_m2);
+            let variance =
+                self.params.noise_m2[k] + growth[k] * norm_squared(anchor.carried) + anchor.gap_m2;
+            population_nis[k] = norm_squared(anchor.offset) / variance;
+            let level = if self.params.vehicle_levels {
+                self.levels_in_use[k].clamp(LEVEL_RANGE.0, LEVEL_RANGE.1)
+            } else {
+                1.0
+            };
+            nis[k] = population_nis[k] / level;
+            if k == ANCHOR_COUNT - 1 {
+                sigma_m = (variance * level).sqrt();
+            }
+            if nis[k] >= FOLLOW_GATE {
+                anchor.frozen = true;
+                anchor.agreement_s = 0.0;
+            } else if anchor.frozen {
+                anchor.agreement_s += delta_t;
+                if anchor.agreement_s >= AGREEMENT_S {
+                    anchor.frozen = false;
+                    anchor.agreement_s = 0.0;
+                }
+            }
+        }
+        // A row counts towards the vehicle's level unless an offset has already been held beyond
+        // the decisive gate for the agreement time (something real, not the receiver's noise).
+        let settled = self.held_s.is_nan() || self.held_s < AGREEMENT_S;
+        if self.params.vehicle_levels && settled {
+            self.update_levels(&population_nis, delta_t);
+        }
+
+        let max_nis = nis[0].max(nis[1]);
+        if max_nis >= DECISIVE_GATE {
+            if self.held_s.is_nan() {
+                self.held_s = 0.0;
+                // Arrived in one step: beyond the gate now, and below the follow gate before.
+                self.arrived_by_step = self.last.max_nis() < FOLLOW_GATE;
+            } else {
+                self.held_s += delta_t;
+            }
+        } else {
+            self.held_s = f64::NAN;
+            self.arrived_by_step = false;
+        }
+        let beyond = if max_nis >= FOLLOW_GATE { 1.0 } else { 0.0 };
+        for (share, tau) in self.share.iter_mut().zip(SHARE_S) {
+            let keep = (-delta_t / tau).exp();
+            *share = keep * *share + (1.0 - keep) * beyond;
+        }
+        let slow = &self.anchors[ANCHOR_COUNT - 1];
+        self.last = OffsetEvidence {
+            offset_m: slow.offset,
+            sigma_m,
+            nis,
+            held_s: if self.held_s.is_nan() {
+                0.0
+            } else {
+                self.held_s
+            },
+            share: self.share,
+            frozen: self.anchors.iter().any(|a| a.frozen),
+            arrived_by_step: self.arrived_by_step,
+            carried_m: self.anchors.map(|a| norm_squared(a.carried).sqrt()),
+            offset_norm_m: self.anchors.map(|a| norm_squared(a.offset).sqrt()),
+            calibrated: step.calibrated,
+        };
+        self.last
+    }
+
+    /// Running mean of min(NIS/2, cap) per anchor (E = 1 for a vehicle like the population), prior 1 with the weight of `LEVEL_PRIOR_S` seconds, memory `LEVEL_MEMORY_S`;
+    /// the level in use is the newest snapshot at least `LEVEL_DELAY_S` old.
+    fn update_levels(&mut self, population_nis: &[f64; ANCHOR_COUNT], delta_t: f64) {
+        self.level_clock_s += delta_t;
+        let weight = delta_t / (LEVEL_PRIOR_S + self.level_clock_s.min(LEVEL_MEMORY_S));
+        for k in 0..ANCHOR_COUNT {
+            if !population_nis[k].is_finite() {
+                continue;
+            }
+            let row = (0.5 * population_nis[k]).min(LEVEL_ROW_CAP);
+            self.levels[k] += weight * (row - self.levels[k]);
+        }
+        let newest = self
+            .snapshot_count
+            .checked_sub(1)
+            .map(|i| self.snapshots[i]);
+        if newest.is_none_or(|s| self.level_clock_s - s.clock_s >= LEVEL_SNAPSHOT_S) {
+            if self.snapshot_count == LEVEL_SNAPSHOTS {
+                self.snapshots.copy_within(1.., 0);
+                self.snapshot_count -= 1;
+            }
+            self.snapshots[self.snapshot_count] = LevelSnapshot {
+                clock_s: self.level_clock_s,
+                levels: self.levels,
+            };
+            self.snapshot_count += 1;
+        }
+        let due = self.level_clock_s - LEVEL_DELAY_S;
+        if let Some(snapshot) = self.snapshots[..self.snapshot_count]
+            .iter()
+            .rev()
+            .find(|s| s.clock_s <= due)
+        {
+            self.levels_in_use = snapshot.levels;
+        }
+    }
+}
+
+fn norm_squared(v: [f64; 2]) -> f64 {
+    v[0] * v[0] + v[1] * v[1]
+}
+
+/// One second of normal driving as one anchor saw it (the fit's input).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OffsetPoint {
+    /// ‖U‖: net dead-reckoned distance behind the anchor (m).
+    pub carried_m: f64,
+    /// ‖o‖ (m).
+    pub offset_m: f64,
+    /// Dead-reckoned with the warm calibration.
+    pub calibrated: bool,
+}
+
+/// Fewest points per anchor before the calibration is warm.
+pub const MIN_OFFSET_POINTS: usize = 30;
+/// Equal-count bins of ‖U‖ per group of points.
+const FIT_BINS: usize = 10;
+/// The 95 % quantile of χ²₂ (−2 ln 0.05). A bin's per-axis variance is its 95 % quantile of ‖o‖²
+/// over this: the scale is matched where the gates work, in the tail, not at the median (GNSS error
+/// is correlated, so the tail is heavier than a Gaussian's).
+const CHI2_2_Q95: f64 = 5.991_464_547_107_979;
+
+/// Each anchor's R and c² (raw, calibrated) from its points: the points are binned by ‖U‖ (equal
+/// counts, per group), each bin gives a variance v (its 95 % quantile of ‖o‖² / 5.99) at its median
+/// ‖U‖², and v = R + c²_raw‖U‖²·[raw] + c²_cal‖U‖²·[calibrated] is fitted by least squares with
+/// c² ≥ 0 (a negative slope is dropped and the rest refitted). Without calibrated points the
+/// calibrated growth is the raw one.
+pub fn offset_params_from_points(
+    points: &[Vec<OffsetPoint>; ANCHOR_COUNT],
+) -> Result<OffsetParams, EvidenceError> {
+    let mut params = OffsetParams {
+        vehicle_levels: true,
+        ..OffsetParams::unnormalised()
+    };
+    for (k, anchor_points) in points.iter().enumerate() {
+        let raw: Vec<OffsetPoint> = anchor_points
+            .iter()
+            .copied()
+            .filter(|p| !p.calibrated)
+            .collect();
+        let calibrated: Vec<OffsetPoint> = anchor_points
+            .iter()
+            .copied()
+            .filter(|p| p.calibrated)
+            .collect();
+        if raw.len() < MIN_OFFSET_POINTS {
+            return Err(EvidenceError::TooFewOffsetRows {
+                rows: raw.len(),
+                minimum: MIN_OFFSET_POINTS,
+            });
+        }
+        let mut rows: Vec<[f64; 3]> = binned(raw).map(|(x, v)| [x, 0.0, v]).collect();
+        let has_calibrated = calibrated.len() >= MIN_OFFSET_POINTS;
+        if has_calibrated {
+            rows.extend(binned(calibrated).map(|(x, v)| [0.0, x, v]));
+        }
+        let [noise, raw_growth, calibrated_growth] =
+            non_negative_fit(&rows, [true, true, has_calibrated]);
+        params.noise_m2[k] = noise.clamp(NOISE_RANGE_M2.0, NOISE_RANGE_M2.1);
+        params.raw_growth[k] = raw_growth.min(1.0);
+        params.calibrated_growth[k] = if has_calibrated {
+            calibrated_growth.min(1.0)
+        } else {
+            params.raw_growth[k]
+        };
+    }
+    params.validate()?;
+    Ok(params)
+}
+
+/// (median ‖U‖², 95 % quantile of ‖o‖² / 5.99) per equal-count bin of ‖U‖.
+fn binned(mut points: Vec<OffsetPoint>) -> impl Iterator<Item = (f64, f64)> {
+    points.sort_by(|a, b| a.carried_m.total_cmp(&b.carried_m));
+    let size = points.len().div_ceil(FIT_BINS);
+    let bins: Vec<(f64, f64)> = points
+        .chunks(size)
+        .map(|bin| {
+            let carried = bin[bin.len() / 2].carried_m;
+            let mut squared: Vec<f64> = bin.iter().map(|p| p.offset_m * p.offset_m).collect();
+            squared.sort_by(f64::total_cmp);
+            let q95 = super::stats::quantile_sorted(&squared, 0.95).unwrap_or(0.0);
+            (carried * carried, q95 / CHI2_2_Q95)
+        })
+        .collect();
+    bins.into_iter()
+}
+
+/// Least squares of v = β₀ + β₁x₁ + β₂x₂ over `rows` ([x₁, x₂, v]) on the `active` coefficients,
+/// dropping a slope that comes out negative (and refitting) until none does. Inactive and dropped
+/// coefficients are 0.
+fn non_negative_fit(rows: &[[f64; 3]], mut active: [bool; 3]) -> [f64; 3] {
+    loop {
+        let beta = solve_normal_equations(rows, active);
+        match (1..3).find(|&j| active[j] && beta[j] < 0.0) {
+            Some(j) => active[j] = false,
+            None => return beta,
+        }
+    }
+}
+
+/// The least-squares coefficients of the active columns [1, x₁, x₂] by Gaussian elimination with
+/// partial pivoting on the normal equations; a singular system leaves the slopes 0 and the
+/// intercept the mean.
+fn solve_normal_equations(rows: &[[f64; 3]], active: [bool; 3]) -> [f64; 3] {
+    let columns: Vec<usize> = (0..3).filter(|&j| active[j]).collect();
+    let n = columns.len();
+    let feature = |row: &[f64; 3], j: usize| if j == 0 { 1.0 } else { row[j - 1] };
+    let mut a = vec![vec![0.0; n + 1]; n];
+    for row in rows {
+        for (i, &ci) in columns.iter().enumerate() {
+            for (j, &cj) in columns.iter().enumerate() {
+                a[i][j] += feature(row, ci) * feature(row, cj);
+            }
+            a[i][n] += feature(row, ci) * row[2];
+        }
+    }
+    let mean = rows.iter().map(|r| r[2]).sum::<f64>() / rows.len().max(1) as f64;
+    let fallback = [mean, 0.0, 0.0];
+    for pivot in 0..n {
+        let best = (pivot..n)
+            .max_by(|&x, &y| a[x][pivot].abs().total_cmp(&a[y][pivot].abs()))
+            .unwrap_or(pivot);
+        if a[best][pivot].abs() < 1e-12 * (1.0 + a[best][n].abs()) {
+            return fallback;
+        }
+        a.swap(pivot, best);
+        for row in pivot + 1..n {
+            let factor = a[row][pivot] / a[pivot][pivot];
+            for col in pivot..=n {
+                a[row][col] -= factor * a[pivot][col];
+            }
+        }
+    }
+    let mut solution = vec![0.0; n];
+    for i in (0..n).rev() {
+        let tail: f64 = (i + 1..n).map(|j| a[i][j] * solution[j]).sum();
+        solution[i] = (a[i][n] - tail) / a[i][i];
+    }
+    let mut beta = [0.0; 3];
+    for (value, &column) in solution.iter().zip(&columns) {
+        beta[column] = *value;
+    }
+    if beta.iter().all(|b| b.is_finite()) {
+        beta
+    } else {
+        fallback
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Unit GNSS noise on both anchors, no growth, no vehicle levels.
+    fn unit_params() -> OffsetParams {
+        OffsetParams {
+            noise_m2: [1.0; ANCHOR_COUNT],
+            raw_growth: [0.0; ANCHOR_COUNT],
+            calibrated_growth: [0.0; ANCHOR_COUNT],
+            vehicle_levels: false,
+        }
+    }
+
+    fn step(residual: [f64; 2], delta_t: f64) -> OffsetStep {
+        OffsetStep {
+            residual,
+            motion: [0.0, 10.0 * delta_t],
+            delta_t,
+            calibrated: false,
+        }
+    }
+
+    fn keep(delta_t: f64, k: usize) -> f64 {
+        (-delta_t / FOLLOW_S[k]).exp()
+    }
+
+    #[test]
+    fn an_anchor_follows_a_constant_dead_reckoning_error_to_its_steady_state() {
+        // r = 0.1 m east every second: the fast anchor's o → 0.1·keep/(1 − keep) = 0.951 m, the
+        // geometric sum, and it never stops following. The slow one would settle at 11.95 m: with
+        // unit noise it stops following when its offset passes 4 m (NIS 16) and then keeps it.
+        let mut tracker = OffsetTracker::new(&unit_params());
+        let mut last = OffsetEvidence::EMPTY;
+        let mut slow_froze_at = None;
+        for i in 0..2000 {
+            last = tracker.push(&step([0.1, 0.0], 1.0));
+            if last.nis[1] >= FOLLOW_GATE && slow_froze_at.is_none() {
+                slow_froze_at = Some(i);
+            }
+        }
+        let a = keep(1.0, 0);
+        assert!(
+            (last.offset_norm_m[0] - 0.1 * a / (1.0 - a)).abs() < 1e-9,
+            "{last:?}"
+        );
+        assert!(last.nis[0] < FOLLOW_GATE);
+        // Σ 0.1·keep^j reaches 4 m after 50 rows (0.1·keep·(1 − keep^n)/(1 − keep) ≥ 4).
+        let b = keep(1.0, 1);
+        let rows = ((1.0 - 4.0 * (1.0 - b) / (0.1 * b)).ln() / b.ln()).ceil() as usize;
+        assert_eq!(slow_froze_at, Some(rows - 1));
+        assert!(last.frozen);
+    }
+
+    #[test]
+    fn a_jump_freezes_the_anchors_and_is_held_while_a_spike_comes_back() {
+        let mut tracker = OffsetTracker::new(&unit_params());
+        for _ in 0..30 {
+            tracker.push(&step([0.0; 2], 1.0));
+        }
+        // A 50 m jump north: o_k = keep_k·50 on the jump row, then frozen (no more decay).
+        let first = tracker.push(&step([0.0, 50.0], 1.0));
+        assert!(first.frozen && first.arrived_by_step);
+        assert_eq!(first.held_s, 0.0);
+        let held_north = 50.0 * keep(1.0, 1);
+        assert!((first.offset_m[1] - held_north).abs() < 1e-12);
+        let mut last = first;
+        for _ in 0..5 {
+            last = tracker.push(&step([0.0; 2], 1.0));
+        }
+        assert_eq!(last.held_s, 5.0);
+        assert_eq!(last.offset_m, [0.0, held_north]);
+        assert!((last.nis[1] - held_north * held_north).abs() < 1e-9);
+
+        // A 30 m spike on one row out and back: held for 0 s, below the gates afterwards.
+        let mut tracker = OffsetTracker::new(&unit_params());
+        for _ in 0..30 {
+            tracker.push(&step([0.0; 2], 1.0));
+        }
+        let out = tracker.push(&step([30.0, 0.0], 1.0));
+        assert_eq!(out.held_s, 0.0);
+        let back = tracker.push(&step([-30.0, 0.0], 1.0));
+        // Frozen after the spike row: o_fast = 30·keep − 30 = −2.85 m, NIS 8.1.
+        let expected = 30.0 * keep(1.0, 0) - 30.0;
+        assert!((back.nis[0] - expected * expected).abs() < 1e-9, "{back:?}");
+        assert!(back.max_nis() < FOLLOW_GATE);
+        assert_eq!(back.held_s, 0.0);
+        // The share of time beyond the follow gate: one row of the last 10 s.
+        let share_after_out = 1.0 - keep(1.0, 0);
+        assert!((out.share[0] - share_after_out).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_frozen_anchor_follows_again_after_the_agreement_time() {
+        let mut tracker = OffsetTracker::new(&unit_params());
+        tracker.push(&step([10.0, 0.0], 1.0));
+        // Back: o_fast = 10·keep − 10, NIS 0.9 (agreement); the slow anchor too.
+        let mut frozen_rows = 0;
+        for _ in 0..10 {
+            let e = tracker.push(&step(
+                [-10.0 * f64::from(u8::from(frozen_rows == 0)), 0.0],
+                1.0,
+            ));
+            if e.frozen {
+                frozen_rows += 1;
+            }
+        }
+        // Agreement from the first row back: frozen for AGREEMENT_S − 1 more rows (5 s in all).
+        assert_eq!(frozen_rows, 4);
+    }
+
+    #[test]
+    fn an_outage_widens_the_uncertainty_by_the_motion_it_may_hide() {
+        // After a 30 s gap the hidden motion is ½·0.5·30² = 225 m per axis: a 100 m difference is
+        // inside it, a 5 km one is not.
+        let gap = 30.0;
+        let hidden = 0.5 * GAP_ACCELERATION_MPS2 * gap * gap;
+        let mut tracker = OffsetTracker::new(&unit_params());
+        let inside = tracker.push(&step([100.0, 0.0], gap));
+        let expected = (100.0 * keep(gap, 1)).powi(2) / (1.0 + (keep(gap, 1) * hidden).powi(2));
+        assert!((inside.nis[1] - expected).abs() < 1e-9, "{inside:?}");
+        assert!(!inside.displaced());
+        let mut tracker = OffsetTracker::new(&unit_params());
+        let beyond = tracker.push(&step([5000.0, 0.0], gap));
+        assert!(beyond.max_nis() > DECISIVE_GATE, "{beyond:?}");
+        // Without the gap, the same 100 m is far beyond the gate.
+        let mut tracker = OffsetTracker::new(&unit_params());
+        assert!(tracker.push(&step([100.0, 0.0], 1.0)).max_nis() > DECISIVE_GATE);
+    }
+
+    #[test]
+    fn the_uncertainty_grows_with_the_distance_carried() {
+        // R = 4 m², c² = 0.01: after carrying 100 m north with no offset, a 10 m offset is
+        // NIS = 100·keep² / (4 + 0.01·‖U‖²) with U the carried distance (decayed like o).
+        let params = OffsetParams {
+            noise_m2: [4.0; ANCHOR_COUNT],
+            raw_growth: [0.01; ANCHOR_COUNT],
+            ..unit_params()
+        };
+        let mut tracker = OffsetTracker::new(&params);
+        let e = tracker.push(&OffsetStep {
+            residual: [10.0, 0.0],
+            motion: [0.0, 100.0],
+            delta_t: 1.0,
+            calibrated: false,
+        });
+        for k in 0..ANCHOR_COUNT {
+            let a = keep(1.0, k);
+            let expected = (10.0 * a).powi(2) / (4.0 + 0.01 * (100.0 * a).powi(2));
+            assert!((e.nis[k] - expected).abs() < 1e-12, "{k}: {e:?}");
+            assert!((e.carried_m[k] - 100.0 * a).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn the_vehicle_level_adapts_with_a_delay_and_within_bounds() {
+        // A receiver 3× noisier (in σ) than the population: GNSS white noise of σ 3 m makes the
+        // residual the difference of two such errors. Its level rises towards 9, capped at 4, but
+        // only from snapshots at least 120 s old.
+        let params = OffsetParams {
+            vehicle_levels: true,
+            ..unit_params()
+        };
+        let mut tracker = OffsetTracker::new(&params);
+        let mut rng = crate::rng::Rng::seed_from_u64(3);
+        let mut previous = [0.0; 2];
+        let mut levels_at = Vec::new();
+        for i in 0..900 {
+            let noise = [3.0 * rng.normal(), 3.0 * rng.normal()];
+            let residual = [noise[0] - previous[0], noise[1] - previous[1]];
+            previous = noise;
+            let e = tracker.push(&step(residual, 1.0));
+            assert!(e.nis.iter().all(|n| n.is_finite()));
+            if i == 100 || i == 899 {
+                levels_at.push(tracker.levels_in_use);
+            }
+        }
+        assert_eq!(levels_at[0], [1.0; ANCHOR_COUNT]);
+        assert!(levels_at[1].iter().all(|&l| l > 3.0), "{levels_at:?}");
+        // In use, the level never passes the bound.
+        let e = tracker.push(&step([10.0, 0.0], 1.0));
+        assert!(e.nis[0] >= 100.0 * keep(1.0, 0).powi(2) / LEVEL_RANGE.1 - 1e-9);
+    }
+
+    #[test]
+    fn the_fit_recovers_noise_and_growth_from_binned_quantiles() {
+        // Ten distances, ten points each, all with ‖o‖² = 5.99·(2 + 0.01·x²): R = 2, c² = 0.01.
+        let mut points = Vec::new();
+        for bin in 0..10 {
+            let x = 50.0 * f64::from(bin);
+            for _ in 0..10 {
+                points.push(OffsetPoint {
+                    carried_m: x,
+                    offset_m: (CHI2_2_Q95 * (2.0 + 0.01 * x * x)).sqrt(),
+                    calibrated: false,
+                });
+            }
+        }
+        let params = offset_params_from_points(&[points.clone(), points]).expect("enough points");
+        for k in 0..ANCHOR_COUNT {
+            assert!((params.noise_m2[k] - 2.0).abs() < 1e-9, "{params:?}");
+            assert!((params.raw_growth[k] - 0.01).abs() < 1e-12, "{params:?}");
+            assert_eq!(params.calibrated_growth[k], params.raw_growth[k]);
+        }
+        assert!(params.vehicle_levels);
+        let few = vec![
+            OffsetPoint {
+                carried_m: 1.0,
+                offset_m: 1.0,
+                calibrated: false,
+            };
+            5
+        ];
+        assert!(offset_params_from_points(&[few.clone(), few]).is_err());
+    }
+
+    #[test]
+    fn validation_names_the_field() {
+        let mut params = unit_params();
+        params.noise_m2[1] = f64::NAN;
+        let err = params.validate().expect_err("NaN noise");
+        assert!(err.to_string().contains("offset.noise_m2"), "{err}");
+        let mut params = unit_params();
+        params.calibrated_growth[0] = 2.0;
+        let err = params.validate().expect_err("growth");
+        assert!(
+            err.to_string().contains("offset.calibrated_growth"),
+            "{err}"
+        );
+    }
+}

@@ -1,0 +1,262 @@
+//! The alarm lifecycle in seconds, with hysteresis (`docs/detector.md` §7.1).
+//!
+//! An alarm opens after p̂ has stayed at or above θ for `on_s` seconds, or at once on decisive
+//! evidence: an offset held beyond the decisive gate for `decisive_s` seconds. It stays open while
+//! p̂ ≥ θ or the fix stays displaced from the anchors, and clears only after `off_s` seconds with
+//! neither. Every duration is measured on the samples' own timestamps, so a 1 Hz and a 10 Hz
+//! stream of the same drive open and clear at the same times, and one false-alarm budget holds for
+//! both. (The paper's persistence N_p counts rows: 4 rows are 4 s at 1 Hz and 0.4 s at 10 Hz.)
+//!
+//! Owns when a confirmed alarm opens and clears, from per-sample flags. Must not build evidence,
+//! score samples or choose the lifecycle's durations (that is `alarm.rs`'s search).
+
+use serde::{Deserialize, Serialize};
+
+use crate::sample::readable;
+
+/// Longest accepted duration of the lifecycle (s): an hour.
+pub const MAX_LIFECYCLE_S: f64 = 3600.0;
+/// Timestamps of a 10 Hz stream are not exact multiples of 0.1 s in binary; durations compare with
+/// this slack (s).
+const TIME_SLACK_S: f64 = 1e-6;
+
+/// The lifecycle's durations, chosen on validation data with θ.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Lifecycle {
+    /// T_on: seconds p̂ must stay ≥ θ before an alarm opens.
+    pub on_s: f64,
+    /// T_off: seconds without support (p̂ < θ and the fix agreeing with the anchors) before an open
+    /// alarm clears.
+    pub off_s: f64,
+    /// Seconds an offset must stay beyond the decisive gate to open an alarm at once.
+    pub decisive_s: f64,
+}
+
+impl Lifecycle {
+    /// Every duration finite and in [0, [`MAX_LIFECYCLE_S`]]; the error names the field.
+    pub fn validate(&self) -> Result<(), (&'static str, String)> {
+        for (field, value) in [
+            ("on_s", self.on_s),
+            ("off_s", self.off_s),
+            ("decisive_s", self.decisive_s),
+        ] {
+            if !(0.0..=MAX_LIFECYCLE_S).contains(&value) {
+                return Err((
+                    field,
+                    format!(
+                        "must be finite and in [0, {MAX_LIFECYCLE_S}] s, got {}",
+                        readable(value)
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// What the offset evidence says about one sample, for the lifecycle.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct OffsetSignal {
+    /// Seconds the offset has stayed beyond the decisive gate; `None` below it.
+    pub held_s: Option<f64>,
+    /// The fix is displaced from an anchor beyond the follow gate.
+    pub displaced: bool,
+}
+
+/// One sample's inputs to the lifecycle.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LifecycleInput {
+    pub time_s: f64,
+    /// ν_t.
+    pub valid: bool,
+    pub trajectory_start: bool,
+    /// p̂_t ≥ θ.
+    pub positive: bool,
+    pub offset: OffsetSignal,
+}
+
+/// One vehicle's alarm state under a [`Lifecycle`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct AlarmLifecycle {
+    open: bool,
+    /// Start of the current run of positive samples.
+    positive_since: Option<f64>,
+    /// Start of the current run without support, while open.
+    quiet_since: Option<f64>,
+}
+
+impl AlarmLifecycle {
+    /// Whether the alarm is open.
+    pub fn is_open(&self) -> bool {
+        self.open
+    }
+
+    /// Feeds one sample; returns whether the alarm is open after it. A trajectory start closes the
+    /// alarm and forgets the runs (as the persistence N_p does); a ν = 0 sample changes nothing.
+    pub fn update(&mut self, lifecycle: &Lifecycle, input: &LifecycleInput) -> bool {
+        if input.trajectory_start {
+            *self = Self::default();
+        }
+        if !input.valid {
+            return self.open;
+        }
+        let time = input.time_s;
+        if input.positive {
+            self.positive_since.get_or_insert(time);
+        } else {
+            self.positive_since = None;
+        }
+        let decisive = input
+            .offset
+            .held_s
+            .is_some_and(|held| held + TIME_SLACK_S >= lifecycle.decisive_s);
+        let sustained = self
+            .positive_since
+            .is_some_and(|since| time - since + TIME_SLACK_S >= lifecycle.on_s);
+        if !self.open {
+            if decisive || sustained {
+                self.open = true;
+                self.quiet_since = None;
+            }
+        } else if input.positive || decisive || input.offset.displaced {
+            self.quiet_since = None;
+        } else {
+            let since = *self.quiet_since.get_or_insert(time);
+            if time - since + TIME_SLACK_S >= lifecycle.off_s {
+                self.open = false;
+                self.quiet_since = None;
+            }
+        }
+        self.open
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const LIFECYCLE: Lifecycle = Lifecycle {
+        on_s: 3.0,
+        off_s: 5.0,
+        decisive_s: 2.0,
+    };
+
+    /// Runs the lifecycle over samples every `step_s` from 0 to `end_s`; `positive(t)`,
+    /// `held(t)` and `displaced(t)` describe the drive. Returns (onset times, clear times).
+    fn run(
+        step_s: f64,
+        end_s: f64,
+        positive: impl Fn(f64) -> bool,
+        held_since: Option<f64>,
+        displaced: impl Fn(f64) -> bool,
+    ) -> (Vec<f64>, Vec<f64>) {
+        // The offset is held beyond the decisive gate from `held_since` while it is displaced.
+        let mut alarm = AlarmLifecycle::default();
+        let (mut onsets, mut clears) = (Vec::new(), Vec::new());
+        let steps = (end_s / step_s).round() as usize;
+        for i in 0..=steps {
+            let time_s = i as f64 * step_s;
+            let held_s = held_since
+                .filter(|&since| time_s >= since && displaced(time_s))
+                .map(|since| time_s - since);
+            let was = alarm.is_open();
+            let open = alarm.update(
+                &LIFECYCLE,
+                &LifecycleInput {
+                    time_s,
+                    valid: true,
+                    trajectory_start: i == 0,
+                    positive: positive(time_s),
+                    offset: OffsetSignal {
+                        held_s,
+                        displaced: displaced(time_s),
+                    },
+                },
+            );
+            if open && !was {
+                onsets.push(time_s);
+            }
+            if was && !open {
+                clears.push(time_s);
+            }
+        }
+        (onsets, clears)
+    }
+
+    fn rounded(times: Vec<f64>) -> Vec<f64> {
+        times.into_iter().map(|t| (t * 1e6).round() / 1e6).collect()
+    }
+
+    #[test]
+    fn one_hz_and_ten_hz_open_and_clear_at_the_same_times() {
+        // p̂ ≥ θ from 10 s to 20 s: opens at 10 + T_on = 13 s; support ends after 20 s, so the
+        // first quiet sample is 21 s (1 Hz) or 20.1 s (10 Hz) and it clears T_off later.
+        let positive = |t: f64| (10.0 - 1e-9..=20.0 + 1e-9).contains(&t);
+        let (on_1, off_1) = run(1.0, 40.0, positive, None, |_| false);
+        let (on_10, off_10) = run(0.1, 40.0, positive, None, |_| false);
+        assert_eq!(rounded(on_1), vec![13.0]);
+        assert_eq!(rounded(on_10), vec![13.0]);
+        assert_eq!(rounded(off_1), vec![26.0]);
+        assert_eq!(rounded(off_10), vec![25.1]);
+    }
+
+    #[test]
+    fn a_short_positive_run_never_opens() {
+        let (onsets, _) = run(1.0, 30.0, |t| (10.0..=12.0).contains(&t), None, |_| false);
+        assert!(onsets.is_empty(), "{onsets:?}");
+        let (onsets, _) = run(0.1, 30.0, |t| (10.0..=12.5).contains(&t), None, |_| false);
+        assert!(onsets.is_empty(), "{onsets:?}");
+    }
+
+    #[test]
+    fn a_held_offset_opens_at_once_and_keeps_it_open_while_displaced() {
+        // Beyond the decisive gate from 50 s: opens at 52 s whatever p̂ does; displaced until
+        // 100 s, so it clears at 100 + T_off (1 Hz: first quiet sample at 101 s).
+        let (onsets, clears) = run(1.0, 150.0, |_| false, Some(50.0), |t| t <= 100.0);
+        assert_eq!(onsets, vec![52.0]);
+        assert_eq!(clears, vec![106.0]);
+    }
+
+    #[test]
+    fn toggles_back_to_the_truth_do_not_clear_an_open_alarm() {
+        // Displaced, except on every fourth second (the spoofer shows the true position).
+        let displaced = |t: f64| t >= 20.0 && (t as i64) % 4 != 0;
+        let (onsets, clears) = run(1.0, 100.0, |t| (20.0..=30.0).contains(&t), None, displaced);
+        assert_eq!(onsets, vec![23.0]);
+        assert!(clears.is_empty(), "{clears:?}");
+    }
+
+    #[test]
+    fn invalid_samples_change_nothing_and_a_trajectory_start_closes() {
+        let mut alarm = AlarmLifecycle::default();
+        let input = |time_s: f64, valid: bool, start: bool| LifecycleInput {
+            time_s,
+            valid,
+            trajectory_start: start,
+            positive: true,
+            offset: OffsetSignal::default(),
+        };
+        for t in 0..4 {
+            alarm.update(&LIFECYCLE, &input(f64::from(t), true, t == 0));
+        }
+        assert!(alarm.is_open());
+        assert!(alarm.update(&LIFECYCLE, &input(4.0, false, false)));
+        assert!(!alarm.update(&LIFECYCLE, &input(20.0, true, true)));
+    }
+
+    #[test]
+    fn validation_names_the_field() {
+        let bad = Lifecycle {
+            off_s: f64::NAN,
+            ..LIFECYCLE
+        };
+        assert_eq!(bad.validate().expect_err("NaN").0, "off_s");
+        let bad = Lifecycle {
+            on_s: 1e9,
+            ..LIFECYCLE
+        };
+        assert_eq!(bad.validate().expect_err("too long").0, "on_s");
+        assert!(LIFECYCLE.validate().is_ok());
+    }
+}
