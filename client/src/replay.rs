@@ -37,9 +37,10 @@ use crate::detect_stream::{BatchOutcome, DetectStream};
 use crate::error::ClientError;
 use crate::failover::{DEFAULT_FAILOVER_S, FailoverEpisode};
 
-/// The forward gap (s) a recorded trajectory break becomes in a replay; anything above the 5 s
-/// gap rule of SPEC §3 starts a new trajectory on the server.
-pub const REPLAY_BREAK_GAP_S: f64 = 10.0;
+/// The forward gap (s) a recorded trajectory break becomes in a replay: beyond the 5 s gap rule of
+/// SPEC §3 (a new trajectory on the server) and beyond the gaps the offset anchors carry across
+/// (`docs/detector.md` §4.2), so the server re-anchors exactly where offline evaluation does.
+pub const REPLAY_BREAK_GAP_S: f64 = 2.0 * spoofwatch_core::evidence::offset::MAX_CARRY_GAP_S;
 
 /// Timestamps to send for a track's records, in order.
 ///
@@ -776,7 +777,7 @@ mod tests {
     }
 
     #[test]
-    fn a_recorded_break_becomes_a_ten_second_gap_and_later_deltas_are_kept() {
+    fn a_recorded_break_becomes_a_replay_break_gap_and_later_deltas_are_kept() {
         // A date change restarts the clock at 5 s; a second break with time moving forwards by 1 s.
         let rows = records(&[
             (100.0, false),
@@ -788,7 +789,7 @@ mod tests {
         ]);
         assert_eq!(
             replay_timestamps(&rows),
-            vec![100.0, 101.0, 111.0, 112.5, 122.5, 123.5]
+            vec![100.0, 101.0, 701.0, 702.5, 1302.5, 1303.5]
         );
     }
 
@@ -796,9 +797,9 @@ mod tests {
     fn backward_steps_are_gaps_beyond_half_a_second_and_breaks_follow_the_latest_timestamp() {
         let cases = [
             (
-                "time going backwards by more than half a second becomes a ten-second gap",
+                "time going backwards by more than half a second becomes a replay break gap",
                 [(50.0, false), (51.0, false), (50.4, false), (51.4, false)],
-                [50.0, 51.0, 61.0, 62.0],
+                [50.0, 51.0, 651.0, 652.0],
             ),
             (
                 // −0.3 s is within the 0.5 s tolerance: no new trajectory offline, none in the replay.
@@ -807,10 +808,10 @@ mod tests {
                 [50.0, 51.0, 50.7, 51.7],
             ),
             (
-                // After a tolerated −0.3 s step the latest timestamp is still 51.0: the break is at 61.0.
+                // After a tolerated −0.3 s step the latest timestamp is still 51.0: the break is at 651.0.
                 "a break lands after the latest timestamp sent",
                 [(50.0, false), (51.0, false), (50.7, false), (0.0, true)],
-                [50.0, 51.0, 50.7, 61.0],
+                [50.0, 51.0, 50.7, 651.0],
             ),
         ];
         for (case, rows, expected) in cases {
@@ -823,7 +824,7 @@ mod tests {
     }
 
     #[test]
-    fn a_jump_further_ahead_than_the_server_accepts_becomes_a_ten_second_gap() {
+    fn a_jump_further_ahead_than_the_server_accepts_becomes_a_replay_break_gap() {
         // Two days apart without a break flag; a one-hour pause is kept as it is.
         let rows = records(&[
             (0.0, false),
@@ -831,7 +832,7 @@ mod tests {
             (172_801.0, false),
             (172_802.0, false),
         ]);
-        assert_eq!(replay_timestamps(&rows), vec![0.0, 1.0, 11.0, 12.0]);
+        assert_eq!(replay_timestamps(&rows), vec![0.0, 1.0, 601.0, 602.0]);
         let rows = records(&[(0.0, false), (3_600.0, false)]);
         assert_eq!(replay_timestamps(&rows), vec![0.0, 3_600.0]);
     }
@@ -842,7 +843,7 @@ mod tests {
         let replayed = replay_timestamps(&rows);
         assert_eq!(replayed[0], 10.0);
         assert!(replayed[1].is_nan());
-        assert_eq!(&replayed[2..], &[20.0, 21.0]);
+        assert_eq!(&replayed[2..], &[610.0, 611.0]);
     }
 
     #[test]

@@ -20,6 +20,7 @@ pub mod detector;
 pub mod evaluation;
 pub mod evidence;
 pub mod explain;
+pub mod gate;
 pub mod geo;
 pub mod glr;
 pub mod lifecycle;

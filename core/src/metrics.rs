@@ -83,8 +83,9 @@ pub struct Metrics {
     pub false_alarm_events: u64,
     /// Confirmed alarms raised on normal rows: onsets (c̄ 0 → 1, or 1 at a trajectory's first row) at
     /// ν = 1, label-0 rows. Unlike `false_alarm_events` it leaves out an alarm that started inside an
-    /// attack and outlasts it by a few rows (the spoofer's exit), which is not a new alarm; the
-    /// false-alarm budget of the operating-point search counts these.
+    /// attack and outlasts it by a few rows, and one raised within [`EXIT_GRACE_S`] after an attack
+    /// (the spoofer's exit), which are not new alarms; the false-alarm budget of the operating-point
+    /// search counts these.
     #[serde(default)]
     pub false_alarm_onsets: u64,
 }
@@ -445,11 +446,27 @@ fn count_false_alarm_events(rows: &[ScoredRow], alarms: &[bool]) -> u64 {
     runs_where(rows.len(), |i| alarms[i] && rows[i].valid && !rows[i].label).count() as u64
 }
 
-/// Alarm onsets on ν = 1, label-0 rows inside one trajectory.
+/// After an attack's last row, the rows of this many seconds are its exit: the spoofer releases
+/// the fix, which jumps back to the truth. An alarm raised there is a late reaction to the attack,
+/// not a false alarm on attack-free driving; the false-alarm budget leaves it out.
+pub const EXIT_GRACE_S: f64 = 30.0;
+
+/// Alarm onsets on ν = 1, label-0 rows inside one trajectory, except within [`EXIT_GRACE_S`] after
+/// an attacked row.
 fn count_false_alarm_onsets(rows: &[ScoredRow], alarms: &[bool]) -> u64 {
-    (0..rows.len())
-        .filter(|&i| alarms[i] && (i == 0 || !alarms[i - 1]) && rows[i].valid && !rows[i].label)
-        .count() as u64
+    let mut last_attack_s = f64::NEG_INFINITY;
+    let mut onsets = 0;
+    for i in 0..rows.len() {
+        if rows[i].label {
+            last_attack_s = rows[i].time_s;
+        }
+        let exit = rows[i].time_s - last_attack_s <= EXIT_GRACE_S;
+        let onset = alarms[i] && (i == 0 || !alarms[i - 1]);
+        if onset && rows[i].valid && !rows[i].label && !exit {
+            onsets += 1;
+        }
+    }
+    onsets
 }
 
 #[cfg(test)]
@@ -471,7 +488,34 @@ mod tests {
         let alarms = [false, false, true, true, true, false, true, true];
         let m = alarm_metrics(&rows, &alarms, EventRules::Spec);
         assert_eq!((m.false_alarm_rows, m.false_alarm_events), (4, 2));
-        assert_eq!(m.false_alarm_onsets, 1);
+        // All at t = 0 here, so the second alarm is inside the exit grace too.
+        assert_eq!(m.false_alarm_onsets, 0);
+        // The same at 20 s per row: row 6 is 80 s after the attack's last row (row 2).
+        let spaced: Vec<ScoredRow> = rows
+            .iter()
+            .enumerate()
+            .map(|(i, r)| ScoredRow {
+                time_s: 20.0 * i as f64,
+                ..*r
+            })
+            .collect();
+        assert_eq!(
+            alarm_metrics(&spaced, &alarms, EventRules::Spec).false_alarm_onsets,
+            1
+        );
+        // At 5 s per row it is 20 s after: the spoofer's exit, not a false alarm.
+        let close: Vec<ScoredRow> = rows
+            .iter()
+            .enumerate()
+            .map(|(i, r)| ScoredRow {
+                time_s: 5.0 * i as f64,
+                ..*r
+            })
+            .collect();
+        assert_eq!(
+            alarm_metrics(&close, &alarms, EventRules::Spec).false_alarm_onsets,
+            0
+        );
     }
 
     #[test]

@@ -51,7 +51,7 @@ fn attacked_with(seed: u64, kind: AttackKind) -> Track {
 
 /// An untrained (but valid) artifact: evidence fitted on normal drives, random weights.
 fn artifact(op: OperatingPoint) -> Arc<ModelArtifact> {
-    artifact_of(op, FeatureSchema::default(), ModelConfig::default())
+    artifact_of(op, FeatureSchema::V3, ModelConfig::default())
 }
 
 fn artifact_of(
@@ -62,6 +62,7 @@ fn artifact_of(
     let normal: Vec<Track> = (0..2).map(|s| drive(s, 400.0)).collect();
     let fit =
         fit_evidence(&normal, Projection::Wgs84Local, 0.0, 0.98, schema).expect("enough rows");
+    let config = ModelConfig { schema, ..config };
     Arc::new(ModelArtifact {
         schema_version: ARTIFACT_SCHEMA_VERSION,
         feature_names: ModelArtifact::feature_names_of(schema),

@@ -37,6 +37,8 @@ pub enum KindArg {
     Jump,
     /// Teleports every `--hold` seconds up to `--magnitude` metres from the onset fix, frozen between.
     Hop,
+    /// A ramp (magnitude: m/s) whose fix shows the true position for 1 s every `--hold` seconds.
+    Toggle,
 }
 
 fn kind(family: KindArg, magnitude: Option<f64>, hold_s: f64) -> Result<AttackKind> {
@@ -58,6 +60,10 @@ fn kind(family: KindArg, magnitude: Option<f64>, hold_s: f64) -> Result<AttackKi
             offset_m: need("hop")?,
             hold_s,
         },
+        KindArg::Toggle => AttackKind::TogglingDrift {
+            velocity_mps: need("toggle")?,
+            period_s: hold_s,
+        },
     })
 }
 
@@ -70,7 +76,8 @@ pub struct AttackArgs {
     /// Attack magnitude (m/s for ramp, m/s² for accel, m for jump and hop).
     #[arg(long)]
     magnitude: Option<f64>,
-    /// Seconds between the hops of a hop attack.
+    /// Seconds between the hops of a hop attack, or between the toggles to the true position of a
+    /// toggle attack.
     #[arg(long, default_value_t = 4.0)]
     hold: f64,
     /// Direction of the false displacement, degrees clockwise from north.

@@ -348,13 +348,13 @@ impl EvidenceBuilder {
             return Some(offset.hold());
         };
         let delta_t = here.time_s - from.time_s;
-        if delta_t < -MAX_BACKWARD_S || delta_t > MAX_CARRY_GAP_S {
+        if !(-MAX_BACKWARD_S..=MAX_CARRY_GAP_S).contains(&delta_t) {
             offset.re_anchor();
             offset.set_point(here);
             return Some(offset.hold());
         }
-        // Not later than the last usable sample (or a NaN time): nothing to move.
-        if !(delta_t > 0.0) {
+        // Not later than the last usable sample: nothing to move.
+        if delta_t <= 0.0 {
             return Some(offset.hold());
         }
         let gnss = projection.displacement(from.fix, from.fix, fix);

@@ -13,9 +13,12 @@ use super::drift::{
     DriftParams, SettledRates, covariances_from_rates, robust_residual_sigma, thresholds_from_rates,
 };
 use super::linalg::{IDENTITY, Mat2, inverse_sqrt_symmetric, mul_vec};
-use super::offset::{ANCHOR_COUNT, OffsetParams, OffsetPoint, offset_params_from_points};
+use super::offset::{
+    ANCHOR_COUNT, CHI2_2_AT_FIT_QUANTILE, FIT_QUANTILE, FOLLOW_S, OffsetParams, OffsetPoint,
+    offset_params_from_points,
+};
 use super::params::{EvidenceParams, SIGMA_EPSILON};
-use super::stats::{covariance, median};
+use super::stats::{covariance, median, quantile_sorted};
 use crate::geo::Projection;
 use crate::sample::Track;
 
@@ -133,8 +136,9 @@ fn settled_rates(
 /// Evidence v3's anchor parameters from the label-0 rows of `tracks`, with `drift` (the fitted drift
 /// parameters) for the onboard calibration: the anchors run without ever stopping to follow, and
 /// each anchor's offsets, one row per second of driving, give its noise and growth
-/// ([`offset_params_from_points`]). Only normal rows before a track's first attacked row count: an
-/// attack leaves an offset in an anchor that follows it.
+/// ([`offset_params_from_points`]); one row's residual, matched at the same quantile, gives the
+/// step test's noise. Only normal rows before a track's first attacked row count: an attack leaves
+/// an offset in an anchor that follows it.
 pub fn fit_offset_params(
     tracks: &[Track],
     projection: Projection,
@@ -170,16 +174,30 @@ pub fn fit_offset_params(
                 continue;
             }
             for (k, anchor_points) in points.iter_mut().enumerate() {
-                anchor_points.push(OffsetPoint {
-                    carried_m: offset.carried_m[k],
-                    offset_m: offset.offset_norm_m[k],
-                    calibrated: offset.calibrated,
-                });
+                // Settled: the anchor has run for three follow times, so that the GNSS error has
+                // had time to move it as far as it ever does.
+                if offset.anchor_age_s >= SETTLED_FOLLOWS * FOLLOW_S[k] {
+                    anchor_points.push(OffsetPoint {
+                        carried_m: offset.carried_m[k],
+                        offset_m: offset.offset_norm_m[k],
+                        calibrated: offset.calibrated,
+                    });
+                }
             }
         }
     }
-    offset_params_from_points(&points)
+    let mut residuals: Vec<f64> = normal_residuals(tracks, projection)
+        .iter()
+        .map(|r| r[0] * r[0] + r[1] * r[1])
+        .collect();
+    residuals.sort_by(f64::total_cmp);
+    let step_noise_m2 = quantile_sorted(&residuals, FIT_QUANTILE).ok_or(EvidenceError::NoRows)?
+        / CHI2_2_AT_FIT_QUANTILE;
+    offset_params_from_points(&points, step_noise_m2)
 }
+
+/// An anchor's offsets enter the fit this many follow times after it was placed.
+const SETTLED_FOLLOWS: f64 = 3.0;
 
 /// Σ̂ (ddof 1) and μ_e (numpy median energy) from residuals; at least [`MIN_NORMAL_ROWS`] of them.
 pub fn stats_from_residuals(residuals: &[[f64; 2]]) -> Result<NormalStats, EvidenceError> {

@@ -85,10 +85,10 @@ pub type Features = [f64; FEATURE_CAPACITY];
 pub enum FeatureSchema {
     /// The paper's 9-channel ξ_t, for the faithful reproduction and the paper's tables.
     Paper,
-    /// The paper's ξ_t plus the directional drift channels.
-    V2,
-    /// v2 plus the offset channels of the dead-reckoning anchors (the default).
+    /// The paper's ξ_t plus the directional drift channels (the default).
     #[default]
+    V2,
+    /// v2 plus the offset channels of the dead-reckoning anchors.
     V3,
 }
 

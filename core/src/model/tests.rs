@@ -1,7 +1,7 @@
 //! Unit tests of the model: shapes, the step/sequence equivalence and the hand-derived gradients.
 
 use super::*;
-use crate::evidence::{DRIFT_FEATURES_START, FEATURE_CAPACITY, NU_INDEX};
+use crate::evidence::{DRIFT_FEATURES_START, FEATURE_CAPACITY, FeatureSchema, NU_INDEX};
 
 /// A random sequence: ξ ~ N(0,1) (ν = 1 except on `invalid_rows`), δ_0 = 0 then δ ∈ (0.2, 3].
 fn random_sequence(
@@ -250,11 +250,13 @@ fn non_finite_features_are_read_as_zero() {
 #[test]
 fn removed_feature_groups_do_not_influence_the_output() {
     for (name, features) in FeatureGroups::NAMED {
+        // The widest schema, so that every channel is read.
         let config = ModelConfig {
             ablation: Ablation {
                 features,
                 ..Ablation::default()
             },
+            schema: FeatureSchema::V3,
             ..ModelConfig::default()
         };
         let model = Model::init(config.clone(), 8).expect("valid config");

@@ -32,6 +32,15 @@ pub enum AttackKind {
         /// Offset (m, > 0, ≤ 1000 km).
         offset_m: f64,
     },
+    /// A ramp drift whose fix shows the true position for one second every `period_s` seconds:
+    /// a spoofer that toggles between the false and the true fix, so that a detector which clears
+    /// on agreement re-trusts GNSS while the drift goes on.
+    TogglingDrift {
+        /// Drift velocity v (m/s, 0.05–2).
+        velocity_mps: f64,
+        /// Seconds between the toggles to the truth (2–600).
+        period_s: f64,
+    },
     /// The fix teleports every `hold_s` seconds to a new place between ½ and 1 × `offset_m` from the
     /// true position at onset, and repeats exactly in between: the hopping attack of AV-GPS
     /// Dataset-2's third trajectory (jumps of tens of km every ~4 s, the fix frozen between them).
@@ -49,12 +58,17 @@ const GOLDEN_ANGLE_DEG: f64 = 137.507_764_050_037_85;
 const INVERSE_GOLDEN_RATIO: f64 = 0.618_033_988_749_894_9;
 /// Seconds between hops accepted by [`AttackKind::Hopping`] (inclusive).
 const HOP_HOLD_RANGE_S: (f64, f64) = (1.0, 60.0);
+/// Seconds between toggles accepted by [`AttackKind::TogglingDrift`] (inclusive).
+const TOGGLE_PERIOD_RANGE_S: (f64, f64) = (2.0, 600.0);
+/// How long a toggling spoofer shows the true position (s).
+const TOGGLE_LENGTH_S: f64 = 1.0;
 
 impl AttackKind {
     /// Stable snake_case family name (the serde tag), for grouping results per attack type.
     pub fn family(&self) -> &'static str {
         match self {
             Self::RampDrift { .. } => "ramp_drift",
+            Self::TogglingDrift { .. } => "toggling_drift",
             Self::AcceleratingDrift { .. } => "accelerating_drift",
             Self::FrozenPosition => "frozen_position",
             Self::Jump { .. } => "jump",
@@ -65,7 +79,9 @@ impl AttackKind {
     /// The magnitude (m/s, m/s² or m), or `None` for a frozen position.
     pub fn magnitude(&self) -> Option<f64> {
         match *self {
-            Self::RampDrift { velocity_mps } => Some(velocity_mps),
+            Self::RampDrift { velocity_mps } | Self::TogglingDrift { velocity_mps, .. } => {
+                Some(velocity_mps)
+            }
             Self::AcceleratingDrift { acceleration_mps2 } => Some(acceleration_mps2),
             Self::FrozenPosition => None,
             Self::Jump { offset_m } | Self::Hopping { offset_m, .. } => Some(offset_m),
@@ -82,6 +98,10 @@ impl AttackKind {
     pub fn describe(&self) -> String {
         match *self {
             Self::RampDrift { velocity_mps } => format!("ramp-{}mps", compact(velocity_mps)),
+            Self::TogglingDrift {
+                velocity_mps,
+                period_s,
+            } => format!("toggle-{}mps-{}s", compact(velocity_mps), compact(period_s)),
             Self::AcceleratingDrift { acceleration_mps2 } => {
                 format!("accel-{}mps2", compact(acceleration_mps2))
             }
@@ -110,6 +130,30 @@ impl AttackKind {
                 true,
                 "m/s²",
             ),
+            Self::TogglingDrift {
+                velocity_mps,
+                period_s,
+            } => {
+                if !(period_s.is_finite()
+                    && (TOGGLE_PERIOD_RANGE_S.0..=TOGGLE_PERIOD_RANGE_S.1).contains(&period_s))
+                {
+                    return Err(ScenarioError::InvalidAttack {
+                        field: "period_s",
+                        expected: format!(
+                            "a finite number in [{}, {}] s",
+                            TOGGLE_PERIOD_RANGE_S.0, TOGGLE_PERIOD_RANGE_S.1
+                        ),
+                        value: period_s,
+                    });
+                }
+                (
+                    "velocity_mps",
+                    velocity_mps,
+                    RAMP_VELOCITY_RANGE_MPS,
+                    true,
+                    "m/s",
+                )
+            }
             Self::FrozenPosition => return Ok(()),
             Self::Jump { offset_m } => ("offset_m", offset_m, JUMP_OFFSET_RANGE_M, false, "m"),
             Self::Hopping { offset_m, hold_s } => {
@@ -149,6 +193,17 @@ impl AttackKind {
     fn offset_m(&self, tau_s: f64) -> Option<f64> {
         match *self {
             Self::RampDrift { velocity_mps } => Some(velocity_mps * tau_s),
+            Self::TogglingDrift {
+                velocity_mps,
+                period_s,
+            } => {
+                let showing_truth = tau_s >= period_s && tau_s % period_s < TOGGLE_LENGTH_S;
+                Some(if showing_truth {
+                    0.0
+                } else {
+                    velocity_mps * tau_s
+                })
+            }
             Self::AcceleratingDrift { acceleration_mps2 } => {
                 Some(0.5 * acceleration_mps2 * tau_s * tau_s)
             }

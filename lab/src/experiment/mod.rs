@@ -5,6 +5,7 @@
 
 mod avgps;
 mod common;
+mod offsets;
 mod parallel;
 mod plots;
 mod subtle;
@@ -22,6 +23,9 @@ pub enum Command {
     Subtle(subtle::Args),
     /// Ramps injected into Dataset-2's real normal trajectories, cross-validated by trajectory.
     SubtleD2(subtle_d2::Args),
+    /// Jumps, hops, frozen fixes and drifts at 1, 5 and 10 Hz, early and late in a session;
+    /// false alarms per hour at each rate.
+    Offsets(offsets::Args),
 }
 
 pub fn run(cmd: Command) -> Result<()> {
@@ -29,5 +33,6 @@ pub fn run(cmd: Command) -> Result<()> {
         Command::AvGps(args) => avgps::run(args),
         Command::Subtle(args) => subtle::run(args),
         Command::SubtleD2(args) => subtle_d2::run(args),
+        Command::Offsets(args) => offsets::run(args),
     }
 }

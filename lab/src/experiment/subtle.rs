@@ -17,7 +17,9 @@ use spoofwatch_client::cli::json::write_json;
 use spoofwatch_client::cli::train::train_with_progress;
 use spoofwatch_client::cli::training_flags::feature_groups;
 use spoofwatch_client::report::mean_std_cell;
-use spoofwatch_core::alarm::{N_P_GRID, OperatingPointRule, choose_operating_point, theta_grid};
+use spoofwatch_core::alarm::{
+    N_P_GRID, OperatingPointRule, choose_lifecycle, choose_operating_point, theta_grid,
+};
 use spoofwatch_core::cusum::fit_cusum_comparator;
 use spoofwatch_core::evaluation::{Scored, score_tracks};
 use spoofwatch_core::evidence::FeatureSchema;
@@ -510,11 +512,26 @@ pub(super) fn within_budget(
     trained: ModelArtifact,
     validation: &[Track],
 ) -> (Option<ModelArtifact>, f64) {
-    let rows = score_tracks(&Arc::new(trained.clone()), validation).rows;
-    let point = choose_operating_point(&rows, &theta_grid(), N_P_GRID, EventRules::Spec, BUDGET);
+    let scored = score_tracks(&Arc::new(trained.clone()), validation);
+    let rows = &scored.rows;
+    // Offset evidence comes with the lifecycle in seconds, older schemas with the persistence N_p.
+    let point = if trained.schema().has_offset() {
+        choose_lifecycle(
+            rows,
+            &scored.offset,
+            &theta_grid(),
+            EventRules::Spec,
+            BUDGET,
+        )
+        .map(|s| (s.point, Some(s.lifecycle)))
+    } else {
+        choose_operating_point(rows, &theta_grid(), N_P_GRID, EventRules::Spec, BUDGET)
+            .map(|s| (s.point, None))
+    };
     let artifact = match point {
-        Ok(selection) => Some(ModelArtifact {
-            operating_point: selection.point,
+        Ok((operating_point, lifecycle)) => Some(ModelArtifact {
+            operating_point,
+            lifecycle,
             ..trained
         }),
         Err(error) => {
@@ -522,7 +539,7 @@ pub(super) fn within_budget(
             None
         }
     };
-    (artifact, normal_hours(&rows))
+    (artifact, normal_hours(rows))
 }
 
 /// The directional GLR and CUSUM, fitted on `train` with operating points within the budget on

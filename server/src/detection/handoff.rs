@@ -12,7 +12,7 @@ use spoofwatch_core::detector::{DetectorState, RestoreError};
 
 /// The encoding this server writes and reads. Bump it when [`SessionSnapshot`] or anything inside
 /// [`DetectorState`] changes shape: older snapshots are then refused (fresh sessions), never misread.
-pub const SNAPSHOT_SCHEMA: u16 = 1;
+pub const SNAPSHOT_SCHEMA: u16 = 2;
 
 const MAGIC: &[u8; 4] = b"SWSS";
 const HEADER: usize = MAGIC.len() + 2;
