@@ -182,16 +182,7 @@ pub fn choose_lifecycle(
     rule: OperatingPointRule,
 ) -> Result<LifecycleSelection, AlarmError> {
     let budget = rule.budget();
-    metrics::check_rows(rows)?;
-    if !rows.iter().any(|row| row.valid) {
-        return Err(AlarmError::NoValidRows);
-    }
-    if let Some(index) = thetas.iter().position(|theta| theta.is_nan()) {
-        return Err(AlarmError::NanThreshold { index });
-    }
-    if thetas.is_empty() {
-        return Err(AlarmError::EmptyGrid { thetas: 0, n_ps: 1 });
-    }
+    check_search(rows, thetas, 1)?;
     let normal_hours = metrics::normal_hours(rows);
     let mut best: Option<(OperatingPoint, Lifecycle, Metrics)> = None;
     let mut alarms = Vec::with_capacity(rows.len());
@@ -330,19 +321,7 @@ pub fn choose_operating_point(
     rule: OperatingPointRule,
 ) -> Result<Selection, AlarmError> {
     let budget = rule.budget();
-    metrics::check_rows(rows)?;
-    if !rows.iter().any(|row| row.valid) {
-        return Err(AlarmError::NoValidRows);
-    }
-    if let Some(index) = thetas.iter().position(|theta| theta.is_nan()) {
-        return Err(AlarmError::NanThreshold { index });
-    }
-    if thetas.is_empty() || n_ps.is_empty() {
-        return Err(AlarmError::EmptyGrid {
-            thetas: thetas.len(),
-            n_ps: n_ps.count(),
-        });
-    }
+    check_search(rows, thetas, n_ps.clone().count())?;
     let normal_hours = metrics::normal_hours(rows);
     let mut best: Option<(OperatingPoint, Metrics)> = None;
     let mut alarms = Vec::with_capacity(rows.len());
@@ -372,6 +351,25 @@ pub fn choose_operating_point(
     // AUROC/AUPRC do not depend on the alarms: computed once, for the winner only.
     let metrics = metrics::evaluate(rows, &confirmed_alarms(rows, point), rules);
     Ok(Selection { point, metrics })
+}
+
+/// What every operating-point search needs: rows that can be evaluated, some of them valid, and a
+/// non-empty grid without NaN thresholds (`n_ps` persistence values, or 1 for the lifecycle).
+fn check_search(rows: &[ScoredRow], thetas: &[f64], n_ps: usize) -> Result<(), AlarmError> {
+    metrics::check_rows(rows)?;
+    if !rows.iter().any(|row| row.valid) {
+        return Err(AlarmError::NoValidRows);
+    }
+    if let Some(index) = thetas.iter().position(|theta| theta.is_nan()) {
+        return Err(AlarmError::NanThreshold { index });
+    }
+    if thetas.is_empty() || n_ps == 0 {
+        return Err(AlarmError::EmptyGrid {
+            thetas: thetas.len(),
+            n_ps,
+        });
+    }
+    Ok(())
 }
 
 /// SPEC §7's objective as an ordering: `Greater` when `a` is the better operating point.

@@ -43,15 +43,7 @@ impl ResidualGate {
     /// Scores every track (a fresh gate per track): the score is the larger of the one-step and the
     /// windowed disagreement, each over its limit (≥ 1 trips); the alarm is a trip held `hold_s`.
     pub fn score_tracks(&self, tracks: &[Track], projection: Projection) -> Scored {
-        let params = EvidenceParams {
-            sigma_hat: [[1.0, 0.0], [0.0, 1.0]],
-            mu_e: 0.0,
-            kappa: 0.0,
-            rho: 0.0,
-            projection,
-            drift: None,
-            offset: None,
-        };
+        let params = EvidenceParams::unnormalised(projection);
         let mut scored = Scored::default();
         for (index, track) in tracks.iter().enumerate() {
             let mut window: VecDeque<(f64, [f64; 2])> = VecDeque::new();

@@ -12,7 +12,7 @@ use super::builder::build_track;
 use super::drift::{
     DriftParams, SettledRates, covariances_from_rates, robust_residual_sigma, thresholds_from_rates,
 };
-use super::linalg::{IDENTITY, Mat2, inverse_sqrt_symmetric, mul_vec};
+use super::linalg::{Mat2, inverse_sqrt_symmetric, mul_vec};
 use super::offset::{
     ANCHOR_COUNT, CHI2_2_AT_FIT_QUANTILE, FIT_QUANTILE, FOLLOW_S, OffsetParams, OffsetPoint,
     offset_params_from_points,
@@ -56,15 +56,7 @@ pub fn fit_normal_stats(
 /// r_t of the label-0, ν = 1 rows of `tracks`.
 pub fn normal_residuals(tracks: &[Track], projection: Projection) -> Vec<[f64; 2]> {
     // ν and r do not depend on Σ̂ or μ_e, so any placeholder statistics give the same residuals.
-    let placeholder = EvidenceParams {
-        sigma_hat: IDENTITY,
-        mu_e: 0.0,
-        kappa: 0.0,
-        rho: 0.0,
-        projection,
-        drift: None,
-        offset: None,
-    };
+    let placeholder = EvidenceParams::unnormalised(projection);
     let mut residuals = Vec::new();
     for track in tracks {
         let evidence = build_track(&placeholder, &track.records);
@@ -102,13 +94,8 @@ fn settled_rates(
     drift: DriftParams,
 ) -> Vec<SettledRates> {
     let params = EvidenceParams {
-        sigma_hat: IDENTITY,
-        mu_e: 0.0,
-        kappa: 0.0,
-        rho: 0.0,
-        projection,
         drift: Some(drift),
-        offset: None,
+        ..EvidenceParams::unnormalised(projection)
     };
     let mut rows = Vec::new();
     for track in tracks {
@@ -145,13 +132,9 @@ pub fn fit_offset_params(
     drift: DriftParams,
 ) -> Result<OffsetParams, EvidenceError> {
     let params = EvidenceParams {
-        sigma_hat: IDENTITY,
-        mu_e: 0.0,
-        kappa: 0.0,
-        rho: 0.0,
-        projection,
         drift: Some(drift),
         offset: Some(OffsetParams::unnormalised()),
+        ..EvidenceParams::unnormalised(projection)
     };
     let mut points: [Vec<OffsetPoint>; ANCHOR_COUNT] = Default::default();
     for track in tracks {

@@ -125,6 +125,21 @@ impl EvidenceParams {
         Ok(params)
     }
 
+    /// Identity Σ̂, μ_e = κ = ρ = 0 and no v2/v3 parameters: for passes that need only trajectory
+    /// boundaries, ν and residuals (which do not depend on the statistics), or as the base the fits
+    /// add their channels' parameters to.
+    pub fn unnormalised(projection: Projection) -> Self {
+        Self {
+            sigma_hat: [[1.0, 0.0], [0.0, 1.0]],
+            mu_e: 0.0,
+            kappa: 0.0,
+            rho: 0.0,
+            projection,
+            drift: None,
+            offset: None,
+        }
+    }
+
     /// Checks Σ̂ + εI is symmetric positive definite with entries within ±[`MAX_SIGMA_M2`],
     /// μ_e ∈ [0, [`MAX_MU_E`]], |κ| ≤ [`MAX_ABS_KAPPA`], ρ ∈ [0, 1] and the drift parameters.
     pub fn validate(&self) -> Result<(), EvidenceError> {

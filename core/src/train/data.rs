@@ -43,15 +43,7 @@ pub fn trajectory_ranges(records: &[Record]) -> Vec<Range<usize>> {
 
 /// Parameters for passes that only need trajectory boundaries, ν and residuals.
 fn segmentation_params() -> EvidenceParams {
-    EvidenceParams {
-        sigma_hat: [[1.0, 0.0], [0.0, 1.0]],
-        mu_e: 0.0,
-        kappa: 0.0,
-        rho: 0.98,
-        projection: Projection::default(),
-        drift: None,
-        offset: None,
-    }
+    EvidenceParams::unnormalised(Projection::default())
 }
 
 /// Splits every trajectory of every track chronologically into train/validation/test sub-trajectories.
