@@ -503,8 +503,21 @@ LABELS = [("samples_per_s", "", "/s"), ("p50_ms", "p50 ", " ms"), ("p99_ms", "**
           ("cpu_s", "CPU ", " s"), ("peak_rss_mib", "peak RSS ", " MiB")]
 
 
+def handoff_text(summary: dict) -> str:
+    parts = []
+    for key, label in (("snapshot", "from the snapshot"), ("fresh", "fresh (never seen)")):
+        accepted = stat(summary, f"{key}_accepted_p50_ms", " ms")
+        p50 = stat(summary, f"{key}_first_detection_p50_ms", " ms")
+        p99 = stat(summary, f"{key}_first_detection_p99_ms", " ms")
+        top = stat(summary, f"{key}_first_detection_max_ms", " ms")
+        parts.append(f"{label}: accepted p50 {accepted}, first detection **p50 {p50}**, p99 {p99}, max {top}")
+    return "; ".join(parts)
+
+
 def result_text(measured: dict) -> str:
     summary = measured["summary"]
+    if "snapshot_accepted_p50_ms" in summary:
+        return handoff_text(summary)
     parts = []
     known = {k for k, _, _ in LABELS}
     for key, prefix, unit in LABELS:
