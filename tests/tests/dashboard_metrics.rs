@@ -110,11 +110,15 @@ fn names_are_found_in_queries() {
 async fn every_metric_of_the_dashboard_and_the_rules_is_exported() {
     let files = deploy_files();
     assert!(
-        files.iter().any(|f| f.extension().is_some_and(|e| e == "json")),
+        files
+            .iter()
+            .any(|f| f.extension().is_some_and(|e| e == "json")),
         "a Grafana dashboard under deploy/grafana: {files:?}"
     );
     assert!(
-        files.iter().any(|f| f.to_string_lossy().ends_with(".rules.yml")),
+        files
+            .iter()
+            .any(|f| f.to_string_lossy().ends_with(".rules.yml")),
         "Prometheus rules under deploy/prometheus: {files:?}"
     );
 

@@ -45,7 +45,9 @@ fn example_files() -> Vec<PathBuf> {
         .filter(|path| path.extension().is_some_and(|e| e == "md"))
         .collect();
     pages.sort();
-    std::iter::once(root.join("README.md")).chain(pages).collect()
+    std::iter::once(root.join("README.md"))
+        .chain(pages)
+        .collect()
 }
 
 /// Lines starting with `program ` inside fenced blocks that are not `sh` (which would not run).
