@@ -234,7 +234,7 @@ async fn run_example(grpcurl_path: &Path, dir: &Path, command: String) -> String
     let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
     assert!(
         output.status.success(),
-        "README example failed:\n{command}\nstdout: {stdout}\nstderr: {}",
+        "documented example failed:\n{command}\nstdout: {stdout}\nstderr: {}",
         String::from_utf8_lossy(&output.stderr)
     );
     stdout
