@@ -24,7 +24,6 @@ import json
 import os
 import platform
 import re
-import resource
 import shutil
 import signal
 import socket
@@ -426,14 +425,17 @@ def run_command(env: Env, row: dict) -> dict:
     out = env.work / f"out-{time.monotonic_ns()}"
     argv = [a.replace("$D", data).replace("$OUT", str(out)) for a in row["argv"]]
     argv[0] = env.tool(argv[0])
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     started = time.monotonic()
-    subprocess.run(argv, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    # wait4: this command's own CPU time and peak memory, not those of earlier children.
+    _, status, usage = os.wait4(proc.pid, 0)
     wall = time.monotonic() - started
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(argv)} failed with {proc.returncode}")
     shutil.rmtree(out, ignore_errors=True)
-    return {"wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "peak_rss_mib": round(after.ru_maxrss / 1024)}
+    return {"wall_s": round(wall, 1), "cpu_s": round(usage.ru_utime + usage.ru_stime, 1),
+            "peak_rss_mib": round(usage.ru_maxrss / 1024)}
 
 
 RUNNERS = {"bench": run_bench, "memory": run_bench, "handoff": run_handoff,
