@@ -406,17 +406,35 @@ def run_handoff(env: Env, row: dict) -> dict:
     return values
 
 
+# Criterion bench ids and what a reader calls them; per element where the bench sets a throughput.
+CRITERION_NAMES = {
+    "evidence_builder/wgs84_local": "evidence, paper ξ_t, µs per sample",
+    "evidence_builder/equirectangular": "evidence, equirectangular projection, µs per sample",
+    "evidence_builder/per_step_sigma": "evidence with per-sample uncertainties, µs per sample",
+    "evidence_builder/v2_drift_channels": "evidence v2 (drift and integrity channels), µs per sample",
+    "step_one_vehicle": "model step, one vehicle, µs",
+    "step/1000_vehicles": "1,000 vehicles one step each, µs per vehicle",
+    "train/epoch_5000_rows": "training epoch, µs per row",
+}
+
+
 def run_criterion(env: Env, row: dict) -> dict:
-    target = Path(os.environ.get("CARGO_TARGET_DIR", ROOT / "target"))
+    target = Path(os.environ.get("CARGO_TARGET_DIR", ROOT / "target")) / "criterion"
     subprocess.run(["cargo", "bench", "--locked", "-p", "spoofwatch-core", "--bench", row["bench"], "--",
-                    "--measurement-time", "3"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+                    "--measurement-time", "3"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL,
+                   stderr=subprocess.DEVNULL)
     values = {}
-    for estimates in sorted((target / "criterion").glob("**/new/estimates.json")):
-        bench = estimates.parent.parent.relative_to(target / "criterion").as_posix()
-        groups = {"evidence": "evidence_builder/", "model": ("step", "train/")}[row["bench"]]
-        if bench.startswith(groups):
-            ns = json.loads(estimates.read_text())["median"]["point_estimate"]
-            values[bench.replace("/", " · ") + " (µs)"] = round(ns / 1000, 3)
+    for bench, name in CRITERION_NAMES.items():
+        new = target / bench / "new"
+        if not (new / "estimates.json").exists() or not bench.startswith(
+                {"evidence": ("evidence_builder/",), "model": ("step", "train/")}[row["bench"]]):
+            continue
+        ns = json.loads((new / "estimates.json").read_text())["median"]["point_estimate"]
+        throughput = json.loads((new / "benchmark.json").read_text()).get("throughput") or {}
+        elements = throughput.get("Elements", 1)
+        values[name] = round(ns / elements / 1000, 4)
+    if not values:
+        raise RuntimeError(f"no criterion estimates under {target}")
     return values
 
 
@@ -485,7 +503,9 @@ def fmt(x: float) -> str:
         return f"{x:.0f}"
     if x >= 10:
         return f"{x:.1f}"
-    return f"{x:.2f}"
+    if x >= 1:
+        return f"{x:.2f}"
+    return f"{x:.3g}"
 
 
 def stat(summary: dict, key: str, unit: str = "") -> str | None:
@@ -528,7 +548,7 @@ def result_text(measured: dict) -> str:
             parts.append(prefix + text)
     for key in summary:
         if key not in known and key != "errors":
-            parts.append(f"{key.replace('_', ' ')} {stat(summary, key)}")
+            parts.append(f"{key}: {stat(summary, key)}")
     errors = summary.get("errors")
     if errors and errors["max"] > 0:
         parts.append(f"errors {fmt(errors['median'])}")
