@@ -96,7 +96,7 @@ GATEWAY_SAT = ["--streams", "1000", "--batch", "1", "--vehicles-per-message", "1
 
 ROWS = [
     dict(id="evidence-builder", group="model", kind="criterion", bench="evidence",
-         title="evidence builder, one vehicle (per sample)", goal="", heavy=False),
+         title="evidence builder, one vehicle", goal="", heavy=False),
     dict(id="model-step", group="model", kind="criterion", bench="model",
          title="model step, one vehicle; 1,000 vehicles one step; one training epoch",
          goal="step + evidence ≤ 5 µs", heavy=False),
@@ -497,7 +497,7 @@ def save(results: dict) -> None:
 
 
 def fmt(x: float) -> str:
-    if x >= 10000:
+    if x >= 1000:
         return f"{x:,.0f}"
     if x >= 100:
         return f"{x:.0f}"
@@ -581,9 +581,9 @@ def render(results: dict) -> str:
         "python3 scripts/benchmarks.py run --group grpc              # or every row of a group",
         "```",
         "",
-        "In the commands, `URL` is the server's address and `PID` its process id (for its CPU time "
-        "and memory); the script pins the server to core 0 and the load generator to core 1 "
-        "(`taskset`).",
+        "A row's command is the server's, then, after `·`, the load generator's. `URL` is the "
+        "server's address and `PID` its process id (for its CPU time and memory); the script pins "
+        "the server to core 0 and the load generator to core 1 (`taskset`).",
         "",
     ]
     for group, heading, intro in GROUPS:
