@@ -146,7 +146,7 @@ async fn corrupt_foreign_and_other_model_snapshots_start_afresh_with_their_reaso
     assert!(!foreign.resumed);
     assert_eq!(
         foreign.snapshot_refused,
-        "the stored session snapshot has schema version 99; this server reads version 1"
+        "the stored session snapshot has schema version 99; this server reads version 2"
     );
     let (_intact_stream, intact) = start_stream(&clients, "intact", "").await;
     assert!(

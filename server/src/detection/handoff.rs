@@ -135,7 +135,7 @@ mod tests {
     fn a_snapshot_decodes_to_what_was_encoded() {
         let original = snapshot();
         let bytes = original.encode();
-        assert!(bytes.starts_with(b"SWSS\x01\x00"), "magic, then version 1");
+        assert!(bytes.starts_with(b"SWSS\x02\x00"), "magic, then version 2");
         let decoded = SessionSnapshot::decode(&bytes).expect("decodes");
         // The detector state has no PartialEq (NaNs inside); its re-encoding must be identical.
         assert_eq!(decoded.encode(), bytes);
@@ -170,15 +170,17 @@ mod tests {
             Some("the stored session snapshot is corrupt (not a Spoofwatch session snapshot)")
         );
 
-        let mut newer = bytes.clone();
-        newer[4] = 2;
+        // A snapshot of another version (here the one before the offset evidence) is refused.
+        let mut older = bytes.clone();
+        older[4] = 1;
         assert_eq!(
-            refusal(&newer).as_deref(),
-            Some("the stored session snapshot has schema version 2; this server reads version 1")
+            refusal(&older).as_deref(),
+            Some("the stored session snapshot has schema version 1; this server reads version 2")
         );
 
         // A well-formed envelope around a payload of another shape (checksum recomputed).
-        let mut foreign = b"SWSS\x01\x00".to_vec();
+        let mut foreign = b"SWSS".to_vec();
+        foreign.extend_from_slice(&SNAPSHOT_SCHEMA.to_le_bytes());
         foreign.extend_from_slice(&[0xff; 12]);
         let checksum = Sha256::digest(&foreign);
         foreign.extend_from_slice(&checksum[..CHECKSUM]);
