@@ -155,9 +155,10 @@ pub struct EvidenceBuilder {
     trajectory: u32,
     /// Evidence v2's drift tracker (when the parameters carry drift parameters).
     drift: Option<DriftTracker>,
-    /// Evidence v3's anchors (when the parameters carry offset parameters).
+    /// Evidence v3's anchors (when the parameters carry offset parameters), boxed: a server holds
+    /// one builder per vehicle, and sessions of older schemas should not pay for the anchors.
     #[serde(default)]
-    offset: Option<OffsetTracker>,
+    offset: Option<Box<OffsetTracker>>,
 }
 
 impl EvidenceBuilder {
@@ -176,7 +177,10 @@ impl EvidenceBuilder {
             accum: 0.0,
             trajectory: 0,
             drift: params.drift.as_ref().map(DriftTracker::new),
-            offset: params.offset.as_ref().map(OffsetTracker::new),
+            offset: params
+                .offset
+                .as_ref()
+                .map(|p| Box::new(OffsetTracker::new(p))),
         }
     }
 
@@ -211,7 +215,7 @@ impl EvidenceBuilder {
             (None, Some(_)) => return Err(DriftChannelsDiffer { in_snapshot: true }),
         };
         let offset = match (&params.offset, saved.offset) {
-            (Some(params), Some(saved)) => Some(OffsetTracker::restore(params, saved)),
+            (Some(params), Some(saved)) => Some(Box::new(OffsetTracker::restore(params, *saved))),
             (None, None) => None,
             (Some(_), None) => return Err(DriftChannelsDiffer { in_snapshot: false }),
             (None, Some(_)) => return Err(DriftChannelsDiffer { in_snapshot: true }),
