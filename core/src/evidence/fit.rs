@@ -162,8 +162,8 @@ pub fn fit_offset_params(
                 if offset.anchor_age_s >= SETTLED_FOLLOWS * FOLLOW_S[k] {
                     anchor_points.push(OffsetPoint {
                         carried_m: offset.carried_m[k],
+                        raw_carried_m: offset.raw_carried_m[k],
                         offset_m: offset.offset_norm_m[k],
-                        calibrated: offset.calibrated,
                     });
                 }
             }

@@ -167,8 +167,13 @@ pub struct OffsetEvidence {
     pub frozen: bool,
     /// The offset now held reached the decisive gate within one step: a jump, not a build-up.
     pub arrived_by_step: bool,
-    /// ‖U_k‖ per anchor: the net dead-reckoned distance its uncertainty grows with (m).
+    /// ‖U_k‖ per anchor: the net distance dead-reckoned with the warm calibration behind it (m).
     pub carried_m: [f64; ANCHOR_COUNT],
+    /// The same for the distance dead-reckoned before the calibration was warm (m). Each part
+    /// grows the uncertainty with its own c², and each is forgotten with the offset: an offset
+    /// built from raw dead reckoning is still tested as one after the calibration warms up.
+    #[serde(default)]
+    pub raw_carried_m: [f64; ANCHOR_COUNT],
     /// ‖o_k‖ per anchor (m).
     pub offset_norm_m: [f64; ANCHOR_COUNT],
     /// The step was dead-reckoned with the warm onboard calibration.
@@ -188,6 +193,7 @@ impl OffsetEvidence {
         frozen: false,
         arrived_by_step: false,
         carried_m: [0.0; ANCHOR_COUNT],
+        raw_carried_m: [0.0; ANCHOR_COUNT],
         offset_norm_m: [0.0; ANCHOR_COUNT],
         calibrated: false,
         anchor_age_s: 0.0,
@@ -209,8 +215,12 @@ impl OffsetEvidence {
 struct Anchor {
     /// o: GNSS minus anchor (m).
     offset: [f64; 2],
-    /// U: net dead-reckoned displacement behind the anchor, forgotten with o (m).
+    /// U: net displacement dead-reckoned with the warm calibration behind the anchor, forgotten
+    /// with o (m).
     carried: [f64; 2],
+    /// The same, dead-reckoned before the calibration was warm (m).
+    #[serde(default)]
+    carried_raw: [f64; 2],
     /// Variance a telemetry gap added (m² per axis), forgotten with o².
     gap_m2: f64,
     frozen: bool,
@@ -224,6 +234,29 @@ struct Anchor {
 }
 
 impl Anchor {
+    /// Adds one step's onboard motion to the part of U it was dead-reckoned with, and forgets
+    /// both parts by `keep`.
+    fn carry(&mut self, step: &OffsetStep, keep: f64) {
+        let (moved, kept) = if step.calibrated {
+            (&mut self.carried, &mut self.carried_raw)
+        } else {
+            (&mut self.carried_raw, &mut self.carried)
+        };
+        for axis in 0..2 {
+            moved[axis] = keep * (moved[axis] + step.motion[axis]);
+            kept[axis] *= keep;
+        }
+    }
+
+    /// The offset's per-axis variance under normal driving as anchor `k`, before the vehicle's
+    /// level: R + c²_raw‖U_raw‖² + c²_cal‖U_cal‖² + the gaps' share (m²).
+    fn variance(&self, params: &OffsetParams, k: usize) -> f64 {
+        params.noise_m2[k]
+            + params.raw_growth[k] * norm_squared(self.carried_raw)
+            + params.calibrated_growth[k] * norm_squared(self.carried)
+            + self.gap_m2
+    }
+
     /// Stops following at the current offset (the last trusted fix).
     fn freeze(&mut self) {
         self.frozen = true;
@@ -355,7 +388,7 @@ impl OffsetTracker {
                 1.0
             }
         });
-        if delta_t > super::MAX_GAP_S && self.reappears_as_expected(step, &growth, &levels) {
+        if delta_t > super::MAX_GAP_S && self.reappears_as_expected(step, &levels) {
             // Back inside what the gap allows: a fresh anchor here (a tunnel is not a jump).
             self.re_anchor_keeping_levels();
             return self.last;
@@ -381,16 +414,15 @@ impl OffsetTracker {
             } else {
                 (-delta_t / FOLLOW_S[k]).exp()
             };
+            anchor.carry(step, keep);
             for axis in 0..2 {
                 anchor.offset[axis] = keep * (anchor.offset[axis] + step.residual[axis]);
-                anchor.carried[axis] = keep * (anchor.carried[axis] + step.motion[axis]);
                 anchor.carried_since_freeze[axis] += step.motion[axis];
             }
             anchor.gap_m2 = keep * keep * (anchor.gap_m2 + gap_m2);
             anchor.gap_since_freeze_m2 += gap_m2;
             anchor.frozen_s += delta_t;
-            let variance =
-                self.params.noise_m2[k] + growth[k] * norm_squared(anchor.carried) + anchor.gap_m2;
+            let variance = anchor.variance(&self.params, k);
             population_nis[k] = norm_squared(anchor.offset) / variance;
             nis[k] = population_nis[k] / levels[k];
             if anchor.frozen {
@@ -461,6 +493,7 @@ impl OffsetTracker {
             frozen: self.anchors.iter().any(|a| a.frozen),
             arrived_by_step: self.arrived_by_step,
             carried_m: self.anchors.map(|a| norm_squared(a.carried).sqrt()),
+            raw_carried_m: self.anchors.map(|a| norm_squared(a.carried_raw).sqrt()),
             offset_norm_m: self.anchors.map(|a| norm_squared(a.offset).sqrt()),
             calibrated: step.calibrated,
             anchor_age_s: self.age_s,
@@ -470,26 +503,16 @@ impl OffsetTracker {
 
     /// After a gap: whether the fix reappears, on every anchor, inside the uncertainty the gap
     /// adds (the motion it may hide). Such a reappearance re-anchors; one far outside is evidence.
-    fn reappears_as_expected(
-        &self,
-        step: &OffsetStep,
-        growth: &[f64; ANCHOR_COUNT],
-        levels: &[f64; LEVEL_COUNT],
-    ) -> bool {
+    fn reappears_as_expected(&self, step: &OffsetStep, levels: &[f64; LEVEL_COUNT]) -> bool {
         let gap_m2 = gap_variance(step.delta_t);
         self.anchors.iter().enumerate().all(|(k, anchor)| {
             let offset = [
                 anchor.offset[0] + step.residual[0],
                 anchor.offset[1] + step.residual[1],
             ];
-            let carried = [
-                anchor.carried[0] + step.motion[0],
-                anchor.carried[1] + step.motion[1],
-            ];
-            let variance = self.params.noise_m2[k]
-                + growth[k] * norm_squared(carried)
-                + anchor.gap_m2
-                + gap_m2;
+            let mut moved = *anchor;
+            moved.carry(step, 1.0);
+            let variance = moved.variance(&self.params, k) + gap_m2;
             norm_squared(offset) / (variance * levels[k]) < FOLLOW_GATE
         })
     }
@@ -532,11 +555,14 @@ impl OffsetTracker {
             };
             self.snapshot_count += 1;
         }
+        // A snapshot is used once it is old enough, and only if the vehicle's own rows weighed at
+        // least as much as the prior in it: before that it says "like the population", not what
+        // this receiver is.
         let due = self.level_clock_s - LEVEL_DELAY_S;
         if let Some(snapshot) = self.snapshots[..self.snapshot_count]
             .iter()
             .rev()
-            .find(|s| s.clock_s <= due)
+            .find(|s| s.clock_s <= due && s.clock_s >= LEVEL_PRIOR_S)
         {
             self.levels_in_use = snapshot.levels;
         }
@@ -550,19 +576,47 @@ fn norm_squared(v: [f64; 2]) -> f64 {
 /// One second of normal driving as one anchor saw it (the fit's input).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct OffsetPoint {
-    /// ‖U‖: net dead-reckoned distance behind the anchor (m).
+    /// ‖U_cal‖: net distance dead-reckoned with the warm calibration behind the anchor (m).
     pub carried_m: f64,
+    /// ‖U_raw‖: the same before the calibration was warm (m).
+    pub raw_carried_m: f64,
     /// ‖o‖ (m).
     pub offset_m: f64,
-    /// Dead-reckoned with the warm calibration.
-    pub calibrated: bool,
 }
+
+impl OffsetPoint {
+    /// The calibration state whose growth this point measures: raw or calibrated when the other
+    /// part of U is at most [`MIXED_SHARE`] of it; `None` for a mix of both.
+    fn calibrated(&self) -> Option<bool> {
+        if self.carried_m <= MIXED_SHARE * self.raw_carried_m {
+            Some(false)
+        } else if self.raw_carried_m <= MIXED_SHARE * self.carried_m {
+            Some(true)
+        } else {
+            None
+        }
+    }
+
+    /// ‖U‖ of its group.
+    fn group_carried_m(&self) -> f64 {
+        self.carried_m.max(self.raw_carried_m)
+    }
+}
+
+/// A point measures one calibration state's growth when the other part of U is at most this share
+/// of it (its variance then adds at most a few per cent).
+const MIXED_SHARE: f64 = 0.05;
 
 /// Fewest points per anchor and calibration state for a fit of that group.
 pub const MIN_OFFSET_POINTS: usize = 30;
 /// c² of uncalibrated dead reckoning when the data cannot tell: a heading bias of about 3° makes
 /// an error of 5 % of the distance travelled.
 pub const RAW_GROWTH_PRIOR: f64 = 0.05 * 0.05;
+/// The least c² of calibrated dead reckoning: 1 % of the distance (a residual heading error of
+/// half a degree and a speed scale off by half a per cent). An anchor that follows GNSS carries
+/// short distances only, and a fit from them can extrapolate a growth near 0 to the kilometres a
+/// frozen anchor carries.
+pub const CALIBRATED_GROWTH_FLOOR: f64 = 0.01 * 0.01;
 /// Equal-count bins of ‖U‖ per group of points.
 const FIT_BINS: usize = 10;
 /// The quantile the noise is matched at, and χ²₂'s value there (−2 ln 0.01). A bin's per-axis
@@ -572,12 +626,14 @@ const FIT_BINS: usize = 10;
 pub const FIT_QUANTILE: f64 = 0.99;
 pub const CHI2_2_AT_FIT_QUANTILE: f64 = 9.210_340_371_976_184;
 
-/// Each anchor's R and c² (raw, calibrated) from its points: the points are binned by ‖U‖ (equal
+/// Each anchor's R and c² (raw, calibrated) from its points: the points are grouped by the
+/// calibration state their U was dead-reckoned in (mixed points are left out), binned by ‖U‖ (equal
 /// counts, per group), each bin gives a variance v (its 99 % quantile of ‖o‖² / 9.21) at its median
 /// ‖U‖², and v = R + c²_raw‖U‖²·[raw] + c²_cal‖U‖²·[calibrated] is fitted by least squares with
 /// c² ≥ 0 (a negative slope is dropped and the rest refitted), each slope then raised to the bins'
-/// upper envelope. Without calibrated points the
-/// calibrated growth is the raw one; without raw points the raw growth is [`RAW_GROWTH_PRIOR`].
+/// upper envelope, the calibrated one at least [`CALIBRATED_GROWTH_FLOOR`]. Without calibrated
+/// points the calibrated growth is the raw one; without raw points the raw growth is
+/// [`RAW_GROWTH_PRIOR`].
 pub fn offset_params_from_points(
     points: &[Vec<OffsetPoint>; ANCHOR_COUNT],
     step_noise_m2: f64,
@@ -592,7 +648,7 @@ pub fn offset_params_from_points(
             anchor_points
                 .iter()
                 .copied()
-                .filter(|p| p.calibrated == calibrated)
+                .filter(|p| p.calibrated() == Some(calibrated))
                 .collect()
         };
         let (raw, calibrated) = (group(false), group(true));
@@ -616,7 +672,7 @@ pub fn offset_params_from_points(
             non_negative_fit(&rows, [true, has_raw, has_calibrated]),
         );
         params.noise_m2[k] = noise.clamp(NOISE_RANGE_M2.0, NOISE_RANGE_M2.1);
-        let calibrated_growth = calibrated_growth.min(1.0);
+        let calibrated_growth = calibrated_growth.clamp(CALIBRATED_GROWTH_FLOOR, 1.0);
         // An anchor that never ran long uncalibrated (the slow one settles after the warm-up)
         // takes the physical prior for raw onboard errors; calibration never makes them worse.
         let raw_growth = if has_raw {
@@ -637,12 +693,12 @@ pub fn offset_params_from_points(
 
 /// (median ‖U‖², 99 % quantile of ‖o‖² / 9.21) per equal-count bin of ‖U‖.
 fn binned(mut points: Vec<OffsetPoint>) -> impl Iterator<Item = (f64, f64)> {
-    points.sort_by(|a, b| a.carried_m.total_cmp(&b.carried_m));
+    points.sort_by(|a, b| a.group_carried_m().total_cmp(&b.group_carried_m()));
     let size = points.len().div_ceil(FIT_BINS);
     let bins: Vec<(f64, f64)> = points
         .chunks(size)
         .map(|bin| {
-            let carried = bin[bin.len() / 2].carried_m;
+            let carried = bin[bin.len() / 2].group_carried_m();
             let mut squared: Vec<f64> = bin.iter().map(|p| p.offset_m * p.offset_m).collect();
             squared.sort_by(f64::total_cmp);
             let tail = super::stats::quantile_sorted(&squared, FIT_QUANTILE).unwrap_or(0.0);
@@ -890,6 +946,7 @@ mod tests {
         let params = OffsetParams {
             noise_m2: [4.0; ANCHOR_COUNT],
             raw_growth: [0.01; ANCHOR_COUNT],
+            calibrated_growth: [1e-4; ANCHOR_COUNT],
             step_noise_m2: 1e4,
             ..unit_params()
         };
@@ -904,7 +961,25 @@ mod tests {
             let a = keep(1.0, k);
             let expected = (10.0 * a).powi(2) / (4.0 + 0.01 * (100.0 * a).powi(2));
             assert!((e.nis[k] - expected).abs() < 1e-12, "{k}: {e:?}");
-            assert!((e.carried_m[k] - 100.0 * a).abs() < 1e-12);
+            assert!((e.raw_carried_m[k] - 100.0 * a).abs() < 1e-12);
+            assert_eq!(e.carried_m[k], 0.0);
+        }
+        // Then 100 m east with the warm calibration (c² = 0.0001): each part of U grows the
+        // variance with its own c², and both are forgotten with the offset.
+        let e = tracker.push(&OffsetStep {
+            residual: [0.0, 0.0],
+            motion: [100.0, 0.0],
+            delta_t: 1.0,
+            calibrated: true,
+        });
+        for k in 0..ANCHOR_COUNT {
+            let a = keep(1.0, k);
+            let (raw, calibrated) = (100.0 * a * a, 100.0 * a);
+            let expected =
+                (10.0 * a * a).powi(2) / (4.0 + 0.01 * raw * raw + 1e-4 * calibrated * calibrated);
+            assert!((e.nis[k] - expected).abs() < 1e-12, "{k}: {e:?}");
+            assert!((e.raw_carried_m[k] - raw).abs() < 1e-12);
+            assert!((e.carried_m[k] - calibrated).abs() < 1e-12);
         }
     }
 
@@ -944,9 +1019,9 @@ mod tests {
             let x = 50.0 * f64::from(bin);
             for _ in 0..10 {
                 points.push(OffsetPoint {
-                    carried_m: x,
+                    carried_m: 0.0,
+                    raw_carried_m: x,
                     offset_m: (CHI2_2_AT_FIT_QUANTILE * (2.0 + 0.01 * x * x)).sqrt(),
-                    calibrated: false,
                 });
             }
         }
@@ -961,9 +1036,9 @@ mod tests {
         assert!(params.vehicle_levels);
         let few = vec![
             OffsetPoint {
-                carried_m: 1.0,
+                carried_m: 0.0,
+                raw_carried_m: 1.0,
                 offset_m: 1.0,
-                calibrated: false,
             };
             5
         ];
