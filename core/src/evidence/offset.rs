@@ -37,6 +37,9 @@ pub const FOLLOW_GATE: f64 = 16.0;
 pub const DECISIVE_GATE: f64 = 25.0;
 /// Seconds of agreement (below the follow gate) before a frozen anchor follows again.
 pub const AGREEMENT_S: f64 = 5.0;
+/// Seconds the fix and the onboard motion must agree after the anchors are placed before the
+/// anchors are trusted: until then a disagreement places them again instead of freezing them.
+pub const TRUST_S: f64 = 5.0;
 /// A telemetry gap up to this long (s) carries the anchors across; a longer one re-anchors.
 pub const MAX_CARRY_GAP_S: f64 = 300.0;
 /// 1-σ of the unknown acceleration during a gap (m/s²): the motion a gap of δ seconds may hide is
@@ -55,6 +58,8 @@ const LEVEL_PRIOR_S: f64 = 120.0;
 /// level is known (the first snapshot old enough), a vehicle is taken to be as noisy as the bound
 /// allows: a session's first minutes never alarm on a receiver noisier than the population's.
 pub const LEVEL_RANGE: (f64, f64) = (0.25, 4.0);
+/// A vehicle's level falls by at most a factor e every this many seconds.
+const LEVEL_DECREASE_S: f64 = 60.0;
 /// One row adds at most this much to the running mean of NIS/2 (so a spike cannot inflate it).
 const LEVEL_ROW_CAP: f64 = 8.0;
 /// Snapshot period of the levels (s of valid data).
@@ -172,7 +177,6 @@ pub struct OffsetEvidence {
     /// The same for the distance dead-reckoned before the calibration was warm (m). Each part
     /// grows the uncertainty with its own c², and each is forgotten with the offset: an offset
     /// built from raw dead reckoning is still tested as one after the calibration warms up.
-    #[serde(default)]
     pub raw_carried_m: [f64; ANCHOR_COUNT],
     /// ‖o_k‖ per anchor (m).
     pub offset_norm_m: [f64; ANCHOR_COUNT],
@@ -219,7 +223,6 @@ struct Anchor {
     /// with o (m).
     carried: [f64; 2],
     /// The same, dead-reckoned before the calibration was warm (m).
-    #[serde(default)]
     carried_raw: [f64; 2],
     /// Variance a telemetry gap added (m² per axis), forgotten with o².
     gap_m2: f64,
@@ -268,6 +271,11 @@ impl Anchor {
     }
 }
 
+/// A held offset that one step brings back to within this share of itself ends: the spoofer let
+/// go and the fix is back where the onboard motion puts the vehicle (a toggling spoofer's next
+/// step away is a new jump from there).
+pub const RETURN_SHARE: f64 = 0.25;
+
 /// The variance (m² per axis) of the motion a gap of `delta_t` seconds may hide: (½·a·δ²)².
 fn gap_variance(delta_t: f64) -> f64 {
     let hidden = 0.5 * GAP_ACCELERATION_MPS2 * delta_t * delta_t;
@@ -303,6 +311,9 @@ pub struct OffsetTracker {
     levels_in_use: [f64; LEVEL_COUNT],
     /// Seconds since the anchors were last placed.
     age_s: f64,
+    /// Seconds the fix and the onboard motion have agreed since the anchors were placed, up to
+    /// [`TRUST_S`]: from then on the anchors are trusted.
+    agreed_s: f64,
     last: OffsetEvidence,
     /// The last usable sample the anchors moved to.
     point: Option<AnchorPoint>,
@@ -332,6 +343,7 @@ impl OffsetTracker {
             snapshot_count: 0,
             levels_in_use: [LEVEL_RANGE.1; LEVEL_COUNT],
             age_s: 0.0,
+            agreed_s: 0.0,
             last: OffsetEvidence::EMPTY,
             point: None,
         }
@@ -354,6 +366,7 @@ impl OffsetTracker {
     /// uncertainty. The vehicle's levels are kept (they describe its receiver).
     pub fn re_anchor(&mut self) {
         self.share = [0.0; 2];
+        self.agreed_s = 0.0;
         self.re_anchor_keeping_levels();
         self.point = None;
     }
@@ -402,6 +415,12 @@ impl OffsetTracker {
         // spike comes back within the agreement time, a jump stays and is tested from there.
         let step_test_m2 = self.params.step_noise_m2 * levels[STEP_LEVEL];
         let outlier = norm_squared(step.residual) >= FOLLOW_GATE * step_test_m2;
+        if outlier && self.returns(step) {
+            // The fix stepped back to where the onboard motion says the vehicle is: the spoofer
+            // let go. Trust GNSS again from here (the rest of the offset is dead-reckoning error).
+            self.re_anchor_keeping_levels();
+            return self.last;
+        }
         let mut nis = [0.0; ANCHOR_COUNT];
         let mut population_nis = [0.0; LEVEL_COUNT];
         let mut sigma_m = 0.0;
@@ -462,6 +481,17 @@ impl OffsetTracker {
         self.age_s += delta_t;
 
         let max_nis = nis[0].max(nis[1]);
+        if self.agreed_s < TRUST_S {
+            if outlier || max_nis >= FOLLOW_GATE {
+                // The fix and the onboard motion have not yet agreed since the anchors were placed
+                // (a session's first fix or first onboard readings may be off): place them again
+                // here rather than hold the disagreement as an offset.
+                self.re_anchor_keeping_levels();
+                self.agreed_s = 0.0;
+                return self.last;
+            }
+            self.agreed_s = (self.agreed_s + delta_t).min(TRUST_S);
+        }
         if max_nis >= DECISIVE_GATE {
             if self.held_s.is_nan() {
                 self.held_s = 0.0;
@@ -517,7 +547,21 @@ impl OffsetTracker {
         })
     }
 
-    /// A fresh anchor at the current point, keeping the vehicle's levels and the shares.
+    /// Whether a one-row step brings a held offset back to within [`RETURN_SHARE`] of the frozen
+    /// slow anchor: the fix returned to where the vehicle's own motion puts it.
+    fn returns(&self, step: &OffsetStep) -> bool {
+        let slow = &self.anchors[ANCHOR_COUNT - 1];
+        let after = [
+            slow.offset[0] + step.residual[0],
+            slow.offset[1] + step.residual[1],
+        ];
+        !self.held_s.is_nan()
+            && slow.frozen
+            && norm_squared(after) <= RETURN_SHARE * RETURN_SHARE * norm_squared(slow.offset)
+    }
+
+    /// A fresh anchor at the current point, keeping the vehicle's levels, the shares and the
+    /// trust (the fix is where the motion allows it to be).
     fn re_anchor_keeping_levels(&mut self) {
         self.anchors = [Anchor::default(); ANCHOR_COUNT];
         self.held_s = f64::NAN;
@@ -531,7 +575,9 @@ impl OffsetTracker {
 
     /// Running mean of min(NIS/2, cap) per anchor and of the one-row residual's (E = 1 for a
     /// vehicle like the population), prior 1 with the weight of `LEVEL_PRIOR_S` seconds, memory
-    /// `LEVEL_MEMORY_S`; the levels in use are the newest snapshot at least `LEVEL_DELAY_S` old.
+    /// `LEVEL_MEMORY_S`; the levels in use follow the newest snapshot at least `LEVEL_DELAY_S` old
+    /// (one whose own rows outweigh the prior), rising at once and falling by at most e per
+    /// `LEVEL_DECREASE_S`.
     fn update_levels(&mut self, population_nis: &[f64; LEVEL_COUNT], delta_t: f64) {
         self.level_clock_s += delta_t;
         let weight = delta_t / (LEVEL_PRIOR_S + self.level_clock_s.min(LEVEL_MEMORY_S));
@@ -564,7 +610,16 @@ impl OffsetTracker {
             .rev()
             .find(|s| s.clock_s <= due && s.clock_s >= LEVEL_PRIOR_S)
         {
-            self.levels_in_use = snapshot.levels;
+            // A noisier level applies at once; a quieter one comes in gradually, so that offsets
+            // the vehicle had under the old level do not all cross the gates in one row.
+            let fade = (-delta_t / LEVEL_DECREASE_S).exp();
+            for (in_use, &target) in self.levels_in_use.iter_mut().zip(&snapshot.levels) {
+                *in_use = if target >= *in_use {
+                    target
+                } else {
+                    (*in_use * fade).max(target)
+                };
+            }
         }
     }
 }
@@ -813,6 +868,15 @@ mod tests {
         }
     }
 
+    /// A tracker whose anchors are trusted: TRUST_S seconds of agreement after the first fix.
+    fn trusted(params: &OffsetParams) -> OffsetTracker {
+        let mut tracker = OffsetTracker::new(params);
+        for _ in 0..(TRUST_S as usize) {
+            tracker.push(&step([0.0; 2], 1.0));
+        }
+        tracker
+    }
+
     fn keep(delta_t: f64, k: usize) -> f64 {
         (-delta_t / FOLLOW_S[k]).exp()
     }
@@ -872,9 +936,11 @@ mod tests {
         }
         let out = tracker.push(&step([30.0, 0.0], 1.0));
         assert_eq!(out.held_s, 0.0);
+        // Back to within a quarter of the held offset: the fix is where the motion puts it, and
+        // the anchors are placed there again.
         let back = tracker.push(&step([-30.0, 0.0], 1.0));
         assert_eq!(back.nis, [0.0, 0.0]);
-        assert!(back.frozen, "frozen until the agreement time has passed");
+        assert!(!back.frozen && back.anchor_age_s == 0.0, "{back:?}");
         assert_eq!(back.held_s, 0.0);
         // The share of time beyond the follow gate: one row of the last 10 s.
         let share_after_out = 1.0 - keep(1.0, 0);
@@ -890,7 +956,7 @@ mod tests {
             noise_m2: [100.0; ANCHOR_COUNT],
             ..unit_params()
         };
-        let mut tracker = OffsetTracker::new(&params);
+        let mut tracker = trusted(&params);
         let jump = tracker.push(&step([20.0, 0.0], 1.0));
         assert!((jump.nis[0] - 400.0 / 1.5).abs() < 1e-9, "{jump:?}");
         let held = tracker.push(&step([0.0, 0.0], 1.0));
@@ -900,13 +966,14 @@ mod tests {
 
     #[test]
     fn a_frozen_anchor_follows_again_after_the_agreement_time() {
-        let mut tracker = OffsetTracker::new(&unit_params());
-        tracker.push(&step([10.0, 0.0], 1.0));
-        // Back: o_fast = 10·keep − 10, NIS 0.9 (agreement); the slow anchor too.
+        // 4.5 m out (NIS 20: beyond the follow gate, not the decisive one, so no return).
+        let mut tracker = trusted(&unit_params());
+        tracker.push(&step([4.5, 0.0], 1.0));
+        // Back: o_fast = 4.5·keep − 4.5, NIS 0.2 (agreement); the slow anchor too.
         let mut frozen_rows = 0;
         for _ in 0..10 {
             let e = tracker.push(&step(
-                [-10.0 * f64::from(u8::from(frozen_rows == 0)), 0.0],
+                [-4.5 * f64::from(u8::from(frozen_rows == 0)), 0.0],
                 1.0,
             ));
             if e.frozen {
@@ -923,19 +990,41 @@ mod tests {
         // it (a fresh anchor, nothing displaced), 5 km is not (NIS 25e6 / (1 + 225²) = 494).
         let gap = 30.0;
         let hidden = 0.5 * GAP_ACCELERATION_MPS2 * gap * gap;
-        let mut tracker = OffsetTracker::new(&unit_params());
+        let mut tracker = trusted(&unit_params());
         let inside = tracker.push(&step([100.0, 0.0], gap));
         assert_eq!(inside.nis, [0.0, 0.0]);
         assert_eq!(inside.anchor_age_s, 0.0);
         assert!(!inside.displaced());
-        let mut tracker = OffsetTracker::new(&unit_params());
+        let mut tracker = trusted(&unit_params());
         let beyond = tracker.push(&step([5000.0, 0.0], gap));
         let expected = 5000.0_f64.powi(2) / (1.0 + hidden * hidden);
         assert!((beyond.nis[1] - expected).abs() < 1e-6, "{beyond:?}");
         assert!(beyond.max_nis() > DECISIVE_GATE);
         // Without the gap, the same 100 m is far beyond the gate.
-        let mut tracker = OffsetTracker::new(&unit_params());
+        let mut tracker = trusted(&unit_params());
         assert!(tracker.push(&step([100.0, 0.0], 1.0)).max_nis() > DECISIVE_GATE);
+    }
+
+    #[test]
+    fn until_the_fix_and_the_motion_agree_a_disagreement_places_the_anchors_again() {
+        // A session whose first onboard readings are off: 30 m of disagreement on the second row
+        // re-anchors there instead of being held; after TRUST_S of agreement the same step is a
+        // jump.
+        let mut tracker = OffsetTracker::new(&unit_params());
+        let first = tracker.push(&step([30.0, 0.0], 1.0));
+        assert_eq!((first.nis, first.anchor_age_s), ([0.0, 0.0], 0.0));
+        for _ in 0..4 {
+            assert!(!tracker.push(&step([0.0; 2], 1.0)).displaced());
+        }
+        let untrusted = tracker.push(&step([30.0, 0.0], 1.0));
+        assert_eq!(
+            untrusted.max_nis(),
+            0.0,
+            "4 s of agreement is not yet trust"
+        );
+        let mut tracker = trusted(&unit_params());
+        let jump = tracker.push(&step([30.0, 0.0], 1.0));
+        assert!(jump.max_nis() >= DECISIVE_GATE && jump.arrived_by_step);
     }
 
     #[test]
