@@ -128,7 +128,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 use sqlx::PgPool;
 
 pub use alarms::{
-    AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent,
+    AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent, StoredWhy,
     first_seq_of_run,
 };
 pub use datasets::{DatasetRow, NewDataset};
