@@ -31,7 +31,10 @@ const ATTACK_ONSET_S: f64 = 200.0;
 /// the model itself never alarms, and a lifecycle that opens on an offset held 2 s beyond the
 /// decisive gate.
 fn untrained_v3_artifact() -> Vec<u8> {
-    let normal = [normal_drive("fit-0", 400.0, 1), normal_drive("fit-1", 400.0, 2)];
+    let normal = [
+        normal_drive("sim0", 400.0, 0),
+        normal_drive("sim1", 400.0, 1),
+    ];
     let schema = FeatureSchema::V3;
     let fit = fit_evidence(&normal, Projection::Wgs84Local, 0.0, 0.98, schema)
         .expect("enough normal rows");
@@ -143,7 +146,10 @@ async fn a_jump_alarm_says_jump_with_its_offset_also_after_a_restart() {
         "the explanation's offset is the slow anchor's"
     );
     assert!(offset.arrived_by_step && offset.nis_slow.max(offset.nis_fast) >= 25.0);
-    assert!(onset_evidence.drift.is_some(), "v3 includes the drift channels");
+    assert!(
+        onset_evidence.drift.is_some(),
+        "v3 includes the drift channels"
+    );
 
     // The alarm is stored in the background: wait until it is listed.
     let mut stored = Vec::new();

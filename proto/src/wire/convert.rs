@@ -282,7 +282,10 @@ mod tests {
         assert_eq!((p.offset_east_m, p.offset_north_m), (300.0, 400.0));
         assert_eq!(p.offset_m, 500.0);
         assert!((p.offset_bearing_deg - 36.869_897_645_844_02).abs() < 1e-9);
-        assert_eq!((p.drift_east_mps, p.drift_north_mps), (-1.0, -(3.0_f64.sqrt())));
+        assert_eq!(
+            (p.drift_east_mps, p.drift_north_mps),
+            (-1.0, -(3.0_f64.sqrt()))
+        );
         assert!((p.drift_mps - 2.0).abs() < 1e-12);
         assert!((p.drift_bearing_deg - 210.0).abs() < 1e-9);
 
@@ -327,7 +330,10 @@ mod tests {
             ..OffsetEvidence::EMPTY
         };
         let p = offset_to_proto(&o);
-        assert_eq!((p.offset_east_m, p.offset_north_m, p.sigma_m), (-12.0, 5.0, 2.5));
+        assert_eq!(
+            (p.offset_east_m, p.offset_north_m, p.sigma_m),
+            (-12.0, 5.0, 2.5)
+        );
         assert_eq!((p.nis_fast, p.nis_slow, p.held_s), (30.0, 18.0, 4.0));
         assert_eq!((p.share_10s, p.share_60s), (0.6, 0.1));
         assert!(p.frozen && p.arrived_by_step);

@@ -39,7 +39,10 @@ pub fn explanation(why: &StoredWhy) -> Option<Explanation> {
     let or_zero = |v: Option<f64>| v.unwrap_or(0.0);
     Some(Explanation {
         dominant,
-        offset_m: [or_zero(why.why_offset_east_m), or_zero(why.why_offset_north_m)],
+        offset_m: [
+            or_zero(why.why_offset_east_m),
+            or_zero(why.why_offset_north_m),
+        ],
         drift_rate_mps: [
             or_zero(why.why_drift_east_mps),
             or_zero(why.why_drift_north_mps),

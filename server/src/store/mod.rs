@@ -128,8 +128,8 @@ use std::time::{SystemTime, UNIX_EPOCH};
 use sqlx::PgPool;
 
 pub use alarms::{
-    AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent, StoredWhy,
-    first_seq_of_run,
+    AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent,
+    StoredWhy, first_seq_of_run,
 };
 pub use datasets::{DatasetRow, NewDataset};
 pub use error::{FaultKind, StoreError, StoreFault};

@@ -167,7 +167,9 @@ pub fn csv_row(d: &ReplayedDetection) -> [String; 13] {
     let det = &d.detection;
     let valid = det.evidence.as_ref().is_some_and(|e| e.valid);
     let why = det.why.as_ref();
-    let number = |value: fn(&v1::Explanation) -> f64| why.map(value).map_or_else(String::new, |v| v.to_string());
+    let number = |value: fn(&v1::Explanation) -> f64| {
+        why.map(value).map_or_else(String::new, |v| v.to_string())
+    };
     [
         d.vehicle_id.clone(),
         d.line.to_string(),
@@ -505,7 +507,9 @@ mod tests {
     fn an_onset_says_why_on_the_console_and_in_the_csv() {
         let line = console_line(&detection(Some(jump())));
         assert!(
-            line.ends_with("ALARM onset  jump: offset 500.0 m toward 37°, drift 0.25 m/s toward 90°"),
+            line.ends_with(
+                "ALARM onset  jump: offset 500.0 m toward 37°, drift 0.25 m/s toward 90°"
+            ),
             "{line}"
         );
         let row = csv_row(&detection(Some(jump())));
