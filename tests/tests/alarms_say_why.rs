@@ -128,7 +128,7 @@ async fn a_jump_alarm_says_jump_with_its_offset_also_after_a_restart() {
         "the first alarm opens soon after the jump, at {} s",
         first.timestamp_s
     );
-    let why = first.why.clone().expect("explained");
+    let why = first.why.expect("explained");
     assert_eq!(why.dominant(), v1::EvidenceKind::Jump, "{why:?}");
     assert!(
         (why.offset_m - JUMP_M).abs() < 0.1 * JUMP_M,

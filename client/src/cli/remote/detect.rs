@@ -523,7 +523,7 @@ mod tests {
             dominant: v1::EvidenceKind::None as i32,
             ..v1::Explanation::default()
         };
-        assert!(console_line(&detection(Some(none.clone()))).ends_with("ALARM onset"));
+        assert!(console_line(&detection(Some(none))).ends_with("ALARM onset"));
         assert!(console_line(&detection(None)).ends_with("ALARM onset"));
         assert_eq!(&csv_row(&detection(Some(none)))[8..10], ["none", "0"]);
         assert_eq!(&csv_row(&detection(None))[8..], ["", "", "", "", ""]);
