@@ -239,6 +239,9 @@ pub struct ReplayedDetection {
 }
 
 /// What a replay reports while it runs.
+// Detections are nearly every event (one per sample), so they are not boxed: the other variants'
+// unused space costs less than an allocation per sample.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug)]
 pub enum ReplayEvent {
     /// The server accepted a stream (the first, or a reconnect).

@@ -28,10 +28,12 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use spoofwatch_core::explain::Explanation;
 use spoofwatch_proto::wire::convert::timestamp_from_ms;
 use tokio::sync::{Notify, oneshot};
 use tokio_util::sync::CancellationToken;
 
+use crate::alarms::why as alarm_why;
 use crate::store::{
     AlarmEvent, AlarmEventKind, AlarmEventRow, SnapshotRow, Store, StoreError, first_seq_of_run,
     now_unix_ms,
@@ -163,8 +165,9 @@ impl SessionOutbox {
         self.pending.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// Queues an alarm onset and returns its id (also when the onset had to be dropped, so that the
-    /// session's later end refers to it and stays a no-op).
+    /// Queues an alarm onset, with the explanation of its onset sample when there is one, and
+    /// returns its id (also when the onset had to be dropped, so that the session's later end
+    /// refers to it and stays a no-op).
     pub fn onset(
         &self,
         vehicle_id: &str,
@@ -172,6 +175,7 @@ impl SessionOutbox {
         timestamp_s: f64,
         onset_at_ms: i64,
         probability: f64,
+        why: Option<&Explanation>,
     ) -> i64 {
         let mut pending = self.pending();
         let id = pending.next_id;
@@ -179,14 +183,17 @@ impl SessionOutbox {
         let event = AlarmEvent {
             seq: 0, // assigned when queued
             kind: AlarmEventKind::Onset,
-            alarm: AlarmEventRow::opened(
-                id,
-                vehicle_id,
-                model_id,
-                timestamp_s,
-                onset_at_ms,
-                probability,
-            ),
+            alarm: AlarmEventRow {
+                why: why.map(alarm_why::stored).unwrap_or_default(),
+                ..AlarmEventRow::opened(
+                    id,
+                    vehicle_id,
+                    model_id,
+                    timestamp_s,
+                    onset_at_ms,
+                    probability,
+                )
+            },
         };
         if pending.queue.len() >= self.capacity {
             drop(pending);
@@ -451,19 +458,31 @@ impl SessionOutbox {
     }
 }
 
-/// The structured log line of an emitted alarm event (one per onset, one per end).
+/// The structured log line of an emitted alarm event (one per onset, one per end). An onset's
+/// line says why: the dominant evidence, the offset's distance and bearing, the drift's speed and
+/// bearing (left out when the onset has no explanation).
 fn log_event(event: &AlarmEvent) {
     let alarm = &event.alarm;
     match event.kind {
-        AlarmEventKind::Onset => tracing::info!(
-            vehicle_id = %alarm.vehicle_id,
-            model = %alarm.model_id,
-            alarm_id = alarm.id,
-            probability = alarm.peak_probability,
-            onset_timestamp_s = alarm.onset_timestamp_s,
-            onset_at = %timestamp_from_ms(alarm.onset_at_ms),
-            "alarm onset"
-        ),
+        AlarmEventKind::Onset => {
+            let why = alarm_why::explanation(&alarm.why);
+            let offset = why.map(|x| x.offset_polar());
+            let drift = why.map(|x| x.drift_polar());
+            tracing::info!(
+                vehicle_id = %alarm.vehicle_id,
+                model = %alarm.model_id,
+                alarm_id = alarm.id,
+                probability = alarm.peak_probability,
+                onset_timestamp_s = alarm.onset_timestamp_s,
+                onset_at = %timestamp_from_ms(alarm.onset_at_ms),
+                why = why.map(|x| x.dominant.name()),
+                offset_m = offset.map(|o| o.0),
+                offset_bearing_deg = offset.map(|o| o.1),
+                drift_mps = drift.map(|d| d.0),
+                drift_bearing_deg = drift.map(|d| d.1),
+                "alarm onset"
+            )
+        }
         AlarmEventKind::End => tracing::info!(
             vehicle_id = %alarm.vehicle_id,
             model = %alarm.model_id,
@@ -528,8 +547,8 @@ mod tests {
             async move { outbox.run(store, stop, Duration::from_secs(5)).await }
         });
 
-        let first = outbox.onset("car-1", "m", 10.0, 1, 0.9);
-        let second = outbox.onset("car-2", "m", 11.0, 1, 0.8);
+        let first = outbox.onset("car-1", "m", 10.0, 1, 0.9, None);
+        let second = outbox.onset("car-2", "m", 11.0, 1, 0.8, None);
         outbox.end(first, 14.0, 0.95, 5);
         let base = first_seq_of_run(outbox.run_id());
         assert_eq!(
@@ -568,7 +587,7 @@ mod tests {
         let (_dir, store) = temp_store().await;
         let outbox = SessionOutbox::new(&store, 2).await.unwrap();
         let ids: Vec<i64> = (0..3)
-            .map(|i| outbox.onset("car", "m", f64::from(i), 1, 0.9))
+            .map(|i| outbox.onset("car", "m", f64::from(i), 1, 0.9, None))
             .collect();
         let base = first_seq_of_run(outbox.run_id());
         assert_eq!(
@@ -585,9 +604,9 @@ mod tests {
     async fn invalid_values_are_refused_before_they_can_block_the_queue() {
         let (_dir, store) = temp_store().await;
         let outbox = SessionOutbox::new(&store, 10).await.unwrap();
-        let refused = outbox.onset("car", "m", f64::NAN, 1, 0.9);
+        let refused = outbox.onset("car", "m", f64::NAN, 1, 0.9, None);
         outbox.end(refused, 2.0, 0.9, 2); // its onset was refused: nothing to end
-        let id = outbox.onset("car", "m", 3.0, 1, 0.9);
+        let id = outbox.onset("car", "m", 3.0, 1, 0.9, None);
         outbox.end(id, 4.0, f64::NAN, 2);
         let stats = outbox.stats();
         assert_eq!((stats.backlog, stats.invalid), (1, 2));
@@ -597,14 +616,14 @@ mod tests {
     async fn a_restart_continues_above_every_earlier_seq_and_ends_the_alarms_left_open() {
         let (_dir, store) = temp_store().await;
         let before = SessionOutbox::new(&store, 10).await.unwrap();
-        let left_open = before.onset("car", "m", 1.0, 1, 0.9);
+        let left_open = before.onset("car", "m", 1.0, 1, 0.9, None);
         let stop = CancellationToken::new();
         stop.cancel();
         before
             .run(store.clone(), stop, Duration::from_secs(5))
             .await;
         // An event a crash kept from being stored: its seq is never reused.
-        let unstored = before.onset("car-2", "m", 2.0, 1, 0.9);
+        let unstored = before.onset("car-2", "m", 2.0, 1, 0.9, None);
         assert_ne!(unstored, left_open);
 
         let after = SessionOutbox::new(&store, 10).await.unwrap();
@@ -634,7 +653,7 @@ mod tests {
         let (_dir, store) = temp_store().await;
         let outbox = SessionOutbox::new(&store, 10_000).await.unwrap();
         for i in 0..1_500 {
-            let id = outbox.onset(&format!("car-{i}"), "m", 1.0, 1, 0.9);
+            let id = outbox.onset(&format!("car-{i}"), "m", 1.0, 1, 0.9, None);
             outbox.end(id, 2.0, 0.9, 2);
         }
         let stop = CancellationToken::new();

@@ -7,6 +7,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use clap::builder::{PossibleValuesParser, TypedValueParser};
 use spoofwatch_core::evidence::drift::DriftEvidence;
+use spoofwatch_core::evidence::offset::OffsetEvidence;
 use spoofwatch_core::evidence::{Evidence, EvidenceParams, FeatureSchema, build_track};
 use spoofwatch_core::model::artifact::ModelArtifact;
 use spoofwatch_core::train::data::fit_evidence;
@@ -29,7 +30,8 @@ pub struct Args {
     /// Local frame for GNSS displacements (ignored with --stats, which carries its own).
     #[arg(long, value_enum, default_value_t)]
     projection: ProjectionArg,
-    /// Evidence channels fitted without --stats: `v2` adds the drift channels to the paper's.
+    /// Evidence channels fitted without --stats: `v2` adds the drift channels to the paper's, `v3`
+    /// the offset channels to those.
     #[arg(
         long,
         default_value = FeatureSchema::default().name(),
@@ -67,7 +69,7 @@ const EVIDENCE_COLUMNS: [(&str, ColumnValue); 14] = [
 type DriftValue = fn(&DriftEvidence) -> f64;
 
 /// Evidence v2's columns, written when the parameters carry drift parameters.
-const DRIFT_COLUMNS: [(&str, DriftValue); 19] = [
+const DRIFT_COLUMNS: [(&str, DriftValue); 21] = [
     ("r_clip_e", |d| d.clipped_residual[0]),
     ("r_clip_n", |d| d.clipped_residual[1]),
     ("r_clean_e", |d| d.cleaned_residual[0]),
@@ -87,6 +89,21 @@ const DRIFT_COLUMNS: [(&str, DriftValue); 19] = [
     ("drift_statistic", |d| d.statistic),
     ("stale_fix_s", |d| d.stale_fix_s),
     ("residual_log", |d| d.residual_log),
+    ("drift_rate_east_mps", |d| d.rate_mps[0]),
+    ("drift_rate_north_mps", |d| d.rate_mps[1]),
+];
+
+/// Reads one offset column's value from a row's offset channels.
+type OffsetValue = fn(&OffsetEvidence) -> f64;
+
+/// Evidence v3's columns, written when the parameters carry offset parameters.
+const OFFSET_COLUMNS: [(&str, OffsetValue); 6] = [
+    ("offset_east_m", |o| o.offset_m[0]),
+    ("offset_north_m", |o| o.offset_m[1]),
+    ("offset_sigma_m", |o| o.sigma_m),
+    ("offset_nis_fast", |o| o.nis[0]),
+    ("offset_nis_slow", |o| o.nis[1]),
+    ("offset_held_s", |o| o.held_s),
 ];
 
 pub fn run(args: Args) -> Result<()> {
@@ -119,8 +136,19 @@ pub fn run(args: Args) -> Result<()> {
     } else {
         &[]
     };
+    let offset_names: &[&str] = if params.offset.is_some() {
+        &OFFSET_COLUMNS.map(|(name, _)| name)
+    } else {
+        &[]
+    };
     let value_names = EVIDENCE_COLUMNS.map(|(name, _)| name);
-    out.write_record(KEY_COLUMNS.iter().chain(&value_names).chain(drift_names))?;
+    out.write_record(
+        KEY_COLUMNS
+            .iter()
+            .chain(&value_names)
+            .chain(drift_names)
+            .chain(offset_names),
+    )?;
     for track in &tracks {
         for (e, r) in build_track(&params, &track.records)
             .iter()
@@ -141,6 +169,13 @@ pub fn run(args: Args) -> Result<()> {
                     DRIFT_COLUMNS
                         .iter()
                         .map(|(_, value)| value(drift).to_string()),
+                );
+            }
+            if let Some(offset) = &e.offset {
+                row.extend(
+                    OFFSET_COLUMNS
+                        .iter()
+                        .map(|(_, value)| value(offset).to_string()),
                 );
             }
             out.write_record(&row)?;

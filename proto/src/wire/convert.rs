@@ -6,6 +6,8 @@ use spoofwatch_core::alarm::OperatingPoint;
 use spoofwatch_core::detector::Decision;
 use spoofwatch_core::evidence::Evidence;
 use spoofwatch_core::evidence::drift::DriftEvidence;
+use spoofwatch_core::evidence::offset::OffsetEvidence;
+use spoofwatch_core::explain::{EvidenceKind, Explanation};
 use spoofwatch_core::metrics::Metrics;
 use spoofwatch_core::sample::Sample;
 
@@ -74,6 +76,26 @@ pub fn evidence_to_proto(e: &Evidence) -> v1::Evidence {
         q: e.q,
         accum_log: e.accum_log,
         drift: e.drift.as_ref().map(drift_to_proto),
+        offset: e.offset.as_ref().map(offset_to_proto),
+    }
+}
+
+fn offset_to_proto(o: &OffsetEvidence) -> v1::OffsetEvidence {
+    let [offset_east_m, offset_north_m] = o.offset_m;
+    let [nis_fast, nis_slow] = o.nis;
+    let [share_10s, share_60s] = o.share;
+    v1::OffsetEvidence {
+        offset_east_m,
+        offset_north_m,
+        sigma_m: o.sigma_m,
+        nis_fast,
+        nis_slow,
+        held_s: o.held_s,
+        share_10s,
+        share_60s,
+        frozen: o.frozen,
+        arrived_by_step: o.arrived_by_step,
+        anchor_age_s: o.anchor_age_s,
     }
 }
 
@@ -92,6 +114,50 @@ fn drift_to_proto(d: &DriftEvidence) -> v1::DriftEvidence {
         calibrated_z_north,
         stale_fix_s: d.stale_fix_s,
         residual_log: d.residual_log,
+        rate_east_mps: d.rate_mps[0],
+        rate_north_mps: d.rate_mps[1],
+    }
+}
+
+/// An evidence kind on the wire.
+pub fn evidence_kind_to_proto(kind: EvidenceKind) -> v1::EvidenceKind {
+    match kind {
+        EvidenceKind::None => v1::EvidenceKind::None,
+        EvidenceKind::Jump => v1::EvidenceKind::Jump,
+        EvidenceKind::HeldOffset => v1::EvidenceKind::HeldOffset,
+        EvidenceKind::Drift => v1::EvidenceKind::Drift,
+        EvidenceKind::FrozenFix => v1::EvidenceKind::FrozenFix,
+        EvidenceKind::Energy => v1::EvidenceKind::Energy,
+    }
+}
+
+/// A wire evidence kind as the core's (`None` for UNSPECIFIED or a value this build does not know).
+pub fn evidence_kind_from_proto(kind: i32) -> Option<EvidenceKind> {
+    match v1::EvidenceKind::try_from(kind).ok()? {
+        v1::EvidenceKind::Unspecified => None,
+        v1::EvidenceKind::None => Some(EvidenceKind::None),
+        v1::EvidenceKind::Jump => Some(EvidenceKind::Jump),
+        v1::EvidenceKind::HeldOffset => Some(EvidenceKind::HeldOffset),
+        v1::EvidenceKind::Drift => Some(EvidenceKind::Drift),
+        v1::EvidenceKind::FrozenFix => Some(EvidenceKind::FrozenFix),
+        v1::EvidenceKind::Energy => Some(EvidenceKind::Energy),
+    }
+}
+
+/// An explanation on the wire: the vectors as east/north and as magnitude and bearing.
+pub fn explanation_to_proto(x: &Explanation) -> v1::Explanation {
+    let (offset_m, offset_bearing_deg) = x.offset_polar();
+    let (drift_mps, drift_bearing_deg) = x.drift_polar();
+    v1::Explanation {
+        dominant: evidence_kind_to_proto(x.dominant) as i32,
+        offset_east_m: x.offset_m[0],
+        offset_north_m: x.offset_m[1],
+        offset_m,
+        offset_bearing_deg,
+        drift_east_mps: x.drift_rate_mps[0],
+        drift_north_mps: x.drift_rate_mps[1],
+        drift_mps,
+        drift_bearing_deg,
     }
 }
 
@@ -106,6 +172,7 @@ pub fn detection_to_proto(timestamp_s: f64, d: &Decision, model: &str) -> v1::De
         alarm_end: d.alarm_end,
         evidence: Some(evidence_to_proto(&d.evidence)),
         model: model.to_string(),
+        why: Some(explanation_to_proto(&d.explanation)),
     }
 }
 
@@ -199,6 +266,78 @@ mod tests {
         let mut s = Sample::new(1.5, 32.2, -110.9, 3.0, 45.0);
         s.speed_std_mps = Some(0.1);
         assert_eq!(sample_from_proto(&sample_to_proto(&s)), s);
+    }
+
+    #[test]
+    fn explanations_carry_distance_and_bearing_by_hand() {
+        let x = Explanation {
+            dominant: EvidenceKind::Jump,
+            // 300 m east, 400 m north: 500 m at atan(3/4) = 36.87° east of north.
+            offset_m: [300.0, 400.0],
+            // 1 m/s west, √3 m/s south: 2 m/s toward 180° + 30° = 210°.
+            drift_rate_mps: [-1.0, -(3.0_f64.sqrt())],
+        };
+        let p = explanation_to_proto(&x);
+        assert_eq!(p.dominant(), v1::EvidenceKind::Jump);
+        assert_eq!((p.offset_east_m, p.offset_north_m), (300.0, 400.0));
+        assert_eq!(p.offset_m, 500.0);
+        assert!((p.offset_bearing_deg - 36.869_897_645_844_02).abs() < 1e-9);
+        assert_eq!(
+            (p.drift_east_mps, p.drift_north_mps),
+            (-1.0, -(3.0_f64.sqrt()))
+        );
+        assert!((p.drift_mps - 2.0).abs() < 1e-12);
+        assert!((p.drift_bearing_deg - 210.0).abs() < 1e-9);
+
+        // No evidence: zero vectors, bearing 0 (north), kind NONE (not UNSPECIFIED).
+        let p = explanation_to_proto(&Explanation::default());
+        assert_eq!(p.dominant(), v1::EvidenceKind::None);
+        assert_eq!((p.offset_m, p.offset_bearing_deg), (0.0, 0.0));
+        assert_eq!((p.drift_mps, p.drift_bearing_deg), (0.0, 0.0));
+    }
+
+    #[test]
+    fn evidence_kinds_round_trip_and_unspecified_is_none() {
+        for kind in [
+            EvidenceKind::None,
+            EvidenceKind::Jump,
+            EvidenceKind::HeldOffset,
+            EvidenceKind::Drift,
+            EvidenceKind::FrozenFix,
+            EvidenceKind::Energy,
+        ] {
+            assert_eq!(
+                evidence_kind_from_proto(evidence_kind_to_proto(kind) as i32),
+                Some(kind)
+            );
+        }
+        assert_eq!(evidence_kind_to_proto(EvidenceKind::HeldOffset) as i32, 3);
+        assert_eq!(evidence_kind_from_proto(0), None);
+        assert_eq!(evidence_kind_from_proto(99), None);
+    }
+
+    #[test]
+    fn offset_evidence_maps_each_anchor_and_share() {
+        let o = OffsetEvidence {
+            offset_m: [-12.0, 5.0],
+            sigma_m: 2.5,
+            nis: [30.0, 18.0],
+            held_s: 4.0,
+            share: [0.6, 0.1],
+            frozen: true,
+            arrived_by_step: true,
+            anchor_age_s: 90.0,
+            ..OffsetEvidence::EMPTY
+        };
+        let p = offset_to_proto(&o);
+        assert_eq!(
+            (p.offset_east_m, p.offset_north_m, p.sigma_m),
+            (-12.0, 5.0, 2.5)
+        );
+        assert_eq!((p.nis_fast, p.nis_slow, p.held_s), (30.0, 18.0, 4.0));
+        assert_eq!((p.share_10s, p.share_60s), (0.6, 0.1));
+        assert!(p.frozen && p.arrived_by_step);
+        assert_eq!(p.anchor_age_s, 90.0);
     }
 
     #[test]

@@ -151,10 +151,10 @@ mod tests {
 
         let stop = CancellationToken::new();
         stop.cancel();
-        let first = here.onset("car-1", "m", 1.0, 1, 0.9);
+        let first = here.onset("car-1", "m", 1.0, 1, 0.9, None);
         here.run(store.clone(), stop.clone(), Duration::from_secs(1))
             .await;
-        let second = there.onset("car-2", "m", 2.0, 1, 0.8);
+        let second = there.onset("car-2", "m", 2.0, 1, 0.8, None);
         there
             .run(store.clone(), stop.clone(), Duration::from_secs(1))
             .await;

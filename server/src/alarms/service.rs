@@ -70,6 +70,7 @@ fn alarm_to_proto(alarm: &AlarmEventRow) -> v1::Alarm {
         peak_probability: alarm.peak_probability,
         samples: u64::try_from(alarm.samples).unwrap_or(0),
         open: alarm.is_open(),
+        why: super::why::to_proto(&alarm.why),
     }
 }
 
@@ -416,7 +417,7 @@ mod tests {
         let other_replica = SessionOutbox::new(&store, 10).await.expect("outbox");
         let stop = CancellationToken::new();
         stop.cancel();
-        let alarm = other_replica.onset("car-1", "m", 1.0, 1, 0.9);
+        let alarm = other_replica.onset("car-1", "m", 1.0, 1, 0.9, None);
         other_replica.end(alarm, 3.0, 0.95, 3);
         other_replica
             .run(store.clone(), stop, Duration::from_secs(1))

@@ -23,6 +23,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use spoofwatch_core::detector::{Decision, Detector};
+use spoofwatch_core::explain::Explanation;
 use spoofwatch_core::sample::Sample;
 use spoofwatch_proto::wire::{ModelName, VehicleId};
 use tokio::sync::oneshot;
@@ -462,6 +463,7 @@ impl SessionManager {
                     &slot.vehicle_id,
                     sample.timestamp_s,
                     decision.probability,
+                    &decision.explanation,
                 ),
                 Some(EpisodeChange::Ended(episode)) => self.record_end(episode),
                 None => {}
@@ -483,13 +485,15 @@ impl SessionManager {
         })
     }
 
-    /// Queues an alarm onset and opens its episode under the id the outbox gave it.
+    /// Queues an alarm onset (with `why`, the onset sample's explanation) and opens its episode
+    /// under the id the outbox gave it.
     fn record_onset(
         &self,
         state: &mut SessionState,
         vehicle: &VehicleId,
         timestamp_s: f64,
         p: f64,
+        why: &Explanation,
     ) {
         let onset_at_ms = now_unix_ms();
         let id = self.outbox.onset(
@@ -498,6 +502,7 @@ impl SessionManager {
             timestamp_s,
             onset_at_ms,
             p,
+            Some(why),
         );
         telemetry::alarm_onset();
         state.alarm.open(id, timestamp_s, onset_at_ms, p);

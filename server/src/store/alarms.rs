@@ -34,6 +34,25 @@ pub struct AlarmEventRow {
     pub peak_probability: f64,
     /// Number of samples in the episode so far.
     pub samples: i64,
+    /// Why the alarm was raised (its onset's explanation); all `None` on rows stored before
+    /// schema version 6.
+    #[sqlx(flatten)]
+    pub why: StoredWhy,
+}
+
+/// The explanation of an alarm's onset as the alarm row stores it: the dominant evidence's
+/// snake_case name and the east/north vectors (the store does not interpret them; the alarm API
+/// maps them to the wire). Written with the onset, never changed by its end.
+#[derive(Debug, Clone, Default, PartialEq, sqlx::FromRow)]
+pub struct StoredWhy {
+    /// The dominant evidence (`jump`, `held_offset`, …); `None` when the alarm has none stored.
+    pub why_kind: Option<String>,
+    /// GNSS minus the dead-reckoning anchor, east/north (m).
+    pub why_offset_east_m: Option<f64>,
+    pub why_offset_north_m: Option<f64>,
+    /// The drift rate, east/north (m/s).
+    pub why_drift_east_mps: Option<f64>,
+    pub why_drift_north_mps: Option<f64>,
 }
 
 /// What an alarm event did to its alarm.
@@ -117,6 +136,7 @@ impl AlarmEventRow {
             ended_at_ms: None,
             peak_probability: probability,
             samples: 1,
+            why: StoredWhy::default(),
         }
     }
 
@@ -140,14 +160,25 @@ impl AlarmEventRow {
 }
 
 impl AlarmEvent {
-    /// [`StoreError::InvalidValue`] for a non-finite timestamp, a probability outside [0, 1] or an
-    /// end without an end time.
+    /// [`StoreError::InvalidValue`] for a non-finite timestamp or explanation, a probability
+    /// outside [0, 1] or an end without an end time.
     pub fn validate(&self) -> Result<(), StoreError> {
         let alarm = &self.alarm;
         match self.kind {
             AlarmEventKind::Onset => {
                 require_finite("onset_timestamp_s", alarm.onset_timestamp_s)?;
                 require_probability("probability", alarm.peak_probability)?;
+                let why = &alarm.why;
+                for (field, value) in [
+                    ("why_offset_east_m", why.why_offset_east_m),
+                    ("why_offset_north_m", why.why_offset_north_m),
+                    ("why_drift_east_mps", why.why_drift_east_mps),
+                    ("why_drift_north_mps", why.why_drift_north_mps),
+                ] {
+                    if let Some(value) = value {
+                        require_finite(field, value)?;
+                    }
+                }
             }
             AlarmEventKind::End => {
                 if let Some(end) = alarm.end_timestamp_s {
@@ -207,7 +238,8 @@ macro_rules! select_alarms {
     ($rest:literal) => {
         concat!(
             "SELECT id, vehicle_id, model_id, onset_timestamp_s, end_timestamp_s, onset_at, \
-             ended_at, peak_probability, samples FROM alarm_events ",
+             ended_at, peak_probability, samples, why_kind, why_offset_east_m, \
+             why_offset_north_m, why_drift_east_mps, why_drift_north_mps FROM alarm_events ",
             $rest
         )
     };
@@ -256,8 +288,9 @@ macro_rules! apply_event {
         let applied = match event.kind {
             AlarmEventKind::Onset => sqlx::query(
                 "INSERT INTO alarm_events (id, vehicle_id, model_id, \
-                 onset_timestamp_s, onset_at, peak_probability, samples) \
-                 VALUES ($1, $2, $3, $4, $5, $6, 1) ON CONFLICT DO NOTHING",
+                 onset_timestamp_s, onset_at, peak_probability, samples, why_kind, \
+                 why_offset_east_m, why_offset_north_m, why_drift_east_mps, why_drift_north_mps) \
+                 VALUES ($1, $2, $3, $4, $5, $6, 1, $7, $8, $9, $10, $11) ON CONFLICT DO NOTHING",
             )
             .bind(alarm.id)
             .bind(&alarm.vehicle_id)
@@ -265,6 +298,11 @@ macro_rules! apply_event {
             .bind(alarm.onset_timestamp_s)
             .bind(alarm.onset_at_ms)
             .bind(alarm.peak_probability)
+            .bind(alarm.why.why_kind.as_deref())
+            .bind(alarm.why.why_offset_east_m)
+            .bind(alarm.why.why_offset_north_m)
+            .bind(alarm.why.why_drift_east_mps)
+            .bind(alarm.why.why_drift_north_mps)
             .execute(&mut *$tx)
             .await?
             .rows_affected(),
@@ -378,7 +416,8 @@ impl Store {
             sqlx::query_as::<_, LoggedAlarmEvent>(
                 "SELECT l.position, l.seq, l.kind, a.id, a.vehicle_id, a.model_id, \
                  a.onset_timestamp_s, l.end_timestamp_s, a.onset_at, l.ended_at, \
-                 l.peak_probability, l.samples \
+                 l.peak_probability, l.samples, a.why_kind, a.why_offset_east_m, \
+                 a.why_offset_north_m, a.why_drift_east_mps, a.why_drift_north_mps \
                  FROM alarm_event_log l JOIN alarm_events a ON a.id = l.alarm_id \
                  WHERE l.position > $1 AND l.position <= $2 \
                  AND ($3 IS NULL OR a.vehicle_id = $3) \

@@ -129,7 +129,7 @@ use sqlx::PgPool;
 
 pub use alarms::{
     AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent,
-    first_seq_of_run,
+    StoredWhy, first_seq_of_run,
 };
 pub use datasets::{DatasetRow, NewDataset};
 pub use error::{FaultKind, StoreError, StoreFault};

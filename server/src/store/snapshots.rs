@@ -94,7 +94,9 @@ impl Store {
         in_write_tx!(self, |tx| {
             let abandoned = sqlx::query_as::<_, AlarmEventRow>(
                 "SELECT a.id, a.vehicle_id, a.model_id, a.onset_timestamp_s, a.end_timestamp_s, \
-                 a.onset_at, a.ended_at, a.peak_probability, a.samples \
+                 a.onset_at, a.ended_at, a.peak_probability, a.samples, a.why_kind, \
+                 a.why_offset_east_m, a.why_offset_north_m, a.why_drift_east_mps, \
+                 a.why_drift_north_mps \
                  FROM session_snapshots s JOIN alarm_events a ON a.id = s.open_alarm_id \
                  WHERE s.updated_at < $1 AND a.ended_at IS NULL ORDER BY a.id",
             )

@@ -13,6 +13,7 @@ use anyhow::{Context, Result};
 use serde_json::{Value, json};
 use spoofwatch_proto::v1;
 
+use super::detect::why_name;
 use super::{ResourceArgs, opt, print_table, time};
 use crate::cli::server_flags::ServerArgs;
 
@@ -151,7 +152,7 @@ async fn run_list(server: &ServerArgs, args: ListArgs) -> Result<()> {
     print_table(
         &[
             "id", "vehicle", "model", "onset", "end", "onset_s", "end_s", "peak", "samples",
-            "state",
+            "state", "why", "offset",
         ],
         &alarms,
         |a| {
@@ -166,6 +167,11 @@ async fn run_list(server: &ServerArgs, args: ListArgs) -> Result<()> {
                 format!("{:.3}", a.peak_probability),
                 a.samples.to_string(),
                 if a.open { "open" } else { "closed" }.to_string(),
+                why_name(a.why.as_ref()).unwrap_or("-").to_string(),
+                a.why.as_ref().map_or_else(
+                    || "-".to_string(),
+                    |w| format!("{:.0} m @ {:.0}°", w.offset_m, w.offset_bearing_deg),
+                ),
             ]
         },
     );
@@ -231,6 +237,17 @@ pub fn alarm_json(alarm: &v1::Alarm) -> Value {
         "peak_probability": alarm.peak_probability,
         "samples": alarm.samples,
         "open": alarm.open,
+        "why": alarm.why.as_ref().map(|why| json!({
+            "dominant": why_name(Some(why)),
+            "offset_east_m": why.offset_east_m,
+            "offset_north_m": why.offset_north_m,
+            "offset_m": why.offset_m,
+            "offset_bearing_deg": why.offset_bearing_deg,
+            "drift_east_mps": why.drift_east_mps,
+            "drift_north_mps": why.drift_north_mps,
+            "drift_mps": why.drift_mps,
+            "drift_bearing_deg": why.drift_bearing_deg,
+        })),
     })
 }
 

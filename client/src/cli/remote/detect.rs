@@ -20,6 +20,7 @@ use crate::replay::{
 use crate::replay_log::ReplayLog;
 use anyhow::{Context, Result, bail};
 use spoofwatch_core::sample::Track;
+use spoofwatch_proto::v1;
 use spoofwatch_proto::wire::limits::MAX_BATCH_SAMPLES;
 use tokio::sync::mpsc;
 
@@ -43,7 +44,9 @@ pub struct Args {
     #[arg(long)]
     pub model: Option<String>,
     /// Write every detection as CSV (vehicle_id, line, timestamp_s, probability, positive, alarm,
-    /// alarm_onset, valid); timestamp_s is the recorded one.
+    /// alarm_onset, valid, why, offset_m, offset_bearing_deg, drift_mps, drift_bearing_deg);
+    /// timestamp_s is the recorded one, `why` the dominant evidence (empty from a server that does
+    /// not explain), bearings in degrees clockwise from north.
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Print only alarm onsets and ends, and the per-vehicle and fleet summaries.
@@ -113,7 +116,7 @@ pub fn parse_batch(text: &str) -> Result<usize, String> {
 }
 
 /// The CSV columns of `--out`.
-const CSV_HEADER: [&str; 8] = [
+const CSV_HEADER: [&str; 13] = [
     "vehicle_id",
     "line",
     "timestamp_s",
@@ -122,16 +125,51 @@ const CSV_HEADER: [&str; 8] = [
     "alarm",
     "alarm_onset",
     "valid",
+    "why",
+    "offset_m",
+    "offset_bearing_deg",
+    "drift_mps",
+    "drift_bearing_deg",
 ];
 
 fn flag(b: bool) -> &'static str {
     if b { "1" } else { "0" }
 }
 
+/// The snake_case name of a detection's dominant evidence (`none`, `jump`, …); `None` when the
+/// detection carries no explanation (an older server) or an unknown kind.
+pub fn why_name(why: Option<&v1::Explanation>) -> Option<&'static str> {
+    let kind = v1::EvidenceKind::try_from(why?.dominant).ok()?;
+    Some(match kind {
+        v1::EvidenceKind::Unspecified => return None,
+        v1::EvidenceKind::None => "none",
+        v1::EvidenceKind::Jump => "jump",
+        v1::EvidenceKind::HeldOffset => "held_offset",
+        v1::EvidenceKind::Drift => "drift",
+        v1::EvidenceKind::FrozenFix => "frozen_fix",
+        v1::EvidenceKind::Energy => "energy",
+    })
+}
+
+/// `jump: offset 482.0 m toward 45°, drift 0.30 m/s toward 120°`, or `None` when nothing stands
+/// out (or the detection carries no explanation).
+pub fn why_text(why: Option<&v1::Explanation>) -> Option<String> {
+    let name = why_name(why).filter(|name| *name != "none")?;
+    let why = why?;
+    Some(format!(
+        "{name}: offset {:.1} m toward {:.0}°, drift {:.2} m/s toward {:.0}°",
+        why.offset_m, why.offset_bearing_deg, why.drift_mps, why.drift_bearing_deg
+    ))
+}
+
 /// One detection as a CSV row.
-pub fn csv_row(d: &ReplayedDetection) -> [String; 8] {
+pub fn csv_row(d: &ReplayedDetection) -> [String; 13] {
     let det = &d.detection;
     let valid = det.evidence.as_ref().is_some_and(|e| e.valid);
+    let why = det.why.as_ref();
+    let number = |value: fn(&v1::Explanation) -> f64| {
+        why.map(value).map_or_else(String::new, |v| v.to_string())
+    };
     [
         d.vehicle_id.clone(),
         d.line.to_string(),
@@ -141,10 +179,16 @@ pub fn csv_row(d: &ReplayedDetection) -> [String; 8] {
         flag(det.alarm).into(),
         flag(det.alarm_onset).into(),
         flag(valid).into(),
+        why_name(why).unwrap_or_default().to_string(),
+        number(|w| w.offset_m),
+        number(|w| w.offset_bearing_deg),
+        number(|w| w.drift_mps),
+        number(|w| w.drift_bearing_deg),
     ]
 }
 
-/// One detection as a console line: `vehicle  t  p=0.123  ALARM onset`.
+/// One detection as a console line: `vehicle  t  p=0.123  ALARM onset  jump: offset 482.0 m
+/// toward 45°, drift 0.30 m/s toward 120°` (the why only when something stands out).
 pub fn console_line(d: &ReplayedDetection) -> String {
     let det = &d.detection;
     let marker = if det.alarm_onset {
@@ -156,8 +200,9 @@ pub fn console_line(d: &ReplayedDetection) -> String {
     } else {
         ""
     };
+    let why = why_text(det.why.as_ref()).unwrap_or_default();
     format!(
-        "{:<20} {:>14.2}  p={:.3}  {marker}",
+        "{:<20} {:>14.2}  p={:.3}  {marker:<11}  {why}",
         d.vehicle_id, d.recorded_timestamp_s, det.probability
     )
     .trim_end()
@@ -427,6 +472,61 @@ mod tests {
             vehicle_id: id.to_string(),
             records: Vec::new(),
         }
+    }
+
+    fn detection(why: Option<v1::Explanation>) -> ReplayedDetection {
+        ReplayedDetection {
+            vehicle_id: "car-1".into(),
+            line: 7,
+            recorded_timestamp_s: 12.0,
+            detection: v1::Detection {
+                probability: 0.91,
+                alarm: true,
+                alarm_onset: true,
+                why,
+                ..v1::Detection::default()
+            },
+            ..ReplayedDetection::default()
+        }
+    }
+
+    fn jump() -> v1::Explanation {
+        v1::Explanation {
+            dominant: v1::EvidenceKind::Jump as i32,
+            offset_east_m: 300.0,
+            offset_north_m: 400.0,
+            offset_m: 500.0,
+            offset_bearing_deg: 36.87,
+            drift_mps: 0.25,
+            drift_bearing_deg: 90.0,
+            ..v1::Explanation::default()
+        }
+    }
+
+    #[test]
+    fn an_onset_says_why_on_the_console_and_in_the_csv() {
+        let line = console_line(&detection(Some(jump())));
+        assert!(
+            line.ends_with(
+                "ALARM onset  jump: offset 500.0 m toward 37°, drift 0.25 m/s toward 90°"
+            ),
+            "{line}"
+        );
+        let row = csv_row(&detection(Some(jump())));
+        assert_eq!(row.len(), CSV_HEADER.len());
+        assert_eq!(&row[8..], ["jump", "500", "36.87", "0.25", "90"]);
+    }
+
+    #[test]
+    fn nothing_standing_out_or_an_older_server_adds_nothing() {
+        let none = v1::Explanation {
+            dominant: v1::EvidenceKind::None as i32,
+            ..v1::Explanation::default()
+        };
+        assert!(console_line(&detection(Some(none))).ends_with("ALARM onset"));
+        assert!(console_line(&detection(None)).ends_with("ALARM onset"));
+        assert_eq!(&csv_row(&detection(Some(none)))[8..10], ["none", "0"]);
+        assert_eq!(&csv_row(&detection(None))[8..], ["", "", "", "", ""]);
     }
 
     #[test]

@@ -3,7 +3,7 @@
 
 use crate::store::{
     AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent,
-    PageRequest, Store, StoreError,
+    PageRequest, Store, StoreError, StoredWhy,
 };
 
 /// The onset of alarm `id` (seq `id`), opened at wall time `1_000 + id`.
@@ -70,6 +70,54 @@ async fn an_onset_and_its_end_are_stored_under_the_given_id(store: Store) {
     );
     assert_eq!((closed.peak_probability, closed.samples), (0.97, 11));
     assert!(!closed.is_open());
+}
+
+/// A jump 300 m east and 400 m north with a slight drift.
+fn jump_why() -> StoredWhy {
+    StoredWhy {
+        why_kind: Some("jump".to_string()),
+        why_offset_east_m: Some(300.0),
+        why_offset_north_m: Some(400.0),
+        why_drift_east_mps: Some(-0.5),
+        why_drift_north_mps: Some(0.25),
+    }
+}
+
+async fn the_onsets_why_is_kept_through_its_end_in_every_read(store: Store) {
+    let mut explained = onset(9, "car-9", 50.0, 0.9);
+    explained.alarm.why = jump_why();
+    store
+        .write_alarms(&[explained, onset(10, "car-10", 51.0, 0.9)])
+        .await
+        .unwrap();
+    // The end carries no explanation of its own: the stored one stays.
+    store.write_alarms(&[end(9, 60.0, 0.95, 11)]).await.unwrap();
+    let listed = store
+        .list_alarms(&AlarmFilter::default(), &PageRequest::first(10))
+        .await
+        .unwrap()
+        .items;
+    let whys: Vec<_> = listed.iter().map(|a| (a.id, a.why.clone())).collect();
+    assert_eq!(whys, [(9, jump_why()), (10, StoredWhy::default())]);
+    let logged = store
+        .alarm_events_after(0, i64::MAX, Some("car-9"), 10)
+        .await
+        .unwrap();
+    assert_eq!(logged.len(), 2, "the onset and the end");
+    assert!(logged.iter().all(|e| e.event.alarm.why == jump_why()));
+
+    let mut not_finite = onset(11, "car-11", 52.0, 0.9);
+    not_finite.alarm.why = StoredWhy {
+        why_offset_north_m: Some(f64::NAN),
+        ..jump_why()
+    };
+    assert!(matches!(
+        not_finite.validate(),
+        Err(StoreError::InvalidValue {
+            field: "why_offset_north_m",
+            ..
+        })
+    ));
 }
 
 async fn a_retried_batch_stores_everything_exactly_once(store: Store) {
@@ -356,6 +404,7 @@ async fn list_alarms_filters_and_pages_in_id_order(store: Store) {
 
 on_both_backends!(
     an_onset_and_its_end_are_stored_under_the_given_id,
+    the_onsets_why_is_kept_through_its_end_in_every_read,
     a_retried_batch_stores_everything_exactly_once,
     a_batch_with_an_invalid_value_writes_nothing,
     list_alarm_events_filters_by_vehicle_newest_first_with_limit,
@@ -428,6 +477,59 @@ mod positions_are_backfilled_in_seq_order {
         for sql in OLD_LOG {
             sqlx::query(sql).execute(&pool).await.expect(sql);
         }
+        pool.close().await;
+        let store = Store::open(&database.url).await.expect("open");
+        check(store.clone()).await;
+        store.close().await;
+        database.drop_database().await;
+    }
+}
+
+/// Migration 0006 on alarms stored before it: they read back without an explanation.
+mod alarms_before_version_6_have_no_why {
+    use crate::store::test_database::TestDatabase;
+    use crate::store::{AlarmFilter, PageRequest, Store, StoredWhy};
+
+    const OLD_ALARM: &str = "INSERT INTO alarm_events (id, vehicle_id, model_id, \
+         onset_timestamp_s, onset_at, ended_at, peak_probability, samples) \
+         VALUES (4294967296, 'a', 'm', 1.0, 1, 5, 0.9, 1)";
+
+    async fn check(store: Store) {
+        let listed = store
+            .list_alarms(&AlarmFilter::default(), &PageRequest::first(10))
+            .await
+            .unwrap()
+            .items;
+        assert_eq!(listed.len(), 1);
+        assert_eq!(listed[0].why, StoredWhy::default());
+    }
+
+    #[tokio::test]
+    async fn sqlite() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join("v5.db");
+        let url = format!("sqlite://{}?mode=rwc", path.display());
+        let pool = sqlx::SqlitePool::connect(&url).await.expect("connect");
+        sqlx::migrate!("../migrations/sqlite")
+            .run_to(5, &pool)
+            .await
+            .expect("schema version 5");
+        sqlx::query(OLD_ALARM).execute(&pool).await.expect("insert");
+        pool.close().await;
+        check(Store::open(&path.to_string_lossy()).await.expect("open")).await;
+    }
+
+    #[tokio::test]
+    async fn postgres() {
+        let Some(database) = TestDatabase::create("alarms_before_version_6").await else {
+            return;
+        };
+        let pool = sqlx::PgPool::connect(&database.url).await.expect("connect");
+        sqlx::migrate!("../migrations/postgres")
+            .run_to(5, &pool)
+            .await
+            .expect("schema version 5");
+        sqlx::query(OLD_ALARM).execute(&pool).await.expect("insert");
         pool.close().await;
         let store = Store::open(&database.url).await.expect("open");
         check(store.clone()).await;
