@@ -380,6 +380,9 @@ struct CleanCell {
     per_hour: f64,
     /// Onsets within 30 s of the drive's start or of an outage's end.
     after_start_or_outage: u64,
+    /// Onsets on a row whose offset was held beyond the decisive gate (the rest were opened by
+    /// p̂ alone).
+    with_held_offset: u64,
 }
 
 #[derive(Debug, Serialize)]
@@ -514,6 +517,7 @@ fn delay_and_coverage(injected: &InjectedTrack, scored: &Scored) -> (Option<f64>
 fn clean_cell(rate_hz: f64, scored: &[Scored]) -> CleanCell {
     let mut onsets = 0;
     let mut after_start = 0;
+    let mut with_held_offset = 0;
     let mut hours = 0.0;
     for track in scored {
         hours += normal_hours(&track.rows);
@@ -526,6 +530,9 @@ fn clean_cell(rate_hz: f64, scored: &[Scored]) -> CleanCell {
             let onset = track.alarms[i] && (i == 0 || !track.alarms[i - 1]);
             if onset {
                 onsets += 1;
+                if track.offset.get(i).is_some_and(|o| o.held_s.is_some()) {
+                    with_held_offset += 1;
+                }
                 if time - resumed_s <= AFTER_START_S {
                     after_start += 1;
                 }
@@ -538,6 +545,7 @@ fn clean_cell(rate_hz: f64, scored: &[Scored]) -> CleanCell {
         false_alarm_onsets: onsets,
         per_hour: onsets as f64 / hours.max(f64::MIN_POSITIVE),
         after_start_or_outage: after_start,
+        with_held_offset,
     }
 }
 
@@ -815,15 +823,16 @@ fn render_markdown(report: &Report) -> String {
             }
             md.push('\n');
         }
-        md.push_str("\n| rate | attack-free hours | false alarms | per hour | within 30 s of a start or outage |\n|---|---|---|---|---|\n");
+        md.push_str("\n| rate | attack-free hours | false alarms | per hour | within 30 s of a start or outage | with a held offset |\n|---|---|---|---|---|---|\n");
         for c in &detector.clean {
             md.push_str(&format!(
-                "| {} Hz | {:.1} | {} | {:.2} | {} |\n",
+                "| {} Hz | {:.1} | {} | {:.2} | {} | {} |\n",
                 c.rate_hz,
                 c.attack_free_hours,
                 c.false_alarm_onsets,
                 c.per_hour,
-                c.after_start_or_outage
+                c.after_start_or_outage,
+                c.with_held_offset
             ));
         }
     }
