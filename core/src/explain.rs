@@ -32,6 +32,21 @@ pub enum EvidenceKind {
 }
 
 impl EvidenceKind {
+    /// Every kind.
+    pub const ALL: [Self; 6] = [
+        Self::None,
+        Self::Jump,
+        Self::HeldOffset,
+        Self::Drift,
+        Self::FrozenFix,
+        Self::Energy,
+    ];
+
+    /// The kind of a [`Self::name`]; `None` for a name this build does not know.
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|kind| kind.name() == name)
+    }
+
     /// The snake_case name (logs, CSV, JSON).
     pub fn name(self) -> &'static str {
         match self {

@@ -298,14 +298,7 @@ mod tests {
 
     #[test]
     fn evidence_kinds_round_trip_and_unspecified_is_none() {
-        for kind in [
-            EvidenceKind::None,
-            EvidenceKind::Jump,
-            EvidenceKind::HeldOffset,
-            EvidenceKind::Drift,
-            EvidenceKind::FrozenFix,
-            EvidenceKind::Energy,
-        ] {
+        for kind in EvidenceKind::ALL {
             assert_eq!(
                 evidence_kind_from_proto(evidence_kind_to_proto(kind) as i32),
                 Some(kind)

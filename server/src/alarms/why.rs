@@ -10,16 +10,6 @@ use spoofwatch_proto::wire::convert::explanation_to_proto;
 
 use crate::store::StoredWhy;
 
-/// Every evidence kind, to read a stored name back.
-const KINDS: [EvidenceKind; 6] = [
-    EvidenceKind::None,
-    EvidenceKind::Jump,
-    EvidenceKind::HeldOffset,
-    EvidenceKind::Drift,
-    EvidenceKind::FrozenFix,
-    EvidenceKind::Energy,
-];
-
 /// The onset's explanation as the alarm row stores it.
 pub fn stored(x: &Explanation) -> StoredWhy {
     StoredWhy {
@@ -35,7 +25,7 @@ pub fn stored(x: &Explanation) -> StoredWhy {
 /// version 6) or with a kind this build does not know; a missing vector component reads as 0.
 pub fn explanation(why: &StoredWhy) -> Option<Explanation> {
     let name = why.why_kind.as_deref()?;
-    let dominant = KINDS.into_iter().find(|kind| kind.name() == name)?;
+    let dominant = EvidenceKind::from_name(name)?;
     let or_zero = |v: Option<f64>| v.unwrap_or(0.0);
     Some(Explanation {
         dominant,
@@ -61,7 +51,7 @@ mod tests {
 
     #[test]
     fn every_kind_survives_the_store() {
-        for dominant in KINDS {
+        for dominant in EvidenceKind::ALL {
             let x = Explanation {
                 dominant,
                 offset_m: [-30.0, 40.0],

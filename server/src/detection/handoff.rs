@@ -135,7 +135,9 @@ mod tests {
     fn a_snapshot_decodes_to_what_was_encoded() {
         let original = snapshot();
         let bytes = original.encode();
-        assert!(bytes.starts_with(b"SWSS\x02\x00"), "magic, then version 2");
+        let mut header = b"SWSS".to_vec();
+        header.extend_from_slice(&SNAPSHOT_SCHEMA.to_le_bytes());
+        assert!(bytes.starts_with(&header), "magic, then the schema version");
         let decoded = SessionSnapshot::decode(&bytes).expect("decodes");
         // The detector state has no PartialEq (NaNs inside); its re-encoding must be identical.
         assert_eq!(decoded.encode(), bytes);
