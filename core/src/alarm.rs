@@ -173,7 +173,8 @@ pub struct LifecycleSelection {
 
 /// Chooses θ from `thetas` and the lifecycle from [`ON_S_GRID`] × [`OFF_S_GRID`] ×
 /// [`DECISIVE_S_GRID`] by `rule`, with the objective and tie-breaks of [`choose_operating_point`]
-/// (then the shorter T_on, the longer decisive hold and the shorter T_off).
+/// (then the shorter T_on, the longer decisive hold and the shorter T_off). A false-alarm budget
+/// holds pooled and at each sample rate ([`metrics::rate_groups`]) with room for one false alarm.
 pub fn choose_lifecycle(
     rows: &[ScoredRow],
     offset: &[OffsetSignal],
@@ -184,6 +185,12 @@ pub fn choose_lifecycle(
     let budget = rule.budget();
     check_search(rows, thetas, 1)?;
     let normal_hours = metrics::normal_hours(rows);
+    // The budget holds pooled and at every sample rate with room for at least one false alarm
+    // (a rate with less attack-free time counts in the pooled budget only).
+    let rate_groups: Vec<_> = metrics::rate_groups(rows)
+        .into_iter()
+        .filter(|g| budget.is_some_and(|per_hour| per_hour * g.normal_hours >= 1.0))
+        .collect();
     let mut best: Option<(OperatingPoint, Lifecycle, Metrics)> = None;
     let mut alarms = Vec::with_capacity(rows.len());
     for &theta in thetas {
@@ -200,6 +207,10 @@ pub fn choose_lifecycle(
                     let candidate = metrics::alarm_metrics(rows, &alarms, rules);
                     let within_budget = budget.is_none_or(|per_hour| {
                         candidate.false_alarm_onsets as f64 <= per_hour * normal_hours
+                            && rate_groups.iter().all(|g| {
+                                g.false_alarm_onsets(rows, &alarms) as f64
+                                    <= per_hour * g.normal_hours
+                            })
                     });
                     let improves = best.as_ref().is_none_or(|(b_point, b_life, b_metrics)| {
                         compare_candidates((&point, &candidate), (b_point, b_metrics))
@@ -756,6 +767,51 @@ mod tests {
         assert_eq!(strict.metrics.false_alarm_events, 0);
         assert!(strict.point.theta > 0.75);
         assert_eq!(strict.metrics.detected_events, 0);
+    }
+
+    #[test]
+    fn the_budget_holds_at_every_sample_rate_not_only_pooled() {
+        // Trajectory 0 at 1 Hz: two attack-free hours, then a 60 s attack scored 0.85.
+        // Trajectory 1 at 10 Hz: just over an attack-free hour (a rate with room for one false
+        // alarm) with two 10 s bursts scored 0.9. Pooled, two
+        // false alarms in three hours would be within 1/h and buy the detection (θ ≤ 0.85); at
+        // 10 Hz they are two in one hour, so only a θ above the bursts is within the budget.
+        let row = |trajectory, time_s, label, score| ScoredRow {
+            trajectory,
+            time_s,
+            valid: true,
+            label,
+            score,
+        };
+        let mut rows: Vec<ScoredRow> = (0..7260)
+            .map(|i| {
+                let attacked = i >= 7200;
+                row(0, f64::from(i), attacked, if attacked { 0.85 } else { 0.0 })
+            })
+            .collect();
+        rows.extend((0..36_100).map(|i| {
+            let t = f64::from(i) / 10.0;
+            let burst = (1000.0..1010.0).contains(&t) || (2000.0..2010.0).contains(&t);
+            row(1, t, false, if burst { 0.9 } else { 0.0 })
+        }));
+        let groups = metrics::rate_groups(&rows);
+        let summary: Vec<(u32, f64)> = groups
+            .iter()
+            .map(|g| (g.rate_hz, (g.normal_hours * 1e6).round() / 1e6))
+            .collect();
+        assert_eq!(summary, vec![(1, 1.999722), (10, 1.002750)]);
+        let offset = vec![OffsetSignal::default(); rows.len()];
+        let chosen = choose_lifecycle(
+            &rows,
+            &offset,
+            &theta_grid(),
+            EventRules::Spec,
+            OperatingPointRule::WithinFalseAlarmBudget { per_hour: 1.0 },
+        )
+        .expect("a point within the budget at both rates");
+        assert!(chosen.point.theta > 0.9, "{chosen:?}");
+        assert_eq!(chosen.metrics.false_alarm_onsets, 0);
+        assert_eq!(chosen.metrics.detected_events, 0);
     }
 
     #[test]

@@ -286,6 +286,58 @@ pub fn normal_hours(rows: &[ScoredRow]) -> f64 {
     seconds / 3600.0
 }
 
+/// The trajectories of `rows` grouped by sample rate (Hz, rounded, at least 1, from each
+/// trajectory's median sampling interval), with each group's attack-free hours. A false-alarm
+/// budget must hold at every rate, not only on average: persistence and noise differ with it.
+pub fn rate_groups(rows: &[ScoredRow]) -> Vec<RateGroup> {
+    let mut groups: Vec<RateGroup> = Vec::new();
+    for range in trajectory_ranges(rows) {
+        let mut steps: Vec<f64> = rows[range.clone()]
+            .windows(2)
+            .map(|pair| pair[1].time_s - pair[0].time_s)
+            .filter(|step| step.is_finite() && *step > 0.0)
+            .collect();
+        steps.sort_by(f64::total_cmp);
+        let Some(&median) = steps.get(steps.len() / 2) else {
+            continue;
+        };
+        let rate_hz = (1.0 / median).round().max(1.0) as u32;
+        let hours = normal_hours(&rows[range.clone()]);
+        match groups.iter_mut().find(|g| g.rate_hz == rate_hz) {
+            Some(group) => {
+                group.trajectories.push(range);
+                group.normal_hours += hours;
+            }
+            None => groups.push(RateGroup {
+                rate_hz,
+                trajectories: vec![range],
+                normal_hours: hours,
+            }),
+        }
+    }
+    groups.sort_by_key(|g| g.rate_hz);
+    groups
+}
+
+/// The trajectories of one sample rate ([`rate_groups`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct RateGroup {
+    pub rate_hz: u32,
+    /// Row ranges, one per trajectory.
+    pub trajectories: Vec<Range<usize>>,
+    pub normal_hours: f64,
+}
+
+impl RateGroup {
+    /// False-alarm onsets of `alarms` in this group's trajectories (as [`Metrics::false_alarm_onsets`]).
+    pub fn false_alarm_onsets(&self, rows: &[ScoredRow], alarms: &[bool]) -> u64 {
+        self.trajectories
+            .iter()
+            .map(|range| count_false_alarm_onsets(&rows[range.clone()], &alarms[range.clone()]))
+            .sum()
+    }
+}
+
 /// Every metric except AUROC/AUPRC (which need a sort and do not depend on the alarms).
 /// Callers guarantee `rows.len() == alarms.len()`; the operating-point search calls this once per grid
 /// point.
