@@ -1,10 +1,12 @@
 //! What every experiment starts from: the common flags, the two AV-GPS recordings, the output
-//! directory and Dataset-2's chronological split (SPEC §9), and the seeds of a multi-seed run.
-//! It owns loading and splitting, not training or scoring.
+//! directory and Dataset-2's chronological split (SPEC §9), the seeds of a multi-seed run and the
+//! report files. It owns loading, splitting and writing reports, not training or scoring.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
+use serde::Serialize;
+use spoofwatch_client::cli::json::write_json;
 use spoofwatch_client::input::load_file;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::train::data::{ChronologicalSplit, split_chronologically};
@@ -65,4 +67,12 @@ pub fn prepare(common: &CommonArgs) -> Result<(AvGpsData, ChronologicalSplit)> {
 /// The training seeds of a multi-seed run: `first`, `first` + 1, ..., `count` of them.
 pub fn seed_list(first: u64, count: u64) -> Vec<u64> {
     (0..count).map(|k| first.wrapping_add(k)).collect()
+}
+
+/// Writes an experiment's report.json and report.md into `out` and prints the markdown.
+pub fn write_report(out: &Path, report: &impl Serialize, markdown: &str) -> Result<()> {
+    write_json(&out.join("report.json"), report)?;
+    std::fs::write(out.join("report.md"), markdown).context("writing report.md")?;
+    print!("{markdown}");
+    Ok(())
 }

@@ -16,7 +16,6 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use serde::Serialize;
 use spoofwatch_client::cli::evaluate::load_artifact;
-use spoofwatch_client::cli::json::write_json;
 use spoofwatch_client::cli::train::train_with_progress;
 use spoofwatch_core::cusum::fit_cusum_comparator;
 use spoofwatch_core::evaluation::{Scored, score_tracks};
@@ -35,10 +34,10 @@ use spoofwatch_core::train::TrainConfig;
 use spoofwatch_core::train::detector::TrainingData;
 use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
 
-use super::common::{CommonArgs, prepare, seed_list};
+use super::common::{CommonArgs, prepare, seed_list, write_report};
 use super::parallel::{default_threads, map_parallel};
 use super::subtle::{BUDGET, FALSE_ALARM_BUDGET_PER_HOUR, within_budget};
-use super::training_attacks::with_injections;
+use super::training_attacks::recorded_and_simulated;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -570,23 +569,13 @@ pub fn run(args: Args) -> Result<()> {
     let threads = args.common.threads.unwrap_or_else(default_threads);
     let (_, split) = prepare(&args.common)?;
     let seed = args.common.seed;
-    let recorded = |tracks: &[Track], seed: u64| -> Result<Vec<Track>> {
-        if args.simulated_only {
-            Ok(Vec::new())
-        } else {
-            with_injections(tracks, seed)
-        }
-    };
-    let train = [
-        recorded(&split.train, seed)?,
+    let (train, validation) = recorded_and_simulated(
+        &split,
+        seed,
+        args.simulated_only,
         training_mix(seed, Population::Train, args.drives, threads)?,
-    ]
-    .concat();
-    let validation = [
-        recorded(&split.validation, seed ^ 0x5EED)?,
         training_mix(seed, Population::Validation, args.drives, threads)?,
-    ]
-    .concat();
+    )?;
     let test = test_set(seed, args.repeats, args.clean_drives, threads)?;
     eprintln!(
         "offsets: {} training and {} validation tracks; test: {} attacked drives, {} clean drives",
@@ -722,11 +711,7 @@ pub fn run(args: Args) -> Result<()> {
         detectors,
         experiment_wall_time_s: started.elapsed().as_secs_f64(),
     };
-    write_json(&args.common.out.join("report.json"), &report)?;
-    let markdown = render_markdown(&report);
-    std::fs::write(args.common.out.join("report.md"), &markdown).context("writing report.md")?;
-    print!("{markdown}");
-    Ok(())
+    write_report(&args.common.out, &report, &render_markdown(&report))
 }
 
 /// An HO-LLN artifact's report, or an empty one when no operating point was within the budget.

@@ -10,7 +10,6 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
-use spoofwatch_client::cli::json::write_json;
 use spoofwatch_client::cli::train::train_with_progress;
 use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::rng::Rng;
@@ -20,7 +19,7 @@ use spoofwatch_core::train::data::trajectory_ranges;
 use spoofwatch_core::train::detector::TrainingData;
 use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
 
-use super::common::{CommonArgs, load_avgps};
+use super::common::{CommonArgs, load_avgps, write_report};
 use super::parallel::{default_threads, map_parallel};
 use super::subtle::{
     ATTACK_S, DetectorReport, FALSE_ALARM_BUDGET_PER_HOUR, Population, TestSet, comparator_reports,
@@ -250,11 +249,7 @@ pub fn run(args: Args) -> Result<()> {
         folds: report_folds,
         experiment_wall_time_s: started.elapsed().as_secs_f64(),
     };
-    write_json(&args.common.out.join("report.json"), &report)?;
-    let markdown = render_markdown(&report);
-    std::fs::write(args.common.out.join("report.md"), &markdown).context("writing report.md")?;
-    print!("{markdown}");
-    Ok(())
+    write_report(&args.common.out, &report, &render_markdown(&report))
 }
 
 fn render_markdown(report: &Report) -> String {

@@ -5,6 +5,7 @@
 use anyhow::{Context, Result};
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{AttackDuration, AttackKind, ScenarioPlan, generate};
+use spoofwatch_core::train::data::ChronologicalSplit;
 
 /// Attacks injected into training (and, in the subtle experiment, validation) data: magnitudes a
 /// metre-level GNSS/odometry residual can reveal, so the labels are learnable.
@@ -78,4 +79,26 @@ pub fn training_injections(tracks: &[Track], seed: u64) -> Result<Vec<Track>> {
 /// `tracks` followed by copies of their normal pieces with injected subtle attacks.
 pub fn with_injections(tracks: &[Track], seed: u64) -> Result<Vec<Track>> {
     Ok([tracks.to_vec(), training_injections(tracks, seed)?].concat())
+}
+
+/// Training and validation tracks: Dataset-2's chronological training and validation parts with
+/// injected attacks (left out with `simulated_only`), each followed by its simulated mix.
+pub fn recorded_and_simulated(
+    split: &ChronologicalSplit,
+    seed: u64,
+    simulated_only: bool,
+    train_mix: Vec<Track>,
+    validation_mix: Vec<Track>,
+) -> Result<(Vec<Track>, Vec<Track>)> {
+    let recorded = |tracks: &[Track], seed: u64| -> Result<Vec<Track>> {
+        if simulated_only {
+            Ok(Vec::new())
+        } else {
+            with_injections(tracks, seed)
+        }
+    };
+    Ok((
+        [recorded(&split.train, seed)?, train_mix].concat(),
+        [recorded(&split.validation, seed ^ 0x5EED)?, validation_mix].concat(),
+    ))
 }
