@@ -5,6 +5,7 @@ use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use spoofwatch_core::evidence::drift::DriftParams;
+use spoofwatch_core::evidence::offset::OffsetParams;
 use spoofwatch_core::evidence::{EvidenceBuilder, EvidenceParams};
 use spoofwatch_core::geo::Projection;
 use spoofwatch_core::rng::Rng;
@@ -43,7 +44,7 @@ fn synthetic_drive(seed: u64, with_uncertainty: bool) -> Vec<Sample> {
         .collect()
 }
 
-fn params(projection: Projection, drift: bool) -> EvidenceParams {
+fn params(projection: Projection, drift: bool, offset: bool) -> EvidenceParams {
     let paper = EvidenceParams::new([[3.936, 0.183], [0.183, 2.150]], 0.294, projection)
         .expect("valid parameters");
     // Evidence v2: the drift tracker with per-vehicle levels (whitening values do not change the cost).
@@ -51,21 +52,52 @@ fn params(projection: Projection, drift: bool) -> EvidenceParams {
         vehicle_levels: true,
         ..DriftParams::unwhitened(1.2)
     });
-    EvidenceParams { drift, ..paper }
+    // Evidence v3: the anchors with the trained default's scale (values do not change the cost).
+    let offset = offset.then_some(OffsetParams {
+        noise_m2: [1.28, 3.72],
+        raw_growth: [1.5e-3, 2.5e-3],
+        calibrated_growth: [7.5e-4, 1e-4],
+        step_noise_m2: 2.36,
+        vehicle_levels: true,
+    });
+    EvidenceParams {
+        drift,
+        offset,
+        ..paper
+    }
 }
 
 fn bench_builder(c: &mut Criterion) {
     let mut group = c.benchmark_group("evidence_builder");
     group.throughput(Throughput::Elements(SAMPLES as u64));
     let cases = [
-        ("wgs84_local", Projection::Wgs84Local, false, false),
-        ("equirectangular", Projection::Equirectangular, false, false),
-        ("per_step_sigma", Projection::Wgs84Local, true, false),
-        ("v2_drift_channels", Projection::Wgs84Local, false, true),
+        ("wgs84_local", Projection::Wgs84Local, false, false, false),
+        (
+            "equirectangular",
+            Projection::Equirectangular,
+            false,
+            false,
+            false,
+        ),
+        ("per_step_sigma", Projection::Wgs84Local, true, false, false),
+        (
+            "v2_drift_channels",
+            Projection::Wgs84Local,
+            false,
+            true,
+            false,
+        ),
+        (
+            "v3_offset_channels",
+            Projection::Wgs84Local,
+            false,
+            true,
+            true,
+        ),
     ];
-    for (name, projection, with_uncertainty, drift) in cases {
+    for (name, projection, with_uncertainty, drift, offset) in cases {
         let samples = synthetic_drive(3, with_uncertainty);
-        let mut builder = EvidenceBuilder::new(params(projection, drift));
+        let mut builder = EvidenceBuilder::new(params(projection, drift, offset));
         group.bench_function(name, |b| {
             b.iter(|| {
                 builder.reset();

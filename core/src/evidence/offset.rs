@@ -62,6 +62,17 @@ pub const LEVEL_RANGE: (f64, f64) = (0.25, 4.0);
 const LEVEL_DECREASE_S: f64 = 60.0;
 /// One row adds at most this much to the running mean of NIS/2 (so a spike cannot inflate it).
 const LEVEL_ROW_CAP: f64 = 8.0;
+/// A vehicle whose dead reckoning cannot carry an anchor (a poor compass, a reversing robot read
+/// with an unsigned speed) shows anchor offsets far beyond the level bound for minutes on end. Its
+/// misfit M is the level L whose NIS/2 ~ L·Exp(1) has the mean of ln(1 + NIS/2) seen on an anchor
+/// that never freezes (a shadow), over the same memory and delay as the levels (a log mean, so one
+/// jump barely moves it). Beyond the level's bound it scales the anchor's variance: the offset
+/// channels stand down to what such a vehicle can support (a jump is still decisive on its row).
+pub const MISFIT_MAX: f64 = 1e8;
+/// Euler's γ: E₁(x) = −γ − ln x + Σ_{k≥1} (−1)^{k+1} x^k / (k·k!).
+const EULER_GAMMA: f64 = 0.577_215_664_901_532_9;
+/// The population's mean of ln(1 + NIS/2) (χ²₂ NIS: e·E₁(1)); the misfit's prior.
+const POPULATION_LOG_LEVEL: f64 = 0.596_347_362_323_194;
 /// Snapshot period of the levels (s of valid data).
 const LEVEL_SNAPSHOT_S: f64 = 30.0;
 const LEVEL_SNAPSHOTS: usize = (LEVEL_DELAY_S / LEVEL_SNAPSHOT_S) as usize + 2;
@@ -227,6 +238,8 @@ struct Anchor {
     /// Variance a telemetry gap added (m² per axis), forgotten with o².
     gap_m2: f64,
     frozen: bool,
+    /// Of `frozen_s`, the seconds of the row that froze it (a step's own row: one row's noise).
+    step_row_s: f64,
     /// Seconds of agreement since the fix last disagreed (while frozen).
     agreement_s: f64,
     /// While frozen: o at the last trusted fix, and the time, motion and gap variance since.
@@ -261,8 +274,9 @@ impl Anchor {
     }
 
     /// Stops following at the current offset (the last trusted fix).
-    fn freeze(&mut self) {
+    fn freeze(&mut self, step_row_s: f64) {
         self.frozen = true;
+        self.step_row_s = step_row_s;
         self.agreement_s = 0.0;
         self.origin = self.offset;
         self.frozen_s = 0.0;
@@ -287,6 +301,7 @@ fn gap_variance(delta_t: f64) -> f64 {
 struct LevelSnapshot {
     clock_s: f64,
     levels: [f64; LEVEL_COUNT],
+    misfits: [f64; ANCHOR_COUNT],
 }
 
 /// The per-vehicle anchor state. Persists across the trajectory breaks of a stream (a gap up to
@@ -299,6 +314,9 @@ pub struct OffsetTracker {
     #[serde(skip, default = "OffsetParams::unnormalised")]
     params: OffsetParams,
     anchors: [Anchor; ANCHOR_COUNT],
+    /// The same anchors never frozen: how far this vehicle's dead reckoning strays within each
+    /// follow time, whatever the alarms did (the misfit learns from them).
+    shadows: [Anchor; ANCHOR_COUNT],
     /// Seconds the larger NIS has been at or beyond the decisive gate (NaN below it).
     held_s: f64,
     arrived_by_step: bool,
@@ -309,6 +327,9 @@ pub struct OffsetTracker {
     snapshots: [LevelSnapshot; LEVEL_SNAPSHOTS],
     snapshot_count: usize,
     levels_in_use: [f64; LEVEL_COUNT],
+    /// Running mean of ln(1 + NIS/2) per anchor, and the misfit in use (1 below the onset).
+    log_levels: [f64; ANCHOR_COUNT],
+    misfit_in_use: [f64; ANCHOR_COUNT],
     /// Seconds since the anchors were last placed.
     age_s: f64,
     /// Seconds the fix and the onboard motion have agreed since the anchors were placed, up to
@@ -334,6 +355,7 @@ impl OffsetTracker {
         Self {
             params: *params,
             anchors: [Anchor::default(); ANCHOR_COUNT],
+            shadows: [Anchor::default(); ANCHOR_COUNT],
             held_s: f64::NAN,
             arrived_by_step: false,
             share: [0.0; 2],
@@ -342,6 +364,8 @@ impl OffsetTracker {
             snapshots: [LevelSnapshot::default(); LEVEL_SNAPSHOTS],
             snapshot_count: 0,
             levels_in_use: [LEVEL_RANGE.1; LEVEL_COUNT],
+            log_levels: [POPULATION_LOG_LEVEL; ANCHOR_COUNT],
+            misfit_in_use: [1.0; ANCHOR_COUNT],
             age_s: 0.0,
             agreed_s: 0.0,
             last: OffsetEvidence::EMPTY,
@@ -394,13 +418,12 @@ impl OffsetTracker {
         } else {
             self.params.raw_growth
         };
-        let levels = self.levels_in_use.map(|l| {
-            if self.params.vehicle_levels {
-                l.clamp(LEVEL_RANGE.0, LEVEL_RANGE.1)
-            } else {
-                1.0
-            }
-        });
+        let levels = self.levels();
+        let misfits = if self.params.vehicle_levels {
+            self.misfit_in_use
+        } else {
+            [1.0; ANCHOR_COUNT]
+        };
         if delta_t > super::MAX_GAP_S && self.reappears_as_expected(step, &levels) {
             // Back inside what the gap allows: a fresh anchor here (a tunnel is not a jump).
             self.re_anchor_keeping_levels();
@@ -426,7 +449,7 @@ impl OffsetTracker {
         let mut sigma_m = 0.0;
         for (k, anchor) in self.anchors.iter_mut().enumerate() {
             if outlier && !anchor.frozen {
-                anchor.freeze();
+                anchor.freeze(delta_t);
             }
             let keep = if anchor.frozen {
                 1.0
@@ -443,7 +466,16 @@ impl OffsetTracker {
             anchor.frozen_s += delta_t;
             let variance = anchor.variance(&self.params, k);
             population_nis[k] = norm_squared(anchor.offset) / variance;
-            nis[k] = population_nis[k] / levels[k];
+            // While frozen, a misfit vehicle's dead-reckoning error beyond the population's (as its
+            // shadow shows it over one follow time) keeps growing, like a bias, with the time
+            // since the freeze (a step's own row stays one row's noise).
+            let bias_m2 = if anchor.frozen {
+                let excess_m2 = (misfits[k] - 1.0) * self.shadows[k].variance(&self.params, k);
+                excess_m2 * ((anchor.frozen_s - anchor.step_row_s) / FOLLOW_S[k]).powi(2)
+            } else {
+                0.0
+            };
+            nis[k] = norm_squared(anchor.offset) / (variance * levels[k] + bias_m2);
             if anchor.frozen {
                 // The change since the last trusted fix, against one row's noise growing with the
                 // time and the distance since.
@@ -452,7 +484,8 @@ impl OffsetTracker {
                     anchor.offset[1] - anchor.origin[1],
                 ];
                 let step_variance = step_test_m2 * (1.0 + anchor.frozen_s / STEP_GROWTH_S)
-                    + growth[k] * norm_squared(anchor.carried_since_freeze)
+                    + misfits[k] * growth[k] * norm_squared(anchor.carried_since_freeze)
+                    + bias_m2
                     + anchor.gap_since_freeze_m2;
                 nis[k] = nis[k].max(norm_squared(change) / step_variance);
             }
@@ -461,7 +494,7 @@ impl OffsetTracker {
             }
             if nis[k] >= FOLLOW_GATE {
                 if !anchor.frozen {
-                    anchor.freeze();
+                    anchor.freeze(0.0);
                 }
                 anchor.agreement_s = 0.0;
             } else if anchor.frozen {
@@ -472,11 +505,39 @@ impl OffsetTracker {
             }
         }
         population_nis[STEP_LEVEL] = norm_squared(step.residual) / self.params.step_noise_m2;
+        let mut shadow_nis = [0.0; ANCHOR_COUNT];
+        for (k, shadow) in self.shadows.iter_mut().enumerate() {
+            let keep = (-delta_t / FOLLOW_S[k]).exp();
+            shadow.carry(step, keep);
+            for axis in 0..2 {
+                shadow.offset[axis] = keep * (shadow.offset[axis] + step.residual[axis]);
+            }
+            shadow.gap_m2 = keep * keep * (shadow.gap_m2 + gap_m2);
+            shadow_nis[k] = norm_squared(shadow.offset) / shadow.variance(&self.params, k);
+            shadow.agreement_s = if shadow_nis[k] < FOLLOW_GATE * levels[k] {
+                shadow.agreement_s + delta_t
+            } else {
+                0.0
+            };
+            // An anchor frozen because its offset grew to the gate (not by a step) goes on from
+            // its shadow once following would have agreed for the agreement time: the vehicle's
+            // own dead reckoning, followed as usual, finds nothing held (a frozen offset that only
+            // dead-reckoning error built, on a vehicle whose error the population's growth
+            // understates). A drift still under way keeps the shadow beyond the gate.
+            let anchor = &mut self.anchors[k];
+            if anchor.frozen && anchor.step_row_s == 0.0 && shadow.agreement_s >= AGREEMENT_S {
+                *anchor = Anchor {
+                    agreement_s: 0.0,
+                    ..*shadow
+                };
+            }
+        }
         // A row counts towards the vehicle's levels unless an offset has already been held beyond
-        // the decisive gate for the agreement time (something real, not the receiver's noise).
-        let settled = self.held_s.is_nan() || self.held_s < AGREEMENT_S;
-        if self.params.vehicle_levels && settled {
-            self.update_levels(&population_nis, delta_t);
+        // the decisive gate for the agreement time (something real, not the receiver's noise);
+        // towards its misfit unless that offset arrived in one step (a jump, not dead reckoning).
+        let held = !self.held_s.is_nan() && self.held_s >= AGREEMENT_S;
+        if self.params.vehicle_levels && !(held && self.arrived_by_step) {
+            self.update_levels(&population_nis, &shadow_nis, delta_t, !held);
         }
         self.age_s += delta_t;
 
@@ -564,6 +625,7 @@ impl OffsetTracker {
     /// trust (the fix is where the motion allows it to be).
     fn re_anchor_keeping_levels(&mut self) {
         self.anchors = [Anchor::default(); ANCHOR_COUNT];
+        self.shadows = [Anchor::default(); ANCHOR_COUNT];
         self.held_s = f64::NAN;
         self.arrived_by_step = false;
         self.age_s = 0.0;
@@ -573,17 +635,46 @@ impl OffsetTracker {
         };
     }
 
+    /// The multiples of the population's variance each level applies this row: the vehicle's
+    /// level within the bounds, and for an anchor the larger of that and its misfit.
+    fn levels(&self) -> [f64; LEVEL_COUNT] {
+        if !self.params.vehicle_levels {
+            return [1.0; LEVEL_COUNT];
+        }
+        let mut levels = self
+            .levels_in_use
+            .map(|l| l.clamp(LEVEL_RANGE.0, LEVEL_RANGE.1));
+        for (level, misfit) in levels.iter_mut().zip(self.misfit_in_use) {
+            *level = level.max(misfit);
+        }
+        levels
+    }
+
     /// Running mean of min(NIS/2, cap) per anchor and of the one-row residual's (E = 1 for a
-    /// vehicle like the population), prior 1 with the weight of `LEVEL_PRIOR_S` seconds, memory
-    /// `LEVEL_MEMORY_S`; the levels in use follow the newest snapshot at least `LEVEL_DELAY_S` old
-    /// (one whose own rows outweigh the prior), rising at once and falling by at most e per
-    /// `LEVEL_DECREASE_S`.
-    fn update_levels(&mut self, population_nis: &[f64; LEVEL_COUNT], delta_t: f64) {
+    /// vehicle like the population; only for `settled` rows), and of ln(1 + NIS/2) per shadow
+    /// anchor (the misfit), priors the population's with the weight of `LEVEL_PRIOR_S` seconds, memory
+    /// `LEVEL_MEMORY_S`; the levels and misfits in use follow the newest snapshot at least
+    /// `LEVEL_DELAY_S` old (one whose own rows outweigh the prior), rising at once and falling by
+    /// at most e per `LEVEL_DECREASE_S`.
+    fn update_levels(
+        &mut self,
+        population_nis: &[f64; LEVEL_COUNT],
+        shadow_nis: &[f64; ANCHOR_COUNT],
+        delta_t: f64,
+        settled: bool,
+    ) {
         self.level_clock_s += delta_t;
         let weight = delta_t / (LEVEL_PRIOR_S + self.level_clock_s.min(LEVEL_MEMORY_S));
-        for (level, nis) in self.levels.iter_mut().zip(population_nis) {
+        if settled {
+            for (level, nis) in self.levels.iter_mut().zip(population_nis) {
+                if nis.is_finite() {
+                    *level += weight * ((0.5 * nis).min(LEVEL_ROW_CAP) - *level);
+                }
+            }
+        }
+        for (log_level, nis) in self.log_levels.iter_mut().zip(shadow_nis) {
             if nis.is_finite() {
-                *level += weight * ((0.5 * nis).min(LEVEL_ROW_CAP) - *level);
+                *log_level += weight * ((0.5 * nis).ln_1p() - *log_level);
             }
         }
         let newest = self
@@ -598,6 +689,7 @@ impl OffsetTracker {
             self.snapshots[self.snapshot_count] = LevelSnapshot {
                 clock_s: self.level_clock_s,
                 levels: self.levels,
+                misfits: self.log_levels.map(misfit),
             };
             self.snapshot_count += 1;
         }
@@ -613,15 +705,55 @@ impl OffsetTracker {
             // A noisier level applies at once; a quieter one comes in gradually, so that offsets
             // the vehicle had under the old level do not all cross the gates in one row.
             let fade = (-delta_t / LEVEL_DECREASE_S).exp();
-            for (in_use, &target) in self.levels_in_use.iter_mut().zip(&snapshot.levels) {
+            let follow = |in_use: &mut f64, target: f64| {
                 *in_use = if target >= *in_use {
                     target
                 } else {
                     (*in_use * fade).max(target)
                 };
+            };
+            for (in_use, &target) in self.levels_in_use.iter_mut().zip(&snapshot.levels) {
+                follow(in_use, target);
+            }
+            for (in_use, &target) in self.misfit_in_use.iter_mut().zip(&snapshot.misfits) {
+                follow(in_use, target);
             }
         }
     }
+}
+
+/// E[ln(1 + L·X)] for X ~ Exp(1): e^{1/L}·E₁(1/L), for L ≥ the level's upper bound (1/L ≤ ¼,
+/// where 20 terms of the series are exact to machine precision).
+fn mean_log_level(level: f64) -> f64 {
+    let x = 1.0 / level;
+    let mut term = 1.0;
+    let mut series = 0.0;
+    for k in 1..=20 {
+        term *= -x / k as f64;
+        series -= term / k as f64;
+    }
+    x.exp() * (-EULER_GAMMA - x.ln() + series)
+}
+
+/// The misfit a running mean of ln(1 + NIS/2) asks for: the level L with that mean, by
+/// bisection on ln L; 1 while L is within the level's bound, at most [`MISFIT_MAX`].
+fn misfit(log_level: f64) -> f64 {
+    if log_level.is_nan() || log_level <= mean_log_level(LEVEL_RANGE.1) {
+        return 1.0;
+    }
+    if log_level >= mean_log_level(MISFIT_MAX) {
+        return MISFIT_MAX;
+    }
+    let (mut low, mut high) = (LEVEL_RANGE.1.ln(), MISFIT_MAX.ln());
+    for _ in 0..60 {
+        let middle = 0.5 * (low + high);
+        if mean_log_level(middle.exp()) < log_level {
+            low = middle;
+        } else {
+            high = middle;
+        }
+    }
+    (0.5 * (low + high)).exp()
 }
 
 fn norm_squared(v: [f64; 2]) -> f64 {
@@ -1097,6 +1229,73 @@ mod tests {
         }
         assert_eq!(levels_at[0], [LEVEL_RANGE.1; LEVEL_COUNT]);
         assert!(levels_at[1].iter().all(|&l| l > 3.0), "{levels_at:?}");
+    }
+
+    #[test]
+    fn a_vehicle_whose_dead_reckoning_misfits_stands_its_anchors_down_and_still_sees_a_jump() {
+        // Dead reckoning off by 0.5 m/s for good (a rover whose compass is useless): the slow
+        // anchor would hold 60 m against 1 m of noise, and frozen, its offset grows for good. Its
+        // misfit comes from snapshots at least 120 s old, whose own rows outweigh the prior: the
+        // anchors follow again within ten minutes, and a 200 m jump is still decisive on its row.
+        let params = OffsetParams {
+            vehicle_levels: true,
+            ..unit_params()
+        };
+        let mut tracker = trusted(&params);
+        let mut e = OffsetEvidence::EMPTY;
+        for i in 0..600 {
+            e = tracker.push(&step([0.5, 0.0], 1.0));
+            if i == 100 {
+                assert_eq!(tracker.misfit_in_use, [1.0; ANCHOR_COUNT]);
+                assert!(e.max_nis() >= DECISIVE_GATE, "{e:?}");
+            }
+        }
+        assert!(
+            tracker.misfit_in_use.iter().all(|&m| m > LEVEL_RANGE.1),
+            "{tracker:?}"
+        );
+        assert!(tracker.anchors.iter().all(|a| !a.frozen), "{tracker:?}");
+        assert!(e.max_nis() < FOLLOW_GATE, "{e:?}");
+        let jump = tracker.push(&step([200.5, 0.0], 1.0));
+        assert!(
+            jump.max_nis() >= DECISIVE_GATE && jump.arrived_by_step,
+            "{jump:?}"
+        );
+    }
+
+    #[test]
+    fn a_held_jump_does_not_teach_the_misfit() {
+        // A 50 m jump held for ten minutes on a vehicle whose dead reckoning is perfect: the rows
+        // of an offset that arrived in one step never count, so it stays held to the end.
+        let params = OffsetParams {
+            vehicle_levels: true,
+            ..unit_params()
+        };
+        let mut tracker = trusted(&params);
+        for _ in 0..300 {
+            tracker.push(&step([0.0; 2], 1.0));
+        }
+        let mut e = tracker.push(&step([50.0, 0.0], 1.0));
+        for _ in 0..600 {
+            e = tracker.push(&step([0.0; 2], 1.0));
+        }
+        assert_eq!(tracker.misfit_in_use, [1.0; ANCHOR_COUNT]);
+        assert!(e.held_s >= 599.0 && e.max_nis() >= DECISIVE_GATE, "{e:?}");
+    }
+
+    #[test]
+    fn the_misfit_inverts_the_mean_log_level_beyond_the_level_bound() {
+        // e·E₁(1) at L = 1 by the series is the population's prior (to the series' precision).
+        assert!((POPULATION_LOG_LEVEL - 1.0f64.exp() * 0.219_383_934_395_520_3).abs() < 1e-12);
+        // At L = 10: e^{0.1}·E₁(0.1), E₁(0.1) = 1.822 923 958 419 39.
+        let expected = 0.1f64.exp() * 1.822_923_958_419_39;
+        assert!((mean_log_level(10.0) - expected).abs() < 1e-12);
+        assert!((misfit(expected) - 10.0).abs() < 1e-9);
+        // Within the bound (the population's own mean included) the misfit is 1; it is capped.
+        assert_eq!(misfit(POPULATION_LOG_LEVEL), 1.0);
+        assert_eq!(misfit(mean_log_level(3.9)), 1.0);
+        assert_eq!(misfit(f64::NAN), 1.0);
+        assert_eq!(misfit(100.0), MISFIT_MAX);
     }
 
     #[test]

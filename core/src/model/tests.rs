@@ -604,6 +604,19 @@ fn gradients_match_finite_differences_for_every_tensor_and_variant() {
 }
 
 #[test]
+fn gradients_match_finite_differences_for_every_feature_schema() {
+    // The roles' widths follow the schema: v3's offset channels join the persistence role.
+    for schema in [FeatureSchema::Paper, FeatureSchema::V2, FeatureSchema::V3] {
+        let config = ModelConfig {
+            schema,
+            ..small_config(Ablation::default())
+        };
+        let worst = gradient_check(config, 300, 24);
+        eprintln!("{schema:?}: worst relative error {worst:e}");
+    }
+}
+
+#[test]
 fn gradients_match_finite_differences_at_default_width() {
     let worst = gradient_check(ModelConfig::default(), 7, 24);
     eprintln!("default width: worst relative error {worst:e}");

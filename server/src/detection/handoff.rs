@@ -12,7 +12,7 @@ use spoofwatch_core::detector::{DetectorState, RestoreError};
 
 /// The encoding this server writes and reads. Bump it when [`SessionSnapshot`] or anything inside
 /// [`DetectorState`] changes shape: older snapshots are then refused (fresh sessions), never misread.
-pub const SNAPSHOT_SCHEMA: u16 = 3;
+pub const SNAPSHOT_SCHEMA: u16 = 4;
 
 const MAGIC: &[u8; 4] = b"SWSS";
 const HEADER: usize = MAGIC.len() + 2;
@@ -177,7 +177,10 @@ mod tests {
         older[4] = 1;
         assert_eq!(
             refusal(&older).as_deref(),
-            Some("the stored session snapshot has schema version 1; this server reads version 3")
+            Some(format!(
+                "the stored session snapshot has schema version 1; this server reads version {SNAPSHOT_SCHEMA}"
+            ))
+            .as_deref()
         );
 
         // A well-formed envelope around a payload of another shape (checksum recomputed).
