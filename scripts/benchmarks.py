@@ -412,6 +412,7 @@ CRITERION_NAMES = {
     "evidence_builder/equirectangular": "evidence, equirectangular projection, µs per sample",
     "evidence_builder/per_step_sigma": "evidence with per-sample uncertainties, µs per sample",
     "evidence_builder/v2_drift_channels": "evidence v2 (drift and integrity channels), µs per sample",
+    "evidence_builder/v3_offset_channels": "evidence v3 (offset channels), µs per sample",
     "step_one_vehicle": "model step, one vehicle, µs",
     "step/1000_vehicles": "1,000 vehicles one step each, µs per vehicle",
     "train/epoch_5000_rows": "training epoch, µs per row",
