@@ -327,7 +327,8 @@ pub struct OffsetTracker {
     snapshots: [LevelSnapshot; LEVEL_SNAPSHOTS],
     snapshot_count: usize,
     levels_in_use: [f64; LEVEL_COUNT],
-    /// Running mean of ln(1 + NIS/2) per anchor, and the misfit in use (1 below the onset).
+    /// Running mean of ln(1 + NIS/2) per shadow anchor, and the misfit in use (1 within the level's
+    /// bound).
     log_levels: [f64; ANCHOR_COUNT],
     misfit_in_use: [f64; ANCHOR_COUNT],
     /// Seconds since the anchors were last placed.
