@@ -760,6 +760,7 @@ mod tests {
             comparator_alarm: None,
             line: 0,
             trajectory_break,
+            warmup: false,
         }
     }
 

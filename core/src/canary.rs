@@ -19,9 +19,10 @@ use crate::geo::displace_fix;
 use crate::model::artifact::{ArtifactError, ModelArtifact};
 use crate::sample::{Sample, readable};
 
-/// Samples in the canary drive (1 Hz): past the v2 evidence's 240 s warm-up, so every drift channel
-/// is switched on for the final samples, and still only a few milliseconds of model steps.
-pub const CANARY_SAMPLES: usize = 260;
+/// Samples in the canary drive (1 Hz): the attack starts after the drift calibration's 240 s warm-up
+/// (which waits while an offset anchor is frozen), so every drift channel is switched on, and it is
+/// still only a few milliseconds of model steps.
+pub const CANARY_SAMPLES: usize = 360;
 
 /// Where the canary drive starts (degrees).
 const START: (f64, f64) = (48.137, 11.575);
@@ -29,13 +30,13 @@ const START: (f64, f64) = (48.137, 11.575);
 const SPEED_MPS: f64 = 12.0;
 const HEADING_DEG: f64 = 60.0;
 /// The spoofer's cross-track drag from this sample on (m/s), then a jump and a frozen fix.
-const DRIFT_START: usize = 150;
+const DRIFT_START: usize = 250;
 const DRIFT_MPS: f64 = 1.5;
-const JUMP_AT: usize = 220;
+const JUMP_AT: usize = 320;
 const JUMP_M: f64 = 300.0;
-const FROZEN: std::ops::Range<usize> = 235..242;
+const FROZEN: std::ops::Range<usize> = 335..342;
 /// A 3 s gap in the timestamps after this sample (a dropped second of data).
-const GAP_AFTER: usize = 245;
+const GAP_AFTER: usize = 345;
 
 /// The canary drive: a straight line at constant speed with a small deterministic wobble on the fix,
 /// then a slow cross-track drift, a jump, a frozen fix and a gap, so that every evidence channel moves.

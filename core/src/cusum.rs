@@ -347,16 +347,24 @@ pub enum ComparatorError {
 
 /// Energy rows of the `track_index`-th track under fixed evidence parameters.
 fn track_rows(evidence: &EvidenceParams, track_index: usize, track: &Track) -> Vec<CusumRow> {
+    // Warm-up rows are left out; S_t has no state that they would warm, so the first scored row
+    // starts the statistic afresh.
+    let mut first = true;
     build_track(evidence, &track.records)
         .iter()
         .zip(&track.records)
-        .map(|(e, r)| CusumRow {
-            trajectory: trajectory_key(track_index, e.trajectory),
-            time_s: r.sample.timestamp_s,
-            valid: e.valid,
-            label: r.label.unwrap_or(false),
-            energy: e.energy,
-            trajectory_start: e.trajectory_start,
+        .filter(|(_, r)| !r.warmup)
+        .map(|(e, r)| {
+            let trajectory_start = e.trajectory_start || first;
+            first = false;
+            CusumRow {
+                trajectory: trajectory_key(track_index, e.trajectory),
+                time_s: r.sample.timestamp_s,
+                valid: e.valid,
+                label: r.label.unwrap_or(false),
+                energy: e.energy,
+                trajectory_start,
+            }
         })
         .collect()
 }

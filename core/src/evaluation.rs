@@ -34,6 +34,27 @@ impl Scored {
         evaluate(&self.rows, &self.alarms, rules)
     }
 
+    /// These scores, made row for row over `records`, without the warm-up rows
+    /// ([`Record::warmup`]): those only carried the detector's state forward.
+    pub fn without_warmup(self, records: &[Record]) -> Scored {
+        if !records.iter().any(|r| r.warmup) {
+            return self;
+        }
+        fn scored<T>(values: Vec<T>, records: &[Record]) -> Vec<T> {
+            values
+                .into_iter()
+                .zip(records)
+                .filter(|(_, r)| !r.warmup)
+                .map(|(value, _)| value)
+                .collect()
+        }
+        Scored {
+            rows: scored(self.rows, records),
+            alarms: scored(self.alarms, records),
+            offset: scored(self.offset, records),
+        }
+    }
+
     /// Appends `other`'s rows and alarms.
     pub fn append(&mut self, other: Scored) {
         self.rows.extend(other.rows);
@@ -62,7 +83,8 @@ pub struct Evaluation {
     pub rows: Vec<RowResult>,
 }
 
-/// The HO-LLN decisions of one track as scores (p̂) and alarms. Unlabelled rows count as normal.
+/// The HO-LLN decisions of one track as scores (p̂) and alarms. Unlabelled rows count as normal;
+/// warm-up rows ([`Record::warmup`]) are left out.
 fn scored_track(track_index: usize, records: &[Record], decisions: &[Decision]) -> Scored {
     let rows = records
         .iter()
@@ -83,10 +105,11 @@ fn scored_track(track_index: usize, records: &[Record], decisions: &[Decision]) 
             .map(|d| offset_signal(&d.evidence))
             .collect(),
     }
+    .without_warmup(records)
 }
 
 /// Runs the detector over every track (a fresh session each) and scores it with `rules`.
-/// Unlabelled rows count as normal.
+/// Unlabelled rows count as normal; warm-up rows are neither scored nor listed.
 pub fn evaluate_tracks(
     artifact: &Arc<ModelArtifact>,
     tracks: &[Track],
@@ -106,6 +129,7 @@ pub fn evaluate_tracks(
                 .records
                 .iter()
                 .zip(&decisions)
+                .filter(|(r, _)| !r.warmup)
                 .map(|(r, d)| RowResult {
                     vehicle_id: track.vehicle_id.clone(),
                     line: r.line,

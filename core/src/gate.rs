@@ -82,6 +82,9 @@ impl ResidualGate {
                     }
                 }
                 let alarm = tripped_since.is_some_and(|since| time - since + 1e-6 >= self.hold_s);
+                if record.warmup {
+                    continue;
+                }
                 scored.rows.push(ScoredRow {
                     trajectory: trajectory_key(index, e.trajectory),
                     time_s: time,
@@ -119,6 +122,7 @@ mod tests {
                     comparator_alarm: None,
                     line: i as u64 + 2,
                     trajectory_break: false,
+                    warmup: false,
                 }
             })
             .collect();

@@ -41,7 +41,8 @@ pub enum GlrError {
     NoOperatingPoint(#[from] AlarmError),
 }
 
-/// Rows of tracks scored by G_t (held on ν = 0 rows, 0 at a trajectory start).
+/// Rows of tracks scored by G_t (held on ν = 0 rows, 0 at a trajectory start); warm-up rows only
+/// carry the state forward.
 fn statistic_rows(evidence: &EvidenceParams, tracks: &[Track]) -> Vec<ScoredRow> {
     tracks
         .iter()
@@ -50,6 +51,7 @@ fn statistic_rows(evidence: &EvidenceParams, tracks: &[Track]) -> Vec<ScoredRow>
             build_track(evidence, &track.records)
                 .into_iter()
                 .zip(&track.records)
+                .filter(|(_, r)| !r.warmup)
                 .map(move |(e, r)| ScoredRow {
                     trajectory: trajectory_key(index, e.trajectory),
                     time_s: r.sample.timestamp_s,
@@ -147,6 +149,7 @@ mod tests {
                     comparator_alarm: None,
                     line: t as u64 + 1,
                     trajectory_break: false,
+                    warmup: false,
                 }
             })
             .collect();

@@ -169,6 +169,12 @@ pub struct Record {
     /// The source says a new trajectory starts here (AV-GPS date change, Run Time/Hobbs reset).
     /// Gaps and backward time are detected by the evidence builder itself.
     pub trajectory_break: bool,
+    /// The row only warms a detector up: it runs through the evidence and the model, as the rows
+    /// before a part of a longer recording did on the vehicle, but it is neither fitted on, learned
+    /// from nor scored. Set by the experiments that score a part of a recording as the continuation
+    /// of its vehicle's stream; every data reader leaves it false.
+    #[serde(default)]
+    pub warmup: bool,
 }
 
 /// The chronological records of one vehicle from one source.

@@ -183,8 +183,8 @@ fn oversized_provenance_text_is_refused() {
     );
 
     let mut value = base(DEFAULT_MODEL);
-    value["provenance"]["training_data"][1] = json!("é".repeat(3000));
-    refused(&value, "provenance.training_data[1]", "got 6000");
+    value["provenance"]["training_data"][0] = json!("é".repeat(3000));
+    refused(&value, "provenance.training_data[0]", "got 6000");
     value["provenance"]["training_data"] = json!(vec!["d"; 257]);
     refused(&value, "provenance.training_data", "at most 256 entries");
     let mut value = base(DEFAULT_MODEL);

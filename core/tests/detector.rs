@@ -9,18 +9,23 @@ use spoofwatch_core::alarm::{OperatingPoint, PersistenceAlarm};
 use spoofwatch_core::detector::{
     Detector, DetectorState, RestoreError, offset_signal, run_records,
 };
+use spoofwatch_core::evaluation::{evaluate_tracks, score_tracks};
 use spoofwatch_core::evidence::FeatureSchema;
+use spoofwatch_core::evidence::build_track;
 use spoofwatch_core::geo::Projection;
 use spoofwatch_core::lifecycle::{AlarmLifecycle, Lifecycle, LifecycleInput};
+use spoofwatch_core::metrics::EventRules;
 use spoofwatch_core::model::artifact::{
     ARTIFACT_SCHEMA_VERSION, ArtifactError, ModelArtifact, Provenance,
 };
 use spoofwatch_core::model::{LiquidState, Model, ModelConfig};
 use spoofwatch_core::sample::Track;
-use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
+use spoofwatch_core::scenario::{
+    AttackKind, AttackSpec, DriveSpec, OnboardErrors, inject, simulate_drive,
+};
 use spoofwatch_core::train::TrainConfig;
 use spoofwatch_core::train::data::{
-    fit_evidence, sequences, split_chronologically, trajectory_ranges,
+    fit_evidence, sequences, split_chronologically, split_with_warmup, trajectory_ranges,
 };
 use spoofwatch_core::train::detector::{TrainingData, train_detector};
 use spoofwatch_core::train::spec::{SplitFractions, TrainingSpec};
@@ -299,6 +304,138 @@ fn chronological_split_keeps_order_and_fractions_per_trajectory() {
     assert_eq!(split.test[1].records[59].line, track.records[999].line);
     let all = [&split.train[..], &split.validation[..], &split.test[..]].concat();
     assert!(all.iter().all(|t| t.records[0].trajectory_break));
+}
+
+#[test]
+fn an_attack_the_anchors_hold_teaches_the_onboard_calibration_nothing() {
+    // A 2 m/s ramp for 150 s on a slow drive: learned as onboard errors it would turn the heading
+    // bias by degrees and carry the spoofer's drift into the drive after the attack.
+    let spec = DriveSpec {
+        duration_s: 360.0,
+        onboard_errors: OnboardErrors {
+            speed_scale_error: 0.03,
+            heading_bias_deg: -2.0,
+            timing_offset_s: 0.0,
+        },
+        seed: 7,
+        ..DriveSpec::default()
+    };
+    let clean = simulate_drive(&spec, "calibrated").expect("valid drive");
+    let attack = AttackSpec {
+        kind: AttackKind::RampDrift { velocity_mps: 2.0 },
+        direction_deg: 60.0,
+        onset_s: 150.0,
+        duration_s: 150.0,
+        seed: None,
+    };
+    let attacked = inject(&clean, &attack).expect("fits").track;
+    let normal: Vec<Track> = (0..2).map(|s| drive(s, 400.0)).collect();
+    let calibration_shift = |schema| {
+        let fit = fit_evidence(&normal, Projection::Wgs84Local, 0.0, 0.98, schema).expect("fits");
+        let last = |track: &Track| {
+            build_track(&fit.params, &track.records)
+                .last()
+                .and_then(|e| e.drift)
+                .expect("drift evidence")
+                .calibration
+        };
+        let (before, after) = (last(&clean), last(&attacked));
+        ((after[0] - before[0]).abs(), (after[1] - before[1]).abs())
+    };
+    let (_, heading_v2) = calibration_shift(FeatureSchema::V2);
+    let (scale_v3, heading_v3) = calibration_shift(FeatureSchema::V3);
+    assert!(
+        heading_v3 < 0.5 && scale_v3 < 0.005,
+        "v3: {scale_v3}, {heading_v3}°"
+    );
+    assert!(
+        heading_v2 > 2.0,
+        "v2 has no anchors to hold its calibration: {heading_v2}°"
+    );
+}
+
+#[test]
+fn a_warm_split_precedes_validation_and_test_parts_with_their_earlier_rows() {
+    let mut track = drive(1, 999.0); // 1000 rows at 1 Hz
+    track.records[600].trajectory_break = true;
+    let split = split_with_warmup(
+        std::slice::from_ref(&track),
+        SplitFractions::default(),
+        50.5,
+    );
+    let lens = |ts: &[Track]| ts.iter().map(|t| t.records.len()).collect::<Vec<_>>();
+    let warm = |ts: &[Track]| {
+        ts.iter()
+            .map(|t| t.records.iter().filter(|r| r.warmup).count())
+            .collect::<Vec<_>>()
+    };
+    // The training parts start their trajectories; the others carry the 50 rows (50 s) before
+    // them, never rows of an earlier trajectory.
+    assert_eq!(lens(&split.train), [420, 280]);
+    assert_eq!(warm(&split.train), [0, 0]);
+    assert_eq!(lens(&split.validation), [140, 110]);
+    assert_eq!(warm(&split.validation), [50, 50]);
+    assert_eq!(warm(&split.test), [50, 50]);
+    assert_eq!(split.validation[0].records[0].line, track.records[370].line);
+    assert_eq!(
+        split.validation[0].records[50].line,
+        track.records[420].line
+    );
+    assert!(split.validation[0].records[..50].iter().all(|r| r.warmup));
+    assert!(!split.validation[0].records[50].warmup);
+    assert!(split.validation[0].records[0].trajectory_break);
+    assert!(!split.validation[0].records[50].trajectory_break);
+    // Without warm-up it is the plain chronological split.
+    assert_eq!(
+        split_with_warmup(std::slice::from_ref(&track), SplitFractions::default(), 0.0),
+        split_chronologically(std::slice::from_ref(&track), SplitFractions::default())
+    );
+}
+
+#[test]
+fn warm_up_rows_carry_the_state_but_are_neither_scored_nor_learned() {
+    let art = artifact(OperatingPoint { theta: 0.5, n_p: 2 });
+    let mut track = attacked(3);
+    let cold = Track {
+        vehicle_id: track.vehicle_id.clone(),
+        records: track.records[100..].to_vec(),
+    };
+    for record in &mut track.records[..100] {
+        record.warmup = true;
+    }
+    let warm_scored = score_tracks(&art, std::slice::from_ref(&track));
+    assert_eq!(warm_scored.rows.len(), track.records.len() - 100);
+    assert_eq!(warm_scored.alarms.len(), warm_scored.rows.len());
+    assert_eq!(warm_scored.offset.len(), warm_scored.rows.len());
+    // The kept rows are the same rows, scored with the state the warm-up rows left: the whole
+    // track's decisions from row 100 on.
+    let whole = run_records(&art, &track.records);
+    let probabilities: Vec<f64> = whole[100..].iter().map(|d| d.probability).collect();
+    let kept: Vec<f64> = warm_scored.rows.iter().map(|r| r.score).collect();
+    assert_eq!(kept, probabilities);
+    assert_ne!(
+        kept,
+        score_tracks(&art, &[cold])
+            .rows
+            .iter()
+            .map(|r| r.score)
+            .collect::<Vec<_>>()
+    );
+    let rows = evaluate_tracks(&art, std::slice::from_ref(&track), EventRules::Spec).rows;
+    assert_eq!(rows.first().map(|r| r.line), Some(track.records[100].line));
+    // The loss never sees them.
+    let normal: Vec<Track> = (0..2).map(|s| drive(s, 400.0)).collect();
+    let fit = fit_evidence(
+        &normal,
+        Projection::Wgs84Local,
+        0.0,
+        0.98,
+        FeatureSchema::V3,
+    )
+    .expect("fits");
+    let sequence = &sequences(&fit, std::slice::from_ref(&track), true)[0];
+    assert!(sequence.valid[..100].iter().all(|v| !v));
+    assert!(sequence.valid[100..].iter().any(|&v| v));
 }
 
 #[test]

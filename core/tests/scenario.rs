@@ -71,6 +71,7 @@ fn straight_track() -> Track {
                 comparator_alarm: Some(false),
                 line: i + 2,
                 trajectory_break: false,
+                warmup: false,
             }
         })
         .collect();

@@ -125,6 +125,7 @@ pub(super) fn read_track<R: Read>(
             comparator_alarm,
             line,
             trajectory_break,
+            warmup: false,
         });
         previous = Some(times);
     }

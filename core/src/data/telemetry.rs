@@ -112,6 +112,7 @@ pub(super) fn read_tracks<R: Read>(
             comparator_alarm: None,
             line,
             trajectory_break: false,
+            warmup: false,
         });
     }
     Ok(tracks)

@@ -229,6 +229,7 @@ fn telemetry_round_trips_through_write_tracks() {
         comparator_alarm: None,
         line,
         trajectory_break: false,
+        warmup: false,
     };
     let tracks = vec![
         Track {

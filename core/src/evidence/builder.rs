@@ -427,6 +427,8 @@ impl EvidenceBuilder {
         evidence.eta = eta;
         evidence.energy = energy;
         evidence.q = energy - self.mu_e - self.kappa;
+        // While an anchor is frozen the rows may be an attack's: the calibration and levels wait.
+        let learn = self.offset.as_ref().is_none_or(|o| !o.frozen());
         if let Some(drift) = &mut self.drift {
             evidence.drift = Some(drift.push(&DriftInput {
                 residual,
@@ -437,6 +439,7 @@ impl EvidenceBuilder {
                 ],
                 delta_t,
                 fix_repeated: fix == previous.fix,
+                learn,
             }));
         }
 

@@ -284,6 +284,10 @@ pub struct DriftInput {
     pub delta_t: f64,
     /// The GNSS fix equals the previous one exactly.
     pub fix_repeated: bool,
+    /// The row may teach the calibration and the levels. False while the offset evidence holds an
+    /// anchor frozen: the rows of a possible attack must not be learned as the vehicle's own onboard
+    /// errors, or the calibration carries the spoofer's drift into the drive after the attack.
+    pub learn: bool,
 }
 
 /// A calibration snapshot: θ after `clock_s` seconds of valid data.
@@ -465,7 +469,14 @@ impl DriftTracker {
         let clipped = clip(input.residual, self.constants.clip_m);
         let regressors = regressors(input.motion, input.velocity_change);
         let cleaned = add(clipped, apply(&regressors, &self.theta_in_use));
-        self.add_to_block(&regressors, clipped, input.delta_t);
+        if input.learn {
+            self.add_to_block(&regressors, clipped, input.delta_t);
+        } else {
+            // A block never mixes rows that may teach with rows that may not.
+            self.block_residual = [0.0; 2];
+            self.block_regressors = [[0.0; 2]; 3];
+            self.block_s = 0.0;
+        }
         self.update_rates(clipped, cleaned, input.delta_t);
 
         let warm_up = (self.clock_s / WARM_UP_S).min(1.0);
@@ -482,7 +493,7 @@ impl DriftTracker {
                 &population_raw,
                 &population_calibrated,
                 warm_up >= 1.0,
-                input.delta_t,
+                input,
             );
         }
         let used = self.levels_in_use;
@@ -525,16 +536,20 @@ impl DriftTracker {
 
     /// Running mean of χ²/2 per scale (E = 1 for a vehicle like the population), starting from the
     /// population's level with the weight of `LEVEL_PRIOR_S` seconds and turning into an EWMA with
-    /// memory `LEVEL_MEMORY_S`. Only settled rows (≥ 2τ into the trajectory) count.
+    /// memory `LEVEL_MEMORY_S`. Only settled rows (≥ 2τ into the trajectory) that may teach count.
     fn update_levels(
         &mut self,
         raw: &[[f64; 2]; SCALE_COUNT],
         calibrated: &[[f64; 2]; SCALE_COUNT],
         warm: bool,
-        delta_t: f64,
+        input: &DriftInput,
     ) {
-        self.level_clock_s += delta_t;
+        let delta_t = input.delta_t;
         self.trajectory_s += delta_t;
+        if !input.learn {
+            return;
+        }
+        self.level_clock_s += delta_t;
         let weight = delta_t / (LEVEL_PRIOR_S + self.level_clock_s.min(LEVEL_MEMORY_S));
         for k in 0..SCALE_COUNT {
             if self.trajectory_s < SETTLE_SCALES * DRIFT_SCALES_S[k] {
@@ -912,6 +927,7 @@ mod tests {
             velocity_change,
             delta_t: 1.0,
             fix_repeated: false,
+            learn: true,
         }
     }
 
@@ -1004,6 +1020,7 @@ mod tests {
             velocity_change: [0.0; 2],
             delta_t: 0.5,
             fix_repeated: false,
+            learn: true,
         };
         let mut e = DriftEvidence::EMPTY;
         for _ in 0..3 {
@@ -1034,6 +1051,7 @@ mod tests {
             velocity_change: [0.0; 2],
             delta_t: 1.0,
             fix_repeated: false,
+            learn: true,
         });
         assert!((e.clipped_residual[0] - clip_m).abs() < 1e-12 && e.clipped_residual[1] == 0.0);
         let m = 1.0 - (-1.0 / DRIFT_SCALES_S[0]).exp();
@@ -1049,6 +1067,7 @@ mod tests {
             velocity_change: [0.0; 2],
             delta_t,
             fix_repeated,
+            learn: true,
         };
         let stale: Vec<f64> = [
             row(true, 1.0),
@@ -1081,6 +1100,7 @@ mod tests {
                 velocity_change: [0.0; 2],
                 delta_t: 1.0,
                 fix_repeated: false,
+                learn: true,
             });
             assert!((e.residual_log - expected).abs() < 1e-12, "{residual:?}");
         }
@@ -1107,6 +1127,7 @@ mod tests {
                     velocity_change: [0.0; 2],
                     delta_t: 1.0,
                     fix_repeated: false,
+                    learn: true,
                 });
                 levels.push(drift.levels_in_use);
             }

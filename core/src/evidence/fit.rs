@@ -45,7 +45,8 @@ impl NormalStats {
     }
 }
 
-/// Fits Σ̂ and μ_e on the label-0, ν = 1 rows of `tracks`. Unlabelled and attack rows are ignored.
+/// Fits Σ̂ and μ_e on the label-0, ν = 1 rows of `tracks`. Unlabelled, attack and warm-up rows are
+/// ignored.
 pub fn fit_normal_stats(
     tracks: &[Track],
     projection: Projection,
@@ -61,7 +62,7 @@ pub fn normal_residuals(tracks: &[Track], projection: Projection) -> Vec<[f64; 2
     for track in tracks {
         let evidence = build_track(&placeholder, &track.records);
         for (record, e) in track.records.iter().zip(&evidence) {
-            if record.label == Some(false) && e.valid {
+            if record.label == Some(false) && e.valid && !record.warmup {
                 residuals.push(e.residual);
             }
         }
@@ -111,7 +112,9 @@ fn settled_rates(
             if e.valid {
                 let new_second = (elapsed_s + e.delta_t).floor() > elapsed_s.floor();
                 elapsed_s += e.delta_t;
-                if let (true, Some(false), Some(drift)) = (new_second, record.label, e.drift) {
+                if let (true, Some(false), Some(drift), false) =
+                    (new_second, record.label, e.drift, record.warmup)
+                {
                     rows.push(SettledRates { elapsed_s, drift });
                 }
             }
@@ -153,7 +156,7 @@ pub fn fit_offset_params(
             let Some(offset) = e.offset else { continue };
             let new_second = (clock_s + delta).floor() > clock_s;
             clock_s += delta;
-            if !new_second || attacked || record.label != Some(false) {
+            if !new_second || attacked || record.label != Some(false) || record.warmup {
                 continue;
             }
             for (k, anchor_points) in points.iter_mut().enumerate() {
@@ -271,6 +274,7 @@ mod tests {
                 comparator_alarm: None,
                 line: u64::from(i) + 2,
                 trajectory_break: false,
+                warmup: false,
             });
         }
         let track = Track {

@@ -406,6 +406,12 @@ impl OffsetTracker {
         self.point = Some(point);
     }
 
+    /// Some anchor is frozen: the fix disagrees with the vehicle's own motion, or agreed again for
+    /// less than [`AGREEMENT_S`].
+    pub fn frozen(&self) -> bool {
+        self.anchors.iter().any(|a| a.frozen)
+    }
+
     /// The channels of a sample that moves no anchor (unusable, or not later than the last one).
     pub fn hold(&self) -> OffsetEvidence {
         self.last

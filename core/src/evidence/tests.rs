@@ -308,6 +308,7 @@ fn random_records(seed: u64, n: usize) -> Vec<Record> {
                 comparator_alarm: None,
                 line: i as u64 + 2,
                 trajectory_break: rng.uniform() < 0.01,
+                warmup: false,
             }
         })
         .collect()

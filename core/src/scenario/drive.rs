@@ -516,6 +516,7 @@ pub fn simulate_drive_with_truth(
             comparator_alarm: None,
             line: index as u64 + 1,
             trajectory_break: false,
+            warmup: false,
         });
         truth.push(state);
     }

@@ -198,6 +198,7 @@ mod tests {
                 comparator_alarm: None,
                 line: i as u64 + 2,
                 trajectory_break: false,
+                warmup: false,
             })
             .collect();
         let track = Track {

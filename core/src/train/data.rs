@@ -49,6 +49,18 @@ fn segmentation_params() -> EvidenceParams {
 /// Splits every trajectory of every track chronologically into train/validation/test sub-trajectories.
 /// Each part becomes its own track (`<vehicle>/t<k>/<part>`), so its first row starts a trajectory.
 pub fn split_chronologically(tracks: &[Track], fractions: SplitFractions) -> ChronologicalSplit {
+    split_with_warmup(tracks, fractions, 0.0)
+}
+
+/// [`split_chronologically`], each validation and test part preceded by the rows of its trajectory
+/// in the `warmup_s` seconds before it, marked [`Record::warmup`]: the part is scored as the
+/// continuation of its vehicle's stream that it was, with the per-vehicle state (levels, misfit)
+/// those rows taught, rather than as a fresh session.
+pub fn split_with_warmup(
+    tracks: &[Track],
+    fractions: SplitFractions,
+    warmup_s: f64,
+) -> ChronologicalSplit {
     let mut split = ChronologicalSplit::default();
     for track in tracks {
         for (k, range) in trajectory_ranges(&track.records).into_iter().enumerate() {
@@ -59,19 +71,24 @@ pub fn split_chronologically(tracks: &[Track], fractions: SplitFractions) -> Chr
             let n_train = n_train.min(n);
             let n_val = n_val.min(n - n_train);
             let parts = [
-                (&mut split.train, &rows[..n_train], "train"),
-                (
-                    &mut split.validation,
-                    &rows[n_train..n_train + n_val],
-                    "val",
-                ),
-                (&mut split.test, &rows[n_train + n_val..], "test"),
+                (&mut split.train, 0..n_train, "train"),
+                (&mut split.validation, n_train..n_train + n_val, "val"),
+                (&mut split.test, n_train + n_val..n, "test"),
             ];
             for (out, part, name) in parts {
                 if part.is_empty() {
                     continue;
                 }
-                let mut records = part.to_vec();
+                let start_s = rows[part.start].sample.timestamp_s;
+                let warmup = rows[..part.start]
+                    .iter()
+                    .rev()
+                    .take_while(|r| start_s - r.sample.timestamp_s < warmup_s)
+                    .count();
+                let mut records = rows[part.start - warmup..part.end].to_vec();
+                for record in &mut records[..warmup] {
+                    record.warmup = true;
+                }
                 records[0].trajectory_break = true;
                 out.push(Track {
                     vehicle_id: format!("{}/t{k}/{name}", track.vehicle_id),
@@ -146,7 +163,8 @@ pub const EXIT_MASK_S: f64 = 10.0;
 
 /// Model-ready sequences, one per trajectory (unlabelled rows count as normal only if labelled;
 /// callers pass labelled data for training). With `mask_exits`, the normal rows within
-/// [`EXIT_MASK_S`] after an attacked row are marked invalid, so they enter neither loss nor metrics.
+/// [`EXIT_MASK_S`] after an attacked row are marked invalid, so they enter neither loss nor metrics;
+/// so are warm-up rows ([`Record::warmup`]), which only carry the state forward.
 pub fn sequences(fit: &EvidenceFit, tracks: &[Track], mask_exits: bool) -> Vec<Sequence> {
     let mut out = Vec::new();
     for track in tracks {
@@ -169,7 +187,7 @@ pub fn sequences(fit: &EvidenceFit, tracks: &[Track], mask_exits: bool) -> Vec<S
             seq.features.push(features);
             seq.deltas.push(e.delta_t);
             seq.labels.push(label);
-            seq.valid.push(e.valid && !exit);
+            seq.valid.push(e.valid && !exit && !record.warmup);
         }
         out.extend(current);
     }

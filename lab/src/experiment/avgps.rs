@@ -309,8 +309,8 @@ fn raw_columns(args: &Args, file: &str) -> Result<Option<NumericColumns>> {
 
 pub fn run(args: Args) -> Result<()> {
     let started = Instant::now();
-    let (data, split) = prepare(&args.common)?;
-    let subtle_train = with_injections(&split.train, args.common.seed)?;
+    let (data, split) = prepare(&args.common, 0.0)?;
+    let subtle_train = with_injections(&split.train, args.common.seed, 0.0)?;
     let columns2 = raw_columns(&args, "AV-GPS-Dataset-2.csv")?;
     let columns3 = raw_columns(&args, "AV-GPS-Dataset-3.csv")?;
     let seeds = seed_list(args.common.seed, args.seeds);

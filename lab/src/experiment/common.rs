@@ -9,7 +9,7 @@ use serde::Serialize;
 use spoofwatch_client::cli::json::write_json;
 use spoofwatch_client::input::load_file;
 use spoofwatch_core::sample::Track;
-use spoofwatch_core::train::data::{ChronologicalSplit, split_chronologically};
+use spoofwatch_core::train::data::{ChronologicalSplit, split_with_warmup};
 use spoofwatch_core::train::spec::SplitFractions;
 use spoofwatch_core::train::{DEFAULT_MAX_EPOCHS, DEFAULT_SEED};
 
@@ -56,11 +56,12 @@ fn prepare_out(dir: &Path) -> Result<()> {
 }
 
 /// What every experiment starts from: both recordings (the output directory created) and Dataset-2
-/// split chronologically 70/15/15 (SPEC §9).
-pub fn prepare(common: &CommonArgs) -> Result<(AvGpsData, ChronologicalSplit)> {
+/// split chronologically 70/15/15 (SPEC §9), its validation and test parts after `warmup_s`
+/// seconds of warm-up rows ([`split_with_warmup`]).
+pub fn prepare(common: &CommonArgs, warmup_s: f64) -> Result<(AvGpsData, ChronologicalSplit)> {
     let data = load_avgps(&common.data_dir)?;
     prepare_out(&common.out)?;
-    let split = split_chronologically(&data.dataset2, SplitFractions::default());
+    let split = split_with_warmup(&data.dataset2, SplitFractions::default(), warmup_s);
     Ok((data, split))
 }
 

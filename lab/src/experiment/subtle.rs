@@ -578,11 +578,12 @@ pub(super) fn comparator_reports(
 pub fn run(args: Args) -> Result<()> {
     let started = Instant::now();
     let threads = args.common.threads.unwrap_or_else(default_threads);
-    let (_, split) = prepare(&args.common)?;
+    let (_, split) = prepare(&args.common, 0.0)?;
     let seed = args.common.seed;
     let (train, validation) = recorded_and_simulated(
         &split,
         seed,
+        0.0,
         args.simulated_only,
         simulated_mix(seed, Population::Train, args.drives, threads)?,
         simulated_mix(seed, Population::Validation, args.drives, threads)?,

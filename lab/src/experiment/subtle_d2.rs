@@ -164,12 +164,12 @@ fn fold_data(
     Ok(FoldData {
         name: all[held_out].vehicle_id.clone(),
         train: [
-            with_injections(&train, seed)?,
+            with_injections(&train, seed, 0.0)?,
             simulated_mix(seed, Population::Train, drives, threads)?,
         ]
         .concat(),
         validation: [
-            with_injections(&validation, seed ^ 0x5EED)?,
+            with_injections(&validation, seed ^ 0x5EED, 0.0)?,
             simulated_mix(seed, Population::Validation, drives, threads)?,
         ]
         .concat(),

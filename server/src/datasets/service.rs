@@ -55,6 +55,7 @@ fn tracks_from_records(records: Vec<v1::LabelledSample>) -> Result<Vec<Track>, S
             comparator_alarm: None,
             line: i as u64 + 2,
             trajectory_break: false,
+            warmup: false,
         };
         match tracks.iter_mut().find(|t| t.vehicle_id == r.vehicle_id) {
             Some(track) => track.records.push(record),
