@@ -250,6 +250,16 @@ struct Anchor {
 }
 
 impl Anchor {
+    /// Moves the anchor by one step: U, the offset and the gaps' variance, each forgotten by
+    /// `keep` (1 while frozen, the follow's share otherwise).
+    fn advance(&mut self, step: &OffsetStep, keep: f64, gap_m2: f64) {
+        self.carry(step, keep);
+        for axis in 0..2 {
+            self.offset[axis] = keep * (self.offset[axis] + step.residual[axis]);
+        }
+        self.gap_m2 = keep * keep * (self.gap_m2 + gap_m2);
+    }
+
     /// Adds one step's onboard motion to the part of U it was dead-reckoned with, and forgets
     /// both parts by `keep`.
     fn carry(&mut self, step: &OffsetStep, keep: f64) {
@@ -463,12 +473,10 @@ impl OffsetTracker {
             } else {
                 (-delta_t / FOLLOW_S[k]).exp()
             };
-            anchor.carry(step, keep);
+            anchor.advance(step, keep, gap_m2);
             for axis in 0..2 {
-                anchor.offset[axis] = keep * (anchor.offset[axis] + step.residual[axis]);
                 anchor.carried_since_freeze[axis] += step.motion[axis];
             }
-            anchor.gap_m2 = keep * keep * (anchor.gap_m2 + gap_m2);
             anchor.gap_since_freeze_m2 += gap_m2;
             anchor.frozen_s += delta_t;
             let variance = anchor.variance(&self.params, k);
@@ -514,12 +522,7 @@ impl OffsetTracker {
         population_nis[STEP_LEVEL] = norm_squared(step.residual) / self.params.step_noise_m2;
         let mut shadow_nis = [0.0; ANCHOR_COUNT];
         for (k, shadow) in self.shadows.iter_mut().enumerate() {
-            let keep = (-delta_t / FOLLOW_S[k]).exp();
-            shadow.carry(step, keep);
-            for axis in 0..2 {
-                shadow.offset[axis] = keep * (shadow.offset[axis] + step.residual[axis]);
-            }
-            shadow.gap_m2 = keep * keep * (shadow.gap_m2 + gap_m2);
+            shadow.advance(step, (-delta_t / FOLLOW_S[k]).exp(), gap_m2);
             shadow_nis[k] = norm_squared(shadow.offset) / shadow.variance(&self.params, k);
             shadow.agreement_s = if shadow_nis[k] < FOLLOW_GATE * levels[k] {
                 shadow.agreement_s + delta_t
