@@ -18,7 +18,7 @@ use spoofwatch_core::metrics::EventRules;
 use spoofwatch_core::model::artifact::{
     ARTIFACT_SCHEMA_VERSION, ArtifactError, ModelArtifact, Provenance,
 };
-use spoofwatch_core::model::{LiquidState, Model, ModelConfig};
+use spoofwatch_core::model::{Ablation, LiquidState, Model, ModelConfig};
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{
     AttackKind, AttackSpec, DriveSpec, OnboardErrors, inject, simulate_drive,
@@ -482,4 +482,62 @@ fn a_small_training_job_learns_a_frozen_position_attack_and_calibrates_an_operat
     )
     .expect("fits");
     assert_eq!(sequences(&fit, &train, true).len(), train.len());
+}
+
+#[test]
+fn the_levels_and_lifecycle_ablations_train_what_they_name() {
+    let jump = |seed| attacked_with(seed, AttackKind::Jump { offset_m: 200.0 });
+    // Clean drives long enough for the anchors' fit (three follow times after placement).
+    let train: Vec<Track> = (40..43).map(jump).chain([drive(44, 900.0)]).collect();
+    let validation: Vec<Track> = (50..52).map(jump).collect();
+    let trained = |ablation: Ablation| {
+        let spec = TrainingSpec {
+            model: ModelConfig {
+                d_s: 4,
+                d_zeta: 4,
+                d_h: 4,
+                schema: FeatureSchema::V3,
+                ablation,
+                ..ModelConfig::default()
+            },
+            train: TrainConfig {
+                max_epochs: 2,
+                ..TrainConfig::default()
+            },
+            ..TrainingSpec::default()
+        };
+        let data = TrainingData::Explicit {
+            train: train.clone(),
+            validation: validation.clone(),
+        };
+        train_detector(&spec, data, &mut |_| {}, &AtomicBool::new(false))
+            .expect("trains")
+            .artifact
+    };
+    let levels = |artifact: &ModelArtifact| {
+        let evidence = &artifact.evidence;
+        (
+            evidence
+                .drift
+                .expect("v3 has drift channels")
+                .vehicle_levels,
+            evidence.offset.expect("v3 has offsets").vehicle_levels,
+        )
+    };
+    let full = trained(Ablation::default());
+    assert!(full.lifecycle.is_some());
+    assert_eq!(levels(&full), (true, true));
+    let ablated = trained(Ablation {
+        no_vehicle_levels: true,
+        rows_lifecycle: true,
+        ..Ablation::default()
+    });
+    assert_eq!(ablated.lifecycle, None);
+    assert!((1..=10).contains(&ablated.operating_point.n_p));
+    assert_eq!(levels(&ablated), (false, false));
+    // The ablations travel with the artifact.
+    let bytes = ablated.to_vec().expect("serialises");
+    let read = ModelArtifact::from_slice(&bytes).expect("parses");
+    assert!(read.model.config().ablation.rows_lifecycle);
+    assert!(read.model.config().ablation.no_vehicle_levels);
 }

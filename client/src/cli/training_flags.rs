@@ -36,6 +36,14 @@ pub struct TrainingFlags {
     /// after the spoofer leaves are masked: its exit jump is labelled normal).
     #[arg(long)]
     pub no_exit_mask: bool,
+    /// Ablation: no per-vehicle noise levels (every channel is normalised by the training
+    /// population's noise alone).
+    #[arg(long)]
+    pub no_vehicle_levels: bool,
+    /// Ablation: with offset evidence (`v3`), persistence N_p in rows instead of the alarm
+    /// lifecycle in seconds.
+    #[arg(long)]
+    pub rows_lifecycle: bool,
     /// Ablation: evidence groups given to the model.
     #[arg(long, default_value = FeatureGroups::All.name(), value_parser = feature_groups())]
     pub features: FeatureGroups,
@@ -102,6 +110,8 @@ impl TrainingFlags {
             no_third_order: false,
             first_order_cell: false,
             no_exit_mask: false,
+            no_vehicle_levels: false,
+            rows_lifecycle: false,
             features: FeatureGroups::default(),
             schema: FeatureSchema::default(),
             select_kappa_rho: false,
@@ -119,6 +129,8 @@ impl TrainingFlags {
             first_order_cell: self.first_order_cell,
             features: self.features,
             no_exit_mask: self.no_exit_mask,
+            no_vehicle_levels: self.no_vehicle_levels,
+            rows_lifecycle: self.rows_lifecycle,
         }
     }
 

@@ -286,6 +286,14 @@ pub struct Ablation {
     /// teaches a model that a big step means "attack over"; by default they leave the loss).
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub no_exit_mask: bool,
+    /// Normalise every channel by the training population's noise alone: no per-vehicle levels and
+    /// no dead-reckoning misfit (the drift and offset channels' online adaptation is off).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub no_vehicle_levels: bool,
+    /// With offset evidence, choose the persistence N_p in rows (the rule of older schemas) instead
+    /// of the alarm lifecycle in seconds.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub rows_lifecycle: bool,
 }
 
 /// Model widths, time-constant range and ablation switches. `Default` = SPEC §5.
@@ -308,6 +316,14 @@ pub struct ModelConfig {
     /// schemas and is the paper's.
     #[serde(default = "FeatureSchema::legacy")]
     pub schema: FeatureSchema,
+}
+
+impl ModelConfig {
+    /// Alarms follow the lifecycle in seconds (`docs/detector.md` §7.1): offset evidence, unless
+    /// the ablation keeps the persistence in rows.
+    pub fn lifecycle_in_seconds(&self) -> bool {
+        self.schema.has_offset() && !self.ablation.rows_lifecycle
+    }
 }
 
 impl Default for ModelConfig {

@@ -364,7 +364,7 @@ mod tests {
                 no_third_order: true,
                 first_order_cell: true,
                 features: FeatureGroups::All,
-                no_exit_mask: false,
+                ..Ablation::default()
             },
             schema: FeatureSchema::Paper,
             ..ModelConfig::default()

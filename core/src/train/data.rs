@@ -6,6 +6,8 @@
 
 use std::ops::Range;
 
+use crate::evidence::drift::DriftParams;
+use crate::evidence::offset::OffsetParams;
 use crate::evidence::{
     EvidenceBuilder, EvidenceParams, FeatureSchema, Features, RobustScaler, build_track,
     fit_drift_params, fit_normal_stats, fit_offset_params,
@@ -127,6 +129,20 @@ pub fn fit_evidence(
     rho: f64,
     schema: FeatureSchema,
 ) -> Result<EvidenceFit, DataError> {
+    fit_evidence_with(train, projection, kappa, rho, schema, true)
+}
+
+/// [`fit_evidence`], with the per-vehicle levels of the drift and offset channels switched off
+/// unless `vehicle_levels` (the ablation [`Ablation::no_vehicle_levels`](crate::model::Ablation)):
+/// the scaler is then fitted on the channels as that model will see them.
+pub fn fit_evidence_with(
+    train: &[Track],
+    projection: Projection,
+    kappa: f64,
+    rho: f64,
+    schema: FeatureSchema,
+    vehicle_levels: bool,
+) -> Result<EvidenceFit, DataError> {
     let stats = fit_normal_stats(train, projection)?;
     let drift = schema
         .has_drift()
@@ -136,6 +152,14 @@ pub fn fit_evidence(
         Some(drift) if schema.has_offset() => Some(fit_offset_params(train, projection, drift)?),
         _ => None,
     };
+    let drift = drift.map(|d| DriftParams {
+        vehicle_levels: d.vehicle_levels && vehicle_levels,
+        ..d
+    });
+    let offset = offset.map(|o| OffsetParams {
+        vehicle_levels: o.vehicle_levels && vehicle_levels,
+        ..o
+    });
     let params = EvidenceParams {
         drift,
         offset,

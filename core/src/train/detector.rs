@@ -19,7 +19,7 @@ use crate::evaluation::score_tracks;
 use crate::metrics::{EventRules, Metrics};
 use crate::model::artifact::{ARTIFACT_SCHEMA_VERSION, ModelArtifact, Provenance};
 use crate::sample::Track;
-use crate::train::data::{DataError, fit_evidence, sequences, split_chronologically};
+use crate::train::data::{DataError, fit_evidence_with, sequences, split_chronologically};
 use crate::train::spec::TrainingSpec;
 use crate::train::{EpochProgress, TrainError, train};
 
@@ -144,7 +144,14 @@ fn train_candidate(
     on_epoch: &mut dyn FnMut(&EpochProgress),
     cancel: &AtomicBool,
 ) -> Result<TrainedDetector, TrainDetectorError> {
-    let fit = fit_evidence(train_tracks, spec.projection, kappa, rho, spec.model.schema)?;
+    let fit = fit_evidence_with(
+        train_tracks,
+        spec.projection,
+        kappa,
+        rho,
+        spec.model.schema,
+        !spec.model.ablation.no_vehicle_levels,
+    )?;
     let mask_exits = !spec.model.ablation.no_exit_mask;
     let train_seqs = sequences(&fit, train_tracks, mask_exits);
     let val_seqs = sequences(&fit, validation, mask_exits);
@@ -188,7 +195,7 @@ fn train_candidate(
         _ => TrainDetectorError::NoOperatingPoint,
     };
     // Offset evidence comes with the lifecycle in seconds; older schemas keep the persistence N_p.
-    let (point, lifecycle, metrics) = if spec.model.schema.has_offset() {
+    let (point, lifecycle, metrics) = if spec.model.lifecycle_in_seconds() {
         let selection = choose_lifecycle(
             &scored.rows,
             &scored.offset,

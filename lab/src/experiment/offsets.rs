@@ -67,6 +67,13 @@ pub struct Args {
     /// Keep the rows after an attack's end in the loss (ablation of the exit masking).
     #[arg(long)]
     no_exit_mask: bool,
+    /// Normalise every channel by the training population's noise alone (ablation of the
+    /// per-vehicle levels).
+    #[arg(long)]
+    no_vehicle_levels: bool,
+    /// Choose the persistence N_p in rows instead of the alarm lifecycle in seconds (ablation).
+    #[arg(long)]
+    rows_lifecycle: bool,
     /// Also train and score the paper-schema HO-LLN.
     #[arg(long)]
     paper: bool,
@@ -569,6 +576,8 @@ struct Report {
     schema: &'static str,
     features: &'static str,
     exit_mask: bool,
+    vehicle_levels: bool,
+    lifecycle_in_seconds: bool,
     false_alarm_budget_per_hour: f64,
     rates_hz: Vec<f64>,
     test_drives_per_cell: u64,
@@ -625,6 +634,8 @@ pub fn run(args: Args) -> Result<()> {
             Ablation {
                 features,
                 no_exit_mask: args.no_exit_mask,
+                no_vehicle_levels: args.no_vehicle_levels,
+                rows_lifecycle: args.rows_lifecycle,
                 ..Ablation::default()
             },
             KappaRho::default(),
@@ -728,6 +739,8 @@ pub fn run(args: Args) -> Result<()> {
         schema: args.schema.name(),
         features: args.features.name(),
         exit_mask: !args.no_exit_mask,
+        vehicle_levels: !args.no_vehicle_levels,
+        lifecycle_in_seconds: !args.rows_lifecycle,
         false_alarm_budget_per_hour: FALSE_ALARM_BUDGET_PER_HOUR,
         rates_hz: RATES_HZ.to_vec(),
         test_drives_per_cell: args.repeats,
@@ -845,9 +858,110 @@ fn render_markdown(report: &Report) -> String {
             ));
         }
     }
+    md.push_str(&seeds_summary(report));
     md.push_str(&format!(
         "\nWall time {:.0} s.\n",
         report.experiment_wall_time_s
     ));
+    md
+}
+
+/// "median [min–max]" of `values` (two decimals); "–" for none.
+fn median_and_range(values: Vec<f64>) -> String {
+    let low = values.iter().copied().fold(f64::INFINITY, f64::min);
+    let high = values.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    match median(values) {
+        Some(m) if low < high => format!("{m:.2} [{low:.2}–{high:.2}]"),
+        Some(m) => format!("{m:.2}"),
+        None => "–".into(),
+    }
+}
+
+/// For a learned detector trained with several seeds, each cell's median and range over the seeds
+/// (those without an operating point within the budget are counted apart); empty for one seed.
+fn seeds_summary(report: &Report) -> String {
+    let mut md = String::new();
+    let mut names: Vec<&str> = Vec::new();
+    for d in &report.detectors {
+        if d.seed.is_some() && !names.contains(&d.name.as_str()) {
+            names.push(&d.name);
+        }
+    }
+    for name in names {
+        let runs: Vec<&DetectorReport> = report
+            .detectors
+            .iter()
+            .filter(|d| d.name == name && d.seed.is_some())
+            .collect();
+        let scored: Vec<&DetectorReport> = runs
+            .iter()
+            .copied()
+            .filter(|d| !d.operating_point.is_null())
+            .collect();
+        if runs.len() < 2 || scored.is_empty() {
+            continue;
+        }
+        md.push_str(&format!(
+            "\n## {name} over {} seeds: median [min–max]\n\n{} of {} seeds with an operating point \
+             within the budget. Cells: detected within the deadline, early onset; late onset; the \
+             late attack's coverage.\n\n| attack | deadline |",
+            runs.len(),
+            scored.len(),
+            runs.len()
+        ));
+        for rate in RATES_HZ {
+            md.push_str(&format!(" {rate} Hz |"));
+        }
+        md.push_str("\n|---|---|");
+        for _ in RATES_HZ {
+            md.push_str("---|");
+        }
+        md.push('\n');
+        let cells = scored[0].attacks.len();
+        let per_rate = cells / RATES_HZ.len().max(1);
+        let over_seeds = |index: usize, value: fn(&AttackCell) -> Option<f64>| {
+            median_and_range(
+                scored
+                    .iter()
+                    .filter_map(|d| d.attacks.get(index).and_then(value))
+                    .collect(),
+            )
+        };
+        for index in (0..per_rate).step_by(2) {
+            let first = &scored[0].attacks[index];
+            md.push_str(&format!(
+                "| {}{} | {} s |",
+                first.family,
+                magnitude_label(first),
+                first.within_s
+            ));
+            for rate_index in 0..RATES_HZ.len() {
+                let early = rate_index * per_rate + index;
+                md.push_str(&format!(
+                    " {}; {}; cov {} |",
+                    over_seeds(early, |c| Some(c.detected_in_time)),
+                    over_seeds(early + 1, |c| Some(c.detected_in_time)),
+                    over_seeds(early + 1, |c| c.coverage)
+                ));
+            }
+            md.push('\n');
+        }
+        md.push_str("\n| rate | false alarms per attack-free hour | within 30 s of a start or outage |\n|---|---|---|\n");
+        for (rate_index, rate) in RATES_HZ.iter().enumerate() {
+            let clean = |value: fn(&CleanCell) -> f64| {
+                median_and_range(
+                    scored
+                        .iter()
+                        .filter_map(|d| d.clean.get(rate_index).map(value))
+                        .collect(),
+                )
+            };
+            md.push_str(&format!(
+                "| {rate} Hz | {} | {} |\n",
+                clean(|c| c.per_hour),
+                clean(|c| c.after_start_or_outage as f64)
+            ));
+        }
+    }
     md
 }

@@ -514,7 +514,7 @@ pub(super) fn within_budget(
     let scored = score_tracks(&Arc::new(trained.clone()), validation);
     let rows = &scored.rows;
     // Offset evidence comes with the lifecycle in seconds, older schemas with the persistence N_p.
-    let point = if trained.schema().has_offset() {
+    let point = if trained.model.config().lifecycle_in_seconds() {
         choose_lifecycle(
             rows,
             &scored.offset,

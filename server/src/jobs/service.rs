@@ -102,7 +102,7 @@ fn training_request(request: v1::CreateTrainingJobRequest) -> Result<TrainingReq
             no_third_order: spec.no_third_order,
             first_order_cell: spec.first_order_cell,
             features,
-            no_exit_mask: false,
+            ..Ablation::default()
         },
         select_kappa_rho: spec.select_kappa_rho,
         display_name: display_name("display_name", &request.display_name)?.to_string(),
