@@ -363,11 +363,13 @@ fn the_subtle_experiment_reports_every_detector_within_the_budget() {
 
 #[test]
 fn the_dataset2_ramp_experiment_cross_validates_over_the_normal_trajectories() {
-    let args = ["--epochs", "1", "--drives", "2"];
+    let bundled = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/default.json");
+    let args = ["--epochs", "1", "--drives", "2", "--also", bundled];
     let Some((_out, report)) = run_experiment("subtle-d2", &args) else {
         return;
     };
-    // Dataset-2 has two normal trajectories of 10+ minutes: one fold each, three detectors per fold.
+    // Dataset-2 has two normal trajectories of 10+ minutes: one fold each; per fold the fold's
+    // model, the bundled default at its own operating point, the GLR and CUSUM.
     let folds = report["folds"].as_array().expect("folds");
     assert_eq!(folds.len(), 2);
     for fold in folds {
@@ -376,17 +378,22 @@ fn the_dataset2_ramp_experiment_cross_validates_over_the_normal_trajectories() {
             "{fold}"
         );
         let detectors = fold["detectors"].as_array().expect("detectors");
-        assert_eq!(detectors.len(), 3);
+        let names: Vec<&str> = detectors
+            .iter()
+            .filter_map(|d| d["name"].as_str())
+            .collect();
+        assert_eq!(names, ["HO-LLN v2", bundled, "directional GLR", "CUSUM"]);
+        assert!(detectors[1]["operating_point"]["lifecycle"].is_object());
         for d in detectors {
             let attacks = d["attacks"].as_array().expect("attack rows");
             if !d["operating_point"].is_null() {
-                // One row per ramp velocity, each over every onset.
+                // One row per ramp velocity, each over every onset; coverage is a share.
                 assert_eq!(attacks.len(), 4, "{d}");
-                assert!(
-                    attacks
-                        .iter()
-                        .all(|a| a["events"] == fold["attacks_per_magnitude"])
-                );
+                for a in attacks {
+                    assert_eq!(a["events"], fold["attacks_per_magnitude"]);
+                    let coverage = a["coverage"].as_f64();
+                    assert!(coverage.is_none_or(|c| (0.0..=1.0).contains(&c)), "{a}");
+                }
             }
         }
     }

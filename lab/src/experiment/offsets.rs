@@ -36,7 +36,7 @@ use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
 
 use super::common::{CommonArgs, prepare, seed_list, write_report};
 use super::parallel::{default_threads, map_parallel};
-use super::subtle::{BUDGET, FALSE_ALARM_BUDGET_PER_HOUR, within_budget};
+use super::subtle::{BUDGET, FALSE_ALARM_BUDGET_PER_HOUR, delay_and_coverage, within_budget};
 use super::training_attacks::recorded_and_simulated;
 
 #[derive(Debug, clap::Args)]
@@ -505,31 +505,6 @@ impl TestSet {
             clean,
         }
     }
-}
-
-/// The first alarm onset inside the attack (seconds after its first row), and the share of attacked
-/// valid rows alarmed from that onset to the attack's last row.
-fn delay_and_coverage(injected: &InjectedTrack, scored: &Scored) -> (Option<f64>, Option<f64>) {
-    let rows = injected.attack_rows();
-    let first = *rows.start();
-    let onset = rows
-        .clone()
-        .find(|&i| scored.alarms[i] && (i == 0 || !scored.alarms[i - 1]));
-    let Some(onset) = onset else {
-        return (None, None);
-    };
-    let delay = scored.rows[onset].time_s - scored.rows[first].time_s;
-    let (mut covered, mut valid) = (0usize, 0usize);
-    for i in onset..=*rows.end() {
-        if scored.rows[i].valid {
-            valid += 1;
-            covered += usize::from(scored.alarms[i]);
-        }
-    }
-    (
-        Some(delay),
-        (valid > 0).then(|| covered as f64 / valid as f64),
-    )
 }
 
 /// False-alarm onsets on clean drives of one rate, and those soon after a start or an outage.

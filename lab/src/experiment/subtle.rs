@@ -251,6 +251,9 @@ pub struct AttackRow {
     pub adr_30s: f64,
     pub adr_60s: f64,
     pub median_delay_s: Option<f64>,
+    /// Mean over the detected attacks of the share of attacked valid rows alarmed from the first
+    /// onset to the attack's end.
+    pub coverage: Option<f64>,
 }
 
 /// One detector on the test set, at its operating point within the budget.
@@ -318,10 +321,13 @@ fn median(values: &mut [f64]) -> Option<f64> {
 }
 
 /// Per attack kind (keyed by family position and magnitude bits): the kind and its scenarios' delays.
-type DelaysByKind = BTreeMap<(usize, u64), (AttackKind, Vec<Option<f64>>)>;
+type DelaysByKind = BTreeMap<(usize, u64), (AttackKind, Vec<(Option<f64>, Option<f64>)>)>;
 
 /// Groups per-scenario delays (one event each) by attack kind, in test-grid order.
-fn attack_rows(scenarios: &[InjectedTrack], delays: &[Option<f64>]) -> Vec<AttackRow> {
+fn attack_rows(
+    scenarios: &[InjectedTrack],
+    outcomes: &[(Option<f64>, Option<f64>)],
+) -> Vec<AttackRow> {
     let mut groups = DelaysByKind::new();
     let families = [
         "ramp_drift",
@@ -330,7 +336,7 @@ fn attack_rows(scenarios: &[InjectedTrack], delays: &[Option<f64>]) -> Vec<Attac
         "jump",
         "hopping",
     ];
-    for (s, d) in scenarios.iter().zip(delays) {
+    for (s, outcome) in scenarios.iter().zip(outcomes) {
         let kind = s.attack.kind;
         let family = families
             .iter()
@@ -341,13 +347,14 @@ fn attack_rows(scenarios: &[InjectedTrack], delays: &[Option<f64>]) -> Vec<Attac
             .entry((family, magnitude))
             .or_insert_with(|| (kind, Vec::new()))
             .1
-            .push(*d);
+            .push(*outcome);
     }
     groups
         .into_values()
-        .map(|(kind, delays)| {
-            let events = delays.len();
-            let mut detected: Vec<f64> = delays.iter().flatten().copied().collect();
+        .map(|(kind, outcomes)| {
+            let events = outcomes.len();
+            let mut detected: Vec<f64> = outcomes.iter().filter_map(|o| o.0).collect();
+            let coverages: Vec<f64> = outcomes.iter().filter_map(|o| o.1).collect();
             let within = |window: f64| {
                 detected.iter().filter(|&&d| d <= window).count() as f64 / events as f64
             };
@@ -358,6 +365,8 @@ fn attack_rows(scenarios: &[InjectedTrack], delays: &[Option<f64>]) -> Vec<Attac
                 adr_30s: within(WITHIN_S[0]),
                 adr_60s: within(WITHIN_S[1]),
                 median_delay_s: median(&mut detected),
+                coverage: (!coverages.is_empty())
+                    .then(|| coverages.iter().sum::<f64>() / coverages.len() as f64),
             }
         })
         .collect()
@@ -369,6 +378,34 @@ fn smallest_reached(rows: &[AttackRow], family: &str, adr: fn(&AttackRow) -> f64
         .filter(|r| r.family == family && adr(r) >= ADR_GOAL)
         .filter_map(|r| r.magnitude)
         .reduce(f64::min)
+}
+
+/// The first alarm onset inside the attack (seconds after its first row), and the share of attacked
+/// valid rows alarmed from that onset to the attack's last row.
+pub(super) fn delay_and_coverage(
+    injected: &InjectedTrack,
+    scored: &Scored,
+) -> (Option<f64>, Option<f64>) {
+    let rows = injected.attack_rows();
+    let first = *rows.start();
+    let onset = rows
+        .clone()
+        .find(|&i| scored.alarms[i] && (i == 0 || !scored.alarms[i - 1]));
+    let Some(onset) = onset else {
+        return (None, None);
+    };
+    let delay = scored.rows[onset].time_s - scored.rows[first].time_s;
+    let (mut covered, mut valid) = (0usize, 0usize);
+    for i in onset..=*rows.end() {
+        if scored.rows[i].valid {
+            valid += 1;
+            covered += usize::from(scored.alarms[i]);
+        }
+    }
+    (
+        Some(delay),
+        (valid > 0).then(|| covered as f64 / valid as f64),
+    )
 }
 
 /// Delay of a scenario's single attack event (`None` when missed).
@@ -438,17 +475,22 @@ impl TestSet {
         score: impl Fn(&[Track]) -> Result<Scored> + Sync,
     ) -> Result<DetectorReport> {
         let attacked: Vec<Track> = self.scenarios.iter().map(|s| s.track.clone()).collect();
-        let delays: Vec<Option<f64>> = scored_per_track(&attacked, self.threads, &score)?
-            .into_iter()
-            .map(|s| first_delay(s.metrics(EventRules::Spec)))
-            .collect();
+        let outcomes: Vec<(Option<f64>, Option<f64>)> =
+            scored_per_track(&attacked, self.threads, &score)?
+                .iter()
+                .zip(&self.scenarios)
+                .map(|(scored, injected)| {
+                    let coverage = delay_and_coverage(injected, scored).1;
+                    (first_delay(scored.metrics(EventRules::Spec)), coverage)
+                })
+                .collect();
         let mut scored = Scored::default();
         for part in scored_per_track(&self.clean, self.threads, &score)? {
             scored.append(part);
         }
         let attack_free = scored.metrics(EventRules::Spec);
         let attack_free_hours = normal_hours(&scored.rows);
-        let attacks = attack_rows(&self.scenarios, &delays);
+        let attacks = attack_rows(&self.scenarios, &outcomes);
         Ok(DetectorReport {
             name: name.to_string(),
             operating_point,
