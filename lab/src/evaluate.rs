@@ -17,8 +17,9 @@ use crate::figures;
 pub struct Args {
     #[command(flatten)]
     evaluate: operator::Args,
-    /// Draw the trace of one vehicle (p̂ with θ, confirmed alarm, truth, the recording's own
-    /// detector when it has one, evidence channels) as SVG here.
+    /// Draw the trace of one vehicle (p̂ with θ, confirmed alarm, truth, why the detector says so,
+    /// the recording's own detector when it has one, evidence channels, and with offset evidence
+    /// the slow anchor's offset against its 5σ gate) as SVG here.
     #[arg(long, conflicts_with = "server")]
     plot: Option<PathBuf>,
     /// The vehicle whose trace --plot draws (default: the first).

@@ -1,6 +1,9 @@
 //! SVG figures of the experiments and of `spoofwatch-lab evaluate --plot`: line charts of stacked panels
 //! that share their x axis ([`line_chart_svg`]) and the per-recording detector trace built on them
-//! ([`trace_of`], [`trace_svg`]).
+//! ([`trace_of`], [`trace_svg`]). The trace's panels: p̂ with θ, the confirmed alarm and the truth; why
+//! the detector says so (a band per dominant evidence kind of the detections' explanations); the
+//! recording's own detector against the truth, when it has one; the evidence channels (with evidence
+//! v3 the offset channels among them); with v3, the slow anchor's offset ‖o‖ against its 5σ gate.
 //!
 //! Pure drawing: plain data in, SVG text out; the caller writes the file. Text is left to the SVG
 //! viewer's fonts (plotters without a font feature only estimates text widths), which keeps the
@@ -13,6 +16,8 @@ use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 use spoofwatch_core::evaluation::RowResult;
 use spoofwatch_core::evidence::Evidence;
+use spoofwatch_core::evidence::offset::DECISIVE_GATE;
+use spoofwatch_core::explain::EvidenceKind;
 use spoofwatch_core::sample::Record;
 
 /// How a series is stroked.
@@ -290,15 +295,27 @@ pub struct Trace {
     pub comparator: Option<(String, Vec<Option<bool>>)>,
     /// Evidence channels over the same times as `time_s` (absolute, not yet shifted).
     pub channels: Vec<Series>,
+    /// The slow anchor's offset ‖o‖ (m) and its 5σ gate over the same times (absolute); empty
+    /// without offset evidence.
+    pub offset: Vec<Series>,
+    /// Why: per dominant evidence kind that occurs (never [`EvidenceKind::None`]), in the order of
+    /// [`EvidenceKind::ALL`], the rows whose detection names it.
+    pub why: Vec<(EvidenceKind, Vec<bool>)>,
 }
 
 /// The trace of one vehicle's evaluated rows (`Evaluation::rows` of that track, in order) and its
 /// records (for the recording's own comparator verdict), at threshold `theta`.
 ///
 /// The evidence panel shows the whitened residual ‖η_t‖ (a gap where ν = 0), ã_t = ln(1 + a_t),
-/// and with evidence v2 the drift statistic and the stale-fix time. All are drawn as ln(1 + x), as
-/// ã and the model's drift inputs are: AV-GPS's spoofed jumps reach ‖η‖ ≈ 10⁵, which on a linear
-/// axis flattens every other channel to a line at 0.
+/// with evidence v2 the drift statistic and the stale-fix time, and with v3 the fast and slow
+/// anchors' NIS and the seconds the offset has been held beyond the decisive gate. All are drawn as
+/// ln(1 + x), as ã and the model's drift and offset inputs are: AV-GPS's spoofed jumps reach
+/// ‖η‖ ≈ 10⁵, which on a linear axis flattens every other channel to a line at 0.
+///
+/// Why is each row's own explanation ([`Decision::explanation`], what the service sends as a
+/// detection's `why`), so the figure and the service never disagree on a row.
+///
+/// [`Decision::explanation`]: spoofwatch_core::detector::Decision::explanation
 ///
 /// # Errors
 /// When rows and records are not the same rows.
@@ -321,10 +338,11 @@ pub fn trace_of(
             record.line
         );
     }
-    let channel = |name: &str, value: fn(&Evidence) -> f64| {
+    let per_row = |value: fn(&Evidence) -> f64| -> Vec<(f64, f64)> {
         let points = rows.iter().map(|r| (r.time_s, value(&r.decision.evidence)));
-        Series::line(name, points.collect())
+        points.collect()
     };
+    let channel = |name: &str, value: fn(&Evidence) -> f64| Series::line(name, per_row(value));
     let mut channels = vec![
         channel("ln(1 + ‖η‖) (whitened residual)", |e| {
             if e.valid {
@@ -343,6 +361,56 @@ pub fn trace_of(
             e.drift.map_or(f64::NAN, |d| d.stale_fix_s.ln_1p())
         }));
     }
+    let mut offset = Vec::new();
+    if rows.iter().any(|r| r.decision.evidence.offset.is_some()) {
+        // The anchors are (fast, slow); destructuring keeps that pairing checked by the compiler.
+        channels.push(channel("ln(1 + NIS fast)", |e| {
+            e.offset.map_or(f64::NAN, |o| {
+                let [fast, _] = o.nis;
+                fast.ln_1p()
+            })
+        }));
+        channels.push(channel("ln(1 + NIS slow)", |e| {
+            e.offset.map_or(f64::NAN, |o| {
+                let [_, slow] = o.nis;
+                slow.ln_1p()
+            })
+        }));
+        channels.push(channel("ln(1 + held s)", |e| {
+            e.offset.map_or(f64::NAN, |o| o.held_s.ln_1p())
+        }));
+        // In metres, not ln(1 + x): the reader compares the displacement with the gate directly.
+        // The gate is the decisive NIS gate on ‖o‖ alone (√25 = 5σ); while an anchor is frozen the
+        // slow NIS can cross it earlier, as it also tests the change since the last trusted fix.
+        offset.push(Series::line(
+            "‖o‖ slow anchor (m)",
+            per_row(|e| {
+                e.offset
+                    .map_or(f64::NAN, |o| o.offset_m[0].hypot(o.offset_m[1]))
+            }),
+        ));
+        offset.push(Series::dashed(
+            "5σ gate (m)",
+            per_row(|e| {
+                e.offset
+                    .map_or(f64::NAN, |o| DECISIVE_GATE.sqrt() * o.sigma_m)
+            }),
+        ));
+    }
+    // The kinds in a fixed order, each kept only where some row names it, so the legend lists what
+    // the trace shows and nothing else.
+    let why = EvidenceKind::ALL
+        .into_iter()
+        .filter(|&kind| kind != EvidenceKind::None)
+        .map(|kind| {
+            let on: Vec<bool> = rows
+                .iter()
+                .map(|r| r.decision.explanation.dominant == kind)
+                .collect();
+            (kind, on)
+        })
+        .filter(|(_, on)| on.contains(&true))
+        .collect();
     let comparator = records
         .iter()
         .any(|r| r.comparator_alarm.is_some())
@@ -359,11 +427,20 @@ pub fn trace_of(
         truth: rows.iter().map(|r| r.label).collect(),
         comparator,
         channels,
+        offset,
+        why,
     })
 }
 
-/// The trace figure: p̂ with θ, the confirmed alarm and the truth; the comparator against the
-/// truth (when the recording has one); the evidence channels.
+/// The legend name of a why band: the kind's name in words.
+fn why_label(kind: EvidenceKind) -> String {
+    kind.name().replace('_', " ")
+}
+
+/// The trace figure: p̂ with θ, the confirmed alarm and the truth; why (a band per dominant evidence
+/// kind, right under the alarm it explains); the comparator against the truth (when the recording
+/// has one); the evidence channels; the slow anchor's offset against its 5σ gate (with offset
+/// evidence).
 ///
 /// # Errors
 /// When the per-row vectors differ in length or there is no finite time.
@@ -382,6 +459,13 @@ pub fn trace_svg(trace: &Trace) -> Result<String> {
         ensure!(
             verdicts.len() == rows,
             "{name} must have one value per row ({rows})"
+        );
+    }
+    for (kind, on) in &trace.why {
+        ensure!(
+            on.len() == rows,
+            "why {:?} must have one value per row ({rows})",
+            kind.name()
         );
     }
     let origin = trace.time_s.iter().copied().find(|t| t.is_finite());
@@ -407,6 +491,7 @@ pub fn trace_svg(trace: &Trace) -> Result<String> {
         series: top,
         y_range: Some((0.0, 1.32)),
     }];
+    panels.push(why_panel(&t, &trace.why));
     if let Some((name, verdicts)) = &trace.comparator {
         let comparator_on: Vec<bool> = verdicts.iter().map(|v| *v == Some(true)).collect();
         panels.push(Panel {
@@ -420,19 +505,54 @@ pub fn trace_svg(trace: &Trace) -> Result<String> {
             y_range: Some((0.0, 1.0)),
         });
     }
-    if !trace.channels.is_empty() {
-        let shifted = trace.channels.iter().map(|s| Series {
+    let shifted = |series: &[Series]| -> Vec<Series> {
+        let shift = |s: &Series| Series {
             points: s.points.iter().map(|&(x, y)| (x - origin, y)).collect(),
             ..s.clone()
-        });
+        };
+        series.iter().map(shift).collect()
+    };
+    if !trace.channels.is_empty() {
         panels.push(Panel {
             title: "evidence channels".into(),
             y_label: "value".into(),
-            series: shifted.collect(),
+            series: shifted(&trace.channels),
+            y_range: None,
+        });
+    }
+    if !trace.offset.is_empty() {
+        panels.push(Panel {
+            title: "GNSS offset from the slow anchor against its 5σ gate".into(),
+            y_label: "m".into(),
+            series: shifted(&trace.offset),
             y_range: None,
         });
     }
     line_chart_svg(&trace.title, "time since the first row (s)", &panels)
+}
+
+/// The why panel over times `t`: a band per kind at a level of its own, fixed per kind (the order
+/// of [`EvidenceKind::ALL`] from the top), so a kind sits at the same height in every trace.
+fn why_panel(t: &[f64], why: &[(EvidenceKind, Vec<bool>)]) -> Panel {
+    let kinds = EvidenceKind::ALL.len() as f64;
+    let series = why.iter().map(|(kind, on)| {
+        let rank = EvidenceKind::ALL
+            .iter()
+            .position(|k| k == kind)
+            .unwrap_or(0) as f64;
+        Series::band(why_label(*kind), t, on, 1.0 - rank / kinds)
+    });
+    let title = if why.is_empty() {
+        "why: no evidence stands out on any row"
+    } else {
+        "why: the dominant evidence of each detection"
+    };
+    Panel {
+        title: title.into(),
+        y_label: "on".into(),
+        series: series.collect(),
+        y_range: Some((0.0, 1.0)),
+    }
 }
 
 #[cfg(test)]
@@ -440,6 +560,9 @@ mod tests {
     use std::sync::Arc;
 
     use spoofwatch_core::evaluation::evaluate_tracks;
+    use spoofwatch_core::evidence::drift::DriftEvidence;
+    use spoofwatch_core::evidence::offset::OffsetEvidence;
+    use spoofwatch_core::explain::Explanation;
     use spoofwatch_core::metrics::EventRules;
     use spoofwatch_core::model::artifact::ModelArtifact;
     use spoofwatch_core::scenario::{DriveSpec, simulate_drive};
@@ -588,6 +711,9 @@ mod tests {
         let mut trace = small_trace();
         trace.time_s = vec![f64::NAN; 4];
         assert!(trace_svg(&trace).is_err(), "no finite time");
+        let mut trace = small_trace();
+        trace.why[0].1.pop();
+        assert!(trace_svg(&trace).is_err(), "a short why band");
     }
 
     fn small_trace() -> Trace {
@@ -606,6 +732,8 @@ mod tests {
                 "‖η‖",
                 vec![(100.0, f64::NAN), (101.0, 1.0), (102.0, 5.0), (103.0, 7.0)],
             )],
+            offset: Vec::new(),
+            why: vec![(EvidenceKind::Energy, vec![false, false, true, true])],
         }
     }
 
@@ -621,13 +749,15 @@ mod tests {
             ("θ = 0.60", 1),
             ("EKF Detector", 1),
             ("‖η‖", 1),
+            ("why: the dominant evidence of each detection", 1),
+            ("energy", 1),
         ] {
             assert_eq!(drawn.count_text(name), panels, "{name}: {:?}", drawn.texts);
         }
-        // Top panel 4 series, comparator panel 3, evidence 1: a legend sample and at least one
-        // line each (the dashed θ is many short ones; the comparator's one `on` row is a dot).
+        // Top panel 4 series, why 1, comparator panel 3, evidence 1: a legend sample and at least
+        // one line each (the dashed θ is many short ones; the comparator's one `on` row is a dot).
         assert!(
-            drawn.polylines.len() >= 2 * 8 - 1,
+            drawn.polylines.len() >= 2 * 9 - 1,
             "{}",
             drawn.polylines.len()
         );
@@ -639,23 +769,203 @@ mod tests {
         assert_eq!(drawn.count_text("ground truth: spoofed"), 1);
     }
 
-    #[test]
-    fn trace_of_an_evaluated_drive_has_the_evidence_channels_and_the_comparator() {
+    /// A simulated drive of `duration_s` evaluated by the bundled (v3) model: its rows and records.
+    fn evaluated_drive(duration_s: f64, comparator_from: usize) -> (Vec<RowResult>, Vec<Record>) {
         let model = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/default.json");
         let bytes = std::fs::read(model).expect("the bundled model");
         let artifact = Arc::new(ModelArtifact::from_slice(&bytes).expect("valid"));
         let spec = DriveSpec {
-            duration_s: 60.0,
+            duration_s,
             ..DriveSpec::default()
         };
         let mut track = simulate_drive(&spec, "sim").expect("simulated");
-        for record in &mut track.records[30..] {
+        for record in track.records.iter_mut().skip(comparator_from) {
             record.comparator_alarm = Some(true);
         }
         let evaluation = evaluate_tracks(&artifact, &[track.clone()], EventRules::default());
+        (evaluation.rows, track.records)
+    }
 
-        let trace = trace_of("sim", &evaluation.rows, &track.records, 0.5).expect("same rows");
-        assert_eq!(trace.time_s.len(), track.records.len());
+    /// The first rows of a real drive with their evidence and verdict set by hand, each row's
+    /// explanation made as the detector makes it: `([NIS fast, NIS slow], arrived by step, held s,
+    /// p̂ ≥ θ)` per row, or no offset evidence at all with `offset: false` (a v2 model's rows); the
+    /// drift evidence cycles through `drift`.
+    fn hand_rows(
+        hand: &[([f64; 2], bool, f64, bool)],
+        offset: bool,
+        drift: &[DriftEvidence],
+    ) -> (Vec<RowResult>, Vec<Record>) {
+        let (mut rows, mut records) = evaluated_drive(20.0, usize::MAX);
+        rows.truncate(hand.len());
+        records.truncate(hand.len());
+        assert_eq!(rows.len(), hand.len(), "the drive has enough rows");
+        for (i, (row, &(nis, arrived_by_step, held_s, positive))) in
+            rows.iter_mut().zip(hand).enumerate()
+        {
+            let decision = &mut row.decision;
+            decision.evidence.drift = Some(drift[i % drift.len()]);
+            // ‖o‖ = 5i m (a 3-4-5 triangle) against 5σ = 10 m.
+            let i = i as f64;
+            decision.evidence.offset = offset.then_some(OffsetEvidence {
+                offset_m: [3.0 * i, 4.0 * i],
+                sigma_m: 2.0,
+                nis,
+                held_s,
+                arrived_by_step,
+                ..OffsetEvidence::EMPTY
+            });
+            decision.positive = positive;
+            decision.explanation = Explanation::of(&decision.evidence, positive);
+        }
+        (rows, records)
+    }
+
+    /// None, jump, jump, held offset (at the follow gate), held offset (beyond the decisive gate
+    /// without a step), energy (the model's verdict alone); the drift is quiet throughout.
+    const OFFSET_ROWS: [([f64; 2], bool, f64, bool); 6] = [
+        ([1.0, 2.0], false, 0.0, false),
+        ([40.0, 30.0], true, 0.0, false),
+        ([50.0, 36.0], true, 1.0, true),
+        ([20.0, 5.0], false, 0.0, false),
+        ([30.0, 30.0], false, 3.0, true),
+        ([0.0, 0.0], false, 0.0, true),
+    ];
+
+    fn values(series: &[Series], name: &str) -> Vec<f64> {
+        let found = series.iter().find(|s| s.name == name);
+        let found = found.unwrap_or_else(|| panic!("no series {name} in {series:?}"));
+        found.points.iter().map(|p| p.1).collect()
+    }
+
+    fn on(rows: &[usize], of: usize) -> Vec<bool> {
+        (0..of).map(|row| rows.contains(&row)).collect()
+    }
+
+    #[test]
+    fn trace_of_offset_evidence_has_the_offset_channels_and_a_why_band_per_kind_that_occurs() {
+        let (rows, records) = hand_rows(&OFFSET_ROWS, true, &[DriftEvidence::EMPTY]);
+        let trace = trace_of("hand", &rows, &records, 0.5).expect("same rows");
+
+        let ln_1p = |v: [f64; 6]| v.map(f64::ln_1p).to_vec();
+        let channels = &trace.channels;
+        assert_eq!(
+            values(channels, "ln(1 + NIS fast)"),
+            ln_1p([1.0, 40.0, 50.0, 20.0, 30.0, 0.0])
+        );
+        assert_eq!(
+            values(channels, "ln(1 + NIS slow)"),
+            ln_1p([2.0, 30.0, 36.0, 5.0, 30.0, 0.0])
+        );
+        assert_eq!(
+            values(channels, "ln(1 + held s)"),
+            ln_1p([0.0, 0.0, 1.0, 0.0, 3.0, 0.0])
+        );
+        assert_eq!(
+            values(&trace.offset, "‖o‖ slow anchor (m)"),
+            [0.0, 5.0, 10.0, 15.0, 20.0, 25.0]
+        );
+        assert_eq!(values(&trace.offset, "5σ gate (m)"), [10.0; 6]);
+        assert_eq!(trace.offset[1].stroke, Stroke::Dashed);
+
+        // Exactly the rows the explanation names, in the order of `EvidenceKind::ALL`; no band for
+        // drift or a frozen fix, which no row names, nor for rows where nothing stands out.
+        assert_eq!(
+            trace.why,
+            [
+                (EvidenceKind::Jump, on(&[1, 2], 6)),
+                (EvidenceKind::HeldOffset, on(&[3, 4], 6)),
+                (EvidenceKind::Energy, on(&[5], 6)),
+            ]
+        );
+        for (kind, on) in &trace.why {
+            for (row, on) in rows.iter().zip(on) {
+                let why = Explanation::of(&row.decision.evidence, row.decision.positive);
+                assert_eq!(*on, why.dominant == *kind, "{kind:?} at line {}", row.line);
+            }
+        }
+    }
+
+    #[test]
+    fn trace_of_rows_without_offset_evidence_has_the_why_the_explanation_gives() {
+        let frozen = DriftEvidence {
+            stale_fix_s: 3.0,
+            ..DriftEvidence::EMPTY
+        };
+        let drifting = DriftEvidence {
+            statistic: 2.0,
+            ..DriftEvidence::EMPTY
+        };
+        let quiet = DriftEvidence::EMPTY;
+        // Rows 0–5 under drift frozen, drifting, quiet, frozen, drifting, quiet; the quiet rows 2
+        // and 5 are p̂ ≥ θ, which leaves the model's own reading.
+        let (rows, records) = hand_rows(&OFFSET_ROWS, false, &[frozen, drifting, quiet]);
+        let trace = trace_of("v2", &rows, &records, 0.5).expect("same rows");
+
+        let names: Vec<&str> = trace.channels.iter().map(|s| s.name.as_str()).collect();
+        assert!(!names.iter().any(|n| n.contains("NIS")), "{names:?}");
+        assert!(trace.offset.is_empty());
+        assert_eq!(
+            trace.why,
+            [
+                (EvidenceKind::Drift, on(&[1, 4], 6)),
+                (EvidenceKind::FrozenFix, on(&[0, 3], 6)),
+                (EvidenceKind::Energy, on(&[2, 5], 6)),
+            ]
+        );
+    }
+
+    #[test]
+    fn the_trace_names_the_why_bands_present_and_the_offset_panel() {
+        let (rows, records) = hand_rows(&OFFSET_ROWS, true, &[DriftEvidence::EMPTY]);
+        let trace = trace_of("hand", &rows, &records, 0.5).expect("same rows");
+        let drawn = parse(&trace_svg(&trace).expect("drawn"));
+        for text in [
+            "why: the dominant evidence of each detection",
+            "jump",
+            "held offset",
+            "energy",
+            "ln(1 + NIS fast)",
+            "ln(1 + NIS slow)",
+            "ln(1 + held s)",
+            "GNSS offset from the slow anchor against its 5σ gate",
+            "‖o‖ slow anchor (m)",
+            "5σ gate (m)",
+        ] {
+            assert_eq!(drawn.count_text(text), 1, "{text}: {:?}", drawn.texts);
+        }
+        for absent in ["drift", "frozen fix", "none"] {
+            assert_eq!(drawn.count_text(absent), 0, "{absent}: {:?}", drawn.texts);
+        }
+
+        let (rows, records) = hand_rows(&OFFSET_ROWS[..3], false, &[DriftEvidence::EMPTY]);
+        let quiet = trace_of("quiet", &rows, &records, 0.5).expect("same rows");
+        let drawn = parse(&trace_svg(&quiet).expect("drawn"));
+        // Only row 2 is p̂ ≥ θ: its energy is the one reason left; nothing about offsets.
+        assert_eq!(drawn.count_text("energy"), 1, "{:?}", drawn.texts);
+        for absent in [
+            "jump",
+            "held offset",
+            "ln(1 + NIS slow)",
+            "GNSS offset from the slow anchor against its 5σ gate",
+        ] {
+            assert_eq!(drawn.count_text(absent), 0, "{absent}: {:?}", drawn.texts);
+        }
+
+        let mut calm = quiet;
+        calm.why.clear();
+        let drawn = parse(&trace_svg(&calm).expect("drawn"));
+        assert_eq!(
+            drawn.count_text("why: no evidence stands out on any row"),
+            1
+        );
+        assert_eq!(drawn.count_text("energy"), 0);
+    }
+
+    #[test]
+    fn trace_of_an_evaluated_drive_has_the_evidence_channels_and_the_comparator() {
+        let (rows, records) = evaluated_drive(60.0, 30);
+        let trace = trace_of("sim", &rows, &records, 0.5).expect("same rows");
+        assert_eq!(trace.time_s.len(), records.len());
         let names: Vec<&str> = trace.channels.iter().map(|s| s.name.as_str()).collect();
         assert_eq!(
             names,
@@ -663,9 +973,29 @@ mod tests {
                 "ln(1 + ‖η‖) (whitened residual)",
                 "ã = ln(1 + a)",
                 "ln(1 + drift statistic)",
-                "ln(1 + stale fix s)"
+                "ln(1 + stale fix s)",
+                "ln(1 + NIS fast)",
+                "ln(1 + NIS slow)",
+                "ln(1 + held s)",
             ]
         );
+        assert_eq!(trace.offset.len(), 2);
+        // Every row is either in the band of its detection's kind or explained by nothing.
+        for (index, row) in rows.iter().enumerate() {
+            let dominant = row.decision.explanation.dominant;
+            let bands: Vec<EvidenceKind> = trace
+                .why
+                .iter()
+                .filter(|(_, on)| on[index])
+                .map(|(kind, _)| *kind)
+                .collect();
+            let expected: &[EvidenceKind] = if dominant == EvidenceKind::None {
+                &[]
+            } else {
+                &[dominant]
+            };
+            assert_eq!(bands, expected, "line {}", row.line);
+        }
         // ν = 0 at the trajectory start: no residual to draw there.
         assert!(trace.channels[0].points[0].1.is_nan());
         let (name, verdicts) = trace
@@ -676,6 +1006,6 @@ mod tests {
         assert_eq!(verdicts[29..31], [None, Some(true)]);
         parse(&trace_svg(&trace).expect("drawn"));
 
-        assert!(trace_of("sim", &evaluation.rows, &track.records[1..], 0.5).is_err());
+        assert!(trace_of("sim", &rows, &records[1..], 0.5).is_err());
     }
 }

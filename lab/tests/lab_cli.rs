@@ -94,7 +94,7 @@ fn evaluate_plots_the_trace_of_a_chosen_vehicle() {
         .map(|t| t.vehicle_id)
         .collect();
     assert_eq!(vehicles.len(), 2);
-    // The bundled v2 model: no training needed, and its evidence has the drift channels.
+    // The bundled v3 model: no training needed, and its evidence has the drift and offset channels.
     let model = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/default.json");
 
     let first = path(dir.path(), "first.svg");
@@ -118,6 +118,14 @@ fn evaluate_plots_the_trace_of_a_chosen_vehicle() {
         "ã = ln(1 + a)",
         "ln(1 + drift statistic)",
         "ln(1 + stale fix s)",
+        "ln(1 + NIS fast)",
+        "ln(1 + NIS slow)",
+        "ln(1 + held s)",
+        "‖o‖ slow anchor (m)",
+        "5σ gate (m)",
+        // The frozen feed, named by the detections' explanation.
+        "why: the dominant evidence of each detection",
+        "frozen fix",
     ] {
         assert!(texts.iter().any(|t| t == legend), "{legend}: {texts:?}");
     }
