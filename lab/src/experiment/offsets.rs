@@ -789,37 +789,16 @@ fn render_markdown(report: &Report) -> String {
             "Operating point: `{}`\n\n",
             detector.operating_point
         ));
-        md.push_str("| attack | deadline |");
-        for rate in RATES_HZ {
-            md.push_str(&format!(" {rate} Hz |"));
-        }
-        md.push_str("\n|---|---|");
-        for _ in RATES_HZ {
-            md.push_str("---|");
-        }
-        md.push('\n');
-        let per_rate = detector.attacks.len() / RATES_HZ.len().max(1);
-        for index in (0..per_rate).step_by(2) {
-            let early = &detector.attacks[index];
-            md.push_str(&format!(
-                "| {}{} | {} s |",
-                early.family,
-                magnitude_label(early),
-                early.within_s
-            ));
-            for rate_index in 0..RATES_HZ.len() {
-                let early = &detector.attacks[rate_index * per_rate + index];
-                let late = &detector.attacks[rate_index * per_rate + index + 1];
-                md.push_str(&format!(
-                    " {:.2} / {:.2}, cov {} |",
-                    early.detected_in_time,
-                    late.detected_in_time,
-                    late.coverage
-                        .map_or_else(|| "–".into(), |c| format!("{c:.2}"))
-                ));
-            }
-            md.push('\n');
-        }
+        md.push_str(&attack_table(&detector.attacks, |early| {
+            let (early, late) = (&detector.attacks[early], &detector.attacks[early + 1]);
+            format!(
+                "{:.2} / {:.2}, cov {}",
+                early.detected_in_time,
+                late.detected_in_time,
+                late.coverage
+                    .map_or_else(|| "–".into(), |c| format!("{c:.2}"))
+            )
+        }));
         md.push_str("\n| rate | attack-free hours | false alarms | per hour | within 30 s of a start or outage | with a held offset |\n|---|---|---|---|---|---|\n");
         for c in &detector.clean {
             md.push_str(&format!(
@@ -838,6 +817,33 @@ fn render_markdown(report: &Report) -> String {
         "\nWall time {:.0} s.\n",
         report.experiment_wall_time_s
     ));
+    md
+}
+
+/// The attack table: a row per attack kind and magnitude, a column per rate; `cell` formats a rate's
+/// cell from the index of its early-onset cell in `attacks` (the late one follows it).
+fn attack_table(attacks: &[AttackCell], cell: impl Fn(usize) -> String) -> String {
+    let mut md = String::from("| attack | deadline |");
+    for rate in RATES_HZ {
+        md.push_str(&format!(" {rate} Hz |"));
+    }
+    md.push_str("\n|---|---|");
+    md.push_str(&"---|".repeat(RATES_HZ.len()));
+    md.push('\n');
+    let per_rate = attacks.len() / RATES_HZ.len().max(1);
+    for index in (0..per_rate).step_by(2) {
+        let first = &attacks[index];
+        md.push_str(&format!(
+            "| {}{} | {} s |",
+            first.family,
+            magnitude_label(first),
+            first.within_s
+        ));
+        for rate_index in 0..RATES_HZ.len() {
+            md.push_str(&format!(" {} |", cell(rate_index * per_rate + index)));
+        }
+        md.push('\n');
+    }
     md
 }
 
@@ -879,21 +885,11 @@ fn seeds_summary(report: &Report) -> String {
         md.push_str(&format!(
             "\n## {name} over {} seeds: median [min–max]\n\n{} of {} seeds with an operating point \
              within the budget. Cells: detected within the deadline, early onset; late onset; the \
-             late attack's coverage.\n\n| attack | deadline |",
+             late attack's coverage.\n\n",
             runs.len(),
             scored.len(),
             runs.len()
         ));
-        for rate in RATES_HZ {
-            md.push_str(&format!(" {rate} Hz |"));
-        }
-        md.push_str("\n|---|---|");
-        for _ in RATES_HZ {
-            md.push_str("---|");
-        }
-        md.push('\n');
-        let cells = scored[0].attacks.len();
-        let per_rate = cells / RATES_HZ.len().max(1);
         let over_seeds = |index: usize, value: fn(&AttackCell) -> Option<f64>| {
             median_and_range(
                 scored
@@ -902,25 +898,14 @@ fn seeds_summary(report: &Report) -> String {
                     .collect(),
             )
         };
-        for index in (0..per_rate).step_by(2) {
-            let first = &scored[0].attacks[index];
-            md.push_str(&format!(
-                "| {}{} | {} s |",
-                first.family,
-                magnitude_label(first),
-                first.within_s
-            ));
-            for rate_index in 0..RATES_HZ.len() {
-                let early = rate_index * per_rate + index;
-                md.push_str(&format!(
-                    " {}; {}; cov {} |",
-                    over_seeds(early, |c| Some(c.detected_in_time)),
-                    over_seeds(early + 1, |c| Some(c.detected_in_time)),
-                    over_seeds(early + 1, |c| c.coverage)
-                ));
-            }
-            md.push('\n');
-        }
+        md.push_str(&attack_table(&scored[0].attacks, |early| {
+            format!(
+                "{}; {}; cov {}",
+                over_seeds(early, |c| Some(c.detected_in_time)),
+                over_seeds(early + 1, |c| Some(c.detected_in_time)),
+                over_seeds(early + 1, |c| c.coverage)
+            )
+        }));
         md.push_str("\n| rate | false alarms per attack-free hour | within 30 s of a start or outage |\n|---|---|---|\n");
         for (rate_index, rate) in RATES_HZ.iter().enumerate() {
             let clean = |value: fn(&CleanCell) -> f64| {
@@ -939,4 +924,97 @@ fn seeds_summary(report: &Report) -> String {
         }
     }
     md
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cell(rate_hz: f64, early_onset: bool, detected: f64, coverage: Option<f64>) -> AttackCell {
+        AttackCell {
+            family: "jump".into(),
+            magnitude: Some(20.0),
+            rate_hz,
+            early_onset,
+            drives: 10,
+            within_s: 10.0,
+            detected_in_time: detected,
+            detected,
+            median_delay_s: Some(1.0),
+            coverage,
+        }
+    }
+
+    fn detector(seed: u64, scored: bool, early: f64, per_hour: f64) -> DetectorReport {
+        DetectorReport {
+            name: "HO-LLN v3".into(),
+            seed: Some(seed),
+            operating_point: if scored {
+                serde_json::json!({"theta": 0.9})
+            } else {
+                serde_json::Value::Null
+            },
+            attacks: RATES_HZ
+                .iter()
+                .flat_map(|&r| [cell(r, true, early, None), cell(r, false, 1.0, Some(0.5))])
+                .collect(),
+            clean: RATES_HZ
+                .iter()
+                .map(|&rate_hz| CleanCell {
+                    rate_hz,
+                    attack_free_hours: 5.0,
+                    false_alarm_onsets: 1,
+                    per_hour,
+                    after_start_or_outage: 0,
+                    with_held_offset: 0,
+                })
+                .collect(),
+        }
+    }
+
+    fn report(detectors: Vec<DetectorReport>) -> Report {
+        Report {
+            protocol: "offsets",
+            seed: 42,
+            training_seeds: vec![42, 43, 44],
+            schema: "v3",
+            features: "all",
+            exit_mask: true,
+            vehicle_levels: true,
+            lifecycle_in_seconds: true,
+            false_alarm_budget_per_hour: 1.0,
+            rates_hz: RATES_HZ.to_vec(),
+            test_drives_per_cell: 10,
+            clean_drives_per_rate: 24,
+            detectors,
+            experiment_wall_time_s: 1.0,
+        }
+    }
+
+    #[test]
+    fn several_seeds_are_summarised_by_median_and_range_over_the_seeds_with_a_point() {
+        let md = seeds_summary(&report(vec![
+            detector(42, true, 0.3, 0.5),
+            detector(43, true, 0.7, 0.2),
+            detector(44, true, 0.4, 0.9),
+            // No operating point: counted, not summarised.
+            detector(45, false, 0.0, 0.0),
+        ]));
+        assert!(md.contains("## HO-LLN v3 over 4 seeds"), "{md}");
+        assert!(md.contains("3 of 4 seeds with an operating point"), "{md}");
+        // Early onset: median 0.4 of 0.3, 0.4, 0.7; late: all 1.00, no range; coverage 0.5.
+        assert!(
+            md.contains("| jump 20 m | 10 s | 0.40 [0.30–0.70]; 1.00; cov 0.50 |"),
+            "{md}"
+        );
+        assert!(md.contains("| 1 Hz | 0.50 [0.20–0.90] | 0.00 |"), "{md}");
+    }
+
+    #[test]
+    fn one_seed_has_no_summary() {
+        assert_eq!(
+            seeds_summary(&report(vec![detector(42, true, 0.3, 0.5)])),
+            ""
+        );
+    }
 }

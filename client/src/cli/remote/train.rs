@@ -30,6 +30,19 @@ pub fn job_request(
     if !matches!(flags.projection, ProjectionArg::Wgs84) {
         bail!("--projection is not supported by remote training (the server uses wgs84)");
     }
+    if let Some(flag) = [
+        ("--no-exit-mask", flags.no_exit_mask),
+        ("--no-vehicle-levels", flags.no_vehicle_levels),
+        ("--rows-lifecycle", flags.rows_lifecycle),
+    ]
+    .into_iter()
+    .find_map(|(name, set)| set.then_some(name))
+    {
+        bail!(
+            "{flag} is an offline ablation, not supported by remote training (the server trains \
+             the detector with its exit masking, per-vehicle levels and lifecycle in seconds)"
+        );
+    }
     Ok(v1::CreateTrainingJobRequest {
         datasets: remote.datasets.clone(),
         validation_datasets: remote.val_datasets.clone(),
@@ -251,6 +264,20 @@ mod tests {
         let mut equirect = TrainingFlags::defaults();
         equirect.projection = ProjectionArg::Equirectangular;
         assert!(job_request(&remote(&["d"]), &equirect).is_err());
+    }
+
+    #[test]
+    fn offline_ablations_are_refused_by_name_not_dropped() {
+        for name in ["--no-exit-mask", "--no-vehicle-levels", "--rows-lifecycle"] {
+            let mut flags = TrainingFlags::defaults();
+            match name {
+                "--no-exit-mask" => flags.no_exit_mask = true,
+                "--no-vehicle-levels" => flags.no_vehicle_levels = true,
+                _ => flags.rows_lifecycle = true,
+            }
+            let error = job_request(&remote(&["d"]), &flags).expect_err(name);
+            assert!(error.to_string().starts_with(name), "{error}");
+        }
     }
 
     #[test]
