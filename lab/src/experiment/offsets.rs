@@ -36,7 +36,9 @@ use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
 
 use super::common::{CommonArgs, prepare, seed_list, write_report};
 use super::parallel::{default_threads, map_parallel};
-use super::subtle::{BUDGET, FALSE_ALARM_BUDGET_PER_HOUR, delay_and_coverage, within_budget};
+use super::subtle::{
+    BUDGET, FALSE_ALARM_BUDGET_PER_HOUR, delay_and_coverage, operating_point_json, within_budget,
+};
 use super::training_attacks::recorded_and_simulated;
 
 #[derive(Debug, clap::Args)]
@@ -742,10 +744,7 @@ fn model_report(
             clean: Vec::new(),
         });
     };
-    let point = serde_json::json!({
-        "operating_point": artifact.operating_point,
-        "lifecycle": artifact.lifecycle,
-    });
+    let point = operating_point_json(artifact);
     Ok(test.report(name, seed, point, |tracks| score_tracks(artifact, tracks)))
 }
 

@@ -546,6 +546,15 @@ fn test_set(seed: u64, repeats: u64, clean: u64, threads: usize) -> Result<TestS
     })
 }
 
+/// An artifact's operating point with its alarm lifecycle (`null` for a model that has none), as
+/// the reports show it.
+pub(super) fn operating_point_json(artifact: &ModelArtifact) -> serde_json::Value {
+    serde_json::json!({
+        "operating_point": artifact.operating_point,
+        "lifecycle": artifact.lifecycle,
+    })
+}
+
 /// `trained` with its operating point chosen on `validation` within the false-alarm budget (`None`,
 /// with the reason on stderr, when no point is within it), and the validation's attack-free hours.
 pub(super) fn within_budget(

@@ -13,6 +13,7 @@ use anyhow::{Context, Result, bail};
 use serde::Serialize;
 use spoofwatch_client::cli::evaluate::load_artifact;
 use spoofwatch_client::cli::train::train_with_progress;
+use spoofwatch_core::evaluation::score_tracks;
 use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::rng::Rng;
 use spoofwatch_core::sample::Track;
@@ -25,7 +26,7 @@ use super::common::{CommonArgs, load_avgps, write_report};
 use super::parallel::{default_threads, map_parallel};
 use super::subtle::{
     ATTACK_S, DetectorReport, FALSE_ALARM_BUDGET_PER_HOUR, Population, TestSet, comparator_reports,
-    simulated_mix, within_budget,
+    operating_point_json, simulated_mix, within_budget,
 };
 use super::training_attacks::{is_normal, with_injections};
 
@@ -241,12 +242,9 @@ pub fn run(args: Args) -> Result<()> {
         let artifact = within_budget(name, trained?.artifact, &fold.validation).0;
         detectors.push(test.model_report(name, artifact.map(Arc::new).as_ref())?);
         for (name, artifact) in &also {
-            let mut report = test.model_report(name, Some(artifact))?;
-            report.operating_point = serde_json::json!({
-                "operating_point": artifact.operating_point,
-                "lifecycle": artifact.lifecycle,
-            });
-            detectors.push(report);
+            detectors.push(test.report(name, operating_point_json(artifact), |tracks| {
+                Ok(score_tracks(artifact, tracks))
+            })?);
         }
         detectors.extend(comparator_reports(
             &fold.train,
