@@ -337,6 +337,10 @@ pub struct OffsetTracker {
     snapshots: [LevelSnapshot; LEVEL_SNAPSHOTS],
     snapshot_count: usize,
     levels_in_use: [f64; LEVEL_COUNT],
+    /// Sum of δ·min(NIS/2, cap) of the one-row residual and its seconds, over the settled rows so
+    /// far: the step level in use until the vehicle's delayed level is known.
+    #[serde(default)]
+    early_step: [f64; 2],
     /// Running mean of ln(1 + NIS/2) per shadow anchor, and the misfit in use (1 within the level's
     /// bound).
     log_levels: [f64; ANCHOR_COUNT],
@@ -375,6 +379,7 @@ impl OffsetTracker {
             snapshots: [LevelSnapshot::default(); LEVEL_SNAPSHOTS],
             snapshot_count: 0,
             levels_in_use: [LEVEL_RANGE.1; LEVEL_COUNT],
+            early_step: [0.0; 2],
             log_levels: [POPULATION_LOG_LEVEL; ANCHOR_COUNT],
             misfit_in_use: [1.0; ANCHOR_COUNT],
             age_s: 0.0,
@@ -681,6 +686,11 @@ impl OffsetTracker {
                     *level += weight * ((0.5 * nis).min(LEVEL_ROW_CAP) - *level);
                 }
             }
+            let step_nis = population_nis[STEP_LEVEL];
+            if step_nis.is_finite() {
+                self.early_step[0] += delta_t * (0.5 * step_nis).min(LEVEL_ROW_CAP);
+                self.early_step[1] += delta_t;
+            }
         }
         for (log_level, nis) in self.log_levels.iter_mut().zip(shadow_nis) {
             if nis.is_finite() {
@@ -728,8 +738,30 @@ impl OffsetTracker {
             for (in_use, &target) in self.misfit_in_use.iter_mut().zip(&snapshot.misfits) {
                 follow(in_use, target);
             }
+        } else {
+            // Until then the step test uses an upper confidence bound of the vehicle's own
+            // one-row noise so far, never below the population's: a quiet receiver is tested as
+            // one from its first seconds, a noisy one as noisy as it has shown itself.
+            let [sum, seconds] = self.early_step;
+            self.levels_in_use[STEP_LEVEL] = early_level(sum, seconds);
         }
     }
+}
+
+/// One-sided 95 % upper bound of a level L from `seconds` of rows whose NIS/2 ~ L·Exp(1) summed to
+/// `sum` (one independent sample per second; 2·Σ/L ~ χ²₂ₙ, its 5 % quantile by Wilson–Hilferty),
+/// within [1, the level's upper bound].
+fn early_level(sum: f64, seconds: f64) -> f64 {
+    let k = 2.0 * seconds;
+    if k < 2.0 {
+        return LEVEL_RANGE.1;
+    }
+    let a = 2.0 / (9.0 * k);
+    let quantile = k * (1.0 - a - 1.644_853_626_951_472_2 * a.sqrt()).powi(3);
+    if quantile <= 0.0 {
+        return LEVEL_RANGE.1;
+    }
+    (2.0 * sum / quantile).clamp(1.0, LEVEL_RANGE.1)
 }
 
 /// E[ln(1 + L·X)] for X ~ Exp(1): e^{1/L}·E₁(1/L), for L ≥ the level's upper bound (1/L ≤ ¼,
@@ -1239,6 +1271,42 @@ mod tests {
         }
         assert_eq!(levels_at[0], [LEVEL_RANGE.1; LEVEL_COUNT]);
         assert!(levels_at[1].iter().all(|&l| l > 3.0), "{levels_at:?}");
+    }
+
+    #[test]
+    fn the_early_step_level_is_an_upper_confidence_bound_within_bounds() {
+        // 15 s of NIS/2 summing to 30 (mean 2): χ²₃₀'s 5 % quantile is 18.49, so 60 / 18.49.
+        assert!((early_level(30.0, 15.0) - 60.0 / 18.4927).abs() < 0.01);
+        // A quiet receiver (mean 0.5) is never taken below the population's level.
+        assert_eq!(early_level(7.5, 15.0), 1.0);
+        // Before a second of rows, and for a very noisy receiver, the upper bound.
+        assert_eq!(early_level(0.0, 0.5), LEVEL_RANGE.1);
+        assert_eq!(early_level(150.0, 15.0), LEVEL_RANGE.1);
+    }
+
+    #[test]
+    fn a_quiet_receiver_is_step_tested_as_one_from_its_first_minute() {
+        // GNSS white noise of σ 0.5 m on unit parameters: the step level in use falls to the
+        // population's within the first minute, while the anchors' levels wait for the delayed
+        // snapshot.
+        let params = OffsetParams {
+            vehicle_levels: true,
+            ..unit_params()
+        };
+        let mut tracker = OffsetTracker::new(&params);
+        let mut rng = crate::rng::Rng::seed_from_u64(5);
+        let mut previous = [0.0; 2];
+        for _ in 0..60 {
+            let noise = [0.5 * rng.normal(), 0.5 * rng.normal()];
+            tracker.push(&step([noise[0] - previous[0], noise[1] - previous[1]], 1.0));
+            previous = noise;
+        }
+        assert_eq!(tracker.levels_in_use[STEP_LEVEL], 1.0);
+        assert!(
+            tracker.levels_in_use[..ANCHOR_COUNT]
+                .iter()
+                .all(|&l| l == LEVEL_RANGE.1)
+        );
     }
 
     #[test]
