@@ -85,6 +85,8 @@ impl Explanation {
             } else {
                 EvidenceKind::HeldOffset
             }
+        } else if offset.is_some_and(|o| o.held_step_m.is_some()) {
+            EvidenceKind::HeldOffset
         } else if drift.is_some_and(|d| d.statistic >= 1.0) {
             EvidenceKind::Drift
         } else if offset.is_some_and(|o| o.max_nis() >= FOLLOW_GATE) {
@@ -96,7 +98,7 @@ impl Explanation {
         };
         Self {
             dominant,
-            offset_m: offset.map_or([0.0; 2], |o| o.offset_m),
+            offset_m: offset.map_or([0.0; 2], |o| o.held_step_m.unwrap_or(o.offset_m)),
             drift_rate_mps: drift.map_or([0.0; 2], |d| d.rate_mps),
         }
     }

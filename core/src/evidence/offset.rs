@@ -195,6 +195,10 @@ pub struct OffsetEvidence {
     pub calibrated: bool,
     /// Seconds since the anchors were placed (at the stream's first fix, or after a long gap).
     pub anchor_age_s: f64,
+    /// While a jump is held ([`StepHold`]): GNSS minus the dead reckoning from the last trusted
+    /// fix before it, east/north (m).
+    #[serde(default)]
+    pub held_step_m: Option<[f64; 2]>,
 }
 
 impl OffsetEvidence {
@@ -212,6 +216,7 @@ impl OffsetEvidence {
         offset_norm_m: [0.0; ANCHOR_COUNT],
         calibrated: false,
         anchor_age_s: 0.0,
+        held_step_m: None,
     };
 
     /// The larger of the anchors' NIS.
@@ -219,9 +224,9 @@ impl OffsetEvidence {
         self.nis[0].max(self.nis[1])
     }
 
-    /// The fix is displaced from an anchor beyond the follow gate.
+    /// The fix is displaced from an anchor beyond the follow gate, or a jump is still held.
     pub fn displaced(&self) -> bool {
-        self.max_nis() >= FOLLOW_GATE
+        self.max_nis() >= FOLLOW_GATE || self.held_step_m.is_some()
     }
 }
 
@@ -300,6 +305,49 @@ impl Anchor {
 /// step away is a new jump from there).
 pub const RETURN_SHARE: f64 = 0.25;
 
+/// A jump is held at most this long (s) after it arrived: beyond it, the alarm rests on the
+/// anchors' own test (a receiver that corrected itself by a step never steps back).
+pub const MAX_STEP_HOLD_S: f64 = 600.0;
+
+/// A jump that has not stepped back. The anchors test an offset against the dead-reckoning error
+/// since the last trusted fix, which grows with the distance travelled: on a fast vehicle a held
+/// 20 m offset is within it after a kilometre or two, and the anchors follow GNSS again. Whether
+/// the fix is still displaced is then a choice between two places, not a test against zero: the
+/// jump holds while GNSS, dead-reckoned from the fix before it, stays nearer the offset the jump
+/// arrived with than the vehicle's own track. It ends when the fix steps back, when it drifts
+/// nearer the track, after [`MAX_STEP_HOLD_S`], or when the anchors are placed again.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+struct StepHold {
+    /// The offset the jump arrived with (m).
+    arrival: [f64; 2],
+    /// GNSS minus the dead reckoning from the last trusted fix before the jump (m).
+    offset: [f64; 2],
+    /// Seconds since the jump.
+    held_s: f64,
+}
+
+impl StepHold {
+    /// Whether `offset` is nearer the vehicle's own track than the offset the jump arrived with.
+    fn nearer_track(&self, offset: [f64; 2]) -> bool {
+        let from_arrival = [offset[0] - self.arrival[0], offset[1] - self.arrival[1]];
+        norm_squared(offset) <= norm_squared(from_arrival)
+    }
+
+    /// A one-row step that brings the fix nearer the track than the jump: the spoofer let go.
+    fn stepped_back(&self, residual: [f64; 2]) -> bool {
+        self.nearer_track([self.offset[0] + residual[0], self.offset[1] + residual[1]])
+    }
+
+    /// Adds one step's residual; returns whether the jump still holds.
+    fn advance(&mut self, residual: [f64; 2], delta_t: f64) -> bool {
+        for axis in 0..2 {
+            self.offset[axis] += residual[axis];
+        }
+        self.held_s += delta_t;
+        self.held_s <= MAX_STEP_HOLD_S && !self.nearer_track(self.offset)
+    }
+}
+
 /// The variance (m² per axis) of the motion a gap of `delta_t` seconds may hide: (½·a·δ²)².
 fn gap_variance(delta_t: f64) -> f64 {
     let hidden = 0.5 * GAP_ACCELERATION_MPS2 * delta_t * delta_t;
@@ -341,6 +389,8 @@ pub struct OffsetTracker {
     /// far: the step level in use until the vehicle's delayed level is known.
     #[serde(default)]
     early_step: [f64; 2],
+    #[serde(default)]
+    step_hold: Option<StepHold>,
     /// Running mean of ln(1 + NIS/2) per shadow anchor, and the misfit in use (1 within the level's
     /// bound).
     log_levels: [f64; ANCHOR_COUNT],
@@ -380,6 +430,7 @@ impl OffsetTracker {
             snapshot_count: 0,
             levels_in_use: [LEVEL_RANGE.1; LEVEL_COUNT],
             early_step: [0.0; 2],
+            step_hold: None,
             log_levels: [POPULATION_LOG_LEVEL; ANCHOR_COUNT],
             misfit_in_use: [1.0; ANCHOR_COUNT],
             age_s: 0.0,
@@ -465,6 +516,11 @@ impl OffsetTracker {
             // let go. Trust GNSS again from here (the rest of the offset is dead-reckoning error).
             self.re_anchor_keeping_levels();
             return self.last;
+        }
+        if let Some(hold) = &mut self.step_hold {
+            if !hold.advance(step.residual, delta_t) {
+                self.step_hold = None;
+            }
         }
         let mut nis = [0.0; ANCHOR_COUNT];
         let mut population_nis = [0.0; LEVEL_COUNT];
@@ -573,6 +629,15 @@ impl OffsetTracker {
                 self.held_s = 0.0;
                 // Arrived in one step: beyond the gate now, and below the follow gate before.
                 self.arrived_by_step = self.last.max_nis() < FOLLOW_GATE;
+                if self.arrived_by_step && self.step_hold.is_none() {
+                    // The fix before this row was trusted (below the follow gate): the jump is
+                    // this row's residual.
+                    self.step_hold = Some(StepHold {
+                        arrival: step.residual,
+                        offset: step.residual,
+                        held_s: 0.0,
+                    });
+                }
             } else {
                 self.held_s += delta_t;
             }
@@ -603,6 +668,7 @@ impl OffsetTracker {
             offset_norm_m: self.anchors.map(|a| norm_squared(a.offset).sqrt()),
             calibrated: step.calibrated,
             anchor_age_s: self.age_s,
+            held_step_m: self.step_hold.map(|hold| hold.offset),
         };
         self.last
     }
@@ -623,17 +689,17 @@ impl OffsetTracker {
         })
     }
 
-    /// Whether a one-row step brings a held offset back to within [`RETURN_SHARE`] of the frozen
-    /// slow anchor: the fix returned to where the vehicle's own motion puts it.
+    /// Whether a one-row step brings a held offset back to within [`RETURN_SHARE`] of itself (from
+    /// the frozen slow anchor, or the held jump's): the fix returned to where the vehicle's own
+    /// motion puts it.
     fn returns(&self, step: &OffsetStep) -> bool {
+        let returns_from = |offset: [f64; 2]| {
+            let after = [offset[0] + step.residual[0], offset[1] + step.residual[1]];
+            norm_squared(after) <= RETURN_SHARE * RETURN_SHARE * norm_squared(offset)
+        };
         let slow = &self.anchors[ANCHOR_COUNT - 1];
-        let after = [
-            slow.offset[0] + step.residual[0],
-            slow.offset[1] + step.residual[1],
-        ];
-        !self.held_s.is_nan()
-            && slow.frozen
-            && norm_squared(after) <= RETURN_SHARE * RETURN_SHARE * norm_squared(slow.offset)
+        (!self.held_s.is_nan() && slow.frozen && returns_from(slow.offset))
+            || self.step_hold.is_some_and(|hold| hold.stepped_back(step.residual))
     }
 
     /// A fresh anchor at the current point, keeping the vehicle's levels, the shares and the
@@ -643,6 +709,7 @@ impl OffsetTracker {
         self.shadows = [Anchor::default(); ANCHOR_COUNT];
         self.held_s = f64::NAN;
         self.arrived_by_step = false;
+        self.step_hold = None;
         self.age_s = 0.0;
         self.last = OffsetEvidence {
             share: self.share,
@@ -1156,6 +1223,52 @@ mod tests {
         }
         // Agreement from the first row back: frozen for AGREEMENT_S − 1 more rows (5 s in all).
         assert_eq!(frozen_rows, 4);
+    }
+
+    #[test]
+    fn a_held_jump_stays_displaced_after_the_anchors_lose_it_until_it_steps_back() {
+        // Dead reckoning as poor as 10 % of the distance (c² = 0.01) at 10 m/s: 100 s after a
+        // 20 m jump the frozen anchors' own σ is 100 m, and they follow GNSS again.
+        let params = OffsetParams {
+            raw_growth: [0.01; ANCHOR_COUNT],
+            ..unit_params()
+        };
+        let jumped = |tracker: &mut OffsetTracker| {
+            let first = tracker.push(&step([20.0, 0.0], 1.0));
+            assert!(first.arrived_by_step && first.displaced());
+            assert_eq!(first.held_step_m, Some([20.0, 0.0]));
+        };
+        let mut tracker = trusted(&params);
+        jumped(&mut tracker);
+        let mut lost_by_anchors = None;
+        for row in 1..=150 {
+            let e = tracker.push(&step([0.0; 2], 1.0));
+            if e.max_nis() < FOLLOW_GATE && lost_by_anchors.is_none() {
+                lost_by_anchors = Some(row);
+            }
+            assert!(e.displaced(), "row {row}: {e:?}");
+            assert_eq!(e.held_step_m, Some([20.0, 0.0]));
+        }
+        assert!(lost_by_anchors.is_some_and(|row| row < 100), "{lost_by_anchors:?}");
+        // The spoofer lets go: one step back to the track ends the hold and re-anchors.
+        let back = tracker.push(&step([-19.0, 0.0], 1.0));
+        assert!(!back.displaced() && back.held_step_m.is_none() && back.anchor_age_s == 0.0);
+
+        // Walked back 0.5 m per second: the hold ends on the row it is nearer the track (10 m).
+        let mut tracker = trusted(&params);
+        jumped(&mut tracker);
+        let ended = (1..=40)
+            .find(|_| tracker.push(&step([-0.5, 0.0], 1.0)).held_step_m.is_none())
+            .unwrap();
+        assert_eq!(ended, 20);
+
+        // Never let go: held for MAX_STEP_HOLD_S, then the anchors alone decide.
+        let mut tracker = trusted(&params);
+        jumped(&mut tracker);
+        let ended = (1..=700)
+            .find(|_| tracker.push(&step([0.0; 2], 1.0)).held_step_m.is_none())
+            .unwrap();
+        assert_eq!(ended, MAX_STEP_HOLD_S as usize + 1);
     }
 
     #[test]
