@@ -13,7 +13,7 @@ use serde::{Deserialize, Serialize};
 use crate::alarm::PersistenceAlarm;
 use crate::evidence::offset::DECISIVE_GATE;
 use crate::evidence::{DriftChannelsDiffer, Evidence, EvidenceBuilder, Features};
-use crate::explain::Explanation;
+use crate::explain::{Explanation, FROZEN_FIX_S};
 use crate::lifecycle::{AlarmLifecycle, LifecycleInput, OffsetSignal};
 use crate::model::artifact::ModelArtifact;
 use crate::model::{LiquidState, StepScratch};
@@ -115,14 +115,25 @@ impl Detector {
     }
 }
 
-/// The lifecycle's reading of the offset evidence (nothing without offset channels).
+/// The lifecycle's reading of the offset evidence (nothing without offset channels). A fix that
+/// has repeated exactly for [`FROZEN_FIX_S`] while the vehicle's own motion carried it beyond the
+/// follow gate counts as an offset held from then on: a frozen feed on a moving vehicle is as
+/// decisive as a jump, however slowly the vehicle moves away from it.
 pub fn offset_signal(evidence: &Evidence) -> OffsetSignal {
-    evidence
-        .offset
-        .map_or(OffsetSignal::default(), |o| OffsetSignal {
-            held_s: (o.max_nis() >= DECISIVE_GATE).then_some(o.held_s),
+    evidence.offset.map_or(OffsetSignal::default(), |o| {
+        let beyond_gate = (o.max_nis() >= DECISIVE_GATE).then_some(o.held_s);
+        let frozen_fix = evidence
+            .drift
+            .filter(|d| d.stale_fix_s >= FROZEN_FIX_S && o.displaced())
+            .map(|d| d.stale_fix_s - FROZEN_FIX_S);
+        OffsetSignal {
+            held_s: match (beyond_gate, frozen_fix) {
+                (Some(a), Some(b)) => Some(a.max(b)),
+                (a, b) => a.or(b),
+            },
             displaced: o.displaced(),
-        })
+        }
+    })
 }
 
 /// Everything a [`Detector`] carries from one sample to the next, without the model: evidence

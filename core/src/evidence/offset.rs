@@ -511,6 +511,20 @@ impl OffsetTracker {
         // spike comes back within the agreement time, a jump stays and is tested from there.
         let step_test_m2 = self.params.step_noise_m2 * levels[STEP_LEVEL];
         let outlier = norm_squared(step.residual) >= FOLLOW_GATE * step_test_m2;
+        if outlier
+            && self
+                .step_hold
+                .is_some_and(|hold| hold.stepped_back(step.residual))
+        {
+            // The held jump stepped back to the track. A slow anchor still frozen kept the track
+            // and goes on below; one that followed GNSS while the jump was held stands on the
+            // false position: the anchors are placed again here.
+            self.step_hold = None;
+            if !self.anchors[ANCHOR_COUNT - 1].frozen {
+                self.re_anchor_keeping_levels();
+                return self.last;
+            }
+        }
         if outlier && self.returns(step) {
             // The fix stepped back to where the onboard motion says the vehicle is: the spoofer
             // let go. Trust GNSS again from here (the rest of the offset is dead-reckoning error).
@@ -689,17 +703,17 @@ impl OffsetTracker {
         })
     }
 
-    /// Whether a one-row step brings a held offset back to within [`RETURN_SHARE`] of itself (from
-    /// the frozen slow anchor, or the held jump's): the fix returned to where the vehicle's own
-    /// motion puts it.
+    /// Whether a one-row step brings a held offset back to within [`RETURN_SHARE`] of the frozen
+    /// slow anchor: the fix returned to where the vehicle's own motion puts it.
     fn returns(&self, step: &OffsetStep) -> bool {
-        let returns_from = |offset: [f64; 2]| {
-            let after = [offset[0] + step.residual[0], offset[1] + step.residual[1]];
-            norm_squared(after) <= RETURN_SHARE * RETURN_SHARE * norm_squared(offset)
-        };
         let slow = &self.anchors[ANCHOR_COUNT - 1];
-        (!self.held_s.is_nan() && slow.frozen && returns_from(slow.offset))
-            || self.step_hold.is_some_and(|hold| hold.stepped_back(step.residual))
+        let after = [
+            slow.offset[0] + step.residual[0],
+            slow.offset[1] + step.residual[1],
+        ];
+        !self.held_s.is_nan()
+            && slow.frozen
+            && norm_squared(after) <= RETURN_SHARE * RETURN_SHARE * norm_squared(slow.offset)
     }
 
     /// A fresh anchor at the current point, keeping the vehicle's levels, the shares and the
@@ -1249,7 +1263,10 @@ mod tests {
             assert!(e.displaced(), "row {row}: {e:?}");
             assert_eq!(e.held_step_m, Some([20.0, 0.0]));
         }
-        assert!(lost_by_anchors.is_some_and(|row| row < 100), "{lost_by_anchors:?}");
+        assert!(
+            lost_by_anchors.is_some_and(|row| row < 100),
+            "{lost_by_anchors:?}"
+        );
         // The spoofer lets go: one step back to the track ends the hold and re-anchors.
         let back = tracker.push(&step([-19.0, 0.0], 1.0));
         assert!(!back.displaced() && back.held_step_m.is_none() && back.anchor_age_s == 0.0);

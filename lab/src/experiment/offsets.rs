@@ -51,6 +51,11 @@ pub struct Args {
     /// Attack-free 900 s test drives per sample rate (24 ≈ 6 attack-free hours per rate).
     #[arg(long, default_value_t = 24)]
     clean_drives: u64,
+    /// Attack-free 900 s validation drives per sample rate (12 = 3 attack-free hours per rate), so
+    /// that the false-alarm budget binds at each tested rate when the operating point is chosen,
+    /// not only pooled over the randomised drives' many rates.
+    #[arg(long, default_value_t = 12)]
+    validation_clean_drives: u64,
     /// Test drives per attack kind, onset and sample rate.
     #[arg(long, default_value_t = 10)]
     repeats: u64,
@@ -203,6 +208,7 @@ enum Population {
     Validation = 12,
     CleanTest = 13,
     AttackedTest = 14,
+    CleanValidation = 15,
 }
 
 fn drive_seed(seed: u64, population: Population, index: u64) -> u64 {
@@ -310,7 +316,12 @@ struct TestSet {
     threads: usize,
 }
 
-fn test_set(seed: u64, repeats: u64, clean_drives: u64, threads: usize) -> Result<TestSet> {
+fn test_set(
+    seed: u64,
+    repeats: u64,
+    clean_drives_per_rate: u64,
+    threads: usize,
+) -> Result<TestSet> {
     let kinds = test_kinds();
     let mut jobs = Vec::new();
     for rate_index in 0..RATES_HZ.len() {
@@ -348,29 +359,44 @@ fn test_set(seed: u64, repeats: u64, clean_drives: u64, threads: usize) -> Resul
     })
     .into_iter()
     .collect::<Result<Vec<_>>>()?;
-    let mut clean = Vec::new();
-    for (rate_index, rate_hz) in RATES_HZ.iter().enumerate() {
-        let indices: Vec<u64> = (0..clean_drives).collect();
-        let drives = map_parallel(&indices, threads, |&i| {
-            let index = rate_index as u64 * 1_000_000 + i;
-            drive(
-                drive_seed(seed, Population::CleanTest, index),
-                CLEAN_DRIVE_S,
-                Some(*rate_hz),
-                true,
-                &format!("clean-{rate_hz}hz-{i}"),
-            )
-        })
-        .into_iter()
-        .collect::<Result<Vec<_>>>()?;
-        clean.push(drives);
-    }
     Ok(TestSet {
         kinds,
         attacked,
-        clean,
+        clean: clean_drives(seed, Population::CleanTest, clean_drives_per_rate, threads)?,
         threads,
     })
+}
+
+/// `per_rate` attack-free drives of [`CLEAN_DRIVE_S`] (with outages) at each of [`RATES_HZ`].
+fn clean_drives(
+    seed: u64,
+    population: Population,
+    per_rate: u64,
+    threads: usize,
+) -> Result<Vec<Vec<Track>>> {
+    let name = match population {
+        Population::CleanValidation => "validation-clean",
+        _ => "clean",
+    };
+    RATES_HZ
+        .iter()
+        .enumerate()
+        .map(|(rate_index, rate_hz)| {
+            let indices: Vec<u64> = (0..per_rate).collect();
+            map_parallel(&indices, threads, |&i| {
+                let index = rate_index as u64 * 1_000_000 + i;
+                drive(
+                    drive_seed(seed, population, index),
+                    CLEAN_DRIVE_S,
+                    Some(*rate_hz),
+                    true,
+                    &format!("{name}-{rate_hz}hz-{i}"),
+                )
+            })
+            .into_iter()
+            .collect()
+        })
+        .collect()
 }
 
 /// One detector's results for one attack kind, onset and rate.
@@ -559,6 +585,7 @@ struct Report {
     rates_hz: Vec<f64>,
     test_drives_per_cell: u64,
     clean_drives_per_rate: u64,
+    validation_clean_drives_per_rate: u64,
     detectors: Vec<DetectorReport>,
     experiment_wall_time_s: f64,
 }
@@ -574,7 +601,17 @@ pub fn run(args: Args) -> Result<()> {
         RECORDED_WARMUP_S,
         args.simulated_only,
         training_mix(seed, Population::Train, args.drives, threads)?,
-        training_mix(seed, Population::Validation, args.drives, threads)?,
+        [
+            training_mix(seed, Population::Validation, args.drives, threads)?,
+            clean_drives(
+                seed,
+                Population::CleanValidation,
+                args.validation_clean_drives,
+                threads,
+            )?
+            .concat(),
+        ]
+        .concat(),
     )?;
     let test = test_set(seed, args.repeats, args.clean_drives, threads)?;
     eprintln!(
@@ -597,8 +634,9 @@ pub fn run(args: Args) -> Result<()> {
                 "{} randomised simulated drives each for training and validation \
                  (DriveDistribution::realistic(); half attacked: jumps 5 m–50 km, hops, frozen \
                  fixes, ramps, accelerating and toggling drifts, a third starting 10–60 s in, \
-                 their drifts at 1 m/s or more)",
-                args.drives
+                 their drifts at 1 m/s or more), and {} attack-free {CLEAN_DRIVE_S} s \
+                 validation drives at each of 1, 5 and 10 Hz",
+                args.drives, args.validation_clean_drives
             )),
         ]
         .into_iter()
@@ -722,6 +760,7 @@ pub fn run(args: Args) -> Result<()> {
         rates_hz: RATES_HZ.to_vec(),
         test_drives_per_cell: args.repeats,
         clean_drives_per_rate: args.clean_drives,
+        validation_clean_drives_per_rate: args.validation_clean_drives,
         detectors,
         experiment_wall_time_s: started.elapsed().as_secs_f64(),
     };
@@ -985,6 +1024,7 @@ mod tests {
             rates_hz: RATES_HZ.to_vec(),
             test_drives_per_cell: 10,
             clean_drives_per_rate: 24,
+            validation_clean_drives_per_rate: 12,
             detectors,
             experiment_wall_time_s: 1.0,
         }
