@@ -315,7 +315,8 @@ pub const MAX_STEP_HOLD_S: f64 = 600.0;
 /// the fix is still displaced is then a choice between two places, not a test against zero: the
 /// jump holds while GNSS, dead-reckoned from the fix before it, stays nearer the offset the jump
 /// arrived with than the vehicle's own track. It ends when the fix steps back, when it drifts
-/// nearer the track, after [`MAX_STEP_HOLD_S`], or when the anchors are placed again.
+/// nearer the track, after [`MAX_STEP_HOLD_S`], or when the anchors are placed again; a vehicle
+/// whose dead reckoning misfits (beyond the level's bound) holds none.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 struct StepHold {
     /// The offset the jump arrived with (m).
@@ -531,8 +532,11 @@ impl OffsetTracker {
             self.re_anchor_keeping_levels();
             return self.last;
         }
+        // A held jump is tested against pure dead reckoning: on a vehicle whose dead reckoning
+        // cannot carry an anchor (a misfit beyond the level's bound) it means nothing.
+        let dead_reckoning_carries = misfits[ANCHOR_COUNT - 1] <= 1.0;
         if let Some(hold) = &mut self.step_hold {
-            if !hold.advance(step.residual, delta_t) {
+            if !dead_reckoning_carries || !hold.advance(step.residual, delta_t) {
                 self.step_hold = None;
             }
         }
@@ -643,7 +647,7 @@ impl OffsetTracker {
                 self.held_s = 0.0;
                 // Arrived in one step: beyond the gate now, and below the follow gate before.
                 self.arrived_by_step = self.last.max_nis() < FOLLOW_GATE;
-                if self.arrived_by_step && self.step_hold.is_none() {
+                if self.arrived_by_step && self.step_hold.is_none() && dead_reckoning_carries {
                     // The fix before this row was trusted (below the follow gate): the jump is
                     // this row's residual.
                     self.step_hold = Some(StepHold {
