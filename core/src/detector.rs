@@ -226,3 +226,70 @@ pub fn run_records(artifact: &Arc<ModelArtifact>, records: &[Record]) -> Vec<Dec
         .map(|r| detector.step(&r.sample, r.trajectory_break))
         .collect()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::evidence::drift::DriftEvidence;
+    use crate::evidence::offset::{FOLLOW_GATE, OffsetEvidence};
+
+    /// A valid sample's evidence with the given fix age and the larger anchor NIS.
+    fn evidence(stale_fix_s: f64, nis: f64, held_s: f64) -> Evidence {
+        Evidence {
+            trajectory: 0,
+            trajectory_start: false,
+            delta_t: 1.0,
+            valid: true,
+            sigma_per_step: false,
+            residual: [0.0; 2],
+            eta: [0.0; 2],
+            eta_dot: [0.0; 2],
+            eta_ddot: [0.0; 2],
+            energy: 0.0,
+            q: 0.0,
+            accum: 0.0,
+            accum_log: 0.0,
+            drift: Some(DriftEvidence {
+                stale_fix_s,
+                ..DriftEvidence::EMPTY
+            }),
+            offset: Some(OffsetEvidence {
+                nis: [nis, 0.0],
+                held_s,
+                ..OffsetEvidence::EMPTY
+            }),
+        }
+    }
+
+    #[test]
+    fn a_frozen_fix_carried_beyond_the_follow_gate_is_held_from_two_seconds() {
+        // Beyond the decisive gate: the offset's own hold.
+        let held = offset_signal(&evidence(0.0, DECISIVE_GATE, 3.0));
+        assert_eq!(held.held_s, Some(3.0));
+        assert!(held.displaced);
+        // Repeated for 5 s and beyond the follow gate: held for 5 − 2 = 3 s, the larger of both.
+        let frozen = offset_signal(&evidence(5.0, FOLLOW_GATE, 0.0));
+        assert_eq!(frozen.held_s, Some(5.0 - FROZEN_FIX_S));
+        assert_eq!(
+            offset_signal(&evidence(5.0, DECISIVE_GATE, 1.0)).held_s,
+            Some(3.0)
+        );
+        // A repeated fix the vehicle's motion has not carried beyond the gate (a standing vehicle),
+        // or one repeated for less than 2 s (a logger faster than its receiver), is no evidence.
+        assert_eq!(offset_signal(&evidence(60.0, 1.0, 0.0)).held_s, None);
+        assert_eq!(offset_signal(&evidence(1.5, FOLLOW_GATE, 0.0)).held_s, None);
+    }
+
+    #[test]
+    fn a_held_jump_keeps_the_fix_displaced_and_explains_itself_with_its_own_offset() {
+        let mut e = evidence(0.0, 1.0, 0.0);
+        if let Some(offset) = e.offset.as_mut() {
+            offset.offset_m = [3.0, 0.0];
+            offset.held_step_m = Some([20.0, -1.0]);
+        }
+        assert!(offset_signal(&e).displaced);
+        let why = Explanation::of(&e, false);
+        assert_eq!(why.dominant, crate::explain::EvidenceKind::HeldOffset);
+        assert_eq!(why.offset_m, [20.0, -1.0]);
+    }
+}
