@@ -236,28 +236,21 @@ mod tests {
     /// A valid sample's evidence with the given fix age and the larger anchor NIS.
     fn evidence(stale_fix_s: f64, nis: f64, held_s: f64) -> Evidence {
         Evidence {
-            trajectory: 0,
-            trajectory_start: false,
-            delta_t: 1.0,
             valid: true,
-            sigma_per_step: false,
-            residual: [0.0; 2],
-            eta: [0.0; 2],
-            eta_dot: [0.0; 2],
-            eta_ddot: [0.0; 2],
-            energy: 0.0,
-            q: 0.0,
-            accum: 0.0,
-            accum_log: 0.0,
-            drift: Some(DriftEvidence {
-                stale_fix_s,
-                ..DriftEvidence::EMPTY
-            }),
             offset: Some(OffsetEvidence {
                 nis: [nis, 0.0],
                 held_s,
                 ..OffsetEvidence::EMPTY
             }),
+            ..Evidence::invalid(
+                0,
+                false,
+                1.0,
+                Some(DriftEvidence {
+                    stale_fix_s,
+                    ..DriftEvidence::EMPTY
+                }),
+            )
         }
     }
 

@@ -64,7 +64,8 @@ impl EvidenceKind {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Explanation {
     pub dominant: EvidenceKind,
-    /// GNSS minus the slow anchor, east/north (m); 0 without offset evidence.
+    /// GNSS minus the slow anchor, east/north (m), or while a jump is held, minus the dead reckoning
+    /// from the last trusted fix before it; 0 without offset evidence.
     pub offset_m: [f64; 2],
     /// The drift rate GNSS shows against the onboard motion, east/north (m/s); 0 without drift
     /// evidence.

@@ -58,6 +58,33 @@ pub struct Evidence {
 }
 
 impl Evidence {
+    /// A sample's evidence before its residual is known (ν = 0, no offset channels): the drift
+    /// channels as they hold.
+    pub fn invalid(
+        trajectory: u32,
+        trajectory_start: bool,
+        delta_t: f64,
+        drift: Option<DriftEvidence>,
+    ) -> Self {
+        Self {
+            trajectory,
+            trajectory_start,
+            delta_t,
+            valid: false,
+            sigma_per_step: false,
+            residual: [f64::NAN; 2],
+            eta: [0.0; 2],
+            eta_dot: [0.0; 2],
+            eta_ddot: [0.0; 2],
+            energy: 0.0,
+            q: 0.0,
+            accum: 0.0,
+            accum_log: 0.0,
+            drift,
+            offset: None,
+        }
+    }
+
     /// Unscaled ξ_t in the order of `FEATURE_NAMES`: the paper's 9 channels (ν as 0/1), then the drift
     /// channels ln(1 + χ²_k) per scale (uncalibrated, calibrated), ln(1 + drift statistic), ω_t and
     /// ln(1 + stale-fix seconds) and ln(1 + ‖r‖/c); then the offset channels ln(1 + NIS) of the fast
@@ -277,23 +304,12 @@ impl EvidenceBuilder {
         let velocity = velocity_vector(sample);
         let usable = is_usable(sample, fix);
 
-        let mut evidence = Evidence {
-            trajectory: self.trajectory,
-            trajectory_start: start,
-            delta_t: if start { f64::NAN } else { delta_t },
-            valid: false,
-            sigma_per_step: false,
-            residual: [f64::NAN; 2],
-            eta: [0.0; 2],
-            eta_dot: [0.0; 2],
-            eta_ddot: [0.0; 2],
-            energy: 0.0,
-            q: 0.0,
-            accum: 0.0,
-            accum_log: 0.0,
-            drift: self.drift.as_ref().map(DriftTracker::hold),
-            offset: None,
-        };
+        let mut evidence = Evidence::invalid(
+            self.trajectory,
+            start,
+            if start { f64::NAN } else { delta_t },
+            self.drift.as_ref().map(DriftTracker::hold),
+        );
 
         // ν needs both samples usable and 0 < δ ≤ 5 s (never true at a start: no previous sample).
         if let (Some(previous), Some(reference)) = (self.previous, self.reference)

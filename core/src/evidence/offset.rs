@@ -1275,21 +1275,16 @@ mod tests {
         let back = tracker.push(&step([-19.0, 0.0], 1.0));
         assert!(!back.displaced() && back.held_step_m.is_none() && back.anchor_age_s == 0.0);
 
-        // Walked back 0.5 m per second: the hold ends on the row it is nearer the track (10 m).
-        let mut tracker = trusted(&params);
-        jumped(&mut tracker);
-        let ended = (1..=40)
-            .find(|_| tracker.push(&step([-0.5, 0.0], 1.0)).held_step_m.is_none())
-            .unwrap();
-        assert_eq!(ended, 20);
-
+        // The row after the jump on which the hold ends, with `residual` every second.
+        let hold_ends = |residual: [f64; 2]| {
+            let mut tracker = trusted(&params);
+            jumped(&mut tracker);
+            (1..=700).find(|_| tracker.push(&step(residual, 1.0)).held_step_m.is_none())
+        };
+        // Walked back 0.5 m per second: it ends on the row it is nearer the track (10 m).
+        assert_eq!(hold_ends([-0.5, 0.0]), Some(20));
         // Never let go: held for MAX_STEP_HOLD_S, then the anchors alone decide.
-        let mut tracker = trusted(&params);
-        jumped(&mut tracker);
-        let ended = (1..=700)
-            .find(|_| tracker.push(&step([0.0; 2], 1.0)).held_step_m.is_none())
-            .unwrap();
-        assert_eq!(ended, MAX_STEP_HOLD_S as usize + 1);
+        assert_eq!(hold_ends([0.0; 2]), Some(MAX_STEP_HOLD_S as usize + 1));
     }
 
     #[test]
@@ -1380,23 +1375,33 @@ mod tests {
         }
     }
 
-    #[test]
-    fn the_vehicle_level_adapts_with_a_delay_and_within_bounds() {
-        // A receiver 3× noisier (in σ) than the population: GNSS white noise of σ 3 m makes the
-        // residual the difference of two such errors. Its level rises towards 9, capped at 4, but
-        // only from snapshots at least 120 s old.
-        let params = OffsetParams {
-            vehicle_levels: true,
-            ..unit_params()
-        };
-        let mut tracker = OffsetTracker::new(&params);
-        let mut rng = crate::rng::Rng::seed_from_u64(3);
+    /// One-row residuals of a receiver with white GNSS noise of σ per axis (each the difference of
+    /// two such errors).
+    fn receiver_residuals(sigma_m: f64, seed: u64) -> impl Iterator<Item = [f64; 2]> {
+        let mut rng = crate::rng::Rng::seed_from_u64(seed);
         let mut previous = [0.0; 2];
-        let mut levels_at = Vec::new();
-        for i in 0..900 {
-            let noise = [3.0 * rng.normal(), 3.0 * rng.normal()];
+        std::iter::repeat_with(move || {
+            let noise = [sigma_m * rng.normal(), sigma_m * rng.normal()];
             let residual = [noise[0] - previous[0], noise[1] - previous[1]];
             previous = noise;
+            residual
+        })
+    }
+
+    fn with_levels() -> OffsetParams {
+        OffsetParams {
+            vehicle_levels: true,
+            ..unit_params()
+        }
+    }
+
+    #[test]
+    fn the_vehicle_level_adapts_with_a_delay_and_within_bounds() {
+        // A receiver 3× noisier (in σ) than the population. Its level rises towards 9, capped at
+        // 4, but only from snapshots at least 120 s old.
+        let mut tracker = OffsetTracker::new(&with_levels());
+        let mut levels_at = Vec::new();
+        for (i, residual) in receiver_residuals(3.0, 3).take(900).enumerate() {
             let e = tracker.push(&step(residual, 1.0));
             assert!(e.nis.iter().all(|n| n.is_finite()));
             if i == 100 || i == 899 {
@@ -1423,17 +1428,9 @@ mod tests {
         // GNSS white noise of σ 0.5 m on unit parameters: the step level in use falls to the
         // population's within the first minute, while the anchors' levels wait for the delayed
         // snapshot.
-        let params = OffsetParams {
-            vehicle_levels: true,
-            ..unit_params()
-        };
-        let mut tracker = OffsetTracker::new(&params);
-        let mut rng = crate::rng::Rng::seed_from_u64(5);
-        let mut previous = [0.0; 2];
-        for _ in 0..60 {
-            let noise = [0.5 * rng.normal(), 0.5 * rng.normal()];
-            tracker.push(&step([noise[0] - previous[0], noise[1] - previous[1]], 1.0));
-            previous = noise;
+        let mut tracker = OffsetTracker::new(&with_levels());
+        for residual in receiver_residuals(0.5, 5).take(60) {
+            tracker.push(&step(residual, 1.0));
         }
         assert_eq!(tracker.levels_in_use[STEP_LEVEL], 1.0);
         assert!(
