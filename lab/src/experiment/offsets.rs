@@ -1056,4 +1056,26 @@ mod tests {
             ""
         );
     }
+
+    #[test]
+    fn attack_free_validation_drives_run_at_each_tested_rate_and_are_not_test_drives() {
+        let rate_of = |track: &Track| {
+            let r = &track.records;
+            (r.len() - 1) as f64 / (r[r.len() - 1].sample.timestamp_s - r[0].sample.timestamp_s)
+        };
+        let validation = clean_drives(7, Population::CleanValidation, 1, 1).unwrap();
+        let test = clean_drives(7, Population::CleanTest, 1, 1).unwrap();
+        assert_eq!(validation.len(), RATES_HZ.len());
+        for ((drives, test_drives), rate_hz) in validation.iter().zip(&test).zip(RATES_HZ) {
+            let drive = &drives[0];
+            assert!(
+                (rate_of(drive) - rate_hz).abs() < 0.05 * rate_hz,
+                "{}",
+                rate_of(drive)
+            );
+            assert!(drive.records.iter().all(|r| r.label != Some(true)));
+            assert!(drive.vehicle_id.starts_with("validation-clean-"));
+            assert_ne!(drive.records[5].sample, test_drives[0].records[5].sample);
+        }
+    }
 }
