@@ -140,10 +140,13 @@ async fn a_jump_alarm_says_jump_with_its_offset_also_after_a_restart() {
     );
     let onset_evidence = first.evidence.as_ref().expect("evidence");
     let offset = onset_evidence.offset.as_ref().expect("v3 offset evidence");
-    assert_eq!(
-        (offset.offset_east_m, offset.offset_north_m),
-        (why.offset_east_m, why.offset_north_m),
-        "the explanation's offset is the slow anchor's"
+    // The explanation gives the held jump (GNSS against dead reckoning from the fix before it); the
+    // slow anchor, frozen at that fix, holds the same plus the little it had followed before.
+    let apart = (offset.offset_east_m - why.offset_east_m)
+        .hypot(offset.offset_north_m - why.offset_north_m);
+    assert!(
+        apart < 5.0,
+        "the explanation's offset is the held jump's, {apart} m from the slow anchor's: {why:?}"
     );
     assert!(offset.arrived_by_step && offset.nis_slow.max(offset.nis_fast) >= 25.0);
     assert!(
