@@ -341,8 +341,8 @@ impl StepHold {
 
     /// Adds one step's residual; returns whether the jump still holds.
     fn advance(&mut self, residual: [f64; 2], delta_t: f64) -> bool {
-        for axis in 0..2 {
-            self.offset[axis] += residual[axis];
+        for (offset, change) in self.offset.iter_mut().zip(residual) {
+            *offset += change;
         }
         self.held_s += delta_t;
         self.held_s <= MAX_STEP_HOLD_S && !self.nearer_track(self.offset)
@@ -535,10 +535,10 @@ impl OffsetTracker {
         // A held jump is tested against pure dead reckoning: on a vehicle whose dead reckoning
         // cannot carry an anchor (a misfit beyond the level's bound) it means nothing.
         let dead_reckoning_carries = misfits[ANCHOR_COUNT - 1] <= 1.0;
-        if let Some(hold) = &mut self.step_hold {
-            if !dead_reckoning_carries || !hold.advance(step.residual, delta_t) {
-                self.step_hold = None;
-            }
+        if let Some(hold) = &mut self.step_hold
+            && (!dead_reckoning_carries || !hold.advance(step.residual, delta_t))
+        {
+            self.step_hold = None;
         }
         let mut nis = [0.0; ANCHOR_COUNT];
         let mut population_nis = [0.0; LEVEL_COUNT];
