@@ -17,7 +17,7 @@ from pathlib import Path
 
 GROUPS = [
     ("jumps ≥ 20 m", lambda c: c["family"] == "jump" and c["magnitude"] >= 20),
-    ("frozen fix", lambda c: c["family"] == "frozen_position"),
+    ("frozen fix", lambda c: c["family"].startswith("frozen_position")),
     ("hops", lambda c: c["family"] == "hopping"),
     ("ramps and accelerating", lambda c: c["family"] in ("ramp_drift", "accelerating_drift")),
     ("toggling drift", lambda c: c["family"] == "toggling_drift"),

@@ -132,6 +132,7 @@ pub fn offset_signal(evidence: &Evidence) -> OffsetSignal {
                 (a, b) => a.or(b),
             },
             displaced: o.displaced(),
+            anchored: true,
         }
     })
 }

@@ -1,7 +1,11 @@
 //! The alarm lifecycle in seconds, with hysteresis (`docs/detector.md` §7.1).
 //!
 //! An alarm opens after p̂ has stayed at or above θ for `on_s` seconds, or at once on decisive
-//! evidence: an offset held beyond the decisive gate for `decisive_s` seconds. It stays open while
+//! evidence: an offset held beyond the decisive gate for `decisive_s` seconds. For the first
+//! [`SETTLE_S`] of a trajectory (a session's start, or the end of an outage) p̂ counts only where the
+//! fix is also displaced from the anchors: the rate channels' averages are still filling and the
+//! vehicle's noise levels are the population's, while the anchors were placed on the fix itself
+//! and are at their sharpest. It stays open while
 //! p̂ ≥ θ or the fix stays displaced from the anchors, and clears only after `off_s` seconds with
 //! neither. Every duration is measured on the samples' own timestamps, so a 1 Hz and a 10 Hz
 //! stream of the same drive open and clear at the same times, and one false-alarm budget holds for
@@ -19,6 +23,9 @@ pub const MAX_LIFECYCLE_S: f64 = 3600.0;
 /// Timestamps of a 10 Hz stream are not exact multiples of 0.1 s in binary; durations compare with
 /// this slack (s).
 const TIME_SLACK_S: f64 = 1e-6;
+/// Seconds after a trajectory starts during which p̂ ≥ θ counts towards T_on only on a sample whose
+/// fix is displaced from the anchors (models with offset evidence only).
+pub const SETTLE_S: f64 = 30.0;
 
 /// The lifecycle's durations, chosen on validation data with θ.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -62,6 +69,9 @@ pub struct OffsetSignal {
     pub held_s: Option<f64>,
     /// The fix is displaced from an anchor beyond the follow gate.
     pub displaced: bool,
+    /// The sample has offset evidence (the model has the offset channels), so `displaced` can
+    /// vouch for p̂ while a trajectory settles.
+    pub anchored: bool,
 }
 
 /// One sample's inputs to the lifecycle.
@@ -84,6 +94,10 @@ pub struct AlarmLifecycle {
     positive_since: Option<f64>,
     /// Start of the current run without support, while open.
     quiet_since: Option<f64>,
+    /// Time of the current trajectory's first sample; `None` in a state saved before it was kept,
+    /// which is long settled.
+    #[serde(default)]
+    trajectory_since: Option<f64>,
 }
 
 impl AlarmLifecycle {
@@ -96,13 +110,20 @@ impl AlarmLifecycle {
     /// alarm and forgets the runs (as the persistence N_p does); a ν = 0 sample changes nothing.
     pub fn update(&mut self, lifecycle: &Lifecycle, input: &LifecycleInput) -> bool {
         if input.trajectory_start {
-            *self = Self::default();
+            *self = Self {
+                trajectory_since: Some(input.time_s),
+                ..Self::default()
+            };
         }
         if !input.valid {
             return self.open;
         }
         let time = input.time_s;
-        if input.positive {
+        let settling = input.offset.anchored
+            && self
+                .trajectory_since
+                .is_some_and(|since| time - since + TIME_SLACK_S < SETTLE_S);
+        if input.positive && (!settling || input.offset.displaced) {
             self.positive_since.get_or_insert(time);
         } else {
             self.positive_since = None;
@@ -171,6 +192,7 @@ mod tests {
                     offset: OffsetSignal {
                         held_s,
                         displaced: displaced(time_s),
+                        anchored: false,
                     },
                 },
             );
@@ -243,6 +265,84 @@ mod tests {
         assert!(alarm.is_open());
         assert!(alarm.update(&LIFECYCLE, &input(4.0, false, false)));
         assert!(!alarm.update(&LIFECYCLE, &input(20.0, true, true)));
+    }
+
+    /// Onset times of an anchored stream sampled every `step_s` to `end_s`, whose trajectory
+    /// starts at 0 and again at `restart_s`; p̂ ≥ θ throughout, displaced per `displaced(t)`.
+    fn anchored_onsets(
+        step_s: f64,
+        end_s: f64,
+        restart_s: f64,
+        displaced: impl Fn(f64) -> bool,
+    ) -> Vec<f64> {
+        let mut alarm = AlarmLifecycle::default();
+        let mut onsets = Vec::new();
+        let steps = (end_s / step_s).round() as usize;
+        for i in 0..=steps {
+            let time_s = i as f64 * step_s;
+            let was = alarm.is_open();
+            let open = alarm.update(
+                &LIFECYCLE,
+                &LifecycleInput {
+                    time_s,
+                    valid: true,
+                    trajectory_start: i == 0 || (time_s - restart_s).abs() < 1e-9,
+                    positive: true,
+                    offset: OffsetSignal {
+                        held_s: None,
+                        displaced: displaced(time_s),
+                        anchored: true,
+                    },
+                },
+            );
+            if open && !was {
+                onsets.push((time_s * 1e6).round() / 1e6);
+            }
+        }
+        onsets
+    }
+
+    #[test]
+    fn while_a_trajectory_settles_p_counts_only_on_a_displaced_fix() {
+        // p̂ ≥ θ from the first sample, the fix agreeing with the anchors: T_on (3 s) counts from
+        // SETTLE_S (30 s) on, at 1 Hz and at 10 Hz alike; an outage restarts the trajectory at
+        // 100 s, which closes the alarm and settles again (opens at 133 s).
+        let agreeing = |_: f64| false;
+        assert_eq!(
+            anchored_onsets(1.0, 150.0, 100.0, agreeing),
+            vec![33.0, 133.0]
+        );
+        assert_eq!(
+            anchored_onsets(0.1, 150.0, 100.0, agreeing),
+            vec![33.0, 133.0]
+        );
+        // Displaced from 10 s: the run counts from there and opens T_on later.
+        let displaced = |t: f64| t >= 10.0;
+        assert_eq!(anchored_onsets(1.0, 50.0, 1e9, displaced), vec![13.0]);
+        assert_eq!(anchored_onsets(0.1, 50.0, 1e9, displaced), vec![13.0]);
+        // Without offset evidence (no anchors) nothing settles: opens at T_on.
+        let (onsets, _) = run(1.0, 50.0, |_| true, None, |_| false);
+        assert_eq!(onsets, vec![3.0]);
+    }
+
+    #[test]
+    fn a_state_saved_without_the_trajectory_start_is_settled() {
+        let mut alarm = AlarmLifecycle::default();
+        let positive_agreeing = |time_s: f64| LifecycleInput {
+            time_s,
+            valid: true,
+            trajectory_start: false,
+            positive: true,
+            offset: OffsetSignal {
+                held_s: None,
+                displaced: false,
+                anchored: true,
+            },
+        };
+        let onset = (0..10)
+            .map(f64::from)
+            .find(|&t| alarm.update(&LIFECYCLE, &positive_agreeing(500.0 + t)));
+        assert_eq!(onset, Some(3.0), "T_on after the first sample, no settling");
     }
 
     #[test]

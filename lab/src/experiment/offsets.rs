@@ -120,46 +120,119 @@ const OUTAGE_S: f64 = 5.0;
 struct TestKind {
     kind: AttackKind,
     within_s: f64,
+    motion: Motion,
+}
+
+/// What the vehicle does when a test attack starts. A frozen fix is only visible once the vehicle
+/// moves away from it: frozen while standing is its own test, timed from when the vehicle moves off.
+#[derive(Clone, Copy, PartialEq)]
+enum Motion {
+    /// Wherever the drive happens to be.
+    Any,
+    /// Moving (onboard speed ≥ [`MOVING_MPS`]) on every row from the onset to the deadline.
+    Moving,
+    /// Standing (onboard speed < [`STANDING_MPS`]) at the onset, and moving off within
+    /// [`MOVE_OFF_WITHIN_S`]; the deadline counts from the first row at [`MOVING_MPS`] or more.
+    Standing,
+}
+
+/// A vehicle at this onboard speed or more is moving (m/s).
+const MOVING_MPS: f64 = 2.0;
+/// A vehicle below this onboard speed is standing (m/s).
+const STANDING_MPS: f64 = 0.3;
+/// A standing test vehicle moves off within this long after the onset (s).
+const MOVE_OFF_WITHIN_S: f64 = 60.0;
+/// Drives drawn at most per test drive to find one with the motion its test asks for.
+const MOTION_ATTEMPTS: u64 = 400;
+
+impl TestKind {
+    fn any(kind: AttackKind, within_s: f64) -> Self {
+        Self {
+            kind,
+            within_s,
+            motion: Motion::Any,
+        }
+    }
+
+    fn label(&self) -> String {
+        let family = self.kind.family();
+        match self.motion {
+            Motion::Any => family.to_string(),
+            Motion::Moving => format!("{family} while moving"),
+            Motion::Standing => format!("{family} while standing"),
+        }
+    }
+
+    /// Seconds after the onset by which `track` (attacked from `onset_s`) must be alarmed, or `None`
+    /// when its motion is not the one this test asks for.
+    fn deadline_s(&self, track: &Track, onset_s: f64) -> Option<f64> {
+        let start = track.records.first()?.sample.timestamp_s;
+        let speeds_from = |from_s: f64| {
+            track
+                .records
+                .iter()
+                .map(move |r| (r.sample.timestamp_s - start - onset_s, r.sample.speed_mps))
+                .skip_while(move |&(t, _)| t < from_s)
+        };
+        match self.motion {
+            Motion::Any => Some(self.within_s),
+            Motion::Moving => speeds_from(0.0)
+                .take_while(|&(t, _)| t <= self.within_s)
+                .all(|(_, v)| v >= MOVING_MPS)
+                .then_some(self.within_s),
+            Motion::Standing => {
+                let mut speeds = speeds_from(0.0);
+                let (_, at_onset) = speeds.next()?;
+                if at_onset >= STANDING_MPS {
+                    return None;
+                }
+                let (move_off_s, _) = speeds
+                    .take_while(|&(t, _)| t <= MOVE_OFF_WITHIN_S)
+                    .find(|&(_, v)| v >= MOVING_MPS)?;
+                Some(move_off_s + self.within_s)
+            }
+        }
+    }
 }
 
 /// The test grid with the deadlines the detector is held to.
 fn test_kinds() -> Vec<TestKind> {
     let mut kinds = Vec::new();
     for offset_m in [5.0, 20.0, 50.0, 500.0, 50_000.0] {
+        kinds.push(TestKind::any(AttackKind::Jump { offset_m }, 10.0));
+    }
+    for motion in [Motion::Moving, Motion::Standing] {
         kinds.push(TestKind {
-            kind: AttackKind::Jump { offset_m },
+            kind: AttackKind::FrozenPosition,
             within_s: 10.0,
+            motion,
         });
     }
-    kinds.push(TestKind {
-        kind: AttackKind::FrozenPosition,
-        within_s: 10.0,
-    });
     for (offset_m, hold_s) in [(200.0, 5.0), (50_000.0, 10.0)] {
-        kinds.push(TestKind {
-            kind: AttackKind::Hopping { offset_m, hold_s },
-            within_s: 15.0,
-        });
+        kinds.push(TestKind::any(
+            AttackKind::Hopping { offset_m, hold_s },
+            15.0,
+        ));
     }
     for (velocity_mps, within_s) in [(0.5, 60.0), (1.0, 30.0), (2.0, 30.0)] {
-        kinds.push(TestKind {
-            kind: AttackKind::RampDrift { velocity_mps },
+        kinds.push(TestKind::any(
+            AttackKind::RampDrift { velocity_mps },
             within_s,
-        });
+        ));
     }
-    kinds.push(TestKind {
-        kind: AttackKind::AcceleratingDrift {
+    kinds.push(TestKind::any(
+        AttackKind::AcceleratingDrift {
             acceleration_mps2: 0.05,
         },
-        within_s: 60.0,
-    });
-    kinds.push(TestKind {
-        kind: AttackKind::TogglingDrift {
+        60.0,
+    ));
+    kinds.push(TestKind::any(
+        AttackKind::TogglingDrift {
             velocity_mps: 1.0,
             period_s: 10.0,
         },
-        within_s: 30.0,
-    });
+        30.0,
+    ));
     kinds
 }
 
@@ -305,6 +378,43 @@ struct TestDrive {
     kind_index: usize,
     rate_index: usize,
     early: bool,
+    /// Detected counts when the alarm opens within this many seconds of the onset.
+    deadline_s: f64,
+}
+
+impl TestDrive {
+    /// The drive's outcome (the detector's name and seed left empty).
+    fn outcome(
+        &self,
+        kind: &TestKind,
+        rate_hz: f64,
+        delay_s: Option<f64>,
+        coverage: Option<f64>,
+    ) -> DriveOutcome {
+        let records = &self.injected.track.records;
+        let first = *self.injected.attack_rows().start();
+        let onset_time = records[first].sample.timestamp_s;
+        let speeds: Vec<f64> = records[first..]
+            .iter()
+            .take_while(|r| r.sample.timestamp_s - onset_time <= self.deadline_s)
+            .map(|r| r.sample.speed_mps)
+            .collect();
+        DriveOutcome {
+            detector: String::new(),
+            seed: None,
+            vehicle_id: self.injected.track.vehicle_id.clone(),
+            attack: kind.label(),
+            magnitude: kind.kind.magnitude(),
+            rate_hz,
+            early_onset: self.early,
+            onset_s: onset_time - records[0].sample.timestamp_s,
+            deadline_s: self.deadline_s,
+            mean_speed_mps: speeds.iter().sum::<f64>() / speeds.len().max(1) as f64,
+            delay_s,
+            in_time: delay_s.is_some_and(|d| d <= self.deadline_s),
+            coverage,
+        }
+    }
 }
 
 /// The drives every detector is scored on.
@@ -334,28 +444,40 @@ fn test_set(
         }
     }
     let attacked = map_parallel(&jobs, threads, |&(i, rate_index, kind_index, early)| {
-        let seed = drive_seed(seed, Population::AttackedTest, i);
-        let onset_s = if early {
-            EARLY_ONSET_S
-        } else {
-            Rng::seed_from_u64(seed ^ 0x0A5E7)
-                .uniform_range(LATE_ONSET_S.0, LATE_ONSET_S.1)
-                .round()
-        };
-        attacked(
-            seed,
-            kinds[kind_index].kind,
-            onset_s,
-            TEST_ATTACK_S,
-            Some(RATES_HZ[rate_index]),
-            &format!("test-{i}"),
+        let test_kind = &kinds[kind_index];
+        // Drives are drawn until one has the motion the test asks for (the first, for most).
+        for attempt in 0..MOTION_ATTEMPTS {
+            let seed = drive_seed(seed, Population::AttackedTest, i + (attempt << 32));
+            let onset_s = if early {
+                EARLY_ONSET_S
+            } else {
+                Rng::seed_from_u64(seed ^ 0x0A5E7)
+                    .uniform_range(LATE_ONSET_S.0, LATE_ONSET_S.1)
+                    .round()
+            };
+            let injected = attacked(
+                seed,
+                test_kind.kind,
+                onset_s,
+                TEST_ATTACK_S,
+                Some(RATES_HZ[rate_index]),
+                &format!("test-{i}"),
+            )?;
+            if let Some(deadline_s) = test_kind.deadline_s(&injected.track, onset_s) {
+                return Ok(TestDrive {
+                    injected,
+                    kind_index,
+                    rate_index,
+                    early,
+                    deadline_s,
+                });
+            }
+        }
+        anyhow::bail!(
+            "no drive in {MOTION_ATTEMPTS} draws for {} at {} Hz",
+            test_kind.label(),
+            RATES_HZ[rate_index]
         )
-        .map(|injected| TestDrive {
-            injected,
-            kind_index,
-            rate_index,
-            early,
-        })
     })
     .into_iter()
     .collect::<Result<Vec<_>>>()?;
@@ -407,8 +529,9 @@ struct AttackCell {
     rate_hz: f64,
     early_onset: bool,
     drives: usize,
+    /// The deadline after the onset (a test while standing: after the vehicle moves off).
     within_s: f64,
-    /// Share of drives detected within `within_s`.
+    /// Share of drives detected within the deadline.
     detected_in_time: f64,
     /// Share detected at all during the attack.
     detected: f64,
@@ -440,6 +563,29 @@ struct DetectorReport {
     operating_point: serde_json::Value,
     attacks: Vec<AttackCell>,
     clean: Vec<CleanCell>,
+    /// Every attacked test drive's outcome (written to `drives.csv`, not to the report).
+    #[serde(skip)]
+    drives: Vec<DriveOutcome>,
+}
+
+/// One attacked test drive under one detector: a row of `drives.csv`.
+#[derive(Clone, Debug, Serialize)]
+struct DriveOutcome {
+    detector: String,
+    seed: Option<u64>,
+    vehicle_id: String,
+    attack: String,
+    magnitude: Option<f64>,
+    rate_hz: f64,
+    early_onset: bool,
+    onset_s: f64,
+    deadline_s: f64,
+    /// Mean onboard speed from the onset to the deadline (m/s).
+    mean_speed_mps: f64,
+    /// Seconds from the onset to the alarm's first onset in the attack; empty when missed.
+    delay_s: Option<f64>,
+    in_time: bool,
+    coverage: Option<f64>,
 }
 
 /// Per-track scores of `tracks`, one [`Scored`] per track, `score` called on chunks in parallel.
@@ -479,10 +625,12 @@ impl TestSet {
             .collect();
         let scored = per_track(&tracks, self.threads, &score);
         let mut attacks = Vec::new();
+        let mut outcomes = Vec::new();
         for (rate_index, &rate_hz) in RATES_HZ.iter().enumerate() {
             for (kind_index, test_kind) in self.kinds.iter().enumerate() {
                 for early in [true, false] {
                     let mut delays = Vec::new();
+                    let mut in_time = 0;
                     let mut coverages = Vec::new();
                     let mut drives = 0;
                     for (drive, scored) in self.attacked.iter().zip(&scored) {
@@ -493,22 +641,27 @@ impl TestSet {
                         }
                         drives += 1;
                         let (delay, coverage) = delay_and_coverage(&drive.injected, scored);
+                        let outcome = drive.outcome(test_kind, rate_hz, delay, coverage);
+                        in_time += usize::from(outcome.in_time);
                         if let Some(delay) = delay {
                             delays.push(delay);
                             coverages.extend(coverage);
                         }
+                        outcomes.push(DriveOutcome {
+                            detector: name.to_string(),
+                            seed,
+                            ..outcome
+                        });
                     }
                     let share = |n: usize| n as f64 / drives.max(1) as f64;
                     attacks.push(AttackCell {
-                        family: test_kind.kind.family().to_string(),
+                        family: test_kind.label(),
                         magnitude: test_kind.kind.magnitude(),
                         rate_hz,
                         early_onset: early,
                         drives,
                         within_s: test_kind.within_s,
-                        detected_in_time: share(
-                            delays.iter().filter(|&&d| d <= test_kind.within_s).count(),
-                        ),
+                        detected_in_time: share(in_time),
                         detected: share(delays.len()),
                         coverage: (!coverages.is_empty())
                             .then(|| coverages.iter().sum::<f64>() / coverages.len() as f64),
@@ -531,6 +684,7 @@ impl TestSet {
             operating_point,
             attacks,
             clean,
+            drives: outcomes,
         }
     }
 }
@@ -764,7 +918,19 @@ pub fn run(args: Args) -> Result<()> {
         detectors,
         experiment_wall_time_s: started.elapsed().as_secs_f64(),
     };
+    write_drives(&args.common.out.join("drives.csv"), &report.detectors)?;
     write_report(&args.common.out, &report, &render_markdown(&report))
+}
+
+/// Every detector's outcome on every attacked test drive, one CSV row each.
+fn write_drives(path: &std::path::Path, detectors: &[DetectorReport]) -> Result<()> {
+    let mut writer =
+        csv::Writer::from_path(path).with_context(|| format!("creating {}", path.display()))?;
+    for outcome in detectors.iter().flat_map(|d| &d.drives) {
+        writer.serialize(outcome)?;
+    }
+    writer.flush().context("writing drives.csv")?;
+    Ok(())
 }
 
 /// An HO-LLN artifact's report, or an empty one when no operating point was within the budget.
@@ -781,6 +947,7 @@ fn model_report(
             operating_point: serde_json::Value::Null,
             attacks: Vec::new(),
             clean: Vec::new(),
+            drives: Vec::new(),
         });
     };
     let point = operating_point_json(artifact);
@@ -803,9 +970,11 @@ fn render_markdown(report: &Report) -> String {
          1–30 m/s), {} test drives per attack, onset and rate; attacks last {TEST_ATTACK_S} s and \
          start {EARLY_ONSET_S} s after the session starts (early) or {}–{} s into it (late). Every \
          learned and fitted detector's operating point is chosen on validation data within ≤ {} \
-         false alarm per attack-free hour; the residual gate is fixed. Cells: share detected within \
-         the deadline (early / late onset), then the alarm's coverage of the attack after its onset \
-         (late onset).\n",
+         false alarm per attack-free hour; the residual gate is fixed. A frozen fix is tested on \
+         vehicles moving (≥ {MOVING_MPS} m/s) until the deadline, and on vehicles standing at the \
+         onset, whose deadline counts from when they move off (within {MOVE_OFF_WITHIN_S} s). \
+         Cells: share detected within the deadline (early / late onset), then the alarm's coverage \
+         of the attack after its onset (late onset).\n",
         report.test_drives_per_cell,
         LATE_ONSET_S.0,
         LATE_ONSET_S.1,
@@ -1007,6 +1176,7 @@ mod tests {
                     with_held_offset: 0,
                 })
                 .collect(),
+            drives: Vec::new(),
         }
     }
 
@@ -1055,6 +1225,58 @@ mod tests {
             seeds_summary(&report(vec![detector(42, true, 0.3, 0.5)])),
             ""
         );
+    }
+
+    /// A 1 Hz track whose onboard speed at second `t` is `speed(t)`, for `seconds` seconds.
+    fn track_with_speeds(seconds: u32, speed: impl Fn(f64) -> f64) -> Track {
+        use spoofwatch_core::sample::{Record, Sample};
+        Track {
+            vehicle_id: "v".into(),
+            records: (0..seconds)
+                .map(|t| Record {
+                    sample: Sample {
+                        timestamp_s: 1000.0 + f64::from(t),
+                        latitude_deg: 48.0,
+                        longitude_deg: 11.0,
+                        speed_mps: speed(f64::from(t)),
+                        heading_deg: 0.0,
+                        position_std_m: None,
+                        speed_std_mps: None,
+                        heading_std_deg: None,
+                    },
+                    label: None,
+                    comparator_alarm: None,
+                    line: u64::from(t) + 2,
+                    trajectory_break: false,
+                    warmup: false,
+                })
+                .collect(),
+        }
+    }
+
+    #[test]
+    fn a_frozen_fix_is_tested_on_the_motion_its_test_names() {
+        let frozen = |motion| TestKind {
+            kind: AttackKind::FrozenPosition,
+            within_s: 10.0,
+            motion,
+        };
+        let (moving, standing) = (frozen(Motion::Moving), frozen(Motion::Standing));
+        let cruising = track_with_speeds(200, |_| 8.0);
+        // Stands until 40 s, then moves off: at 20 s it is standing, moving off 20 s later.
+        let stop_and_go = track_with_speeds(200, |t| if t < 40.0 { 0.1 } else { 5.0 });
+        // Slows to a crawl 5 s after the onset at 20 s: not moving until the deadline.
+        let slowing = track_with_speeds(200, |t| if t < 25.0 { 8.0 } else { 1.0 });
+        assert_eq!(moving.deadline_s(&cruising, 20.0), Some(10.0));
+        assert_eq!(moving.deadline_s(&slowing, 20.0), None);
+        assert_eq!(moving.deadline_s(&stop_and_go, 20.0), None);
+        assert_eq!(standing.deadline_s(&stop_and_go, 20.0), Some(30.0));
+        assert_eq!(standing.deadline_s(&cruising, 20.0), None);
+        // Moving off more than a minute after the onset is not a test drive.
+        assert_eq!(standing.deadline_s(&stop_and_go, -50.0), None);
+        let any = TestKind::any(AttackKind::FrozenPosition, 10.0);
+        assert_eq!(any.deadline_s(&slowing, 20.0), Some(10.0));
+        assert_eq!(moving.label(), "frozen_position while moving");
     }
 
     #[test]
