@@ -499,8 +499,12 @@ impl OffsetTracker {
             [1.0; ANCHOR_COUNT]
         };
         if delta_t > super::MAX_GAP_S && self.reappears_as_expected(step, &levels) {
-            // Back inside what the gap allows: a fresh anchor here (a tunnel is not a jump).
+            // Back inside what the gap allows: a fresh anchor here (a tunnel is not a jump). Like
+            // a session's first fix, the first fix after an outage is one unconfirmed fix (a
+            // receiver reacquiring may be off by a reflection): it is trusted after TRUST_S of
+            // agreement, and a disagreement before then places the anchors again.
             self.re_anchor_keeping_levels();
+            self.agreed_s = 0.0;
             return self.last;
         }
         let gap_m2 = if delta_t > super::MAX_GAP_S {
@@ -1306,6 +1310,24 @@ mod tests {
         // Without the gap, the same 100 m is far beyond the gate.
         let mut tracker = trusted(&unit_params());
         assert!(tracker.push(&step([100.0, 0.0], 1.0)).max_nis() > DECISIVE_GATE);
+    }
+
+    #[test]
+    fn the_first_fix_after_an_outage_is_trusted_only_after_agreement() {
+        // The fix reappears inside what a 10 s gap allows, but 15 m off (a reflection as the
+        // receiver reacquires); the next fix is back on the track. The anchors were placed on the
+        // reappearance: the disagreement places them again instead of holding a 15 m jump.
+        let mut tracker = trusted(&unit_params());
+        tracker.push(&step([15.0, 0.0], 10.0));
+        let back = tracker.push(&step([-15.0, 0.0], 1.0));
+        assert_eq!((back.nis, back.anchor_age_s), ([0.0, 0.0], 0.0));
+        assert!(!back.displaced());
+        // After TRUST_S of agreement the same step is a jump again.
+        for _ in 0..(TRUST_S as usize) {
+            assert!(!tracker.push(&step([0.0; 2], 1.0)).displaced());
+        }
+        let jump = tracker.push(&step([-15.0, 0.0], 1.0));
+        assert!(jump.max_nis() >= DECISIVE_GATE && jump.arrived_by_step);
     }
 
     #[test]
