@@ -9,7 +9,8 @@ early a drift can be told from the vehicle's own errors depends on the speed it 
     python3 scripts/offsets_by_speed.py out/offsets [--detector NAME]
 
 Reads DIR/drives.csv (one row per detector and attacked test drive) and prints, for the detector
-(default: the HO-LLN model of the run's first training seed), each drift kind's share detected
+(default: the HO-LLN model of the run's first training seed; NAME picks another, e.g. "CUSUM"),
+each drift kind's share detected
 within its deadline per band of the mean onboard speed from the onset to the deadline, for onsets
 15 s into a session and minutes into it, pooled over the sample rates.
 """
@@ -32,28 +33,29 @@ def main(argv):
         print(__doc__)
         return 0 if argv else 2
     out = Path(argv[0])
-    detector = None
+    detector, seed = None, ""
     if "--detector" in argv:
         detector = argv[argv.index("--detector") + 1]
     if detector is None:
         report = json.loads((out / "report.json").read_text())
-        seed = report["training_seeds"][0]
+        seed = str(report["training_seeds"][0])
         detector = next(
             d["name"]
             for d in report["detectors"]
-            if d["name"].startswith("HO-LLN") and d["seed"] == seed
+            if d["name"].startswith("HO-LLN") and str(d["seed"]) == seed
         )
     rows = [
         r
         for r in csv.DictReader((out / "drives.csv").open())
-        if r["detector"] == detector and r["attack"] in DRIFTS
+        if r["detector"] == detector and r["seed"] == seed and r["attack"] in DRIFTS
     ]
     if not rows:
         print(f"no drift rows for {detector!r} in {out / 'drives.csv'}", file=sys.stderr)
         return 1
     kinds = sorted({(r["attack"], float(r["magnitude"])) for r in rows})
     header = "| attack | onset | " + " | ".join(band_label(*b) for b in BANDS) + " |"
-    print(f"{detector}: share detected within the deadline (drives)\n")
+    label = f"{detector} (seed {seed})" if seed else detector
+    print(f"{label}: share detected within the deadline (drives)\n")
     print(header)
     print("|---|---|" + "---|" * len(BANDS))
     for attack, magnitude in kinds:

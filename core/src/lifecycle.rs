@@ -163,9 +163,33 @@ mod tests {
         decisive_s: 2.0,
     };
 
+    /// How a hand-made stream is sampled: whether it has offset evidence, and when its trajectory
+    /// starts again (an outage) besides at 0.
+    #[derive(Clone, Copy)]
+    struct Stream {
+        anchored: bool,
+        restart_s: f64,
+    }
+
+    const PLAIN: Stream = Stream {
+        anchored: false,
+        restart_s: f64::INFINITY,
+    };
+
     /// Runs the lifecycle over samples every `step_s` from 0 to `end_s`; `positive(t)`,
     /// `held(t)` and `displaced(t)` describe the drive. Returns (onset times, clear times).
     fn run(
+        step_s: f64,
+        end_s: f64,
+        positive: impl Fn(f64) -> bool,
+        held_since: Option<f64>,
+        displaced: impl Fn(f64) -> bool,
+    ) -> (Vec<f64>, Vec<f64>) {
+        run_stream(PLAIN, step_s, end_s, positive, held_since, displaced)
+    }
+
+    fn run_stream(
+        stream: Stream,
         step_s: f64,
         end_s: f64,
         positive: impl Fn(f64) -> bool,
@@ -187,12 +211,12 @@ mod tests {
                 &LifecycleInput {
                     time_s,
                     valid: true,
-                    trajectory_start: i == 0,
+                    trajectory_start: i == 0 || (time_s - stream.restart_s).abs() < 1e-9,
                     positive: positive(time_s),
                     offset: OffsetSignal {
                         held_s,
                         displaced: displaced(time_s),
-                        anchored: false,
+                        anchored: stream.anchored,
                     },
                 },
             );
@@ -267,39 +291,20 @@ mod tests {
         assert!(!alarm.update(&LIFECYCLE, &input(20.0, true, true)));
     }
 
-    /// Onset times of an anchored stream sampled every `step_s` to `end_s`, whose trajectory
-    /// starts at 0 and again at `restart_s`; p̂ ≥ θ throughout, displaced per `displaced(t)`.
+    /// Onset times of an anchored stream with p̂ ≥ θ throughout, displaced per `displaced(t)`,
+    /// whose trajectory starts at 0 and again at `restart_s`.
     fn anchored_onsets(
         step_s: f64,
         end_s: f64,
         restart_s: f64,
         displaced: impl Fn(f64) -> bool,
     ) -> Vec<f64> {
-        let mut alarm = AlarmLifecycle::default();
-        let mut onsets = Vec::new();
-        let steps = (end_s / step_s).round() as usize;
-        for i in 0..=steps {
-            let time_s = i as f64 * step_s;
-            let was = alarm.is_open();
-            let open = alarm.update(
-                &LIFECYCLE,
-                &LifecycleInput {
-                    time_s,
-                    valid: true,
-                    trajectory_start: i == 0 || (time_s - restart_s).abs() < 1e-9,
-                    positive: true,
-                    offset: OffsetSignal {
-                        held_s: None,
-                        displaced: displaced(time_s),
-                        anchored: true,
-                    },
-                },
-            );
-            if open && !was {
-                onsets.push((time_s * 1e6).round() / 1e6);
-            }
-        }
-        onsets
+        let stream = Stream {
+            anchored: true,
+            restart_s,
+        };
+        let (onsets, _) = run_stream(stream, step_s, end_s, |_| true, None, displaced);
+        rounded(onsets)
     }
 
     #[test]
