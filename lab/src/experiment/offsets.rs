@@ -378,43 +378,23 @@ struct TestDrive {
     kind_index: usize,
     rate_index: usize,
     early: bool,
+    onset_s: f64,
     /// Detected counts when the alarm opens within this many seconds of the onset.
     deadline_s: f64,
+    mean_speed_mps: f64,
 }
 
-impl TestDrive {
-    /// The drive's outcome (the detector's name and seed left empty).
-    fn outcome(
-        &self,
-        kind: &TestKind,
-        rate_hz: f64,
-        delay_s: Option<f64>,
-        coverage: Option<f64>,
-    ) -> DriveOutcome {
-        let records = &self.injected.track.records;
-        let first = *self.injected.attack_rows().start();
-        let onset_time = records[first].sample.timestamp_s;
-        let speeds: Vec<f64> = records[first..]
-            .iter()
-            .take_while(|r| r.sample.timestamp_s - onset_time <= self.deadline_s)
-            .map(|r| r.sample.speed_mps)
-            .collect();
-        DriveOutcome {
-            detector: String::new(),
-            seed: None,
-            vehicle_id: self.injected.track.vehicle_id.clone(),
-            attack: kind.label(),
-            magnitude: kind.kind.magnitude(),
-            rate_hz,
-            early_onset: self.early,
-            onset_s: onset_time - records[0].sample.timestamp_s,
-            deadline_s: self.deadline_s,
-            mean_speed_mps: speeds.iter().sum::<f64>() / speeds.len().max(1) as f64,
-            delay_s,
-            in_time: delay_s.is_some_and(|d| d <= self.deadline_s),
-            coverage,
-        }
-    }
+/// Mean onboard speed of `injected` from its attack's first row to `deadline_s` after it (m/s).
+fn mean_speed_to_deadline(injected: &InjectedTrack, deadline_s: f64) -> f64 {
+    let records = &injected.track.records[*injected.attack_rows().start()..];
+    let onset_time = records[0].sample.timestamp_s;
+    let (sum, rows) = records
+        .iter()
+        .take_while(|r| r.sample.timestamp_s - onset_time <= deadline_s)
+        .fold((0.0, 0usize), |(sum, rows), r| {
+            (sum + r.sample.speed_mps, rows + 1)
+        });
+    sum / rows.max(1) as f64
 }
 
 /// The drives every detector is scored on.
@@ -465,10 +445,12 @@ fn test_set(
             )?;
             if let Some(deadline_s) = test_kind.deadline_s(&injected.track, onset_s) {
                 return Ok(TestDrive {
+                    mean_speed_mps: mean_speed_to_deadline(&injected, deadline_s),
                     injected,
                     kind_index,
                     rate_index,
                     early,
+                    onset_s,
                     deadline_s,
                 });
             }
@@ -641,17 +623,27 @@ impl TestSet {
                         }
                         drives += 1;
                         let (delay, coverage) = delay_and_coverage(&drive.injected, scored);
-                        let outcome = drive.outcome(test_kind, rate_hz, delay, coverage);
-                        in_time += usize::from(outcome.in_time);
+                        let in_deadline = delay.is_some_and(|d| d <= drive.deadline_s);
+                        in_time += usize::from(in_deadline);
+                        outcomes.push(DriveOutcome {
+                            detector: name.to_string(),
+                            seed,
+                            vehicle_id: drive.injected.track.vehicle_id.clone(),
+                            attack: test_kind.label(),
+                            magnitude: test_kind.kind.magnitude(),
+                            rate_hz,
+                            early_onset: early,
+                            onset_s: drive.onset_s,
+                            deadline_s: drive.deadline_s,
+                            mean_speed_mps: drive.mean_speed_mps,
+                            delay_s: delay,
+                            in_time: in_deadline,
+                            coverage,
+                        });
                         if let Some(delay) = delay {
                             delays.push(delay);
                             coverages.extend(coverage);
                         }
-                        outcomes.push(DriveOutcome {
-                            detector: name.to_string(),
-                            seed,
-                            ..outcome
-                        });
                     }
                     let share = |n: usize| n as f64 / drives.max(1) as f64;
                     attacks.push(AttackCell {
