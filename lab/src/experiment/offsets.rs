@@ -74,6 +74,10 @@ pub struct Args {
     /// Keep the rows after an attack's end in the loss (ablation of the exit masking).
     #[arg(long)]
     no_exit_mask: bool,
+    /// Attacked training and validation drives go on for 30 s to this many seconds (uniform) after
+    /// the attack, so that the model sees the evidence an attack charged decay.
+    #[arg(long, default_value_t = MIN_AFTER_ATTACK_S, value_parser = after_attack_s)]
+    after_attack_s: f64,
     /// Normalise every channel by the training population's noise alone (ablation of the
     /// per-vehicle levels).
     #[arg(long)]
@@ -93,6 +97,17 @@ pub struct Args {
     also: Vec<PathBuf>,
 }
 
+fn after_attack_s(text: &str) -> Result<f64, String> {
+    let seconds: f64 = text.parse().map_err(|error| format!("{text:?}: {error}"))?;
+    if (MIN_AFTER_ATTACK_S..=3_600.0).contains(&seconds) {
+        Ok(seconds)
+    } else {
+        Err(format!(
+            "{seconds} s is outside {MIN_AFTER_ATTACK_S}–3600 s"
+        ))
+    }
+}
+
 fn schema_name(name: &str) -> Result<FeatureSchema, String> {
     FeatureSchema::from_name(name).ok_or_else(|| format!("unknown feature schema {name:?}"))
 }
@@ -103,6 +118,10 @@ const RATES_HZ: [f64; 3] = [1.0, 5.0, 10.0];
 const CLEAN_DRIVE_S: f64 = 900.0;
 /// Length of a test attack (s).
 const TEST_ATTACK_S: f64 = 120.0;
+/// How long a test drive goes on after its attack (s).
+const TEST_AFTER_ATTACK_S: f64 = 30.0;
+/// How long a training drive goes on after its attack, at least (s).
+const MIN_AFTER_ATTACK_S: f64 = 30.0;
 /// The early onset: this long after the session starts (s).
 const EARLY_ONSET_S: f64 = 15.0;
 /// Late onsets are drawn from this range (s): the onboard calibration is warm.
@@ -310,13 +329,12 @@ fn drive(
     simulate_drive(&spec, vehicle_id).with_context(|| format!("simulating {vehicle_id}"))
 }
 
-/// `kind` injected `onset_s` into a drive at `rate_hz` (random direction), the drive ending
-/// `margin_s` after the attack.
+/// `kind` injected `onset_s` into a drive at `rate_hz` (random direction), the drive going on for
+/// `after_s` after the attack.
 fn attacked(
     seed: u64,
     kind: AttackKind,
-    onset_s: f64,
-    duration_s: f64,
+    (onset_s, duration_s, after_s): (f64, f64, f64),
     rate_hz: Option<f64>,
     vehicle_id: &str,
 ) -> Result<InjectedTrack> {
@@ -328,10 +346,9 @@ fn attacked(
         duration_s,
         seed: Some(seed),
     };
-    let margin_s = 30.0;
     let base = drive(
         seed,
-        onset_s + duration_s + margin_s,
+        onset_s + duration_s + after_s,
         rate_hz,
         false,
         vehicle_id,
@@ -342,11 +359,12 @@ fn attacked(
 
 /// `count` drives of the randomised training mix: every other one attacked (a random kind and
 /// magnitude, onset early — 10–60 s, drifts of 1 m/s or more — in a third of them, else 240–600 s;
-/// 60–180 s long), the others clean with outages, 900 s; every rate of the realistic distribution.
+/// 60–180 s long, the drive going on for 30 s to `max_after_s` after it), the others clean with
+/// outages, 900 s; every rate of the realistic distribution.
 fn training_mix(
     seed: u64,
     population: Population,
-    count: u64,
+    (count, max_after_s): (u64, f64),
     threads: usize,
 ) -> Result<Vec<Track>> {
     let indices: Vec<u64> = (0..count).collect();
@@ -366,7 +384,10 @@ fn training_mix(
         .round();
         let kind = training_attack(&mut rng, early);
         let duration_s = rng.uniform_range(60.0, 180.0).round();
-        attacked(drive_seed, kind, onset_s, duration_s, None, &id).map(|a| a.track)
+        // Drawn last, so that the default (30 s) leaves every other draw as it was.
+        let after_s = rng.uniform_range(MIN_AFTER_ATTACK_S, max_after_s).round();
+        let timing = (onset_s, duration_s, after_s);
+        attacked(drive_seed, kind, timing, None, &id).map(|a| a.track)
     })
     .into_iter()
     .collect()
@@ -438,8 +459,7 @@ fn test_set(
             let injected = attacked(
                 seed,
                 test_kind.kind,
-                onset_s,
-                TEST_ATTACK_S,
+                (onset_s, TEST_ATTACK_S, TEST_AFTER_ATTACK_S),
                 Some(RATES_HZ[rate_index]),
                 &format!("test-{i}"),
             )?;
@@ -725,6 +745,8 @@ struct Report {
     schema: &'static str,
     features: &'static str,
     exit_mask: bool,
+    /// Attacked training drives go on for 30 s to this long after the attack (s).
+    after_attack_s: f64,
     vehicle_levels: bool,
     lifecycle_in_seconds: bool,
     false_alarm_budget_per_hour: f64,
@@ -746,9 +768,19 @@ pub fn run(args: Args) -> Result<()> {
         seed,
         RECORDED_WARMUP_S,
         args.simulated_only,
-        training_mix(seed, Population::Train, args.drives, threads)?,
+        training_mix(
+            seed,
+            Population::Train,
+            (args.drives, args.after_attack_s),
+            threads,
+        )?,
         [
-            training_mix(seed, Population::Validation, args.drives, threads)?,
+            training_mix(
+                seed,
+                Population::Validation,
+                (args.drives, args.after_attack_s),
+                threads,
+            )?,
             clean_drives(
                 seed,
                 Population::CleanValidation,
@@ -900,6 +932,7 @@ pub fn run(args: Args) -> Result<()> {
         schema: args.schema.name(),
         features: args.features.name(),
         exit_mask: !args.no_exit_mask,
+        after_attack_s: args.after_attack_s,
         vehicle_levels: !args.no_vehicle_levels,
         lifecycle_in_seconds: !args.rows_lifecycle,
         false_alarm_budget_per_hour: FALSE_ALARM_BUDGET_PER_HOUR,
@@ -1180,6 +1213,7 @@ mod tests {
             schema: "v3",
             features: "all",
             exit_mask: true,
+            after_attack_s: MIN_AFTER_ATTACK_S,
             vehicle_levels: true,
             lifecycle_in_seconds: true,
             false_alarm_budget_per_hour: 1.0,
