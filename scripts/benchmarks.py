@@ -573,7 +573,8 @@ def render(results: dict) -> str:
         "database); a result is the median with the range of the runs in parentheses. *Load* is the "
         "1-minute load average before the runs (what `uptime` shows): other work on the machine "
         "lowers throughput and lengthens the tail. Each row names the date and commit it was "
-        "measured on; a row not measured yet says so. To measure rows again:",
+        "measured on, and the CPU (rows measured on different machines compare only within a machine: "
+        "see the end of the page); a row not measured yet says so. To measure rows again:",
         "",
         "```sh",
         "cargo build --release -p spoofwatch-server -p spoofwatch-client -p spoofwatch-lab",
@@ -599,7 +600,8 @@ def render(results: dict) -> str:
             if m is None:
                 out.append(f"| {name} | not measured | {r['goal'] or '—'} | — | — |")
             else:
-                when = f"{m['date'][:10]}, `{m['commit']}`" + (" (modified)" if m["source_modified"] else "")
+                when = (f"{m['date'][:10]}, `{m['commit']}`" + (" (modified)" if m["source_modified"] else "")
+                        + f", {m['machine']['cpu']}")
                 out.append(f"| {name} | {result_text(m)} | {r['goal'] or '—'} | {load_text(m)} | {when} |")
         out.append("")
     machines = []
