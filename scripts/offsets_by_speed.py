@@ -9,9 +9,8 @@ early a drift can be told from the vehicle's own errors depends on the speed it 
     python3 scripts/offsets_by_speed.py out/offsets [--detector NAME]
 
 Reads DIR/drives.csv (one row per detector and attacked test drive) and prints, for the detector
-(default: the HO-LLN model of the run's first training seed; NAME picks another, e.g. "CUSUM"),
-each drift kind's share detected
-within its deadline per band of the mean onboard speed from the onset to the deadline, for onsets
+(default: the HO-LLN model of the run's first training seed; NAME picks another, e.g. "CUSUM", every
+seed of it pooled), each drift kind's share detected within its deadline per band of the mean onboard speed from the onset to the deadline, for onsets
 15 s into a session and minutes into it, pooled over the sample rates.
 """
 
@@ -47,7 +46,7 @@ def main(argv):
     rows = [
         r
         for r in csv.DictReader((out / "drives.csv").open())
-        if r["detector"] == detector and r["seed"] == seed and r["attack"] in DRIFTS
+        if r["detector"] == detector and seed in ("", r["seed"]) and r["attack"] in DRIFTS
     ]
     if not rows:
         print(f"no drift rows for {detector!r} in {out / 'drives.csv'}", file=sys.stderr)
