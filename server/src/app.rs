@@ -9,6 +9,7 @@ use std::sync::Arc;
 
 use tokio_util::sync::CancellationToken;
 
+use crate::access::{self, Access};
 use crate::alarms::feed::AlarmFeed;
 use crate::config::Config;
 use crate::datasets::Catalog;
@@ -22,6 +23,8 @@ use crate::tls;
 
 /// Every subsystem of one running server.
 pub struct App {
+    /// Who may do what (the identity files as last read).
+    pub access: Arc<Access>,
     pub store: Store,
     pub registry: Arc<Registry>,
     pub catalog: Catalog,
@@ -37,13 +40,19 @@ impl App {
     /// Opens the database named by `config` and builds every subsystem on it.
     pub async fn assemble(config: &Config) -> Result<Self, ServerError> {
         let snapshot_policy = config.snapshot_policy().map_err(ServerError::Config)?;
+        let transport = tls::transport(config);
+        let access = Arc::new(
+            Access::load(access::Sources {
+                token: config.auth_token.clone(),
+                token_file: config.auth_token_file.clone(),
+                roles_file: config.roles_file.clone(),
+                mutual_tls: transport == tls::Transport::MutualTls,
+            })
+            .map_err(ServerError::Config)?,
+        );
         tracing::info!(
-            transport = tls::transport(config).as_str(),
-            auth = if config.auth_token.is_some() {
-                "bearer token"
-            } else {
-                "none"
-            },
+            transport = transport.as_str(),
+            identities = %access.describe(),
             stream_idle_s = config.stream_idle_secs,
             "transport settings"
         );
@@ -95,6 +104,7 @@ impl App {
             );
         }
         Ok(Self {
+            access,
             store,
             registry,
             catalog,

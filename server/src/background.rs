@@ -1,5 +1,6 @@
 //! The tasks that run beside the server: the session outbox's writer, the alarm feed's follower,
-//! the storage watch, job leases, idle-session eviction and the metrics endpoint. They start once
+//! the storage watch, job leases, idle-session eviction, the identity files' reload and the metrics
+//! endpoint. They start once
 //! the server is assembled and stop, in order, after it has drained.
 //!
 //! It owns their lifetimes, not their work: each loop lives with its subsystem (idle eviction,
@@ -14,6 +15,7 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tonic_health::server::HealthReporter;
 
+use crate::access;
 use crate::app::App;
 use crate::config::Config;
 use crate::detection::SessionManager;
@@ -36,6 +38,7 @@ pub struct Background {
     storage_watch: JoinHandle<()>,
     job_leases: JoinHandle<()>,
     evictor: JoinHandle<()>,
+    identity_files: JoinHandle<()>,
     metrics: Option<JoinHandle<()>>,
     stop_metrics: CancellationToken,
 }
@@ -83,6 +86,10 @@ impl Background {
             period,
             app.draining.clone(),
         ));
+        let identity_files = tokio::spawn(access::keep_current(
+            Arc::clone(&app.access),
+            app.draining.clone(),
+        ));
         let stop_metrics = CancellationToken::new();
         let metrics = metrics.map(|(listener, handle)| {
             match listener.local_addr() {
@@ -110,6 +117,7 @@ impl Background {
             storage_watch,
             job_leases,
             evictor,
+            identity_files,
             metrics,
             stop_metrics,
         }
@@ -120,6 +128,7 @@ impl Background {
     /// the end, and an open scrape connection gets a second to finish.
     pub async fn stop(self, store: &Store) {
         self.evictor.abort();
+        self.identity_files.abort();
         self.storage_watch.abort();
         self.stop_alarm_feed.cancel();
         let _ = self.alarm_follower.await;

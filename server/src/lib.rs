@@ -6,7 +6,7 @@
 //!
 //! Layout, one home per duty, from the top down:
 //! - the server's life: `app` (assembly of every subsystem), `router` (what is served, with gzip,
-//!   limits and `auth`), `background` (the tasks beside the server), `drain` (the ordered,
+//!   limits and the `access` guard), `background` (the tasks beside the server), `drain` (the ordered,
 //!   bounded shutdown), `metrics_endpoint` (`GET /metrics`), `server_error`;
 //! - the subsystems, each a logic type with its own error and a gRPC service at the edge:
 //!   `detection` (sessions + DetectionService), `models` (registry + ModelService), `datasets`
@@ -22,9 +22,9 @@
 //!
 //! Wire conversions live in `spoofwatch_proto::wire`.
 
+mod access;
 mod alarms;
 mod app;
-mod auth;
 mod background;
 pub mod config;
 mod datasets;

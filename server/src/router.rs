@@ -1,5 +1,5 @@
-//! The gRPC router: every API service with gzip both ways, the request size limit and bearer
-//! authentication; health and reflection open; HTTP/2 keep-alive. Health starts SERVING for every
+//! The gRPC router: every API service with gzip both ways, the request size limit and the
+//! access guard (`crate::access`); health and reflection open; HTTP/2 keep-alive. Health starts SERVING for every
 //! API service and for the storage health name.
 //!
 //! It owns what is served and how, not what a service does (each lives with its subsystem) nor
@@ -21,9 +21,9 @@ use tonic::transport::server::Router;
 use tonic_health::ServingStatus;
 use tonic_health::server::HealthReporter;
 
+use crate::access::Guarded;
 use crate::alarms::service::AlarmApi;
 use crate::app::App;
-use crate::auth::BearerAuth;
 use crate::config::Config;
 use crate::datasets::DatasetApi;
 use crate::detection::DetectionApi;
@@ -87,7 +87,6 @@ pub async fn build(server: Server, app: &App, config: &Config) -> Result<Routes,
         .register_encoded_file_descriptor_set(tonic_types::pb::FILE_DESCRIPTOR_SET)
         .build_v1alpha()?;
 
-    let auth = BearerAuth::new(config.auth_token.as_deref());
     let limit = config.max_message_bytes;
     let stream_idle = StreamIdle(config.stream_idle());
     let jobs = Jobs {
@@ -130,11 +129,11 @@ pub async fn build(server: Server, app: &App, config: &Config) -> Result<Routes,
         .add_service(gzip!(health_service))
         .add_service(gzip!(reflection_v1))
         .add_service(gzip!(reflection_v1alpha))
-        .add_service(auth.guard(detection))
-        .add_service(auth.guard(models))
-        .add_service(auth.guard(datasets))
-        .add_service(auth.guard(training))
-        .add_service(auth.guard(operations))
-        .add_service(auth.guard(alarms));
+        .add_service(Guarded::new(detection, Arc::clone(&app.access)))
+        .add_service(Guarded::new(models, Arc::clone(&app.access)))
+        .add_service(Guarded::new(datasets, Arc::clone(&app.access)))
+        .add_service(Guarded::new(training, Arc::clone(&app.access)))
+        .add_service(Guarded::new(operations, Arc::clone(&app.access)))
+        .add_service(Guarded::new(alarms, Arc::clone(&app.access)));
     Ok(Routes { router, health })
 }

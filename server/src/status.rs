@@ -100,16 +100,27 @@ pub fn header_not_first() -> Status {
 
 /// A tonic status as the google.rpc.Status message (for ItemError).
 pub fn to_rpc_status(status: &Status) -> tonic_types::Status {
-    tonic_types::Status::decode(status.details()).unwrap_or_else(|_| tonic_types::Status {
-        code: status.code() as i32,
-        message: status.message().to_string(),
-        details: Vec::new(),
-    })
+    match tonic_types::Status::decode(status.details()) {
+        // Statuses built without details carry none: empty bytes decode to an OK status.
+        Ok(decoded) if decoded.code == status.code() as i32 => decoded,
+        _ => tonic_types::Status {
+            code: status.code() as i32,
+            message: status.message().to_string(),
+            details: Vec::new(),
+        },
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_status_without_details_keeps_its_code_and_message() {
+        let status = to_rpc_status(&Status::permission_denied("not yours"));
+        assert_eq!(status.code, Code::PermissionDenied as i32);
+        assert_eq!(status.message, "not yours");
+    }
 
     #[test]
     fn field_violations_travel_in_the_status_details() {

@@ -35,6 +35,8 @@ pub const DETECTION_BATCH_SECONDS: &str = "spoofwatch_detection_batch_duration_s
 pub const REJECTED_BATCHES: &str = "spoofwatch_detection_rejected_batches_total";
 pub const REJECTED_SAMPLES: &str = "spoofwatch_detection_rejected_samples_total";
 pub const UNAUTHENTICATED: &str = "spoofwatch_unauthenticated_requests_total";
+pub const PERMISSION_DENIED: &str = "spoofwatch_permission_denied_total";
+pub const IDENTITY_RELOADS: &str = "spoofwatch_identity_reloads_total";
 pub const ALARM_ONSETS: &str = "spoofwatch_alarm_onsets_total";
 pub const ALARM_ENDS: &str = "spoofwatch_alarm_ends_total";
 pub const ALARMS_OPEN: &str = "spoofwatch_alarms_open";
@@ -108,7 +110,17 @@ pub const METRICS: &[(&str, Kind, &str)] = &[
     (
         UNAUTHENTICATED,
         Kind::Counter,
-        "API calls refused for a missing or wrong bearer token.",
+        "API calls refused as unidentified: no credential, a wrong or revoked bearer token, or a revoked or unusable client certificate.",
+    ),
+    (
+        PERMISSION_DENIED,
+        Kind::Counter,
+        "API calls refused because the caller's role or vehicles do not include them, by `role` and `method` (the gRPC path).",
+    ),
+    (
+        IDENTITY_RELOADS,
+        Kind::Counter,
+        "Changes of the roles file or the admin token file, by `result` (applied, or refused: the previous identities stay).",
     ),
     (
         ALARM_ONSETS,
@@ -224,7 +236,7 @@ impl Rpc {
 }
 
 /// The values of the `reason` label of refused batches: a small fixed set.
-pub const REJECTION_REASONS: [&str; 9] = [
+pub const REJECTION_REASONS: [&str; 10] = [
     "batch_size",
     "invalid_sample",
     "invalid_request",
@@ -233,6 +245,7 @@ pub const REJECTION_REASONS: [&str; 9] = [
     "model_not_found",
     "no_active_model",
     "unavailable",
+    "permission_denied",
     "other",
 ];
 
@@ -260,6 +273,7 @@ pub fn rejection_reason(status: &Status) -> &'static str {
         Code::NotFound => "model_not_found",
         Code::FailedPrecondition => "no_active_model",
         Code::Unavailable => "unavailable",
+        Code::PermissionDenied => "permission_denied",
         _ => "other",
     }
 }
@@ -337,6 +351,9 @@ pub fn install(
         counter!(name).increment(0);
     }
     gauge!(ALARMS_OPEN).increment(0.0);
+    for result in ["applied", "refused"] {
+        counter!(IDENTITY_RELOADS, "result" => result).increment(0);
+    }
     for kind in store_fault_kinds {
         counter!(STORE_FAULTS, "kind" => kind).increment(0);
     }
@@ -374,9 +391,20 @@ pub fn stream_failed(rpc: Rpc, status: &Status) {
     }
 }
 
-/// An API call was refused for its bearer token.
+/// An API call was refused as unidentified.
 pub fn unauthenticated() {
     counter!(UNAUTHENTICATED).increment(1);
+}
+
+/// An API call was refused for its caller's role or vehicles.
+pub fn permission_denied(role: &'static str, method: &'static str) {
+    counter!(PERMISSION_DENIED, "role" => role, "method" => method).increment(1);
+}
+
+/// The identity files changed: `applied`, or refused (the previous identities stay).
+pub fn identities_reloaded(applied: bool) {
+    let result = if applied { "applied" } else { "refused" };
+    counter!(IDENTITY_RELOADS, "result" => result).increment(1);
 }
 
 /// An alarm turned on.

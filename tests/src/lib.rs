@@ -47,6 +47,24 @@ use tonic_health::pb::health_client::HealthClient;
 
 /// Longest a test waits for one reply before failing (generous: debug builds on 2 shared cores).
 pub const REPLY_TIMEOUT: Duration = Duration::from_secs(60);
+/// GETs `/metrics` at `addr` and returns the exposition text (the answer must be 200 OK).
+pub async fn scrape(addr: SocketAddr) -> String {
+    use http_body_util::{BodyExt, Empty};
+    use hyper::body::Bytes;
+    use hyper_util::client::legacy::Client;
+    use hyper_util::rt::TokioExecutor;
+
+    let client = Client::builder(TokioExecutor::new()).build_http::<Empty<Bytes>>();
+    let uri: hyper::Uri = format!("http://{addr}/metrics").parse().expect("a URI");
+    let response = tokio::time::timeout(REPLY_TIMEOUT, client.get(uri))
+        .await
+        .expect("the metrics endpoint answers in time")
+        .expect("the metrics endpoint answers");
+    assert_eq!(response.status(), hyper::StatusCode::OK);
+    let body = response.into_body().collect().await.expect("the body");
+    String::from_utf8(body.to_bytes().to_vec()).expect("UTF-8")
+}
+
 /// Longest a test waits for the server to report SERVING.
 const READY_TIMEOUT: Duration = Duration::from_secs(30);
 

@@ -10,11 +10,7 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use http_body_util::{BodyExt, Empty};
-use hyper::body::Bytes;
-use hyper_util::client::legacy::Client;
-use hyper_util::rt::TokioExecutor;
-use spoofwatch_tests::{REPLY_TIMEOUT, start_server, stream_frozen_fix_drive};
+use spoofwatch_tests::{REPLY_TIMEOUT, scrape, start_server, stream_frozen_fix_drive};
 
 /// The deploy files whose metric names are checked: the dashboards and the rules (not their unit
 /// tests, whose series are made up on purpose).
@@ -69,19 +65,6 @@ fn exported_names(exposition: &str) -> BTreeSet<String> {
         }
     }
     names
-}
-
-/// GETs `/metrics`.
-async fn scrape(addr: SocketAddr) -> String {
-    let client = Client::builder(TokioExecutor::new()).build_http::<Empty<Bytes>>();
-    let uri: hyper::Uri = format!("http://{addr}/metrics").parse().expect("a URI");
-    let response = tokio::time::timeout(REPLY_TIMEOUT, client.get(uri))
-        .await
-        .expect("the metrics endpoint answers in time")
-        .expect("the metrics endpoint answers");
-    assert_eq!(response.status(), hyper::StatusCode::OK);
-    let body = response.into_body().collect().await.expect("the body");
-    String::from_utf8(body.to_bytes().to_vec()).expect("UTF-8")
 }
 
 #[test]

@@ -2,7 +2,8 @@
 //! vehicle ids ([`VehicleId`]) and paging, converts wire samples to core samples and decisions back to wire
 //! detections, and maps [`super::SessionError`] once (through `crate::error`); it must not hold
 //! session state. Per-vehicle calls may carry the `x-vehicle-id` routing header
-//! ([`crate::edge::routed_vehicle_ids`]); it must name the message's vehicle. Each StreamDetect and
+//! ([`crate::edge::routed_vehicle_ids`]); it must name the message's vehicle. Every vehicle a call
+//! names must be one its caller may stream for ([`Caller::check_vehicle`]). Each StreamDetect and
 //! StreamDetectFleet call runs in its own task that reads the inbound stream and writes replies into a small bounded channel: a slow client fills only its own
 //! channel, which pauses only its own task. Each batch, scored or refused, is counted here for the
 //! metrics (`crate::telemetry`), once per batch.
@@ -26,6 +27,7 @@ use tonic::{Request, Response, Status, Streaming};
 use super::sessions::{
     Accepted, Attachment, Decisions, SNAPSHOT_WAIT, SessionError, SessionManager, SessionSummary,
 };
+use crate::access::Caller;
 use crate::edge::{
     check_routed_vehicle, model_name, optional_model_name, optional_vehicle_id, routed_vehicle_ids,
     vehicle_id,
@@ -123,8 +125,8 @@ fn accepted_to_proto(accepted: &Accepted) -> v1::SessionAccepted {
     }
 }
 
-/// Reads a StreamDetect call's first message and attaches the session it starts; `routed` are the
-/// call's `x-vehicle-id` header values. `Ok(None)`: the client closed the stream without
+/// Reads a StreamDetect call's first message and attaches the session it starts, for a vehicle
+/// `caller` may stream for; `routed` are the call's `x-vehicle-id` header values. `Ok(None)`: the client closed the stream without
 /// starting. A refusal is counted here and becomes the call's status.
 async fn start_stream(
     sessions: &SessionManager,
@@ -132,6 +134,7 @@ async fn start_stream(
     inbound: &mut Streaming<v1::StreamDetectRequest>,
     idle: &StreamIdle,
     routed: &[String],
+    caller: &Caller,
 ) -> Result<Option<Attachment>, Status> {
     let first = tokio::select! {
         _ = shutdown.cancelled() => Err(shutting_down()),
@@ -157,6 +160,7 @@ async fn start_stream(
     };
     let attached = async {
         let vehicle = vehicle_id("start.vehicle_id", &start.vehicle_id)?;
+        caller.check_vehicle("start.vehicle_id", vehicle.as_str())?;
         check_routed_vehicle(routed, "start.vehicle_id", vehicle.as_str())?;
         let model = optional_model_name("start.model", &start.model)?;
         Ok::<_, Status>(
@@ -228,16 +232,18 @@ async fn batch_reply(
     }
 }
 
-/// Drives one StreamDetect call to its end; `routed` are the call's `x-vehicle-id` header values.
+/// Drives one StreamDetect call of `caller` to its end; `routed` are the call's `x-vehicle-id`
+/// header values.
 async fn run_stream(
     sessions: Arc<SessionManager>,
     shutdown: CancellationToken,
     mut inbound: Streaming<v1::StreamDetectRequest>,
     tx: mpsc::Sender<Reply>,
     idle: StreamIdle,
-    routed: Vec<String>,
+    (routed, caller): (Vec<String>, Caller),
 ) {
-    let attachment = match start_stream(&sessions, &shutdown, &mut inbound, &idle, &routed).await {
+    let started = start_stream(&sessions, &shutdown, &mut inbound, &idle, &routed, &caller);
+    let attachment = match started.await {
         Ok(Some(attachment)) => attachment,
         Ok(None) => return,
         Err(status) => {
@@ -324,9 +330,11 @@ struct Scored {
     alarming: usize,
 }
 
-/// One vehicle of a fleet message, run on its session; a refusal becomes the vehicle's status.
+/// One vehicle of a fleet message, run on its session; a refusal (a vehicle outside `caller`'s
+/// scope included) becomes the vehicle's status.
 async fn detect_vehicle(
     sessions: &SessionManager,
+    caller: &Caller,
     seq: u64,
     index: usize,
     vehicle: v1::VehicleSamples,
@@ -338,6 +346,7 @@ async fn detect_vehicle(
     let outcome = async {
         let vehicle_id = VehicleId::parse(&vehicle.vehicle_id)
             .map_err(|problem| invalid_field(at("vehicle_id"), problem.to_string()))?;
+        caller.check_vehicle(&at("vehicle_id"), vehicle_id.as_str())?;
         let model = match vehicle.model.as_str() {
             "" => None,
             name => Some(model_name(&at("model"), name)?),
@@ -393,13 +402,14 @@ async fn detect_vehicle(
     }
 }
 
-/// Drives one StreamDetectFleet call to its end: one reply per message, in order.
+/// Drives one StreamDetectFleet call of `caller` to its end: one reply per message, in order.
 async fn run_fleet_stream(
     sessions: Arc<SessionManager>,
     shutdown: CancellationToken,
     mut inbound: Streaming<v1::FleetBatch>,
     tx: mpsc::Sender<FleetReply>,
     idle: StreamIdle,
+    caller: Caller,
 ) {
     let max_samples = sessions.limits().max_batch_samples;
     loop {
@@ -436,7 +446,8 @@ async fn run_fleet_stream(
                 let mut vehicles = Vec::with_capacity(batch.vehicles.len());
                 for (index, vehicle) in batch.vehicles.into_iter().enumerate() {
                     vehicles.push(
-                        detect_vehicle(&sessions, batch.seq, index, vehicle, &mut scored).await,
+                        detect_vehicle(&sessions, &caller, batch.seq, index, vehicle, &mut scored)
+                            .await,
                     );
                 }
                 telemetry::batch_scored(
@@ -459,17 +470,19 @@ async fn run_fleet_stream(
 }
 
 impl DetectionApi {
-    /// Starts a streaming call: `run` reads `inbound` in its own task and writes the replies into a
-    /// small bounded channel, which is the call's response stream.
-    fn spawn_call<In, Out, Fut>(
+    /// Starts a streaming call: `run` reads `inbound` in its own task, with `context`, and writes
+    /// the replies into a small bounded channel, which is the call's response stream.
+    fn spawn_call<In, Out, Context, Fut>(
         &self,
         inbound: Streaming<In>,
+        context: Context,
         run: impl FnOnce(
             Arc<SessionManager>,
             CancellationToken,
             Streaming<In>,
             mpsc::Sender<Result<Out, Status>>,
             StreamIdle,
+            Context,
         ) -> Fut,
     ) -> Result<Response<ReceiverStream<Result<Out, Status>>>, Status>
     where
@@ -485,6 +498,7 @@ impl DetectionApi {
             inbound,
             tx,
             self.stream_idle,
+            context,
         ));
         Ok(Response::new(ReceiverStream::new(rx)))
     }
@@ -498,8 +512,13 @@ impl DetectionApi {
             return Err(shutting_down());
         }
         let routed = routed_vehicle_ids(request.metadata())?;
+        let caller = Caller::of(&request)?;
         let r = request.into_inner();
         let vehicle = optional_vehicle_id("vehicle_id", &r.vehicle_id)?;
+        // A stateless call (no vehicle id) touches no session: every caller of Detect may make it.
+        if let Some(vehicle) = &vehicle {
+            caller.check_vehicle("vehicle_id", vehicle.as_str())?;
+        }
         // A stateless call (no vehicle id) routed as a vehicle's is a mismatch too.
         check_routed_vehicle(
             &routed,
@@ -533,7 +552,8 @@ impl DetectionService for DetectionApi {
         &self,
         request: Request<Streaming<v1::FleetBatch>>,
     ) -> Result<Response<Self::StreamDetectFleetStream>, Status> {
-        self.spawn_call(request.into_inner(), run_fleet_stream)
+        let caller = Caller::of(&request)?;
+        self.spawn_call(request.into_inner(), caller, run_fleet_stream)
     }
 
     async fn stream_detect(
@@ -541,12 +561,8 @@ impl DetectionService for DetectionApi {
         request: Request<Streaming<v1::StreamDetectRequest>>,
     ) -> Result<Response<Self::StreamDetectStream>, Status> {
         let routed = routed_vehicle_ids(request.metadata())?;
-        self.spawn_call(
-            request.into_inner(),
-            |sessions, shutdown, inbound, tx, idle| {
-                run_stream(sessions, shutdown, inbound, tx, idle, routed)
-            },
-        )
+        let caller = Caller::of(&request)?;
+        self.spawn_call(request.into_inner(), (routed, caller), run_stream)
     }
 
     async fn detect(
