@@ -20,6 +20,7 @@ use crate::outbox::{OUTBOX_CAPACITY, SessionOutbox};
 use crate::server_error::ServerError;
 use crate::store::{Store, StoreOptions};
 use crate::tls;
+use crate::work::HeavyWork;
 
 /// Every subsystem of one running server.
 pub struct App {
@@ -67,7 +68,12 @@ impl App {
         tracing::info!(%instance, backend = ?store.kind(), "database opened");
         let registry = Arc::new(Registry::new(store.clone(), config.model_cache_bytes));
         registry.ensure_default_model().await?;
-        let catalog = Catalog::new(store.clone(), config.data_dir.clone());
+        let heavy = HeavyWork::for_this_machine();
+        tracing::info!(
+            slots = heavy.slots(),
+            "heavy work (parsing, large batches) runs off the runtime"
+        );
+        let catalog = Catalog::new(store.clone(), config.data_dir.clone(), heavy.clone());
 
         // Also ends the alarms a previous run left open.
         let outbox = Arc::new(SessionOutbox::new(&store, OUTBOX_CAPACITY).await?);
@@ -83,6 +89,7 @@ impl App {
                 max_batch_samples: config.max_batch_samples,
             },
             snapshot_policy,
+            heavy.clone(),
         ));
         let jobs = JobManager::new(
             Runner {

@@ -16,7 +16,8 @@
 //!   to the store), `watch` (database file and outbox health), `store` (the only SQL, on SQLite or
 //!   PostgreSQL), `telemetry` (every metric's recording), `error` (the one error → status
 //!   mapping), `fault` (a server-side fault inside a subsystem's error), `edge` (request decoding
-//!   shared by the services), `status`, `identity` (ids and digests);
+//!   shared by the services), `status`, `identity` (ids and digests), `work` (the bounded pool
+//!   of CPU-heavy work, off the runtime's threads);
 //! - transport: `incoming` (connections vetted for a first message), `tls` (the TLS files read and
 //!   checked at startup), `idle` (the stream idle timeout).
 //!
@@ -49,6 +50,7 @@ pub mod store;
 mod telemetry;
 pub mod tls;
 mod watch;
+mod work;
 
 use std::future::Future;
 

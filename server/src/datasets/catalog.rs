@@ -4,7 +4,6 @@
 //! write SQL (that is `store`).
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
 use spoofwatch_core::data::{Format, Recording, read};
 use spoofwatch_core::sample::Track;
@@ -14,6 +13,7 @@ use spoofwatch_proto::wire::limits::MAX_DATASET_BYTES;
 use crate::fault::Fault;
 use crate::identity::{new_id, sha256_hex};
 use crate::store::{DatasetRow, NewDataset, Page, PageRequest, Store, StoreError};
+use crate::work::HeavyWork;
 
 /// Everything the catalog can fail with.
 #[derive(Debug, thiserror::Error)]
@@ -51,15 +51,16 @@ pub enum DatasetError {
     Store(#[from] StoreError),
 }
 
-/// Parses CSV bytes (either format) off the async runtime; a parse error names `field`.
+/// Parses CSV bytes (either format) as heavy work; a parse error names `field`.
 async fn parse(
-    bytes: Arc<Vec<u8>>,
-    source: String,
+    heavy: &HeavyWork,
+    bytes: &[u8],
+    source: &str,
     field: &'static str,
 ) -> Result<Recording, DatasetError> {
-    tokio::task::spawn_blocking(move || read(bytes.as_slice(), &source))
+    heavy
+        .run(|| read(bytes, source))
         .await
-        .map_err(|e| Fault::new("parsing a dataset", e))?
         .map_err(|e| DatasetError::Invalid {
             field,
             reason: e.to_string(),
@@ -121,11 +122,22 @@ pub fn resolve_inside(data_dir: &Path, relative: &str) -> Result<PathBuf, Datase
 pub struct Catalog {
     store: Store,
     data_dir: Option<PathBuf>,
+    /// Parsing and encoding run there, never on the runtime's threads.
+    heavy: HeavyWork,
 }
 
 impl Catalog {
-    pub fn new(store: Store, data_dir: Option<PathBuf>) -> Self {
-        Self { store, data_dir }
+    pub fn new(store: Store, data_dir: Option<PathBuf>, heavy: HeavyWork) -> Self {
+        Self {
+            store,
+            data_dir,
+            heavy,
+        }
+    }
+
+    /// The bounded pool this catalog parses on (the edge converts uploaded records there too).
+    pub fn heavy(&self) -> &HeavyWork {
+        &self.heavy
     }
 
     /// Parses uploaded CSV and stores it (`field` names the request field it came in).
@@ -151,7 +163,9 @@ impl Catalog {
         tracks: &[Track],
     ) -> Result<DatasetRow, DatasetError> {
         let mut csv = Vec::new();
-        spoofwatch_core::data::telemetry::write_tracks(&mut csv, tracks)
+        self.heavy
+            .run(|| spoofwatch_core::data::telemetry::write_tracks(&mut csv, tracks))
+            .await
             .map_err(|e| Fault::new("encoding uploaded records", e))?;
         self.upload(display_name, csv, "records").await
     }
@@ -196,9 +210,7 @@ impl Catalog {
                 reason: "the upload holds no data".into(),
             });
         }
-        let content = Arc::new(content);
-        let recording = parse(Arc::clone(&content), display_name.clone(), field).await?;
-        let content = Arc::try_unwrap(content).unwrap_or_else(|shared| (*shared).clone());
+        let recording = parse(&self.heavy, &content, &display_name, field).await?;
         let records = || recording.tracks.iter().flat_map(|t| &t.records);
         let row = self
             .store
@@ -250,7 +262,7 @@ impl Catalog {
                 .dataset_content(name.id())
                 .await?
                 .ok_or_else(|| DatasetError::NotFound(name.clone()))?;
-            let recording = parse(Arc::new(content), name.id().to_string(), "datasets").await?;
+            let recording = parse(&self.heavy, &content, name.id(), "datasets").await?;
             tracks.extend(recording.tracks);
         }
         Ok(tracks)

@@ -2,6 +2,8 @@
 //! stream protocol, converts wire records to core tracks, validates names and paging, and maps
 //! [`super::DatasetError`] once (through `crate::error`); it must not parse CSV or touch the store.
 
+use std::collections::HashMap;
+
 use spoofwatch_core::sample::{Record, Track};
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::dataset_service_server::DatasetService;
@@ -34,9 +36,11 @@ pub fn dataset_to_proto(row: &DatasetRow) -> v1::Dataset {
     }
 }
 
-/// Structured upload records as tracks (vehicles in first-appearance order).
+/// Structured upload records as tracks (vehicles in first-appearance order), in time linear in
+/// the records (each vehicle's track found by its id).
 fn tracks_from_records(records: Vec<v1::LabelledSample>) -> Result<Vec<Track>, Status> {
     let mut tracks: Vec<Track> = Vec::new();
+    let mut track_of: HashMap<String, usize> = HashMap::new();
     for (i, r) in records.into_iter().enumerate() {
         let sample = r
             .sample
@@ -57,12 +61,15 @@ fn tracks_from_records(records: Vec<v1::LabelledSample>) -> Result<Vec<Track>, S
             trajectory_break: false,
             warmup: false,
         };
-        match tracks.iter_mut().find(|t| t.vehicle_id == r.vehicle_id) {
-            Some(track) => track.records.push(record),
-            None => tracks.push(Track {
-                vehicle_id: r.vehicle_id,
-                records: vec![record],
-            }),
+        match track_of.get(&r.vehicle_id) {
+            Some(&index) => tracks[index].records.push(record),
+            None => {
+                track_of.insert(r.vehicle_id.clone(), tracks.len());
+                tracks.push(Track {
+                    vehicle_id: r.vehicle_id,
+                    records: vec![record],
+                });
+            }
         }
     }
     Ok(tracks)
@@ -124,7 +131,11 @@ impl DatasetService for DatasetApi {
         let row = if structured.is_empty() {
             self.catalog.upload(name, csv, "csv_chunk").await?
         } else {
-            let tracks = tracks_from_records(structured)?;
+            let tracks = self
+                .catalog
+                .heavy()
+                .run(|| tracks_from_records(structured))
+                .await?;
             self.catalog.upload_tracks(name, &tracks).await?
         };
         Ok(Response::new(dataset_to_proto(&row)))

@@ -1,0 +1,90 @@
+//! Heavy work does not starve the server: while two uploads of 100,000 structured records (each
+//! record its own vehicle) are converted, parsed and stored, health checks are still answered
+//! promptly. Uploaded records are grouped by vehicle in time linear in their number, and the
+//! conversion and parsing run on the bounded pool of heavy work, off the runtime's threads.
+
+use std::time::{Duration, Instant};
+
+use spoofwatch_proto::v1;
+use spoofwatch_proto::v1::upload_dataset_request::Kind;
+use spoofwatch_tests::{Clients, start_server};
+use tonic_health::pb::HealthCheckRequest;
+
+const RECORDS: usize = 100_000;
+/// Far above a health check's cost even on a loaded CI machine, far below the stall an upload
+/// that held the runtime would cause (seconds to minutes).
+const HEALTH_BOUND: Duration = Duration::from_secs(2);
+
+/// An upload of `RECORDS` one-sample vehicles named `{prefix}-{i}`.
+fn one_sample_vehicles(prefix: &str) -> Vec<v1::UploadDatasetRequest> {
+    let header = Kind::Header(v1::UploadDatasetHeader {
+        display_name: prefix.to_string(),
+    });
+    let record = |i: usize| v1::LabelledSample {
+        vehicle_id: format!("{prefix}-{i}"),
+        sample: Some(v1::Sample {
+            timestamp_s: 1.0,
+            latitude_deg: 45.0 + i as f64 * 1e-6,
+            longitude_deg: 7.0,
+            speed_mps: 10.0,
+            heading_deg: 90.0,
+            ..Default::default()
+        }),
+        spoofed: Some(false),
+    };
+    let batches = (0..RECORDS).step_by(5_000).map(|start| {
+        Kind::Records(v1::RecordBatch {
+            records: (start..start + 5_000).map(record).collect(),
+        })
+    });
+    std::iter::once(header)
+        .chain(batches)
+        .map(|kind| v1::UploadDatasetRequest { kind: Some(kind) })
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_is_answered_while_large_record_uploads_are_stored() {
+    let (_dir, _server, clients) = start_server(|_| {}).await;
+    let uploads: Vec<_> = ["fleet-a", "fleet-b"]
+        .into_iter()
+        .map(|prefix| {
+            let mut datasets = clients.datasets.clone();
+            let messages = one_sample_vehicles(prefix);
+            tokio::spawn(async move {
+                datasets
+                    .upload_dataset(tokio_stream::iter(messages))
+                    .await
+                    .map(tonic::Response::into_inner)
+            })
+        })
+        .collect();
+
+    let mut health = clients.health.clone();
+    let mut slowest = Duration::ZERO;
+    let mut checks = 0;
+    while uploads.iter().any(|upload| !upload.is_finished()) {
+        let asked = Instant::now();
+        tokio::time::timeout(
+            Duration::from_secs(60),
+            health.check(HealthCheckRequest::default()),
+        )
+        .await
+        .expect("health answers within a minute")
+        .expect("health answers");
+        slowest = slowest.max(asked.elapsed());
+        checks += 1;
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    for upload in uploads {
+        let dataset = upload.await.expect("joined").expect("the upload is stored");
+        assert_eq!(dataset.rows, RECORDS as u64);
+        assert_eq!(dataset.vehicles, RECORDS as u32);
+    }
+    assert!(checks > 0);
+    assert!(
+        slowest < HEALTH_BOUND,
+        "a health check waited {slowest:?} during the uploads ({checks} checks)"
+    );
+    drop::<Clients>(clients);
+}
