@@ -64,6 +64,9 @@ pub enum BatchOutcome {
     Detections(Vec<v1::Detection>),
     /// The batch was refused (its samples changed nothing; the stream goes on).
     Rejected(tonic_types::Status),
+    /// The batch's seq was already applied to the session (it was resent): acknowledged, not
+    /// scored again, no detections.
+    Duplicate,
 }
 
 /// One batch's reply, tied to the batch.
@@ -228,6 +231,11 @@ impl DetectStream {
         self.in_flight.pop_front();
         let outcome = match reply {
             Some(ResponseKind::Detections(reply))
+                if reply.seq == batch.seq && reply.duplicate && reply.detections.is_empty() =>
+            {
+                BatchOutcome::Duplicate
+            }
+            Some(ResponseKind::Detections(reply))
                 if reply.seq == batch.seq && reply.detections.len() == batch.len =>
             {
                 BatchOutcome::Detections(reply.detections)
@@ -266,7 +274,8 @@ impl DetectStream {
         })
     }
 
-    /// Sends a batch and waits for its detections (a refusal is an error).
+    /// Sends a batch and waits for its detections (a refusal is an error; a batch whose seq was
+    /// already applied gets none).
     pub async fn detect(
         &mut self,
         seq: u64,
@@ -280,6 +289,7 @@ impl DetectStream {
                 BatchOutcome::Detections(detections) if reply.batch.seq == seq => {
                     return Ok(detections);
                 }
+                BatchOutcome::Duplicate if reply.batch.seq == seq => return Ok(Vec::new()),
                 BatchOutcome::Rejected(status) if reply.batch.seq == seq => {
                     return Err(ClientError::Protocol(format!(
                         "{}: batch {seq} was rejected: {}",

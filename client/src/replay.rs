@@ -595,6 +595,8 @@ impl VehicleReplay<'_> {
                                 first_on_stream = false;
                             }
                         }
+                        // Applied on an earlier stream of this session: nothing new to forward.
+                        BatchOutcome::Duplicate => {}
                         BatchOutcome::Rejected(status) => {
                             result.rejected = true;
                             let first = &self.track.records[first_index];

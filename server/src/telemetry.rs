@@ -33,6 +33,7 @@ pub const DETECTION_SAMPLES: &str = "spoofwatch_detection_samples_total";
 pub const DETECTION_ALARMING: &str = "spoofwatch_detection_alarming_samples_total";
 pub const DETECTION_BATCH_SECONDS: &str = "spoofwatch_detection_batch_duration_seconds";
 pub const REJECTED_BATCHES: &str = "spoofwatch_detection_rejected_batches_total";
+pub const DUPLICATE_BATCHES: &str = "spoofwatch_detection_duplicate_batches_total";
 pub const REJECTED_SAMPLES: &str = "spoofwatch_detection_rejected_samples_total";
 pub const UNAUTHENTICATED: &str = "spoofwatch_unauthenticated_requests_total";
 pub const PERMISSION_DENIED: &str = "spoofwatch_permission_denied_total";
@@ -101,6 +102,11 @@ pub const METRICS: &[(&str, Kind, &str)] = &[
         REJECTED_BATCHES,
         Kind::Counter,
         "Batches refused, by `rpc` and `reason` (a fleet vehicle's entry counts as a batch of its own).",
+    ),
+    (
+        DUPLICATE_BATCHES,
+        Kind::Counter,
+        "Resent batches acknowledged without scoring (their seq was already applied), by `rpc` (a fleet vehicle's entry counts as a batch).",
     ),
     (
         REJECTED_SAMPLES,
@@ -333,7 +339,12 @@ pub fn install(
         latency: histogram!(DETECTION_BATCH_SECONDS, "rpc" => rpc.label()),
     }));
     for rpc in Rpc::ALL {
-        for name in [DETECTION_BATCHES, DETECTION_SAMPLES, DETECTION_ALARMING] {
+        for name in [
+            DETECTION_BATCHES,
+            DETECTION_SAMPLES,
+            DETECTION_ALARMING,
+            DUPLICATE_BATCHES,
+        ] {
             counter!(name, "rpc" => rpc.label()).increment(0);
         }
         for reason in REJECTION_REASONS {
@@ -389,6 +400,11 @@ pub fn stream_failed(rpc: Rpc, status: &Status) {
     if status.code() == Code::OutOfRange {
         batch_rejected(rpc, status, 0);
     }
+}
+
+/// A resent batch was acknowledged without scoring.
+pub fn batch_duplicate(rpc: Rpc) {
+    counter!(DUPLICATE_BATCHES, "rpc" => rpc.label()).increment(1);
 }
 
 /// An API call was refused as unidentified.

@@ -1,12 +1,14 @@
 //! Detection: per-vehicle in-memory sessions ([`sessions`], the logic), with the pure decisions it
 //! carries out kept apart: alarm episodes ([`episodes`]) and where a new stream's session continues
-//! from ([`resume`]); what a session knows ([`state`]) and its snapshot ([`handoff`]); batch validation declared once
+//! from ([`resume`]); what a session knows ([`state`]) and its snapshot ([`handoff`]); which batch
+//! sequence numbers it applied ([`sequence`]); batch validation declared once
 //! ([`validate`]) and the DetectionService RPCs ([`service`], the edge). Models come from `models`;
 //! alarm persistence goes through `store`.
 
 mod episodes;
 mod handoff;
 mod resume;
+mod sequence;
 mod service;
 mod sessions;
 mod state;

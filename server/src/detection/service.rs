@@ -211,6 +211,14 @@ async fn batch_reply(
         .process(&attachment.slot, batch.seq, &samples, "batch.samples")
         .await
     {
+        Ok(decisions) if decisions.duplicate => {
+            telemetry::batch_duplicate(Rpc::StreamDetect);
+            reply(ResponseKind::Detections(v1::DetectionBatch {
+                seq: batch.seq,
+                detections: Vec::new(),
+                duplicate: true,
+            }))
+        }
         Ok(decisions) => {
             let detections = detections_to_proto(&samples, &decisions);
             telemetry::batch_scored(
@@ -222,6 +230,7 @@ async fn batch_reply(
             reply(ResponseKind::Detections(v1::DetectionBatch {
                 seq: batch.seq,
                 detections,
+                duplicate: false,
             }))
         }
         Err(error) => {
@@ -373,21 +382,22 @@ async fn detect_vehicle(
             .zip(&decisions.decisions)
             .map(|(s, d)| detection_to_proto(s.timestamp_s, d, ""))
             .collect();
-        Ok::<_, Status>((
-            decisions.model.to_string(),
-            detections,
-            alarming(&decisions),
-        ))
+        Ok::<_, Status>((decisions, detections))
     };
     match outcome.await {
-        Ok((model, detections, alarming)) => {
-            scored.samples += sample_count;
-            scored.alarming += alarming;
+        Ok((decisions, detections)) => {
+            if decisions.duplicate {
+                telemetry::batch_duplicate(Rpc::StreamDetectFleet);
+            } else {
+                scored.samples += sample_count;
+                scored.alarming += alarming(&decisions);
+            }
             v1::VehicleDetections {
                 vehicle_id: vehicle.vehicle_id,
-                model,
+                model: decisions.model.to_string(),
                 detections,
                 error: None,
+                duplicate: decisions.duplicate,
             }
         }
         Err(status) => {
@@ -397,6 +407,7 @@ async fn detect_vehicle(
                 model: String::new(),
                 detections: Vec::new(),
                 error: Some(to_rpc_status(&status)),
+                duplicate: false,
             }
         }
     }

@@ -32,6 +32,7 @@ use tokio_util::sync::CancellationToken;
 use super::episodes::{AlarmSignal, EpisodeChange};
 use super::handoff::{OpenAlarm, SNAPSHOT_SCHEMA, SessionSnapshot, SnapshotRefused};
 use super::resume::{Origin, Resumption, Start};
+use super::sequence::SeqCheck;
 use super::state::SessionState;
 use super::validate::validate_batch;
 use crate::models::{LoadedModel, Registry, RegistryError};
@@ -78,11 +79,13 @@ pub struct Accepted {
     pub snapshot_refused: Option<SnapshotRefused>,
 }
 
-/// A processed batch: one decision per sample, in order, by `model`.
+/// A processed batch: one decision per sample, in order, by `model`; none when `duplicate` (its
+/// seq was applied before, so it was not scored again).
 #[derive(Clone, Debug)]
 pub struct Decisions {
     pub model: ModelName,
     pub decisions: Vec<Decision>,
+    pub duplicate: bool,
 }
 
 /// A session as reported by ListSessions/GetSession.
@@ -161,6 +164,12 @@ pub struct Attachment {
     /// Cancelled when a newer stream takes the session over.
     pub evicted: CancellationToken,
     pub accepted: Accepted,
+}
+
+/// The seq field beside a batch's samples field (`batch.samples` → `batch.seq`).
+fn seq_field(samples_field: &str) -> String {
+    let prefix = samples_field.strip_suffix("samples").unwrap_or("");
+    format!("{prefix}seq")
 }
 
 /// What scoring `samples` samples with `model` costs, in parameters × samples.
@@ -314,7 +323,7 @@ impl SessionManager {
             model: state.model.name.clone(),
             resumed: resumption.resumed,
             samples_seen: state.samples,
-            last_seq: state.last_seq,
+            last_seq: state.seqs.last(),
             replaced_model: resumption.replaced_model,
             from_snapshot: resumption.from_snapshot,
             snapshot_refused: resumption.snapshot_refused,
@@ -366,7 +375,7 @@ impl SessionManager {
             model_id: snapshot.model_id.clone(),
             schema_version: i64::from(SNAPSHOT_SCHEMA),
             samples: i64::try_from(state.samples).unwrap_or(i64::MAX),
-            last_seq: i64::try_from(state.last_seq).unwrap_or(i64::MAX),
+            last_seq: i64::try_from(state.seqs.last()).unwrap_or(i64::MAX),
             open_alarm_id,
             writer: self.writer(),
             updated_at_ms: now_ms,
@@ -432,7 +441,9 @@ impl SessionManager {
         SessionState::restore(model.clone(), snapshot)
     }
 
-    /// Validates and runs one batch on a session. A rejected batch changes nothing.
+    /// Validates and runs one batch on a session. A rejected batch changes nothing. `seq` 0 is not
+    /// sequenced; a seq already applied is acknowledged (`duplicate`) without being scored again,
+    /// and one before the last applied seq that never was is refused ([`super::sequence`]).
     pub async fn process(
         &self,
         slot: &SessionSlot,
@@ -473,6 +484,26 @@ impl SessionManager {
         if slot.model_deleted.is_cancelled() {
             return Err(SessionError::ModelDeleted(state.model.name.clone()));
         }
+        match state.seqs.check(seq) {
+            SeqCheck::New => {}
+            SeqCheck::Duplicate => {
+                slot.touch();
+                return Ok(Decisions {
+                    model: state.model.name.clone(),
+                    decisions: Vec::new(),
+                    duplicate: true,
+                });
+            }
+            SeqCheck::Backwards { last_seq } => {
+                return Err(SessionError::InvalidBatch(vec![(
+                    seq_field(field),
+                    format!(
+                        "{seq} is before this session's last applied seq {last_seq} and was never \
+                         applied; send increasing numbers (a resent batch keeps its own)"
+                    ),
+                )]));
+            }
+        }
         validate_batch(
             samples,
             state.last_timestamp_s,
@@ -507,7 +538,7 @@ impl SessionManager {
             }
             decisions.push(decision);
         }
-        state.last_seq = seq;
+        state.seqs.apply(seq);
         state.since_snapshot += samples.len() as u64;
         // An alarm onset or end is stored together with a snapshot that includes it, so that a
         // session continued elsewhere neither repeats nor loses it.
@@ -519,6 +550,7 @@ impl SessionManager {
         Ok(Decisions {
             model: state.model.name.clone(),
             decisions,
+            duplicate: false,
         })
     }
 
@@ -584,12 +616,13 @@ impl SessionManager {
         Ok(Decisions {
             model: model.name,
             decisions,
+            duplicate: false,
         })
     }
 
     /// Runs a batch for a vehicle without attaching a stream (creating the session if needed).
     /// `model` `None` is the active model; a session on another model, or with `reset`, starts
-    /// afresh if the batch is valid. `seq` becomes the session's `last_seq` (`None` keeps it).
+    /// afresh if the batch is valid. `seq` becomes the session's `last_seq` as in [`Self::process`] (`None`: not sequenced).
     /// `field` names the samples in violations.
     pub async fn detect_unattached(
         &self,
@@ -606,7 +639,7 @@ impl SessionManager {
         {
             let mut state = slot.state.lock().await;
             if self.runs(&state, model) {
-                let seq = seq.unwrap_or(state.last_seq);
+                let seq = seq.unwrap_or(0);
                 return self
                     .score(&mut state, samples.len(), |state| {
                         self.process_locked(&slot, state, seq, samples, field)
@@ -631,7 +664,7 @@ impl SessionManager {
         if !start.held_continues() {
             self.replace_state(vehicle_id, &mut state, SessionState::new(model));
         }
-        let seq = seq.unwrap_or(state.last_seq);
+        let seq = seq.unwrap_or(0);
         self.score(&mut state, samples.len(), |state| {
             self.process_locked(&slot, state, seq, samples, field)
         })
@@ -695,7 +728,7 @@ impl SessionManager {
             trajectories: state.trajectories,
             alarm_active: state.alarm.active,
             alarms_raised: state.alarm.raised,
-            last_seq: state.last_seq,
+            last_seq: state.seqs.last(),
             last_timestamp_s: state.last_timestamp_s,
             last_activity_ms: slot.last_activity_ms.load(Ordering::Relaxed),
         }

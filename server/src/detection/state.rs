@@ -13,6 +13,7 @@ use spoofwatch_core::detector::Detector;
 use super::episodes::AlarmTrack;
 use super::handoff::{SessionSnapshot, SnapshotRefused};
 use super::resume::Held;
+use super::sequence::AppliedSeqs;
 use crate::models::LoadedModel;
 
 /// Everything a session knows; guarded by the slot's async mutex (batches of a vehicle serialise).
@@ -22,7 +23,8 @@ pub(super) struct SessionState {
     pub(super) detector: Detector,
     pub(super) samples: u64,
     pub(super) trajectories: u32,
-    pub(super) last_seq: u64,
+    /// The batch sequence numbers applied (the last one is `last_seq`).
+    pub(super) seqs: AppliedSeqs,
     pub(super) last_timestamp_s: Option<f64>,
     pub(super) alarm: AlarmTrack,
     /// Samples since the last snapshot, and when it was taken (monotonic, and wall ms).
@@ -38,7 +40,7 @@ impl SessionState {
             model,
             samples: 0,
             trajectories: 0,
-            last_seq: 0,
+            seqs: AppliedSeqs::default(),
             last_timestamp_s: None,
             alarm: AlarmTrack::default(),
             since_snapshot: 0,
@@ -68,7 +70,7 @@ impl SessionState {
             detector,
             samples: snapshot.samples,
             trajectories: snapshot.trajectories,
-            last_seq: snapshot.last_seq,
+            seqs: AppliedSeqs::resumed(snapshot.last_seq),
             last_timestamp_s: snapshot.last_timestamp_s,
             alarm: AlarmTrack {
                 active: snapshot.alarm_active,
@@ -85,7 +87,7 @@ impl SessionState {
             model_id: self.model.name.id().to_string(),
             samples: self.samples,
             trajectories: self.trajectories,
-            last_seq: self.last_seq,
+            last_seq: self.seqs.last(),
             last_timestamp_s: self.last_timestamp_s,
             alarm_active: self.alarm.active,
             alarms_raised: self.alarm.raised,
@@ -142,7 +144,7 @@ mod tests {
         }
         state.samples = 5;
         state.trajectories = 1;
-        state.last_seq = 3;
+        state.seqs.apply(3);
         state.last_timestamp_s = Some(4.0);
         state.alarm.raised = 2;
         let snapshot = state.snapshot();
