@@ -233,12 +233,18 @@ impl SessionOutbox {
         self.pending().open.insert(alarm.id, alarm);
     }
 
-    /// Ends an alarm whose session will not continue it (its snapshot expired): the end has no
-    /// sample time, like an alarm closed at a start.
-    pub fn end_abandoned(&self, alarm: AlarmEventRow) {
+    /// Ends an alarm whose session will not continue it (its snapshot expired) at its last
+    /// alarming sample's time, with its peak and samples as the snapshot held them (`None`: as
+    /// stored at its onset, and without a sample time).
+    pub fn end_abandoned(&self, alarm: AlarmEventRow, last: Option<(f64, f64, i64)>) {
         let (id, peak, samples) = (alarm.id, alarm.peak_probability, alarm.samples);
         self.adopt(alarm);
-        self.end_at(id, None, peak, samples);
+        match last {
+            Some((last_timestamp_s, peak, samples)) => {
+                self.end_at(id, Some(last_timestamp_s), peak, samples)
+            }
+            None => self.end_at(id, None, peak, samples),
+        }
     }
 
     fn end_at(&self, id: i64, end_timestamp_s: Option<f64>, peak_probability: f64, samples: i64) {

@@ -21,6 +21,11 @@ pub const BACKWARD_TOLERANCE_S: f64 = spoofwatch_core::evidence::MAX_BACKWARD_S;
 /// a far later time is reset first (`SessionStart.reset`, `VehicleSamples.reset`, ResetSession).
 pub const MAX_FORWARD_JUMP_S: f64 = 86_400.0;
 
+/// Latest sample time accepted at a session's start (s since the epoch, about the year 5138): a
+/// later one is a time in milliseconds (1e11 ms is 1973), refused before it sets the session's
+/// clock.
+pub const MAX_TIMESTAMP_S: f64 = 1e11;
+
 /// Largest gRPC message the server accepts by default (bytes).
 pub const MAX_MESSAGE_BYTES: usize = 4 << 20;
 

@@ -16,8 +16,33 @@ use crate::store::SnapshotRow;
 pub struct Held {
     /// The model it runs.
     pub model: ModelName,
-    /// When this process last snapshotted it (wall ms).
-    pub snapshot_taken_ms: i64,
+    /// How far it got.
+    pub progress: Progress,
+}
+
+/// How far a session got, by the vehicle's own clock and sequence numbers: what decides which of
+/// two copies of a session is the newer, whatever the servers' wall clocks say.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Progress {
+    /// Its last sample's time (`None`: no sample yet).
+    pub last_timestamp_s: Option<f64>,
+    pub last_seq: u64,
+    pub samples: u64,
+}
+
+impl Progress {
+    /// Whether this copy got further than `other`: a later last sample, or the same one with a
+    /// later seq or more samples.
+    pub fn is_ahead_of(&self, other: &Progress) -> bool {
+        let time = |p: &Progress| p.last_timestamp_s.unwrap_or(f64::NEG_INFINITY);
+        match time(self).total_cmp(&time(other)) {
+            std::cmp::Ordering::Greater => true,
+            std::cmp::Ordering::Less => false,
+            std::cmp::Ordering::Equal => {
+                (self.last_seq, self.samples) > (other.last_seq, other.samples)
+            }
+        }
+    }
 }
 
 /// A new stream or batch for a vehicle.
@@ -85,28 +110,30 @@ impl Start {
                 .is_some_and(|held| held.model == self.model)
     }
 
-    /// Whether a stored copy written by `writer` at `updated_at_ms` is newer than the held session
-    /// (with none held, any stored copy is): only a copy another process wrote after this one last
-    /// snapshotted the session.
-    fn stored_is_newer(&self, writer: &str, updated_at_ms: i64, this_writer: &str) -> bool {
+    /// Whether a stored copy written by `writer` that got to `progress` is newer than the held
+    /// session (with none held, any stored copy is): only a copy another process wrote that got
+    /// further. Replicas' wall clocks are never compared: they may disagree by any amount.
+    fn stored_is_newer(&self, writer: &str, progress: &Progress, this_writer: &str) -> bool {
         self.held
             .as_ref()
-            .is_none_or(|held| writer != this_writer && updated_at_ms > held.snapshot_taken_ms)
+            .is_none_or(|held| writer != this_writer && progress.is_ahead_of(&held.progress))
     }
 
-    /// Where the session continues from, given the vehicle's stored copy (`Ok(None)`: none; a
-    /// reset reads none) and this process's snapshot writer id. An unreadable store does not stop
-    /// a held session from going on.
+    /// Where the session continues from, given the vehicle's stored copy and how far it got
+    /// (`Ok(None)`: none; a reset reads none) and this process's snapshot writer id. An unreadable
+    /// store does not stop a held session from going on.
     pub fn origin(
         &self,
-        stored: Result<Option<SnapshotRow>, SnapshotRefused>,
+        stored: Result<Option<(SnapshotRow, Progress)>, SnapshotRefused>,
         this_writer: &str,
     ) -> Origin {
         if self.reset {
             return Origin::Fresh(None);
         }
         match stored {
-            Ok(Some(row)) if self.stored_is_newer(&row.writer, row.updated_at_ms, this_writer) => {
+            Ok(Some((row, progress)))
+                if self.stored_is_newer(&row.writer, &progress, this_writer) =>
+            {
                 Origin::Snapshot(row)
             }
             Err(refused) if !self.held_continues() => Origin::Fresh(Some(refused)),
@@ -151,18 +178,33 @@ mod tests {
         ModelName::from_id(id)
     }
 
+    /// A session whose last sample came at `t` s.
+    fn at(t: i64) -> Progress {
+        Progress {
+            last_timestamp_s: Some(t as f64),
+            last_seq: 3,
+            samples: 10,
+        }
+    }
+
     fn start(reset: bool, held: Option<(&str, i64)>) -> Start {
         Start {
             model: model("a"),
             reset,
-            held: held.map(|(id, snapshot_taken_ms)| Held {
+            held: held.map(|(id, t)| Held {
                 model: model(id),
-                snapshot_taken_ms,
+                progress: at(t),
             }),
         }
     }
 
-    fn row(writer: &str, updated_at_ms: i64) -> SnapshotRow {
+    /// A stored copy by `writer` whose last sample came at `t` s (written, by its own clock, an
+    /// hour before anything held here).
+    fn row(writer: &str, t: i64) -> (SnapshotRow, Progress) {
+        (stored_row(writer), at(t))
+    }
+
+    fn stored_row(writer: &str) -> SnapshotRow {
         SnapshotRow {
             vehicle_id: "car-1".to_string(),
             model_id: "a".to_string(),
@@ -171,7 +213,7 @@ mod tests {
             last_seq: 3,
             open_alarm_id: None,
             writer: writer.to_string(),
-            updated_at_ms,
+            updated_at_ms: -3_600_000,
             snapshot: vec![1, 2, 3],
         }
     }
@@ -204,12 +246,12 @@ mod tests {
         let new = start(false, None);
         assert_eq!(
             new.origin(Ok(Some(row(OTHER, 5))), THIS),
-            Origin::Snapshot(row(OTHER, 5))
+            Origin::Snapshot(stored_row(OTHER))
         );
         // Also this process's own copy (e.g. of a session it evicted).
         assert_eq!(
             new.origin(Ok(Some(row(THIS, 5))), THIS),
-            Origin::Snapshot(row(THIS, 5))
+            Origin::Snapshot(stored_row(THIS))
         );
         assert_eq!(new.origin(Ok(None), THIS), Origin::Fresh(None));
         assert_eq!(
@@ -219,11 +261,28 @@ mod tests {
     }
 
     #[test]
+    fn progress_is_the_vehicle_clock_then_seq_then_samples() {
+        let base = at(10);
+        assert!(at(11).is_ahead_of(&base));
+        assert!(!at(9).is_ahead_of(&base));
+        assert!(!base.is_ahead_of(&base));
+        let later_seq = Progress {
+            last_seq: 4,
+            ..base
+        };
+        assert!(later_seq.is_ahead_of(&base));
+        assert!(
+            base.is_ahead_of(&Progress::default()),
+            "any sample beats none"
+        );
+    }
+
+    #[test]
     fn a_held_session_yields_only_to_a_newer_copy_from_another_process() {
         let held = start(false, Some(("a", 100)));
         assert_eq!(
             held.origin(Ok(Some(row(OTHER, 101))), THIS),
-            Origin::Snapshot(row(OTHER, 101))
+            Origin::Snapshot(stored_row(OTHER))
         );
         assert_eq!(held.origin(Ok(Some(row(OTHER, 100))), THIS), Origin::Memory);
         assert_eq!(held.origin(Ok(Some(row(OTHER, 99))), THIS), Origin::Memory);
@@ -238,7 +297,7 @@ mod tests {
         let other_model = start(false, Some(("b", 100)));
         assert_eq!(
             other_model.origin(Ok(Some(row(OTHER, 101))), THIS),
-            Origin::Snapshot(row(OTHER, 101))
+            Origin::Snapshot(stored_row(OTHER))
         );
         assert_eq!(
             other_model.origin(Ok(Some(row(OTHER, 99))), THIS),

@@ -19,7 +19,7 @@
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 use spoofwatch_core::detector::{Decision, Detector};
@@ -31,7 +31,7 @@ use tokio_util::sync::CancellationToken;
 
 use super::episodes::{AlarmSignal, EpisodeChange};
 use super::handoff::{OpenAlarm, SNAPSHOT_SCHEMA, SessionSnapshot, SnapshotRefused};
-use super::resume::{Origin, Resumption, Start};
+use super::resume::{Origin, Progress, Resumption, Start};
 use super::sequence::SeqCheck;
 use super::state::SessionState;
 use super::validate::validate_batch;
@@ -166,6 +166,23 @@ pub struct Attachment {
     pub accepted: Accepted,
 }
 
+/// A stored snapshot with how far its session got (read from its encoding, so that which copy is
+/// newer never depends on the servers' clocks); one that cannot be read is refused.
+fn with_progress(row: SnapshotRow) -> Result<(SnapshotRow, Progress), SnapshotRefused> {
+    if row.schema_version != i64::from(SNAPSHOT_SCHEMA) {
+        return Err(SnapshotRefused::Schema {
+            found: row.schema_version,
+        });
+    }
+    let snapshot = SessionSnapshot::decode(&row.snapshot)?;
+    let progress = Progress {
+        last_timestamp_s: snapshot.last_timestamp_s,
+        last_seq: snapshot.last_seq,
+        samples: snapshot.samples,
+    };
+    Ok((row, progress))
+}
+
 /// The seq field beside a batch's samples field (`batch.samples` → `batch.seq`).
 fn seq_field(samples_field: &str) -> String {
     let prefix = samples_field.strip_suffix("samples").unwrap_or("");
@@ -197,6 +214,9 @@ pub struct SessionManager {
     model_gate: tokio::sync::RwLock<()>,
     /// Where batches of at least [`HEAVY_BATCH_COST`] are scored.
     heavy: HeavyWork,
+    /// Stored snapshot versions (vehicle, written at) past the TTL, and when this process first
+    /// saw each: they expire once seen unchanged long enough ([`Self::expire_snapshots`]).
+    stale_seen: Mutex<HashMap<(String, i64), Instant>>,
 }
 
 /// A batch costing at least this many model parameters × samples is scored on the bounded pool of
@@ -215,6 +235,7 @@ impl SessionManager {
     ) -> Self {
         Self {
             heavy,
+            stale_seen: Mutex::new(HashMap::new()),
             slots: Mutex::new(HashMap::new()),
             registry,
             outbox,
@@ -296,6 +317,7 @@ impl SessionManager {
             reset,
             held: existed.then(|| state.held()),
         };
+        let stored = stored.and_then(|row| row.map(with_progress).transpose());
         let resumption = match start.origin(stored, &self.writer()) {
             Origin::Snapshot(row) => match self.restore(&row, &model) {
                 Ok(restored) => {
@@ -367,7 +389,6 @@ impl SessionManager {
         let now_ms = now_unix_ms();
         state.since_snapshot = 0;
         state.snapshot_taken = Instant::now();
-        state.snapshot_taken_ms = now_ms;
         let snapshot = state.snapshot();
         let open_alarm_id = snapshot.open_alarm.as_ref().map(|open| open.id);
         self.outbox.save_snapshot(SnapshotRow {
@@ -801,19 +822,73 @@ impl SessionManager {
         idle.len()
     }
 
-    /// Deletes the stored snapshots older than the policy's TTL and ends the alarms they held
-    /// open (their vehicles did not come back); returns how many alarms ended.
+    /// Deletes the stored snapshots whose vehicles did not come back and ends the alarms they held
+    /// open, at their last alarming sample; returns how many alarms ended.
+    ///
+    /// A snapshot expires when it is older than the policy's TTL by its writer's clock, and this
+    /// process has also seen it unchanged for [`Self::expiry_confirmation`] by its own monotonic
+    /// clock, and this process does not hold the vehicle's session. So a wall-clock step, here or
+    /// on another replica, never ends the alarm of a vehicle that is still streaming: a streaming
+    /// vehicle's snapshot is rewritten far sooner than the confirmation takes.
     pub async fn expire_snapshots(&self) -> usize {
         let ttl_ms = i64::try_from(self.snapshots.ttl.as_millis()).unwrap_or(i64::MAX);
-        match self
+        let stale = match self
             .store
-            .expire_snapshots(now_unix_ms().saturating_sub(ttl_ms))
+            .stale_snapshots(now_unix_ms().saturating_sub(ttl_ms))
             .await
         {
+            Ok(stale) => stale,
+            Err(error) => {
+                tracing::warn!(%error, "could not read old session snapshots; retrying later");
+                return 0;
+            }
+        };
+        let confirmed = {
+            let held = self.slots();
+            let mut seen = self
+                .stale_seen
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner);
+            let now = Instant::now();
+            let candidates: HashMap<(String, i64), Instant> = stale
+                .into_iter()
+                .filter(|(vehicle, _)| {
+                    VehicleId::parse(vehicle).map_or(true, |id| !held.contains_key(&id))
+                })
+                .map(|version| {
+                    let first_seen = seen.get(&version).copied().unwrap_or(now);
+                    (version, first_seen)
+                })
+                .collect();
+            *seen = candidates;
+            seen.iter()
+                .filter(|(_, first_seen)| {
+                    now.duration_since(**first_seen) >= self.expiry_confirmation()
+                })
+                .map(|(version, _)| version.clone())
+                .collect::<Vec<_>>()
+        };
+        if confirmed.is_empty() {
+            return 0;
+        }
+        match self.store.expire_snapshots(&confirmed).await {
             Ok(abandoned) => {
+                let mut seen = self
+                    .stale_seen
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner);
+                for version in &confirmed {
+                    seen.remove(version);
+                }
+                drop(seen);
                 let ended = abandoned.len();
-                for alarm in abandoned {
-                    self.outbox.end_abandoned(alarm);
+                for (alarm, snapshot) in abandoned {
+                    let last = SessionSnapshot::decode(&snapshot)
+                        .ok()
+                        .and_then(|s| s.open_alarm)
+                        .filter(|open| open.id == alarm.id)
+                        .map(|open| (open.last_timestamp_s, open.peak, i64::from(open.samples)));
+                    self.outbox.end_abandoned(alarm, last);
                     telemetry::alarm_end();
                 }
                 ended
@@ -823,6 +898,13 @@ impl SessionManager {
                 0
             }
         }
+    }
+
+    /// How long this process must see a snapshot unchanged, by its own clock, before it expires:
+    /// longer than a streaming vehicle's session goes without rewriting it (it is rewritten at
+    /// least every snapshot period while batches come, and at eviction once they stop).
+    fn expiry_confirmation(&self) -> Duration {
+        self.limits.idle + self.snapshots.every
     }
 
     /// Sessions held, and how many of them have a live stream (for metrics; one pass under the

@@ -12,7 +12,7 @@ use spoofwatch_core::detector::Detector;
 
 use super::episodes::AlarmTrack;
 use super::handoff::{SessionSnapshot, SnapshotRefused};
-use super::resume::Held;
+use super::resume::{Held, Progress};
 use super::sequence::AppliedSeqs;
 use crate::models::LoadedModel;
 
@@ -27,10 +27,9 @@ pub(super) struct SessionState {
     pub(super) seqs: AppliedSeqs,
     pub(super) last_timestamp_s: Option<f64>,
     pub(super) alarm: AlarmTrack,
-    /// Samples since the last snapshot, and when it was taken (monotonic, and wall ms).
+    /// Samples since the last snapshot, and when it was taken.
     pub(super) since_snapshot: u64,
     pub(super) snapshot_taken: Instant,
-    pub(super) snapshot_taken_ms: i64,
 }
 
 impl SessionState {
@@ -45,7 +44,6 @@ impl SessionState {
             alarm: AlarmTrack::default(),
             since_snapshot: 0,
             snapshot_taken: Instant::now(),
-            snapshot_taken_ms: 0,
         }
     }
 
@@ -100,7 +98,11 @@ impl SessionState {
     pub(super) fn held(&self) -> Held {
         Held {
             model: self.model.name.clone(),
-            snapshot_taken_ms: self.snapshot_taken_ms,
+            progress: Progress {
+                last_timestamp_s: self.last_timestamp_s,
+                last_seq: self.seqs.last(),
+                samples: self.samples,
+            },
         }
     }
 }

@@ -3,8 +3,17 @@
 //! batch is valid. Owns no session state; vehicle ids are checked at the edge
 //! (`spoofwatch_proto::wire::VehicleId`).
 
+use spoofwatch_core::geo::{LatLon, wgs84_local_displacement};
 use spoofwatch_core::sample::{Sample, readable};
-use spoofwatch_proto::wire::limits::{BACKWARD_TOLERANCE_S, MAX_FORWARD_JUMP_S};
+use spoofwatch_proto::wire::limits::{BACKWARD_TOLERANCE_S, MAX_FORWARD_JUMP_S, MAX_TIMESTAMP_S};
+
+/// At a session's start, pairs of consecutive samples at least this far apart (s) whose vehicle
+/// reports at least [`MOVING_MPS`] are checked for a time unit 1,000 times too small.
+const UNIT_CHECK_GAP_S: f64 = 50.0;
+const MOVING_MPS: f64 = 2.0;
+/// Fixes that moved less than 1/100 of what the reported speed covers in the gap, in every checked
+/// pair (at least two): the times are milliseconds (the fixes moved 1/1000 of it).
+const UNIT_CHECK_RATIO: f64 = 0.01;
 
 /// Validates a batch that follows `last_timestamp_s` (the session's last accepted sample).
 /// `prefix` names the repeated field, e.g. `batch.samples`.
@@ -60,11 +69,54 @@ pub fn validate_batch(
             previous = Some(previous.map_or(t, |p| p.max(t)));
         }
     }
+    if last_timestamp_s.is_none() {
+        violations.extend(milliseconds_at_start(samples, prefix));
+    }
     if violations.is_empty() {
         Ok(())
     } else {
         Err(violations)
     }
+}
+
+/// Times in milliseconds sent as seconds, caught at a session's start (`samples` is its first
+/// batch): absolute times beyond [`MAX_TIMESTAMP_S`], or relative ones whose gaps are 1,000 times
+/// what the fixes and the reported speed say. Accepted, they would turn every second of driving
+/// into a 17-minute outage and hide any attack.
+fn milliseconds_at_start(samples: &[Sample], prefix: &str) -> Option<(String, String)> {
+    if let Some(i) = samples.iter().position(|s| s.timestamp_s > MAX_TIMESTAMP_S) {
+        return Some((
+            format!("{prefix}[{i}].timestamp_s"),
+            format!(
+                "{} s is after the year 5000: send seconds (this looks like milliseconds)",
+                readable(samples[i].timestamp_s)
+            ),
+        ));
+    }
+    let mut checked = 0;
+    for pair in samples.windows(2) {
+        let (a, b) = (&pair[0], &pair[1]);
+        let gap = b.timestamp_s - a.timestamp_s;
+        if !(gap >= UNIT_CHECK_GAP_S && a.speed_mps >= MOVING_MPS) {
+            continue;
+        }
+        let [east, north] = wgs84_local_displacement(
+            LatLon::new(a.latitude_deg, a.longitude_deg),
+            LatLon::new(b.latitude_deg, b.longitude_deg),
+        );
+        if east.hypot(north) >= UNIT_CHECK_RATIO * a.speed_mps * gap {
+            return None;
+        }
+        checked += 1;
+    }
+    (checked >= 2).then(|| {
+        (
+            format!("{prefix}[1].timestamp_s"),
+            "the samples are seconds apart by the fixes and the reported speed, but their times \
+             are 1,000 times further apart: send seconds (this looks like milliseconds)"
+                .to_string(),
+        )
+    })
 }
 
 #[cfg(test)]
@@ -128,6 +180,33 @@ mod tests {
             validate_batch(&inside, None, 10, "s").unwrap_err()[0].0,
             "s[1].timestamp_s"
         );
+    }
+
+    #[test]
+    fn milliseconds_are_caught_at_a_session_start() {
+        // Epoch milliseconds.
+        let errors = validate_batch(&[sample(1.7e12, 32.0)], None, 10, "s").unwrap_err();
+        assert!(
+            errors[0].1.contains("looks like milliseconds"),
+            "{}",
+            errors[0].1
+        );
+        // Relative milliseconds of a vehicle at 2 m/s moving 2 m per sample (1 s apart).
+        let step = 2.0 / 111_000.0;
+        let relative: Vec<_> = (0..5)
+            .map(|i| sample(f64::from(i) * 1000.0, 32.0 + f64::from(i) * step))
+            .collect();
+        let errors = validate_batch(&relative, None, 10, "s").unwrap_err();
+        assert_eq!(errors[0].0, "s[1].timestamp_s");
+        // The same fixes in seconds pass, and so do real 100 s gaps of a moving vehicle.
+        let seconds: Vec<_> = (0..5)
+            .map(|i| sample(f64::from(i), 32.0 + f64::from(i) * step))
+            .collect();
+        assert_eq!(validate_batch(&seconds, None, 10, "s"), Ok(()));
+        let outages: Vec<_> = (0..5)
+            .map(|i| sample(f64::from(i) * 100.0, 32.0 + f64::from(i) * 100.0 * step))
+            .collect();
+        assert_eq!(validate_batch(&outages, None, 10, "s"), Ok(()));
     }
 
     #[test]

@@ -88,25 +88,53 @@ impl Store {
         }))
     }
 
-    /// Deletes the snapshots written before `cutoff_ms` (their vehicles did not come back) and
-    /// returns the alarms they held open, still open: the caller ends them.
-    pub async fn expire_snapshots(&self, cutoff_ms: i64) -> Result<Vec<AlarmEventRow>, StoreError> {
-        in_write_tx!(self, |tx| {
-            let abandoned = sqlx::query_as::<_, AlarmEventRow>(
-                "SELECT a.id, a.vehicle_id, a.model_id, a.onset_timestamp_s, a.end_timestamp_s, \
-                 a.onset_at, a.ended_at, a.peak_probability, a.samples, a.why_kind, \
-                 a.why_offset_east_m, a.why_offset_north_m, a.why_drift_east_mps, \
-                 a.why_drift_north_mps \
-                 FROM session_snapshots s JOIN alarm_events a ON a.id = s.open_alarm_id \
-                 WHERE s.updated_at < $1 AND a.ended_at IS NULL ORDER BY a.id",
+    /// The snapshots written before `cutoff_ms` by their writers' clocks, as (vehicle, written
+    /// at): candidates for expiry, which the caller confirms by its own clock first.
+    pub async fn stale_snapshots(&self, cutoff_ms: i64) -> Result<Vec<(String, i64)>, StoreError> {
+        Ok(on_pool!(self, |pool| {
+            sqlx::query_as::<_, (String, i64)>(
+                "SELECT vehicle_id, updated_at FROM session_snapshots WHERE updated_at < $1",
             )
             .bind(cutoff_ms)
-            .fetch_all(&mut *tx)
-            .await?;
-            sqlx::query("DELETE FROM session_snapshots WHERE updated_at < $1")
-                .bind(cutoff_ms)
-                .execute(&mut *tx)
+            .fetch_all(pool)
+            .await?
+        }))
+    }
+
+    /// Deletes exactly these snapshot versions, (vehicle, written at): one rewritten since is
+    /// kept. Returns the alarms they held open, still open, each with its snapshot (the caller
+    /// ends them at their last alarming sample).
+    pub async fn expire_snapshots(
+        &self,
+        versions: &[(String, i64)],
+    ) -> Result<Vec<(AlarmEventRow, Vec<u8>)>, StoreError> {
+        in_write_tx!(self, |tx| {
+            let mut abandoned = Vec::new();
+            for (vehicle_id, updated_at) in versions {
+                let held = sqlx::query_as::<_, AlarmEventRow>(
+                    "SELECT a.id, a.vehicle_id, a.model_id, a.onset_timestamp_s, \
+                     a.end_timestamp_s, a.onset_at, a.ended_at, a.peak_probability, a.samples, \
+                     a.why_kind, a.why_offset_east_m, a.why_offset_north_m, a.why_drift_east_mps, \
+                     a.why_drift_north_mps \
+                     FROM session_snapshots s JOIN alarm_events a ON a.id = s.open_alarm_id \
+                     WHERE s.vehicle_id = $1 AND s.updated_at = $2 AND a.ended_at IS NULL",
+                )
+                .bind(vehicle_id)
+                .bind(updated_at)
+                .fetch_optional(&mut *tx)
                 .await?;
+                let deleted = sqlx::query_scalar::<_, Vec<u8>>(
+                    "DELETE FROM session_snapshots WHERE vehicle_id = $1 AND updated_at = $2 \
+                     RETURNING snapshot",
+                )
+                .bind(vehicle_id)
+                .bind(updated_at)
+                .fetch_optional(&mut *tx)
+                .await?;
+                if let (Some(alarm), Some(snapshot)) = (held, deleted) {
+                    abandoned.push((alarm, snapshot));
+                }
+            }
             tx.commit().await?;
             Ok(abandoned)
         })
