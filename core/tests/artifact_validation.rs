@@ -154,6 +154,15 @@ fn shapes_configurations_and_types_are_refused_by_path() {
 }
 
 #[test]
+fn a_long_string_where_a_number_belongs_is_quoted_only_in_part() {
+    let mut value = base(DEFAULT_MODEL);
+    value["evidence"]["mu_e"] = json!("7".repeat(5_000));
+    let error = refused(&value, "evidence.mu_e", "(5000 chars)");
+    assert!(error.to_string().len() < 300, "{error}");
+    assert!(error.to_string().contains("expected"), "{error}");
+}
+
+#[test]
 fn a_wrongly_typed_schema_version_is_named_as_such() {
     let mut value = base(DEFAULT_MODEL);
     value["schema_version"] = json!("2");

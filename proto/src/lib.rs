@@ -1,7 +1,9 @@
 //! Generated gRPC types and services of the Spoofwatch API, plus [`wire`]: the one hand-written layer
-//! between them and the core's types (conversions, resource names, limits). The generated modules
+//! between them and the core's types (conversions, resource names, limits), and [`codec`]: the
+//! servers' codec (a malformed request is INVALID_ARGUMENT). The generated modules
 //! mirror the proto packages because generated code refers across them with relative paths.
 
+pub mod codec;
 pub mod wire;
 
 #[allow(clippy::all, missing_docs, rust_2018_idioms)]
@@ -9,6 +11,7 @@ pub mod spoofwatch {
     /// `spoofwatch.v1`: detection, models, datasets, training, alarms.
     pub mod v1 {
         tonic::include_proto!("spoofwatch.v1");
+        include!(concat!(env!("OUT_DIR"), "/servers/spoofwatch.v1.rs"));
     }
 }
 
@@ -17,6 +20,7 @@ pub mod google {
     /// `google.longrunning`: the Operations service used for jobs.
     pub mod longrunning {
         tonic::include_proto!("google.longrunning");
+        include!(concat!(env!("OUT_DIR"), "/servers/google.longrunning.rs"));
     }
 }
 

@@ -10,7 +10,7 @@ use spoofwatch_core::train::TrainError;
 use spoofwatch_core::train::detector::TrainDetectorError;
 use std::time::Duration;
 
-use tonic::Status;
+use tonic::{Code, Status};
 
 use crate::datasets::DatasetError;
 use crate::detection::SessionError;
@@ -19,7 +19,7 @@ use crate::jobs::{JobError, JobFailure};
 use crate::models::RegistryError;
 use crate::status::{
     dependency_failed, failed_precondition, internal, invalid_argument, invalid_field, not_found,
-    resource_exhausted,
+    resource_exhausted, with_code,
 };
 use crate::store::{FaultKind, JobEndError, StoreError, StoreFault};
 
@@ -27,7 +27,7 @@ impl From<StoreError> for Status {
     fn from(error: StoreError) -> Self {
         match &error {
             StoreError::NotFound { kind, id } => not_found(kind, id),
-            StoreError::AlreadyExists { .. } => Status::already_exists(error.to_string()),
+            StoreError::AlreadyExists { .. } => with_code(Code::AlreadyExists, error.to_string()),
             StoreError::ModelActive { .. } => {
                 failed_precondition("MODEL_ACTIVE", error.to_string())
             }
@@ -94,7 +94,7 @@ impl From<DatasetError> for Status {
             DatasetError::NotFound(name) => not_found("dataset", &name.to_string()),
             DatasetError::Invalid { field, reason } => invalid_field(field, reason),
             DatasetError::NoDataDir => failed_precondition("NO_DATA_DIR", error.to_string()),
-            DatasetError::PathDenied { .. } => Status::permission_denied(error.to_string()),
+            DatasetError::PathDenied { .. } => with_code(Code::PermissionDenied, error.to_string()),
             DatasetError::FileNotFound(path) => not_found("file", &path),
             DatasetError::Internal(Fault { context, .. }) => internal(context, &error),
             DatasetError::Store(store) => store.into(),
@@ -109,7 +109,7 @@ impl From<SessionError> for Status {
             SessionError::NotFound(vehicle) => not_found("session", &vehicle),
             SessionError::Full(_) => resource_exhausted(error.to_string()),
             SessionError::Model(model) => model.into(),
-            SessionError::ModelDeleted(_) => Status::aborted(error.to_string()),
+            SessionError::ModelDeleted(_) => with_code(Code::Aborted, error.to_string()),
         }
     }
 }
@@ -148,7 +148,7 @@ impl From<JobFailure> for Status {
             JobFailure::Store(error) => error.into(),
             JobFailure::Training(error) => training_status(error),
             JobFailure::Worker(Fault { context, .. }) => internal(context, &failure),
-            JobFailure::Abandoned => Status::aborted(failure.to_string()),
+            JobFailure::Abandoned => with_code(Code::Aborted, failure.to_string()),
         }
     }
 }
@@ -182,8 +182,6 @@ fn training_status(error: TrainDetectorError) -> Status {
 
 #[cfg(test)]
 mod tests {
-    use tonic::Code;
-
     use super::*;
 
     #[test]

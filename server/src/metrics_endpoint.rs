@@ -4,13 +4,23 @@
 //!
 //! It sits above the subsystems it reads and owns no metric of its own: names, help texts and
 //! recording calls live in `crate::telemetry`. Nothing below the server's assembly imports it.
+//!
+//! Its port is open to anyone who can reach it, so it serves HTTP/1 with bounds of its own: at
+//! most [`MAX_CONNECTIONS`] connections at once (more wait in the listen backlog, holding no
+//! descriptor of the server's), and a connection that sends no complete request headers within
+//! [`HEADER_READ_TIMEOUT`] (silent, or idle after a scrape) is closed. Silent connections
+//! therefore cannot take the descriptors the gRPC port needs.
 
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 
+use hyper::server::conn::http1;
+use hyper_util::rt::{TokioIo, TokioTimer};
+use hyper_util::service::TowerToHyperService;
 use metrics::{counter, gauge};
 use metrics_exporter_prometheus::{BuildError, PrometheusHandle};
-use tokio::net::TcpListener;
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::Semaphore;
 use tokio_util::sync::CancellationToken;
 
 use crate::detection::SessionManager;
@@ -26,6 +36,16 @@ use crate::telemetry::{
 
 /// How often histogram samples are folded into their buckets between scrapes.
 const UPKEEP_PERIOD: Duration = Duration::from_secs(5);
+
+/// Longest a connection may take to send a request's headers, counted from when the server
+/// starts waiting for it: a scraper sends at once, so this also ends idle keep-alive connections.
+pub const HEADER_READ_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// Most connections served at once (a Prometheus server or two need one each).
+pub const MAX_CONNECTIONS: usize = 64;
+
+/// Pause after a failed accept (e.g. out of descriptors) before the next one.
+const ACCEPT_RETRY: Duration = Duration::from_millis(100);
 
 /// Installs the process-wide recorder (see [`telemetry::install`]) with every store fault kind
 /// counted from zero.
@@ -133,11 +153,56 @@ pub async fn serve_metrics(
     let app = axum::Router::new()
         .route("/metrics", axum::routing::get(metrics_page))
         .with_state(endpoint);
-    let served = axum::serve(listener, app)
-        .with_graceful_shutdown(stop.clone().cancelled_owned())
-        .await;
-    if let Err(error) = served {
-        tracing::error!(%error, "the metrics endpoint failed");
+    let connections = Arc::new(Semaphore::new(MAX_CONNECTIONS));
+    loop {
+        // A free slot first: beyond the cap, connections wait in the kernel's backlog.
+        let permit = tokio::select! {
+            _ = stop.cancelled() => break,
+            permit = Arc::clone(&connections).acquire_owned() => match permit {
+                Ok(permit) => permit,
+                Err(_) => break,
+            },
+        };
+        let stream = tokio::select! {
+            _ = stop.cancelled() => break,
+            accepted = listener.accept() => match accepted {
+                Ok((stream, _)) => stream,
+                Err(error) => {
+                    tracing::warn!(%error, "accepting a metrics connection");
+                    tokio::time::sleep(ACCEPT_RETRY).await;
+                    continue;
+                }
+            },
+        };
+        let app = app.clone();
+        let stop = stop.clone();
+        tokio::spawn(async move {
+            serve_connection(stream, app, stop).await;
+            drop(permit);
+        });
     }
+    // Every connection has ended once all the slots are free again.
+    let _ = connections.acquire_many(MAX_CONNECTIONS as u32).await;
     upkeep.abort();
+}
+
+/// Serves one connection until it closes, times out, or `stop` ends it after its current request.
+async fn serve_connection(stream: TcpStream, app: axum::Router, stop: CancellationToken) {
+    let mut builder = http1::Builder::new();
+    builder
+        .timer(TokioTimer::new())
+        .header_read_timeout(HEADER_READ_TIMEOUT);
+    let connection = builder.serve_connection(TokioIo::new(stream), TowerToHyperService::new(app));
+    let mut connection = std::pin::pin!(connection);
+    let served = tokio::select! {
+        served = connection.as_mut() => served,
+        _ = stop.cancelled() => {
+            connection.as_mut().graceful_shutdown();
+            connection.await
+        }
+    };
+    if let Err(error) = served {
+        // A client gone or too slow: its business, not the server's.
+        tracing::debug!(%error, "metrics connection ended");
+    }
 }

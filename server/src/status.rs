@@ -2,25 +2,89 @@
 //! ResourceInfo, ErrorInfo, RetryInfo), used by every service at the edge and by the one error
 //! mapping in `crate::error`. Internal errors are logged and answered with a generic INTERNAL
 //! message (no leaked internals). It must not know any subsystem: it imports nothing of the crate.
+//!
+//! Every status it builds fits in a trailer clients accept (grpcio's limit is 16 KiB; these stay
+//! under 8 KiB): messages, field names and descriptions are cut to a bound (saying how long they
+//! were), and at most [`MAX_VIOLATIONS`] field violations are listed, the last one counting those
+//! left out. Whatever a client sent and a status echoes is therefore bounded here.
+
+use std::borrow::Cow;
 
 use prost::Message;
 use tonic::{Code, Status};
 use tonic_types::{ErrorDetails, FieldViolation, StatusExt};
 
-/// INVALID_ARGUMENT with one BadRequest field violation per problem.
+/// Most field violations one status lists; one more then says how many were left out.
+pub const MAX_VIOLATIONS: usize = 10;
+/// Longest status message, in bytes (percent-encoded in the trailer: up to three times longer).
+const MAX_MESSAGE_BYTES: usize = 512;
+/// Longest field name of a violation, in bytes.
+const MAX_FIELD_BYTES: usize = 100;
+/// Longest description of a violation, in bytes.
+const MAX_DESCRIPTION_BYTES: usize = 200;
+
+/// `text` cut to at most `max_bytes` bytes on a character boundary; a cut text ends with
+/// "… (N chars)", N its full length.
+pub fn bounded(text: &str, max_bytes: usize) -> Cow<'_, str> {
+    if text.len() <= max_bytes {
+        return Cow::Borrowed(text);
+    }
+    let suffix = format!("… ({} chars)", text.chars().count());
+    let mut end = max_bytes.saturating_sub(suffix.len());
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    Cow::Owned(format!("{}{suffix}", &text[..end]))
+}
+
+/// A status message within the bound.
+fn bounded_message(text: impl Into<String>) -> String {
+    let text = text.into();
+    match bounded(&text, MAX_MESSAGE_BYTES) {
+        Cow::Borrowed(_) => text,
+        Cow::Owned(cut) => cut,
+    }
+}
+
+/// A status of `code` with `text` as its message, bounded (for codes without details).
+pub fn with_code(code: Code, text: impl Into<String>) -> Status {
+    Status::new(code, bounded_message(text))
+}
+
+/// INVALID_ARGUMENT with one BadRequest field violation per problem: the first
+/// [`MAX_VIOLATIONS`], then one at the first field left out counting the rest.
 pub fn invalid_argument(violations: Vec<(String, String)>) -> Status {
-    let summary = violations
+    let total = violations.len();
+    let mut listed: Vec<FieldViolation> = violations
         .iter()
-        .map(|(field, description)| format!("{field}: {description}"))
+        .take(MAX_VIOLATIONS)
+        .map(|(field, description)| {
+            FieldViolation::new(
+                bounded(field, MAX_FIELD_BYTES),
+                bounded(description, MAX_DESCRIPTION_BYTES),
+            )
+        })
+        .collect();
+    let mut summary = listed
+        .iter()
+        .map(|v| format!("{}: {}", v.field, v.description))
         .collect::<Vec<_>>()
         .join("; ");
-    let details = ErrorDetails::with_bad_request(
-        violations
-            .into_iter()
-            .map(|(field, description)| FieldViolation::new(field, description))
-            .collect::<Vec<_>>(),
-    );
-    Status::with_error_details(Code::InvalidArgument, summary, details)
+    if let Some((first_left_out, _)) = violations.get(MAX_VIOLATIONS) {
+        let left_out = total - MAX_VIOLATIONS;
+        let more = format!(
+            "{left_out} more violation{} not shown (from this field on); only the first \
+             {MAX_VIOLATIONS} are listed",
+            if left_out == 1 { "" } else { "s" }
+        );
+        summary = format!("{}; and {more}", bounded(&summary, MAX_MESSAGE_BYTES - 100));
+        listed.push(FieldViolation::new(
+            bounded(first_left_out, MAX_FIELD_BYTES),
+            more,
+        ));
+    }
+    let details = ErrorDetails::with_bad_request(listed);
+    Status::with_error_details(Code::InvalidArgument, bounded_message(summary), details)
 }
 
 /// INVALID_ARGUMENT for a single field.
@@ -30,10 +94,12 @@ pub fn invalid_field(field: impl Into<String>, description: impl Into<String>) -
 
 /// NOT_FOUND with ResourceInfo naming the resource.
 pub fn not_found(kind: &str, name: &str) -> Status {
-    let details = ErrorDetails::with_resource_info(kind, name, "", format!("no such {kind}"));
+    let name = bounded(name, MAX_FIELD_BYTES);
+    let details =
+        ErrorDetails::with_resource_info(kind, name.as_ref(), "", format!("no such {kind}"));
     Status::with_error_details(
         Code::NotFound,
-        format!("{kind} {name:?} not found"),
+        bounded_message(format!("{kind} {name:?} not found")),
         details,
     )
 }
@@ -45,13 +111,13 @@ pub fn failed_precondition(reason: &str, message: impl Into<String>) -> Status {
         "spoofwatch",
         std::collections::HashMap::<String, String>::new(),
     );
-    Status::with_error_details(Code::FailedPrecondition, message, details)
+    Status::with_error_details(Code::FailedPrecondition, bounded_message(message), details)
 }
 
 /// RESOURCE_EXHAUSTED with a retry hint.
 pub fn resource_exhausted(message: impl Into<String>) -> Status {
     let details = ErrorDetails::with_retry_info(Some(std::time::Duration::from_secs(5)));
-    Status::with_error_details(Code::ResourceExhausted, message, details)
+    Status::with_error_details(Code::ResourceExhausted, bounded_message(message), details)
 }
 
 /// RESOURCE_EXHAUSTED (`exhausted`) or UNAVAILABLE for a resource the server depends on, with the
@@ -69,7 +135,7 @@ pub fn dependency_failed(
         Code::Unavailable
     };
     let details = ErrorDetails::with_retry_info(Some(retry_after));
-    Status::with_error_details(code, message, details)
+    Status::with_error_details(code, bounded_message(message), details)
 }
 
 /// UNAVAILABLE while the server drains.
@@ -143,5 +209,70 @@ mod tests {
         let rpc = to_rpc_status(&status);
         assert_eq!(rpc.code, Code::InvalidArgument as i32);
         assert_eq!(rpc.details.len(), 1);
+    }
+
+    /// Bytes of the trailer fields a status travels in (grpc-status, grpc-message
+    /// percent-encoded, grpc-status-details-bin in base64), names included.
+    fn trailer_bytes(status: &Status) -> usize {
+        let mut headers = tonic::codegen::http::HeaderMap::new();
+        status.add_header(&mut headers).expect("a valid status");
+        headers
+            .iter()
+            .map(|(name, value)| name.as_str().len() + value.len())
+            .sum()
+    }
+
+    #[test]
+    fn ten_thousand_long_violations_fit_in_an_eight_kib_trailer() {
+        // Non-ASCII text is the worst case: three bytes per character percent-encoded.
+        let field = "é".repeat(5_000);
+        let description = "ü".repeat(5_000);
+        let violations = (0..10_000)
+            .map(|i| (format!("{field}[{i}]"), description.clone()))
+            .collect();
+        let status = invalid_argument(violations);
+        assert!(
+            trailer_bytes(&status) <= 8 * 1024,
+            "{}",
+            trailer_bytes(&status)
+        );
+        let bad = status
+            .get_details_bad_request()
+            .expect("BadRequest details");
+        assert_eq!(bad.field_violations.len(), MAX_VIOLATIONS + 1);
+        let last = &bad.field_violations[MAX_VIOLATIONS].description;
+        assert!(last.starts_with("9990 more violations not shown"), "{last}");
+        assert!(status.message().ends_with("only the first 10 are listed"));
+        assert!(
+            bad.field_violations[0]
+                .description
+                .ends_with("… (5000 chars)")
+        );
+
+        let long = "x".repeat(100_000);
+        for status in [
+            not_found("model", &long),
+            failed_precondition("REASON", long.clone()),
+            resource_exhausted(long.clone()),
+            with_code(Code::AlreadyExists, long.clone()),
+            invalid_field(long.clone(), long.clone()),
+        ] {
+            assert!(trailer_bytes(&status) <= 8 * 1024, "{status:?}");
+        }
+    }
+
+    #[test]
+    fn a_short_list_is_kept_whole_and_a_cut_text_says_how_long_it_was() {
+        let violations: Vec<(String, String)> = (0..MAX_VIOLATIONS)
+            .map(|i| (format!("samples[{i}]"), "must be finite".to_string()))
+            .collect();
+        let bad = invalid_argument(violations)
+            .get_details_bad_request()
+            .expect("BadRequest details");
+        assert_eq!(bad.field_violations.len(), MAX_VIOLATIONS);
+        assert_eq!(bounded("short", 10), "short");
+        let long = "a".repeat(500);
+        let cut = bounded(&long, 100);
+        assert!(cut.len() <= 100 && cut.ends_with("… (500 chars)"), "{cut}");
     }
 }

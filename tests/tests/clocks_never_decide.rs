@@ -141,7 +141,7 @@ async fn milliseconds_sent_as_seconds_are_refused_at_a_session_start() {
             .iter()
             .map(|s| v1::Sample {
                 timestamp_s: offset + s.timestamp_s * 1000.0,
-                ..s.clone()
+                ..*s
             })
             .collect()
     };

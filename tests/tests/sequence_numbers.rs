@@ -90,7 +90,7 @@ async fn a_resent_batch_is_not_scored_twice_and_a_backwards_seq_is_refused() {
                 .iter()
                 .map(|s| v1::Sample {
                     timestamp_s: s.timestamp_s + 100.0,
-                    ..s.clone()
+                    ..*s
                 })
                 .collect(),
         )

@@ -291,8 +291,48 @@ impl ArtifactError {
             let field = if path.is_empty() { name } else { path };
             return Self::field_error(field, format!("is not a known field ({rest})"));
         }
-        Self::field_error(if path.is_empty() { "." } else { &path }, message)
+        Self::field_error(
+            if path.is_empty() { "." } else { &path },
+            shorten_quoted(&shorten_quoted(&message, '"'), '`'),
+        )
     }
+}
+
+/// Most characters of a value from the artifact that an error quotes: serde quotes an offending
+/// string whole, and the error travels back to whoever sent it.
+const MAX_QUOTED_CHARS: usize = 80;
+
+/// `message` with each value between two `quote`s longer than [`MAX_QUOTED_CHARS`] cut, saying how
+/// long it was (`"abc…" (5000 chars)`). A backslash escapes a quote inside a value.
+fn shorten_quoted(message: &str, quote: char) -> String {
+    let mut shortened = String::with_capacity(message.len().min(1024));
+    let mut rest = message;
+    while let Some(open) = rest.find(quote) {
+        shortened.push_str(&rest[..open + quote.len_utf8()]);
+        let value = &rest[open + quote.len_utf8()..];
+        let mut escaped = false;
+        let close = value.char_indices().find_map(|(at, c)| {
+            let closes = c == quote && !escaped;
+            escaped = c == '\\' && !escaped;
+            closes.then_some(at)
+        });
+        let Some(close) = close else {
+            rest = value;
+            break;
+        };
+        let quoted = &value[..close];
+        let chars = quoted.chars().count();
+        if chars > MAX_QUOTED_CHARS {
+            shortened.extend(quoted.chars().take(MAX_QUOTED_CHARS));
+            shortened.push_str(&format!("…{quote} ({chars} chars)"));
+        } else {
+            shortened.push_str(quoted);
+            shortened.push(quote);
+        }
+        rest = &value[close + quote.len_utf8()..];
+    }
+    shortened.push_str(rest);
+    shortened
 }
 
 /// A parse path as `model.params.w_out.data[3]` (empty at the root).

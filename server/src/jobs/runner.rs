@@ -15,7 +15,7 @@ use spoofwatch_core::train::detector::{
 };
 use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
 use spoofwatch_core::train::{EpochProgress, TrainError};
-use spoofwatch_proto::wire::{ModelName, OperationName};
+use spoofwatch_proto::wire::OperationName;
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
@@ -176,13 +176,9 @@ impl Runner {
                 ModelSource::Training,
                 Some(id),
                 &trained.artifact,
+                activate,
             )
             .await?;
-        if activate {
-            self.registry
-                .activate(&ModelName::from_id(model_id.as_str()))
-                .await?;
-        }
         Ok(JobResult::Training {
             model_id,
             validation: trained.validation.clone(),

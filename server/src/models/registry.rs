@@ -196,25 +196,22 @@ impl Registry {
                 ModelSource::Bundled,
                 None,
                 &artifact,
+                true,
             )
             .await;
         match registered {
             Ok(_) => {}
-            // A replica starting at the same moment on the same database registered it first (and
-            // activates it): the active model is then read from the store like any other.
+            // A replica starting at the same moment on the same database registered (and
+            // activated) it first: the active model is then read from the store like any other.
             Err(RegistryError::Store(StoreError::AlreadyExists { .. })) => return Ok(()),
             Err(error) => return Err(error),
         }
-        self.store.set_active_model(BUNDLED_MODEL_ID).await?;
-        *self.active() = Some(LoadedModel {
-            name: ModelName::from_id(BUNDLED_MODEL_ID),
-            artifact,
-        });
         tracing::info!("registered and activated the bundled default model");
         Ok(())
     }
 
-    /// Stores an artifact under `id`.
+    /// Stores an artifact under `id`; with `activate`, it becomes the active model in the same
+    /// transaction, so a failure or a crash never leaves it stored but inactive.
     pub async fn register(
         &self,
         id: &str,
@@ -222,6 +219,7 @@ impl Registry {
         source: ModelSource,
         training_operation: Option<&OperationName>,
         artifact: &ModelArtifact,
+        activate: bool,
     ) -> Result<ModelRow, RegistryError> {
         let bytes = artifact
             .to_vec()
@@ -229,20 +227,28 @@ impl Registry {
         let size = bytes.len();
         let metadata = serde_json::to_value(ModelMetadata::of(artifact))
             .map_err(|e| Fault::new("serialising model metadata", e))?;
-        let row = self
-            .store
-            .insert_model(NewModel {
-                id: id.to_string(),
-                display_name: display_name.to_string(),
-                source,
-                training_operation: training_operation.map(ToString::to_string),
-                schema_version: i64::from(ARTIFACT_SCHEMA_VERSION),
-                sha256: sha256_hex(&bytes),
-                metadata,
-                artifact: bytes,
-            })
-            .await?;
-        self.cache().insert(id, Arc::new(artifact.clone()), size);
+        let model = NewModel {
+            id: id.to_string(),
+            display_name: display_name.to_string(),
+            source,
+            training_operation: training_operation.map(ToString::to_string),
+            schema_version: i64::from(ARTIFACT_SCHEMA_VERSION),
+            sha256: sha256_hex(&bytes),
+            metadata,
+            artifact: bytes,
+        };
+        let artifact = Arc::new(artifact.clone());
+        if activate {
+            let row = self.store.insert_active_model(model).await?;
+            *self.active() = Some(LoadedModel {
+                name: ModelName::from_id(id),
+                artifact,
+            });
+            tracing::info!(model = %id, "activated model");
+            return Ok(row);
+        }
+        let row = self.store.insert_model(model).await?;
+        self.cache().insert(id, artifact, size);
         Ok(row)
     }
 
@@ -262,13 +268,15 @@ impl Registry {
             display_name.to_string()
         };
         let row = self
-            .register(&id, &display_name, ModelSource::Import, None, &artifact)
+            .register(
+                &id,
+                &display_name,
+                ModelSource::Import,
+                None,
+                &artifact,
+                activate,
+            )
             .await?;
-        let row = if activate {
-            self.activate(&ModelName::from_id(id.as_str())).await?
-        } else {
-            row
-        };
         tracing::info!(model = %id, "imported model");
         Ok(row)
     }
@@ -348,7 +356,14 @@ mod tests {
 
         let artifact = ModelArtifact::from_slice(BUNDLED_MODEL).unwrap();
         registry
-            .register("second", "second", ModelSource::Import, None, &artifact)
+            .register(
+                "second",
+                "second",
+                ModelSource::Import,
+                None,
+                &artifact,
+                false,
+            )
             .await
             .unwrap();
         registry
@@ -361,6 +376,33 @@ mod tests {
         store.close().await;
         assert!(store.active_model().await.is_err(), "the store is closed");
         assert_eq!(registry.resolve(None).await.unwrap().name.id(), "second");
+    }
+
+    #[tokio::test]
+    async fn an_import_whose_activation_fails_stores_nothing() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join("spoofwatch.db");
+        let store = Store::open(&path.to_string_lossy()).await.expect("open");
+        let registry = Registry::new(store.clone(), 1 << 20);
+        registry.ensure_default_model().await.unwrap();
+        // Activating anything but the bundled model fails inside the database.
+        store
+            .execute_for_test(
+                "CREATE TRIGGER fail_activation BEFORE UPDATE OF active ON models \
+                 WHEN NEW.active AND NEW.id <> 'default' \
+                 BEGIN SELECT RAISE(ABORT, 'injected failure'); END",
+            )
+            .await;
+        registry
+            .import(BUNDLED_MODEL, "imported", true)
+            .await
+            .expect_err("the activation fails");
+        assert_eq!(
+            store.model_count().await.expect("count"),
+            1,
+            "nothing stored"
+        );
+        assert_eq!(registry.resolve(None).await.unwrap().name.id(), "default");
     }
 
     #[tokio::test]

@@ -7,7 +7,8 @@ use std::time::{Duration, Instant};
 /// Everything a store operation can fail with.
 ///
 /// `Database` and `Migration` wrap sqlx errors whose text may reveal internals: callers map them to
-/// INTERNAL and log them rather than showing them to clients. Every other variant is safe to show.
+/// INTERNAL and log them rather than showing them to clients (a migration fails only at startup,
+/// where its message is for the operator). Every other variant is safe to show.
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
     /// No row of `kind` (e.g. "model") has this id.
@@ -70,9 +71,59 @@ pub enum StoreError {
     /// Any other database failure (a query or decoding bug): logged, answered INTERNAL.
     #[error("database error")]
     Database(#[source] sqlx::Error),
-    /// Applying the embedded migrations failed.
-    #[error("database migration failed")]
-    Migration(#[source] sqlx::migrate::MigrateError),
+    /// Applying the embedded migrations failed: the message names the migration and the cause.
+    #[error("database migration failed: {0}")]
+    Migration(MigrationError),
+}
+
+/// Why the schema could not be brought to this build's version, for the operator reading the
+/// start error: which migration (version and description) and what went wrong.
+#[derive(Debug, thiserror::Error)]
+#[error("{message}")]
+pub struct MigrationError {
+    message: String,
+    #[source]
+    source: sqlx::migrate::MigrateError,
+}
+
+/// `error` from running `migrator`, described with the migrations this build knows.
+pub(crate) fn migration_error(
+    migrator: &sqlx::migrate::Migrator,
+    error: sqlx::migrate::MigrateError,
+) -> StoreError {
+    use sqlx::migrate::MigrateError;
+    let named = |version: i64| match migrator.iter().find(|m| m.version == version) {
+        Some(migration) => format!("migration {version} ({})", migration.description),
+        None => format!("migration {version}"),
+    };
+    let latest = migrator.iter().map(|m| m.version).max().unwrap_or(0);
+    let message = match &error {
+        MigrateError::VersionMismatch(version) => format!(
+            "{} was applied to this database with other contents than this build's (its checksum \
+             differs): the database was migrated by another Spoofwatch build; run that build or \
+             restore a backup",
+            named(*version)
+        ),
+        MigrateError::VersionMissing(version) | MigrateError::VersionNotPresent(version) => {
+            format!(
+                "migration {version} is applied to this database but unknown to this build (it \
+                 knows migrations up to {latest}): the database was written by a newer Spoofwatch; \
+                 run that version or restore a backup"
+            )
+        }
+        MigrateError::ExecuteMigration(cause, version) => {
+            format!("{} failed: {cause}", named(*version))
+        }
+        MigrateError::Dirty(version) => format!(
+            "{} is partially applied; fix the schema and remove its row from _sqlx_migrations",
+            named(*version)
+        ),
+        other => other.to_string(),
+    };
+    StoreError::Migration(MigrationError {
+        message,
+        source: error,
+    })
 }
 
 impl From<sqlx::Error> for StoreError {
@@ -262,12 +313,6 @@ impl StoreFault {
     pub(crate) fn seen(kind: FaultKind, cause: String) -> Self {
         crate::telemetry::store_fault(kind.label());
         StoreFault { kind, cause }
-    }
-}
-
-impl From<sqlx::migrate::MigrateError> for StoreError {
-    fn from(error: sqlx::migrate::MigrateError) -> Self {
-        StoreError::Migration(error)
     }
 }
 

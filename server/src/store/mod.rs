@@ -132,7 +132,7 @@ pub use alarms::{
     StoredWhy, first_seq_of_run,
 };
 pub use datasets::{DatasetRow, NewDataset};
-pub use error::{FaultKind, StoreError, StoreFault};
+pub use error::{FaultKind, MigrationError, StoreError, StoreFault};
 pub use jobs::{EpochRow, JobEndError, JobFilter, JobKind, JobOutcome, JobRow, JobState, NewJob};
 pub use models::{ModelRow, ModelSource, NewModel};
 pub use paging::{DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE, Page, PageRequest};

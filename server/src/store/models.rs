@@ -102,11 +102,29 @@ impl Store {
         self.insert_model_at(model, now_unix_ms()).await
     }
 
+    /// Registers a model and its artifact and makes it the active model (deactivating the
+    /// previous one), in one transaction: a failure at any step, or a crash, stores nothing.
+    ///
+    /// Fails with [`StoreError::AlreadyExists`] if the id is taken.
+    pub async fn insert_active_model(&self, model: NewModel) -> Result<ModelRow, StoreError> {
+        self.insert(model, now_unix_ms(), true).await
+    }
+
     /// [`Store::insert_model`] with an explicit creation time (tests pin ordering with it).
     pub(crate) async fn insert_model_at(
         &self,
         model: NewModel,
         created_at_ms: i64,
+    ) -> Result<ModelRow, StoreError> {
+        self.insert(model, created_at_ms, false).await
+    }
+
+    /// Inserts the model and its artifact, then activates it when asked, all in one transaction.
+    async fn insert(
+        &self,
+        model: NewModel,
+        created_at_ms: i64,
+        activate: bool,
     ) -> Result<ModelRow, StoreError> {
         let size_bytes = byte_length("artifact", &model.artifact)?;
         in_write_tx!(self, |tx| {
@@ -132,6 +150,17 @@ impl Store {
                 .bind(&model.artifact)
                 .execute(&mut *tx)
                 .await?;
+            if activate {
+                // Deactivate first: the partial unique index allows one active row at any moment.
+                sqlx::query("UPDATE models SET active = FALSE WHERE active AND id <> $1")
+                    .bind(&model.id)
+                    .execute(&mut *tx)
+                    .await?;
+                sqlx::query("UPDATE models SET active = TRUE WHERE id = $1")
+                    .bind(&model.id)
+                    .execute(&mut *tx)
+                    .await?;
+            }
             tx.commit().await?;
         });
         Ok(ModelRow {
@@ -144,7 +173,7 @@ impl Store {
             sha256: model.sha256,
             size_bytes,
             metadata: model.metadata,
-            active: false,
+            active: activate,
         })
     }
 

@@ -14,6 +14,7 @@ use sqlx::postgres::{PgConnectOptions, PgPoolOptions};
 use sqlx::{PgPool, Postgres, Transaction};
 
 use super::StoreError;
+use super::error::migration_error;
 
 /// Connections one server keeps to PostgreSQL at most: enough for the alarm writer, jobs and
 /// concurrent API calls; two replicas stay well under PostgreSQL's default of 100.
@@ -44,7 +45,11 @@ pub(super) async fn open(url: &str) -> Result<PgPool, StoreError> {
         .await?;
     warn_if_new(&pool).await?;
     // sqlx serialises concurrent migrators (replicas starting together) with an advisory lock.
-    sqlx::migrate!("../migrations/postgres").run(&pool).await?;
+    let migrator = sqlx::migrate!("../migrations/postgres");
+    migrator
+        .run(&pool)
+        .await
+        .map_err(|error| migration_error(&migrator, error))?;
     Ok(pool)
 }
 

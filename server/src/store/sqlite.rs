@@ -13,7 +13,7 @@ use sqlx::sqlite::{
 };
 use sqlx::{Connection, SqliteConnection};
 
-use super::error::outlived_no_fault;
+use super::error::{migration_error, outlived_no_fault};
 use super::{FaultKind, StoreError, StoreFault, StoreOptions};
 
 /// How long a connection waits for another writer's lock before failing with SQLITE_BUSY.
@@ -72,7 +72,11 @@ pub(super) async fn open(
     };
     let pool = pool_options.connect_with(connect).await?;
     warn_if_new(&pool, path.as_deref()).await?;
-    sqlx::migrate!("../migrations/sqlite").run(&pool).await?;
+    let migrator = sqlx::migrate!("../migrations/sqlite");
+    migrator
+        .run(&pool)
+        .await
+        .map_err(|error| migration_error(&migrator, error))?;
     let file = match path {
         Some(path) => Some(Arc::new(DatabaseFile::opened(path)?)),
         None => None,

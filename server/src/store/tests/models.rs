@@ -3,7 +3,7 @@
 use serde_json::json;
 
 use super::{count_rows, new_model};
-use crate::store::{ModelSource, PageRequest, Store, StoreError};
+use crate::store::{BackendKind, ModelSource, PageRequest, Store, StoreError};
 
 async fn insert_then_get_round_trips_every_field_and_the_artifact(store: Store) {
     let mut model = new_model("m1");
@@ -263,7 +263,65 @@ async fn active_ids(store: &crate::store::Store) -> Vec<String> {
         .await
 }
 
+/// Makes the activation of the model `poisoned` fail inside the database (a trigger), as a crash or
+/// a fault between storing a model and activating it would.
+async fn fail_the_activation_of_poisoned(store: &Store) {
+    match store.kind() {
+        BackendKind::Sqlite => {
+            store
+                .execute_for_test(
+                    "CREATE TRIGGER fail_activation BEFORE UPDATE OF active ON models \
+                     WHEN NEW.active AND NEW.id = 'poisoned' \
+                     BEGIN SELECT RAISE(ABORT, 'injected failure'); END",
+                )
+                .await;
+        }
+        BackendKind::Postgres => {
+            store
+                .execute_for_test(
+                    "CREATE FUNCTION fail_activation() RETURNS trigger AS $$ \
+                     BEGIN RAISE EXCEPTION 'injected failure'; END $$ LANGUAGE plpgsql",
+                )
+                .await;
+            store
+                .execute_for_test(
+                    "CREATE TRIGGER fail_activation BEFORE UPDATE OF active ON models \
+                     FOR EACH ROW WHEN (NEW.active AND NEW.id = 'poisoned') \
+                     EXECUTE FUNCTION fail_activation()",
+                )
+                .await;
+        }
+    }
+}
+
+async fn insert_and_activate_is_one_transaction(store: Store) {
+    store.insert_model(new_model("old")).await.unwrap();
+    store.set_active_model("old").await.unwrap();
+    fail_the_activation_of_poisoned(&store).await;
+
+    store
+        .insert_active_model(new_model("poisoned"))
+        .await
+        .expect_err("the injected failure");
+    assert_eq!(store.get_model("poisoned").await.unwrap(), None);
+    assert_eq!(store.model_artifact("poisoned").await.unwrap(), None);
+    assert_eq!(count_rows(&store, "models").await, 1);
+    assert_eq!(count_rows(&store, "model_artifacts").await, 1);
+    let active = store.active_model().await.unwrap().expect("one is active");
+    assert_eq!(active.id, "old", "the previous model stays active");
+
+    let inserted = store.insert_active_model(new_model("new")).await.unwrap();
+    assert!(inserted.active);
+    assert_eq!(store.get_model("new").await.unwrap(), Some(inserted));
+    assert_eq!(
+        store.active_model().await.unwrap().expect("active").id,
+        "new"
+    );
+    assert!(!store.get_model("old").await.unwrap().expect("kept").active);
+}
+
 on_both_backends!(
+    insert_and_activate_is_one_transaction,
     insert_then_get_round_trips_every_field_and_the_artifact,
     insert_stamps_the_current_time,
     unknown_model_reads_as_none,
