@@ -85,6 +85,7 @@ impl App {
             store.clone(),
             SessionLimits {
                 max_sessions: config.max_sessions,
+                max_per_identity: config.max_sessions_per_identity,
                 idle: config.session_idle(),
                 max_batch_samples: config.max_batch_samples,
             },

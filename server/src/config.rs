@@ -15,6 +15,11 @@ pub mod defaults {
     pub const LISTEN: SocketAddr = SocketAddr::V4(SocketAddrV4::new(Ipv4Addr::LOCALHOST, 50051));
     pub const DATABASE: &str = "spoofwatch.db";
     pub const MAX_SESSIONS: usize = 100_000;
+    /// Half the table: no one token or certificate can fill it.
+    pub const MAX_SESSIONS_PER_IDENTITY: usize = 50_000;
+    /// HTTP/2 streams one connection may have open at once (a fleet gateway multiplexes its
+    /// vehicles' streams over few connections; beyond this it opens another).
+    pub const MAX_STREAMS_PER_CONNECTION: u32 = 1_024;
     pub const SESSION_IDLE_SECS: u64 = 900;
     pub const MAX_BATCH_SAMPLES: usize = limits::MAX_BATCH_SAMPLES;
     pub const MAX_MESSAGE_BYTES: usize = limits::MAX_MESSAGE_BYTES;
@@ -75,6 +80,14 @@ pub struct Config {
     /// Most vehicle sessions held in memory.
     #[arg(long, env = "SPOOFWATCH_MAX_SESSIONS", default_value_t = defaults::MAX_SESSIONS)]
     pub max_sessions: usize,
+    /// Most sessions one identity (a bearer token or client certificate; every caller of a server
+    /// without either is one) may hold; beyond it its new vehicles are refused RESOURCE_EXHAUSTED.
+    #[arg(long, env = "SPOOFWATCH_MAX_SESSIONS_PER_IDENTITY", default_value_t = defaults::MAX_SESSIONS_PER_IDENTITY)]
+    pub max_sessions_per_identity: usize,
+    /// HTTP/2 streams one connection may have open at once (calls beyond it wait for a free one).
+    #[arg(long, env = "SPOOFWATCH_MAX_STREAMS_PER_CONNECTION", default_value_t = defaults::MAX_STREAMS_PER_CONNECTION,
+          value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    pub max_streams_per_connection: u32,
     /// Seconds after which a session without a stream is evicted.
     #[arg(long, env = "SPOOFWATCH_SESSION_IDLE_SECS", default_value_t = defaults::SESSION_IDLE_SECS)]
     pub session_idle_secs: u64,
@@ -172,6 +185,8 @@ impl Default for Config {
             instance_id: None,
             data_dir: None,
             max_sessions: defaults::MAX_SESSIONS,
+            max_sessions_per_identity: defaults::MAX_SESSIONS_PER_IDENTITY,
+            max_streams_per_connection: defaults::MAX_STREAMS_PER_CONNECTION,
             session_idle_secs: defaults::SESSION_IDLE_SECS,
             max_batch_samples: defaults::MAX_BATCH_SAMPLES,
             max_message_bytes: defaults::MAX_MESSAGE_BYTES,

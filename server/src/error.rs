@@ -107,7 +107,9 @@ impl From<SessionError> for Status {
         match error {
             SessionError::InvalidBatch(violations) => invalid_argument(violations),
             SessionError::NotFound(vehicle) => not_found("session", &vehicle),
-            SessionError::Full(_) => resource_exhausted(error.to_string()),
+            SessionError::Full(_) | SessionError::Quota { .. } => {
+                resource_exhausted(error.to_string())
+            }
             SessionError::Model(model) => model.into(),
             SessionError::ModelDeleted(_) => with_code(Code::Aborted, error.to_string()),
         }

@@ -3,6 +3,11 @@
 //! HTTP/2 keepalive only finds dead peers; this ends live ones that stopped talking, so they cannot
 //! hold a session's stream (and a task) forever.
 //!
+//! The same limit ends a stream whose client stops reading: a reply that cannot be handed on
+//! within it (the client grants no HTTP/2 window, so the call's small reply buffer stays full)
+//! ends the stream, which would otherwise hold its task, session and buffers for as long as the
+//! client keeps the connection open.
+//!
 //! DEADLINE_EXCEEDED rather than CANCELLED: a time limit expired, and nobody cancelled anything.
 //! The stream's end is like any other: a detection session detaches and stays resumable.
 
@@ -21,6 +26,21 @@ impl StreamIdle {
         match tokio::time::timeout(self.0, stream.message()).await {
             Ok(message) => message,
             Err(_) => Err(self.status()),
+        }
+    }
+
+    /// Hands `reply` to the call's reply buffer; `false` when the client went away or did not
+    /// read for the whole limit (the stream must end).
+    pub async fn send<T>(&self, tx: &tokio::sync::mpsc::Sender<T>, reply: T) -> bool {
+        match tokio::time::timeout(self.0, tx.send(reply)).await {
+            Ok(sent) => sent.is_ok(),
+            Err(_) => {
+                tracing::info!(
+                    limit_s = self.0.as_secs(),
+                    "ended a stream whose client stopped reading its replies"
+                );
+                false
+            }
         }
     }
 

@@ -124,6 +124,7 @@ pub async fn build(server: Server, app: &App, config: &Config) -> Result<Routes,
     .max_decoding_message_size(limit);
 
     let router = server
+        .max_concurrent_streams(Some(config.max_streams_per_connection))
         .http2_keepalive_interval(Some(Duration::from_secs(30)))
         .http2_keepalive_timeout(Some(Duration::from_secs(10)))
         .add_service(gzip!(health_service))

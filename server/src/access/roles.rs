@@ -254,8 +254,11 @@ fn scope_of(at: &str, entry: &Entry) -> Result<VehicleScope, RolesError> {
             for (i, id) in entry.vehicles.iter().enumerate() {
                 VehicleId::parse(id).map_err(|e| entry_error(at, format!("vehicles[{i}]: {e}")))?;
             }
+            // An empty prefix is every vehicle: a gateway trusted with the whole fleet.
             for (i, prefix) in entry.vehicle_prefixes.iter().enumerate() {
-                check_name(&format!("{at}.vehicle_prefixes[{i}]"), prefix)?;
+                if !prefix.is_empty() {
+                    check_name(&format!("{at}.vehicle_prefixes[{i}]"), prefix)?;
+                }
             }
             Ok(VehicleScope::Some {
                 ids: entry.vehicles.iter().cloned().collect(),

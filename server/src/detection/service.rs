@@ -25,7 +25,8 @@ use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
 use super::sessions::{
-    Accepted, Attachment, Decisions, SNAPSHOT_WAIT, SessionError, SessionManager, SessionSummary,
+    Accepted, Attachment, Decisions, ForVehicle, SNAPSHOT_WAIT, SessionError, SessionManager,
+    SessionSummary,
 };
 use crate::access::Caller;
 use crate::edge::{
@@ -165,7 +166,7 @@ async fn start_stream(
         let model = optional_model_name("start.model", &start.model)?;
         Ok::<_, Status>(
             sessions
-                .attach(&vehicle, model.as_ref(), start.reset)
+                .attach(&vehicle, model.as_ref(), start.reset, &caller.grant.name)
                 .await?,
         )
     };
@@ -256,7 +257,7 @@ async fn run_stream(
         Ok(Some(attachment)) => attachment,
         Ok(None) => return,
         Err(status) => {
-            let _ = tx.send(Err(status)).await;
+            idle.send(&tx, Err(status)).await;
             return;
         }
     };
@@ -266,10 +267,9 @@ async fn run_stream(
     // The call's final status (None: OK), sent only after the session's snapshot is stored, so a
     // client that reconnects elsewhere at once finds it.
     let mut end = None;
-    if tx
-        .send(reply(ResponseKind::Accepted(accepted)))
+    if idle
+        .send(&tx, reply(ResponseKind::Accepted(accepted)))
         .await
-        .is_ok()
     {
         loop {
             let kind = match next_request(&shutdown, &attachment, &idle, &mut inbound).await {
@@ -288,8 +288,8 @@ async fn run_stream(
                 )),
                 None => stream_misuse(invalid_field("kind", "empty message: send a batch")),
             };
-            if tx.send(outcome).await.is_err() {
-                break; // the client went away
+            if !idle.send(&tx, outcome).await {
+                break; // the client went away or stopped reading
             }
         }
     }
@@ -299,7 +299,7 @@ async fn run_stream(
         tracing::warn!(vehicle = %vehicle, "the session's snapshot is not stored yet; ending the stream anyway (it stays queued)");
     }
     if let Some(status) = end {
-        let _ = tx.send(Err(status)).await;
+        idle.send(&tx, Err(status)).await;
     }
     tracing::debug!(vehicle = %vehicle, "stream detached");
 }
@@ -363,7 +363,10 @@ async fn detect_vehicle(
         let samples = samples_from_proto(&vehicle.samples);
         let decisions = sessions
             .detect_unattached(
-                &vehicle_id,
+                ForVehicle {
+                    vehicle_id: &vehicle_id,
+                    identity: &caller.grant.name,
+                },
                 model.as_ref(),
                 vehicle.reset,
                 Some(seq),
@@ -427,7 +430,7 @@ async fn run_fleet_stream(
         let message = tokio::select! {
             biased;
             _ = shutdown.cancelled() => {
-                let _ = tx.send(Err(shutting_down())).await;
+                idle.send(&tx, Err(shutting_down())).await;
                 break;
             }
             message = idle.next(&mut inbound) => message,
@@ -437,7 +440,7 @@ async fn run_fleet_stream(
             Ok(None) => break,
             Err(status) => {
                 telemetry::stream_failed(Rpc::StreamDetectFleet, &status);
-                let _ = tx.send(Err(status)).await;
+                idle.send(&tx, Err(status)).await;
                 break;
             }
         };
@@ -474,8 +477,8 @@ async fn run_fleet_stream(
                 }
             }
         };
-        if tx.send(Ok(reply)).await.is_err() {
-            break; // the client went away
+        if !idle.send(&tx, Ok(reply)).await {
+            break; // the client went away or stopped reading
         }
     }
 }
@@ -541,7 +544,17 @@ impl DetectionApi {
         let decisions = match &vehicle {
             Some(vehicle) => {
                 self.sessions
-                    .detect_unattached(vehicle, model.as_ref(), false, None, &samples, "samples")
+                    .detect_unattached(
+                        ForVehicle {
+                            vehicle_id: vehicle,
+                            identity: &caller.grant.name,
+                        },
+                        model.as_ref(),
+                        false,
+                        None,
+                        &samples,
+                        "samples",
+                    )
                     .await?
             }
             None => {

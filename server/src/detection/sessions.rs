@@ -50,9 +50,12 @@ pub enum SessionError {
     /// No session for this vehicle.
     #[error("session {0:?} not found")]
     NotFound(String),
-    /// The session table is full.
-    #[error("the server holds its maximum of {0} vehicle sessions")]
+    /// The session table is full, and every session in it has a stream.
+    #[error("the server holds its maximum of {0} vehicle sessions, each with a live stream")]
     Full(usize),
+    /// The caller created its quota of sessions.
+    #[error("{identity} holds its quota of {limit} vehicle sessions (--max-sessions-per-identity)")]
+    Quota { identity: String, limit: usize },
     /// The requested model cannot be served.
     #[error(transparent)]
     Model(#[from] RegistryError),
@@ -61,6 +64,22 @@ pub enum SessionError {
         "{0} was deleted, which ended this session; start a new one (an empty model follows the active model)"
     )]
     ModelDeleted(ModelName),
+}
+
+/// A vehicle, and the identity of the caller that sends its batch (whose session quota a new
+/// session counts against).
+#[derive(Clone, Copy, Debug)]
+pub struct ForVehicle<'a> {
+    pub vehicle_id: &'a VehicleId,
+    pub identity: &'a Arc<str>,
+}
+
+/// A session found or made for a vehicle: `existed` before; `made_room`, the session evicted to
+/// make room for it (to be snapshotted).
+struct Admitted {
+    slot: Arc<SessionSlot>,
+    existed: bool,
+    made_room: Option<Arc<SessionSlot>>,
 }
 
 /// What a stream learns when it attaches.
@@ -122,6 +141,8 @@ pub const SNAPSHOT_WAIT: Duration = Duration::from_secs(2);
 #[derive(Clone, Copy, Debug)]
 pub struct SessionLimits {
     pub max_sessions: usize,
+    /// Most sessions one identity (a token or certificate) may create.
+    pub max_per_identity: usize,
     /// A session with no stream attached is evicted after this long without activity.
     pub idle: Duration,
     /// Most samples in one batch.
@@ -138,6 +159,8 @@ struct StreamOwner {
 #[derive(Debug)]
 pub struct SessionSlot {
     vehicle_id: VehicleId,
+    /// The identity whose call created it (it counts against that identity's quota).
+    created_by: Arc<str>,
     state: tokio::sync::Mutex<SessionState>,
     owner: Mutex<Option<StreamOwner>>,
     last_activity_ms: AtomicI64,
@@ -164,6 +187,16 @@ pub struct Attachment {
     /// Cancelled when a newer stream takes the session over.
     pub evicted: CancellationToken,
     pub accepted: Accepted,
+}
+
+/// One session fewer for `identity`.
+fn forget_creator(per_identity: &mut HashMap<Arc<str>, usize>, identity: &Arc<str>) {
+    if let Some(count) = per_identity.get_mut(identity) {
+        *count = count.saturating_sub(1);
+        if *count == 0 {
+            per_identity.remove(identity);
+        }
+    }
 }
 
 /// A stored snapshot with how far its session got (read from its encoding, so that which copy is
@@ -217,6 +250,8 @@ pub struct SessionManager {
     /// Stored snapshot versions (vehicle, written at) past the TTL, and when this process first
     /// saw each: they expire once seen unchanged long enough ([`Self::expire_snapshots`]).
     stale_seen: Mutex<HashMap<(String, i64), Instant>>,
+    /// Sessions in the table by the identity that created them (the quota's count).
+    per_identity: Mutex<HashMap<Arc<str>, usize>>,
 }
 
 /// A batch costing at least this many model parameters × samples is scored on the bounded pool of
@@ -236,6 +271,7 @@ impl SessionManager {
         Self {
             heavy,
             stale_seen: Mutex::new(HashMap::new()),
+            per_identity: Mutex::new(HashMap::new()),
             slots: Mutex::new(HashMap::new()),
             registry,
             outbox,
@@ -261,16 +297,48 @@ impl SessionManager {
         &self,
         vehicle_id: &VehicleId,
         model: &LoadedModel,
-    ) -> Result<(Arc<SessionSlot>, bool), SessionError> {
+        identity: &Arc<str>,
+    ) -> Result<Admitted, SessionError> {
         let mut slots = self.slots();
         if let Some(slot) = slots.get(vehicle_id) {
-            return Ok((Arc::clone(slot), true));
+            return Ok(Admitted {
+                slot: Arc::clone(slot),
+                existed: true,
+                made_room: None,
+            });
         }
-        if slots.len() >= self.limits.max_sessions {
+        let mut per_identity = self
+            .per_identity
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        let created = per_identity.get(identity).copied().unwrap_or(0);
+        if created >= self.limits.max_per_identity {
             telemetry::session_refused();
-            return Err(SessionError::Full(self.limits.max_sessions));
+            return Err(SessionError::Quota {
+                identity: identity.to_string(),
+                limit: self.limits.max_per_identity,
+            });
         }
+        let mut evicted = None;
+        if slots.len() >= self.limits.max_sessions {
+            // Under pressure the session idle longest without a stream makes room: it leaves
+            // memory, not the fleet (the caller snapshots it, as at idle eviction).
+            let oldest = slots
+                .values()
+                .filter(|slot| !slot.connected())
+                .min_by_key(|slot| slot.last_activity_ms.load(Ordering::Relaxed))
+                .map(|slot| slot.vehicle_id.clone());
+            let Some(oldest) = oldest.and_then(|id| slots.remove(&id)) else {
+                telemetry::session_refused();
+                return Err(SessionError::Full(self.limits.max_sessions));
+            };
+            forget_creator(&mut per_identity, &oldest.created_by);
+            telemetry::sessions_evicted(1);
+            evicted = Some(oldest);
+        }
+        *per_identity.entry(Arc::clone(identity)).or_insert(0) += 1;
         let slot = Arc::new(SessionSlot {
+            created_by: Arc::clone(identity),
             vehicle_id: vehicle_id.clone(),
             state: tokio::sync::Mutex::new(SessionState::new(model.clone())),
             owner: Mutex::new(None),
@@ -278,7 +346,29 @@ impl SessionManager {
             model_deleted: CancellationToken::new(),
         });
         slots.insert(vehicle_id.clone(), Arc::clone(&slot));
-        Ok((slot, false))
+        Ok(Admitted {
+            slot,
+            existed: false,
+            made_room: evicted,
+        })
+    }
+
+    /// A session left the table: one fewer for the identity that created it.
+    fn forget(&self, slot: &SessionSlot) {
+        let mut per_identity = self
+            .per_identity
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        forget_creator(&mut per_identity, &slot.created_by);
+    }
+
+    /// Snapshots a session evicted to make room (it continues from there, here or elsewhere).
+    async fn retire(&self, evicted: Option<Arc<SessionSlot>>) {
+        if let Some(slot) = evicted {
+            let mut state = slot.state.lock().await;
+            self.save(&slot.vehicle_id, &mut state);
+            tracing::info!(vehicle = %slot.vehicle_id, "evicted the session idle longest to make room for a new vehicle");
+        }
     }
 
     /// Attaches a stream to a vehicle's session (creating or resuming it); an older stream on the same
@@ -289,6 +379,7 @@ impl SessionManager {
         vehicle_id: &VehicleId,
         model: Option<&ModelName>,
         reset: bool,
+        identity: &Arc<str>,
     ) -> Result<Attachment, SessionError> {
         let _gate = self.model_gate.read().await;
         let model = self.registry.resolve(model).await?;
@@ -298,7 +389,12 @@ impl SessionManager {
         } else {
             self.stored_snapshot(vehicle_id).await
         };
-        let (slot, existed) = self.slot_for(vehicle_id, &model)?;
+        let Admitted {
+            slot,
+            existed,
+            made_room,
+        } = self.slot_for(vehicle_id, &model, identity)?;
+        self.retire(made_room).await;
         let evicted = CancellationToken::new();
         let stream_id = self.next_stream_id.fetch_add(1, Ordering::Relaxed);
         if let Ok(mut owner) = slot.owner.lock()
@@ -647,13 +743,17 @@ impl SessionManager {
     /// `field` names the samples in violations.
     pub async fn detect_unattached(
         &self,
-        vehicle_id: &VehicleId,
+        vehicle: ForVehicle<'_>,
         model: Option<&ModelName>,
         reset: bool,
         seq: Option<u64>,
         samples: &[Sample],
         field: &str,
     ) -> Result<Decisions, SessionError> {
+        let ForVehicle {
+            vehicle_id,
+            identity,
+        } = vehicle;
         if !reset
             && let Some(slot) = self.lookup(vehicle_id)
             && !slot.model_deleted.is_cancelled()
@@ -675,7 +775,12 @@ impl SessionManager {
         // and leaves no new session behind.
         validate_batch(samples, None, self.limits.max_batch_samples, field)
             .map_err(SessionError::InvalidBatch)?;
-        let (slot, existed) = self.slot_for(vehicle_id, &model)?;
+        let Admitted {
+            slot,
+            existed,
+            made_room,
+        } = self.slot_for(vehicle_id, &model, identity)?;
+        self.retire(made_room).await;
         let mut state = slot.state.lock().await;
         let start = Start {
             model: model.name.clone(),
@@ -721,6 +826,7 @@ impl SessionManager {
                 .is_some_and(|s| Arc::ptr_eq(s, &slot))
             {
                 table.remove(&slot.vehicle_id);
+                self.forget(&slot);
             }
             ended += 1;
         }
@@ -812,6 +918,9 @@ impl SessionManager {
                 .collect();
             ids.iter().filter_map(|id| slots.remove(id)).collect()
         };
+        for slot in &idle {
+            self.forget(slot);
+        }
         // The session leaves memory but not the fleet: its snapshot (with any open alarm) is where
         // it continues, here or on another process.
         for slot in &idle {

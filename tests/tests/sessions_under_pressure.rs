@@ -1,0 +1,203 @@
+//! Nothing one client does starves the others of sessions or streams: each identity has a quota of
+//! sessions; a full table makes room by evicting the session idle longest without a stream (it
+//! resumes from its snapshot) before it refuses a new vehicle; a connection may hold only so many
+//! streams at once; and a stream whose client stops reading its replies is ended.
+
+use std::time::Duration;
+
+use sha2::{Digest, Sha256};
+use spoofwatch_proto::v1;
+use spoofwatch_tests::{
+    Clients, ConnectOptions, Connection, TestServer, normal_drive, test_config, track_samples,
+};
+use tonic::Code;
+
+fn sha256(text: &str) -> String {
+    Sha256::digest(text.as_bytes())
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+async fn detect(connection: &Connection, vehicle: &str) -> Result<(), tonic::Status> {
+    connection
+        .detection()
+        .detect(v1::DetectRequest {
+            vehicle_id: vehicle.into(),
+            samples: track_samples(&normal_drive(vehicle, 3.0, 1)),
+            ..Default::default()
+        })
+        .await
+        .map(drop)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_identity_cannot_take_more_than_its_quota_of_sessions() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let roles = dir.path().join("roles.toml");
+    std::fs::write(
+        &roles,
+        format!(
+            "[tokens]\n\"{}\" = {{ name = \"flood\", role = \"gateway\", vehicle_prefixes = [\"\"] }}\n\
+             \"{}\" = {{ name = \"fleet\", role = \"gateway\", vehicle_prefixes = [\"\"] }}\n",
+            sha256("flood-token"),
+            sha256("fleet-token")
+        ),
+    )
+    .expect("written");
+    let mut config = test_config(dir.path());
+    config.roles_file = Some(roles);
+    config.auth_token = Some("admin".into());
+    config.max_sessions_per_identity = 3;
+    let server =
+        TestServer::start_for(config, &ConnectOptions::with_token(Some("admin".into()))).await;
+    let url = server.url();
+    let connect = |token: &'static str| {
+        let url = url.clone();
+        async move {
+            Connection::connect_with(&url, &ConnectOptions::with_token(Some(token.into())))
+                .await
+                .expect("connected")
+        }
+    };
+    let flood = connect("flood-token").await;
+    let fleet = connect("fleet-token").await;
+    for i in 0..3 {
+        detect(&flood, &format!("f-{i}"))
+            .await
+            .expect("within the quota");
+    }
+    let refused = detect(&flood, "f-3").await.expect_err("over the quota");
+    assert_eq!(refused.code(), Code::ResourceExhausted);
+    assert!(
+        refused.message().contains("flood holds its quota of 3"),
+        "{}",
+        refused.message()
+    );
+    // A vehicle it already holds goes on; another identity is unaffected.
+    detect(&flood, "f-0")
+        .await
+        .expect_err("its times went backwards, not a quota refusal");
+    detect(&fleet, "v-1")
+        .await
+        .expect("another identity has its own quota");
+    drop((flood, fleet));
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_table_evicts_the_session_idle_longest_before_refusing() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut config = test_config(dir.path());
+    config.max_sessions = 3;
+    let server = TestServer::start(config).await;
+    let clients = Clients::of(&server).await;
+    for vehicle in ["oldest", "middle", "newest"] {
+        detect(&clients.connection, vehicle)
+            .await
+            .expect("admitted");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    detect(&clients.connection, "arrival")
+        .await
+        .expect("room was made");
+    let mut detection = clients.detection.clone();
+    let gone = detection
+        .get_session(v1::GetSessionRequest {
+            vehicle_id: "oldest".into(),
+        })
+        .await
+        .expect_err("the session idle longest left memory");
+    assert_eq!(gone.code(), Code::NotFound);
+    // It continues from its snapshot when it comes back.
+    let (_stream, accepted) = spoofwatch_tests::start_stream(&clients, "oldest", "").await;
+    assert!(accepted.from_snapshot, "{accepted:?}");
+    let sent = track_samples(&normal_drive("oldest", 3.0, 1)).len() as u64;
+    assert_eq!(accepted.samples_seen, sent);
+    drop(clients);
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_whose_client_stops_reading_is_ended() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut config = test_config(dir.path());
+    config.stream_idle_secs = 2;
+    let server = TestServer::start(config).await;
+    let clients = Clients::of(&server).await;
+    let samples = track_samples(&normal_drive("reader", 2000.0, 2));
+    let (tx, rx) = tokio::sync::mpsc::channel(4);
+    tx.send(spoofwatch_tests::start_request("reader", "", false))
+        .await
+        .expect("queued");
+    let replies = clients
+        .detection
+        .clone()
+        .stream_detect(tokio_stream::wrappers::ReceiverStream::new(rx))
+        .await
+        .expect("the call is accepted")
+        .into_inner();
+    // Send for ever, never read: the replies fill the window and the server's buffer.
+    let sender = tokio::spawn(async move {
+        for (seq, batch) in (1..).zip(samples.chunks(20)) {
+            let request = spoofwatch_tests::batch_request(seq, batch.to_vec());
+            if tx.send(request).await.is_err() {
+                break;
+            }
+        }
+    });
+    let mut detection = clients.detection.clone();
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    loop {
+        let session = detection
+            .get_session(v1::GetSessionRequest {
+                vehicle_id: "reader".into(),
+            })
+            .await
+            .map(tonic::Response::into_inner);
+        if session
+            .as_ref()
+            .is_ok_and(|s| s.samples > 0 && !s.connected)
+        {
+            break;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the stream of a client that stopped reading was never ended: {session:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+    sender.abort();
+    drop(replies);
+    drop(clients);
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_connection_holds_at_most_its_limit_of_streams() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut config = test_config(dir.path());
+    config.max_streams_per_connection = 2;
+    let server = TestServer::start(config).await;
+    let clients = Clients::of(&server).await;
+    let watch = || {
+        let mut alarms = clients.alarms.clone();
+        async move { alarms.watch_alarms(v1::WatchAlarmsRequest::default()).await }
+    };
+    let first = watch().await.expect("a stream").into_inner();
+    let _second = watch().await.expect("a stream").into_inner();
+    let third = tokio::spawn(watch());
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    assert!(
+        !third.is_finished(),
+        "a third stream opened on a connection limited to two"
+    );
+    drop(first);
+    let third = tokio::time::timeout(Duration::from_secs(30), third)
+        .await
+        .expect("the third stream opens once one closes")
+        .expect("joined");
+    third.expect("a stream");
+    drop(clients);
+    server.stop().await;
+}
