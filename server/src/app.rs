@@ -66,13 +66,17 @@ impl App {
         .await?;
         let instance = config.instance();
         tracing::info!(%instance, backend = ?store.kind(), "database opened");
-        let registry = Arc::new(Registry::new(store.clone(), config.model_cache_bytes));
-        registry.ensure_default_model().await?;
         let heavy = HeavyWork::for_this_machine();
         tracing::info!(
             slots = heavy.slots(),
             "heavy work (parsing, large batches) runs off the runtime"
         );
+        let registry = Arc::new(Registry::new(
+            store.clone(),
+            config.model_cache_bytes,
+            heavy.clone(),
+        ));
+        registry.ensure_default_model().await?;
         let catalog = Catalog::new(store.clone(), config.data_dir.clone(), heavy.clone());
 
         // Also ends the alarms a previous run left open.

@@ -1,7 +1,8 @@
 //! CPU-heavy work kept off the async runtime's threads, and bounded: scoring large batches,
-//! parsing datasets and converting uploaded records run here, at most [`HeavyWork::slots`] at once,
-//! so that health checks and the small detection messages of a fleet are answered while an admin
-//! uploads, imports or evaluates. It owns the bound, not the work.
+//! parsing and checking model artifacts, parsing datasets and converting uploaded records run
+//! here, at most [`HeavyWork::slots`] at once, so that health checks and the small detection
+//! messages of a fleet are answered while an admin uploads, imports or evaluates. It owns the
+//! bound, not the work.
 
 use std::sync::Arc;
 

@@ -1,7 +1,8 @@
 //! Heavy work does not starve the server: while two uploads of 100,000 structured records (each
 //! record its own vehicle) are converted, parsed and stored, health checks are still answered
 //! promptly. Uploaded records are grouped by vehicle in time linear in their number, and the
-//! conversion and parsing run on the bounded pool of heavy work, off the runtime's threads.
+//! conversion and parsing run on the bounded pool of heavy work, off the runtime's threads. A
+//! model whose cost per sample exceeds the bound is refused at import.
 
 use std::time::{Duration, Instant};
 
@@ -87,4 +88,40 @@ async fn health_is_answered_while_large_record_uploads_are_stored() {
         "a health check waited {slowest:?} during the uploads ({checks} checks)"
     );
     drop::<Clients>(clients);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_model_too_costly_per_sample_is_refused_at_import() {
+    let (_dir, server, mut clients) = start_server(|_| {}).await;
+    let mut artifact: serde_json::Value =
+        serde_json::from_slice(spoofwatch_server::models::registry::BUNDLED_MODEL).expect("JSON");
+    // Widths within every per-layer limit whose product is a model 100 times the bundled one.
+    for width in ["d_s", "d_zeta", "d_h"] {
+        artifact["model"]["config"][width] = serde_json::json!(1024);
+    }
+    let bytes = serde_json::to_vec(&artifact).expect("JSON");
+    use v1::import_model_request::Kind;
+    let messages = [
+        Kind::Header(v1::ImportModelHeader::default()),
+        Kind::Chunk(bytes),
+    ]
+    .map(|kind| v1::ImportModelRequest { kind: Some(kind) });
+    let refused = clients
+        .models
+        .import_model(tokio_stream::iter(messages))
+        .await
+        .expect_err("too costly a model");
+    assert_eq!(refused.code(), tonic::Code::InvalidArgument);
+    assert!(
+        refused.message().contains("model.config"),
+        "{}",
+        refused.message()
+    );
+    assert!(
+        refused.message().contains("parameters"),
+        "{}",
+        refused.message()
+    );
+    drop(clients);
+    server.stop().await;
 }

@@ -40,27 +40,14 @@ async fn a_resent_batch_is_not_scored_twice_and_a_backwards_seq_is_refused() {
     let (mut stream, _) = start_stream(&clients, "car-1", "").await;
     stream.detect(1, batches[0].clone()).await.expect("scored");
     stream.detect(2, batches[1].clone()).await.expect("scored");
-    // Resent: acknowledged as a duplicate, nothing scored.
-    stream
-        .send_batch(2, batches[1].clone())
-        .await
-        .expect("sent");
-    let reply = stream.recv().await.expect("a reply");
-    assert!(
-        matches!(reply.outcome, BatchOutcome::Duplicate),
-        "{:?}",
-        reply.outcome
-    );
-    stream
-        .send_batch(1, batches[0].clone())
-        .await
-        .expect("sent");
-    let reply = stream.recv().await.expect("a reply");
-    assert!(
-        matches!(reply.outcome, BatchOutcome::Duplicate),
-        "{:?}",
-        reply.outcome
-    );
+    // Resent: acknowledged as duplicates, nothing scored.
+    for seq in [2, 1] {
+        let batch = batches[seq as usize - 1].clone();
+        stream.send_batch(seq, batch).await.expect("sent");
+        let reply = stream.recv().await.expect("a reply");
+        let outcome = reply.outcome;
+        assert!(matches!(outcome, BatchOutcome::Duplicate), "{outcome:?}");
+    }
     // The next batch is scored as if the resends never came.
     let third = stream.detect(3, batches[2].clone()).await.expect("scored");
     assert_eq!(fingerprint(&third), fingerprint(&expected));

@@ -209,6 +209,9 @@ impl ArtifactError {
     fn from_model(error: ModelError) -> Self {
         let tensor = |name: &str| format!("model.params.{name}");
         match error {
+            ModelError::TooManyParameters { .. } => {
+                Self::field_error("model.config", error.to_string())
+            }
             ModelError::InvalidDimension { name, value } => Self::field_error(
                 format!("model.config.{name}"),
                 format!("must be in 1..={MAX_DIMENSION}, got {value}"),

@@ -33,6 +33,10 @@ pub const DEFAULT_TAU_MAX_S: f64 = 10.0;
 pub const MAX_DELTA_S: f64 = 5.0;
 /// Largest accepted width of any layer (guards against absurd allocations from a bad config).
 pub const MAX_DIMENSION: usize = 4096;
+/// Most trainable scalars a model may have. A sample's cost grows with them (the bundled model's
+/// 21,883 take about 4.4 µs per sample), so this bounds what any servable model costs per sample to
+/// about 16 times the bundled model's.
+pub const MAX_PARAMETERS: usize = 350_000;
 /// Smallest accepted τ_min (s). Trained models use 0.05 s; below a millisecond a time constant is far
 /// shorter than any sample interval and the cell just copies its candidate.
 pub const MIN_TAU_S: f64 = 1e-3;
@@ -61,6 +65,14 @@ pub const MAX_PERSISTENCE_INPUTS: usize = 2 + FEATURE_CAPACITY - DRIFT_FEATURES_
 /// Errors of the model module.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ModelError {
+    /// The widths give more than [`MAX_PARAMETERS`] trainable scalars.
+    #[error(
+        "the model's widths give {parameters} parameters, more than the {MAX_PARAMETERS} a model may have (its cost per sample grows with them)"
+    )]
+    TooManyParameters {
+        /// How many the widths give.
+        parameters: usize,
+    },
     /// A layer width is zero or larger than [`MAX_DIMENSION`].
     #[error("model dimension {name} = {value} is outside 1..={MAX_DIMENSION}")]
     InvalidDimension {
@@ -351,6 +363,10 @@ impl ModelConfig {
             if value == 0 || value > MAX_DIMENSION {
                 return Err(ModelError::InvalidDimension { name, value });
             }
+        }
+        let parameters = Params::count_for(self);
+        if parameters > MAX_PARAMETERS {
+            return Err(ModelError::TooManyParameters { parameters });
         }
         let ordered = self.tau_min >= MIN_TAU_S && self.tau_max > self.tau_min;
         if !(ordered && self.tau_max <= MAX_TAU_S) {

@@ -149,6 +149,20 @@ impl Params {
         }
     }
 
+    /// How many scalars a model of `config` has, counted from the shapes alone (nothing of that
+    /// size is allocated: a configuration is checked before its tensors exist).
+    pub fn count_for(config: &ModelConfig) -> usize {
+        let mut count = 0usize;
+        Self::build(config, |shape, _| {
+            count = count.saturating_add(shape.iter().fold(1usize, |n, d| n.saturating_mul(*d)));
+            Tensor {
+                shape: shape.to_vec(),
+                data: Vec::new(),
+            }
+        });
+        count
+    }
+
     /// All-zero tensors shaped for `config` (gradient accumulators, optimiser moments).
     pub fn zeros(config: &ModelConfig) -> Self {
         Self::build(config, |shape, _| Tensor::zeros(shape))

@@ -673,3 +673,36 @@ fn window_gradient_stops_at_the_incoming_state_and_reports_the_outgoing_one() {
         })
     ));
 }
+
+#[test]
+fn the_parameter_count_comes_from_the_shapes_and_is_bounded() {
+    let default = ModelConfig::default();
+    assert_eq!(
+        Params::count_for(&default),
+        Params::zeros(&default).scalar_count()
+    );
+    let ablated = ModelConfig {
+        ablation: Ablation {
+            no_exchange: true,
+            first_order_cell: true,
+            ..Ablation::default()
+        },
+        ..ModelConfig::default()
+    };
+    assert_eq!(
+        Params::count_for(&ablated),
+        Params::zeros(&ablated).scalar_count()
+    );
+    // Widths within MAX_DIMENSION but a cost far beyond the bound: refused before any tensor of
+    // that size exists.
+    let costly = ModelConfig {
+        d_s: 1024,
+        d_zeta: 1024,
+        d_h: 1024,
+        ..ModelConfig::default()
+    };
+    assert!(matches!(
+        Model::init(costly, 0),
+        Err(ModelError::TooManyParameters { parameters }) if parameters > MAX_PARAMETERS
+    ));
+}

@@ -292,7 +292,8 @@ impl SessionManager {
         self.slots().get(vehicle_id).cloned()
     }
 
-    /// Finds or creates the slot of a vehicle, within the session limit.
+    /// Finds or creates the slot of a vehicle, within the caller's quota; a full table makes room by
+    /// evicting the session idle longest without a stream (returned, to be snapshotted).
     fn slot_for(
         &self,
         vehicle_id: &VehicleId,
@@ -362,13 +363,25 @@ impl SessionManager {
         forget_creator(&mut per_identity, &slot.created_by);
     }
 
-    /// Snapshots a session evicted to make room (it continues from there, here or elsewhere).
-    async fn retire(&self, evicted: Option<Arc<SessionSlot>>) {
-        if let Some(slot) = evicted {
-            let mut state = slot.state.lock().await;
-            self.save(&slot.vehicle_id, &mut state);
-            tracing::info!(vehicle = %slot.vehicle_id, "evicted the session idle longest to make room for a new vehicle");
+    /// The vehicle's session, and whether it existed; a session evicted to make room for it is
+    /// snapshotted (it continues from there, here or elsewhere).
+    async fn admit(
+        &self,
+        vehicle_id: &VehicleId,
+        model: &LoadedModel,
+        identity: &Arc<str>,
+    ) -> Result<(Arc<SessionSlot>, bool), SessionError> {
+        let Admitted {
+            slot,
+            existed,
+            made_room,
+        } = self.slot_for(vehicle_id, model, identity)?;
+        if let Some(evicted) = made_room {
+            let mut state = evicted.state.lock().await;
+            self.save(&evicted.vehicle_id, &mut state);
+            tracing::info!(vehicle = %evicted.vehicle_id, "evicted the session idle longest to make room for a new vehicle");
         }
+        Ok((slot, existed))
     }
 
     /// Attaches a stream to a vehicle's session (creating or resuming it); an older stream on the same
@@ -389,12 +402,7 @@ impl SessionManager {
         } else {
             self.stored_snapshot(vehicle_id).await
         };
-        let Admitted {
-            slot,
-            existed,
-            made_room,
-        } = self.slot_for(vehicle_id, &model, identity)?;
-        self.retire(made_room).await;
+        let (slot, existed) = self.admit(vehicle_id, &model, identity).await?;
         let evicted = CancellationToken::new();
         let stream_id = self.next_stream_id.fetch_add(1, Ordering::Relaxed);
         if let Ok(mut owner) = slot.owner.lock()
@@ -775,12 +783,7 @@ impl SessionManager {
         // and leaves no new session behind.
         validate_batch(samples, None, self.limits.max_batch_samples, field)
             .map_err(SessionError::InvalidBatch)?;
-        let Admitted {
-            slot,
-            existed,
-            made_room,
-        } = self.slot_for(vehicle_id, &model, identity)?;
-        self.retire(made_room).await;
+        let (slot, existed) = self.admit(vehicle_id, &model, identity).await?;
         let mut state = slot.state.lock().await;
         let start = Start {
             model: model.name.clone(),

@@ -15,6 +15,7 @@ use super::cache::ModelCache;
 use crate::fault::Fault;
 use crate::identity::{new_id, sha256_hex};
 use crate::store::{ModelRow, ModelSource, NewModel, Page, PageRequest, Store, StoreError};
+use crate::work::HeavyWork;
 
 /// The artifact bundled into the binary: the v2 model of `spoofwatch experiment subtle` (seed 42, see
 /// README).
@@ -115,6 +116,8 @@ pub struct LoadedModel {
 #[derive(Debug)]
 pub struct Registry {
     store: Store,
+    /// Artifacts are parsed and checked (the canary drive included) there, off the runtime.
+    heavy: HeavyWork,
     /// Parsed artifacts other than the active one, within the `--model-cache-bytes` budget.
     cache: Mutex<ModelCache>,
     /// The active model, as last read or set by this server (`None` until then). Held apart from
@@ -126,8 +129,9 @@ pub struct Registry {
 impl Registry {
     /// A registry over `store` caching at most `cache_bytes` of (serialised) artifacts besides the
     /// active model.
-    pub fn new(store: Store, cache_bytes: usize) -> Self {
+    pub fn new(store: Store, cache_bytes: usize, heavy: HeavyWork) -> Self {
         Self {
+            heavy,
             store,
             cache: Mutex::new(ModelCache::new(cache_bytes)),
             active: Mutex::new(None),
@@ -173,7 +177,9 @@ impl Registry {
         }
         let bytes = self.artifact_bytes(&name).await?;
         let artifact = Arc::new(
-            ModelArtifact::from_slice(&bytes)
+            self.heavy
+                .run(|| ModelArtifact::from_slice(&bytes))
+                .await
                 .map_err(|e| Fault::new("loading a stored model", e))?,
         );
         self.cache()
@@ -259,8 +265,12 @@ impl Registry {
         display_name: &str,
         activate: bool,
     ) -> Result<ModelRow, RegistryError> {
-        let artifact =
-            Arc::new(ModelArtifact::from_slice(bytes).map_err(RegistryError::InvalidArtifact)?);
+        let artifact = self
+            .heavy
+            .run(|| ModelArtifact::from_slice(bytes))
+            .await
+            .map_err(RegistryError::InvalidArtifact)?;
+        let artifact = Arc::new(artifact);
         let id = new_id();
         let display_name = if display_name.is_empty() {
             format!("imported {id}")
@@ -350,7 +360,7 @@ mod tests {
         let path = dir.path().join("spoofwatch.db");
         let store = Store::open(&path.to_string_lossy()).await.expect("open");
         // A cache too small for any artifact: the active model is held apart from it.
-        let registry = Registry::new(store.clone(), 1);
+        let registry = Registry::new(store.clone(), 1, HeavyWork::new(1));
         registry.ensure_default_model().await.unwrap();
         assert_eq!(registry.resolve(None).await.unwrap().name.id(), "default");
 
@@ -383,7 +393,7 @@ mod tests {
         let dir = tempfile::tempdir().expect("temp dir");
         let path = dir.path().join("spoofwatch.db");
         let store = Store::open(&path.to_string_lossy()).await.expect("open");
-        let registry = Registry::new(store.clone(), 1 << 20);
+        let registry = Registry::new(store.clone(), 1 << 20, HeavyWork::new(1));
         registry.ensure_default_model().await.unwrap();
         // Activating anything but the bundled model fails inside the database.
         store
@@ -411,7 +421,7 @@ mod tests {
         let dir = tempfile::tempdir().expect("temp dir");
         let path = dir.path().join("spoofwatch.db");
         let store = Store::open(&path.to_string_lossy()).await.expect("open");
-        let registry = Registry::new(store.clone(), 1 << 20);
+        let registry = Registry::new(store.clone(), 1 << 20, HeavyWork::new(1));
         let mut value: serde_json::Value = serde_json::from_slice(BUNDLED_MODEL).expect("json");
         value["evidence"]["mu_e"] = serde_json::json!(1e308);
         let error = registry
