@@ -20,6 +20,8 @@ pub mod defaults {
     /// HTTP/2 streams one connection may have open at once (a fleet gateway multiplexes its
     /// vehicles' streams over few connections; beyond this it opens another).
     pub const MAX_STREAMS_PER_CONNECTION: u32 = 1_024;
+    /// Room for four uploads of the largest dataset accepted at once.
+    pub const UPLOAD_MEMORY_MIB: u32 = 1_024;
     pub const SESSION_IDLE_SECS: u64 = 900;
     pub const MAX_BATCH_SAMPLES: usize = limits::MAX_BATCH_SAMPLES;
     pub const MAX_MESSAGE_BYTES: usize = limits::MAX_MESSAGE_BYTES;
@@ -88,6 +90,11 @@ pub struct Config {
     #[arg(long, env = "SPOOFWATCH_MAX_STREAMS_PER_CONNECTION", default_value_t = defaults::MAX_STREAMS_PER_CONNECTION,
           value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
     pub max_streams_per_connection: u32,
+    /// MiB of upload data that all UploadDataset calls together may hold in memory while they
+    /// arrive; an upload that would exceed it is refused RESOURCE_EXHAUSTED (retry later).
+    #[arg(long, env = "SPOOFWATCH_UPLOAD_MEMORY_MIB", default_value_t = defaults::UPLOAD_MEMORY_MIB,
+          value_parser = clap::value_parser!(u32).range(1..=1_048_576))]
+    pub upload_memory_mib: u32,
     /// Seconds after which a session without a stream is evicted.
     #[arg(long, env = "SPOOFWATCH_SESSION_IDLE_SECS", default_value_t = defaults::SESSION_IDLE_SECS)]
     pub session_idle_secs: u64,
@@ -187,6 +194,7 @@ impl Default for Config {
             max_sessions: defaults::MAX_SESSIONS,
             max_sessions_per_identity: defaults::MAX_SESSIONS_PER_IDENTITY,
             max_streams_per_connection: defaults::MAX_STREAMS_PER_CONNECTION,
+            upload_memory_mib: defaults::UPLOAD_MEMORY_MIB,
             session_idle_secs: defaults::SESSION_IDLE_SECS,
             max_batch_samples: defaults::MAX_BATCH_SAMPLES,
             max_message_bytes: defaults::MAX_MESSAGE_BYTES,

@@ -108,6 +108,9 @@ pub async fn build(server: Server, app: &App, config: &Config) -> Result<Routes,
     let datasets = gzip!(DatasetServiceServer::new(DatasetApi {
         catalog: app.catalog.clone(),
         stream_idle,
+        upload_budget: Arc::new(tokio::sync::Semaphore::new(
+            config.upload_memory_mib as usize * 1024,
+        )),
     }))
     .max_decoding_message_size(limit);
     let training = gzip!(TrainingServiceServer::new(TrainingApi {

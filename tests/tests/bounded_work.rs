@@ -125,3 +125,36 @@ async fn a_model_too_costly_per_sample_is_refused_at_import() {
     drop(clients);
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uploads_together_hold_at_most_the_upload_memory() {
+    let (_dir, server, mut clients) = start_server(|config| config.upload_memory_mib = 1).await;
+    use v1::upload_dataset_request::Kind as Upload;
+    let upload = |chunks: usize| {
+        std::iter::once(Upload::Header(v1::UploadDatasetHeader::default()))
+            .chain((0..chunks).map(|_| Upload::CsvChunk(vec![b'x'; 512 * 1024])))
+            .map(|kind| v1::UploadDatasetRequest { kind: Some(kind) })
+            .collect::<Vec<_>>()
+    };
+    let refused = clients
+        .datasets
+        .upload_dataset(tokio_stream::iter(upload(4)))
+        .await
+        .expect_err("2 MiB against a 1 MiB budget");
+    assert_eq!(refused.code(), tonic::Code::ResourceExhausted);
+    assert!(
+        refused.message().contains("--upload-memory-mib"),
+        "{}",
+        refused.message()
+    );
+    // The refused upload gave its part back: one within the budget is read (and refused only
+    // for not being CSV).
+    let read = clients
+        .datasets
+        .upload_dataset(tokio_stream::iter(upload(1)))
+        .await
+        .expect_err("not CSV");
+    assert_eq!(read.code(), tonic::Code::InvalidArgument);
+    drop(clients);
+    server.stop().await;
+}

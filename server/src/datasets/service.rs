@@ -3,6 +3,10 @@
 //! [`super::DatasetError`] once (through `crate::error`); it must not parse CSV or touch the store.
 
 use std::collections::HashMap;
+use std::sync::Arc;
+
+use prost::Message;
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
 use spoofwatch_core::sample::{Record, Track};
 use spoofwatch_proto::v1;
@@ -16,7 +20,7 @@ use tonic::{Request, Response, Status, Streaming};
 use super::catalog::Catalog;
 use crate::edge::{dataset_name, display_name, page_request};
 use crate::idle::StreamIdle;
-use crate::status::{header_first, header_not_first, invalid_field};
+use crate::status::{header_first, header_not_first, invalid_field, resource_exhausted};
 use crate::store::DatasetRow;
 
 /// The wire form of a stored dataset.
@@ -81,6 +85,35 @@ pub struct DatasetApi {
     pub catalog: Catalog,
     /// How long an upload may send nothing.
     pub stream_idle: StreamIdle,
+    /// KiB of upload bytes all uploads together may buffer (`--upload-memory-mib`).
+    pub upload_budget: Arc<Semaphore>,
+}
+
+/// The part of the upload memory budget an upload holds, grown as its bytes arrive.
+struct UploadHold {
+    budget: Arc<Semaphore>,
+    held: Option<OwnedSemaphorePermit>,
+}
+
+impl UploadHold {
+    /// Takes `bytes` more of the budget, or refuses the upload (RESOURCE_EXHAUSTED) when the
+    /// uploads in progress hold it all: an upload never waits for memory, so it never holds part
+    /// of the budget while it waits for the rest.
+    fn grow(&mut self, bytes: usize) -> Result<(), Status> {
+        let kib = u32::try_from(bytes.div_ceil(1024)).unwrap_or(u32::MAX);
+        let more = Arc::clone(&self.budget)
+            .try_acquire_many_owned(kib)
+            .map_err(|_| {
+                resource_exhausted(
+                    "the uploads in progress hold the server's upload memory (--upload-memory-mib); retry later",
+                )
+            })?;
+        match &mut self.held {
+            Some(held) => held.merge(more),
+            None => self.held = Some(more),
+        }
+        Ok(())
+    }
 }
 
 #[tonic::async_trait]
@@ -98,7 +131,12 @@ impl DatasetService for DatasetApi {
         };
         let mut csv = Vec::new();
         let mut structured = Vec::new();
+        let mut hold = UploadHold {
+            budget: Arc::clone(&self.upload_budget),
+            held: None,
+        };
         while let Some(message) = self.stream_idle.next(&mut stream).await? {
+            hold.grow(message.encoded_len())?;
             match message.kind {
                 Some(Kind::CsvChunk(chunk)) if structured.is_empty() => {
                     if csv.len() + chunk.len() > MAX_DATASET_BYTES {
