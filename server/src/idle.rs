@@ -6,7 +6,8 @@
 //! The same limit ends a stream whose client stops reading: a reply that cannot be handed on
 //! within it (the client grants no HTTP/2 window, so the call's small reply buffer stays full)
 //! ends the stream, which would otherwise hold its task, session and buffers for as long as the
-//! client keeps the connection open.
+//! client keeps the connection open. A WatchAlarms watcher that leaves an event unread that long
+//! is let go too (it resumes with its cursor).
 //!
 //! DEADLINE_EXCEEDED rather than CANCELLED: a time limit expired, and nobody cancelled anything.
 //! The stream's end is like any other: a detection session detaches and stays resumable.

@@ -123,6 +123,7 @@ pub async fn build(server: Server, app: &App, config: &Config) -> Result<Routes,
         store: app.store.clone(),
         feed: Arc::clone(&app.alarm_feed),
         shutdown: app.draining.clone(),
+        stream_idle,
     }))
     .max_decoding_message_size(limit);
 

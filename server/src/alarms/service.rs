@@ -36,6 +36,7 @@ use tonic_types::{ErrorDetails, StatusExt};
 
 use super::feed::{AlarmFeed, FeedSubscription};
 use crate::edge::{optional_model_name, optional_vehicle_id, page_request};
+use crate::idle::StreamIdle;
 use crate::status::{invalid_field, shutting_down};
 use crate::store::{
     AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent, Store,
@@ -55,6 +56,8 @@ pub struct AlarmApi {
     pub feed: Arc<AlarmFeed>,
     /// Cancelled when the server starts draining.
     pub shutdown: CancellationToken,
+    /// How long a watcher may leave a pending event unread.
+    pub stream_idle: StreamIdle,
 }
 
 /// A stored or emitted alarm on the wire.
@@ -188,6 +191,8 @@ struct Watch {
     /// End the call after CAUGHT_UP.
     stop_when_caught_up: bool,
     tx: mpsc::Sender<WatchReply>,
+    /// A watcher that reads no event for this long is let go (it resumes with its cursor).
+    idle: StreamIdle,
     /// Every event up to this log position has been sent or filtered out.
     position: i64,
 }
@@ -220,7 +225,11 @@ impl Watch {
     }
 
     async fn send(&self, message: v1::AlarmEvent) -> Result<(), Stop> {
-        self.tx.send(Ok(message)).await.map_err(|_| Stop::Gone)
+        if self.idle.send(&self.tx, Ok(message)).await {
+            Ok(())
+        } else {
+            Err(Stop::Gone)
+        }
     }
 
     /// Sends the stored events after the position, up to `through`.
@@ -366,11 +375,13 @@ impl AlarmService for AlarmApi {
             vehicle_id,
             stop_when_caught_up: r.stop_when_caught_up,
             tx: tx.clone(),
+            idle: self.stream_idle,
             position,
         };
+        let idle = self.stream_idle;
         tokio::spawn(async move {
             if let Err(Stop::Fail(status)) = watch.run(subscription, replay_through).await {
-                let _ = tx.send(Err(status)).await;
+                idle.send(&tx, Err(status)).await;
             }
         });
         Ok(Response::new(ReceiverStream::new(rx)))
@@ -426,6 +437,7 @@ mod tests {
             store,
             feed,
             shutdown: CancellationToken::new(),
+            stream_idle: StreamIdle(Duration::from_secs(60)),
         };
 
         let (onset, end, caught_up) = (
