@@ -191,7 +191,8 @@ async fn every_readme_grpcurl_example_works_against_a_live_server() {
     }
     server.stop().await;
 
-    // TLS: the README's certificates, and its server (mutual TLS) with the token its examples send.
+    // TLS: the README's certificates, and its server (mutual TLS) with the admin token file its
+    // examples read.
     let pki = tempfile::tempdir().expect("temp dir");
     for command in readme_commands(&readme, "openssl") {
         run_example(&grpcurl, pki.path(), command).await;
@@ -200,7 +201,9 @@ async fn every_readme_grpcurl_example_works_against_a_live_server() {
     config.tls_cert = Some(pki.path().join("server.pem"));
     config.tls_key = Some(pki.path().join("server-key.pem"));
     config.tls_client_ca = Some(pki.path().join("ca.pem"));
-    config.auth_token = Some("s3cret".into());
+    // The admin token from its file, as documented (the examples read it from there too).
+    std::fs::write(pki.path().join("admin-token"), "s3cret\n").expect("token file written");
+    config.auth_token_file = Some(pki.path().join("admin-token"));
     let client = ConnectOptions {
         ca_cert: Some(pki.path().join("ca.pem")),
         client_cert: Some(pki.path().join("truck-7.pem")),
