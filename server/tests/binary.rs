@@ -1,5 +1,6 @@
-//! Issue 4, test 7: the real `spoofwatch-server` binary starts on a free port with a fresh
-//! database, serves a Detect call, and exits cleanly (code 0) on SIGTERM.
+//! The real `spoofwatch-server` binary: it starts on a free port with a fresh database, serves,
+//! exits cleanly (code 0) on SIGTERM, recovers after a crash, and holds a large upload within
+//! twice its size in memory.
 #![cfg(unix)]
 
 use std::io::{BufRead, BufReader};
@@ -544,4 +545,72 @@ async fn json_logs_are_one_object_per_line_with_top_level_fields() {
         "{metrics}"
     );
     message("server stopped");
+}
+
+/// One field of `/proc/PID/status`, in KiB (`VmRSS`, `VmHWM`).
+fn memory_kib(pid: u32, field: &str) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).expect("process status");
+    status
+        .lines()
+        .find_map(|line| line.strip_prefix(field)?.strip_prefix(':'))
+        .and_then(|rest| rest.split_whitespace().next()?.parse().ok())
+        .unwrap_or_else(|| panic!("no {field} in the process status"))
+}
+
+/// A telemetry CSV of just under `size` bytes: 1,000 vehicles at 1 Hz.
+fn telemetry_csv(size: usize) -> Vec<u8> {
+    let mut csv = b"vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg,label\n".to_vec();
+    for n in 0.. {
+        let (vehicle, t) = (n % 1000, n / 1000);
+        let row = format!(
+            "vehicle-{vehicle:04},{},{:.7},{:.7},10.5,{}.5,{}\n",
+            1_700_000_000 + t,
+            32.2 + f64::from(vehicle) * 1e-3 + f64::from(t) * 1e-5,
+            -110.9 + f64::from(t) * 1e-5,
+            (n * 7) % 360,
+            u8::from(t > 1500)
+        );
+        if csv.len() + row.len() > size {
+            break;
+        }
+        csv.extend_from_slice(row.as_bytes());
+    }
+    csv
+}
+
+/// The server's whole resident memory peaks within twice the size of a 128 MiB CSV upload: the
+/// upload is held once, in pieces, and only counted while it is checked, never built as tracks.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_128_mib_csv_upload_peaks_within_twice_its_size() {
+    use v1::upload_dataset_request::Kind;
+    let dir = tempfile::tempdir().expect("temp dir");
+    let Running {
+        process: mut server,
+        addr,
+        ..
+    } = spawn_server(&dir.path().join("upload.db"));
+    let channel = wait_until_serving(addr).await;
+    let csv = telemetry_csv(128 << 20);
+    let messages: Vec<v1::UploadDatasetRequest> =
+        std::iter::once(Kind::Header(v1::UploadDatasetHeader::default()))
+            .chain(
+                csv.chunks(1 << 20)
+                    .map(|chunk| Kind::CsvChunk(chunk.to_vec())),
+            )
+            .map(|kind| v1::UploadDatasetRequest { kind: Some(kind) })
+            .collect();
+    let dataset = DatasetServiceClient::new(channel)
+        .upload_dataset(tokio_stream::iter(messages))
+        .await
+        .expect("the upload is stored")
+        .into_inner();
+    assert_eq!(dataset.size_bytes, csv.len() as u64);
+    assert_eq!(dataset.vehicles, 1000);
+    let peak_kib = memory_kib(server.0.id(), "VmHWM");
+    let upload_kib = csv.len() as u64 / 1024;
+    assert!(
+        peak_kib <= 2 * upload_kib,
+        "the server's resident memory peaked at {peak_kib} KiB for an upload of {upload_kib} KiB"
+    );
+    assert!(signal_and_wait(&mut server, "-TERM").await.success());
 }

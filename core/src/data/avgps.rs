@@ -8,7 +8,7 @@ use std::io::Read;
 use super::timefmt::{parse_clock_time, parse_date, parse_duration};
 use super::{DataError, Table, parse_flag, parse_measurement};
 use crate::evidence::{MAX_BACKWARD_S, MAX_GAP_S};
-use crate::sample::{Record, Sample, Track};
+use crate::sample::{Record, Sample};
 
 /// Columns whose presence identifies an AV-GPS file.
 pub const REQUIRED_COLUMNS: [&str; 5] = [
@@ -64,17 +64,17 @@ struct RowTimes {
     date: Option<i64>,
 }
 
-/// Reads the single track of an AV-GPS file.
-pub(super) fn read_track<R: Read>(
+/// Reads the records of an AV-GPS file (its single vehicle's), handing each to `on_record` in
+/// file order.
+pub(super) fn read_records<R: Read>(
     csv: &mut csv::Reader<R>,
     table: &Table<'_>,
-    vehicle_id: &str,
-) -> Result<Track, DataError> {
+    on_record: &mut dyn FnMut(Record),
+) -> Result<(), DataError> {
     let columns = Columns::find(table).ok_or_else(|| DataError::UnknownFormat {
         file: table.source.to_string(),
         detail: "not an AV-GPS header".into(),
     })?;
-    let mut records = Vec::new();
     let mut row = csv::StringRecord::new();
     let mut previous: Option<RowTimes> = None;
     let mut timestamp = 0.0;
@@ -119,7 +119,7 @@ pub(super) fn read_track<R: Read>(
             timestamp += delta_t;
         }
         let [latitude, longitude, speed, heading] = sample_fields;
-        records.push(Record {
+        on_record(Record {
             sample: Sample::new(timestamp, latitude, longitude, speed, heading),
             label,
             comparator_alarm,
@@ -129,10 +129,7 @@ pub(super) fn read_track<R: Read>(
         });
         previous = Some(times);
     }
-    Ok(Track {
-        vehicle_id: vehicle_id.to_string(),
-        records,
-    })
+    Ok(())
 }
 
 /// `a − b`, NaN when either is missing.

@@ -7,11 +7,12 @@ pub mod avgps;
 pub mod telemetry;
 mod timefmt;
 
+use std::collections::{HashMap, HashSet};
 use std::fs::File;
 use std::io::{BufRead, BufReader, Read};
 use std::path::Path;
 
-use crate::sample::Track;
+use crate::sample::{Record, Track};
 
 /// Which CSV dialect a recording came from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -102,6 +103,84 @@ pub fn read<R: Read>(reader: R, source: &str) -> Result<Recording, DataError> {
 }
 
 fn read_named<R: Read>(reader: R, source: &str, vehicle_id: &str) -> Result<Recording, DataError> {
+    let mut tracks: Vec<Track> = Vec::new();
+    let mut track_of_vehicle: HashMap<String, usize> = HashMap::new();
+    let format = visit(reader, source, vehicle_id, &mut |vehicle, record| {
+        let track = match track_of_vehicle.get(vehicle) {
+            Some(&index) => index,
+            None => {
+                track_of_vehicle.insert(vehicle.to_string(), tracks.len());
+                tracks.push(Track {
+                    vehicle_id: vehicle.to_string(),
+                    records: Vec::new(),
+                });
+                tracks.len() - 1
+            }
+        };
+        tracks[track].records.push(record);
+    })?;
+    if format == Format::AvGps && tracks.is_empty() {
+        // An AV-GPS file is one vehicle's track, even with no rows.
+        tracks.push(Track {
+            vehicle_id: vehicle_id.to_string(),
+            records: Vec::new(),
+        });
+    }
+    Ok(Recording {
+        source: source.to_string(),
+        format,
+        tracks,
+    })
+}
+
+/// What a recording holds, counted while it is read: no record is kept, so summarising a large
+/// upload costs the memory of its distinct vehicle ids only.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Summary {
+    /// The detected dialect.
+    pub format: Format,
+    /// Data rows (samples).
+    pub rows: u64,
+    /// Distinct vehicles (an AV-GPS file is always one).
+    pub vehicles: u64,
+    /// Rows carrying a spoofing label.
+    pub labelled_rows: u64,
+    /// Labelled rows marked spoofed.
+    pub spoofed_rows: u64,
+}
+
+/// Reads a recording as [`read`] does, with the same errors, but only counts it.
+pub fn summarize<R: Read>(reader: R, source: &str) -> Result<Summary, DataError> {
+    let mut vehicles: HashSet<String> = HashSet::new();
+    let (mut rows, mut labelled_rows, mut spoofed_rows) = (0, 0, 0);
+    let format = visit(reader, source, source, &mut |vehicle, record| {
+        rows += 1;
+        labelled_rows += u64::from(record.label.is_some());
+        spoofed_rows += u64::from(record.label == Some(true));
+        if !vehicles.contains(vehicle) {
+            vehicles.insert(vehicle.to_string());
+        }
+    })?;
+    Ok(Summary {
+        format,
+        rows,
+        vehicles: match format {
+            Format::AvGps => 1,
+            Format::Telemetry => vehicles.len() as u64,
+        },
+        labelled_rows,
+        spoofed_rows,
+    })
+}
+
+/// Reads every row of either format, handing each record and its vehicle id to `on_record` in
+/// file order (an AV-GPS file's records all belong to `vehicle_id`).
+fn visit<R: Read>(
+    reader: R,
+    source: &str,
+    vehicle_id: &str,
+    on_record: &mut dyn FnMut(&str, Record),
+) -> Result<Format, DataError> {
     let (mut csv, header, crlf) = open_csv(reader, source)?;
     let table = Table {
         source,
@@ -110,28 +189,24 @@ fn read_named<R: Read>(reader: R, source: &str, vehicle_id: &str) -> Result<Reco
     };
     let missing_avgps = missing_columns(&header, &avgps::REQUIRED_COLUMNS);
     let missing_telemetry = missing_columns(&header, &telemetry::REQUIRED_COLUMNS);
-    let (format, tracks) = if missing_avgps.is_empty() {
-        (
-            Format::AvGps,
-            vec![avgps::read_track(&mut csv, &table, vehicle_id)?],
-        )
+    if missing_avgps.is_empty() {
+        avgps::read_records(&mut csv, &table, &mut |record| {
+            on_record(vehicle_id, record)
+        })?;
+        Ok(Format::AvGps)
     } else if missing_telemetry.is_empty() {
-        (Format::Telemetry, telemetry::read_tracks(&mut csv, &table)?)
+        telemetry::read_records(&mut csv, &table, on_record)?;
+        Ok(Format::Telemetry)
     } else {
-        return Err(DataError::UnknownFormat {
+        Err(DataError::UnknownFormat {
             file: source.to_string(),
             detail: format!(
                 "not AV-GPS (missing {}) and not telemetry (missing {})",
                 missing_avgps.join(", "),
                 missing_telemetry.join(", ")
             ),
-        });
-    };
-    Ok(Recording {
-        source: source.to_string(),
-        format,
-        tracks,
-    })
+        })
+    }
 }
 
 /// A CSV reader past its header, the trimmed header names and whether lines end in CRLF.

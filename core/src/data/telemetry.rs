@@ -2,7 +2,6 @@
 //!
 //! Owns the telemetry CSV column mapping. Must not validate samples beyond parsing.
 
-use std::collections::HashMap;
 use std::io::{Read, Write};
 
 use super::{DataError, Table, parse_flag, parse_measurement};
@@ -34,13 +33,14 @@ struct Columns {
     stds: [Option<usize>; 3],
 }
 
-/// Reads all vehicles of a telemetry CSV, grouped by vehicle in order of first appearance, each in
-/// row order. Empty or `nan` numeric fields become NaN (the sample is then invalid, ν = 0); empty
+/// Reads the rows of a telemetry CSV, handing each record and its vehicle id to `on_record` in row
+/// order. Empty or `nan` numeric fields become NaN (the sample is then invalid, ν = 0); empty
 /// uncertainty fields are absent.
-pub(super) fn read_tracks<R: Read>(
+pub(super) fn read_records<R: Read>(
     csv: &mut csv::Reader<R>,
     table: &Table<'_>,
-) -> Result<Vec<Track>, DataError> {
+    on_record: &mut dyn FnMut(&str, Record),
+) -> Result<(), DataError> {
     let find = |name: &str| {
         table.column(name).ok_or_else(|| DataError::UnknownFormat {
             file: table.source.to_string(),
@@ -63,8 +63,6 @@ pub(super) fn read_tracks<R: Read>(
             table.column("heading_std_deg"),
         ],
     };
-    let mut tracks: Vec<Track> = Vec::new();
-    let mut track_of_vehicle: HashMap<String, usize> = HashMap::new();
     let mut row = csv::StringRecord::new();
     while let Some(line) = table.next_row(csv, &mut row)? {
         let field = |index: usize| row.get(index).unwrap_or("");
@@ -97,25 +95,19 @@ pub(super) fn read_tracks<R: Read>(
             None => None,
         };
 
-        let track = *track_of_vehicle
-            .entry(vehicle_id.to_string())
-            .or_insert_with(|| {
-                tracks.push(Track {
-                    vehicle_id: vehicle_id.to_string(),
-                    records: Vec::new(),
-                });
-                tracks.len() - 1
-            });
-        tracks[track].records.push(Record {
-            sample,
-            label,
-            comparator_alarm: None,
-            line,
-            trajectory_break: false,
-            warmup: false,
-        });
+        on_record(
+            vehicle_id,
+            Record {
+                sample,
+                label,
+                comparator_alarm: None,
+                line,
+                trajectory_break: false,
+                warmup: false,
+            },
+        );
     }
-    Ok(tracks)
+    Ok(())
 }
 
 /// Writes tracks in the telemetry format, with a `label` column when any record is labelled and

@@ -201,6 +201,55 @@ fn telemetry_interleaved_vehicles_any_column_order() {
     assert!(a[1].sample.speed_mps.is_nan());
 }
 
+/// `summarize` counts what `read` would build, and fails with the very error `read` gives.
+#[test]
+fn a_summary_counts_what_read_builds() {
+    let telemetry = "vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg,label\n\
+                     car-b,0,32.23,-110.9,1.5,90,0\n\
+                     car-a,0,32.24,-110.8,1.6,91,1\n\
+                     car-b,1,32.23,-110.9,1.5,90,\n\
+                     car-a,1,32.24,-110.8,1.6,91,1\n\
+                     car-c,1,32.25,-110.8,1.6,91,0\n";
+    assert_eq!(
+        summarize(telemetry.as_bytes(), "fleet.csv").expect("valid"),
+        Summary {
+            format: Format::Telemetry,
+            rows: 5,
+            vehicles: 3,
+            labelled_rows: 4,
+            spoofed_rows: 2,
+        }
+    );
+    let one_vehicle = avgps(&[
+        "10,-170,1.5,0:00:00,15:03:55,,,32.23,-110.9,0,",
+        "11,-169,1.6,0:00:01,15:03:55,10:55:59,5/24/2022,32.2301,-110.9,1,1",
+        "12,-168,1.6,0:00:02,15:03:55,10:56:00,5/24/2022,32.2302,-110.9,,1",
+    ]);
+    assert_eq!(
+        summarize(one_vehicle.as_bytes(), "D").expect("valid"),
+        Summary {
+            format: Format::AvGps,
+            rows: 3,
+            vehicles: 1,
+            labelled_rows: 2,
+            spoofed_rows: 1,
+        }
+    );
+    // An AV-GPS file without rows is still its one vehicle, as `read` has it.
+    let empty = avgps(&[]);
+    assert_eq!(read_str(&empty, "E").expect("valid").tracks.len(), 1);
+    assert_eq!(summarize(empty.as_bytes(), "E").expect("valid").vehicles, 1);
+    let bad = "vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg\n\
+               v,0,32.23,-110.9,1.0,90\n\
+               v,1,32.23,-110.9,fast,90\n";
+    assert_eq!(
+        summarize(bad.as_bytes(), "t.csv")
+            .expect_err("bad")
+            .to_string(),
+        read_str(bad, "t.csv").expect_err("bad").to_string()
+    );
+}
+
 #[test]
 fn telemetry_errors_name_line_and_column() {
     let text = "vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg\n\

@@ -5,13 +5,14 @@
 
 use std::path::{Path, PathBuf};
 
-use spoofwatch_core::data::{Format, Recording, read};
+use spoofwatch_core::data::{DataError, Format, read, summarize};
 use spoofwatch_core::sample::Track;
 use spoofwatch_proto::wire::DatasetName;
 use spoofwatch_proto::wire::limits::MAX_DATASET_BYTES;
 
+use super::content::Content;
 use crate::fault::Fault;
-use crate::identity::{new_id, sha256_hex};
+use crate::identity::new_id;
 use crate::store::{DatasetRow, NewDataset, Page, PageRequest, Store, StoreError};
 use crate::work::HeavyWork;
 
@@ -51,20 +52,12 @@ pub enum DatasetError {
     Store(#[from] StoreError),
 }
 
-/// Parses CSV bytes (either format) as heavy work; a parse error names `field`.
-async fn parse(
-    heavy: &HeavyWork,
-    bytes: &[u8],
-    source: &str,
-    field: &'static str,
-) -> Result<Recording, DatasetError> {
-    heavy
-        .run(|| read(bytes, source))
-        .await
-        .map_err(|e| DatasetError::Invalid {
-            field,
-            reason: e.to_string(),
-        })
+/// A parse error as the refusal of the request field the data came in.
+fn unparseable(field: &'static str) -> impl Fn(DataError) -> DatasetError {
+    move |e| DatasetError::Invalid {
+        field,
+        reason: e.to_string(),
+    }
 }
 
 /// Longest import path accepted (it is echoed in errors, so it is bounded first).
@@ -144,7 +137,7 @@ impl Catalog {
     pub async fn upload(
         &self,
         display_name: &str,
-        csv: Vec<u8>,
+        csv: Content,
         field: &'static str,
     ) -> Result<DatasetRow, DatasetError> {
         let name = if display_name.is_empty() {
@@ -162,12 +155,12 @@ impl Catalog {
         display_name: &str,
         tracks: &[Track],
     ) -> Result<DatasetRow, DatasetError> {
-        let mut csv = Vec::new();
+        let mut csv = Content::default();
         self.heavy
             .run(|| spoofwatch_core::data::telemetry::write_tracks(&mut csv, tracks))
             .await
             .map_err(|e| Fault::new("encoding uploaded records", e))?;
-        self.upload(display_name, csv, "records").await
+        self.upload(display_name, csv.finish(), "records").await
     }
 
     /// Imports a CSV file from the data directory.
@@ -201,7 +194,7 @@ impl Catalog {
         &self,
         display_name: String,
         source: String,
-        content: Vec<u8>,
+        content: Content,
         field: &'static str,
     ) -> Result<DatasetRow, DatasetError> {
         if content.is_empty() {
@@ -210,25 +203,30 @@ impl Catalog {
                 reason: "the upload holds no data".into(),
             });
         }
-        let recording = parse(&self.heavy, &content, &display_name, field).await?;
-        let records = || recording.tracks.iter().flat_map(|t| &t.records);
+        // Counted, not built: the stored dataset is parsed in full only by the jobs that use it.
+        let summary = self
+            .heavy
+            .run(|| summarize(content.reader(), &display_name))
+            .await
+            .map_err(unparseable(field))?;
+        let count = |n: u64| i64::try_from(n).unwrap_or(i64::MAX);
         let row = self
             .store
             .insert_dataset(NewDataset {
                 id: new_id(),
                 display_name,
                 source,
-                format: match recording.format {
+                format: match summary.format {
                     Format::AvGps => "av-gps",
                     Format::Telemetry => "telemetry",
                 }
                 .to_string(),
-                rows: records().count() as i64,
-                vehicles: recording.tracks.len() as i64,
-                labelled_rows: records().filter(|r| r.label.is_some()).count() as i64,
-                spoofed_rows: records().filter(|r| r.label == Some(true)).count() as i64,
-                sha256: sha256_hex(&content),
-                content,
+                rows: count(summary.rows),
+                vehicles: count(summary.vehicles),
+                labelled_rows: count(summary.labelled_rows),
+                spoofed_rows: count(summary.spoofed_rows),
+                sha256: content.sha256_hex(),
+                content: content.into_pieces(),
             })
             .await?;
         tracing::info!(dataset = %row.id, rows = row.rows, "stored dataset");
@@ -253,16 +251,21 @@ impl Catalog {
         Ok(self.store.delete_dataset(name.id()).await?)
     }
 
-    /// Loads the tracks of every named dataset, in order.
+    /// Loads the tracks of every named dataset, in order (one dataset's bytes held at a time).
     pub async fn load_tracks(&self, names: &[DatasetName]) -> Result<Vec<Track>, DatasetError> {
         let mut tracks = Vec::new();
         for name in names {
-            let content = self
-                .store
-                .dataset_content(name.id())
-                .await?
-                .ok_or_else(|| DatasetError::NotFound(name.clone()))?;
-            let recording = parse(&self.heavy, &content, name.id(), "datasets").await?;
+            let content = Content::from_pieces(
+                self.store
+                    .dataset_content(name.id())
+                    .await?
+                    .ok_or_else(|| DatasetError::NotFound(name.clone()))?,
+            );
+            let recording = self
+                .heavy
+                .run(|| read(content.reader(), name.id()))
+                .await
+                .map_err(unparseable("datasets"))?;
             tracks.extend(recording.tracks);
         }
         Ok(tracks)
@@ -271,7 +274,7 @@ impl Catalog {
 
 /// A file of at most `limit` bytes: its size is checked before anything is read, and the read
 /// stops past the limit (the file may grow in between), so an oversized file is never loaded.
-async fn read_bounded(path: &Path, limit: usize) -> Result<Vec<u8>, DatasetError> {
+async fn read_bounded(path: &Path, limit: usize) -> Result<Content, DatasetError> {
     use tokio::io::AsyncReadExt;
     let too_large = |size: u64| DatasetError::Invalid {
         field: "path",
@@ -283,15 +286,20 @@ async fn read_bounded(path: &Path, limit: usize) -> Result<Vec<u8>, DatasetError
     if size > limit as u64 {
         return Err(too_large(size));
     }
-    let mut content = Vec::with_capacity(size as usize);
-    file.take(limit as u64 + 1)
-        .read_to_end(&mut content)
-        .await
-        .map_err(read_error)?;
+    let mut content = Content::default();
+    let mut file = file.take(limit as u64 + 1);
+    let mut buffer = vec![0; 1 << 16];
+    loop {
+        let read = file.read(&mut buffer).await.map_err(read_error)?;
+        if read == 0 {
+            break;
+        }
+        content.extend(&buffer[..read]);
+    }
     if content.len() > limit {
         return Err(too_large(content.len() as u64));
     }
-    Ok(content)
+    Ok(content.finish())
 }
 
 #[cfg(test)]

@@ -18,6 +18,7 @@ use spoofwatch_proto::wire::limits::{MAX_DATASET_BYTES, MAX_DATASET_RECORDS};
 use tonic::{Request, Response, Status, Streaming};
 
 use super::catalog::Catalog;
+use super::content::Content;
 use crate::edge::{dataset_name, display_name, page_request};
 use crate::idle::StreamIdle;
 use crate::status::{header_first, header_not_first, invalid_field, resource_exhausted};
@@ -129,7 +130,7 @@ impl DatasetService for DatasetApi {
             }) => h,
             _ => return Err(header_first()),
         };
-        let mut csv = Vec::new();
+        let mut csv = Content::default();
         let mut structured = Vec::new();
         let mut hold = UploadHold {
             budget: Arc::clone(&self.upload_budget),
@@ -145,7 +146,7 @@ impl DatasetService for DatasetApi {
                             format!("dataset exceeds {MAX_DATASET_BYTES} bytes"),
                         ));
                     }
-                    csv.extend_from_slice(&chunk);
+                    csv.extend(&chunk);
                 }
                 Some(Kind::Records(batch)) if csv.is_empty() => {
                     if structured.len() + batch.records.len() > MAX_DATASET_RECORDS {
@@ -167,7 +168,7 @@ impl DatasetService for DatasetApi {
         }
         let name = display_name("header.display_name", &header.display_name)?;
         let row = if structured.is_empty() {
-            self.catalog.upload(name, csv, "csv_chunk").await?
+            self.catalog.upload(name, csv.finish(), "csv_chunk").await?
         } else {
             let tracks = self
                 .catalog

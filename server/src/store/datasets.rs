@@ -1,10 +1,11 @@
-//! Uploaded or imported datasets: summary rows and content blobs.
+//! Uploaded or imported datasets: summary rows, and their content as ordered pieces (one row each,
+//! so no statement ever carries a whole large dataset).
 
 use super::error::{byte_length, insert_error};
 use super::paging::PagePlan;
 use super::{Page, PageRequest, Store, StoreError, now_unix_ms};
 
-/// A dataset to store; `size_bytes` is taken from the content.
+/// A dataset to store; `size_bytes` is the total length of the content's pieces.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct NewDataset {
     /// Caller-chosen unique id.
@@ -23,10 +24,10 @@ pub struct NewDataset {
     pub labelled_rows: i64,
     /// Labelled samples marked spoofed.
     pub spoofed_rows: i64,
-    /// Hex SHA-256 of `content`, computed by the caller.
+    /// Hex SHA-256 of the content, computed by the caller.
     pub sha256: String,
-    /// The dataset bytes.
-    pub content: Vec<u8>,
+    /// The dataset bytes: their concatenation in order, stored one row per piece.
+    pub content: Vec<Vec<u8>>,
 }
 
 /// A stored dataset without its content.
@@ -76,7 +77,9 @@ impl Store {
         created_at_ms: i64,
     ) -> Result<DatasetRow, StoreError> {
         validate_counts(&dataset)?;
-        let size_bytes = byte_length("content", &dataset.content)?;
+        let size_bytes = dataset.content.iter().try_fold(0i64, |total, piece| {
+            byte_length("content", piece).map(|len| total.saturating_add(len))
+        })?;
         in_write_tx!(self, |tx| {
             let inserted = sqlx::query(
                 "INSERT INTO datasets (id, display_name, source, format, rows, vehicles, \
@@ -97,11 +100,16 @@ impl Store {
             .execute(&mut *tx)
             .await;
             inserted.map_err(|error| insert_error(error, "dataset", &dataset.id))?;
-            sqlx::query("INSERT INTO dataset_contents (dataset_id, content) VALUES ($1, $2)")
+            for (index, piece) in dataset.content.iter().enumerate() {
+                sqlx::query(
+                    "INSERT INTO dataset_pieces (dataset_id, piece, content) VALUES ($1, $2, $3)",
+                )
                 .bind(&dataset.id)
-                .bind(&dataset.content)
+                .bind(index as i64)
+                .bind(piece)
                 .execute(&mut *tx)
                 .await?;
+            }
             tx.commit().await?;
         });
         Ok(DatasetRow {
@@ -158,14 +166,20 @@ impl Store {
         }))
     }
 
-    /// The dataset bytes, or `None` if no dataset has this id.
-    pub async fn dataset_content(&self, id: &str) -> Result<Option<Vec<u8>>, StoreError> {
-        Ok(on_pool!(self, |pool| {
-            sqlx::query_scalar("SELECT content FROM dataset_contents WHERE dataset_id = $1")
-                .bind(id)
-                .fetch_optional(pool)
-                .await?
-        }))
+    /// The dataset bytes as their stored pieces, in order, or `None` if no dataset has this id.
+    pub async fn dataset_content(&self, id: &str) -> Result<Option<Vec<Vec<u8>>>, StoreError> {
+        let pieces: Vec<Vec<u8>> = on_pool!(self, |pool| {
+            sqlx::query_scalar(
+                "SELECT content FROM dataset_pieces WHERE dataset_id = $1 ORDER BY piece",
+            )
+            .bind(id)
+            .fetch_all(pool)
+            .await?
+        });
+        if pieces.is_empty() && self.get_dataset(id).await?.is_none() {
+            return Ok(None);
+        }
+        Ok(Some(pieces))
     }
 
     /// Deletes a dataset and its content; [`StoreError::NotFound`] for an unknown id.

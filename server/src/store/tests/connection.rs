@@ -103,7 +103,7 @@ async fn a_full_database_refuses_writes_and_takes_them_again_once_space_is_freed
     };
     let store = Store::open_with(&db_path(&dir), options).await.unwrap();
     let mut blob = new_dataset("ballast-0");
-    blob.content = vec![7; 40 * 1024];
+    blob.content = vec![vec![7; 40 * 1024]];
     let mut stored = Vec::new();
     let full = loop {
         let mut dataset = blob.clone();
@@ -269,7 +269,7 @@ async fn reopening_the_same_file_keeps_everything() {
             .dataset_content("d1")
             .await
             .unwrap()
-            .map(|content| content.len()),
+            .map(|pieces| pieces.concat().len()),
         Some(30)
     );
     let job = store.get_job("j1").await.unwrap().expect("job kept");

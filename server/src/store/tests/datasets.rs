@@ -1,4 +1,4 @@
-//! Datasets: insert/get/list/paginate/delete and content blobs.
+//! Datasets: insert/get/list/paginate/delete and content pieces.
 
 use super::{count_rows, new_dataset};
 use crate::store::{PageRequest, Store, StoreError};
@@ -26,9 +26,9 @@ async fn insert_then_get_round_trips_every_field_and_the_content(store: Store) {
         ),
         (10, 2, 8, 3)
     );
-    let content = b"vehicle_id,timestamp_s\nv1,0.0\n".to_vec();
+    // The two pieces come back in order, and the size is their total.
+    let content = vec![b"vehicle_id,timestamp_s\n".to_vec(), b"v1,0.0\n".to_vec()];
     assert_eq!(fetched.size_bytes, 30);
-    assert_eq!(fetched.size_bytes, i64::try_from(content.len()).unwrap());
     assert_eq!(fetched.sha256, "sha-d1");
     assert_eq!(fetched.created_at_ms, 1_234);
     assert_eq!(store.dataset_content("d1").await.unwrap(), Some(content));
@@ -52,7 +52,7 @@ async fn duplicate_dataset_id_is_refused(store: Store) {
         "{error:?}"
     );
     assert_eq!(count_rows(&store, "datasets").await, 1);
-    assert_eq!(count_rows(&store, "dataset_contents").await, 1);
+    assert_eq!(count_rows(&store, "dataset_pieces").await, 2);
 }
 
 async fn negative_counts_are_refused_before_touching_the_database(store: Store) {
@@ -105,7 +105,7 @@ async fn deleting_a_dataset_cascades_to_its_content(store: Store) {
     store.delete_dataset("a").await.unwrap();
     assert_eq!(store.get_dataset("a").await.unwrap(), None);
     assert_eq!(store.dataset_content("a").await.unwrap(), None);
-    assert_eq!(count_rows(&store, "dataset_contents").await, 1);
+    assert_eq!(count_rows(&store, "dataset_pieces").await, 2);
     assert!(store.dataset_content("b").await.unwrap().is_some());
 }
 
@@ -117,3 +117,62 @@ on_both_backends!(
     list_datasets_pages_newest_first,
     deleting_a_dataset_cascades_to_its_content,
 );
+
+/// Migration 0007 on a dataset stored before it: its content reads back whole, as its one piece.
+mod datasets_before_version_7_are_one_piece {
+    use crate::store::Store;
+    use crate::store::test_database::TestDatabase;
+
+    const OLD_DATASET: &str = "INSERT INTO datasets (id, display_name, source, format, rows, \
+         vehicles, labelled_rows, spoofed_rows, size_bytes, sha256, created_at) \
+         VALUES ('old', 'Old', 'upload', 'telemetry', 1, 1, 0, 0, 7, 'sha', 1)";
+    /// `v1,0.0\n` as each database writes a blob literal.
+    const OLD_CONTENT_SQLITE: &str =
+        "INSERT INTO dataset_contents (dataset_id, content) VALUES ('old', X'76312c302e300a')";
+    const OLD_CONTENT_POSTGRES: &str = "INSERT INTO dataset_contents (dataset_id, content) \
+         VALUES ('old', decode('76312c302e300a', 'hex'))";
+
+    async fn check(store: Store) {
+        let content = store.dataset_content("old").await.unwrap();
+        assert_eq!(content, Some(vec![b"v1,0.0\n".to_vec()]));
+        store.delete_dataset("old").await.unwrap();
+        assert_eq!(store.dataset_content("old").await.unwrap(), None);
+    }
+
+    #[tokio::test]
+    async fn sqlite() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join("v6.db");
+        let url = format!("sqlite://{}?mode=rwc", path.display());
+        let pool = sqlx::SqlitePool::connect(&url).await.expect("connect");
+        sqlx::migrate!("../migrations/sqlite")
+            .run_to(6, &pool)
+            .await
+            .expect("schema version 6");
+        for statement in [OLD_DATASET, OLD_CONTENT_SQLITE] {
+            sqlx::query(statement).execute(&pool).await.expect("insert");
+        }
+        pool.close().await;
+        check(Store::open(&path.to_string_lossy()).await.expect("open")).await;
+    }
+
+    #[tokio::test]
+    async fn postgres() {
+        let Some(database) = TestDatabase::create("datasets_before_version_7").await else {
+            return;
+        };
+        let pool = sqlx::PgPool::connect(&database.url).await.expect("connect");
+        sqlx::migrate!("../migrations/postgres")
+            .run_to(6, &pool)
+            .await
+            .expect("schema version 6");
+        for statement in [OLD_DATASET, OLD_CONTENT_POSTGRES] {
+            sqlx::query(statement).execute(&pool).await.expect("insert");
+        }
+        pool.close().await;
+        let store = Store::open(&database.url).await.expect("open");
+        check(store.clone()).await;
+        store.close().await;
+        database.drop_database().await;
+    }
+}

@@ -74,7 +74,7 @@ fn new_model(id: &str) -> NewModel {
     }
 }
 
-/// A dataset whose fields are derived from `id`, with a small CSV content.
+/// A dataset whose fields are derived from `id`, with a small CSV content in two pieces.
 fn new_dataset(id: &str) -> NewDataset {
     NewDataset {
         id: id.to_owned(),
@@ -86,7 +86,7 @@ fn new_dataset(id: &str) -> NewDataset {
         labelled_rows: 8,
         spoofed_rows: 3,
         sha256: format!("sha-{id}"),
-        content: b"vehicle_id,timestamp_s\nv1,0.0\n".to_vec(),
+        content: vec![b"vehicle_id,timestamp_s\n".to_vec(), b"v1,0.0\n".to_vec()],
     }
 }
 
@@ -107,7 +107,7 @@ async fn count_rows(store: &Store, table: &'static str) -> i64 {
         "models" => "SELECT COUNT(*) FROM models",
         "model_artifacts" => "SELECT COUNT(*) FROM model_artifacts",
         "datasets" => "SELECT COUNT(*) FROM datasets",
-        "dataset_contents" => "SELECT COUNT(*) FROM dataset_contents",
+        "dataset_pieces" => "SELECT COUNT(*) FROM dataset_pieces",
         "jobs" => "SELECT COUNT(*) FROM jobs",
         "job_epochs" => "SELECT COUNT(*) FROM job_epochs",
         "alarm_events" => "SELECT COUNT(*) FROM alarm_events",
