@@ -137,6 +137,9 @@ pub struct SnapshotPolicy {
 /// only while the database refuses; the snapshot stays queued).
 pub const SNAPSHOT_WAIT: Duration = Duration::from_secs(2);
 
+/// Snapshot versions expired per database transaction.
+const EXPIRY_BATCH: usize = 500;
+
 /// Bounds on the in-memory session table.
 #[derive(Clone, Copy, Debug)]
 pub struct SessionLimits {
@@ -980,36 +983,36 @@ impl SessionManager {
                 .map(|(version, _)| version.clone())
                 .collect::<Vec<_>>()
         };
-        if confirmed.is_empty() {
-            return 0;
-        }
-        match self.store.expire_snapshots(&confirmed).await {
-            Ok(abandoned) => {
-                let mut seen = self
-                    .stale_seen
-                    .lock()
-                    .unwrap_or_else(PoisonError::into_inner);
-                for version in &confirmed {
-                    seen.remove(version);
+        let mut ended = 0;
+        // A few hundred per transaction: a mass expiry never holds the database's write lock long.
+        for batch in confirmed.chunks(EXPIRY_BATCH) {
+            let abandoned = match self.store.expire_snapshots(batch).await {
+                Ok(abandoned) => abandoned,
+                Err(error) => {
+                    tracing::warn!(%error, "could not expire old session snapshots; retrying later");
+                    break;
                 }
-                drop(seen);
-                let ended = abandoned.len();
-                for (alarm, snapshot) in abandoned {
-                    let last = SessionSnapshot::decode(&snapshot)
-                        .ok()
-                        .and_then(|s| s.open_alarm)
-                        .filter(|open| open.id == alarm.id)
-                        .map(|open| (open.last_timestamp_s, open.peak, i64::from(open.samples)));
-                    self.outbox.end_abandoned(alarm, last);
-                    telemetry::alarm_end();
-                }
-                ended
+            };
+            let mut seen = self
+                .stale_seen
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner);
+            for version in batch {
+                seen.remove(version);
             }
-            Err(error) => {
-                tracing::warn!(%error, "could not expire old session snapshots; retrying later");
-                0
+            drop(seen);
+            ended += abandoned.len();
+            for (alarm, snapshot) in abandoned {
+                let last = SessionSnapshot::decode(&snapshot)
+                    .ok()
+                    .and_then(|s| s.open_alarm)
+                    .filter(|open| open.id == alarm.id)
+                    .map(|open| (open.last_timestamp_s, open.peak, i64::from(open.samples)));
+                self.outbox.end_abandoned(alarm, last);
+                telemetry::alarm_end();
             }
         }
+        ended
     }
 
     /// How long this process must see a snapshot unchanged, by its own clock, before it expires:
