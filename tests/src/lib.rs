@@ -231,6 +231,15 @@ impl Clients {
     }
 }
 
+/// The hex SHA-256 of a token, as a roles file names it.
+pub fn token_sha256(token: &str) -> String {
+    use sha2::{Digest, Sha256};
+    Sha256::digest(token.as_bytes())
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
 /// The wire samples of a track.
 pub fn track_samples(track: &Track) -> Vec<v1::Sample> {
     track

@@ -7,22 +7,14 @@
 use std::path::Path;
 use std::time::Duration;
 
-use sha2::{Digest, Sha256};
 use spoofwatch_proto::longrunning;
 use spoofwatch_proto::v1;
 use spoofwatch_tests::pki::{CertFiles, TestCa};
 use spoofwatch_tests::{
-    ConnectOptions, Connection, TestServer, normal_drive, test_config, track_samples,
+    ConnectOptions, Connection, TestServer, normal_drive, test_config, token_sha256, track_samples,
 };
 use tokio_stream::StreamExt;
 use tonic::Code;
-
-fn sha256(text: &str) -> String {
-    Sha256::digest(text.as_bytes())
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect()
-}
 
 /// The roles file of the token tests: one token per role.
 fn token_roles() -> String {
@@ -32,10 +24,10 @@ fn token_roles() -> String {
          \"{}\" = {{ name = \"bridge\", role = \"gateway\", vehicle_prefixes = [\"gw-\"] }}\n\
          \"{}\" = {{ name = \"dashboard\", role = \"operator\" }}\n\
          \"{}\" = {{ name = \"second-admin\", role = \"admin\" }}\n",
-        sha256("vehicle-token"),
-        sha256("gateway-token"),
-        sha256("operator-token"),
-        sha256("admin-token"),
+        token_sha256("vehicle-token"),
+        token_sha256("gateway-token"),
+        token_sha256("operator-token"),
+        token_sha256("admin-token"),
     )
 }
 

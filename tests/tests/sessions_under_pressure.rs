@@ -5,19 +5,12 @@
 
 use std::time::Duration;
 
-use sha2::{Digest, Sha256};
 use spoofwatch_proto::v1;
 use spoofwatch_tests::{
-    Clients, ConnectOptions, Connection, TestServer, normal_drive, test_config, track_samples,
+    Clients, ConnectOptions, Connection, TestServer, normal_drive, test_config, token_sha256,
+    track_samples,
 };
 use tonic::Code;
-
-fn sha256(text: &str) -> String {
-    Sha256::digest(text.as_bytes())
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect()
-}
 
 async fn detect(connection: &Connection, vehicle: &str) -> Result<(), tonic::Status> {
     connection
@@ -40,8 +33,8 @@ async fn one_identity_cannot_take_more_than_its_quota_of_sessions() {
         format!(
             "[tokens]\n\"{}\" = {{ name = \"flood\", role = \"gateway\", vehicle_prefixes = [\"\"] }}\n\
              \"{}\" = {{ name = \"fleet\", role = \"gateway\", vehicle_prefixes = [\"\"] }}\n",
-            sha256("flood-token"),
-            sha256("fleet-token")
+            token_sha256("flood-token"),
+            token_sha256("fleet-token")
         ),
     )
     .expect("written");
@@ -200,4 +193,97 @@ async fn a_connection_holds_at_most_its_limit_of_streams() {
     third.expect("a stream");
     drop(clients);
     server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_watcher_that_stops_reading_is_let_go() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut config = test_config(dir.path());
+    config.stream_idle_secs = 2;
+    let server = TestServer::start(config).await;
+    let clients = Clients::of(&server).await;
+    // Far more events than the call's reply buffer holds: each drive stores an onset and an end.
+    let vehicles: Vec<String> = (0..60).map(|i| format!("watched-{i}")).collect();
+    let mut drives = tokio::task::JoinSet::new();
+    for vehicle in vehicles {
+        let clients = clients.clone();
+        drives.spawn(
+            async move { spoofwatch_tests::stream_frozen_fix_drive(&clients, &vehicle).await },
+        );
+    }
+    while let Some(episodes) = drives.join_next().await {
+        assert_eq!(
+            episodes.expect("joined").len(),
+            1,
+            "each drive raises one alarm"
+        );
+    }
+    let stored = stored_events(&clients).await;
+    assert!(stored >= 100, "only {stored} events stored");
+
+    // A client that grants a tiny HTTP/2 window: not one whole event reaches it until it reads.
+    let channel = tonic::transport::Channel::from_shared(server.url())
+        .expect("a valid URI")
+        .initial_stream_window_size(64)
+        .connect()
+        .await
+        .expect("connect");
+    let mut stalled = spoofwatch_proto::v1::alarm_service_client::AlarmServiceClient::new(channel)
+        .watch_alarms(v1::WatchAlarmsRequest {
+            after_cursor: Some(0),
+            ..Default::default()
+        })
+        .await
+        .expect("the watch is accepted")
+        .into_inner();
+    tokio::time::sleep(Duration::from_secs(6)).await;
+
+    // It reads at last: what was buffered on the way arrives, then the stream ends; a watcher
+    // still held would go on to CAUGHT_UP and wait for more.
+    let mut delivered = 0;
+    let end = tokio::time::timeout(Duration::from_secs(30), async {
+        loop {
+            match stalled.message().await {
+                Ok(Some(event)) => {
+                    assert_ne!(
+                        event.kind,
+                        v1::AlarmEventKind::CaughtUp as i32,
+                        "the watcher was held until it caught up ({delivered} of {stored} events read)"
+                    );
+                    delivered += 1;
+                }
+                Ok(None) => return Ok(()),
+                Err(status) => return Err(status),
+            }
+        }
+    })
+    .await
+    .expect("the stream of a watcher that stopped reading ends");
+    if let Err(status) = end {
+        assert_eq!(status.code(), Code::DeadlineExceeded, "{status:?}");
+    }
+    drop(clients);
+    server.stop().await;
+}
+
+/// How many alarm events the log holds: a watch from the start that stops when caught up.
+async fn stored_events(clients: &Clients) -> usize {
+    let mut watch = clients
+        .alarms
+        .clone()
+        .watch_alarms(v1::WatchAlarmsRequest {
+            after_cursor: Some(0),
+            stop_when_caught_up: true,
+            ..Default::default()
+        })
+        .await
+        .expect("a history watch")
+        .into_inner();
+    let mut events = 0;
+    while let Some(event) = watch.message().await.expect("the history") {
+        if event.kind != v1::AlarmEventKind::CaughtUp as i32 {
+            events += 1;
+        }
+    }
+    events
 }
