@@ -77,6 +77,20 @@ GROUPS = [
     ("memory", "Memory",
      "Idle sessions: the server's resident memory grows by this much per session opened "
      "(one stream start and one batch each, then the stream ends)."),
+    ("admin", "Detection beside administrative work",
+     "A fleet streams while an administrator works on the same server (`--admin-load`, on "
+     "connections of its own): two clients upload datasets of 100,000 structured records, every "
+     "record its own vehicle, back to back; one imports a model of about 300,000 parameters, back "
+     "to back; four score 1,000-sample Detect calls on such a model without pause; and a health "
+     "check goes every 50 ms. *health* is the health checks' round trip; *done* counts the pieces "
+     "of admin work finished during the phase. Goal: health p99 ≤ 50 ms, and the fleet at 100 % "
+     "delivered with p99 ≤ 20 ms."),
+    ("uploads", "Dataset uploads",
+     "One server on SQLite receives a telemetry CSV of 128 MiB (2.1 million rows, 1,000 vehicles) "
+     "through `spoofwatch datasets upload`, in 1 MiB chunks. *Peak RSS* is the server process's "
+     "high-water mark (`VmHWM` in `/proc/PID/status`) after the upload, its whole memory and not "
+     "only the upload's; *idle* is its resident memory before the upload. Goal: the peak stays "
+     "within twice the upload's size."),
     ("experiments", "Experiments",
      "Wall time of whole research commands (`spoofwatch-lab`, AV-GPS data in `$D`)."),
 ]
@@ -126,6 +140,10 @@ ROWS = [
     bench_row("gateway-saturation-10000", "fleet",
               "gateway saturation, 10,000 vehicles, 100 per message",
               ["--streams", "10000", "--batch", "1", "--vehicles-per-message", "100", "--seconds", "10"]),
+    bench_row("fleet-1000-admin-load", "admin",
+              "fleet, 1,000 vehicles at 1 Hz, one sample per message, beside admin work",
+              ["--streams", "1000", "--batch", "1", "--rate", "1000", "--seconds", "30",
+               "--admin-load"], goal="health p99 ≤ 50 ms; fleet p99 ≤ 20 ms, 100 % delivered"),
     bench_row("stream-100-rate-60k-metrics", "modes", "100 streams, 60,000/s offered: metrics on",
               STREAM_60K, mode="metrics"),
     bench_row("stream-100-rate-60k-tls", "modes", "100 streams, 60,000/s offered: TLS on",
@@ -152,6 +170,8 @@ ROWS = [
          title="10,000 idle sessions", goal="≤ 4 KiB per session", heavy=False),
     dict(id="idle-sessions-100000", group="memory", kind="memory", sessions=100000,
          title="100,000 idle sessions", goal="≤ 4 KiB per session", heavy=True),
+    dict(id="upload-csv-128mib", group="uploads", kind="upload-memory", mib=128,
+         title="CSV upload of 128 MiB", goal="peak RSS ≤ 2 × the upload (256 MiB)", heavy=False),
     dict(id="experiment-av-gps", group="experiments", kind="command",
          title="av-gps experiment (23 models)",
          argv=["spoofwatch-lab", "experiment", "av-gps", "--data-dir", "$D", "--out", "$OUT"],
@@ -170,6 +190,9 @@ def display_command(row: dict) -> str:
         return f"cargo bench -p spoofwatch-core --bench {row['bench']}"
     if kind == "command":
         return " ".join(row["argv"])
+    if kind == "upload-memory":
+        return (f"spoofwatch-server · spoofwatch datasets upload --server URL --file "
+                f"telemetry-{row['mib']}mib.csv")
     if kind == "handoff":
         return ("spoofwatch bench --server URL_A --handoff-to URL_B --handoff 1000 "
                 f"--handoff-concurrency {row['concurrency']}")
@@ -380,6 +403,27 @@ def run_bench(env: Env, row: dict) -> dict:
     values = dict(zip(THROUGHPUT, [number(c[3]), number(c[5]), number(c[6]), number(c[7]),
                                    number(c[8]), number(c[9]), number(c[10]), number(c[11])]))
     values["errors"] = float(c[12])
+    if "--admin-load" in args:
+        values.update(admin_values(out))
+    return values
+
+
+ADMIN_WORK = {"health check": "health", "dataset upload": "uploads", "model import": "imports",
+              "Detect, 1,000 samples": "heavy_detects"}
+
+
+def admin_values(out: str) -> dict:
+    """The admin-load table's health percentiles and the count of each kind of work done."""
+    values = {}
+    for cells in parse_table(out, r"health check|dataset upload.*|model import.*|Detect, 1,000.*"):
+        key = next(v for k, v in ADMIN_WORK.items() if cells[0].startswith(k))
+        if key == "health":
+            values.update(health_p50_ms=number(cells[2]), health_p99_ms=number(cells[3]),
+                          health_max_ms=number(cells[4]))
+        else:
+            values[f"{key}_done"] = number(cells[1])
+    if len(values) != 6:
+        raise RuntimeError(f"no complete admin-load table in:\n{out}")
     return values
 
 
@@ -457,8 +501,56 @@ def run_command(env: Env, row: dict) -> dict:
             "peak_rss_mib": round(usage.ru_maxrss / 1024)}
 
 
+def telemetry_csv(path: Path, size: int) -> None:
+    """A telemetry CSV of exactly `size` bytes or just under: 1,000 vehicles at 1 Hz, labelled,
+    the same file on every run (a fixed seed)."""
+    if path.exists() and path.stat().st_size > size - 200:
+        return
+    import random
+    rnd = random.Random(1)
+    with open(path, "w") as f:
+        written = f.write("vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg,label\n")
+        n = 0
+        while True:
+            vehicle, t = n % 1000, n // 1000
+            line = (f"vehicle-{vehicle:04d},{1_700_000_000 + t},{32.2 + vehicle * 1e-3 + t * 1e-5:.7f},"
+                    f"{-110.9 + t * 1e-5:.7f},{10 + rnd.random():.3f},{rnd.random() * 360:.2f},"
+                    f"{int(t > 1500)}\n")
+            if written + len(line) > size:
+                return
+            written += f.write(line)
+            n += 1
+
+
+def memory_kib(pid: int, field: str) -> int:
+    m = re.search(rf"{field}:\s+(\d+) kB", Path(f"/proc/{pid}/status").read_text())
+    if not m:
+        raise RuntimeError(f"no {field} for process {pid}")
+    return int(m.group(1))
+
+
+def run_upload_memory(env: Env, row: dict) -> dict:
+    size = row["mib"] << 20
+    csv = env.work / f"telemetry-{row['mib']}mib.csv"
+    telemetry_csv(csv, size)
+    server = env.server(PORT, env.database("sqlite"), [], core=0)
+    try:
+        idle = memory_kib(server.pid, "VmRSS")
+        out = client(env, ["datasets", "upload", "--server", f"http://127.0.0.1:{PORT}", "--file",
+                           str(csv)], timeout=600)
+        if "rows" not in out:
+            raise RuntimeError(f"the upload did not report its dataset:\n{out}")
+        peak = memory_kib(server.pid, "VmHWM")
+    finally:
+        stop(server)
+    upload_mib = csv.stat().st_size / 2**20
+    return {"upload_mib": round(upload_mib, 1), "idle_rss_mib": round(idle / 1024, 1),
+            "peak_rss_mib": round(peak / 1024, 1),
+            "peak_over_upload": round(peak / 1024 / upload_mib, 2)}
+
+
 RUNNERS = {"bench": run_bench, "memory": run_bench, "handoff": run_handoff,
-           "criterion": run_criterion, "command": run_command}
+           "criterion": run_criterion, "command": run_command, "upload-memory": run_upload_memory}
 
 
 def summarise(runs: list[dict]) -> dict:
@@ -523,7 +615,12 @@ LABELS = [("samples_per_s", "", "/s"), ("p50_ms", "p50 ", " ms"), ("p99_ms", "**
           ("p999_ms", "p99.9 ", " ms"), ("max_ms", "max ", " ms"), ("delivered_pct", "delivered ", " %"),
           ("cpu_us_per_sample", "CPU ", " µs/sample"), ("rss_mib", "RSS ", " MiB"),
           ("kib_per_session", "**", " KiB per session**"), ("wall_s", "wall ", " s"),
-          ("cpu_s", "CPU ", " s"), ("peak_rss_mib", "peak RSS ", " MiB")]
+          ("cpu_s", "CPU ", " s"), ("peak_rss_mib", "peak RSS ", " MiB"),
+          ("idle_rss_mib", "idle ", " MiB"), ("upload_mib", "upload ", " MiB"),
+          ("peak_over_upload", "**peak ", " × the upload**"),
+          ("health_p50_ms", "health p50 ", " ms"), ("health_p99_ms", "**health p99** ", " ms"),
+          ("health_max_ms", "health max ", " ms"), ("uploads_done", "uploads done ", ""),
+          ("imports_done", "imports done ", ""), ("heavy_detects_done", "heavy Detect calls done ", "")]
 
 
 def handoff_text(summary: dict) -> str:

@@ -11,6 +11,7 @@
 //! stays in memory until idle eviction) and reports the server's resident memory before and after.
 //!
 //! Hand-off phase (`--handoff N`, instead of the others): see [`handoff`].
+//! Administrative load beside the throughput phases (`--admin-load`): see [`admin_load`].
 //!
 //! Streams are driven through the client's `DetectStream` and `FleetDetectStream`; this module owns
 //! only the load shape and the measurements. Without `--server` it names `spoofwatch-lab bench`, which
@@ -32,7 +33,10 @@ use tokio::sync::{Barrier, Semaphore};
 use super::detect::parse_batch;
 use crate::cli::server_flags::OptionalServerArgs;
 
+mod admin_load;
 mod handoff;
+
+use admin_load::AdminLoad;
 
 /// Sessions opened at once in the memory phase.
 const MEMORY_PHASE_CONCURRENCY: usize = 64;
@@ -77,6 +81,12 @@ pub struct Args {
     /// StreamDetectFleet (gateway) streams instead of one StreamDetect stream each.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=1000))]
     pub vehicles_per_message: u32,
+    /// Runs an administrator's work beside every throughput phase, on connections of its own:
+    /// two clients uploading 100,000-record datasets, one importing a model of about 300,000
+    /// parameters, four scoring 1,000-sample Detect calls on such a model, and a health check
+    /// every 50 ms. Their timings follow the results table. Needs the admin role.
+    #[arg(long, conflicts_with = "handoff")]
+    pub admin_load: bool,
     /// Runs only the hand-off phase, with this many vehicles: they stream to --server, then start
     /// on --handoff-to (a replica on the same database), timed to their first detection, beside as
     /// many fresh starts. Without --server, `spoofwatch-lab bench` runs two in-process servers on one
@@ -250,6 +260,7 @@ pub async fn load(args: &Args, url: &str, options: ConnectOptions, pid: Option<u
         args.seconds, args.batch
     );
     let mut results = Vec::new();
+    let mut admin_tables = Vec::new();
     for &streams in &args.streams {
         // Each stream sends one batch per `pace` when a rate is given.
         let pace = (args.rate > 0.0)
@@ -264,14 +275,24 @@ pub async fn load(args: &Args, url: &str, options: ConnectOptions, pid: Option<u
             prefix: &args.vehicle_prefix,
             server_pid: pid,
         };
+        let admin = match args.admin_load {
+            true => Some(AdminLoad::start(url, &options).await?),
+            false => None,
+        };
         let phase = throughput_phase(url, options.clone(), shape);
         let limit = Duration::from_secs_f64(args.seconds) + PHASE_SLACK;
         let result = tokio::time::timeout(limit, phase)
             .await
             .with_context(|| format!("the {streams}-stream phase did not finish in {limit:?}"))??;
         results.push(result);
+        if let Some(admin) = admin {
+            admin_tables.push(admin.finish().await?);
+        }
     }
     print!("{}", results_table(&results, args.batch));
+    for table in admin_tables {
+        print!("\n{table}");
+    }
 
     if args.sessions > 0 {
         let shape = MemoryShape {
