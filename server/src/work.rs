@@ -1,8 +1,10 @@
-//! CPU-heavy work kept off the async runtime's threads, and bounded: scoring large batches,
-//! parsing and checking model artifacts, parsing datasets and converting uploaded records run
-//! here, at most [`HeavyWork::slots`] at once, so that health checks and the small detection
-//! messages of a fleet are answered while an admin uploads, imports or evaluates. It owns the
-//! bound, not the work.
+//! CPU-heavy work kept off the async runtime's threads, bounded, and yielding to them: scoring
+//! large batches, parsing and checking model artifacts, parsing datasets and converting uploaded
+//! records run here, at most [`HeavyWork::slots`] at once, on threads of the lowest CPU priority
+//! ([`at_low_priority`], which training and evaluation jobs use too). So health checks and the
+//! small detection messages of a fleet are answered promptly even when the machine's cores are
+//! busy with an admin's uploads, imports or jobs. It owns the bound and the priority, not the
+//! work.
 
 use std::sync::Arc;
 
@@ -36,16 +38,55 @@ impl HeavyWork {
         self.slots
     }
 
-    /// Runs `work` once a slot is free, on a thread the runtime no longer schedules tasks on (the
-    /// current worker hands its tasks to another first). On a single-threaded runtime (unit
-    /// tests) it runs in place.
-    pub async fn run<T>(&self, work: impl FnOnce() -> T) -> T {
+    /// Runs `work` once a slot is free, [`at_low_priority`], while the calling task's thread
+    /// waits outside the runtime (its worker hands its tasks to another first). On a
+    /// single-threaded runtime (unit tests) the wait happens in place.
+    pub async fn run<T: Send>(&self, work: impl FnOnce() -> T + Send) -> T {
         // The semaphore is never closed, so a permit always comes.
         let _permit = self.permits.acquire().await;
         match Handle::current().runtime_flavor() {
-            RuntimeFlavor::MultiThread => tokio::task::block_in_place(work),
-            _ => work(),
+            RuntimeFlavor::MultiThread => tokio::task::block_in_place(|| at_low_priority(work)),
+            _ => at_low_priority(work),
         }
+    }
+}
+
+/// The nice value of heavy work: the lowest priority, so that a core shared with the runtime's
+/// threads goes to them whenever they have something to do.
+pub const HEAVY_NICE: i32 = 19;
+
+/// Runs `work` on a thread of its own at nice [`HEAVY_NICE`] and waits for it. The thread is
+/// scoped, so `work` may borrow from the caller. Should no thread be available, `work` runs on
+/// the calling thread.
+pub fn at_low_priority<T: Send>(work: impl FnOnce() -> T + Send) -> T {
+    let mut work = Some(work);
+    let outcome = std::thread::scope(|scope| {
+        let spawned = std::thread::Builder::new()
+            .name("heavy-work".into())
+            .spawn_scoped(scope, || {
+                lower_this_threads_priority();
+                work.take().map(|work| work())
+            });
+        spawned.ok().map(|thread| {
+            thread
+                .join()
+                .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+        })
+    });
+    match (outcome.flatten(), work) {
+        (Some(done), _) => done,
+        (None, Some(work)) => work(),
+        (None, None) => unreachable!("the work ran or is still here"),
+    }
+}
+
+/// Gives the calling thread the nice value [`HEAVY_NICE`]. On Linux the nice value belongs to
+/// the thread, not the process, so the runtime's threads keep theirs. Failing is harmless: the
+/// work then runs at the process's priority.
+fn lower_this_threads_priority() {
+    let thread = rustix::thread::gettid();
+    if let Err(error) = rustix::process::setpriority_process(Some(thread), HEAVY_NICE) {
+        tracing::debug!(%error, "heavy work runs at the process's priority");
     }
 }
 
@@ -85,5 +126,38 @@ mod tests {
         }
         assert_eq!(most.load(Ordering::SeqCst), 2);
         assert_eq!(HeavyWork::new(0).slots(), 1);
+    }
+
+    /// The nice value of the calling thread, read from `/proc/thread-self/stat` (field 19).
+    fn this_threads_nice() -> i32 {
+        let stat = std::fs::read_to_string("/proc/thread-self/stat").expect("thread stat");
+        let after_name = &stat[stat.rfind(')').expect("the name's end") + 2..];
+        after_name
+            .split(' ')
+            .nth(16)
+            .and_then(|nice| nice.parse().ok())
+            .expect("the nice field")
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn heavy_work_runs_at_the_lowest_priority_and_the_runtime_keeps_its_own() {
+        let before = this_threads_nice();
+        let mut borrowed = vec![1, 2, 3];
+        let nice = HeavyWork::new(1)
+            .run(|| {
+                borrowed.push(4);
+                this_threads_nice()
+            })
+            .await;
+        assert_eq!(nice, HEAVY_NICE);
+        assert_eq!(borrowed, [1, 2, 3, 4]);
+        assert_eq!(this_threads_nice(), before);
+    }
+
+    #[test]
+    fn a_panic_in_heavy_work_reaches_the_caller() {
+        let caught = std::panic::catch_unwind(|| at_low_priority(|| panic!("bad input")));
+        let panic = caught.expect_err("the panic is passed on");
+        assert_eq!(panic.downcast_ref::<&str>(), Some(&"bad input"));
     }
 }

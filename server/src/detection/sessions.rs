@@ -588,11 +588,11 @@ impl SessionManager {
 
     /// Runs `work` on `state` (a batch of `samples` samples): in place, or on the pool of heavy
     /// work when the batch costs at least [`HEAVY_BATCH_COST`].
-    async fn score<T>(
+    async fn score<T: Send>(
         &self,
         state: &mut SessionState,
         samples: usize,
-        work: impl FnOnce(&mut SessionState) -> T,
+        work: impl FnOnce(&mut SessionState) -> T + Send,
     ) -> T {
         if batch_cost(&state.model, samples) >= HEAVY_BATCH_COST {
             self.heavy.run(|| work(state)).await

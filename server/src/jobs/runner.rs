@@ -28,6 +28,7 @@ use crate::identity::new_id;
 use crate::models::{Registry, RegistryError};
 use crate::store::{EpochRow, JobEndError, JobOutcome, ModelSource, Store, StoreError};
 use crate::telemetry;
+use crate::work::at_low_priority;
 
 /// Why a job did not succeed: its real cause, so the operation's error gets the right code.
 #[derive(Debug, thiserror::Error)]
@@ -159,9 +160,11 @@ impl Runner {
         }
         let test_metrics = {
             let trained = Arc::clone(&trained);
-            tokio::task::spawn_blocking(move || trained.held_out_metrics(EventRules::Spec))
-                .await
-                .map_err(|e| Fault::new("evaluating the test split", e))?
+            tokio::task::spawn_blocking(move || {
+                at_low_priority(|| trained.held_out_metrics(EventRules::Spec))
+            })
+            .await
+            .map_err(|e| Fault::new("evaluating the test split", e))?
         };
         let model_id = new_id();
         let name = if display_name.is_empty() {
@@ -192,7 +195,7 @@ impl Runner {
         let tracks = self.catalog.load_tracks(&request.datasets).await?;
         let artifact = Arc::clone(&loaded.artifact);
         let evaluation = tokio::task::spawn_blocking(move || {
-            evaluate_tracks(&artifact, &tracks, EventRules::Spec)
+            at_low_priority(|| evaluate_tracks(&artifact, &tracks, EventRules::Spec))
         })
         .await
         .map_err(|e| Fault::new("evaluating a model", e))?;
@@ -203,7 +206,7 @@ impl Runner {
         })
     }
 
-    /// Runs training on a blocking thread; epochs stream back to be persisted and announced.
+    /// Runs training on a blocking thread at low priority; epochs stream back to be persisted and announced.
     async fn train(
         &self,
         id: &OperationName,
@@ -216,15 +219,18 @@ impl Runner {
         let (epochs_tx, mut epochs_rx) = mpsc::unbounded_channel::<EpochProgress>();
         let flag = Arc::clone(&cancel_flag);
         let worker = tokio::task::spawn_blocking(move || {
-            train_detector(
-                &spec,
-                data,
-                &mut |p| {
-                    // The receiver lives until the worker ends; a send can only fail after that.
-                    let _ = epochs_tx.send(p.clone());
-                },
-                &flag,
-            )
+            at_low_priority(|| {
+                train_detector(
+                    &spec,
+                    data,
+                    &mut |p| {
+                        // The receiver lives until the worker ends; a send can only fail after
+                        // that.
+                        let _ = epochs_tx.send(p.clone());
+                    },
+                    &flag,
+                )
+            })
         });
         let started = Instant::now();
         let mut epoch_index = 0u32;
