@@ -105,6 +105,7 @@ impl App {
             JobSettings {
                 max_running: config.max_running_jobs,
                 max_pending: config.max_pending_jobs,
+                input_kib: config.job_input_mib as usize * 1024,
             },
             instance,
         );

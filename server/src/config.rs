@@ -26,6 +26,8 @@ pub mod defaults {
     pub const MAX_BATCH_SAMPLES: usize = limits::MAX_BATCH_SAMPLES;
     pub const MAX_MESSAGE_BYTES: usize = limits::MAX_MESSAGE_BYTES;
     pub const MAX_RUNNING_JOBS: usize = 1;
+    /// The datasets of four of the largest jobs' worth of input read at once.
+    pub const JOB_INPUT_MIB: u32 = 1_024;
     pub const MAX_PENDING_JOBS: usize = 16;
     pub const SHUTDOWN_GRACE_SECS: u64 = 10;
     pub const HANDSHAKE_TIMEOUT_SECS: u64 = 10;
@@ -110,6 +112,12 @@ pub struct Config {
     /// Jobs queued or running at once; more are refused.
     #[arg(long, env = "SPOOFWATCH_MAX_PENDING_JOBS", default_value_t = defaults::MAX_PENDING_JOBS)]
     pub max_pending_jobs: usize,
+    /// MiB of stored dataset input that running jobs together may read (a job holds its datasets'
+    /// records in memory while it runs); a job waits for room, and one whose datasets alone hold
+    /// more is refused INVALID_ARGUMENT.
+    #[arg(long, env = "SPOOFWATCH_JOB_INPUT_MIB", default_value_t = defaults::JOB_INPUT_MIB,
+          value_parser = clap::value_parser!(u32).range(1..=1_048_576))]
+    pub job_input_mib: u32,
     /// Bytes of parsed model artifacts kept in memory besides the active model (least recently used
     /// evicted first; sized by the serialised artifact).
     #[arg(long, env = "SPOOFWATCH_MODEL_CACHE_BYTES", default_value_t = defaults::MODEL_CACHE_BYTES)]
@@ -199,6 +207,7 @@ impl Default for Config {
             max_batch_samples: defaults::MAX_BATCH_SAMPLES,
             max_message_bytes: defaults::MAX_MESSAGE_BYTES,
             max_running_jobs: defaults::MAX_RUNNING_JOBS,
+            job_input_mib: defaults::JOB_INPUT_MIB,
             max_pending_jobs: defaults::MAX_PENDING_JOBS,
             model_cache_bytes: defaults::MODEL_CACHE_BYTES,
             shutdown_grace_secs: defaults::SHUTDOWN_GRACE_SECS,

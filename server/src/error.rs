@@ -131,6 +131,7 @@ impl From<JobError> for Status {
                 )
             }
             JobError::QueueFull(_) => resource_exhausted(error.to_string()),
+            JobError::InputTooLarge { .. } => invalid_field("datasets", error.to_string()),
             JobError::NotFound(name) => not_found("operation", &name.to_string()),
             JobError::Model(model) => model.into(),
             JobError::Dataset(dataset) => dataset.into(),

@@ -2,13 +2,14 @@
 //! record its own vehicle) are converted, parsed and stored, health checks are still answered
 //! promptly. Uploaded records are grouped by vehicle in time linear in their number, and the
 //! conversion and parsing run on the bounded pool of heavy work, off the runtime's threads. A
-//! model whose cost per sample exceeds the bound is refused at import.
+//! model whose cost per sample exceeds the bound is refused at import, and a job whose datasets
+//! hold more than running jobs may read at once is refused at creation.
 
 use std::time::{Duration, Instant};
 
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::upload_dataset_request::Kind;
-use spoofwatch_tests::{Clients, start_server};
+use spoofwatch_tests::{Clients, normal_drive, start_server, upload_tracks, wait_done};
 use tonic_health::pb::HealthCheckRequest;
 
 const RECORDS: usize = 100_000;
@@ -155,6 +156,56 @@ async fn uploads_together_hold_at_most_the_upload_memory() {
         .await
         .expect_err("not CSV");
     assert_eq!(read.code(), tonic::Code::InvalidArgument);
+    drop(clients);
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_whose_datasets_exceed_the_job_input_is_refused() {
+    let (_dir, server, mut clients) = start_server(|config| config.job_input_mib = 1).await;
+    let fleet: Vec<_> = (0..10)
+        .map(|i| normal_drive(&format!("long-{i}"), 1_800.0, i))
+        .collect();
+    let large = upload_tracks(&mut clients, "large", &fleet).await;
+    assert!(large.size_bytes > 1 << 20, "{} bytes", large.size_bytes);
+    let small = upload_tracks(&mut clients, "small", &fleet[..1]).await;
+    let evaluate = |dataset: &v1::Dataset| v1::CreateEvaluationJobRequest {
+        model: String::new(),
+        datasets: vec![dataset.name.clone()],
+    };
+
+    let refused = clients
+        .training
+        .create_evaluation_job(evaluate(&large))
+        .await
+        .expect_err("more than 1 MiB of input");
+    assert_eq!(refused.code(), tonic::Code::InvalidArgument);
+    let violations = tonic_types::StatusExt::get_details_bad_request(&refused)
+        .expect("field violations")
+        .field_violations;
+    assert_eq!(violations.len(), 1, "{violations:?}");
+    assert_eq!(violations[0].field, "datasets");
+    assert!(
+        violations[0].description.contains("--job-input-mib"),
+        "{violations:?}"
+    );
+
+    let job = clients
+        .training
+        .create_evaluation_job(evaluate(&small))
+        .await
+        .expect("a job within the input budget is accepted")
+        .into_inner();
+    let done = wait_done(&mut clients.operations, &job.name).await;
+    assert!(
+        matches!(
+            done.result,
+            Some(spoofwatch_proto::longrunning::operation::Result::Response(
+                _
+            ))
+        ),
+        "{done:?}"
+    );
     drop(clients);
     server.stop().await;
 }

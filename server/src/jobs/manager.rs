@@ -47,6 +47,8 @@ pub struct JobSettings {
     pub max_running: usize,
     /// Jobs queued or running at once; more are refused.
     pub max_pending: usize,
+    /// KiB of stored dataset input that running jobs together may read.
+    pub input_kib: usize,
 }
 
 /// Why a job request or a job operation was refused.
@@ -63,6 +65,14 @@ pub enum JobError {
     /// The queue is full.
     #[error("{0} jobs are already queued or running")]
     QueueFull(usize),
+    /// The job's datasets alone hold more than running jobs may read at once.
+    #[error(
+        "the job's datasets hold {} MiB, more than the {} MiB that running jobs may read at once \
+         (--job-input-mib)",
+        .input_kib.div_ceil(1024),
+        .limit_kib / 1024
+    )]
+    InputTooLarge { input_kib: usize, limit_kib: usize },
     /// No job has this name.
     #[error("operation {0} not found")]
     NotFound(OperationName),
@@ -85,6 +95,8 @@ pub struct JobManager {
     /// This server's instance id: the owner of the jobs it admits.
     instance: String,
     slots: Arc<Semaphore>,
+    /// KiB of dataset input, taken by each running job for its datasets' stored size.
+    input: Arc<Semaphore>,
     live: Mutex<HashMap<OperationName, Arc<LiveJob>>>,
 }
 
@@ -92,6 +104,7 @@ impl JobManager {
     pub fn new(runner: Runner, settings: JobSettings, instance: String) -> Arc<Self> {
         Arc::new(Self {
             slots: Arc::new(Semaphore::new(settings.max_running.max(1))),
+            input: Arc::new(Semaphore::new(settings.input_kib)),
             runner,
             settings,
             instance,
@@ -123,11 +136,16 @@ impl JobManager {
         self.create(request).await
     }
 
-    /// Checks that every dataset of `request` exists, then queues it.
+    /// Checks that every dataset of `request` exists and that together they fit the input budget,
+    /// then queues it.
     pub async fn create(self: &Arc<Self>, request: JobRequest) -> Result<JobRow, JobError> {
+        let mut input_bytes = 0_usize;
         for (field, name) in request.datasets() {
             match self.runner.catalog.get(name).await {
-                Ok(_) => {}
+                Ok(row) => {
+                    let size = usize::try_from(row.size_bytes).unwrap_or(usize::MAX);
+                    input_bytes = input_bytes.saturating_add(size);
+                }
                 Err(DatasetError::NotFound(name)) => {
                     return Err(JobError::DatasetNotFound { field, name });
                 }
@@ -144,6 +162,13 @@ impl JobManager {
             ),
             JobRequest::Evaluation(_) => (JobKind::Evaluation, Progress::default()),
         };
+        let input_kib = input_bytes.div_ceil(1024);
+        if input_kib > self.settings.input_kib {
+            return Err(JobError::InputTooLarge {
+                input_kib,
+                limit_kib: self.settings.input_kib,
+            });
+        }
         if self.live().len() >= self.settings.max_pending {
             return Err(JobError::QueueFull(self.settings.max_pending));
         }
@@ -159,15 +184,31 @@ impl JobManager {
         let live = Arc::new(LiveJob::new());
         self.live().insert(name.clone(), Arc::clone(&live));
         let manager = Arc::clone(self);
-        tokio::spawn(async move { manager.run(name, request, live).await });
+        tokio::spawn(async move { manager.run(name, request, input_kib, live).await });
         Ok(row)
     }
 
-    /// Waits for a slot (or a cancellation), has the runner execute the job, records its end.
-    async fn run(self: Arc<Self>, name: OperationName, request: JobRequest, live: Arc<LiveJob>) {
+    /// Waits for room for its input and a slot (or a cancellation), has the runner execute the
+    /// job, records its end.
+    async fn run(
+        self: Arc<Self>,
+        name: OperationName,
+        request: JobRequest,
+        input_kib: usize,
+        live: Arc<LiveJob>,
+    ) {
+        // Admission checked that the input fits the budget, so the count fits u32 permits.
+        let input_permits = u32::try_from(input_kib).unwrap_or(u32::MAX);
+        let admitted = async {
+            let input = Arc::clone(&self.input)
+                .acquire_many_owned(input_permits)
+                .await?;
+            let slot = Arc::clone(&self.slots).acquire_owned().await?;
+            Ok::<_, tokio::sync::AcquireError>((input, slot))
+        };
         let result = tokio::select! {
-            permit = Arc::clone(&self.slots).acquire_owned() => match permit {
-                Ok(_permit) => self.runner.execute(&name, request, &live).await,
+            permits = admitted => match permits {
+                Ok(_permits) => self.runner.execute(&name, request, &live).await,
                 Err(_) => Err(JobFailure::Worker(Fault::new(
                     "waiting for a job slot",
                     "the job queue is closed",
