@@ -6,6 +6,8 @@
 use std::time::Duration;
 
 use spoofwatch_proto::v1;
+use spoofwatch_proto::v1::alarm_service_client::AlarmServiceClient;
+use spoofwatch_proto::v1::detection_service_client::DetectionServiceClient;
 use spoofwatch_tests::{
     Clients, ConnectOptions, Connection, TestServer, normal_drive, test_config, token_sha256,
     track_samples,
@@ -123,14 +125,12 @@ async fn a_stream_whose_client_stops_reading_is_ended() {
     tx.send(spoofwatch_tests::start_request("reader", "", false))
         .await
         .expect("queued");
-    let replies = clients
-        .detection
-        .clone()
+    let replies = DetectionServiceClient::new(stingy_channel(&server).await)
         .stream_detect(tokio_stream::wrappers::ReceiverStream::new(rx))
         .await
         .expect("the call is accepted")
         .into_inner();
-    // Send for ever, never read: the replies fill the window and the server's buffer.
+    // Send, never read: the replies fill the tiny window and the server's buffer.
     let sender = tokio::spawn(async move {
         for (seq, batch) in (1..).zip(samples.chunks(20)) {
             let request = spoofwatch_tests::batch_request(seq, batch.to_vec());
@@ -221,14 +221,8 @@ async fn a_watcher_that_stops_reading_is_let_go() {
     let stored = stored_events(&clients).await;
     assert!(stored >= 100, "only {stored} events stored");
 
-    // A client that grants a tiny HTTP/2 window: not one whole event reaches it until it reads.
-    let channel = tonic::transport::Channel::from_shared(server.url())
-        .expect("a valid URI")
-        .initial_stream_window_size(64)
-        .connect()
-        .await
-        .expect("connect");
-    let mut stalled = spoofwatch_proto::v1::alarm_service_client::AlarmServiceClient::new(channel)
+    // Not one whole event reaches the client until it reads.
+    let mut stalled = AlarmServiceClient::new(stingy_channel(&server).await)
         .watch_alarms(v1::WatchAlarmsRequest {
             after_cursor: Some(0),
             ..Default::default()
@@ -264,6 +258,17 @@ async fn a_watcher_that_stops_reading_is_let_go() {
     }
     drop(clients);
     server.stop().await;
+}
+
+/// A connection whose client grants each stream a window of 64 bytes: the server can send a
+/// stream hardly anything until the client reads.
+async fn stingy_channel(server: &TestServer) -> tonic::transport::Channel {
+    tonic::transport::Channel::from_shared(server.url())
+        .expect("a valid URI")
+        .initial_stream_window_size(64)
+        .connect()
+        .await
+        .expect("connect")
 }
 
 /// How many alarm events the log holds: a watch from the start that stops when caught up.
