@@ -5,6 +5,17 @@
 use spoofwatch_tests::{TestServer, database_path, test_config};
 use sqlx::{Connection, SqliteConnection};
 
+/// A database migrated by a server that then stopped, in a new directory, edited by `sql`.
+async fn migrated_then_edited(sql: &'static str) -> tempfile::TempDir {
+    let dir = tempfile::tempdir().expect("temp dir");
+    TestServer::start(test_config(dir.path()))
+        .await
+        .stop()
+        .await;
+    edit_database(dir.path(), sql).await;
+    dir
+}
+
 /// Runs `sql` on the SQLite database of a stopped server in `dir`.
 async fn edit_database(dir: &std::path::Path, sql: &'static str) {
     let url = format!("sqlite://{}", database_path(dir).display());
@@ -31,16 +42,9 @@ async fn start_error(dir: &std::path::Path) -> String {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_migration_applied_with_other_contents_is_named_with_its_cause() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    TestServer::start(test_config(dir.path()))
-        .await
-        .stop()
-        .await;
-    edit_database(
-        dir.path(),
-        "UPDATE _sqlx_migrations SET checksum = X'00' WHERE version = 3",
-    )
-    .await;
+    let dir =
+        migrated_then_edited("UPDATE _sqlx_migrations SET checksum = X'00' WHERE version = 3")
+            .await;
     let error = start_error(dir.path()).await;
     assert!(error.contains("migration 3 (job leases)"), "{error}");
     assert!(error.contains("checksum differs"), "{error}");
@@ -48,13 +52,7 @@ async fn a_migration_applied_with_other_contents_is_named_with_its_cause() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_migration_from_a_newer_version_is_named_with_its_cause() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    TestServer::start(test_config(dir.path()))
-        .await
-        .stop()
-        .await;
-    edit_database(
-        dir.path(),
+    let dir = migrated_then_edited(
         "INSERT INTO _sqlx_migrations (version, description, success, checksum, execution_time) \
          VALUES (99999999, 'from the future', TRUE, X'00', 0)",
     )

@@ -9,8 +9,8 @@ use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::alarm_service_client::AlarmServiceClient;
 use spoofwatch_proto::v1::detection_service_client::DetectionServiceClient;
 use spoofwatch_tests::{
-    Clients, ConnectOptions, Connection, TestServer, normal_drive, test_config, token_sha256,
-    track_samples,
+    Clients, ConnectOptions, Connection, TestServer, normal_drive, start_server, test_config,
+    token_sha256, track_samples,
 };
 use tonic::Code;
 
@@ -82,11 +82,7 @@ async fn one_identity_cannot_take_more_than_its_quota_of_sessions() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_full_table_evicts_the_session_idle_longest_before_refusing() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = test_config(dir.path());
-    config.max_sessions = 3;
-    let server = TestServer::start(config).await;
-    let clients = Clients::of(&server).await;
+    let (_dir, server, clients) = start_server(|config| config.max_sessions = 3).await;
     for vehicle in ["oldest", "middle", "newest"] {
         detect(&clients.connection, vehicle)
             .await
@@ -115,11 +111,7 @@ async fn a_full_table_evicts_the_session_idle_longest_before_refusing() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stream_whose_client_stops_reading_is_ended() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = test_config(dir.path());
-    config.stream_idle_secs = 2;
-    let server = TestServer::start(config).await;
-    let clients = Clients::of(&server).await;
+    let (_dir, server, clients) = start_server(|config| config.stream_idle_secs = 2).await;
     let samples = track_samples(&normal_drive("reader", 2000.0, 2));
     let (tx, rx) = tokio::sync::mpsc::channel(4);
     tx.send(spoofwatch_tests::start_request("reader", "", false))
@@ -168,11 +160,8 @@ async fn a_stream_whose_client_stops_reading_is_ended() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_connection_holds_at_most_its_limit_of_streams() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = test_config(dir.path());
-    config.max_streams_per_connection = 2;
-    let server = TestServer::start(config).await;
-    let clients = Clients::of(&server).await;
+    let (_dir, server, clients) =
+        start_server(|config| config.max_streams_per_connection = 2).await;
     let watch = || {
         let mut alarms = clients.alarms.clone();
         async move { alarms.watch_alarms(v1::WatchAlarmsRequest::default()).await }
@@ -197,11 +186,7 @@ async fn a_connection_holds_at_most_its_limit_of_streams() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_watcher_that_stops_reading_is_let_go() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let mut config = test_config(dir.path());
-    config.stream_idle_secs = 2;
-    let server = TestServer::start(config).await;
-    let clients = Clients::of(&server).await;
+    let (_dir, server, clients) = start_server(|config| config.stream_idle_secs = 2).await;
     // Far more events than the call's reply buffer holds: each drive stores an onset and an end.
     let vehicles: Vec<String> = (0..60).map(|i| format!("watched-{i}")).collect();
     let mut drives = tokio::task::JoinSet::new();
