@@ -8,8 +8,18 @@ pub fn new_id() -> String {
 
 /// Lower-case hex SHA-256 of stored blobs (models, datasets).
 pub fn sha256_hex(bytes: &[u8]) -> String {
+    sha256_hex_of_pieces([bytes])
+}
+
+/// Lower-case hex SHA-256 of the concatenation of `pieces`.
+pub fn sha256_hex_of_pieces<'a>(pieces: impl IntoIterator<Item = &'a [u8]>) -> String {
     use sha2::{Digest, Sha256};
-    Sha256::digest(bytes)
+    let mut hasher = Sha256::new();
+    for piece in pieces {
+        hasher.update(piece);
+    }
+    hasher
+        .finalize()
         .iter()
         .map(|b| format!("{b:02x}"))
         .collect()

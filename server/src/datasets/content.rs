@@ -6,8 +6,6 @@
 
 use std::io::{self, Read, Write};
 
-use sha2::{Digest, Sha256};
-
 /// The size of every piece but the last.
 pub const PIECE_BYTES: usize = 1 << 20;
 
@@ -76,15 +74,7 @@ impl Content {
 
     /// Lower-case hex SHA-256 of the bytes.
     pub fn sha256_hex(&self) -> String {
-        let mut hasher = Sha256::new();
-        for piece in &self.pieces {
-            hasher.update(piece);
-        }
-        hasher
-            .finalize()
-            .iter()
-            .map(|b| format!("{b:02x}"))
-            .collect()
+        crate::identity::sha256_hex_of_pieces(self.pieces.iter().map(Vec::as_slice))
     }
 }
 
