@@ -1,4 +1,4 @@
-//! The fleet summary of a replay (`spoofwatch detect`, the clean-fleet test of issue #8): vehicles,
+//! The fleet summary of a replay (`spoofwatch detect`, and the clean-fleet check): vehicles,
 //! samples, attack-free hours, reconnects and GNSS gaps, and every alarm onset on an attack-free
 //! row classified by where it starts — within 30 s of a session (stream) start, within 30 s after
 //! a GNSS gap, or elsewhere — so that alarm storms at reconnects and tunnels show up as such.

@@ -1,4 +1,4 @@
-//! The directional GLR comparator (issue #8): the multi-scale directional drift test of evidence v2
+//! The directional GLR comparator: the multi-scale directional drift test of evidence v2
 //! by itself. Its statistic is the drift statistic G_t = max_k χ²_k / h_k of
 //! [`crate::evidence::drift`] (calibrated channels once warm, uncalibrated before); an alarm is
 //! G_t ≥ g for N_p consecutive valid steps, with (g, N_p) chosen on validation data by the same

@@ -1,4 +1,4 @@
-//! Model artifacts are validated by meaning (issue #15): a poisoned-artifact corpus, each case refused
+//! Model artifacts are validated by meaning: a poisoned-artifact corpus, each case refused
 //! with the field it poisons named, and property tests over random mutations of real artifacts (no
 //! panic; every refusal names its field; everything accepted serves finite probabilities in [0, 1]).
 

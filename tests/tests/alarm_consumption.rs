@@ -1,4 +1,4 @@
-//! Alarms out (issue #10): replayed drives with a frozen GNSS fix raise alarms that ListAlarms lists
+//! Alarms out: replayed drives with a frozen GNSS fix raise alarms that ListAlarms lists
 //! with each filter and page by page, and that WatchAlarms streams live; a watcher that reconnects
 //! with its last cursor gets exactly the events it missed, also across a server restart on the same
 //! database; invalid filters are refused field by field; the service needs the token like the

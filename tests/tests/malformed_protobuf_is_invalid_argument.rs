@@ -2,7 +2,7 @@
 //! RPC (unary, client-, server- and bidirectional streaming, google.longrunning included) answers
 //! INVALID_ARGUMENT naming the request type, and the server keeps serving.
 
-mod raw_grpc;
+use crate::raw_grpc;
 
 use std::time::Duration;
 

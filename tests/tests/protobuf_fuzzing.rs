@@ -6,7 +6,7 @@
 //! such messages on one stream. No answer may be INTERNAL or UNKNOWN (the server's fault, or a
 //! panic), no call may hang, and health stays SERVING after each RPC's round.
 
-mod raw_grpc;
+use crate::raw_grpc;
 
 use std::collections::HashMap;
 use std::time::{Duration, Instant};

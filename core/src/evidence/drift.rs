@@ -1,4 +1,4 @@
-//! Evidence v2 (issue #8, `docs/detector.md` §4.1): directional drift-rate channels on a clipped
+//! Evidence v2 (`docs/detector.md` §4.1): directional drift-rate channels on a clipped
 //! residual that is cleaned, online, of the vehicle's own onboard-sensor errors.
 //!
 //! Every energy in the paper's ξ_t is blind to direction, and the liquid cell forgets within ~10 s, so

@@ -178,7 +178,7 @@ fn check_lengths(expected: usize, inputs: &[(&'static str, usize)]) -> Result<()
     }
 }
 
-/// Which evidence groups reach the encoders (SPEC §5 ablations, and issue #8's drift groups). Removed
+/// Which evidence groups reach the encoders (SPEC §5 ablations, and the drift groups). Removed
 /// inputs are set to 0 before the encoders, so shapes stay fixed; a role whose inputs are all removed
 /// has the constant state σ(b).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]

@@ -1,6 +1,6 @@
 //! Calls with raw message bytes, for tests that send what no generated client would: a codec that
 //! passes bytes through, and one call per RPC shape, each bounded in time. Shared by test files
-//! with `mod raw_grpc;`.
+//! through `crate::raw_grpc`.
 
 #![allow(dead_code)]
 

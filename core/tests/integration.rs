@@ -1,0 +1,12 @@
+//! Core's integration tests, one module per subject, linked into one test binary (one link
+//! instead of one per file).
+
+mod artifact_validation;
+mod avgps_data;
+mod detector;
+mod ekf_comparator;
+mod evidence_parity;
+mod golden_bits;
+mod poisoned_samples;
+mod scenario;
+mod shared_scratch;
