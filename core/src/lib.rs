@@ -21,6 +21,7 @@ pub mod evaluation;
 pub mod evidence;
 pub mod explain;
 pub mod gate;
+pub mod incident;
 pub mod geo;
 pub mod glr;
 pub mod lifecycle;

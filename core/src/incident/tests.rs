@@ -1,0 +1,291 @@
+use super::*;
+
+/// A point `east_m`/`north_m` from a city centre.
+fn at(east_m: f64, north_m: f64) -> LatLon {
+    let (lat, lon) = displace_fix(32.2, -110.9, east_m, north_m);
+    LatLon::new(lat, lon)
+}
+
+/// An onset of a vehicle whose true position is `anchor` and whose fix is displaced by `offset_m`.
+fn onset(vehicle: &str, time_s: f64, anchor: LatLon, offset_m: [f64; 2]) -> AlarmOnset {
+    let (lat, lon) = displace_fix(anchor.lat_deg, anchor.lon_deg, offset_m[0], offset_m[1]);
+    AlarmOnset {
+        vehicle_id: vehicle.to_string(),
+        alarm_id: time_s as i64,
+        time_s,
+        fix: LatLon::new(lat, lon),
+        offset_m,
+        drift_mps: [0.0, 0.0],
+    }
+}
+
+fn drifting(vehicle: &str, time_s: f64, anchor: LatLon, drift_mps: [f64; 2]) -> AlarmOnset {
+    AlarmOnset {
+        drift_mps,
+        ..onset(vehicle, time_s, anchor, [5.0, -3.0])
+    }
+}
+
+fn correlator() -> AreaCorrelator {
+    AreaCorrelator::new(AreaConfig::default())
+}
+
+fn feed(correlator: &mut AreaCorrelator, onsets: Vec<AlarmOnset>) -> Vec<IncidentChange> {
+    onsets
+        .into_iter()
+        .flat_map(|o| correlator.onset(o))
+        .collect()
+}
+
+fn close(a: f64, b: f64, tolerance: f64) -> bool {
+    (a - b).abs() <= tolerance
+}
+
+#[test]
+fn three_vehicles_displaced_alike_open_a_translation_incident() {
+    let mut c = correlator();
+    let changes = feed(
+        &mut c,
+        vec![
+            onset("a", 100.0, at(0.0, 0.0), [100.0, 0.0]),
+            onset("b", 160.0, at(3_000.0, 0.0), [104.0, 3.0]),
+            onset("c", 220.0, at(0.0, 3_000.0), [97.0, -2.0]),
+        ],
+    );
+    assert_eq!(changes.len(), 1);
+    let IncidentChange { kind, incident } = &changes[0];
+    assert_eq!(*kind, ChangeKind::Opened);
+    assert_eq!(incident.id, 1);
+    // The component-wise median of (100, 0), (104, 3), (97, -2).
+    assert_eq!(
+        incident.spoofing,
+        Spoofing::Translation {
+            offset_m: [100.0, 0.0]
+        }
+    );
+    // Centre: the mean of the true positions (1000, 1000); radius: the farthest (√(2000² + 1000²)
+    // = 2236.07 m) plus the 1 km margin.
+    let centre = wgs84_local_displacement(at(0.0, 0.0), incident.centre);
+    assert!(close(centre[0], 1_000.0, 1.0) && close(centre[1], 1_000.0, 1.0));
+    assert!(close(incident.radius_m, 3_236.07, 2.0), "{}", incident.radius_m);
+    assert_eq!((incident.onset_s, incident.confirmed_s), (100.0, 220.0));
+    assert_eq!(incident.vehicles.len(), 3);
+    assert!(incident.contains(at(1_000.0, 1_000.0)) && !incident.contains(at(9_000.0, 0.0)));
+    assert!(c.state().pending.is_empty(), "members leave the pending onsets");
+}
+
+#[test]
+fn receivers_reporting_one_position_open_a_false_position_incident() {
+    let target = at(500.0, 500.0);
+    let displaced_to_target = |vehicle: &str, time_s: f64, east: f64, north: f64| {
+        let offset = wgs84_local_displacement(at(east, north), target);
+        onset(vehicle, time_s, at(east, north), offset)
+    };
+    let mut c = correlator();
+    let changes = feed(
+        &mut c,
+        vec![
+            displaced_to_target("a", 0.0, -2_000.0, 0.0),
+            displaced_to_target("b", 10.0, 2_000.0, 1_000.0),
+            displaced_to_target("c", 20.0, 0.0, -2_500.0),
+        ],
+    );
+    let incident = &changes[0].incident;
+    let Spoofing::FalsePosition { position } = incident.spoofing else {
+        panic!("{:?}", incident.spoofing);
+    };
+    assert!(distance_m(position, target) < 0.5);
+}
+
+#[test]
+fn vehicles_pulled_the_same_way_open_a_drift_incident() {
+    let mut c = correlator();
+    let changes = feed(
+        &mut c,
+        vec![
+            drifting("a", 0.0, at(0.0, 0.0), [1.0, 0.5]),
+            drifting("b", 30.0, at(1_000.0, 0.0), [1.2, 0.45]),
+            drifting("c", 60.0, at(0.0, 1_000.0), [0.9, 0.55]),
+        ],
+    );
+    assert_eq!(
+        changes[0].incident.spoofing,
+        Spoofing::Drift {
+            drift_mps: [1.0, 0.5]
+        }
+    );
+}
+
+#[test]
+fn too_few_too_far_too_late_or_disagreeing_onsets_open_nothing() {
+    let cases: [(&str, Vec<AlarmOnset>); 5] = [
+        (
+            "two vehicles",
+            vec![
+                onset("a", 0.0, at(0.0, 0.0), [100.0, 0.0]),
+                onset("b", 10.0, at(500.0, 0.0), [100.0, 0.0]),
+            ],
+        ),
+        (
+            "one beyond the radius",
+            vec![
+                onset("a", 0.0, at(0.0, 0.0), [100.0, 0.0]),
+                onset("b", 10.0, at(500.0, 0.0), [100.0, 0.0]),
+                onset("c", 20.0, at(10_500.0, 0.0), [100.0, 0.0]),
+            ],
+        ),
+        (
+            "one beyond the window",
+            vec![
+                onset("a", 0.0, at(0.0, 0.0), [100.0, 0.0]),
+                onset("b", 10.0, at(500.0, 0.0), [100.0, 0.0]),
+                onset("c", 320.0, at(0.0, 500.0), [100.0, 0.0]),
+            ],
+        ),
+        (
+            "offsets in three directions",
+            vec![
+                onset("a", 0.0, at(0.0, 0.0), [100.0, 0.0]),
+                onset("b", 10.0, at(500.0, 0.0), [0.0, 100.0]),
+                onset("c", 20.0, at(0.0, 500.0), [-70.0, -70.0]),
+            ],
+        ),
+        (
+            "offsets too small to mean anything",
+            vec![
+                onset("a", 0.0, at(0.0, 0.0), [20.0, 0.0]),
+                onset("b", 10.0, at(500.0, 0.0), [21.0, 0.0]),
+                onset("c", 20.0, at(0.0, 500.0), [19.0, 0.0]),
+            ],
+        ),
+    ];
+    for (case, onsets) in cases {
+        let mut c = correlator();
+        assert!(feed(&mut c, onsets).is_empty(), "{case}");
+    }
+}
+
+#[test]
+fn one_vehicle_alarming_again_is_one_vehicle() {
+    let mut c = correlator();
+    let changes = feed(
+        &mut c,
+        vec![
+            onset("a", 0.0, at(0.0, 0.0), [100.0, 0.0]),
+            onset("a", 50.0, at(100.0, 0.0), [100.0, 0.0]),
+            onset("b", 60.0, at(500.0, 0.0), [100.0, 0.0]),
+        ],
+    );
+    assert!(changes.is_empty());
+    assert_eq!(c.state().pending.len(), 2, "the latest onset per vehicle");
+}
+
+#[test]
+fn agreeing_vehicles_join_and_the_incident_ends_after_the_quiet_time() {
+    let mut c = correlator();
+    feed(
+        &mut c,
+        vec![
+            onset("a", 0.0, at(0.0, 0.0), [100.0, 0.0]),
+            onset("b", 10.0, at(500.0, 0.0), [100.0, 0.0]),
+            onset("c", 20.0, at(0.0, 500.0), [100.0, 0.0]),
+        ],
+    );
+    // Long after the window: a vehicle that agrees joins, one that does not waits.
+    let joined = c.onset(onset("d", 1_000.0, at(4_000.0, 0.0), [110.0, 5.0]));
+    assert_eq!(joined[0].kind, ChangeKind::Joined);
+    assert_eq!(joined[0].incident.vehicles.len(), 4);
+    assert!(c.onset(onset("e", 1_010.0, at(0.0, 0.0), [0.0, 100.0])).is_empty());
+    assert_eq!(c.state().pending.len(), 1);
+
+    for (vehicle, alarm_id, time_s) in [("a", 0, 100.0), ("b", 10, 200.0), ("c", 20, 300.0)] {
+        let end = AlarmEnd {
+            vehicle_id: vehicle.into(),
+            alarm_id,
+            time_s,
+        };
+        assert_eq!(c.end(&end)[0].kind, ChangeKind::Evidence);
+    }
+    assert!(c.advance(5_000.0).is_empty(), "d's alarm is still open");
+    let end = AlarmEnd {
+        vehicle_id: "d".into(),
+        alarm_id: 1_000,
+        time_s: 5_100.0,
+    };
+    c.end(&end);
+    assert!(c.advance(5_699.0).is_empty(), "quiet for 599 s");
+    let ended = c.advance(5_700.0);
+    assert_eq!(ended[0].kind, ChangeKind::Ended);
+    assert_eq!(ended[0].incident.ended_s, Some(5_700.0));
+    assert!(c.open_incidents().is_empty());
+    assert!(c.state().pending.is_empty(), "e's onset is older than the window");
+}
+
+#[test]
+fn a_stored_state_continues_exactly() {
+    let onsets = vec![
+        onset("a", 0.0, at(0.0, 0.0), [100.0, 0.0]),
+        onset("b", 10.0, at(500.0, 0.0), [101.0, 2.0]),
+        onset("c", 20.0, at(0.0, 500.0), [99.0, 0.0]),
+        onset("d", 30.0, at(900.0, 0.0), [103.0, -1.0]),
+    ];
+    let mut whole = correlator();
+    let expected = feed(&mut whole, onsets.clone());
+    let mut changes = Vec::new();
+    let mut state = AreaCorrelator::new(AreaConfig::default()).state().clone();
+    for o in onsets {
+        let json = serde_json::to_string(&state).unwrap();
+        let mut resumed =
+            AreaCorrelator::resume(AreaConfig::default(), serde_json::from_str(&json).unwrap());
+        changes.extend(resumed.onset(o));
+        state = resumed.state().clone();
+    }
+    assert_eq!(changes, expected);
+    assert_eq!(&state, whole.state());
+}
+
+#[test]
+fn confidence_grows_with_agreeing_vehicles() {
+    assert_eq!(confidence(3, 0.0), 0.75);
+    assert_eq!(confidence(10, 0.0), 1.0 - 0.5f64.powi(9));
+    assert_eq!(confidence(3, 0.5), 0.5);
+    assert_eq!(confidence(5, 1.0), 0.0);
+}
+
+#[test]
+fn a_bad_configuration_names_its_field() {
+    let bad = [
+        (
+            AreaConfig {
+                radius_m: f64::NAN,
+                ..AreaConfig::default()
+            },
+            "radius_m",
+        ),
+        (
+            AreaConfig {
+                window_s: 0.0,
+                ..AreaConfig::default()
+            },
+            "window_s",
+        ),
+        (
+            AreaConfig {
+                min_vehicles: 1,
+                ..AreaConfig::default()
+            },
+            "min_vehicles",
+        ),
+        (
+            AreaConfig {
+                quiet_s: -1.0,
+                ..AreaConfig::default()
+            },
+            "quiet_s",
+        ),
+    ];
+    for (config, field) in bad {
+        assert_eq!(config.validate().unwrap_err().0, field);
+    }
+    assert!(AreaConfig::default().validate().is_ok());
+}
