@@ -1,10 +1,13 @@
-//! A resumable `WatchAlarms` feed: the client side of the fleet's alarm events.
+//! Resumable `WatchAlarms` and `WatchIncidents` feeds: the client side of the fleet's alarm and
+//! incident events.
 //!
-//! [`AlarmWatch`] remembers the cursor of the last event it returned (a CAUGHT_UP event included)
-//! and, when the call ends with UNAVAILABLE (a server draining, restarting or briefly unreachable),
-//! opens a new call after that cursor, so its caller sees every event exactly once across
-//! reconnects. It must not know how events are printed: `spoofwatch alarms watch` does that.
+//! A [`ResumableWatch`] remembers the cursor of the last event it returned (a CAUGHT_UP event
+//! included) and, when the call ends with UNAVAILABLE (a server draining, restarting or briefly
+//! unreachable), opens a new call after that cursor, so its caller sees every event exactly once
+//! across reconnects. [`AlarmWatch`] and [`IncidentWatch`] are its two calls. It must not know how
+//! events are printed: `spoofwatch alarms watch` and `spoofwatch incidents watch` do that.
 
+use std::future::Future;
 use std::time::{Duration, Instant};
 
 use spoofwatch_proto::v1;
@@ -19,10 +22,83 @@ const FIRST_BACKOFF: Duration = Duration::from_millis(100);
 /// Longest wait between attempts (a server's RetryInfo may ask for longer: it is honoured).
 const MAX_BACKOFF: Duration = Duration::from_secs(5);
 
+/// A watch call that can be reopened after a cursor.
+pub trait WatchCall: Send + Sync {
+    /// One event (or CAUGHT_UP) of the call.
+    type Event: Send;
+    /// What the call does, for errors ("watching alarms").
+    const WHAT: &'static str;
+
+    fn open(
+        &self,
+        connection: &Connection,
+        after_cursor: Option<i64>,
+    ) -> impl Future<Output = Result<Streaming<Self::Event>, tonic::Status>> + Send;
+
+    fn cursor(event: &Self::Event) -> i64;
+}
+
+/// WatchAlarms, for one vehicle or (empty) the whole fleet.
+#[derive(Clone, Debug, Default)]
+pub struct AlarmCall {
+    pub vehicle_id: String,
+}
+
+impl WatchCall for AlarmCall {
+    type Event = v1::AlarmEvent;
+    const WHAT: &'static str = "watching alarms";
+
+    async fn open(
+        &self,
+        connection: &Connection,
+        after_cursor: Option<i64>,
+    ) -> Result<Streaming<v1::AlarmEvent>, tonic::Status> {
+        let request = v1::WatchAlarmsRequest {
+            vehicle_id: self.vehicle_id.clone(),
+            after_cursor,
+            stop_when_caught_up: false,
+        };
+        Ok(connection.alarms().watch_alarms(request).await?.into_inner())
+    }
+
+    fn cursor(event: &v1::AlarmEvent) -> i64 {
+        event.cursor
+    }
+}
+
+/// WatchIncidents.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct IncidentCall;
+
+impl WatchCall for IncidentCall {
+    type Event = v1::IncidentEvent;
+    const WHAT: &'static str = "watching incidents";
+
+    async fn open(
+        &self,
+        connection: &Connection,
+        after_cursor: Option<i64>,
+    ) -> Result<Streaming<v1::IncidentEvent>, tonic::Status> {
+        let request = v1::WatchIncidentsRequest {
+            after_cursor,
+            stop_when_caught_up: false,
+        };
+        Ok(connection
+            .alarms()
+            .watch_incidents(request)
+            .await?
+            .into_inner())
+    }
+
+    fn cursor(event: &v1::IncidentEvent) -> i64 {
+        event.cursor
+    }
+}
+
 /// What to watch.
 #[derive(Clone, Debug, Default)]
 pub struct WatchOptions {
-    /// One vehicle's events only (empty: the whole fleet).
+    /// One vehicle's alarm events only (empty: the whole fleet; incidents are not filtered).
     pub vehicle_id: String,
     /// Start after this cursor (`Some(0)`: every stored event); `None`: only events from now on.
     pub after_cursor: Option<i64>,
@@ -35,23 +111,46 @@ pub struct WatchOptions {
 /// the watch will resume after.
 pub type ReconnectNotice = Box<dyn FnMut(&tonic::Status, Option<i64>) + Send + Sync>;
 
-/// One `WatchAlarms` feed that survives reconnects.
-pub struct AlarmWatch {
+/// One watch that survives reconnects.
+pub struct ResumableWatch<C: WatchCall> {
     connection: Connection,
-    options: WatchOptions,
+    call: C,
+    reconnect_for: Duration,
     cursor: Option<i64>,
-    stream: Option<Streaming<v1::AlarmEvent>>,
+    stream: Option<Streaming<C::Event>>,
     reconnects: u64,
     notice: Option<ReconnectNotice>,
 }
 
+/// A resumable WatchAlarms feed.
+pub type AlarmWatch = ResumableWatch<AlarmCall>;
+/// A resumable WatchIncidents feed.
+pub type IncidentWatch = ResumableWatch<IncidentCall>;
+
 impl AlarmWatch {
-    /// A watch over `connection`; the call is opened by the first [`AlarmWatch::next`].
+    /// An alarm watch over `connection`; the call is opened by the first [`ResumableWatch::next`].
     pub fn new(connection: Connection, options: WatchOptions) -> Self {
+        let call = AlarmCall {
+            vehicle_id: options.vehicle_id.clone(),
+        };
+        ResumableWatch::of(connection, call, &options)
+    }
+}
+
+impl IncidentWatch {
+    /// An incident watch over `connection` (`options.vehicle_id` does not apply).
+    pub fn incidents(connection: Connection, options: &WatchOptions) -> Self {
+        ResumableWatch::of(connection, IncidentCall, options)
+    }
+}
+
+impl<C: WatchCall> ResumableWatch<C> {
+    fn of(connection: Connection, call: C, options: &WatchOptions) -> Self {
         Self {
             connection,
+            call,
+            reconnect_for: options.reconnect_for,
             cursor: options.after_cursor,
-            options,
             stream: None,
             reconnects: 0,
             notice: None,
@@ -74,35 +173,21 @@ impl AlarmWatch {
         self.reconnects
     }
 
-    /// Ends the current call (the next [`AlarmWatch::next`] opens a new one after the cursor), as a
+    /// Ends the current call (the next [`ResumableWatch::next`] opens a new one after the cursor), as a
     /// dropped connection would.
     pub fn disconnect(&mut self) {
         self.stream = None;
     }
 
-    async fn open(&self) -> Result<Streaming<v1::AlarmEvent>, tonic::Status> {
-        let request = v1::WatchAlarmsRequest {
-            vehicle_id: self.options.vehicle_id.clone(),
-            after_cursor: self.cursor,
-            stop_when_caught_up: false,
-        };
-        Ok(self
-            .connection
-            .alarms()
-            .watch_alarms(request)
-            .await?
-            .into_inner())
-    }
-
     /// The next event. A call that ends with UNAVAILABLE (or ends without a status, which a
     /// server never does on its own) is reopened after the cursor, waiting between attempts, for
     /// at most `reconnect_for` without an event; any other failure is returned.
-    pub async fn next(&mut self) -> Result<v1::AlarmEvent, ClientError> {
+    pub async fn next(&mut self) -> Result<C::Event, ClientError> {
         let mut failing_since: Option<Instant> = None;
         let mut backoff = FIRST_BACKOFF;
         loop {
             let ended = match self.stream.as_mut() {
-                None => match self.open().await {
+                None => match self.call.open(&self.connection, self.cursor).await {
                     Ok(stream) => {
                         self.stream = Some(stream);
                         continue;
@@ -111,7 +196,7 @@ impl AlarmWatch {
                 },
                 Some(stream) => match stream.message().await {
                     Ok(Some(event)) => {
-                        self.cursor = Some(event.cursor);
+                        self.cursor = Some(C::cursor(&event));
                         return Ok(event);
                     }
                     Ok(None) => tonic::Status::unavailable("the server ended the watch"),
@@ -120,8 +205,8 @@ impl AlarmWatch {
             };
             self.stream = None;
             let since = *failing_since.get_or_insert_with(Instant::now);
-            if ended.code() != Code::Unavailable || since.elapsed() >= self.options.reconnect_for {
-                return Err(rpc("watching alarms")(ended));
+            if ended.code() != Code::Unavailable || since.elapsed() >= self.reconnect_for {
+                return Err(rpc(C::WHAT)(ended));
             }
             if let Some(notice) = self.notice.as_mut() {
                 notice(&ended, self.cursor);

@@ -28,7 +28,7 @@ pub mod retry;
 pub mod routing;
 pub mod synthetic;
 
-pub use alarm_watch::{AlarmWatch, WatchOptions};
+pub use alarm_watch::{AlarmWatch, IncidentWatch, ResumableWatch, WatchOptions};
 pub use connection::{AuthenticatedChannel, BearerAuth, ConnectOptions, Connection};
 pub use detect_stream::DetectStream;
 pub use error::{ClientError, RpcError};

@@ -175,7 +175,8 @@ pub struct IncidentVehicle {
 }
 
 impl IncidentVehicle {
-    fn anchor(&self) -> LatLon {
+    /// Its true position at the onset it joined with.
+    pub fn anchor(&self) -> LatLon {
         self.onset().anchor()
     }
 

@@ -1,12 +1,13 @@
 //! App assembly: opens the store and builds every subsystem of one server from its configuration,
-//! in dependency order (model registry, dataset catalog, session outbox, alarm feed, sessions,
-//! jobs), and recovers what a previous run left behind (open alarms, abandoned jobs).
+//! in dependency order (model registry, dataset catalog, session outbox, alarm and incident feeds,
+//! sessions, jobs), and recovers what a previous run left behind (open alarms, abandoned jobs).
 //!
 //! It owns construction only: what is served is `crate::router`, the tasks that run beside the
 //! server `crate::background`, and the shutdown `crate::drain`.
 
 use std::sync::Arc;
 
+use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 
 use crate::access::{self, Access};
@@ -14,6 +15,8 @@ use crate::alarms::feed::AlarmFeed;
 use crate::config::Config;
 use crate::datasets::Catalog;
 use crate::detection::{SessionLimits, SessionManager};
+use crate::incidents::correlator::IncidentSettings;
+use crate::incidents::service::IncidentFeed;
 use crate::jobs::{JobManager, JobSettings, Runner};
 use crate::models::Registry;
 use crate::outbox::{OUTBOX_CAPACITY, SessionOutbox};
@@ -31,6 +34,13 @@ pub struct App {
     pub catalog: Catalog,
     pub outbox: Arc<SessionOutbox>,
     pub alarm_feed: Arc<AlarmFeed>,
+    /// WatchIncidents' live events.
+    pub incident_feed: Arc<IncidentFeed>,
+    /// Told when this server's correlator stored incident events.
+    pub incidents_stored: Arc<Notify>,
+    pub incident_settings: IncidentSettings,
+    /// This server's instance id (job ownership, the incident correlator's lease).
+    pub instance: String,
     pub sessions: Arc<SessionManager>,
     pub jobs: Arc<JobManager>,
     /// Cancelled when the drain starts: streams end and the background loops stop.
@@ -41,6 +51,7 @@ impl App {
     /// Opens the database named by `config` and builds every subsystem on it.
     pub async fn assemble(config: &Config) -> Result<Self, ServerError> {
         let snapshot_policy = config.snapshot_policy().map_err(ServerError::Config)?;
+        let incident_settings = config.incident_settings().map_err(ServerError::Config)?;
         let transport = tls::transport(config);
         let access = Arc::new(
             Access::load(access::Sources {
@@ -83,6 +94,7 @@ impl App {
         let outbox = Arc::new(SessionOutbox::new(&store, OUTBOX_CAPACITY).await?);
         // WatchAlarms' live events: the stored event log of every replica.
         let alarm_feed = Arc::new(AlarmFeed::new(&store).await?);
+        let incident_feed = Arc::new(IncidentFeed::new(&store).await?);
         let sessions = Arc::new(SessionManager::new(
             Arc::clone(&registry),
             Arc::clone(&outbox),
@@ -107,7 +119,7 @@ impl App {
                 max_pending: config.max_pending_jobs,
                 input_kib: config.job_input_mib as usize * 1024,
             },
-            instance,
+            instance.clone(),
         );
         let interrupted = jobs.fail_abandoned_at_start().await?;
         if interrupted > 0 {
@@ -123,6 +135,10 @@ impl App {
             catalog,
             outbox,
             alarm_feed,
+            incident_feed,
+            incidents_stored: Arc::new(Notify::new()),
+            incident_settings,
+            instance,
             sessions,
             jobs,
             draining: CancellationToken::new(),

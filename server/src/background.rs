@@ -1,5 +1,5 @@
-//! The tasks that run beside the server: the session outbox's writer, the alarm feed's follower,
-//! the storage watch, job leases, idle-session eviction, the identity files' reload and the metrics
+//! The tasks that run beside the server: the session outbox's writer, the alarm and incident
+//! feeds' followers, the incident correlator, the storage watch, job leases, idle-session eviction, the identity files' reload and the metrics
 //! endpoint. They start once
 //! the server is assembled and stop, in order, after it has drained.
 //!
@@ -19,6 +19,7 @@ use crate::access;
 use crate::app::App;
 use crate::config::Config;
 use crate::detection::SessionManager;
+use crate::incidents::correlator::IncidentCorrelator;
 use crate::metrics_endpoint::{self, Sources};
 use crate::router::DATABASE_SERVICES;
 use crate::store::Store;
@@ -34,7 +35,9 @@ pub struct Background {
     /// saved).
     pub stop_outbox_writer: CancellationToken,
     alarm_follower: JoinHandle<()>,
+    incident_follower: JoinHandle<()>,
     stop_alarm_feed: CancellationToken,
+    incident_correlator: JoinHandle<()>,
     storage_watch: JoinHandle<()>,
     job_leases: JoinHandle<()>,
     evictor: JoinHandle<()>,
@@ -69,6 +72,26 @@ impl Background {
             let stop = stop_alarm_feed.clone();
             tokio::spawn(async move { feed.follow(store, outbox.stored_events(), stop).await })
         };
+        let incident_follower = {
+            let (feed, stored, store) = (
+                Arc::clone(&app.incident_feed),
+                Arc::clone(&app.incidents_stored),
+                app.store.clone(),
+            );
+            let stop = stop_alarm_feed.clone();
+            tokio::spawn(async move { feed.follow(store, &stored, stop).await })
+        };
+        // Area incidents: computed by one server of the database at a time (by lease), until the
+        // drain starts; the lease is then given up so that another server takes over at once.
+        let incident_correlator = tokio::spawn(
+            IncidentCorrelator::new(
+                app.store.clone(),
+                app.incident_settings,
+                &app.instance,
+                Arc::clone(&app.incidents_stored),
+            )
+            .run(app.draining.clone()),
+        );
         let storage_watch = tokio::spawn(watch::watch_storage(
             app.store.clone(),
             Arc::clone(&app.outbox),
@@ -113,7 +136,9 @@ impl Background {
             outbox_writer,
             stop_outbox_writer,
             alarm_follower,
+            incident_follower,
             stop_alarm_feed,
+            incident_correlator,
             storage_watch,
             job_leases,
             evictor,
@@ -132,6 +157,16 @@ impl Background {
         self.storage_watch.abort();
         self.stop_alarm_feed.cancel();
         let _ = self.alarm_follower.await;
+        let _ = self.incident_follower.await;
+        // It stops with the drain (giving its lease up); bounded, as a database that does not
+        // answer must not hold the shutdown.
+        let mut correlator = self.incident_correlator;
+        if tokio::time::timeout(Duration::from_secs(2), &mut correlator)
+            .await
+            .is_err()
+        {
+            correlator.abort();
+        }
         self.job_leases.abort();
         self.stop_outbox_writer.cancel();
         if let Err(error) = self.outbox_writer.await {

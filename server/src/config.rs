@@ -43,6 +43,13 @@ pub mod defaults {
     pub const SNAPSHOT_EVERY_SECS: u64 = 60;
     /// A day: a vehicle parked overnight loses its calibration, one back from lunch keeps it.
     pub const SNAPSHOT_TTL_SECS: u64 = 86_400;
+    /// About the range of a spoofer on the ground (tens of km for a strong one, a few for most).
+    pub const INCIDENT_RADIUS_KM: f64 = 10.0;
+    pub const INCIDENT_WINDOW_SECS: u64 = 300;
+    pub const INCIDENT_MIN_VEHICLES: u32 = 3;
+    pub const INCIDENT_QUIET_SECS: u64 = 600;
+    pub const INCIDENT_TIMELINE: crate::incidents::correlator::Timeline =
+        crate::incidents::correlator::Timeline::Wall;
 }
 
 /// How the server binary writes its log lines to stderr.
@@ -180,6 +187,28 @@ pub struct Config {
     #[arg(long, env = "SPOOFWATCH_SNAPSHOT_TTL_SECS", default_value_t = defaults::SNAPSHOT_TTL_SECS,
           value_parser = clap::value_parser!(u64).range(60..=31_536_000))]
     pub snapshot_ttl_secs: u64,
+    /// Area incidents: vehicles whose true positions are within this many km of each other, whose
+    /// alarms start within --incident-window-secs and agree on one false position, translation or
+    /// drift, are one incident (0.1 to 200 km).
+    #[arg(long, env = "SPOOFWATCH_INCIDENT_RADIUS_KM", default_value_t = defaults::INCIDENT_RADIUS_KM)]
+    pub incident_radius_km: f64,
+    /// Seconds within which the alarm onsets that open an incident must start.
+    #[arg(long, env = "SPOOFWATCH_INCIDENT_WINDOW_SECS", default_value_t = defaults::INCIDENT_WINDOW_SECS,
+          value_parser = clap::value_parser!(u64).range(1..=3_600))]
+    pub incident_window_secs: u64,
+    /// Vehicles that must agree before an incident opens.
+    #[arg(long, env = "SPOOFWATCH_INCIDENT_MIN_VEHICLES", default_value_t = defaults::INCIDENT_MIN_VEHICLES,
+          value_parser = clap::value_parser!(u32).range(2..=1_000))]
+    pub incident_min_vehicles: u32,
+    /// An incident ends once none of its vehicles has had an open alarm for this many seconds.
+    #[arg(long, env = "SPOOFWATCH_INCIDENT_QUIET_SECS", default_value_t = defaults::INCIDENT_QUIET_SECS,
+          value_parser = clap::value_parser!(u64).range(0..=86_400))]
+    pub incident_quiet_secs: u64,
+    /// The clock that places alarms in time for incidents: `wall` (the servers' clock at onset and
+    /// end: live fleets) or `samples` (the vehicles' sample times: replays of recordings whose
+    /// vehicles share one clock).
+    #[arg(long, env = "SPOOFWATCH_INCIDENT_TIMELINE", value_enum, default_value_t = defaults::INCIDENT_TIMELINE)]
+    pub incident_timeline: crate::incidents::correlator::Timeline,
 }
 
 /// An instance id: 1–128 visible ASCII characters (it is stored with every job and logged).
@@ -224,6 +253,11 @@ impl Default for Config {
             snapshot_every_samples: defaults::SNAPSHOT_EVERY_SAMPLES,
             snapshot_every_secs: defaults::SNAPSHOT_EVERY_SECS,
             snapshot_ttl_secs: defaults::SNAPSHOT_TTL_SECS,
+            incident_radius_km: defaults::INCIDENT_RADIUS_KM,
+            incident_window_secs: defaults::INCIDENT_WINDOW_SECS,
+            incident_min_vehicles: defaults::INCIDENT_MIN_VEHICLES,
+            incident_quiet_secs: defaults::INCIDENT_QUIET_SECS,
+            incident_timeline: defaults::INCIDENT_TIMELINE,
         }
     }
 }
@@ -270,6 +304,38 @@ impl Config {
             every_samples: self.snapshot_every_samples,
             every: Duration::from_secs(self.snapshot_every_secs),
             ttl: Duration::from_secs(self.snapshot_ttl_secs),
+        })
+    }
+
+    /// How incidents are correlated; the error names the flag out of range.
+    pub fn incident_settings(
+        &self,
+    ) -> Result<crate::incidents::correlator::IncidentSettings, String> {
+        if !(0.1..=200.0).contains(&self.incident_radius_km) {
+            return Err(format!(
+                "--incident-radius-km must be finite and in [0.1, 200] km, got {}",
+                self.incident_radius_km
+            ));
+        }
+        let area = spoofwatch_core::incident::AreaConfig {
+            radius_m: self.incident_radius_km * 1_000.0,
+            window_s: self.incident_window_secs as f64,
+            min_vehicles: self.incident_min_vehicles,
+            quiet_s: self.incident_quiet_secs as f64,
+            ..spoofwatch_core::incident::AreaConfig::default()
+        };
+        if let Err((field, reason)) = area.validate() {
+            let flag = match field {
+                "window_s" => "--incident-window-secs",
+                "min_vehicles" => "--incident-min-vehicles",
+                "quiet_s" => "--incident-quiet-secs",
+                other => other,
+            };
+            return Err(format!("{flag}: {reason}"));
+        }
+        Ok(crate::incidents::correlator::IncidentSettings {
+            area,
+            timeline: self.incident_timeline,
         })
     }
 

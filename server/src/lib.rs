@@ -11,8 +11,10 @@
 //! - the subsystems, each a logic type with its own error and a gRPC service at the edge:
 //!   `detection` (sessions + DetectionService), `models` (registry + ModelService), `datasets`
 //!   (catalog + DatasetService), `jobs` (service → manager → runner), `alarms` (ListAlarms and
-//!   WatchAlarms, and the live feed that follows the stored event log);
-//! - below them: `outbox` (the session outbox: alarm events and session snapshots on their way
+//!   WatchAlarms), `incidents` (the area-incident correlator, by lease, and ListIncidents,
+//!   GetIncident, WatchIncidents);
+//! - below them: `event_log` (the live feed and resumable watch of a stored event log, for alarms
+//!   and incidents), `outbox` (the session outbox: alarm events and session snapshots on their way
 //!   to the store), `watch` (database file and outbox health), `store` (the only SQL, on SQLite or
 //!   PostgreSQL), `telemetry` (every metric's recording), `error` (the one error → status
 //!   mapping), `fault` (a server-side fault inside a subsystem's error), `edge` (request decoding
@@ -34,8 +36,10 @@ mod drain;
 mod edge;
 mod error;
 mod fault;
+mod event_log;
 mod identity;
 mod idle;
+mod incidents;
 mod incoming;
 pub mod inprocess;
 mod jobs;

@@ -28,12 +28,11 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use spoofwatch_core::explain::Explanation;
 use spoofwatch_proto::wire::convert::timestamp_from_ms;
 use tokio::sync::{Notify, oneshot};
 use tokio_util::sync::CancellationToken;
 
-use crate::alarms::why as alarm_why;
+use crate::alarms::why::{self as alarm_why, OnsetWhy};
 use crate::store::{
     AlarmEvent, AlarmEventKind, AlarmEventRow, SnapshotRow, Store, StoreError, first_seq_of_run,
     now_unix_ms,
@@ -175,7 +174,7 @@ impl SessionOutbox {
         timestamp_s: f64,
         onset_at_ms: i64,
         probability: f64,
-        why: Option<&Explanation>,
+        why: Option<OnsetWhy<'_>>,
     ) -> i64 {
         let mut pending = self.pending();
         let id = pending.next_id;
@@ -184,7 +183,8 @@ impl SessionOutbox {
             seq: 0, // assigned when queued
             kind: AlarmEventKind::Onset,
             alarm: AlarmEventRow {
-                why: why.map(alarm_why::stored).unwrap_or_default(),
+                why: why.map(|w| alarm_why::stored(w.explanation)).unwrap_or_default(),
+                place: why.map(|w| alarm_why::place(w.fix)).unwrap_or_default(),
                 ..AlarmEventRow::opened(
                     id,
                     vehicle_id,

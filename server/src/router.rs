@@ -122,6 +122,7 @@ pub async fn build(server: Server, app: &App, config: &Config) -> Result<Routes,
     let alarms = gzip!(AlarmServiceServer::new(AlarmApi {
         store: app.store.clone(),
         feed: Arc::clone(&app.alarm_feed),
+        incident_feed: Arc::clone(&app.incident_feed),
         shutdown: app.draining.clone(),
         stream_idle,
     }))

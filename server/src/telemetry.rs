@@ -46,6 +46,10 @@ pub const ALARM_STORED: &str = "spoofwatch_alarm_outbox_stored_writes_total";
 pub const ALARM_FAILED_BATCHES: &str = "spoofwatch_alarm_outbox_failed_batches_total";
 pub const ALARM_DROPPED_ONSETS: &str = "spoofwatch_alarm_outbox_dropped_onsets_total";
 pub const ALARM_INVALID: &str = "spoofwatch_alarm_outbox_invalid_writes_total";
+pub const INCIDENTS_OPENED: &str = "spoofwatch_incidents_opened_total";
+pub const INCIDENT_VEHICLES_JOINED: &str = "spoofwatch_incident_vehicles_joined_total";
+pub const INCIDENTS_ENDED: &str = "spoofwatch_incidents_ended_total";
+pub const INCIDENT_CORRELATOR: &str = "spoofwatch_incident_correlator_held";
 pub const SNAPSHOT_BACKLOG: &str = "spoofwatch_session_snapshots_backlog";
 pub const SNAPSHOT_STORED: &str = "spoofwatch_session_snapshots_stored_total";
 pub const SESSIONS_OPEN: &str = "spoofwatch_sessions_open";
@@ -163,6 +167,26 @@ pub const METRICS: &[(&str, Kind, &str)] = &[
         ALARM_INVALID,
         Kind::Counter,
         "Alarm events not stored because of invalid values.",
+    ),
+    (
+        INCIDENTS_OPENED,
+        Kind::Counter,
+        "Area incidents opened by this server's correlator (vehicles nearby spoofed alike).",
+    ),
+    (
+        INCIDENT_VEHICLES_JOINED,
+        Kind::Counter,
+        "Vehicles that joined an open area incident, by this server's correlator.",
+    ),
+    (
+        INCIDENTS_ENDED,
+        Kind::Counter,
+        "Area incidents ended by this server's correlator.",
+    ),
+    (
+        INCIDENT_CORRELATOR,
+        Kind::Gauge,
+        "1 while this server holds the database's incident correlator lease (one server of a database at a time), else 0.",
     ),
     (
         SNAPSHOT_BACKLOG,
@@ -358,10 +382,14 @@ pub fn install(
         ALARM_ENDS,
         SESSIONS_EVICTED,
         SESSIONS_REFUSED,
+        INCIDENTS_OPENED,
+        INCIDENT_VEHICLES_JOINED,
+        INCIDENTS_ENDED,
     ] {
         counter!(name).increment(0);
     }
     gauge!(ALARMS_OPEN).increment(0.0);
+    gauge!(INCIDENT_CORRELATOR).increment(0.0);
     for result in ["applied", "refused"] {
         counter!(IDENTITY_RELOADS, "result" => result).increment(0);
     }
@@ -433,6 +461,26 @@ pub fn alarm_onset() {
 pub fn alarm_end() {
     counter!(ALARM_ENDS).increment(1);
     gauge!(ALARMS_OPEN).decrement(1.0);
+}
+
+/// This server took (or lost) the incident correlator's lease.
+pub fn incident_correlator_held(held: bool) {
+    gauge!(INCIDENT_CORRELATOR).set(if held { 1.0 } else { 0.0 });
+}
+
+/// An area incident opened.
+pub fn incident_opened() {
+    counter!(INCIDENTS_OPENED).increment(1);
+}
+
+/// A vehicle joined an open area incident.
+pub fn incident_vehicle_joined() {
+    counter!(INCIDENT_VEHICLES_JOINED).increment(1);
+}
+
+/// An area incident ended.
+pub fn incident_ended() {
+    counter!(INCIDENTS_ENDED).increment(1);
 }
 
 /// `count` idle sessions were evicted.

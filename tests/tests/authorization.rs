@@ -210,6 +210,21 @@ async fn call(rpc: &str, connection: &Connection, vehicle: &str) -> Code {
         ),
         "ListAlarms" => code(alarms.list_alarms(v1::ListAlarmsRequest::default()).await),
         "WatchAlarms" => code(alarms.watch_alarms(v1::WatchAlarmsRequest::default()).await),
+        "ListIncidents" => code(
+            alarms
+                .list_incidents(v1::ListIncidentsRequest::default())
+                .await,
+        ),
+        "GetIncident" => code(
+            alarms
+                .get_incident(v1::GetIncidentRequest { id: 1 })
+                .await,
+        ),
+        "WatchIncidents" => code(
+            alarms
+                .watch_incidents(v1::WatchIncidentsRequest::default())
+                .await,
+        ),
         "CreateTrainingJob" => code(
             training
                 .create_training_job(v1::CreateTrainingJobRequest::default())
@@ -286,6 +301,9 @@ const MATRIX: &[(&str, [bool; 4])] = &[
     ("DeleteDataset", [false, false, false, true]),
     ("ListAlarms", [false, false, true, true]),
     ("WatchAlarms", [false, false, true, true]),
+    ("ListIncidents", [false, false, true, true]),
+    ("GetIncident", [false, false, true, true]),
+    ("WatchIncidents", [false, false, true, true]),
     ("CreateTrainingJob", [false, false, false, true]),
     ("CreateEvaluationJob", [false, false, false, true]),
     ("WatchJob", [false, false, true, true]),

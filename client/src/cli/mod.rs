@@ -56,6 +56,8 @@ enum Command {
     Sessions(remote::sessions::Args),
     /// The fleet's confirmed alarms on a server: list the stored ones, watch onsets and ends.
     Alarms(remote::alarms::Args),
+    /// Area incidents on a server (vehicles nearby spoofed alike): list, get, watch.
+    Incidents(remote::incidents::Args),
     /// Live demo against --server: a simulated drive with a GNSS drift attack, detected as it streams.
     Demo(remote::demo::Args),
     /// Load benchmark of --server: throughput, batch latency and per-session memory.
@@ -76,6 +78,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Models(args) => remote::block_on(remote::models::run(args)),
         Command::Sessions(args) => remote::block_on(remote::sessions::run(args)),
         Command::Alarms(args) => remote::block_on(remote::alarms::run(args)),
+        Command::Incidents(args) => remote::block_on(remote::incidents::run(args)),
         Command::Demo(args) => remote::block_on(remote::demo::run(args)),
         Command::Bench(args) => remote::block_on(remote::bench::run(args)),
     }

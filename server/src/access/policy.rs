@@ -53,6 +53,9 @@ pub const METHODS: &[(&str, Need)] = &[
     ("/spoofwatch.v1.DatasetService/DeleteDataset", Need::Admin),
     ("/spoofwatch.v1.AlarmService/ListAlarms", Need::Read),
     ("/spoofwatch.v1.AlarmService/WatchAlarms", Need::Read),
+    ("/spoofwatch.v1.AlarmService/ListIncidents", Need::Read),
+    ("/spoofwatch.v1.AlarmService/GetIncident", Need::Read),
+    ("/spoofwatch.v1.AlarmService/WatchIncidents", Need::Read),
     (
         "/spoofwatch.v1.TrainingService/CreateTrainingJob",
         Need::Admin,

@@ -1,133 +1,66 @@
-//! The live feed behind WatchAlarms: one follower task per server reads the alarm event log after
-//! the last position it has broadcast and broadcasts each new row to this server's watchers.
-//!
-//! Live events come from the shared log, not from this server's queue, so a watcher on any replica
-//! follows every replica's events, in position (commit) order. The follower reads as soon as the
-//! local alarm writer has committed (so local events stay near-instant) and otherwise every
-//! [`POLL`] (other replicas' events). A read that fails is retried on the next tick; watchers keep
-//! their streams meanwhile and get the events once the database answers again.
+//! The alarm event log as an [`EventLog`]: what WatchAlarms follows (the live feed of newly stored
+//! events is `crate::event_log::feed`).
 
-use std::sync::{Arc, Mutex, MutexGuard};
-use std::time::Duration;
+use spoofwatch_proto::v1;
 
-use tokio::sync::{Notify, broadcast};
-use tokio::time::MissedTickBehavior;
-use tokio_util::sync::CancellationToken;
-
+use super::service::{caught_up, event_to_proto};
+use crate::event_log::EventLog;
+use crate::event_log::feed::Feed;
 use crate::store::{LoggedAlarmEvent, Store, StoreError};
 
-/// How often the follower looks for events other processes stored.
-pub const POLL: Duration = Duration::from_millis(200);
-/// Events a watcher may fall behind before it is told it lagged (it then replays from the log).
-const LIVE_BUFFER: usize = 4_096;
-/// Rows read per query of the follower.
-const PAGE: u32 = 500;
-
-/// Where a watcher joins the feed (see [`AlarmFeed::subscribe`]).
+/// The alarm event log (the filter is a vehicle id).
 #[derive(Debug)]
-pub struct FeedSubscription {
-    /// Every event broadcast after `head`.
-    pub live: broadcast::Receiver<Arc<LoggedAlarmEvent>>,
-    /// The last position broadcast when the receiver was created: every event up to it is in the
-    /// log, every later one reaches `live`.
-    pub head: i64,
-}
+pub struct AlarmLog;
 
-/// The follower's state: the last position broadcast and the channel to the watchers.
-#[derive(Debug)]
-pub struct AlarmFeed {
-    /// Held while broadcasting, so that a subscription's receiver and head fit together.
-    head: Mutex<i64>,
-    live: broadcast::Sender<Arc<LoggedAlarmEvent>>,
-}
+/// The live feed of stored alarm events.
+pub type AlarmFeed = Feed<AlarmLog>;
 
-impl AlarmFeed {
-    /// A feed starting after the latest event stored now.
-    pub async fn new(store: &Store) -> Result<Self, StoreError> {
-        Ok(Self::starting_after(store.latest_alarm_position().await?))
+impl EventLog for AlarmLog {
+    type Event = LoggedAlarmEvent;
+    type Filter = String;
+    type Message = v1::AlarmEvent;
+    const NAME: &'static str = "alarm";
+    const LISTING_RPC: &'static str = "ListAlarms";
+
+    fn position(event: &LoggedAlarmEvent) -> i64 {
+        event.position
     }
 
-    fn starting_after(head: i64) -> Self {
-        Self {
-            head: Mutex::new(head),
-            live: broadcast::channel(LIVE_BUFFER).0,
-        }
+    async fn read(
+        store: &Store,
+        after: i64,
+        through: i64,
+        vehicle: Option<&String>,
+        limit: u32,
+    ) -> Result<Vec<LoggedAlarmEvent>, StoreError> {
+        store
+            .alarm_events_after(after, through, vehicle.map(String::as_str), limit)
+            .await
     }
 
-    fn head(&self) -> MutexGuard<'_, i64> {
-        // A plain integer: a poisoned lock still holds a valid one.
-        self.head.lock().unwrap_or_else(|p| p.into_inner())
+    async fn latest(store: &Store) -> Result<i64, StoreError> {
+        store.latest_alarm_position().await
     }
 
-    /// Joins the feed: the receiver and the head are taken together.
-    pub fn subscribe(&self) -> FeedSubscription {
-        let head = self.head();
-        FeedSubscription {
-            live: self.live.subscribe(),
-            head: *head,
-        }
+    fn wanted(vehicle: Option<&String>, event: &LoggedAlarmEvent) -> bool {
+        vehicle.is_none_or(|v| *v == event.event.alarm.vehicle_id)
     }
 
-    /// Broadcasts every stored event after the head, page by page.
-    async fn read_new(&self, store: &Store) -> Result<(), StoreError> {
-        loop {
-            let after = *self.head();
-            let page = store
-                .alarm_events_after(after, i64::MAX, None, PAGE)
-                .await?;
-            let complete = page.len() < PAGE as usize;
-            let mut head = self.head();
-            for event in page {
-                // Only this task moves the head; the check keeps a position from being sent twice.
-                if event.position > *head {
-                    *head = event.position;
-                    // No watcher is not an error.
-                    let _ = self.live.send(Arc::new(event));
-                }
-            }
-            drop(head);
-            if complete {
-                return Ok(());
-            }
-        }
+    fn message(event: &LoggedAlarmEvent) -> v1::AlarmEvent {
+        event_to_proto(event)
     }
 
-    /// The follower: reads new events when `stored` is told (the local writer committed) and every
-    /// [`POLL`], until `stop` is cancelled. A failed read is logged once per outage.
-    pub async fn follow(&self, store: Store, stored: &Notify, stop: CancellationToken) {
-        let mut tick = tokio::time::interval(POLL);
-        tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
-        let mut failing = false;
-        loop {
-            tokio::select! {
-                biased;
-                _ = stop.cancelled() => return,
-                _ = stored.notified() => {}
-                _ = tick.tick() => {}
-            }
-            match self.read_new(&store).await {
-                Ok(()) if failing => {
-                    failing = false;
-                    tracing::info!("alarm feed recovered: watchers get new alarm events again");
-                }
-                Ok(()) => {}
-                Err(error) if !failing => {
-                    failing = true;
-                    tracing::warn!(
-                        %error,
-                        head = *self.head(),
-                        "could not read new alarm events for watchers; retrying every {} ms",
-                        POLL.as_millis()
-                    );
-                }
-                Err(_) => {}
-            }
-        }
+    fn caught_up(cursor: i64) -> v1::AlarmEvent {
+        caught_up(cursor)
     }
 }
 
 #[cfg(test)]
 mod tests {
+    use std::time::Duration;
+
+    use tokio_util::sync::CancellationToken;
+
     use super::*;
     use crate::outbox::SessionOutbox;
     use crate::store::AlarmEventKind;

@@ -5,10 +5,18 @@
 //! It owns only that mapping: it must not store, queue, log or serve anything.
 
 use spoofwatch_core::explain::{EvidenceKind, Explanation};
+use spoofwatch_core::geo::LatLon;
 use spoofwatch_proto::v1;
 use spoofwatch_proto::wire::convert::explanation_to_proto;
 
-use crate::store::StoredWhy;
+use crate::store::{StoredPlace, StoredWhy};
+
+/// Why and where an alarm started: its onset sample's explanation and fix.
+#[derive(Clone, Copy, Debug)]
+pub struct OnsetWhy<'a> {
+    pub explanation: &'a Explanation,
+    pub fix: LatLon,
+}
 
 /// The onset's explanation as the alarm row stores it.
 pub fn stored(x: &Explanation) -> StoredWhy {
@@ -18,6 +26,14 @@ pub fn stored(x: &Explanation) -> StoredWhy {
         why_offset_north_m: Some(x.offset_m[1]),
         why_drift_east_mps: Some(x.drift_rate_mps[0]),
         why_drift_north_mps: Some(x.drift_rate_mps[1]),
+    }
+}
+
+/// The onset's fix as the alarm row stores it.
+pub fn place(fix: LatLon) -> StoredPlace {
+    StoredPlace {
+        onset_latitude_deg: Some(fix.lat_deg),
+        onset_longitude_deg: Some(fix.lon_deg),
     }
 }
 

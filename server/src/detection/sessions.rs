@@ -24,6 +24,7 @@ use std::time::{Duration, Instant};
 
 use spoofwatch_core::detector::{Decision, Detector};
 use spoofwatch_core::explain::Explanation;
+use spoofwatch_core::geo::LatLon;
 use spoofwatch_core::sample::Sample;
 use spoofwatch_proto::wire::{ModelName, VehicleId};
 use tokio::sync::oneshot;
@@ -35,6 +36,7 @@ use super::resume::{Origin, Progress, Resumption, Start};
 use super::sequence::SeqCheck;
 use super::state::SessionState;
 use super::validate::validate_batch;
+use crate::alarms::why::OnsetWhy;
 use crate::models::{LoadedModel, Registry, RegistryError};
 use crate::outbox::SessionOutbox;
 use crate::store::{SnapshotRow, Store, now_unix_ms};
@@ -657,7 +659,7 @@ impl SessionManager {
                 Some(EpisodeChange::Onset) => self.record_onset(
                     state,
                     &slot.vehicle_id,
-                    sample.timestamp_s,
+                    sample,
                     decision.probability,
                     &decision.explanation,
                 ),
@@ -688,18 +690,22 @@ impl SessionManager {
         &self,
         state: &mut SessionState,
         vehicle: &VehicleId,
-        timestamp_s: f64,
+        sample: &Sample,
         p: f64,
         why: &Explanation,
     ) {
         let onset_at_ms = now_unix_ms();
+        let timestamp_s = sample.timestamp_s;
         let id = self.outbox.onset(
             vehicle.as_str(),
             state.model.name.id(),
             timestamp_s,
             onset_at_ms,
             p,
-            Some(why),
+            Some(OnsetWhy {
+                explanation: why,
+                fix: LatLon::new(sample.latitude_deg, sample.longitude_deg),
+            }),
         );
         telemetry::alarm_onset();
         state.alarm.open(id, timestamp_s, onset_at_ms, p);

@@ -38,6 +38,17 @@ pub struct AlarmEventRow {
     /// schema version 6.
     #[sqlx(flatten)]
     pub why: StoredWhy,
+    /// Where it started (the onset sample's fix); `None` on rows stored before schema version 8.
+    #[sqlx(flatten)]
+    pub place: StoredPlace,
+}
+
+/// An alarm's onset fix as the alarm row stores it, degrees. Written with the onset, never changed
+/// by its end.
+#[derive(Debug, Clone, Copy, Default, PartialEq, sqlx::FromRow)]
+pub struct StoredPlace {
+    pub onset_latitude_deg: Option<f64>,
+    pub onset_longitude_deg: Option<f64>,
 }
 
 /// The explanation of an alarm's onset as the alarm row stores it: the dominant evidence's
@@ -137,6 +148,7 @@ impl AlarmEventRow {
             peak_probability: probability,
             samples: 1,
             why: StoredWhy::default(),
+            place: StoredPlace::default(),
         }
     }
 
@@ -174,6 +186,8 @@ impl AlarmEvent {
                     ("why_offset_north_m", why.why_offset_north_m),
                     ("why_drift_east_mps", why.why_drift_east_mps),
                     ("why_drift_north_mps", why.why_drift_north_mps),
+                    ("onset_latitude_deg", alarm.place.onset_latitude_deg),
+                    ("onset_longitude_deg", alarm.place.onset_longitude_deg),
                 ] {
                     if let Some(value) = value {
                         require_finite(field, value)?;
@@ -239,7 +253,8 @@ macro_rules! select_alarms {
         concat!(
             "SELECT id, vehicle_id, model_id, onset_timestamp_s, end_timestamp_s, onset_at, \
              ended_at, peak_probability, samples, why_kind, why_offset_east_m, \
-             why_offset_north_m, why_drift_east_mps, why_drift_north_mps FROM alarm_events ",
+             why_offset_north_m, why_drift_east_mps, why_drift_north_mps, onset_latitude_deg, \
+             onset_longitude_deg FROM alarm_events ",
             $rest
         )
     };
@@ -289,8 +304,10 @@ macro_rules! apply_event {
             AlarmEventKind::Onset => sqlx::query(
                 "INSERT INTO alarm_events (id, vehicle_id, model_id, \
                  onset_timestamp_s, onset_at, peak_probability, samples, why_kind, \
-                 why_offset_east_m, why_offset_north_m, why_drift_east_mps, why_drift_north_mps) \
-                 VALUES ($1, $2, $3, $4, $5, $6, 1, $7, $8, $9, $10, $11) ON CONFLICT DO NOTHING",
+                 why_offset_east_m, why_offset_north_m, why_drift_east_mps, why_drift_north_mps, \
+                 onset_latitude_deg, onset_longitude_deg) \
+                 VALUES ($1, $2, $3, $4, $5, $6, 1, $7, $8, $9, $10, $11, $12, $13) \
+                 ON CONFLICT DO NOTHING",
             )
             .bind(alarm.id)
             .bind(&alarm.vehicle_id)
@@ -303,6 +320,8 @@ macro_rules! apply_event {
             .bind(alarm.why.why_offset_north_m)
             .bind(alarm.why.why_drift_east_mps)
             .bind(alarm.why.why_drift_north_mps)
+            .bind(alarm.place.onset_latitude_deg)
+            .bind(alarm.place.onset_longitude_deg)
             .execute(&mut *$tx)
             .await?
             .rows_affected(),
@@ -417,7 +436,8 @@ impl Store {
                 "SELECT l.position, l.seq, l.kind, a.id, a.vehicle_id, a.model_id, \
                  a.onset_timestamp_s, l.end_timestamp_s, a.onset_at, l.ended_at, \
                  l.peak_probability, l.samples, a.why_kind, a.why_offset_east_m, \
-                 a.why_offset_north_m, a.why_drift_east_mps, a.why_drift_north_mps \
+                 a.why_offset_north_m, a.why_drift_east_mps, a.why_drift_north_mps, \
+                 a.onset_latitude_deg, a.onset_longitude_deg \
                  FROM alarm_event_log l JOIN alarm_events a ON a.id = l.alarm_id \
                  WHERE l.position > $1 AND l.position <= $2 \
                  AND ($3 IS NULL OR a.vehicle_id = $3) \

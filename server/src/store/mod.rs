@@ -111,6 +111,7 @@ macro_rules! text_enum {
 mod alarms;
 mod datasets;
 mod error;
+mod incidents;
 mod jobs;
 mod models;
 mod outbox;
@@ -129,10 +130,14 @@ use sqlx::PgPool;
 
 pub use alarms::{
     AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent,
-    StoredWhy, first_seq_of_run,
+    StoredPlace, StoredWhy, first_seq_of_run,
 };
 pub use datasets::{DatasetRow, NewDataset};
 pub use error::{FaultKind, MigrationError, StoreError, StoreFault};
+pub use incidents::{
+    CorrelationStep, CorrelatorPlace, IncidentEventKind, IncidentRow, IncidentState, IncidentWrite,
+    LoggedIncidentEvent,
+};
 pub use jobs::{EpochRow, JobEndError, JobFilter, JobKind, JobOutcome, JobRow, JobState, NewJob};
 pub use models::{ModelRow, ModelSource, NewModel};
 pub use paging::{DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE, Page, PageRequest};

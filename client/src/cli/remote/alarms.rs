@@ -89,7 +89,7 @@ pub struct WatchArgs {
 }
 
 /// Seconds: finite and >= 0.
-fn parse_seconds(text: &str) -> Result<f64, String> {
+pub(super) fn parse_seconds(text: &str) -> Result<f64, String> {
     match text.parse::<f64>() {
         Ok(seconds) if seconds.is_finite() && seconds >= 0.0 => Ok(seconds),
         _ => Err(format!("must be a number of seconds >= 0, got {text:?}")),
@@ -219,7 +219,7 @@ async fn run_watch(server: &ServerArgs, args: WatchArgs) -> Result<()> {
 }
 
 /// `; resume with --after N` when there is a cursor.
-fn resume_hint(cursor: Option<i64>) -> String {
+pub(super) fn resume_hint(cursor: Option<i64>) -> String {
     cursor.map_or_else(String::new, |c| format!("; resume with --after {c}"))
 }
 

@@ -12,6 +12,7 @@ pub mod demo;
 pub mod detect;
 pub mod evaluate;
 pub mod health;
+pub mod incidents;
 pub mod jobs;
 pub mod models;
 pub mod sessions;

@@ -36,6 +36,7 @@ macro_rules! on_both_backends {
 mod alarms;
 mod connection;
 mod datasets;
+mod incidents;
 mod jobs;
 mod models;
 mod postgres;

@@ -1,0 +1,284 @@
+//! `spoofwatch incidents`: area incidents (vehicles nearby spoofed alike): `list` the stored ones
+//! as a table or JSON lines, `get` one, `watch` them open, gain vehicles and end as JSON lines,
+//! resuming after reconnects.
+//!
+//! It owns the command line and the JSON shape of an incident; the resumable feed is the library's
+//! [`IncidentWatch`], tables come from `remote`.
+
+use std::io::Write;
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+use serde_json::{Value, json};
+use spoofwatch_proto::v1;
+
+use super::alarms::{parse_seconds, resume_hint};
+use super::{ResourceArgs, opt, print_table, time};
+use crate::alarm_watch::{IncidentWatch, WatchOptions};
+use crate::cli::server_flags::ServerArgs;
+use crate::error::{describe_status, reply};
+
+/// `spoofwatch incidents <command>` with the server flags.
+pub type Args = ResourceArgs<Command>;
+
+#[derive(Debug, clap::Subcommand)]
+pub enum Command {
+    /// List stored incidents in id order.
+    List(ListArgs),
+    /// One incident, with its vehicles, as JSON.
+    Get(GetArgs),
+    /// Print incidents opening, gaining vehicles and ending as they happen, one JSON object per
+    /// line, each with its cursor; reconnects and resumes after the last cursor when the server
+    /// is unavailable.
+    Watch(WatchArgs),
+}
+
+/// Which incidents `list` shows.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum StateArg {
+    /// Open and ended.
+    #[default]
+    Any,
+    Open,
+    Ended,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct ListArgs {
+    /// Open, ended or any.
+    #[arg(long, value_enum, default_value_t)]
+    pub state: StateArg,
+    /// At most this many incidents (default: all).
+    #[arg(long)]
+    pub limit: Option<usize>,
+    /// One JSON object per line instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct GetArgs {
+    /// The incident's id.
+    pub id: i64,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct WatchArgs {
+    /// First replay every event after this cursor (0: every stored event); default: only new
+    /// events. Each printed line carries its cursor; pass the last one to resume.
+    #[arg(long, value_parser = clap::value_parser!(i64).range(0..))]
+    pub after: Option<i64>,
+    /// Keep reconnecting for this many seconds while the server is unavailable (0: never).
+    #[arg(long, default_value_t = 300.0, value_parser = parse_seconds)]
+    pub reconnect_for: f64,
+    /// Stop after this many events (default: never).
+    #[arg(long)]
+    pub count: Option<u64>,
+    /// Stop once caught up (after the `caught_up` line).
+    #[arg(long)]
+    pub until_caught_up: bool,
+}
+
+pub async fn run(args: Args) -> Result<()> {
+    match args.command {
+        Command::List(list) => run_list(&args.server, list).await,
+        Command::Get(get) => run_get(&args.server, get).await,
+        Command::Watch(watch) => run_watch(&args.server, watch).await,
+    }
+}
+
+async fn run_list(server: &ServerArgs, args: ListArgs) -> Result<()> {
+    let connection = server.connect().await?;
+    let mut client = connection.alarms();
+    let state = match args.state {
+        StateArg::Any => v1::IncidentStateFilter::Unspecified,
+        StateArg::Open => v1::IncidentStateFilter::Open,
+        StateArg::Ended => v1::IncidentStateFilter::Ended,
+    };
+    let mut request = v1::ListIncidentsRequest {
+        state: state as i32,
+        ..v1::ListIncidentsRequest::default()
+    };
+    let limit = args.limit.unwrap_or(usize::MAX);
+    let mut incidents = Vec::new();
+    while incidents.len() < limit {
+        let page = reply("listing incidents", client.list_incidents(request.clone())).await?;
+        incidents.extend(page.incidents);
+        if page.next_page_token.is_empty() {
+            break;
+        }
+        request.page_token = page.next_page_token;
+    }
+    incidents.truncate(limit);
+    if args.json {
+        let mut out = std::io::stdout().lock();
+        for incident in &incidents {
+            writeln!(out, "{}", incident_json(incident))?;
+        }
+        return Ok(());
+    }
+    print_table(
+        &[
+            "id", "kind", "state", "vehicles", "opened", "ended", "centre", "radius_km",
+            "estimate", "confidence",
+        ],
+        &incidents,
+        |i| {
+            vec![
+                i.id.to_string(),
+                kind_name(i.kind).to_string(),
+                if i.open { "open" } else { "ended" }.to_string(),
+                i.vehicles.len().to_string(),
+                time(i.opened_time.as_ref()),
+                time(i.ended_time.as_ref()),
+                format!("{:.5},{:.5}", i.centre_latitude_deg, i.centre_longitude_deg),
+                opt(Some(i.radius_m / 1_000.0), 1),
+                estimate(i),
+                format!("{:.2}", i.confidence),
+            ]
+        },
+    );
+    Ok(())
+}
+
+async fn run_get(server: &ServerArgs, args: GetArgs) -> Result<()> {
+    let connection = server.connect().await?;
+    let incident = reply(
+        "getting the incident",
+        connection
+            .alarms()
+            .get_incident(v1::GetIncidentRequest { id: args.id }),
+    )
+    .await?;
+    println!("{}", serde_json::to_string_pretty(&incident_json(&incident))?);
+    Ok(())
+}
+
+async fn run_watch(server: &ServerArgs, args: WatchArgs) -> Result<()> {
+    let connection = server.connect().await?;
+    let options = WatchOptions {
+        after_cursor: args.after,
+        reconnect_for: Duration::from_secs_f64(args.reconnect_for),
+        ..WatchOptions::default()
+    };
+    let mut watch = IncidentWatch::incidents(connection, &options).with_reconnect_notice(Box::new(
+        |status, cursor| {
+            eprintln!(
+                "watch ended ({}); reconnecting{}",
+                describe_status(status),
+                resume_hint(cursor)
+            );
+        },
+    ));
+    let mut events = 0;
+    let mut out = std::io::stdout().lock();
+    while args.count.is_none_or(|count| events < count) {
+        let next = tokio::select! {
+            next = watch.next() => next,
+            _ = tokio::signal::ctrl_c() => {
+                eprintln!("stopped{}", resume_hint(watch.cursor()));
+                return Ok(());
+            }
+        };
+        let event =
+            next.with_context(|| format!("the watch ended{}", resume_hint(watch.cursor())))?;
+        let caught_up = event.kind == v1::IncidentEventKind::CaughtUp as i32;
+        if !caught_up {
+            events += 1;
+        }
+        writeln!(out, "{}", event_json(&event))?;
+        out.flush()?;
+        if caught_up && args.until_caught_up {
+            break;
+        }
+    }
+    Ok(())
+}
+
+fn kind_name(kind: i32) -> &'static str {
+    match v1::IncidentKind::try_from(kind) {
+        Ok(v1::IncidentKind::FalsePosition) => "false_position",
+        Ok(v1::IncidentKind::Translation) => "translation",
+        Ok(v1::IncidentKind::Drift) => "drift",
+        _ => "unknown",
+    }
+}
+
+/// The estimate as a table cell.
+fn estimate(i: &v1::Incident) -> String {
+    match v1::IncidentKind::try_from(i.kind) {
+        Ok(v1::IncidentKind::FalsePosition) => {
+            format!("at {:.5},{:.5}", i.false_latitude_deg, i.false_longitude_deg)
+        }
+        Ok(v1::IncidentKind::Translation) => {
+            format!("{:.0} m E, {:.0} m N", i.offset_east_m, i.offset_north_m)
+        }
+        Ok(v1::IncidentKind::Drift) => {
+            format!("{:.2} m/s E, {:.2} m/s N", i.drift_east_mps, i.drift_north_mps)
+        }
+        _ => "-".to_string(),
+    }
+}
+
+/// An incident as one JSON object (the shape `list --json`, `get` and `watch` print).
+pub fn incident_json(i: &v1::Incident) -> Value {
+    let time = |t: Option<&prost_types::Timestamp>| t.map(ToString::to_string);
+    let kind = v1::IncidentKind::try_from(i.kind).ok();
+    let estimate = match kind {
+        Some(v1::IncidentKind::FalsePosition) => json!({
+            "latitude_deg": i.false_latitude_deg, "longitude_deg": i.false_longitude_deg,
+        }),
+        Some(v1::IncidentKind::Translation) => json!({
+            "offset_east_m": i.offset_east_m, "offset_north_m": i.offset_north_m,
+        }),
+        Some(v1::IncidentKind::Drift) => json!({
+            "drift_east_mps": i.drift_east_mps, "drift_north_mps": i.drift_north_mps,
+        }),
+        _ => Value::Null,
+    };
+    json!({
+        "id": i.id,
+        "kind": kind_name(i.kind),
+        "estimate": estimate,
+        "open": i.open,
+        "centre_latitude_deg": i.centre_latitude_deg,
+        "centre_longitude_deg": i.centre_longitude_deg,
+        "radius_m": i.radius_m,
+        "onset_s": i.onset_s,
+        "confirmed_s": i.confirmed_s,
+        "last_evidence_s": i.last_evidence_s,
+        "ended_s": i.ended_s,
+        "confidence": i.confidence,
+        "opened_time": time(i.opened_time.as_ref()),
+        "ended_time": time(i.ended_time.as_ref()),
+        "vehicles": i.vehicles.iter().map(|v| json!({
+            "vehicle_id": v.vehicle_id,
+            "alarm_id": v.alarm_id,
+            "onset_s": v.onset_s,
+            "latitude_deg": v.latitude_deg,
+            "longitude_deg": v.longitude_deg,
+            "offset_east_m": v.offset_east_m,
+            "offset_north_m": v.offset_north_m,
+            "drift_east_mps": v.drift_east_mps,
+            "drift_north_mps": v.drift_north_mps,
+            "alarm_open": v.alarm_open,
+        })).collect::<Vec<_>>(),
+    })
+}
+
+/// A watch event as one JSON object: `cursor`, `kind` (`opened`, `joined`, `ended`, `caught_up`)
+/// and, except for `caught_up`, the `incident`.
+pub fn event_json(event: &v1::IncidentEvent) -> Value {
+    let kind = match v1::IncidentEventKind::try_from(event.kind) {
+        Ok(v1::IncidentEventKind::Opened) => "opened",
+        Ok(v1::IncidentEventKind::Joined) => "joined",
+        Ok(v1::IncidentEventKind::Ended) => "ended",
+        Ok(v1::IncidentEventKind::CaughtUp) => "caught_up",
+        _ => "unknown",
+    };
+    let mut value = json!({"cursor": event.cursor, "kind": kind});
+    if let Some(incident) = &event.incident {
+        value["incident"] = incident_json(incident);
+    }
+    value
+}

@@ -1,0 +1,164 @@
+//! Area incidents: the correlator's lease, one step's writes together (fenced on the lease), the
+//! incident listing and the event log; and the onset place the correlator reads from alarms.
+
+use serde_json::json;
+
+use crate::store::{
+    AlarmEvent, AlarmEventKind, AlarmEventRow, CorrelationStep, CorrelatorPlace,
+    IncidentEventKind, IncidentState, IncidentWrite, PageRequest, Store, StoredPlace,
+};
+
+const LEASE_MS: i64 = 10_000;
+
+fn write(id: i64, event: Option<IncidentEventKind>, ended: bool, vehicles: u32) -> IncidentWrite {
+    IncidentWrite {
+        id,
+        event,
+        ended,
+        body: json!({ "id": id, "vehicles": vehicles }),
+    }
+}
+
+fn step(alarm_position: i64, incidents: Vec<IncidentWrite>) -> CorrelationStep {
+    CorrelationStep {
+        incidents,
+        place: CorrelatorPlace {
+            alarm_position,
+            state: Some(json!({ "read": alarm_position })),
+        },
+    }
+}
+
+async fn the_lease_has_one_holder_until_it_expires(store: Store) {
+    let first = store
+        .claim_incident_correlator("a", 1_000, LEASE_MS)
+        .await
+        .unwrap();
+    assert_eq!(
+        first,
+        Some(CorrelatorPlace {
+            alarm_position: 0,
+            state: None
+        })
+    );
+    assert_eq!(
+        store.claim_incident_correlator("b", 5_000, LEASE_MS).await.unwrap(),
+        None,
+        "a holds it"
+    );
+    assert!(store.claim_incident_correlator("a", 9_000, LEASE_MS).await.unwrap().is_some());
+    // a stops renewing: b takes over once the lease has run out since a's last renewal.
+    assert_eq!(
+        store.claim_incident_correlator("b", 19_000, LEASE_MS).await.unwrap(),
+        None
+    );
+    assert!(store.claim_incident_correlator("b", 19_001, LEASE_MS).await.unwrap().is_some());
+    // a comes back (a stalled process): its step is fenced off and writes nothing.
+    let stale = step(7, vec![write(1, Some(IncidentEventKind::Opened), false, 3)]);
+    assert!(!store.write_correlation_step("a", 19_500, &stale).await.unwrap());
+    assert_eq!(store.latest_incident_position().await.unwrap(), 0);
+    assert!(store.get_incident(1).await.unwrap().is_none());
+    // Given up, the lease is free at once.
+    store.release_incident_correlator("b").await.unwrap();
+    assert!(store.claim_incident_correlator("c", 19_600, LEASE_MS).await.unwrap().is_some());
+}
+
+async fn a_step_stores_incidents_their_events_and_the_place_together(store: Store) {
+    store
+        .claim_incident_correlator("a", 1_000, LEASE_MS)
+        .await
+        .unwrap();
+    let first = step(
+        4,
+        vec![
+            write(1, Some(IncidentEventKind::Opened), false, 3),
+            write(2, Some(IncidentEventKind::Opened), false, 3),
+        ],
+    );
+    assert!(store.write_correlation_step("a", 2_000, &first).await.unwrap());
+    let second = step(
+        9,
+        vec![
+            // A member's alarm ended: the row changes, no event.
+            write(1, None, false, 3),
+            write(2, Some(IncidentEventKind::Joined), false, 4),
+            write(1, Some(IncidentEventKind::Ended), true, 3),
+        ],
+    );
+    assert!(store.write_correlation_step("a", 3_000, &second).await.unwrap());
+
+    let place = store
+        .claim_incident_correlator("a", 3_500, LEASE_MS)
+        .await
+        .unwrap();
+    assert_eq!(
+        place,
+        Some(CorrelatorPlace {
+            alarm_position: 9,
+            state: Some(json!({ "read": 9 }))
+        })
+    );
+    let one = store.get_incident(1).await.unwrap().expect("stored");
+    assert_eq!((one.opened_at_ms, one.ended_at_ms), (2_000, Some(3_000)));
+    let two = store.get_incident(2).await.unwrap().expect("stored");
+    assert_eq!((two.ended_at_ms, &two.body), (None, &json!({ "id": 2, "vehicles": 4 })));
+
+    let ids = |rows: Vec<crate::store::IncidentRow>| rows.iter().map(|r| r.id).collect::<Vec<_>>();
+    let first_page = PageRequest::first(1);
+    let page = |state| store.list_incidents(state, &first_page);
+    let open = page(IncidentState::Open).await.unwrap();
+    assert_eq!((ids(open.items), open.next_page_token), (vec![2], None));
+    assert_eq!(ids(page(IncidentState::Ended).await.unwrap().items), [1]);
+    let all = page(IncidentState::Any).await.unwrap();
+    assert_eq!(ids(all.items), [1]);
+    let rest = store
+        .list_incidents(
+            IncidentState::Any,
+            &PageRequest::after(1, all.next_page_token.expect("a second page")),
+        )
+        .await
+        .unwrap();
+    assert_eq!((ids(rest.items), rest.next_page_token), (vec![2], None));
+    assert_eq!(ids(store.open_incidents().await.unwrap()), [2]);
+
+    let events = store.incident_events_after(0, i64::MAX, 10).await.unwrap();
+    let summary: Vec<_> = events
+        .iter()
+        .map(|e| (e.position, e.incident_id, e.kind, e.stored_at_ms, e.opened_at_ms))
+        .collect();
+    assert_eq!(
+        summary,
+        [
+            (1, 1, IncidentEventKind::Opened, 2_000, 2_000),
+            (2, 2, IncidentEventKind::Opened, 2_000, 2_000),
+            (3, 2, IncidentEventKind::Joined, 3_000, 2_000),
+            (4, 1, IncidentEventKind::Ended, 3_000, 2_000),
+        ]
+    );
+    assert_eq!(events[2].body, json!({ "id": 2, "vehicles": 4 }));
+    assert_eq!(store.incident_events_after(1, 3, 10).await.unwrap().len(), 2);
+    assert_eq!(store.latest_incident_position().await.unwrap(), 4);
+}
+
+async fn an_onset_keeps_where_it_started(store: Store) {
+    let mut row = AlarmEventRow::opened(5, "car-5", "m", 10.0, 1_000, 0.9);
+    row.place = StoredPlace {
+        onset_latitude_deg: Some(32.25),
+        onset_longitude_deg: Some(-110.5),
+    };
+    let event = AlarmEvent {
+        seq: 5,
+        kind: AlarmEventKind::Onset,
+        alarm: row,
+    };
+    store.write_alarms(&[event]).await.unwrap();
+    let logged = store.alarm_events_after(0, i64::MAX, None, 10).await.unwrap();
+    assert_eq!(logged[0].event.alarm.place.onset_latitude_deg, Some(32.25));
+    assert_eq!(logged[0].event.alarm.place.onset_longitude_deg, Some(-110.5));
+}
+
+on_both_backends!(
+    the_lease_has_one_holder_until_it_expires,
+    a_step_stores_incidents_their_events_and_the_place_together,
+    an_onset_keeps_where_it_started,
+);
