@@ -58,7 +58,11 @@ impl WatchCall for AlarmCall {
             after_cursor,
             stop_when_caught_up: false,
         };
-        Ok(connection.alarms().watch_alarms(request).await?.into_inner())
+        Ok(connection
+            .alarms()
+            .watch_alarms(request)
+            .await?
+            .into_inner())
     }
 
     fn cursor(event: &v1::AlarmEvent) -> i64 {

@@ -375,7 +375,9 @@ impl AreaCorrelator {
         if let Some(change) = self.join(&onset) {
             return vec![change];
         }
-        self.state.pending.retain(|p| p.vehicle_id != onset.vehicle_id);
+        self.state
+            .pending
+            .retain(|p| p.vehicle_id != onset.vehicle_id);
         if let Some(change) = self.form(&onset) {
             return vec![change];
         }
@@ -514,7 +516,10 @@ impl AreaCorrelator {
                 spoofing: hypothesis.spoofing(estimate, reference),
                 centre: anchor,
                 radius_m: 0.0,
-                onset_s: vehicles.iter().map(|v| v.onset_s).fold(f64::INFINITY, f64::min),
+                onset_s: vehicles
+                    .iter()
+                    .map(|v| v.onset_s)
+                    .fold(f64::INFINITY, f64::min),
                 confirmed_s: onset.time_s,
                 last_evidence_s: vehicles
                     .iter()

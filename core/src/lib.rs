@@ -8,7 +8,7 @@
 //!
 //! Where things live: samples and their parsing ([`sample`], [`data`]) → evidence ([`evidence`],
 //! [`geo`]) → the model and its artifact ([`model`], [`model::artifact`]) → running it on a stream
-//! ([`detector`]) → alarms ([`lifecycle`], [`explain`]) and operating points ([`alarm`]) → scoring and metrics ([`evaluation`],
+//! ([`detector`]) → alarms ([`lifecycle`], [`explain`]), area incidents across vehicles ([`incident`]) and operating points ([`alarm`]) → scoring and metrics ([`evaluation`],
 //! [`metrics`]). Training is one use case ([`train::detector::train_detector`]); the classical
 //! comparator is [`cusum`]; labelled attack scenarios are [`scenario`].
 
@@ -21,9 +21,9 @@ pub mod evaluation;
 pub mod evidence;
 pub mod explain;
 pub mod gate;
-pub mod incident;
 pub mod geo;
 pub mod glr;
+pub mod incident;
 pub mod lifecycle;
 pub mod metrics;
 pub mod model;

@@ -1,8 +1,8 @@
 //! Spoofwatch gRPC service over `spoofwatch-core`: detection sessions, the model registry, datasets,
 //! training/evaluation jobs as long-running operations, health and reflection.
 //!
-//! [`serve`] is the whole server; the `spoofwatch-server` binary only parses the configuration, sets
-//! up logging, binds and waits for a signal; [`inprocess`] runs it inside another process.
+//! [`serve`] is the whole server; [`process`] is the `spoofwatch-server` binary's (flags, logging,
+//! binding, signals); [`inprocess`] runs it inside another process.
 //!
 //! Layout, one home per duty, from the top down:
 //! - the server's life: `app` (assembly of every subsystem), `router` (what is served, with gzip,
@@ -35,8 +35,8 @@ mod detection;
 mod drain;
 mod edge;
 mod error;
-mod fault;
 mod event_log;
+mod fault;
 mod identity;
 mod idle;
 mod incidents;
@@ -47,6 +47,7 @@ mod metrics_endpoint;
 mod model_service;
 pub mod models;
 mod outbox;
+pub mod process;
 mod router;
 mod server_error;
 mod status;

@@ -183,7 +183,9 @@ impl SessionOutbox {
             seq: 0, // assigned when queued
             kind: AlarmEventKind::Onset,
             alarm: AlarmEventRow {
-                why: why.map(|w| alarm_why::stored(w.explanation)).unwrap_or_default(),
+                why: why
+                    .map(|w| alarm_why::stored(w.explanation))
+                    .unwrap_or_default(),
                 place: why.map(|w| alarm_why::place(w.fix)).unwrap_or_default(),
                 ..AlarmEventRow::opened(
                     id,

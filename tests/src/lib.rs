@@ -10,6 +10,7 @@
 //! must not grow a second implementation of anything the client library already has. `pki` makes
 //! the certificates of the TLS tests.
 
+pub mod balancer;
 pub mod pki;
 
 use std::net::SocketAddr;
@@ -679,4 +680,43 @@ pub async fn wait_for_health(server: &TestServer, service: &str, wanted: Serving
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     panic!("health of {service:?} never became {wanted:?}");
+}
+
+/// Streams `samples` (seq from `first_seq`) for `vehicle` through `connection` on one stream
+/// opened with `reset`; returns its SessionAccepted.
+pub async fn stream_samples(
+    connection: &Connection,
+    vehicle: &str,
+    reset: bool,
+    first_seq: u64,
+    samples: &[v1::Sample],
+) -> v1::SessionAccepted {
+    let (stream, accepted) = DetectStream::start(connection, vehicle, "", reset)
+        .await
+        .unwrap_or_else(|e| panic!("{vehicle}: the stream opens: {e}"));
+    let mut stream = stream.with_reply_timeout(REPLY_TIMEOUT);
+    for (k, batch) in samples.chunks(5).enumerate() {
+        let detections = stream
+            .detect(first_seq + k as u64, batch.to_vec())
+            .await
+            .unwrap_or_else(|e| panic!("{vehicle}: detections: {e}"));
+        assert_eq!(detections.len(), batch.len());
+    }
+    stream.finish().await.expect("the stream ends cleanly");
+    accepted
+}
+
+/// The vehicle ids with a session on the replica behind `clients`.
+pub async fn sessions_on(clients: &Clients) -> Vec<String> {
+    clients
+        .detection
+        .clone()
+        .list_sessions(v1::ListSessionsRequest::default())
+        .await
+        .expect("ListSessions")
+        .into_inner()
+        .sessions
+        .into_iter()
+        .map(|s| s.vehicle_id)
+        .collect()
 }

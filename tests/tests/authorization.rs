@@ -215,11 +215,7 @@ async fn call(rpc: &str, connection: &Connection, vehicle: &str) -> Code {
                 .list_incidents(v1::ListIncidentsRequest::default())
                 .await,
         ),
-        "GetIncident" => code(
-            alarms
-                .get_incident(v1::GetIncidentRequest { id: 1 })
-                .await,
-        ),
+        "GetIncident" => code(alarms.get_incident(v1::GetIncidentRequest { id: 1 }).await),
         "WatchIncidents" => code(
             alarms
                 .watch_incidents(v1::WatchIncidentsRequest::default())

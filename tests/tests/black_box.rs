@@ -19,6 +19,7 @@ mod dashboard_metrics;
 mod error_statuses_are_bounded;
 mod evaluation_jobs;
 mod haproxy_routes_vehicles;
+mod incidents_across_replicas;
 mod invalid_input_is_refused;
 mod malformed_protobuf_is_invalid_argument;
 mod metrics_connections_are_bounded;

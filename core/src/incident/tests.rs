@@ -67,11 +67,18 @@ fn three_vehicles_displaced_alike_open_a_translation_incident() {
     // = 2236.07 m) plus the 1 km margin.
     let centre = wgs84_local_displacement(at(0.0, 0.0), incident.centre);
     assert!(close(centre[0], 1_000.0, 1.0) && close(centre[1], 1_000.0, 1.0));
-    assert!(close(incident.radius_m, 3_236.07, 2.0), "{}", incident.radius_m);
+    assert!(
+        close(incident.radius_m, 3_236.07, 2.0),
+        "{}",
+        incident.radius_m
+    );
     assert_eq!((incident.onset_s, incident.confirmed_s), (100.0, 220.0));
     assert_eq!(incident.vehicles.len(), 3);
     assert!(incident.contains(at(1_000.0, 1_000.0)) && !incident.contains(at(9_000.0, 0.0)));
-    assert!(c.state().pending.is_empty(), "members leave the pending onsets");
+    assert!(
+        c.state().pending.is_empty(),
+        "members leave the pending onsets"
+    );
 }
 
 #[test]
@@ -195,7 +202,10 @@ fn agreeing_vehicles_join_and_the_incident_ends_after_the_quiet_time() {
     let joined = c.onset(onset("d", 1_000.0, at(4_000.0, 0.0), [110.0, 5.0]));
     assert_eq!(joined[0].kind, ChangeKind::Joined);
     assert_eq!(joined[0].incident.vehicles.len(), 4);
-    assert!(c.onset(onset("e", 1_010.0, at(0.0, 0.0), [0.0, 100.0])).is_empty());
+    assert!(
+        c.onset(onset("e", 1_010.0, at(0.0, 0.0), [0.0, 100.0]))
+            .is_empty()
+    );
     assert_eq!(c.state().pending.len(), 1);
 
     for (vehicle, alarm_id, time_s) in [("a", 0, 100.0), ("b", 10, 200.0), ("c", 20, 300.0)] {
@@ -218,7 +228,10 @@ fn agreeing_vehicles_join_and_the_incident_ends_after_the_quiet_time() {
     assert_eq!(ended[0].kind, ChangeKind::Ended);
     assert_eq!(ended[0].incident.ended_s, Some(5_700.0));
     assert!(c.open_incidents().is_empty());
-    assert!(c.state().pending.is_empty(), "e's onset is older than the window");
+    assert!(
+        c.state().pending.is_empty(),
+        "e's onset is older than the window"
+    );
 }
 
 #[test]

@@ -18,7 +18,9 @@ use crate::event_log::watch::{self, WatchContext, WatchRequest, WatchStream};
 use crate::idle::StreamIdle;
 use crate::incidents::service::{self as incidents, IncidentFeed, IncidentLog};
 use crate::status::invalid_field;
-use crate::store::{AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent, Store};
+use crate::store::{
+    AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent, Store,
+};
 
 /// The AlarmService implementation.
 #[derive(Debug, Clone)]

@@ -361,7 +361,9 @@ mod tests {
         );
         let stop = CancellationToken::new();
         stop.cancel();
-        outbox.run(store.clone(), stop, Duration::from_secs(1)).await;
+        outbox
+            .run(store.clone(), stop, Duration::from_secs(1))
+            .await;
     }
 
     fn correlator(store: &Store, instance: &str) -> IncidentCorrelator {
@@ -402,10 +404,16 @@ mod tests {
             displaced_onset(&store, vehicle, east_m).await;
         }
         first.step().await.expect("step");
-        assert!(incidents(&store).await.is_empty(), "two vehicles are not an incident");
+        assert!(
+            incidents(&store).await.is_empty(),
+            "two vehicles are not an incident"
+        );
         displaced_onset(&store, "car-3", 4_000.0).await;
         second.step().await.expect("step");
-        assert!(incidents(&store).await.is_empty(), "the second does not hold the lease");
+        assert!(
+            incidents(&store).await.is_empty(),
+            "the second does not hold the lease"
+        );
         first.step().await.expect("step");
         assert_eq!(incidents(&store).await, [(1, translation, 3)]);
 
@@ -421,6 +429,9 @@ mod tests {
             .iter()
             .map(|e| e.kind)
             .collect();
-        assert_eq!(kinds, [IncidentEventKind::Opened, IncidentEventKind::Joined]);
+        assert_eq!(
+            kinds,
+            [IncidentEventKind::Opened, IncidentEventKind::Joined]
+        );
     }
 }

@@ -14,7 +14,9 @@ use crate::edge::page_request;
 use crate::event_log::EventLog;
 use crate::event_log::feed::Feed;
 use crate::status::{invalid_field, not_found};
-use crate::store::{IncidentEventKind, IncidentRow, IncidentState, LoggedIncidentEvent, Store, StoreError};
+use crate::store::{
+    IncidentEventKind, IncidentRow, IncidentState, LoggedIncidentEvent, Store, StoreError,
+};
 
 /// The incident event log (no filter: every incident).
 #[derive(Debug)]

@@ -119,8 +119,16 @@ async fn run_list(server: &ServerArgs, args: ListArgs) -> Result<()> {
     }
     print_table(
         &[
-            "id", "kind", "state", "vehicles", "opened", "ended", "centre", "radius_km",
-            "estimate", "confidence",
+            "id",
+            "kind",
+            "state",
+            "vehicles",
+            "opened",
+            "ended",
+            "centre",
+            "radius_km",
+            "estimate",
+            "confidence",
         ],
         &incidents,
         |i| {
@@ -150,7 +158,10 @@ async fn run_get(server: &ServerArgs, args: GetArgs) -> Result<()> {
             .get_incident(v1::GetIncidentRequest { id: args.id }),
     )
     .await?;
-    println!("{}", serde_json::to_string_pretty(&incident_json(&incident))?);
+    println!(
+        "{}",
+        serde_json::to_string_pretty(&incident_json(&incident))?
+    );
     Ok(())
 }
 
@@ -208,13 +219,19 @@ fn kind_name(kind: i32) -> &'static str {
 fn estimate(i: &v1::Incident) -> String {
     match v1::IncidentKind::try_from(i.kind) {
         Ok(v1::IncidentKind::FalsePosition) => {
-            format!("at {:.5},{:.5}", i.false_latitude_deg, i.false_longitude_deg)
+            format!(
+                "at {:.5},{:.5}",
+                i.false_latitude_deg, i.false_longitude_deg
+            )
         }
         Ok(v1::IncidentKind::Translation) => {
             format!("{:.0} m E, {:.0} m N", i.offset_east_m, i.offset_north_m)
         }
         Ok(v1::IncidentKind::Drift) => {
-            format!("{:.2} m/s E, {:.2} m/s N", i.drift_east_mps, i.drift_north_mps)
+            format!(
+                "{:.2} m/s E, {:.2} m/s N",
+                i.drift_east_mps, i.drift_north_mps
+            )
         }
         _ => "-".to_string(),
     }

@@ -4,8 +4,8 @@
 use serde_json::json;
 
 use crate::store::{
-    AlarmEvent, AlarmEventKind, AlarmEventRow, CorrelationStep, CorrelatorPlace,
-    IncidentEventKind, IncidentState, IncidentWrite, PageRequest, Store, StoredPlace,
+    AlarmEvent, AlarmEventKind, AlarmEventRow, CorrelationStep, CorrelatorPlace, IncidentEventKind,
+    IncidentState, IncidentWrite, PageRequest, Store, StoredPlace,
 };
 
 const LEASE_MS: i64 = 10_000;
@@ -42,25 +42,54 @@ async fn the_lease_has_one_holder_until_it_expires(store: Store) {
         })
     );
     assert_eq!(
-        store.claim_incident_correlator("b", 5_000, LEASE_MS).await.unwrap(),
+        store
+            .claim_incident_correlator("b", 5_000, LEASE_MS)
+            .await
+            .unwrap(),
         None,
         "a holds it"
     );
-    assert!(store.claim_incident_correlator("a", 9_000, LEASE_MS).await.unwrap().is_some());
+    assert!(
+        store
+            .claim_incident_correlator("a", 9_000, LEASE_MS)
+            .await
+            .unwrap()
+            .is_some()
+    );
     // a stops renewing: b takes over once the lease has run out since a's last renewal.
     assert_eq!(
-        store.claim_incident_correlator("b", 19_000, LEASE_MS).await.unwrap(),
+        store
+            .claim_incident_correlator("b", 19_000, LEASE_MS)
+            .await
+            .unwrap(),
         None
     );
-    assert!(store.claim_incident_correlator("b", 19_001, LEASE_MS).await.unwrap().is_some());
+    assert!(
+        store
+            .claim_incident_correlator("b", 19_001, LEASE_MS)
+            .await
+            .unwrap()
+            .is_some()
+    );
     // a comes back (a stalled process): its step is fenced off and writes nothing.
     let stale = step(7, vec![write(1, Some(IncidentEventKind::Opened), false, 3)]);
-    assert!(!store.write_correlation_step("a", 19_500, &stale).await.unwrap());
+    assert!(
+        !store
+            .write_correlation_step("a", 19_500, &stale)
+            .await
+            .unwrap()
+    );
     assert_eq!(store.latest_incident_position().await.unwrap(), 0);
     assert!(store.get_incident(1).await.unwrap().is_none());
     // Given up, the lease is free at once.
     store.release_incident_correlator("b").await.unwrap();
-    assert!(store.claim_incident_correlator("c", 19_600, LEASE_MS).await.unwrap().is_some());
+    assert!(
+        store
+            .claim_incident_correlator("c", 19_600, LEASE_MS)
+            .await
+            .unwrap()
+            .is_some()
+    );
 }
 
 async fn a_step_stores_incidents_their_events_and_the_place_together(store: Store) {
@@ -75,7 +104,12 @@ async fn a_step_stores_incidents_their_events_and_the_place_together(store: Stor
             write(2, Some(IncidentEventKind::Opened), false, 3),
         ],
     );
-    assert!(store.write_correlation_step("a", 2_000, &first).await.unwrap());
+    assert!(
+        store
+            .write_correlation_step("a", 2_000, &first)
+            .await
+            .unwrap()
+    );
     let second = step(
         9,
         vec![
@@ -85,7 +119,12 @@ async fn a_step_stores_incidents_their_events_and_the_place_together(store: Stor
             write(1, Some(IncidentEventKind::Ended), true, 3),
         ],
     );
-    assert!(store.write_correlation_step("a", 3_000, &second).await.unwrap());
+    assert!(
+        store
+            .write_correlation_step("a", 3_000, &second)
+            .await
+            .unwrap()
+    );
 
     let place = store
         .claim_incident_correlator("a", 3_500, LEASE_MS)
@@ -101,7 +140,10 @@ async fn a_step_stores_incidents_their_events_and_the_place_together(store: Stor
     let one = store.get_incident(1).await.unwrap().expect("stored");
     assert_eq!((one.opened_at_ms, one.ended_at_ms), (2_000, Some(3_000)));
     let two = store.get_incident(2).await.unwrap().expect("stored");
-    assert_eq!((two.ended_at_ms, &two.body), (None, &json!({ "id": 2, "vehicles": 4 })));
+    assert_eq!(
+        (two.ended_at_ms, &two.body),
+        (None, &json!({ "id": 2, "vehicles": 4 }))
+    );
 
     let ids = |rows: Vec<crate::store::IncidentRow>| rows.iter().map(|r| r.id).collect::<Vec<_>>();
     let first_page = PageRequest::first(1);
@@ -124,7 +166,15 @@ async fn a_step_stores_incidents_their_events_and_the_place_together(store: Stor
     let events = store.incident_events_after(0, i64::MAX, 10).await.unwrap();
     let summary: Vec<_> = events
         .iter()
-        .map(|e| (e.position, e.incident_id, e.kind, e.stored_at_ms, e.opened_at_ms))
+        .map(|e| {
+            (
+                e.position,
+                e.incident_id,
+                e.kind,
+                e.stored_at_ms,
+                e.opened_at_ms,
+            )
+        })
         .collect();
     assert_eq!(
         summary,
@@ -136,7 +186,10 @@ async fn a_step_stores_incidents_their_events_and_the_place_together(store: Stor
         ]
     );
     assert_eq!(events[2].body, json!({ "id": 2, "vehicles": 4 }));
-    assert_eq!(store.incident_events_after(1, 3, 10).await.unwrap().len(), 2);
+    assert_eq!(
+        store.incident_events_after(1, 3, 10).await.unwrap().len(),
+        2
+    );
     assert_eq!(store.latest_incident_position().await.unwrap(), 4);
 }
 
@@ -152,9 +205,15 @@ async fn an_onset_keeps_where_it_started(store: Store) {
         alarm: row,
     };
     store.write_alarms(&[event]).await.unwrap();
-    let logged = store.alarm_events_after(0, i64::MAX, None, 10).await.unwrap();
+    let logged = store
+        .alarm_events_after(0, i64::MAX, None, 10)
+        .await
+        .unwrap();
     assert_eq!(logged[0].event.alarm.place.onset_latitude_deg, Some(32.25));
-    assert_eq!(logged[0].event.alarm.place.onset_longitude_deg, Some(-110.5));
+    assert_eq!(
+        logged[0].event.alarm.place.onset_longitude_deg,
+        Some(-110.5)
+    );
 }
 
 on_both_backends!(
