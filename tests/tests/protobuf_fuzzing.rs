@@ -28,8 +28,9 @@ const CALL_BOUND: Duration = Duration::from_secs(20);
 /// How long a watch with nothing to send may stay open before the test lets it go.
 const QUIET_WATCH: Duration = Duration::from_millis(300);
 /// RPCs whose streams legitimately stay open while there is nothing to report.
-const OPEN_ENDED: [&str; 2] = [
+const OPEN_ENDED: [&str; 3] = [
     "/spoofwatch.v1.AlarmService/WatchAlarms",
+    "/spoofwatch.v1.AlarmService/WatchIncidents",
     "/spoofwatch.v1.TrainingService/WatchJob",
 ];
 const TOKEN: &str = "fuzz-token";
@@ -375,7 +376,7 @@ async fn random_messages_to_every_rpc_get_no_internal_error_and_no_hang() {
     .await;
     let channel = server.channel().await;
     let (rpcs, messages) = rpcs_and_messages();
-    assert_eq!(rpcs.len(), 27, "every RPC of the six services");
+    assert_eq!(rpcs.len(), 30, "every RPC of the six services");
     let started = Instant::now();
     let mut rng = Rng(0x5eed_f00d);
     for rpc in &rpcs {
