@@ -185,43 +185,43 @@ impl FleetSpec {
                 "vehicles",
                 self.vehicles as f64,
                 (1..=MAX_VEHICLES).contains(&self.vehicles),
-                format!("in [1, {MAX_VEHICLES}]"),
+                format!("a whole number in [1, {MAX_VEHICLES}]"),
             ),
             (
                 "pass_through",
                 self.pass_through as f64,
                 self.pass_through <= self.vehicles,
-                format!("<= vehicles ({})", self.vehicles),
+                format!("a whole number <= vehicles ({})", self.vehicles),
             ),
             (
                 "centre_lat_deg",
                 self.centre_lat_deg,
                 latitude(self.centre_lat_deg),
-                "in [-80, 80]".into(),
+                "a finite number in [-80, 80]".into(),
             ),
             (
                 "centre_lon_deg",
                 self.centre_lon_deg,
                 longitude(self.centre_lon_deg),
-                "in [-180, 180]".into(),
+                "a finite number in [-180, 180]".into(),
             ),
             (
                 "area_size_m",
                 self.area_size_m,
                 (AREA_SIZE_RANGE_M.0..=AREA_SIZE_RANGE_M.1).contains(&self.area_size_m),
-                "in [100, 200000] m".into(),
+                "a finite number in [100, 200000] m".into(),
             ),
             (
                 "duration_s",
                 self.duration_s,
                 self.duration_s > 0.0,
-                "> 0 s".into(),
+                "a finite number > 0 s".into(),
             ),
             (
                 "rate_hz",
                 self.rate_hz,
                 self.rate_hz > 0.0 && self.rate_hz <= 100.0,
-                "in (0, 100] Hz".into(),
+                "a finite number in (0, 100] Hz".into(),
             ),
             (
                 "vehicles * duration_s * rate_hz",
@@ -233,32 +233,32 @@ impl FleetSpec {
                 "spoofer.lat_deg",
                 s.lat_deg,
                 latitude(s.lat_deg),
-                "in [-80, 80]".into(),
+                "a finite number in [-80, 80]".into(),
             ),
             (
                 "spoofer.lon_deg",
                 s.lon_deg,
                 longitude(s.lon_deg),
-                "in [-180, 180]".into(),
+                "a finite number in [-180, 180]".into(),
             ),
             (
                 "spoofer.radius_m",
                 s.radius_m,
                 (RADIUS_RANGE_M.0..=RADIUS_RANGE_M.1).contains(&s.radius_m),
-                "in [1, 100000] m".into(),
+                "a finite number in [1, 100000] m".into(),
             ),
             (
                 "spoofer.start_s",
                 s.start_s,
                 s.start_s >= 0.0 && s.start_s < self.duration_s,
-                format!("in [0, duration_s = {}) s", self.duration_s),
+                format!("a finite number in [0, duration_s = {}) s", self.duration_s),
             ),
             (
                 "spoofer.duration_s",
                 s.duration_s,
                 s.duration_s > 0.0 && window_end_s <= self.duration_s,
                 format!(
-                    "> 0 s with start_s + duration_s <= duration_s = {} s",
+                    "a finite number > 0 s with start_s + duration_s <= duration_s = {} s",
                     self.duration_s
                 ),
             ),
@@ -269,38 +269,58 @@ impl FleetSpec {
                     "spoofer.attack.lat_deg",
                     lat_deg,
                     latitude(lat_deg),
-                    "in [-80, 80]".into(),
+                    "a finite number in [-80, 80]".into(),
                 ));
                 checks.push((
                     "spoofer.attack.lon_deg",
                     lon_deg,
                     longitude(lon_deg),
-                    "in [-180, 180]".into(),
+                    "a finite number in [-180, 180]".into(),
                 ));
             }
             RegionalAttack::Translation { east_m, north_m } => {
-                checks.push(("spoofer.attack.east_m", east_m, true, "(m)".into()));
-                checks.push(("spoofer.attack.north_m", north_m, true, "(m)".into()));
+                checks.push((
+                    "spoofer.attack.east_m",
+                    east_m,
+                    true,
+                    "a finite number (m)".into(),
+                ));
+                checks.push((
+                    "spoofer.attack.north_m",
+                    north_m,
+                    true,
+                    "a finite number (m)".into(),
+                ));
                 let length_m = east_m.hypot(north_m);
                 checks.push((
                     "spoofer.attack",
                     length_m,
                     length_m > 0.0 && length_m <= MAX_TRANSLATION_M,
-                    "of length (east_m, north_m) in (0, 1000000] m".into(),
+                    "an offset whose length √(east_m² + north_m²) is in (0, 1000000] m".into(),
                 ));
             }
             RegionalAttack::Drift {
                 east_mps,
                 north_mps,
             } => {
-                checks.push(("spoofer.attack.east_mps", east_mps, true, "(m/s)".into()));
-                checks.push(("spoofer.attack.north_mps", north_mps, true, "(m/s)".into()));
+                checks.push((
+                    "spoofer.attack.east_mps",
+                    east_mps,
+                    true,
+                    "a finite number (m/s)".into(),
+                ));
+                checks.push((
+                    "spoofer.attack.north_mps",
+                    north_mps,
+                    true,
+                    "a finite number (m/s)".into(),
+                ));
                 let speed_mps = east_mps.hypot(north_mps);
                 checks.push((
                     "spoofer.attack",
                     speed_mps,
                     speed_mps > 0.0 && speed_mps <= MAX_SPEED_MPS,
-                    "of speed (east_mps, north_mps) in (0, 80] m/s".into(),
+                    "a velocity whose speed √(east_mps² + north_mps²) is in (0, 80] m/s".into(),
                 ));
             }
         }
@@ -308,7 +328,7 @@ impl FleetSpec {
             if !value.is_finite() || !ok {
                 return Err(ScenarioError::InvalidFleet {
                     field,
-                    expected: format!("a finite number {expected}"),
+                    expected,
                     value,
                 });
             }
