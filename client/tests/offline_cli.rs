@@ -4,7 +4,9 @@ use std::path::Path;
 use std::process::{Command, Output};
 
 use spoofwatch_core::sample::Sample;
-use spoofwatch_core::scenario::{DriveDistribution, DriveSpec, simulate_drive};
+use spoofwatch_core::scenario::{
+    DriveDistribution, DriveSpec, FleetTruth, RegionalAttack, generate_fleet, simulate_drive,
+};
 
 fn run(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_spoofwatch"))
@@ -174,6 +176,144 @@ fn simulated_drives_take_a_rate_and_realistic_ones_round_trip_through_the_reader
     ]);
     assert!(
         stderr.contains("--realistic") && stderr.contains("--rate"),
+        "{stderr}"
+    );
+}
+
+#[test]
+fn a_fleet_scene_writes_labelled_telemetry_and_its_ground_truth() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (csv, json) = (
+        path(dir.path(), "scene.csv"),
+        path(dir.path(), "truth.json"),
+    );
+    let options = [
+        "--vehicles",
+        "12",
+        "--pass-through",
+        "4",
+        "--area-m",
+        "6000",
+        "--duration",
+        "300",
+        "--rate",
+        "5",
+        "--radius-m",
+        "700",
+        "--start",
+        "60",
+        "--attack-duration",
+        "180",
+        "--attack",
+        "position",
+        "--false-lat",
+        "32.3",
+        "--false-lon",
+        "-110.8",
+        "--seed",
+        "5",
+    ];
+    let output = spoofwatch(
+        &[
+            &["scenario", "fleet", "--out", &csv, "--truth", &json],
+            &options[..],
+        ]
+        .concat(),
+    );
+    let said = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        said.contains("wrote 12 vehicles") && said.contains("4 vehicles captured"),
+        "{said}"
+    );
+
+    let truth: FleetTruth = serde_json::from_str(&std::fs::read_to_string(&json).expect("written"))
+        .expect("the ground truth");
+    let spoofer = truth.spec.spoofer;
+    assert_eq!(
+        (spoofer.lat_deg, spoofer.lon_deg),
+        (32.23, -110.91),
+        "the area's centre"
+    );
+    assert_eq!(
+        (spoofer.radius_m, spoofer.start_s, spoofer.duration_s),
+        (700.0, 60.0, 180.0)
+    );
+    assert_eq!(
+        spoofer.attack,
+        RegionalAttack::Position {
+            lat_deg: 32.3,
+            lon_deg: -110.8
+        }
+    );
+    assert_eq!((truth.spec.vehicles, truth.spec.rate_hz), (12, 5.0));
+    assert_eq!(truth.captured_vehicles, 4);
+    assert_eq!(
+        truth.vehicles.iter().filter(|v| v.routed_through).count(),
+        4
+    );
+
+    let read = spoofwatch_core::data::read_path(Path::new(&csv)).expect("readable");
+    assert_eq!(read.tracks.len(), 12);
+    // The file is the core's scene bit for bit (the CSV writes shortest round-trip floats).
+    let scene = generate_fleet(&truth.spec).expect("the recorded spec");
+    let samples = |t: &spoofwatch_core::sample::Track| -> Vec<(Sample, Option<bool>)> {
+        t.records.iter().map(|r| (r.sample, r.label)).collect()
+    };
+    let mut reported_lat = Vec::new();
+    for ((track, expected), vehicle) in read.tracks.iter().zip(&scene.tracks).zip(&truth.vehicles) {
+        assert_eq!(track.vehicle_id, vehicle.vehicle_id);
+        assert_eq!(samples(track), samples(expected), "{}", track.vehicle_id);
+        let spoofed: Vec<&Sample> = track
+            .records
+            .iter()
+            .filter(|r| r.label == Some(true))
+            .map(|r| &r.sample)
+            .collect();
+        assert_eq!(
+            vehicle.captured,
+            !spoofed.is_empty(),
+            "{}",
+            track.vehicle_id
+        );
+        assert_eq!(
+            vehicle.captures.iter().map(|c| c.rows).sum::<usize>(),
+            spoofed.len()
+        );
+        reported_lat.extend(spoofed.iter().map(|s| s.latitude_deg));
+    }
+    assert_eq!(reported_lat.len(), truth.spoofed_rows);
+    // Every captured receiver reports the false position (metre-level noise: 1e-4° is 11 m).
+    reported_lat.sort_by(f64::total_cmp);
+    let median = reported_lat[reported_lat.len() / 2];
+    assert!((median - 32.3).abs() < 1e-4, "{median}");
+
+    let stderr = spoofwatch_refuses(&[
+        "scenario",
+        "fleet",
+        "--out",
+        &csv,
+        "--truth",
+        &json,
+        "--attack",
+        "translation",
+        "--east-mps",
+        "1",
+    ]);
+    assert!(stderr.contains("--east-mps"), "{stderr}");
+    let stderr = spoofwatch_refuses(&[
+        "scenario",
+        "fleet",
+        "--out",
+        &csv,
+        "--truth",
+        &json,
+        "--vehicles",
+        "12",
+        "--pass-through",
+        "13",
+    ]);
+    assert!(
+        stderr.contains("--pass-through") && stderr.contains("pass_through"),
         "{stderr}"
     );
 }

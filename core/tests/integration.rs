@@ -6,6 +6,7 @@ mod avgps_data;
 mod detector;
 mod ekf_comparator;
 mod evidence_parity;
+mod fleet_scene;
 mod golden_bits;
 mod poisoned_samples;
 mod scenario;

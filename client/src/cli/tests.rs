@@ -1,4 +1,5 @@
-//! Argument parsing: the remote commands, `train`'s offline form, `scenario simulate --rate/--realistic`.
+//! Argument parsing: the remote commands, `train`'s offline form, `scenario simulate --rate/--realistic`,
+//! `scenario fleet`'s defaults and attacks.
 
 use crate::connection::DEFAULT_SERVER_ADDRESS;
 use clap::Parser;
@@ -324,6 +325,74 @@ fn scenario_simulate_takes_a_rate_or_realistic_drives_but_not_both() {
         simulate(&["--realistic", "--rate", "10"]).expect_err("the realistic draw sets the rate");
     assert_eq!(err.kind(), clap::error::ErrorKind::ArgumentConflict);
     assert!(err.to_string().contains("--rate"), "{err}");
+}
+
+#[test]
+fn scenario_fleet_defaults_to_the_default_scene_and_maps_each_attack() {
+    use spoofwatch_core::scenario::{FleetSpec, RegionalAttack};
+    let fleet = |extra: &[&str]| {
+        let mut args = vec!["scenario", "fleet", "--out", "s.csv", "--truth", "t.json"];
+        args.extend_from_slice(extra);
+        match parse(&args) {
+            Ok(Command::Scenario(super::scenario::Command::Fleet(args))) => args.spec(),
+            other => panic!("scenario fleet must parse: {other:?}"),
+        }
+    };
+    assert_eq!(fleet(&[]).expect("the defaults"), FleetSpec::default());
+    let attack = |extra: &[&str]| fleet(extra).expect("valid").spoofer.attack;
+    assert_eq!(
+        attack(&[
+            "--attack",
+            "position",
+            "--false-lat",
+            "-33.9",
+            "--false-lon",
+            "-70.6"
+        ]),
+        RegionalAttack::Position {
+            lat_deg: -33.9,
+            lon_deg: -70.6
+        }
+    );
+    assert_eq!(
+        attack(&["--attack", "translation", "--north-m", "-300"]),
+        RegionalAttack::Translation {
+            east_m: 0.0,
+            north_m: -300.0
+        }
+    );
+    assert_eq!(
+        attack(&["--attack", "drift", "--north-mps", "0.5"]),
+        RegionalAttack::Drift {
+            east_mps: 0.0,
+            north_mps: 0.5
+        }
+    );
+    let spec = fleet(&[
+        "--centre-lat",
+        "-33.45",
+        "--centre-lon",
+        "-70.66",
+        "--spoofer-lon",
+        "-70.7",
+    ])
+    .expect("valid");
+    assert_eq!(
+        (spec.spoofer.lat_deg, spec.spoofer.lon_deg),
+        (-33.45, -70.7),
+        "an omitted spoofer coordinate is the area's centre"
+    );
+    let refused = |extra: &[&str]| fleet(extra).expect_err("refused").to_string();
+    assert!(refused(&["--attack", "position", "--false-lat", "1"]).contains("--false-lon"));
+    assert!(refused(&["--false-lat", "1"]).contains("--attack position"));
+    assert!(refused(&["--attack", "translation"]).contains("--east-m"));
+    let err = refused(&["--start", "3600"]);
+    assert!(
+        err.contains("--start") && err.contains("spoofer.start_s"),
+        "{err}"
+    );
+    let err = refused(&["--attack", "drift", "--east-mps", "0"]);
+    assert!(err.starts_with("--attack: "), "{err}");
 }
 
 #[test]

@@ -3,14 +3,17 @@
 //! The AV-GPS attacks are not subtle (frozen fixes while stopped, jumps of hundreds of km), so the detector
 //! is trained and judged on attacks injected here: into real normal trajectories ([`inject`], [`generate`])
 //! and into simulated drives ([`simulate_drive`]), whose specs can be drawn at random from a
-//! [`DriveDistribution`]. Everything is deterministic from seeds.
+//! [`DriveDistribution`]. Fleet scenes ([`generate_fleet`]) put many such drives in one area with a
+//! regional spoofer that captures every receiver in its radius. Everything is deterministic from seeds.
 //!
 //! Geodesy (metres east/north → latitude/longitude) is [`crate::geo::displace_fix`]. This module owns
-//! attack kinds, injection, scenario plans, simulated drives and their distributions; it must not compute
-//! evidence or run a detector (tests and experiments do that with the scenarios it returns).
+//! attack kinds, injection, scenario plans, simulated drives, their distributions and fleet scenes; it
+//! must not compute evidence or run a detector (tests and experiments do that with the scenarios it
+//! returns).
 
 mod attack;
 mod drive;
+mod fleet;
 mod impairments;
 mod plan;
 mod randomise;
@@ -19,6 +22,10 @@ pub use attack::{AttackKind, AttackSpec, InjectedTrack, inject};
 pub use drive::{
     DriveSpec, GnssNoise, OnboardNoise, SimulatedDrive, SpeedProfile, TrueState, TurnBehaviour,
     simulate_drive, simulate_drive_with_truth,
+};
+pub use fleet::{
+    CaptureEpisode, CapturedFix, FleetScene, FleetSpec, FleetTruth, RegionalAttack, Spoofer,
+    VehicleTruth, generate_fleet, offset_from_spoofer_m,
 };
 pub use impairments::{GnssOutage, Multipath, OnboardErrors, Outages};
 pub use plan::{AttackDuration, RAMP_SWEEP_VELOCITIES_MPS, ScenarioPlan, generate};
@@ -54,6 +61,13 @@ pub enum ScenarioError {
     /// A field of a [`DriveDistribution`] is non-finite or out of range.
     #[error("drive distribution {field} must be {expected}, got {value}")]
     InvalidDistribution {
+        field: &'static str,
+        expected: String,
+        value: f64,
+    },
+    /// A field of a [`FleetSpec`] is non-finite or out of range.
+    #[error("fleet scene {field} must be {expected}, got {value}")]
+    InvalidFleet {
         field: &'static str,
         expected: String,
         value: f64,
