@@ -26,6 +26,7 @@ pub mod glr;
 pub mod lifecycle;
 pub mod metrics;
 pub mod model;
+pub mod receiver;
 pub mod rng;
 pub mod sample;
 pub mod scenario;

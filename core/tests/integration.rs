@@ -8,5 +8,6 @@ mod ekf_comparator;
 mod evidence_parity;
 mod golden_bits;
 mod poisoned_samples;
+mod receiver_flags;
 mod scenario;
 mod shared_scratch;

@@ -6,7 +6,8 @@
 //! [`DriveDistribution`]. Everything is deterministic from seeds.
 //!
 //! Geodesy (metres east/north → latitude/longitude) is [`crate::geo::displace_fix`]. This module owns
-//! attack kinds, injection, scenario plans, simulated drives and their distributions; it must not compute
+//! attack kinds, injection, scenario plans, simulated drives and their distributions, and the receiver
+//! flags a simulated receiver raises ([`raise_flags`]); it must not compute
 //! evidence or run a detector (tests and experiments do that with the scenarios it returns).
 
 mod attack;
@@ -14,6 +15,7 @@ mod drive;
 mod impairments;
 mod plan;
 mod randomise;
+mod receiver_flags;
 
 pub use attack::{AttackKind, AttackSpec, InjectedTrack, inject};
 pub use drive::{
@@ -23,6 +25,7 @@ pub use drive::{
 pub use impairments::{GnssOutage, Multipath, OnboardErrors, Outages};
 pub use plan::{AttackDuration, RAMP_SWEEP_VELOCITIES_MPS, ScenarioPlan, generate};
 pub use randomise::{ClippedNormal, DriveDistribution, Range, UrbanToRural};
+pub use receiver_flags::{FlagWindow, raise_flags};
 
 /// Ramp drift velocities accepted by [`AttackKind::RampDrift`] (m/s, inclusive; SPEC §9).
 pub const RAMP_VELOCITY_RANGE_MPS: (f64, f64) = (0.05, 2.0);
@@ -54,6 +57,13 @@ pub enum ScenarioError {
     /// A field of a [`DriveDistribution`] is non-finite or out of range.
     #[error("drive distribution {field} must be {expected}, got {value}")]
     InvalidDistribution {
+        field: &'static str,
+        expected: String,
+        value: f64,
+    },
+    /// A field of a [`FlagWindow`] is non-finite or out of range.
+    #[error("receiver flag window {field} must be {expected}, got {value}")]
+    InvalidFlagWindow {
         field: &'static str,
         expected: String,
         value: f64,
