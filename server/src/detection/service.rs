@@ -679,3 +679,37 @@ impl DetectionService for DetectionApi {
         Ok(Response::new(session_to_proto(session)))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unknown_receiver_state_numbers_are_refused_by_field() {
+        let good = v1::Sample {
+            spoofing_state: v1::SpoofingState::Indicated as i32,
+            satellites_used: Some(9),
+            ..v1::Sample::default()
+        };
+        let bad = v1::Sample {
+            jamming_state: 7,
+            ..v1::Sample::default()
+        };
+        let samples = samples_from_proto(std::slice::from_ref(&good), "batch.samples")
+            .expect("known numbers");
+        assert_eq!(
+            samples[0].spoofing_state,
+            spoofwatch_core::sample::SpoofingState::Indicated
+        );
+        match samples_from_proto(&[good, bad], "batch.samples") {
+            Err(SessionError::InvalidBatch(violations)) => assert_eq!(
+                violations,
+                [(
+                    "batch.samples[1].jamming_state".to_string(),
+                    "must be a state number in [0, 3], got 7".to_string()
+                )]
+            ),
+            other => panic!("expected a field violation, got {other:?}"),
+        }
+    }
+}
