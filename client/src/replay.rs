@@ -771,6 +771,19 @@ mod tests {
     }
 
     #[test]
+    fn a_replayed_sample_carries_the_receiver_status_of_the_csv() {
+        let csv = "vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg,spoofing_state,jamming_state,satellites_used,hdop\n\
+                   v,10,32.23,-110.91,3.0,90,indicated,2,11,1.5\n";
+        let recording =
+            spoofwatch_core::data::read(csv.as_bytes(), "flags.csv").expect("a telemetry CSV");
+        let sent = replayed_sample(&recording.tracks[0].records[0].sample, 700.0);
+        assert_eq!(sent.timestamp_s, 700.0);
+        assert_eq!(sent.spoofing_state(), v1::SpoofingState::Indicated);
+        assert_eq!(sent.jamming_state(), v1::JammingState::Warning);
+        assert_eq!((sent.satellites_used, sent.hdop), (Some(11), Some(1.5)));
+    }
+
+    #[test]
     fn a_track_without_breaks_is_sent_unchanged() {
         let rows = records(&[
             (100.0, true),

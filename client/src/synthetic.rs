@@ -54,9 +54,7 @@ impl LoopDriver {
             longitude_deg,
             speed_mps: self.speed_mps,
             heading_deg,
-            position_std_m: None,
-            speed_std_mps: None,
-            heading_std_deg: None,
+            ..v1::Sample::default()
         };
         self.timestamp_s += 1.0;
         self.bearing_rad =

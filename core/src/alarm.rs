@@ -14,6 +14,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::lifecycle::{AlarmLifecycle, Lifecycle, LifecycleInput, OffsetSignal};
 use crate::metrics::{self, EventRules, Metrics, MetricsError, ScoredRow};
+use crate::receiver::FlagSignal;
 
 /// The alarm threshold θ on the score and the persistence N_p (consecutive valid steps).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -157,6 +158,8 @@ fn fill_lifecycle_alarms(
                 trajectory_start: i == 0 || rows[i - 1].trajectory != row.trajectory,
                 positive: row.score >= theta,
                 offset: offset.get(i).copied().unwrap_or_default(),
+                // The search chooses the durations of p̂ and the offset; the flag rule's are fixed (§7.3).
+                flag: FlagSignal::default(),
             },
         ));
     }

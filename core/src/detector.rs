@@ -17,6 +17,7 @@ use crate::explain::{Explanation, FROZEN_FIX_S};
 use crate::lifecycle::{AlarmLifecycle, LifecycleInput, OffsetSignal};
 use crate::model::artifact::ModelArtifact;
 use crate::model::{LiquidState, StepScratch};
+use crate::receiver::FlagCorroboration;
 use crate::sample::{Record, Sample};
 
 /// The detector's verdict on one sample.
@@ -56,6 +57,7 @@ pub struct Detector {
     state: LiquidState,
     alarm: PersistenceAlarm,
     lifecycle: AlarmLifecycle,
+    flags: FlagCorroboration,
     alarm_on: bool,
 }
 
@@ -66,6 +68,7 @@ impl Detector {
             state: LiquidState::zeros(artifact.model.config()),
             alarm: PersistenceAlarm::new(artifact.operating_point.n_p),
             lifecycle: AlarmLifecycle::default(),
+            flags: FlagCorroboration::default(),
             alarm_on: false,
             artifact,
         }
@@ -86,16 +89,27 @@ impl Detector {
         });
         let positive = probability >= self.artifact.operating_point.theta;
         let alarm = match &self.artifact.lifecycle {
-            Some(lifecycle) => self.lifecycle.update(
-                lifecycle,
-                &LifecycleInput {
-                    time_s: sample.timestamp_s,
-                    valid: evidence.valid,
-                    trajectory_start: evidence.trajectory_start,
-                    positive,
-                    offset: offset_signal(&evidence),
-                },
-            ),
+            Some(lifecycle) => {
+                let offset = offset_signal(&evidence);
+                let flag = self.flags.update(
+                    sample.timestamp_s,
+                    evidence.valid,
+                    evidence.trajectory_start,
+                    sample.spoofing_state,
+                    offset.displaced,
+                );
+                self.lifecycle.update(
+                    lifecycle,
+                    &LifecycleInput {
+                        time_s: sample.timestamp_s,
+                        valid: evidence.valid,
+                        trajectory_start: evidence.trajectory_start,
+                        positive,
+                        offset,
+                        flag,
+                    },
+                )
+            }
             None => self
                 .alarm
                 .update(positive, evidence.valid, evidence.trajectory_start),
@@ -138,8 +152,9 @@ pub fn offset_signal(evidence: &Evidence) -> OffsetSignal {
 }
 
 /// Everything a [`Detector`] carries from one sample to the next, without the model: evidence
-/// builder (drift calibration included), liquid state (h, v), persistence run and alarm flag.
-/// Continuing from it with [`Detector::restore`] gives the outputs of an uninterrupted detector.
+/// builder (drift calibration included), liquid state (h, v), persistence run, lifecycle, the
+/// receiver flag's memory and alarm flag. Continuing from it with [`Detector::restore`] gives the
+/// outputs of an uninterrupted detector.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct DetectorState {
     evidence: EvidenceBuilder,
@@ -148,6 +163,35 @@ pub struct DetectorState {
     #[serde(default)]
     lifecycle: AlarmLifecycle,
     alarm_on: bool,
+    /// Last, so that a state saved without it ([`DetectorStateWithoutFlags`]) is this one cut short.
+    #[serde(default)]
+    flags: FlagCorroboration,
+}
+
+/// A [`DetectorState`] as saved before the detector kept its receiver flag's memory: the same
+/// fields without it. It continues as a state whose receiver has raised no flag in this
+/// trajectory, which is what it was (no flag was read then).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct DetectorStateWithoutFlags {
+    evidence: EvidenceBuilder,
+    liquid: LiquidState,
+    alarm: PersistenceAlarm,
+    #[serde(default)]
+    lifecycle: AlarmLifecycle,
+    alarm_on: bool,
+}
+
+impl From<DetectorStateWithoutFlags> for DetectorState {
+    fn from(old: DetectorStateWithoutFlags) -> Self {
+        Self {
+            evidence: old.evidence,
+            liquid: old.liquid,
+            alarm: old.alarm,
+            lifecycle: old.lifecycle,
+            alarm_on: old.alarm_on,
+            flags: FlagCorroboration::default(),
+        }
+    }
 }
 
 /// Why a [`DetectorState`] cannot continue under a model.
@@ -185,6 +229,7 @@ impl Detector {
             alarm: self.alarm.clone(),
             lifecycle: self.lifecycle,
             alarm_on: self.alarm_on,
+            flags: self.flags,
         }
     }
 
@@ -213,6 +258,7 @@ impl Detector {
             state: saved.liquid,
             alarm: saved.alarm,
             lifecycle: saved.lifecycle,
+            flags: saved.flags,
             alarm_on: saved.alarm_on,
             artifact,
         })

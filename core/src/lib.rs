@@ -27,6 +27,7 @@ pub mod incident;
 pub mod lifecycle;
 pub mod metrics;
 pub mod model;
+pub mod receiver;
 pub mod rng;
 pub mod sample;
 pub mod scenario;

@@ -1,7 +1,8 @@
 //! The alarm lifecycle in seconds, with hysteresis (`docs/detector.md` §7.1).
 //!
 //! An alarm opens after p̂ has stayed at or above θ for `on_s` seconds, or at once on decisive
-//! evidence: an offset held beyond the decisive gate for `decisive_s` seconds. For the first
+//! evidence: an offset held beyond the decisive gate for `decisive_s` seconds, or the receiver's
+//! spoofing flag corroborated by a displaced fix (`receiver.rs`, §7.3). For the first
 //! [`SETTLE_S`] of a trajectory (a session's start, or the end of an outage) p̂ counts only where the
 //! fix is also displaced from the anchors: the rate channels' averages are still filling and the
 //! vehicle's noise levels are the population's, while the anchors were placed on the fix itself
@@ -16,6 +17,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::receiver::FlagSignal;
 use crate::sample::readable;
 
 /// Longest accepted duration of the lifecycle (s): an hour.
@@ -84,6 +86,10 @@ pub struct LifecycleInput {
     /// p̂_t ≥ θ.
     pub positive: bool,
     pub offset: OffsetSignal,
+    /// What the receiver's spoofing flag says (§7.3): while it counts, p̂ ≥ θ counts towards T_on
+    /// during the settling seconds as on a displaced fix; corroborated by a displaced fix, it opens
+    /// the alarm at once. It holds nothing open.
+    pub flag: FlagSignal,
 }
 
 /// One vehicle's alarm state under a [`Lifecycle`].
@@ -123,7 +129,7 @@ impl AlarmLifecycle {
             && self
                 .trajectory_since
                 .is_some_and(|since| time - since + TIME_SLACK_S < SETTLE_S);
-        if input.positive && (!settling || input.offset.displaced) {
+        if input.positive && (!settling || input.offset.displaced || input.flag.counts) {
             self.positive_since.get_or_insert(time);
         } else {
             self.positive_since = None;
@@ -136,7 +142,7 @@ impl AlarmLifecycle {
             .positive_since
             .is_some_and(|since| time - since + TIME_SLACK_S >= lifecycle.on_s);
         if !self.open {
-            if decisive || sustained {
+            if decisive || sustained || input.flag.corroborated {
                 self.open = true;
                 self.quiet_since = None;
             }
@@ -218,6 +224,7 @@ mod tests {
                         displaced: displaced(time_s),
                         anchored: stream.anchored,
                     },
+                    flag: FlagSignal::default(),
                 },
             );
             if open && !was {
@@ -282,6 +289,7 @@ mod tests {
             trajectory_start: start,
             positive: true,
             offset: OffsetSignal::default(),
+            flag: FlagSignal::default(),
         };
         for t in 0..4 {
             alarm.update(&LIFECYCLE, &input(f64::from(t), true, t == 0));
@@ -343,11 +351,75 @@ mod tests {
                 displaced: false,
                 anchored: true,
             },
+            flag: FlagSignal::default(),
         };
         let onset = (0..10)
             .map(f64::from)
             .find(|&t| alarm.update(&LIFECYCLE, &positive_agreeing(500.0 + t)));
         assert_eq!(onset, Some(3.0), "T_on after the first sample, no settling");
+    }
+
+    #[test]
+    fn a_corroborated_flag_opens_at_once_and_holds_nothing() {
+        let mut alarm = AlarmLifecycle::default();
+        let input = |time_s: f64, displaced: bool, corroborated: bool| LifecycleInput {
+            time_s,
+            valid: true,
+            trajectory_start: time_s == 0.0,
+            positive: false,
+            offset: OffsetSignal {
+                held_s: None,
+                displaced,
+                anchored: true,
+            },
+            flag: FlagSignal {
+                counts: true,
+                corroborated,
+            },
+        };
+        assert!(!alarm.update(&LIFECYCLE, &input(0.0, false, false)));
+        assert!(!alarm.update(&LIFECYCLE, &input(1.0, true, false)));
+        assert!(
+            alarm.update(&LIFECYCLE, &input(2.0, true, true)),
+            "opens at once"
+        );
+        // Held while displaced, cleared T_off (5 s) after the fix agrees again.
+        assert!(alarm.update(&LIFECYCLE, &input(10.0, true, false)));
+        let clear = (11..20)
+            .map(f64::from)
+            .find(|&t| !alarm.update(&LIFECYCLE, &input(t, false, false)));
+        assert_eq!(clear, Some(16.0));
+    }
+
+    #[test]
+    fn a_counting_flag_lets_p_count_while_the_trajectory_settles() {
+        // Anchored, p̂ ≥ θ from the start, the fix agreeing: without the flag T_on counts from
+        // SETTLE_S (opens at 33 s); with the flag counting from 5 s on it opens at 5 + T_on = 8 s.
+        let onset = |flag_from_s: f64| {
+            let mut alarm = AlarmLifecycle::default();
+            (0..60).map(f64::from).find(|&t| {
+                alarm.update(
+                    &LIFECYCLE,
+                    &LifecycleInput {
+                        time_s: t,
+                        valid: true,
+                        trajectory_start: t == 0.0,
+                        positive: true,
+                        offset: OffsetSignal {
+                            held_s: None,
+                            displaced: false,
+                            anchored: true,
+                        },
+                        flag: FlagSignal {
+                            counts: t >= flag_from_s,
+                            corroborated: false,
+                        },
+                    },
+                )
+            })
+        };
+        assert_eq!(onset(f64::INFINITY), Some(33.0));
+        assert_eq!(onset(5.0), Some(8.0));
     }
 
     #[test]

@@ -19,6 +19,7 @@ use spoofwatch_core::model::artifact::{
     ARTIFACT_SCHEMA_VERSION, ArtifactError, ModelArtifact, Provenance,
 };
 use spoofwatch_core::model::{Ablation, LiquidState, Model, ModelConfig};
+use spoofwatch_core::receiver::FlagSignal;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{
     AttackKind, AttackSpec, DriveSpec, OnboardErrors, inject, simulate_drive,
@@ -126,6 +127,7 @@ fn streaming_detector_equals_the_whole_trajectory_pass_and_the_model_forward() {
                         trajectory_start: d.evidence.trajectory_start,
                         positive: p >= op.theta,
                         offset: offset_signal(&d.evidence),
+                        flag: FlagSignal::default(),
                     },
                 ),
                 None => alarm.update(p >= op.theta, d.evidence.valid, d.evidence.trajectory_start),

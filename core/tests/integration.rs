@@ -9,5 +9,6 @@ mod evidence_parity;
 mod fleet_scene;
 mod golden_bits;
 mod poisoned_samples;
+mod receiver_flags;
 mod scenario;
 mod shared_scratch;

@@ -149,7 +149,8 @@ async fn corrupt_foreign_and_other_model_snapshots_start_afresh_with_their_reaso
     assert_eq!(
         foreign.snapshot_refused,
         format!(
-            "the stored session snapshot has schema version 99; this server reads version {server_version}"
+            "the stored session snapshot has schema version 99; this server reads versions 4 and \
+             {server_version}"
         )
     );
     let (_intact_stream, intact) = start_stream(&clients, "intact", "").await;

@@ -329,6 +329,87 @@ fn telemetry_round_trips_through_write_tracks() {
 }
 
 #[test]
+fn receiver_status_columns_read_names_and_numbers_and_round_trip() {
+    use crate::sample::{JammingState, SpoofingState};
+    let text = "vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg,spoofing_state,jamming_state,satellites_used,hdop\n\
+                v,0,32.23,-110.9,1.0,90,none,ok,12,0.8\n\
+                v,1,32.23,-110.9,1.0,90,2,3,,\n\
+                v,2,32.23,-110.9,1.0,90,Multiple,,7,nan\n\
+                v,3,32.23,-110.9,1.0,90,,warning,300,150\n";
+    let recording = read_str(text, "r.csv").expect("valid");
+    let samples: Vec<_> = recording.tracks[0]
+        .records
+        .iter()
+        .map(|r| r.sample)
+        .collect();
+    let states: Vec<_> = samples
+        .iter()
+        .map(|s| (s.spoofing_state, s.jamming_state, s.satellites_used, s.hdop))
+        .collect();
+    assert_eq!(
+        states,
+        [
+            (SpoofingState::None, JammingState::Ok, Some(12), Some(0.8)),
+            (SpoofingState::Indicated, JammingState::Critical, None, None),
+            (
+                SpoofingState::Multiple,
+                JammingState::Unknown,
+                Some(7),
+                None
+            ),
+            // Out of range, but parsed: the API's validation refuses it, no evidence reads it.
+            (
+                SpoofingState::Unknown,
+                JammingState::Warning,
+                Some(300),
+                Some(150.0)
+            ),
+        ]
+    );
+    let mut bytes = Vec::new();
+    write_tracks(&mut bytes, &recording.tracks).expect("write");
+    let written = String::from_utf8_lossy(&bytes).into_owned();
+    assert!(
+        written.starts_with(
+            "vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg,spoofing_state,jamming_state,satellites_used,hdop\n\
+             v,0,32.23,-110.9,1,90,none,ok,12,0.8\n"
+        ),
+        "{written}"
+    );
+    assert_eq!(
+        read(bytes.as_slice(), "again").expect("read back").tracks,
+        recording.tracks
+    );
+
+    for (cell, expected) in [
+        (
+            "spoofed",
+            "expected unknown, none, indicated, multiple, 0 to 3 or empty, got \"spoofed\"",
+        ),
+        ("4", "expected a state number 0 to 3, got 4"),
+    ] {
+        let text = format!(
+            "vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg,spoofing_state\n\
+             v,0,32.23,-110.9,1.0,90,{cell}\n"
+        );
+        let msg = read_str(&text, "t.csv").expect_err("bad state").to_string();
+        assert_eq!(
+            msg,
+            format!("t.csv:2: column \"spoofing_state\": {expected}")
+        );
+    }
+    let text = "vehicle_id,timestamp,latitude,longitude,speed_mps,heading_deg,satellites_used\n\
+                v,0,32.23,-110.9,1.0,90,-1\n";
+    let msg = read_str(text, "t.csv")
+        .expect_err("negative count")
+        .to_string();
+    assert!(
+        msg.starts_with("t.csv:2: column \"satellites_used\": expected a whole number"),
+        "{msg}"
+    );
+}
+
+#[test]
 fn numeric_columns_are_keyed_by_the_lines_of_the_track_rows() {
     let text = avgps(&[
         "10,-170,1.5,0:00:00,15:03:55,10:55:59,5/24/2022,32.23,-110.9,0,",

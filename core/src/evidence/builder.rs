@@ -134,6 +134,7 @@ impl Evidence {
 /// What the builder remembers about the previous sample of the current trajectory.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize)]
 struct Previous {
+    #[serde(with = "measurements_only")]
     sample: Sample,
     fix: LatLon,
     velocity: [f64; 2],
@@ -143,6 +144,57 @@ struct Previous {
     eta_dot: [f64; 2],
     eta_dot_computed: bool,
     delta_t: f64,
+}
+
+/// The previous sample as a saved builder stores it: its measurements and uncertainties, the
+/// encoding session snapshots have always had. No evidence reads the receiver's status fields, so a
+/// restored builder continues exactly without them.
+mod measurements_only {
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    use crate::sample::Sample;
+
+    #[derive(Serialize, Deserialize)]
+    struct Measurements {
+        timestamp_s: f64,
+        latitude_deg: f64,
+        longitude_deg: f64,
+        speed_mps: f64,
+        heading_deg: f64,
+        position_std_m: Option<f64>,
+        speed_std_mps: Option<f64>,
+        heading_std_deg: Option<f64>,
+    }
+
+    pub fn serialize<S: Serializer>(sample: &Sample, serializer: S) -> Result<S::Ok, S::Error> {
+        Measurements {
+            timestamp_s: sample.timestamp_s,
+            latitude_deg: sample.latitude_deg,
+            longitude_deg: sample.longitude_deg,
+            speed_mps: sample.speed_mps,
+            heading_deg: sample.heading_deg,
+            position_std_m: sample.position_std_m,
+            speed_std_mps: sample.speed_std_mps,
+            heading_std_deg: sample.heading_std_deg,
+        }
+        .serialize(serializer)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Sample, D::Error> {
+        let m = Measurements::deserialize(deserializer)?;
+        Ok(Sample {
+            position_std_m: m.position_std_m,
+            speed_std_mps: m.speed_std_mps,
+            heading_std_deg: m.heading_std_deg,
+            ..Sample::new(
+                m.timestamp_s,
+                m.latitude_deg,
+                m.longitude_deg,
+                m.speed_mps,
+                m.heading_deg,
+            )
+        })
+    }
 }
 
 /// Why [`EvidenceBuilder::restore`] refuses a saved builder: it was made with (or without) the drift

@@ -7,9 +7,9 @@
 //! regional spoofer that captures every receiver in its radius. Everything is deterministic from seeds.
 //!
 //! Geodesy (metres east/north → latitude/longitude) is [`crate::geo::displace_fix`]. This module owns
-//! attack kinds, injection, scenario plans, simulated drives, their distributions and fleet scenes; it
-//! must not compute evidence or run a detector (tests and experiments do that with the scenarios it
-//! returns).
+//! attack kinds, injection, scenario plans, simulated drives, their distributions, fleet scenes and the
+//! receiver flags a simulated receiver raises ([`raise_flags`]); it must not compute evidence or run a
+//! detector (tests and experiments do that with the scenarios it returns).
 
 mod attack;
 mod drive;
@@ -17,6 +17,7 @@ mod fleet;
 mod impairments;
 mod plan;
 mod randomise;
+mod receiver_flags;
 
 pub use attack::{AttackKind, AttackSpec, InjectedTrack, inject};
 pub use drive::{
@@ -30,6 +31,7 @@ pub use fleet::{
 pub use impairments::{GnssOutage, Multipath, OnboardErrors, Outages};
 pub use plan::{AttackDuration, RAMP_SWEEP_VELOCITIES_MPS, ScenarioPlan, generate};
 pub use randomise::{ClippedNormal, DriveDistribution, Range, UrbanToRural};
+pub use receiver_flags::{FlagWindow, raise_flags};
 
 /// Ramp drift velocities accepted by [`AttackKind::RampDrift`] (m/s, inclusive; SPEC §9).
 pub const RAMP_VELOCITY_RANGE_MPS: (f64, f64) = (0.05, 2.0);
@@ -68,6 +70,13 @@ pub enum ScenarioError {
     /// A field of a [`FleetSpec`] is non-finite or out of range.
     #[error("fleet scene {field} must be {expected}, got {value}")]
     InvalidFleet {
+        field: &'static str,
+        expected: String,
+        value: f64,
+    },
+    /// A field of a [`FlagWindow`] is non-finite or out of range.
+    #[error("receiver flag window {field} must be {expected}, got {value}")]
+    InvalidFlagWindow {
         field: &'static str,
         expected: String,
         value: f64,

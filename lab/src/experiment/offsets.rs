@@ -1260,16 +1260,13 @@ mod tests {
             vehicle_id: "v".into(),
             records: (0..seconds)
                 .map(|t| Record {
-                    sample: Sample {
-                        timestamp_s: 1000.0 + f64::from(t),
-                        latitude_deg: 48.0,
-                        longitude_deg: 11.0,
-                        speed_mps: speed(f64::from(t)),
-                        heading_deg: 0.0,
-                        position_std_m: None,
-                        speed_std_mps: None,
-                        heading_std_deg: None,
-                    },
+                    sample: Sample::new(
+                        1000.0 + f64::from(t),
+                        48.0,
+                        11.0,
+                        speed(f64::from(t)),
+                        0.0,
+                    ),
                     label: None,
                     comparator_alarm: None,
                     line: u64::from(t) + 2,

@@ -1,5 +1,6 @@
 //! Conversions between core types and `spoofwatch.v1` messages. Pure data mapping: no validation
-//! (the server validates core values after converting) and no knowledge of storage.
+//! beyond what a core type cannot hold (an enum number this build does not know); the server
+//! validates core values after converting. No knowledge of storage.
 
 use prost_types::Timestamp;
 use spoofwatch_core::alarm::OperatingPoint;
@@ -9,12 +10,14 @@ use spoofwatch_core::evidence::drift::DriftEvidence;
 use spoofwatch_core::evidence::offset::OffsetEvidence;
 use spoofwatch_core::explain::{EvidenceKind, Explanation};
 use spoofwatch_core::metrics::Metrics;
-use spoofwatch_core::sample::Sample;
+use spoofwatch_core::sample::{FieldViolation, JammingState, ReceiverState, Sample, SpoofingState};
 
 use crate::v1;
 
-/// A wire sample as a core sample (validation happens separately, on the core type).
-pub fn sample_from_proto(s: &v1::Sample) -> Sample {
+/// A wire sample as a core sample (its values are validated separately, on the core type). The
+/// error names each receiver state whose number this build does not know (`spoofing_state`,
+/// `jamming_state`).
+pub fn sample_from_proto(s: &v1::Sample) -> Result<Sample, Vec<FieldViolation>> {
     let &v1::Sample {
         timestamp_s,
         latitude_deg,
@@ -24,16 +27,42 @@ pub fn sample_from_proto(s: &v1::Sample) -> Sample {
         position_std_m,
         speed_std_mps,
         heading_std_deg,
+        spoofing_state,
+        jamming_state,
+        satellites_used,
+        hdop,
     } = s;
-    Sample {
-        timestamp_s,
-        latitude_deg,
-        longitude_deg,
-        speed_mps,
-        heading_deg,
-        position_std_m,
-        speed_std_mps,
-        heading_std_deg,
+    let spoofing = SpoofingState::from_code(i64::from(spoofing_state));
+    let jamming = JammingState::from_code(i64::from(jamming_state));
+    match (spoofing, jamming) {
+        (Some(spoofing_state), Some(jamming_state)) => Ok(Sample {
+            timestamp_s,
+            latitude_deg,
+            longitude_deg,
+            speed_mps,
+            heading_deg,
+            position_std_m,
+            speed_std_mps,
+            heading_std_deg,
+            spoofing_state,
+            jamming_state,
+            satellites_used,
+            hdop,
+        }),
+        _ => {
+            let unknown = |field: &'static str, number: i32, known: Option<_>| {
+                known.is_none().then(|| FieldViolation {
+                    field,
+                    description: format!("must be a state number in [0, 3], got {number}"),
+                })
+            };
+            Err(
+                unknown("spoofing_state", spoofing_state, spoofing.map(|_| ()))
+                    .into_iter()
+                    .chain(unknown("jamming_state", jamming_state, jamming.map(|_| ())))
+                    .collect(),
+            )
+        }
     }
 }
 
@@ -48,6 +77,10 @@ pub fn sample_to_proto(s: &Sample) -> v1::Sample {
         position_std_m,
         speed_std_mps,
         heading_std_deg,
+        spoofing_state,
+        jamming_state,
+        satellites_used,
+        hdop,
     } = s;
     v1::Sample {
         timestamp_s,
@@ -58,6 +91,10 @@ pub fn sample_to_proto(s: &Sample) -> v1::Sample {
         position_std_m,
         speed_std_mps,
         heading_std_deg,
+        spoofing_state: i32::from(spoofing_state.code()),
+        jamming_state: i32::from(jamming_state.code()),
+        satellites_used,
+        hdop,
     }
 }
 
@@ -265,7 +302,49 @@ mod tests {
     fn samples_round_trip() {
         let mut s = Sample::new(1.5, 32.2, -110.9, 3.0, 45.0);
         s.speed_std_mps = Some(0.1);
-        assert_eq!(sample_from_proto(&sample_to_proto(&s)), s);
+        assert_eq!(sample_from_proto(&sample_to_proto(&s)), Ok(s));
+        s.spoofing_state = SpoofingState::Multiple;
+        s.jamming_state = JammingState::Warning;
+        s.satellites_used = Some(14);
+        s.hdop = Some(0.9);
+        let wire = sample_to_proto(&s);
+        assert_eq!(wire.spoofing_state(), v1::SpoofingState::Multiple);
+        assert_eq!(wire.jamming_state(), v1::JammingState::Warning);
+        assert_eq!(sample_from_proto(&wire), Ok(s));
+    }
+
+    #[test]
+    fn wire_states_are_the_u_blox_numbers_and_unknown_ones_are_named() {
+        let wire = v1::Sample {
+            spoofing_state: v1::SpoofingState::Indicated as i32,
+            ..v1::Sample::default()
+        };
+        let sample = sample_from_proto(&wire).expect("known numbers");
+        assert_eq!(sample.spoofing_state, SpoofingState::Indicated);
+        assert_eq!(sample.jamming_state, JammingState::Unknown);
+        let bad = v1::Sample {
+            spoofing_state: 4,
+            jamming_state: -1,
+            ..v1::Sample::default()
+        };
+        let violations: Vec<(&str, String)> = sample_from_proto(&bad)
+            .expect_err("unknown numbers")
+            .into_iter()
+            .map(|v| (v.field, v.description))
+            .collect();
+        assert_eq!(
+            violations,
+            [
+                (
+                    "spoofing_state",
+                    "must be a state number in [0, 3], got 4".to_string()
+                ),
+                (
+                    "jamming_state",
+                    "must be a state number in [0, 3], got -1".to_string()
+                ),
+            ]
+        );
     }
 
     #[test]

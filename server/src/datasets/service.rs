@@ -21,7 +21,9 @@ use super::catalog::Catalog;
 use super::content::Content;
 use crate::edge::{dataset_name, display_name, page_request};
 use crate::idle::StreamIdle;
-use crate::status::{header_first, header_not_first, invalid_field, resource_exhausted};
+use crate::status::{
+    header_first, header_not_first, invalid_argument, invalid_field, resource_exhausted,
+};
 use crate::store::DatasetRow;
 
 /// The wire form of a stored dataset.
@@ -50,8 +52,15 @@ fn tracks_from_records(records: Vec<v1::LabelledSample>) -> Result<Vec<Track>, S
         let sample = r
             .sample
             .as_ref()
-            .map(sample_from_proto)
             .ok_or_else(|| invalid_field(format!("records[{i}].sample"), "required"))?;
+        let sample = sample_from_proto(sample).map_err(|unknown| {
+            invalid_argument(
+                unknown
+                    .into_iter()
+                    .map(|v| (format!("records[{i}].sample.{}", v.field), v.description))
+                    .collect(),
+            )
+        })?;
         if r.vehicle_id.is_empty() {
             return Err(invalid_field(
                 format!("records[{i}].vehicle_id"),

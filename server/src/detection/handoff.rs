@@ -5,14 +5,25 @@
 //! [`SessionSnapshot`] (f64s as their bit patterns, so a continued session is bit-exact), and the
 //! first 8 bytes of the SHA-256 of everything before them. A snapshot that fails any of these is
 //! refused with a [`SnapshotRefused`] naming why; the session then starts afresh.
+//!
+//! Version 4 is version 5 without the detector's receiver-flag memory (the last field of its state,
+//! and of the snapshot); it is still read, as a session whose receiver has raised no flag.
 
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
-use spoofwatch_core::detector::{DetectorState, RestoreError};
+use spoofwatch_core::detector::{DetectorState, DetectorStateWithoutFlags, RestoreError};
 
-/// The encoding this server writes and reads. Bump it when [`SessionSnapshot`] or anything inside
-/// [`DetectorState`] changes shape: older snapshots are then refused (fresh sessions), never misread.
-pub const SNAPSHOT_SCHEMA: u16 = 4;
+/// The encoding this server writes. Bump it when [`SessionSnapshot`] or anything inside
+/// [`DetectorState`] changes shape: older snapshots are then refused (fresh sessions), never
+/// misread, unless [`SessionSnapshot::decode`] is taught to read them.
+pub const SNAPSHOT_SCHEMA: u16 = 5;
+/// The version before the receiver-flag memory, still read.
+const SNAPSHOT_SCHEMA_WITHOUT_FLAGS: u16 = 4;
+
+/// Whether this server reads stored snapshots of schema version `version`.
+pub fn reads_schema(version: i64) -> bool {
+    version == i64::from(SNAPSHOT_SCHEMA) || version == i64::from(SNAPSHOT_SCHEMA_WITHOUT_FLAGS)
+}
 
 const MAGIC: &[u8; 4] = b"SWSS";
 const HEADER: usize = MAGIC.len() + 2;
@@ -51,7 +62,8 @@ pub enum SnapshotRefused {
     #[error("the stored session snapshot is corrupt ({0})")]
     Corrupt(String),
     #[error(
-        "the stored session snapshot has schema version {found}; this server reads version {SNAPSHOT_SCHEMA}"
+        "the stored session snapshot has schema version {found}; this server reads versions \
+         {SNAPSHOT_SCHEMA_WITHOUT_FLAGS} and {SNAPSHOT_SCHEMA}"
     )]
     Schema { found: i64 },
     #[error("the stored session snapshot ran model {snapshot}, this stream runs {session}")]
@@ -60,6 +72,37 @@ pub enum SnapshotRefused {
     Unfit { model: String, reason: RestoreError },
     #[error("the session store could not be read ({0})")]
     Unreadable(String),
+}
+
+/// A [`SessionSnapshot`] of schema version 4: the same fields, the detector's without its
+/// receiver-flag memory.
+#[derive(Deserialize)]
+struct SessionSnapshotWithoutFlags {
+    model_id: String,
+    samples: u64,
+    trajectories: u32,
+    last_seq: u64,
+    last_timestamp_s: Option<f64>,
+    alarm_active: bool,
+    alarms_raised: u64,
+    open_alarm: Option<OpenAlarm>,
+    detector: DetectorStateWithoutFlags,
+}
+
+impl From<SessionSnapshotWithoutFlags> for SessionSnapshot {
+    fn from(old: SessionSnapshotWithoutFlags) -> Self {
+        Self {
+            model_id: old.model_id,
+            samples: old.samples,
+            trajectories: old.trajectories,
+            last_seq: old.last_seq,
+            last_timestamp_s: old.last_timestamp_s,
+            alarm_active: old.alarm_active,
+            alarms_raised: old.alarms_raised,
+            open_alarm: old.open_alarm,
+            detector: old.detector.into(),
+        }
+    }
 }
 
 impl SessionSnapshot {
@@ -76,14 +119,15 @@ impl SessionSnapshot {
         bytes
     }
 
-    /// Decodes `bytes` written by [`SessionSnapshot::encode`] of this schema version.
+    /// Decodes `bytes` written by [`SessionSnapshot::encode`] of this schema version or of
+    /// version 4.
     pub fn decode(bytes: &[u8]) -> Result<Self, SnapshotRefused> {
         let corrupt = |why: &str| SnapshotRefused::Corrupt(why.to_string());
         if bytes.len() < HEADER + CHECKSUM || !bytes.starts_with(MAGIC) {
             return Err(corrupt("not a Spoofwatch session snapshot"));
         }
         let version = u16::from_le_bytes([bytes[4], bytes[5]]);
-        if version != SNAPSHOT_SCHEMA {
+        if !reads_schema(i64::from(version)) {
             return Err(SnapshotRefused::Schema {
                 found: i64::from(version),
             });
@@ -92,8 +136,13 @@ impl SessionSnapshot {
         if Sha256::digest(body)[..CHECKSUM] != *checksum {
             return Err(corrupt("checksum mismatch"));
         }
-        postcard::from_bytes(&body[HEADER..])
-            .map_err(|error| SnapshotRefused::Corrupt(format!("undecodable: {error}")))
+        let undecodable = |error: postcard::Error| corrupt(&format!("undecodable: {error}"));
+        if version == SNAPSHOT_SCHEMA_WITHOUT_FLAGS {
+            return postcard::from_bytes::<SessionSnapshotWithoutFlags>(&body[HEADER..])
+                .map(Self::from)
+                .map_err(undecodable);
+        }
+        postcard::from_bytes(&body[HEADER..]).map_err(undecodable)
     }
 }
 
@@ -148,6 +197,29 @@ mod tests {
         );
     }
 
+    /// `snapshot` as a server of schema version 4 stored it: the same bytes without the detector's
+    /// receiver-flag memory (two absent times, the last two bytes of the payload), under version 4.
+    fn as_version_4(snapshot: &SessionSnapshot) -> Vec<u8> {
+        let bytes = snapshot.encode();
+        let payload = &bytes[HEADER..bytes.len() - CHECKSUM];
+        assert_eq!(payload[payload.len() - 2..], [0, 0], "an empty flag memory");
+        let mut old = b"SWSS".to_vec();
+        old.extend_from_slice(&4u16.to_le_bytes());
+        old.extend_from_slice(&payload[..payload.len() - 2]);
+        let checksum = Sha256::digest(&old);
+        old.extend_from_slice(&checksum[..CHECKSUM]);
+        old
+    }
+
+    #[test]
+    fn a_version_4_snapshot_continues_as_one_without_receiver_flags() {
+        let original = snapshot();
+        let decoded = SessionSnapshot::decode(&as_version_4(&original)).expect("version 4 reads");
+        assert_eq!(decoded.encode(), original.encode());
+        assert_eq!(decoded.open_alarm, original.open_alarm);
+        assert!(reads_schema(4) && reads_schema(5) && !reads_schema(3));
+    }
+
     #[test]
     fn corrupt_and_foreign_snapshots_are_refused_with_their_reason() {
         let bytes = snapshot().encode();
@@ -177,10 +249,9 @@ mod tests {
         older[4] = 1;
         assert_eq!(
             refusal(&older).as_deref(),
-            Some(format!(
-                "the stored session snapshot has schema version 1; this server reads version {SNAPSHOT_SCHEMA}"
-            ))
-            .as_deref()
+            Some(
+                "the stored session snapshot has schema version 1; this server reads versions 4 and 5"
+            )
         );
 
         // A well-formed envelope around a payload of another shape (checksum recomputed).

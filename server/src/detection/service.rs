@@ -56,9 +56,31 @@ fn reply(kind: ResponseKind) -> Reply {
     Ok(v1::StreamDetectResponse { kind: Some(kind) })
 }
 
-/// Wire samples as core samples (validated later, against the session).
-fn samples_from_proto(samples: &[v1::Sample]) -> Vec<Sample> {
-    samples.iter().map(sample_from_proto).collect()
+/// Wire samples as core samples (their values are validated later, against the session). A
+/// receiver state number this build does not know refuses the batch, every such field named
+/// under `field` (e.g. `batch.samples[3].spoofing_state`).
+fn samples_from_proto(samples: &[v1::Sample], field: &str) -> Result<Vec<Sample>, SessionError> {
+    let mut violations = Vec::new();
+    let converted = samples
+        .iter()
+        .enumerate()
+        .filter_map(|(i, s)| match sample_from_proto(s) {
+            Ok(sample) => Some(sample),
+            Err(unknown) => {
+                violations.extend(
+                    unknown
+                        .into_iter()
+                        .map(|v| (format!("{field}[{i}].{}", v.field), v.description)),
+                );
+                None
+            }
+        })
+        .collect();
+    if violations.is_empty() {
+        Ok(converted)
+    } else {
+        Err(SessionError::InvalidBatch(violations))
+    }
 }
 
 /// A processed batch on the wire: each decision paired with its sample's time.
@@ -207,12 +229,15 @@ async fn batch_reply(
     batch: v1::SampleBatch,
 ) -> Reply {
     let started = Instant::now();
-    let samples = samples_from_proto(&batch.samples);
-    match sessions
-        .process(&attachment.slot, batch.seq, &samples, "batch.samples")
-        .await
-    {
-        Ok(decisions) if decisions.duplicate => {
+    let outcome = match samples_from_proto(&batch.samples, "batch.samples") {
+        Ok(samples) => sessions
+            .process(&attachment.slot, batch.seq, &samples, "batch.samples")
+            .await
+            .map(|decisions| (samples, decisions)),
+        Err(refused) => Err(refused),
+    };
+    match outcome {
+        Ok((_, decisions)) if decisions.duplicate => {
             telemetry::batch_duplicate(Rpc::StreamDetect);
             reply(ResponseKind::Detections(v1::DetectionBatch {
                 seq: batch.seq,
@@ -220,7 +245,7 @@ async fn batch_reply(
                 duplicate: true,
             }))
         }
-        Ok(decisions) => {
+        Ok((samples, decisions)) => {
             let detections = detections_to_proto(&samples, &decisions);
             telemetry::batch_scored(
                 Rpc::StreamDetect,
@@ -236,7 +261,7 @@ async fn batch_reply(
         }
         Err(error) => {
             let status = error.into();
-            telemetry::batch_rejected(Rpc::StreamDetect, &status, samples.len());
+            telemetry::batch_rejected(Rpc::StreamDetect, &status, batch.samples.len());
             item_error(batch.seq, &status)
         }
     }
@@ -360,7 +385,13 @@ async fn detect_vehicle(
             "" => None,
             name => Some(model_name(&at("model"), name)?),
         };
-        let samples = samples_from_proto(&vehicle.samples);
+        let samples =
+            samples_from_proto(&vehicle.samples, "samples").map_err(|error| match error {
+                SessionError::InvalidBatch(violations) => SessionError::InvalidBatch(
+                    violations.into_iter().map(|(f, p)| (at(&f), p)).collect(),
+                ),
+                other => other,
+            })?;
         let decisions = sessions
             .detect_unattached(
                 ForVehicle {
@@ -540,7 +571,7 @@ impl DetectionApi {
             vehicle.as_ref().map_or("", VehicleId::as_str),
         )?;
         let model = optional_model_name("model", &r.model)?;
-        let samples = samples_from_proto(&r.samples);
+        let samples = samples_from_proto(&r.samples, "samples")?;
         let decisions = match &vehicle {
             Some(vehicle) => {
                 self.sessions
@@ -646,5 +677,39 @@ impl DetectionService for DetectionApi {
         check_routed_vehicle(&routed, "vehicle_id", vehicle.as_str())?;
         let session = self.sessions.reset(&vehicle).await?;
         Ok(Response::new(session_to_proto(session)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unknown_receiver_state_numbers_are_refused_by_field() {
+        let good = v1::Sample {
+            spoofing_state: v1::SpoofingState::Indicated as i32,
+            satellites_used: Some(9),
+            ..v1::Sample::default()
+        };
+        let bad = v1::Sample {
+            jamming_state: 7,
+            ..v1::Sample::default()
+        };
+        let samples = samples_from_proto(std::slice::from_ref(&good), "batch.samples")
+            .expect("known numbers");
+        assert_eq!(
+            samples[0].spoofing_state,
+            spoofwatch_core::sample::SpoofingState::Indicated
+        );
+        match samples_from_proto(&[good, bad], "batch.samples") {
+            Err(SessionError::InvalidBatch(violations)) => assert_eq!(
+                violations,
+                [(
+                    "batch.samples[1].jamming_state".to_string(),
+                    "must be a state number in [0, 3], got 7".to_string()
+                )]
+            ),
+            other => panic!("expected a field violation, got {other:?}"),
+        }
     }
 }

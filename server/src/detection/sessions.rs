@@ -31,7 +31,7 @@ use tokio::sync::oneshot;
 use tokio_util::sync::CancellationToken;
 
 use super::episodes::{AlarmSignal, EpisodeChange};
-use super::handoff::{OpenAlarm, SNAPSHOT_SCHEMA, SessionSnapshot, SnapshotRefused};
+use super::handoff::{OpenAlarm, SNAPSHOT_SCHEMA, SessionSnapshot, SnapshotRefused, reads_schema};
 use super::resume::{Origin, Progress, Resumption, Start};
 use super::sequence::SeqCheck;
 use super::state::SessionState;
@@ -207,7 +207,7 @@ fn forget_creator(per_identity: &mut HashMap<Arc<str>, usize>, identity: &Arc<st
 /// A stored snapshot with how far its session got (read from its encoding, so that which copy is
 /// newer never depends on the servers' clocks); one that cannot be read is refused.
 fn with_progress(row: SnapshotRow) -> Result<(SnapshotRow, Progress), SnapshotRefused> {
-    if row.schema_version != i64::from(SNAPSHOT_SCHEMA) {
+    if !reads_schema(row.schema_version) {
         return Err(SnapshotRefused::Schema {
             found: row.schema_version,
         });
@@ -562,7 +562,7 @@ impl SessionManager {
         row: &SnapshotRow,
         model: &LoadedModel,
     ) -> Result<SessionState, SnapshotRefused> {
-        if row.schema_version != i64::from(SNAPSHOT_SCHEMA) {
+        if !reads_schema(row.schema_version) {
             return Err(SnapshotRefused::Schema {
                 found: row.schema_version,
             });

@@ -126,16 +126,7 @@ mod tests {
     }
 
     fn sample(t: f64) -> Sample {
-        Sample {
-            timestamp_s: t,
-            latitude_deg: 32.2318 + t * 1e-5,
-            longitude_deg: -110.9092,
-            speed_mps: 1.1,
-            heading_deg: 0.0,
-            position_std_m: None,
-            speed_std_mps: None,
-            heading_std_deg: None,
-        }
+        Sample::new(t, 32.2318 + t * 1e-5, -110.9092, 1.1, 0.0)
     }
 
     #[test]

@@ -226,4 +226,18 @@ mod tests {
         let big: Vec<_> = (0..11).map(|i| sample(f64::from(i), 32.0)).collect();
         assert_eq!(validate_batch(&big, None, 10, "s").unwrap_err()[0].0, "s");
     }
+
+    #[test]
+    fn receiver_status_out_of_range_is_named() {
+        let mut bad = sample(10.0, 32.0);
+        bad.satellites_used = Some(300);
+        bad.hdop = Some(f64::NAN);
+        let errors = validate_batch(&[sample(9.0, 32.0), bad], None, 10, "batch.samples")
+            .expect_err("out of range");
+        let fields: Vec<&str> = errors.iter().map(|(f, _)| f.as_str()).collect();
+        assert_eq!(
+            fields,
+            ["batch.samples[1].hdop", "batch.samples[1].satellites_used"]
+        );
+    }
 }
