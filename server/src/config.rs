@@ -48,8 +48,7 @@ pub mod defaults {
     pub const INCIDENT_WINDOW_SECS: u64 = 300;
     pub const INCIDENT_MIN_VEHICLES: u32 = 3;
     pub const INCIDENT_QUIET_SECS: u64 = 600;
-    pub const INCIDENT_TIMELINE: crate::incidents::correlator::Timeline =
-        crate::incidents::correlator::Timeline::Wall;
+    pub const INCIDENT_TIMELINE: super::IncidentTimeline = super::IncidentTimeline::Wall;
 }
 
 /// How the server binary writes its log lines to stderr.
@@ -59,6 +58,16 @@ pub enum LogFormat {
     Text,
     /// One JSON object per line, the event's fields at the top level.
     Json,
+}
+
+/// Which clock places alarms in time for area incidents.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum IncidentTimeline {
+    /// The servers' wall clock at each onset and end (live fleets).
+    #[default]
+    Wall,
+    /// The vehicles' sample times: replays of recordings whose vehicles share one clock.
+    Samples,
 }
 
 /// Everything the server needs to start.
@@ -208,7 +217,7 @@ pub struct Config {
     /// end: live fleets) or `samples` (the vehicles' sample times: replays of recordings whose
     /// vehicles share one clock).
     #[arg(long, env = "SPOOFWATCH_INCIDENT_TIMELINE", value_enum, default_value_t = defaults::INCIDENT_TIMELINE)]
-    pub incident_timeline: crate::incidents::correlator::Timeline,
+    pub incident_timeline: IncidentTimeline,
 }
 
 /// An instance id: 1–128 visible ASCII characters (it is stored with every job and logged).

@@ -33,8 +33,10 @@ use super::drive::{DriveSpec, TrueState, simulate_drive_with_truth};
 use super::randomise::DriveDistribution;
 use crate::geo::{LatLon, displace_fix, wgs84_local_displacement};
 use crate::rng::Rng;
-use crate::sample::{MAX_SPEED_MPS, Sample, Track};
+use crate::sample::{MAX_SPEED_MPS, Sample, SpoofingState, Track};
 
+/// How long a captured receiver flags spoofing after its capture starts (s), with `flag_on_capture`.
+pub const FLAG_AT_CAPTURE_S: f64 = 10.0;
 /// Mixed into the scene seed for the stream the vehicles' drive seeds come from.
 const VEHICLE_STREAM: u64 = 0x666C_6565_745F_7631;
 /// Mixed into the scene seed for the choice of the routed vehicles.
@@ -146,8 +148,8 @@ pub struct FleetSpec {
     pub spoofer: Spoofer,
     /// The distribution every vehicle's speed profile, noise and errors are drawn from.
     pub distribution: DriveDistribution,
-    /// Whether captured receivers raise their own spoofing flag. Recorded in the spec (and so in the
-    /// ground truth); the telemetry rows carry no receiver flag, so it does not change them.
+    /// Whether captured receivers raise their own spoofing flag (`spoofing_state` indicated) for the
+    /// first [`FLAG_AT_CAPTURE_S`] of each capture: receivers notice a take-over mostly as it happens.
     pub flag_on_capture: bool,
     /// Seed of the drives, the routing and the placement.
     pub seed: u64,
@@ -568,6 +570,9 @@ fn capture(
             .as_ref()
             .map_or(0.0, |episode| state.timestamp_s - episode.start.timestamp_s);
         record.sample = captured_sample(&record.sample, state, &spoofer.attack, since_capture_s);
+        if spec.flag_on_capture && since_capture_s < FLAG_AT_CAPTURE_S {
+            record.sample.spoofing_state = SpoofingState::Indicated;
+        }
         record.label = Some(true);
         if !(-90.0..=90.0).contains(&record.sample.latitude_deg) {
             return Err(ScenarioError::DisplacedOutOfRange {
@@ -596,8 +601,7 @@ fn capture(
 }
 
 /// The sample a captured receiver reports: the fix replaced as the attack says, the onboard speed and
-/// heading untouched. This is the one place a captured sample is built, so a receiver flag raised on
-/// capture (`FleetSpec::flag_on_capture`) is set here.
+/// heading untouched (the receiver flag raised on capture is set by its caller).
 fn captured_sample(
     measured: &Sample,
     truth: &TrueState,

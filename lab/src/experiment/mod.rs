@@ -5,6 +5,7 @@
 
 mod avgps;
 mod common;
+mod incidents;
 mod offsets;
 mod parallel;
 mod plots;
@@ -26,6 +27,9 @@ pub enum Command {
     /// Jumps, hops, frozen fixes and drifts at 1, 5 and 10 Hz, early and late in a session;
     /// false alarms per hour at each rate.
     Offsets(offsets::Args),
+    /// Regional spoofing replayed through the server: captured vehicles alarmed, their delay, the
+    /// time to the area incident; clean fleets with independent attacks make no incident.
+    Incidents(incidents::Args),
 }
 
 pub fn run(cmd: Command) -> Result<()> {
@@ -34,5 +38,6 @@ pub fn run(cmd: Command) -> Result<()> {
         Command::Subtle(args) => subtle::run(args),
         Command::SubtleD2(args) => subtle_d2::run(args),
         Command::Offsets(args) => offsets::run(args),
+        Command::Incidents(args) => incidents::run(args),
     }
 }

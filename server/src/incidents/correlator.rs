@@ -5,7 +5,7 @@
 //! stops (or is killed) another takes the lease over within [`LEASE`] and continues from the stored
 //! place and state, exactly.
 //!
-//! Alarms are placed on the incident timeline ([`Timeline`]): the servers' wall clock at onset and
+//! Alarms are placed on the incident timeline (`crate::config::IncidentTimeline`): the servers' wall clock at onset and
 //! end by default, or the vehicles' own sample times for replays of recordings on one common clock.
 //! Alarms stored before onsets kept their place (schema version 8) take no part.
 //!
@@ -24,6 +24,7 @@ use tokio::sync::Notify;
 use tokio::time::MissedTickBehavior;
 use tokio_util::sync::CancellationToken;
 
+use crate::config::IncidentTimeline as Timeline;
 use crate::store::{
     AlarmEventKind, CorrelationStep, CorrelatorPlace, IncidentEventKind, IncidentWrite,
     LoggedAlarmEvent, Store, StoreError, now_unix_ms,
@@ -36,16 +37,6 @@ pub const TICK: Duration = Duration::from_secs(1);
 pub const LEASE: Duration = Duration::from_secs(10);
 /// Alarm events read per step.
 const PAGE: u32 = 1_000;
-
-/// Which clock places alarms in time.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
-pub enum Timeline {
-    /// The servers' wall clock at each onset and end (live fleets).
-    #[default]
-    Wall,
-    /// The vehicles' sample times: replays of recordings whose vehicles share one clock.
-    Samples,
-}
 
 /// How this server correlates incidents.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -1,0 +1,413 @@
+//! Experiment "incidents": regional spoofing replayed through the real server (an in-process server,
+//! its correlator on the vehicles' sample clock), and clean fleets with independent attacks.
+//!
+//! - **Spoofed areas.** For each attack (a common translation, a common false position, a common
+//!   drift) and seed, a fleet scene (`scenario::generate_fleet`: N vehicles, about K routed through
+//!   the spoofer's circle) is replayed, every vehicle on its own stream, paced so that the vehicles
+//!   advance together. Reported: the captured vehicles (ground truth), the share alarmed during
+//!   their capture (or within 30 s of its end), their median delay from capture to alarm, the time
+//!   from the first capture to the incident, how many incidents opened and whether their vehicles
+//!   were captured ones.
+//! - **Clean fleets.** A scene whose spoofer captures no one, with independent attacks (jumps and
+//!   drifts in random directions, at random times) injected into a share of its vehicles: every
+//!   alarm is one vehicle's own. Reported: vehicle-hours, alarm onsets, and incidents (there must be
+//!   none).
+//!
+//! It owns the scenes' setup, the replay and the tallies; the correlation is the server's.
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use serde::Serialize;
+use spoofwatch_client::connection::Connection;
+use spoofwatch_client::replay::{ReplayEvent, ReplayOptions, replay_tracks, server_vehicle_id};
+use spoofwatch_core::rng::Rng;
+use spoofwatch_core::scenario::{
+    AttackKind, AttackSpec, FleetScene, FleetSpec, RegionalAttack, Spoofer, generate_fleet, inject,
+};
+use spoofwatch_proto::v1;
+use spoofwatch_server::config::IncidentTimeline;
+use spoofwatch_server::inprocess::InProcessServer;
+use tokio::sync::mpsc;
+
+/// An alarm this long after a capture's end still answers it (the spoofer's exit).
+const ANSWER_GRACE_S: f64 = 30.0;
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Output directory (report.md, report.json).
+    #[arg(long)]
+    out: PathBuf,
+    /// Scene seeds (each attack is run once per seed).
+    #[arg(long, value_delimiter = ',', default_value = "1,2,3")]
+    seeds: Vec<u64>,
+    /// Vehicles per spoofed scene, and how many are routed through the spoofer's circle.
+    #[arg(long, default_value_t = 200)]
+    vehicles: usize,
+    #[arg(long, default_value_t = 30)]
+    pass_through: usize,
+    /// Length of a spoofed scene (s); the spoofer is active from a quarter to three quarters of it.
+    #[arg(long, default_value_t = 1_800.0)]
+    duration_s: f64,
+    /// Vehicles and hours of the clean fleet (0 vehicles: none).
+    #[arg(long, default_value_t = 500)]
+    clean_vehicles: usize,
+    #[arg(long, default_value_t = 2.0)]
+    clean_hours: f64,
+    /// Share of the clean fleet's vehicles with one independent attack.
+    #[arg(long, default_value_t = 0.2)]
+    independent_share: f64,
+    /// Samples per second each vehicle is replayed at (all vehicles together advance at this pace).
+    #[arg(long, default_value_t = 40.0)]
+    pace_hz: f64,
+}
+
+/// One spoofed scene's result.
+#[derive(Debug, Serialize)]
+struct SceneRow {
+    attack: &'static str,
+    seed: u64,
+    vehicles: usize,
+    captured: usize,
+    captured_alarmed: usize,
+    median_delay_s: Option<f64>,
+    first_capture_s: Option<f64>,
+    /// From the first capture to the first incident's confirmation (sample clock).
+    time_to_incident_s: Option<f64>,
+    incidents: usize,
+    incident_kinds: Vec<String>,
+    incident_vehicles: usize,
+    /// Vehicles in an incident that were never captured.
+    uncaptured_in_incidents: usize,
+    alarm_onsets: usize,
+}
+
+/// The clean fleet's result.
+#[derive(Debug, Serialize)]
+struct CleanRow {
+    seed: u64,
+    vehicles: usize,
+    vehicle_hours: f64,
+    independently_attacked: usize,
+    alarm_onsets: usize,
+    incidents: usize,
+}
+
+#[derive(Debug, Serialize)]
+struct Report {
+    scenes: Vec<SceneRow>,
+    clean: Vec<CleanRow>,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    if args.pass_through > args.vehicles || args.seeds.is_empty() {
+        bail!("--pass-through must be at most --vehicles, and --seeds must name at least one seed");
+    }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let runtime = tokio::runtime::Runtime::new()?;
+    let mut report = Report {
+        scenes: Vec::new(),
+        clean: Vec::new(),
+    };
+    for &seed in &args.seeds {
+        for (name, attack) in attacks() {
+            let spec = spoofed_spec(&args, seed, attack);
+            let scene = generate_fleet(&spec).context("generating the scene")?;
+            let row = runtime.block_on(spoofed_scene(&args, name, seed, &scene))?;
+            println!("{row:?}");
+            report.scenes.push(row);
+        }
+    }
+    if args.clean_vehicles > 0 {
+        let seed = args.seeds[0];
+        let row = runtime.block_on(clean_fleet(&args, seed))?;
+        println!("{row:?}");
+        report.clean.push(row);
+    }
+    std::fs::write(
+        args.out.join("report.json"),
+        serde_json::to_string_pretty(&report)?,
+    )?;
+    std::fs::write(args.out.join("report.md"), markdown(&args, &report))?;
+    println!("wrote {}", args.out.join("report.md").display());
+    Ok(())
+}
+
+/// The three regional attacks.
+fn attacks() -> [(&'static str, RegionalAttack); 3] {
+    [
+        (
+            "translation 150 m",
+            RegionalAttack::Translation {
+                east_m: 120.0,
+                north_m: 90.0,
+            },
+        ),
+        (
+            "false position",
+            RegionalAttack::Position {
+                lat_deg: 32.26,
+                lon_deg: -110.88,
+            },
+        ),
+        (
+            "drift 1.5 m/s",
+            RegionalAttack::Drift {
+                east_mps: -0.9,
+                north_mps: 1.2,
+            },
+        ),
+    ]
+}
+
+fn spoofed_spec(args: &Args, seed: u64, attack: RegionalAttack) -> FleetSpec {
+    FleetSpec {
+        vehicles: args.vehicles,
+        pass_through: args.pass_through,
+        duration_s: args.duration_s,
+        spoofer: Spoofer {
+            start_s: args.duration_s / 4.0,
+            duration_s: args.duration_s / 2.0,
+            attack,
+            ..Spoofer::default()
+        },
+        seed,
+        ..FleetSpec::default()
+    }
+}
+
+/// What a replay through a fresh server gives: each vehicle's alarm onsets (recorded sample times)
+/// and the stored incidents.
+struct Replayed {
+    onsets: HashMap<String, Vec<f64>>,
+    incidents: Vec<v1::Incident>,
+}
+
+async fn replay(args: &Args, tracks: Vec<spoofwatch_core::sample::Track>) -> Result<Replayed> {
+    let server = InProcessServer::start(|config| {
+        config.incident_timeline = IncidentTimeline::Samples;
+    })
+    .await?;
+    let connection = Connection::connect(server.url(), None).await?;
+    let options = ReplayOptions {
+        rate_hz: args.pace_hz,
+        batch_size: 10,
+        ..ReplayOptions::default()
+    };
+    let (tx, mut rx) = mpsc::channel(4_096);
+    let collect = tokio::spawn(async move {
+        let mut onsets: HashMap<String, Vec<f64>> = HashMap::new();
+        while let Some(event) = rx.recv().await {
+            if let ReplayEvent::Detection(d) = event
+                && d.detection.alarm_onset
+            {
+                onsets
+                    .entry(d.vehicle_id)
+                    .or_default()
+                    .push(d.recorded_timestamp_s);
+            }
+        }
+        onsets
+    });
+    let started = Instant::now();
+    for result in replay_tracks(&connection, tracks, &options, tx).await {
+        result.context("a vehicle's replay")?;
+    }
+    let onsets = collect.await?;
+    // The correlator runs every second on the stored alarms: give it a few rounds.
+    tokio::time::sleep(Duration::from_secs(4)).await;
+    let mut alarms = connection.alarms();
+    let incidents = alarms
+        .list_incidents(v1::ListIncidentsRequest {
+            page_size: 500,
+            ..v1::ListIncidentsRequest::default()
+        })
+        .await?
+        .into_inner()
+        .incidents;
+    eprintln!("replayed in {:.0} s", started.elapsed().as_secs_f64());
+    server.shutdown().await?;
+    Ok(Replayed { onsets, incidents })
+}
+
+async fn spoofed_scene(
+    args: &Args,
+    attack: &'static str,
+    seed: u64,
+    scene: &FleetScene,
+) -> Result<SceneRow> {
+    let replayed = replay(args, scene.tracks.clone()).await?;
+    let mut delays = Vec::new();
+    let mut first_capture: Option<f64> = None;
+    let mut captured_ids = Vec::new();
+    for vehicle in scene.truth.vehicles.iter().filter(|v| v.captured) {
+        let id = server_vehicle_id(&vehicle.vehicle_id);
+        let onsets = replayed.onsets.get(&id).map(Vec::as_slice).unwrap_or(&[]);
+        let capture = &vehicle.captures[0];
+        let start = capture.start.timestamp_s;
+        first_capture = Some(first_capture.map_or(start, |f: f64| f.min(start)));
+        if let Some(onset) = onsets
+            .iter()
+            .copied()
+            .find(|&t| t >= start && t <= capture.end.timestamp_s + ANSWER_GRACE_S)
+        {
+            delays.push(onset - start);
+        }
+        captured_ids.push(id);
+    }
+    let incident_vehicles: Vec<&str> = replayed
+        .incidents
+        .iter()
+        .flat_map(|i| i.vehicles.iter().map(|v| v.vehicle_id.as_str()))
+        .collect();
+    let first_confirmed = replayed
+        .incidents
+        .iter()
+        .map(|i| i.confirmed_s)
+        .fold(None, |acc: Option<f64>, t| Some(acc.map_or(t, |a| a.min(t))));
+    Ok(SceneRow {
+        attack,
+        seed,
+        vehicles: scene.tracks.len(),
+        captured: captured_ids.len(),
+        captured_alarmed: delays.len(),
+        median_delay_s: median(&mut delays),
+        first_capture_s: first_capture,
+        time_to_incident_s: first_confirmed.zip(first_capture).map(|(c, f)| c - f),
+        incidents: replayed.incidents.len(),
+        incident_kinds: replayed
+            .incidents
+            .iter()
+            .map(|i| i.kind().as_str_name().to_string())
+            .collect(),
+        incident_vehicles: incident_vehicles.len(),
+        uncaptured_in_incidents: incident_vehicles
+            .iter()
+            .filter(|v| !captured_ids.iter().any(|c| c == *v))
+            .count(),
+        alarm_onsets: replayed.onsets.values().map(Vec::len).sum(),
+    })
+}
+
+async fn clean_fleet(args: &Args, seed: u64) -> Result<CleanRow> {
+    let duration_s = args.clean_hours * 3_600.0;
+    // The spoofer sits 500 km away: it captures no one.
+    let spec = FleetSpec {
+        vehicles: args.clean_vehicles,
+        pass_through: 0,
+        duration_s,
+        spoofer: Spoofer {
+            lat_deg: 36.7,
+            radius_m: 10.0,
+            start_s: 0.0,
+            duration_s,
+            ..Spoofer::default()
+        },
+        seed: seed + 1_000,
+        ..FleetSpec::default()
+    };
+    let scene = generate_fleet(&spec).context("generating the clean fleet")?;
+    let mut rng = Rng::seed_from_u64(seed ^ 0x1d3f);
+    let mut tracks = scene.tracks;
+    let mut attacked = 0;
+    for track in &mut tracks {
+        if rng.uniform() >= args.independent_share {
+            continue;
+        }
+        let kind = if rng.uniform() < 0.5 {
+            AttackKind::Jump {
+                offset_m: 30.0 + 470.0 * rng.uniform(),
+            }
+        } else {
+            AttackKind::RampDrift {
+                velocity_mps: 0.5 + 1.5 * rng.uniform(),
+            }
+        };
+        let attack = AttackSpec {
+            kind,
+            direction_deg: 360.0 * rng.uniform() % 360.0,
+            onset_s: 300.0 + (duration_s - 900.0) * rng.uniform(),
+            duration_s: 300.0,
+            seed: None,
+        };
+        let vehicle_id = track.vehicle_id.clone();
+        *track = inject(track, &attack).context("injecting an attack")?.track;
+        track.vehicle_id = vehicle_id;
+        attacked += 1;
+    }
+    let replayed = replay(args, tracks).await?;
+    Ok(CleanRow {
+        seed,
+        vehicles: args.clean_vehicles,
+        vehicle_hours: args.clean_vehicles as f64 * args.clean_hours,
+        independently_attacked: attacked,
+        alarm_onsets: replayed.onsets.values().map(Vec::len).sum(),
+        incidents: replayed.incidents.len(),
+    })
+}
+
+fn median(values: &mut [f64]) -> Option<f64> {
+    if values.is_empty() {
+        return None;
+    }
+    values.sort_by(f64::total_cmp);
+    let middle = values.len() / 2;
+    Some(if values.len() % 2 == 1 {
+        values[middle]
+    } else {
+        0.5 * (values[middle - 1] + values[middle])
+    })
+}
+
+fn markdown(args: &Args, report: &Report) -> String {
+    let opt = |v: Option<f64>| v.map_or_else(|| "–".to_string(), |v| format!("{v:.0}"));
+    let mut out = format!(
+        "# Incidents\n\n`spoofwatch-lab experiment incidents --seeds {} --vehicles {} --pass-through {} \
+         --duration-s {} --clean-vehicles {} --clean-hours {} --pace-hz {}`\n\n\
+         | attack | seed | captured | alarmed | median delay (s) | time to incident (s) | incidents | in incident | not captured |\n\
+         |---|---|---|---|---|---|---|---|---|\n",
+        args.seeds
+            .iter()
+            .map(u64::to_string)
+            .collect::<Vec<_>>()
+            .join(","),
+        args.vehicles,
+        args.pass_through,
+        args.duration_s,
+        args.clean_vehicles,
+        args.clean_hours,
+        args.pace_hz,
+    );
+    for r in &report.scenes {
+        out.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            r.attack,
+            r.seed,
+            r.captured,
+            r.captured_alarmed,
+            opt(r.median_delay_s),
+            opt(r.time_to_incident_s),
+            r.incidents,
+            r.incident_vehicles,
+            r.uncaptured_in_incidents,
+        ));
+    }
+    out.push_str(
+        "\n| clean fleet seed | vehicles | vehicle-hours | independently attacked | alarm onsets | incidents |\n|---|---|---|---|---|---|\n",
+    );
+    for r in &report.clean {
+        out.push_str(&format!(
+            "| {} | {} | {:.0} | {} | {} | {} |\n",
+            r.seed,
+            r.vehicles,
+            r.vehicle_hours,
+            r.independently_attacked,
+            r.alarm_onsets,
+            r.incidents
+        ));
+    }
+    out
+}
