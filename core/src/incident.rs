@@ -24,17 +24,17 @@ use crate::sample::readable;
 /// reckoning alone is off by a few metres after a minute, and a false alarm's offset is that small.
 pub const MIN_OFFSET_M: f64 = 30.0;
 /// Drift rates slower than this (m/s) say nothing about a common drift (noise and onboard errors).
-pub const MIN_DRIFT_MPS: f64 = 0.5;
+/// A rate measured at an alarm soon after capture reads a fraction of the spoofer's (the 30 s scale
+/// is still filling), so the bound is low and agreement is by direction.
+pub const MIN_DRIFT_MPS: f64 = 0.25;
 /// Fixes that agree on one false position lie within this of each other (m): receiver noise.
 pub const POSITION_TOLERANCE_M: f64 = 50.0;
 /// Offsets agree on one translation within the larger of this (m) ...
 pub const TRANSLATION_TOLERANCE_M: f64 = 20.0;
 /// ... and this share of the longer one (the anchor's own error grows with the distance driven).
 pub const TRANSLATION_TOLERANCE_SHARE: f64 = 0.2;
-/// Drift rates agree on one drift within the larger of this (m/s) ...
-pub const DRIFT_TOLERANCE_MPS: f64 = 0.3;
-/// ... and this share of the faster one (a rate measured soon after capture reads low).
-pub const DRIFT_TOLERANCE_SHARE: f64 = 0.35;
+/// Drift rates agree on one drift when their directions differ by at most this (degrees).
+pub const DRIFT_ANGLE_DEG: f64 = 20.0;
 
 /// How incidents are formed and ended; chosen by the operator.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -301,21 +301,18 @@ impl Hypothesis {
         }
     }
 
-    /// How far `a` and `b` may differ and still agree.
-    fn tolerance(self, a: [f64; 2], b: [f64; 2]) -> f64 {
-        let longer = norm(a).max(norm(b));
-        match self {
-            Hypothesis::FalsePosition => POSITION_TOLERANCE_M,
-            Hypothesis::Translation => {
-                TRANSLATION_TOLERANCE_M.max(TRANSLATION_TOLERANCE_SHARE * longer)
-            }
-            Hypothesis::Drift => DRIFT_TOLERANCE_MPS.max(DRIFT_TOLERANCE_SHARE * longer),
-        }
-    }
-
-    /// |a − b| as a share of the tolerance: agreeing at most 1.
+    /// How far apart `a` and `b` are as a share of what still agrees: at most 1 agrees. Positions
+    /// and translations by distance, drifts by direction.
     fn misfit(self, a: [f64; 2], b: [f64; 2]) -> f64 {
-        norm([a[0] - b[0], a[1] - b[1]]) / self.tolerance(a, b)
+        let apart = norm([a[0] - b[0], a[1] - b[1]]);
+        match self {
+            Hypothesis::FalsePosition => apart / POSITION_TOLERANCE_M,
+            Hypothesis::Translation => {
+                let longer = norm(a).max(norm(b));
+                apart / TRANSLATION_TOLERANCE_M.max(TRANSLATION_TOLERANCE_SHARE * longer)
+            }
+            Hypothesis::Drift => angle_deg(a, b) / DRIFT_ANGLE_DEG,
+        }
     }
 
     fn of(spoofing: &Spoofing) -> Self {
@@ -432,19 +429,33 @@ impl AreaCorrelator {
         changes
     }
 
-    /// Adds `onset` to the first open incident it lies in and agrees with.
+    /// Adds `onset` to the open incident it lies in and agrees with. A vehicle already in an open
+    /// incident nearby stays in it whatever its new alarm says: a spoofed vehicle alarms again as
+    /// the spoofer lets it go (its fix steps back), and that is the same incident's evidence, not a
+    /// new one.
     fn join(&mut self, onset: &AlarmOnset) -> Option<IncidentChange> {
         let anchor = onset.anchor();
         let radius = self.config.radius_m;
         let margin = self.config.margin_m;
-        let incident = self.state.open.iter_mut().find(|incident| {
-            let hypothesis = Hypothesis::of(&incident.spoofing);
-            let reference = incident.centre;
-            distance_m(incident.centre, anchor) <= radius
-                && hypothesis
-                    .vector(onset, reference)
-                    .is_some_and(|v| hypothesis.misfit(estimate_vector(incident), v) <= 1.0)
-        })?;
+        let near = |incident: &Incident| distance_m(incident.centre, anchor) <= radius;
+        let member = self.state.open.iter().position(|incident| {
+            near(incident)
+                && incident
+                    .vehicles
+                    .iter()
+                    .any(|v| v.vehicle_id == onset.vehicle_id)
+        });
+        let agreeing = || {
+            self.state.open.iter().position(|incident| {
+                let hypothesis = Hypothesis::of(&incident.spoofing);
+                near(incident)
+                    && hypothesis
+                        .vector(onset, incident.centre)
+                        .is_some_and(|v| hypothesis.misfit(estimate_vector(incident), v) <= 1.0)
+            })
+        };
+        let index = member.or_else(agreeing)?;
+        let incident = &mut self.state.open[index];
         let kind = match incident
             .vehicles
             .iter_mut()
@@ -630,6 +641,13 @@ fn median_of(values: &mut [f64]) -> f64 {
     } else {
         0.5 * (values[middle - 1] + values[middle])
     }
+}
+
+/// The angle between two vectors (degrees, in [0, 180]).
+fn angle_deg(a: [f64; 2], b: [f64; 2]) -> f64 {
+    let cross = a[0] * b[1] - a[1] * b[0];
+    let dot = a[0] * b[0] + a[1] * b[1];
+    cross.abs().atan2(dot).to_degrees()
 }
 
 fn norm(v: [f64; 2]) -> f64 {

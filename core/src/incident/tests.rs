@@ -302,3 +302,61 @@ fn a_bad_configuration_names_its_field() {
     }
     assert!(AreaConfig::default().validate().is_ok());
 }
+
+#[test]
+fn drifts_agree_by_direction_whatever_their_measured_speed() {
+    let mut c = correlator();
+    // A 1.5 m/s drift to the north-west, read at 0.4–1.3 m/s depending on how long ago each vehicle
+    // was captured.
+    let changes = feed(
+        &mut c,
+        vec![
+            drifting("a", 0.0, at(0.0, 0.0), [-0.3, 0.4]),
+            drifting("b", 30.0, at(1_000.0, 0.0), [-0.8, 1.0]),
+            drifting("c", 60.0, at(0.0, 1_000.0), [-0.75, 1.05]),
+        ],
+    );
+    assert!(matches!(
+        changes[0].incident.spoofing,
+        Spoofing::Drift { .. }
+    ));
+    // A drift a quarter turn away is another story.
+    assert!(
+        c.onset(drifting("d", 90.0, at(500.0, 500.0), [0.8, 0.6]))
+            .is_empty()
+    );
+}
+
+#[test]
+fn a_member_let_go_by_the_spoofer_stays_in_its_incident() {
+    let mut c = correlator();
+    let members = ["a", "b", "c"];
+    feed(
+        &mut c,
+        members
+            .iter()
+            .zip([0.0, 500.0, 1_000.0])
+            .map(|(v, east)| onset(v, 0.0, at(east, 0.0), [100.0, 0.0]))
+            .collect(),
+    );
+    // The spoofer stops: each fix steps back, the alarms read the opposite translation.
+    let exits: Vec<_> = members
+        .iter()
+        .zip([0.0, 500.0, 1_000.0])
+        .map(|(v, east)| onset(v, 600.0, at(east, 0.0), [-100.0, 0.0]))
+        .collect();
+    let changes = feed(&mut c, exits);
+    assert!(
+        changes
+            .iter()
+            .all(|x| x.kind == ChangeKind::Evidence && x.incident.id == 1)
+    );
+    assert_eq!(c.open_incidents().len(), 1);
+    assert_eq!(
+        c.open_incidents()[0].spoofing,
+        Spoofing::Translation {
+            offset_m: [100.0, 0.0]
+        },
+        "the estimate keeps the evidence the members joined with"
+    );
+}

@@ -82,6 +82,8 @@ struct SceneRow {
     /// Vehicles in an incident that were never captured.
     uncaptured_in_incidents: usize,
     alarm_onsets: usize,
+    /// Onsets outside every capture of their vehicle (and its grace after the capture's end).
+    other_onsets: usize,
 }
 
 /// The clean fleet's result.
@@ -229,6 +231,9 @@ async fn replay(args: &Args, tracks: Vec<spoofwatch_core::sample::Track>) -> Res
         .into_inner()
         .incidents;
     eprintln!("replayed in {:.0} s", started.elapsed().as_secs_f64());
+    for incident in &incidents {
+        eprintln!("{incident:?}");
+    }
     server.shutdown().await?;
     Ok(Replayed { onsets, incidents })
 }
@@ -243,6 +248,26 @@ async fn spoofed_scene(
     let mut delays = Vec::new();
     let mut first_capture: Option<f64> = None;
     let mut captured_ids = Vec::new();
+    let answers_a_capture = |vehicle: &spoofwatch_core::scenario::VehicleTruth, t: f64| {
+        vehicle
+            .captures
+            .iter()
+            .any(|c| t >= c.start.timestamp_s && t <= c.end.timestamp_s + ANSWER_GRACE_S)
+    };
+    let other_onsets = scene
+        .truth
+        .vehicles
+        .iter()
+        .map(|vehicle| {
+            let id = server_vehicle_id(&vehicle.vehicle_id);
+            replayed.onsets.get(&id).map_or(0, |onsets| {
+                onsets
+                    .iter()
+                    .filter(|&&t| !answers_a_capture(vehicle, t))
+                    .count()
+            })
+        })
+        .sum();
     for vehicle in scene.truth.vehicles.iter().filter(|v| v.captured) {
         let id = server_vehicle_id(&vehicle.vehicle_id);
         let onsets = replayed.onsets.get(&id).map(Vec::as_slice).unwrap_or(&[]);
@@ -267,7 +292,9 @@ async fn spoofed_scene(
         .incidents
         .iter()
         .map(|i| i.confirmed_s)
-        .fold(None, |acc: Option<f64>, t| Some(acc.map_or(t, |a| a.min(t))));
+        .fold(None, |acc: Option<f64>, t| {
+            Some(acc.map_or(t, |a| a.min(t)))
+        });
     Ok(SceneRow {
         attack,
         seed,
@@ -289,6 +316,7 @@ async fn spoofed_scene(
             .filter(|v| !captured_ids.iter().any(|c| c == *v))
             .count(),
         alarm_onsets: replayed.onsets.values().map(Vec::len).sum(),
+        other_onsets,
     })
 }
 
