@@ -23,10 +23,10 @@ use crate::sample::readable;
 /// Offsets shorter than this (m) say nothing about a false position or a translation: the dead
 /// reckoning alone is off by a few metres after a minute, and a false alarm's offset is that small.
 pub const MIN_OFFSET_M: f64 = 30.0;
-/// Drift rates slower than this (m/s) say nothing about a common drift (noise and onboard errors).
-/// A rate measured at an alarm soon after capture reads a fraction of the spoofer's (the 30 s scale
-/// is still filling), so the bound is low and agreement is by direction.
-pub const MIN_DRIFT_MPS: f64 = 0.25;
+/// Drift rates slower than this (m/s) say nothing about a common drift: the fleet's false alarms
+/// read up to about 0.3 m/s, in every direction. (A rate measured at an alarm soon after capture
+/// reads a fraction of the spoofer's, its 30 s scale still filling, so agreement is by direction.)
+pub const MIN_DRIFT_MPS: f64 = 0.4;
 /// Fixes that agree on one false position lie within this of each other (m): receiver noise.
 pub const POSITION_TOLERANCE_M: f64 = 50.0;
 /// Offsets agree on one translation within the larger of this (m) ...

@@ -311,7 +311,7 @@ fn drifts_agree_by_direction_whatever_their_measured_speed() {
     let changes = feed(
         &mut c,
         vec![
-            drifting("a", 0.0, at(0.0, 0.0), [-0.3, 0.4]),
+            drifting("a", 0.0, at(0.0, 0.0), [-0.3, 0.45]),
             drifting("b", 30.0, at(1_000.0, 0.0), [-0.8, 1.0]),
             drifting("c", 60.0, at(0.0, 1_000.0), [-0.75, 1.05]),
         ],

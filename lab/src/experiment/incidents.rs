@@ -354,15 +354,23 @@ async fn clean_fleet(args: &Args, seed: u64) -> Result<CleanRow> {
                 velocity_mps: 0.5 + 1.5 * rng.uniform(),
             }
         };
-        let attack = AttackSpec {
-            kind,
-            direction_deg: 360.0 * rng.uniform() % 360.0,
-            onset_s: 300.0 + (duration_s - 900.0) * rng.uniform(),
-            duration_s: 300.0,
-            seed: None,
+        let direction_deg = 360.0 * rng.uniform() % 360.0;
+        // An attack lies inside one trajectory: a few onsets are tried around the drive's outages.
+        let injected = (0..5).find_map(|_| {
+            let attack = AttackSpec {
+                kind,
+                direction_deg,
+                onset_s: 300.0 + (duration_s - 900.0) * rng.uniform(),
+                duration_s: 300.0,
+                seed: None,
+            };
+            inject(track, &attack).ok()
+        });
+        let Some(injected) = injected else {
+            continue;
         };
         let vehicle_id = track.vehicle_id.clone();
-        *track = inject(track, &attack).context("injecting an attack")?.track;
+        *track = injected.track;
         track.vehicle_id = vehicle_id;
         attacked += 1;
     }
