@@ -76,6 +76,18 @@ impl Detector {
 
     /// Advances by one sample. `trajectory_break` forces a new trajectory (recorded sources only).
     pub fn step(&mut self, sample: &Sample, trajectory_break: bool) -> Decision {
+        self.step_with_prior(sample, trajectory_break, false)
+    }
+
+    /// [`Detector::step`] with the fleet's prior: `in_incident_area` says the sample lies inside an
+    /// open area incident (§11). The incident then counts as the receiver's spoofing flag does
+    /// (§7.3): evidence beside the vehicle's own, never a verdict.
+    pub fn step_with_prior(
+        &mut self,
+        sample: &Sample,
+        trajectory_break: bool,
+        in_incident_area: bool,
+    ) -> Decision {
         let evidence = self.evidence.push(sample, trajectory_break);
         if evidence.trajectory_start {
             // State resets once per trajectory (SPEC §1).
@@ -95,7 +107,7 @@ impl Detector {
                     sample.timestamp_s,
                     evidence.valid,
                     evidence.trajectory_start,
-                    sample.spoofing_state,
+                    sample.spoofing_state.flagged() || in_incident_area,
                     offset.displaced,
                 );
                 self.lifecycle.update(

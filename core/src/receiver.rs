@@ -8,12 +8,13 @@
 //! [`CORROBORATION_S`] opens an alarm at once, and p̂ ≥ θ counts towards T_on while a trajectory
 //! settles (as it does on a displaced fix). The flag never opens or holds an alarm by itself.
 //!
+//! An open area incident (§11) is the same kind of evidence, from the fleet instead of the
+//! receiver: a sample inside its area is treated as flagged.
+//!
 //! Owns when the flag is corroborated, from per-sample flags and displacement. Must not build
 //! evidence, score samples or decide when an alarm clears (that is `lifecycle.rs`).
 
 use serde::{Deserialize, Serialize};
-
-use crate::sample::SpoofingState;
 
 /// Seconds a raised spoofing flag keeps counting after the receiver last reported it: a spoofer
 /// that takes over slowly (a drift of 1 m/s) displaces the fix beyond the follow gate some tens of
@@ -49,12 +50,14 @@ pub struct FlagCorroboration {
 impl FlagCorroboration {
     /// Feeds one sample and says what the flag means for it. A trajectory start forgets the flag
     /// (as the lifecycle forgets its runs); a ν = 0 sample changes nothing and says nothing.
+    /// `flagged`: the receiver reports spoofing on this sample (or the fleet does: the sample lies
+    /// inside an open area incident, §11).
     pub fn update(
         &mut self,
         time_s: f64,
         valid: bool,
         trajectory_start: bool,
-        spoofing: SpoofingState,
+        flagged: bool,
         displaced: bool,
     ) -> FlagSignal {
         if trajectory_start {
@@ -63,7 +66,7 @@ impl FlagCorroboration {
         if !valid {
             return FlagSignal::default();
         }
-        if spoofing.flagged() {
+        if flagged {
             self.flagged_at = Some(time_s);
         }
         let counts = self
@@ -86,6 +89,7 @@ impl FlagCorroboration {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::sample::SpoofingState;
 
     /// Runs samples every `step_s` from 0 to `end_s` (a trajectory starting at 0); returns the
     /// times at which the flag is corroborated.
@@ -100,13 +104,8 @@ mod tests {
         (0..=steps)
             .map(|i| i as f64 * step_s)
             .filter(|&t| {
-                let state = if flagged(t) {
-                    SpoofingState::Indicated
-                } else {
-                    SpoofingState::None
-                };
                 memory
-                    .update(t, true, t == 0.0, state, displaced(t))
+                    .update(t, true, t == 0.0, flagged(t), displaced(t))
                     .corroborated
             })
             .map(|t| (t * 1e6).round() / 1e6)
@@ -150,7 +149,7 @@ mod tests {
         );
         let mut memory = FlagCorroboration::default();
         let mut update = |time_s: f64, valid: bool, start: bool, state: SpoofingState| {
-            let signal = memory.update(time_s, valid, start, state, true);
+            let signal = memory.update(time_s, valid, start, state.flagged(), true);
             (signal.counts, signal.corroborated)
         };
         assert_eq!(

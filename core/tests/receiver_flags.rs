@@ -177,6 +177,48 @@ fn a_flag_alone_on_a_clean_drive_opens_nothing() {
     }
 }
 
+/// The area prior (a sample inside an open area incident, §11) is the receiver flag's evidence from
+/// the fleet: a drift scored inside an incident's area gives exactly the decisions of the same drift
+/// flagged by its receiver throughout, and a clean drive inside one alarms exactly as outside.
+#[test]
+fn inside_an_incident_area_a_sample_counts_as_flagged() {
+    let model = bundled_model();
+    let with_prior = |track: &Track| {
+        let mut detector = Detector::new(Arc::clone(&model));
+        track
+            .records
+            .iter()
+            .map(|r| detector.step_with_prior(&r.sample, r.trajectory_break, true))
+            .collect::<Vec<_>>()
+    };
+    for seed in 0..4 {
+        let track = realistic_drive(40 + seed, 600.0);
+        let drifted = with_fix_drift(&track, 300.0, 5.0);
+        let flagged = raise_flags(&drifted, &[flag(0.0, 600.0, SpoofingState::Indicated)])
+            .expect("a valid window");
+        let by_flag = run_records(&model, &flagged.records);
+        let by_area = with_prior(&drifted);
+        for (a, b) in by_flag.iter().zip(&by_area) {
+            assert_eq!(a.probability.to_bits(), b.probability.to_bits());
+            assert_eq!((a.alarm, a.alarm_onset), (b.alarm, b.alarm_onset));
+        }
+        let clean = simulate_drive(
+            &DriveSpec {
+                duration_s: 900.0,
+                seed,
+                ..DriveSpec::default()
+            },
+            "clean",
+        )
+        .expect("a valid drive");
+        assert_eq!(
+            onsets(&with_prior(&clean)),
+            onsets(&run_records(&model, &clean.records)),
+            "drive {seed}: the prior alone opened an alarm"
+        );
+    }
+}
+
 /// Without flags the receiver fields change nothing: a track with every state `none` (and
 /// satellites, HDOP, jamming) gives the bits of the plain one; the flag changes only alarms.
 #[test]

@@ -15,6 +15,7 @@ use crate::alarms::feed::AlarmFeed;
 use crate::config::Config;
 use crate::datasets::Catalog;
 use crate::detection::{SessionLimits, SessionManager};
+use crate::incidents::areas::IncidentAreas;
 use crate::incidents::correlator::IncidentSettings;
 use crate::incidents::service::IncidentFeed;
 use crate::jobs::{JobManager, JobSettings, Runner};
@@ -39,6 +40,8 @@ pub struct App {
     /// Told when this server's correlator stored incident events.
     pub incidents_stored: Arc<Notify>,
     pub incident_settings: IncidentSettings,
+    /// The open incidents' areas, refreshed by the correlator loop, read by the sessions.
+    pub incident_areas: Arc<IncidentAreas>,
     /// This server's instance id (job ownership, the incident correlator's lease).
     pub instance: String,
     pub sessions: Arc<SessionManager>,
@@ -95,6 +98,7 @@ impl App {
         // WatchAlarms' live events: the stored event log of every replica.
         let alarm_feed = Arc::new(AlarmFeed::new(&store).await?);
         let incident_feed = Arc::new(IncidentFeed::new(&store).await?);
+        let incident_areas = Arc::new(IncidentAreas::new(incident_settings.prior));
         let sessions = Arc::new(SessionManager::new(
             Arc::clone(&registry),
             Arc::clone(&outbox),
@@ -107,6 +111,7 @@ impl App {
             },
             snapshot_policy,
             heavy.clone(),
+            Arc::clone(&incident_areas),
         ));
         let jobs = JobManager::new(
             Runner {
@@ -138,6 +143,7 @@ impl App {
             incident_feed,
             incidents_stored: Arc::new(Notify::new()),
             incident_settings,
+            incident_areas,
             instance,
             sessions,
             jobs,

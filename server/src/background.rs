@@ -89,6 +89,7 @@ impl Background {
                 app.incident_settings,
                 &app.instance,
                 Arc::clone(&app.incidents_stored),
+                Arc::clone(&app.incident_areas),
             )
             .run(app.draining.clone()),
         );

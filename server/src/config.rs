@@ -49,6 +49,7 @@ pub mod defaults {
     pub const INCIDENT_MIN_VEHICLES: u32 = 3;
     pub const INCIDENT_QUIET_SECS: u64 = 600;
     pub const INCIDENT_TIMELINE: super::IncidentTimeline = super::IncidentTimeline::Wall;
+    pub const INCIDENT_PRIOR: bool = true;
 }
 
 /// How the server binary writes its log lines to stderr.
@@ -218,6 +219,12 @@ pub struct Config {
     /// vehicles share one clock).
     #[arg(long, env = "SPOOFWATCH_INCIDENT_TIMELINE", value_enum, default_value_t = defaults::INCIDENT_TIMELINE)]
     pub incident_timeline: IncidentTimeline,
+    /// Whether a sample inside an open incident's area is scored with the area prior: the incident
+    /// counts as the receiver's spoofing flag does (a displaced fix held for 1 s alarms at once).
+    /// `false` scores every vehicle on its own evidence alone.
+    #[arg(long, env = "SPOOFWATCH_INCIDENT_PRIOR", default_value_t = defaults::INCIDENT_PRIOR,
+          action = clap::ArgAction::Set)]
+    pub incident_prior: bool,
 }
 
 /// An instance id: 1–128 visible ASCII characters (it is stored with every job and logged).
@@ -267,6 +274,7 @@ impl Default for Config {
             incident_min_vehicles: defaults::INCIDENT_MIN_VEHICLES,
             incident_quiet_secs: defaults::INCIDENT_QUIET_SECS,
             incident_timeline: defaults::INCIDENT_TIMELINE,
+            incident_prior: defaults::INCIDENT_PRIOR,
         }
     }
 }
@@ -345,6 +353,7 @@ impl Config {
         Ok(crate::incidents::correlator::IncidentSettings {
             area,
             timeline: self.incident_timeline,
+            prior: self.incident_prior,
         })
     }
 

@@ -51,9 +51,11 @@ pub const CALIBRATION_BLOCK_S: f64 = 1.0;
 pub const LEVEL_MEMORY_S: f64 = 300.0;
 /// Weight of the population prior (level 1) in seconds of data.
 const LEVEL_PRIOR_S: f64 = 120.0;
-/// Levels are kept within [1/4, 16] of the population's: a very quiet vehicle is not made more than
-/// twice as sensitive in σ, a very noisy one not blind.
-const LEVEL_RANGE: (f64, f64) = (0.25, 16.0);
+/// Levels are kept within [1, 16] of the population's: a noisy vehicle is quieted, a very noisy one
+/// not made blind, and a quiet one is never made more sensitive than the population. Its level would
+/// settle below 1 only after half an hour, later than any training drive lasts, and a model that never
+/// saw those inputs alarms on them.
+const LEVEL_RANGE: (f64, f64) = (1.0, 16.0);
 /// Snapshot spacing of the calibration (s of valid data).
 const SNAPSHOT_PERIOD_S: f64 = 30.0;
 /// Snapshots kept: enough to always hold one that is `CALIBRATION_DELAY_S` old.
@@ -1140,9 +1142,11 @@ mod tests {
         let (q, n) = (quiet[899].raw[0], noisy[899].raw[0]);
         assert!(n > 1.3 && n < 2.3, "noisy {n}");
         assert!(q < 0.3, "quiet {q}");
-        // The χ² seen by the detector are clamped to [1/4, 16] of the population's level.
+        // The χ² seen by the detector are clamped to [1, 16] of the population's level: a quiet
+        // vehicle is never made more sensitive than the population.
         assert_eq!(scaled([2.0, 0.0], 100.0), [0.5, 0.0]);
-        assert_eq!(scaled([2.0, 0.0], 0.01), [4.0, 0.0]);
+        assert_eq!(scaled([2.0, 0.0], 0.01), [2.0, 0.0]);
+        assert_eq!(scaled([2.0, 0.0], 4.0), [1.0, 0.0]);
     }
 
     #[test]

@@ -7,30 +7,39 @@
 //!   advance together. Reported: the captured vehicles (ground truth), the share alarmed during
 //!   their capture (or within 30 s of its end), their median delay from capture to alarm, the time
 //!   from the first capture to the incident, how many incidents opened and whether their vehicles
-//!   were captured ones.
+//!   were captured ones. Each scene is replayed twice, without and with the area prior
+//!   (`--incident-prior`); the vehicles captured after the incident opened are the ones it can help.
 //! - **Clean fleets.** A scene whose spoofer captures no one, with independent attacks (jumps and
 //!   drifts in random directions, at random times) injected into a share of its vehicles: every
 //!   alarm is one vehicle's own. Reported: vehicle-hours, alarm onsets, and incidents (there must be
-//!   none).
+//!   none), one fleet per seed.
+//! - **The prior's cost.** Attack-free hour-long drives at 1, 5 and 10 Hz scored by the bundled
+//!   model as if inside an open incident's area throughout, against their own evidence alone.
 //!
 //! It owns the scenes' setup, the replay and the tallies; the correlation is the server's.
 
 use std::collections::HashMap;
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
 use spoofwatch_client::connection::Connection;
 use spoofwatch_client::replay::{ReplayEvent, ReplayOptions, replay_tracks, server_vehicle_id};
+use spoofwatch_core::detector::Detector;
+use spoofwatch_core::model::artifact::ModelArtifact;
 use spoofwatch_core::rng::Rng;
 use spoofwatch_core::scenario::{
-    AttackKind, AttackSpec, FleetScene, FleetSpec, RegionalAttack, Spoofer, generate_fleet, inject,
+    AttackKind, AttackSpec, DriveDistribution, DriveSpec, FleetScene, FleetSpec, RegionalAttack,
+    Spoofer, generate_fleet, inject, simulate_drive,
 };
 use spoofwatch_proto::v1;
 use spoofwatch_server::config::IncidentTimeline;
 use spoofwatch_server::inprocess::InProcessServer;
 use tokio::sync::mpsc;
+
+use super::parallel::{default_threads, map_parallel};
 
 /// An alarm this long after a capture's end still answers it (the spoofer's exit).
 const ANSWER_GRACE_S: f64 = 30.0;
@@ -62,6 +71,10 @@ pub struct Args {
     /// Samples per second each vehicle is replayed at (all vehicles together advance at this pace).
     #[arg(long, default_value_t = 40.0)]
     pace_hz: f64,
+    /// Attack-free one-hour drives per sample rate (1, 5 and 10 Hz) that measure what the area
+    /// prior costs: each is scored as if it spent the whole hour inside an open incident's area.
+    #[arg(long, default_value_t = 30)]
+    prior_drives: u64,
 }
 
 /// One spoofed scene's result.
@@ -69,10 +82,16 @@ pub struct Args {
 struct SceneRow {
     attack: &'static str,
     seed: u64,
+    /// Scored with the area prior (the server's `--incident-prior`).
+    prior: bool,
     vehicles: usize,
     captured: usize,
     captured_alarmed: usize,
     median_delay_s: Option<f64>,
+    /// Captured after the first incident opened: how many, and their median delay (the vehicles
+    /// the prior can help).
+    captured_later: usize,
+    later_median_delay_s: Option<f64>,
     first_capture_s: Option<f64>,
     /// From the first capture to the first incident's confirmation (sample clock).
     time_to_incident_s: Option<f64>,
@@ -97,10 +116,21 @@ struct CleanRow {
     incidents: usize,
 }
 
+/// What the area prior costs at one sample rate: attack-free drives scored on their own evidence and
+/// as if inside an open incident's area throughout.
+#[derive(Debug, Serialize)]
+struct PriorCostRow {
+    rate_hz: f64,
+    hours: f64,
+    onsets_without: usize,
+    onsets_with: usize,
+}
+
 #[derive(Debug, Serialize)]
 struct Report {
     scenes: Vec<SceneRow>,
     clean: Vec<CleanRow>,
+    prior_cost: Vec<PriorCostRow>,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -113,21 +143,28 @@ pub fn run(args: Args) -> Result<()> {
     let mut report = Report {
         scenes: Vec::new(),
         clean: Vec::new(),
+        prior_cost: prior_cost(args.prior_drives)?,
     };
+    for row in &report.prior_cost {
+        println!("{row:?}");
+    }
     for &seed in &args.seeds {
         for (name, attack) in attacks() {
             let spec = spoofed_spec(&args, seed, attack);
             let scene = generate_fleet(&spec).context("generating the scene")?;
-            let row = runtime.block_on(spoofed_scene(&args, name, seed, &scene))?;
-            println!("{row:?}");
-            report.scenes.push(row);
+            for prior in [false, true] {
+                let row = runtime.block_on(spoofed_scene(&args, name, seed, prior, &scene))?;
+                println!("{row:?}");
+                report.scenes.push(row);
+            }
         }
     }
     if args.clean_vehicles > 0 {
-        let seed = args.seeds[0];
-        let row = runtime.block_on(clean_fleet(&args, seed))?;
-        println!("{row:?}");
-        report.clean.push(row);
+        for &seed in &args.seeds {
+            let row = runtime.block_on(clean_fleet(&args, seed))?;
+            println!("{row:?}");
+            report.clean.push(row);
+        }
     }
     std::fs::write(
         args.out.join("report.json"),
@@ -188,9 +225,14 @@ struct Replayed {
     incidents: Vec<v1::Incident>,
 }
 
-async fn replay(args: &Args, tracks: Vec<spoofwatch_core::sample::Track>) -> Result<Replayed> {
+async fn replay(
+    args: &Args,
+    prior: bool,
+    tracks: Vec<spoofwatch_core::sample::Track>,
+) -> Result<Replayed> {
     let server = InProcessServer::start(|config| {
         config.incident_timeline = IncidentTimeline::Samples;
+        config.incident_prior = prior;
     })
     .await?;
     let connection = Connection::connect(server.url(), None).await?;
@@ -242,10 +284,20 @@ async fn spoofed_scene(
     args: &Args,
     attack: &'static str,
     seed: u64,
+    prior: bool,
     scene: &FleetScene,
 ) -> Result<SceneRow> {
-    let replayed = replay(args, scene.tracks.clone()).await?;
+    let replayed = replay(args, prior, scene.tracks.clone()).await?;
+    let first_confirmed = replayed
+        .incidents
+        .iter()
+        .map(|i| i.confirmed_s)
+        .fold(None, |acc: Option<f64>, t| {
+            Some(acc.map_or(t, |a| a.min(t)))
+        });
     let mut delays = Vec::new();
+    let mut later_delays = Vec::new();
+    let mut captured_later = 0;
     let mut first_capture: Option<f64> = None;
     let mut captured_ids = Vec::new();
     let answers_a_capture = |vehicle: &spoofwatch_core::scenario::VehicleTruth, t: f64| {
@@ -274,12 +326,17 @@ async fn spoofed_scene(
         let capture = &vehicle.captures[0];
         let start = capture.start.timestamp_s;
         first_capture = Some(first_capture.map_or(start, |f: f64| f.min(start)));
+        let later = first_confirmed.is_some_and(|confirmed| start > confirmed);
+        captured_later += usize::from(later);
         if let Some(onset) = onsets
             .iter()
             .copied()
             .find(|&t| t >= start && t <= capture.end.timestamp_s + ANSWER_GRACE_S)
         {
             delays.push(onset - start);
+            if later {
+                later_delays.push(onset - start);
+            }
         }
         captured_ids.push(id);
     }
@@ -288,20 +345,16 @@ async fn spoofed_scene(
         .iter()
         .flat_map(|i| i.vehicles.iter().map(|v| v.vehicle_id.as_str()))
         .collect();
-    let first_confirmed = replayed
-        .incidents
-        .iter()
-        .map(|i| i.confirmed_s)
-        .fold(None, |acc: Option<f64>, t| {
-            Some(acc.map_or(t, |a| a.min(t)))
-        });
     Ok(SceneRow {
         attack,
         seed,
+        prior,
         vehicles: scene.tracks.len(),
         captured: captured_ids.len(),
         captured_alarmed: delays.len(),
         median_delay_s: median(&mut delays),
+        captured_later,
+        later_median_delay_s: median(&mut later_delays),
         first_capture_s: first_capture,
         time_to_incident_s: first_confirmed.zip(first_capture).map(|(c, f)| c - f),
         incidents: replayed.incidents.len(),
@@ -374,7 +427,7 @@ async fn clean_fleet(args: &Args, seed: u64) -> Result<CleanRow> {
         track.vehicle_id = vehicle_id;
         attacked += 1;
     }
-    let replayed = replay(args, tracks).await?;
+    let replayed = replay(args, true, tracks).await?;
     Ok(CleanRow {
         seed,
         vehicles: args.clean_vehicles,
@@ -383,6 +436,55 @@ async fn clean_fleet(args: &Args, seed: u64) -> Result<CleanRow> {
         alarm_onsets: replayed.onsets.values().map(Vec::len).sum(),
         incidents: replayed.incidents.len(),
     })
+}
+
+/// Sample rates the prior's cost is measured at (Hz).
+const PRIOR_RATES_HZ: [f64; 3] = [1.0, 5.0, 10.0];
+/// Length of a drive that measures the prior's cost (s).
+const PRIOR_DRIVE_S: f64 = 3_600.0;
+
+/// The bundled model's alarm onsets on `drives` attack-free hour-long realistic drives per rate,
+/// scored on their own evidence and as if inside an open incident's area throughout (the worst
+/// case: a vehicle that never leaves the area).
+fn prior_cost(drives: u64) -> Result<Vec<PriorCostRow>> {
+    let model = Arc::new(
+        ModelArtifact::from_slice(include_bytes!("../../../models/default.json"))
+            .context("the bundled model")?,
+    );
+    let seeds: Vec<u64> = (0..drives).collect();
+    PRIOR_RATES_HZ
+        .iter()
+        .map(|&rate_hz| {
+            let counts = map_parallel(&seeds, default_threads(), |&seed| {
+                let spec = DriveSpec {
+                    duration_s: PRIOR_DRIVE_S,
+                    rate_hz,
+                    ..DriveDistribution::realistic().draw(0x9121_0000 + seed)
+                };
+                let track = simulate_drive(&spec, &format!("prior-{rate_hz}hz-{seed}"))?;
+                let onsets = |in_area: bool| {
+                    let mut detector = Detector::new(Arc::clone(&model));
+                    track
+                        .records
+                        .iter()
+                        .filter(|r| {
+                            detector
+                                .step_with_prior(&r.sample, r.trajectory_break, in_area)
+                                .alarm_onset
+                        })
+                        .count()
+                };
+                Ok::<_, anyhow::Error>((onsets(false), onsets(true)))
+            });
+            let counts = counts.into_iter().collect::<Result<Vec<_>>>()?;
+            Ok(PriorCostRow {
+                rate_hz,
+                hours: drives as f64 * PRIOR_DRIVE_S / 3_600.0,
+                onsets_without: counts.iter().map(|c| c.0).sum(),
+                onsets_with: counts.iter().map(|c| c.1).sum(),
+            })
+        })
+        .collect()
 }
 
 fn median(values: &mut [f64]) -> Option<f64> {
@@ -402,9 +504,9 @@ fn markdown(args: &Args, report: &Report) -> String {
     let opt = |v: Option<f64>| v.map_or_else(|| "–".to_string(), |v| format!("{v:.0}"));
     let mut out = format!(
         "# Incidents\n\n`spoofwatch-lab experiment incidents --seeds {} --vehicles {} --pass-through {} \
-         --duration-s {} --clean-vehicles {} --clean-hours {} --pace-hz {}`\n\n\
-         | attack | seed | captured | alarmed | median delay (s) | time to incident (s) | incidents | in incident | not captured |\n\
-         |---|---|---|---|---|---|---|---|---|\n",
+         --duration-s {} --clean-vehicles {} --clean-hours {} --pace-hz {} --prior-drives {}`\n\n\
+         | attack | seed | prior | captured | alarmed | median delay (s) | captured after the incident | their median delay (s) | time to incident (s) | incidents | in incident | not captured |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|---|\n",
         args.seeds
             .iter()
             .map(u64::to_string)
@@ -416,15 +518,19 @@ fn markdown(args: &Args, report: &Report) -> String {
         args.clean_vehicles,
         args.clean_hours,
         args.pace_hz,
+        args.prior_drives,
     );
     for r in &report.scenes {
         out.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
             r.attack,
             r.seed,
+            if r.prior { "on" } else { "off" },
             r.captured,
             r.captured_alarmed,
             opt(r.median_delay_s),
+            r.captured_later,
+            opt(r.later_median_delay_s),
             opt(r.time_to_incident_s),
             r.incidents,
             r.incident_vehicles,
@@ -443,6 +549,21 @@ fn markdown(args: &Args, report: &Report) -> String {
             r.independently_attacked,
             r.alarm_onsets,
             r.incidents
+        ));
+    }
+    out.push_str(
+        "\nThe area prior's cost: attack-free hour-long drives scored as if inside an open incident's area throughout.\n\n\
+         | rate | hours | false alarms per hour without the prior | with it |\n|---|---|---|---|\n",
+    );
+    for r in &report.prior_cost {
+        out.push_str(&format!(
+            "| {} Hz | {:.0} | {:.2} ({}) | {:.2} ({}) |\n",
+            r.rate_hz,
+            r.hours,
+            r.onsets_without as f64 / r.hours,
+            r.onsets_without,
+            r.onsets_with as f64 / r.hours,
+            r.onsets_with,
         ));
     }
     out

@@ -10,7 +10,8 @@
 //! its reason and the session starts afresh (the decision is [`super::resume`]'s). An alarm stays
 //! open across a hand-off.
 //!
-//! Alarm episodes are followed by [`super::episodes`]; this module records what they report.
+//! Alarm episodes are followed by [`super::episodes`]; this module records what they report. A
+//! sample inside an open area incident ([`IncidentAreas`]) is scored with the area prior.
 //!
 //! Roll-out: a session started or resumed without a model follows the active model (a fresh
 //! detector when it changed); deleting a model ends the sessions that use it.
@@ -37,6 +38,7 @@ use super::sequence::SeqCheck;
 use super::state::SessionState;
 use super::validate::validate_batch;
 use crate::alarms::why::OnsetWhy;
+use crate::incidents::areas::IncidentAreas;
 use crate::models::{LoadedModel, Registry, RegistryError};
 use crate::outbox::SessionOutbox;
 use crate::store::{SnapshotRow, Store, now_unix_ms};
@@ -257,6 +259,8 @@ pub struct SessionManager {
     stale_seen: Mutex<HashMap<(String, i64), Instant>>,
     /// Sessions in the table by the identity that created them (the quota's count).
     per_identity: Mutex<HashMap<Arc<str>, usize>>,
+    /// The open incidents' areas: a sample inside one is scored with the area prior.
+    areas: Arc<IncidentAreas>,
 }
 
 /// A batch costing at least this many model parameters × samples is scored on the bounded pool of
@@ -272,9 +276,11 @@ impl SessionManager {
         limits: SessionLimits,
         snapshots: SnapshotPolicy,
         heavy: HeavyWork,
+        areas: Arc<IncidentAreas>,
     ) -> Self {
         Self {
             heavy,
+            areas,
             stale_seen: Mutex::new(HashMap::new()),
             per_identity: Mutex::new(HashMap::new()),
             slots: Mutex::new(HashMap::new()),
@@ -643,7 +649,12 @@ impl SessionManager {
         .map_err(SessionError::InvalidBatch)?;
         let mut decisions = Vec::with_capacity(samples.len());
         for sample in samples {
-            let decision = state.detector.step(sample, false);
+            let in_incident_area = self
+                .areas
+                .contains(sample.latitude_deg, sample.longitude_deg);
+            let decision = state
+                .detector
+                .step_with_prior(sample, false, in_incident_area);
             state.samples += 1;
             state.trajectories = decision.evidence.trajectory + 1;
             state.last_timestamp_s = Some(

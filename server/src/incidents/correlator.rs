@@ -18,12 +18,14 @@ use std::time::Duration;
 
 use spoofwatch_core::geo::LatLon;
 use spoofwatch_core::incident::{
-    AlarmEnd, AlarmOnset, AreaConfig, AreaCorrelator, AreaState, ChangeKind, IncidentChange,
+    AlarmEnd, AlarmOnset, AreaConfig, AreaCorrelator, AreaState, ChangeKind, Incident,
+    IncidentChange,
 };
 use tokio::sync::Notify;
 use tokio::time::MissedTickBehavior;
 use tokio_util::sync::CancellationToken;
 
+use super::areas::IncidentAreas;
 use crate::config::IncidentTimeline as Timeline;
 use crate::store::{
     AlarmEventKind, CorrelationStep, CorrelatorPlace, IncidentEventKind, IncidentWrite,
@@ -43,6 +45,8 @@ const PAGE: u32 = 1_000;
 pub struct IncidentSettings {
     pub area: AreaConfig,
     pub timeline: Timeline,
+    /// Whether samples inside an open incident's area are scored with the area prior.
+    pub prior: bool,
 }
 
 /// The correlator loop of one server process.
@@ -57,6 +61,9 @@ pub struct IncidentCorrelator {
     latest: Option<(f64, i64)>,
     /// Told after a step stored incident events (the live feed reads them at once).
     stored: Arc<Notify>,
+    /// The open incidents' areas this server's sessions score with (refreshed every tick, held or
+    /// not).
+    areas: Arc<IncidentAreas>,
     /// [`LEASE`] (shorter in tests).
     lease: Duration,
 }
@@ -73,6 +80,7 @@ impl IncidentCorrelator {
         settings: IncidentSettings,
         instance: &str,
         stored: Arc<Notify>,
+        areas: Arc<IncidentAreas>,
     ) -> Self {
         static STARTED: AtomicU64 = AtomicU64::new(0);
         let owner = format!(
@@ -86,6 +94,7 @@ impl IncidentCorrelator {
             owner,
             latest: None,
             stored,
+            areas,
             lease: LEASE,
         }
     }
@@ -102,7 +111,12 @@ impl IncidentCorrelator {
                 _ = stop.cancelled() => break,
                 _ = tick.tick() => {}
             }
-            match self.step().await {
+            // Every server reads the open incidents' areas, whether it holds the lease or not.
+            let result = match self.step().await {
+                Ok(()) => self.refresh_areas().await,
+                Err(error) => Err(error),
+            };
+            match result {
                 Ok(()) if failing => {
                     failing = false;
                     tracing::info!("incident correlation recovered");
@@ -120,6 +134,24 @@ impl IncidentCorrelator {
         {
             tracing::warn!(%error, "could not give the incident correlator's lease up");
         }
+    }
+
+    /// Reads the open incidents into the areas the sessions score with.
+    async fn refresh_areas(&self) -> Result<(), StoreError> {
+        let open = self.store.open_incidents().await?;
+        let incidents = open
+            .into_iter()
+            .map(|row| {
+                serde_json::from_value::<Incident>(row.body).map_err(|error| {
+                    StoreError::InvalidValue {
+                        field: "incidents.body_json",
+                        reason: error.to_string(),
+                    }
+                })
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        self.areas.replace(&incidents);
+        Ok(())
     }
 
     /// One step: claim (or renew) the lease; if held, correlate the alarm events stored since the
@@ -361,9 +393,15 @@ mod tests {
         let settings = IncidentSettings {
             area: AreaConfig::default(),
             timeline: Timeline::Wall,
+            prior: true,
         };
-        let mut correlator =
-            IncidentCorrelator::new(store.clone(), settings, instance, Arc::new(Notify::new()));
+        let mut correlator = IncidentCorrelator::new(
+            store.clone(),
+            settings,
+            instance,
+            Arc::new(Notify::new()),
+            Arc::new(IncidentAreas::new(true)),
+        );
         correlator.lease = Duration::from_millis(200);
         correlator
     }
@@ -407,6 +445,12 @@ mod tests {
         );
         first.step().await.expect("step");
         assert_eq!(incidents(&store).await, [(1, translation, 3)]);
+        // Every server reads the open incident's area (centre 2 km east, radius 3 km), holder or
+        // not: its sessions score with the area prior there.
+        second.refresh_areas().await.expect("areas");
+        assert!(second.areas.contains(32.2, -110.9), "inside the area");
+        let (lat, lon) = displace_fix(32.2, -110.9, 6_000.0, 0.0);
+        assert!(!second.areas.contains(lat, lon), "4 km from its centre");
 
         drop(first);
         tokio::time::sleep(Duration::from_millis(250)).await;

@@ -1,10 +1,12 @@
 //! Area incidents on the server: the [`correlator`] loop (one server of a database at a time, by
 //! lease) turns the fleet's stored alarms into incidents with the core's correlator and stores
 //! them; [`service`] serves ListIncidents, GetIncident and WatchIncidents from the store and the
-//! incident event log.
+//! incident event log; [`areas`] holds the open incidents' areas that the sessions score with (the
+//! area prior).
 //!
 //! Alarms reach it only through the store (every replica's alarm event log), never from the
 //! detection path.
 
+pub mod areas;
 pub mod correlator;
 pub mod service;

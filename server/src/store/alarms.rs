@@ -454,8 +454,16 @@ impl Store {
 
     /// The latest event log position (0 when the log is empty).
     pub async fn latest_alarm_position(&self) -> Result<i64, StoreError> {
+        self.latest_log_position("alarm_event_log").await
+    }
+
+    /// The latest position of the event log table `log` (0 when it is empty); shared by the alarm
+    /// and incident logs, whose positions are both a column `position`.
+    pub(super) async fn latest_log_position(&self, log: &'static str) -> Result<i64, StoreError> {
+        // `log` is one of this module's static table names, never input.
+        let sql = format!("SELECT COALESCE(MAX(position), 0) FROM {log}");
         Ok(on_pool!(self, |pool| {
-            sqlx::query_scalar::<_, i64>("SELECT COALESCE(MAX(position), 0) FROM alarm_event_log")
+            sqlx::query_scalar::<_, i64>(sqlx::AssertSqlSafe(sql.as_str()))
                 .fetch_one(pool)
                 .await?
         }))

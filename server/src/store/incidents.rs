@@ -296,12 +296,6 @@ impl Store {
 
     /// The latest incident event log position (0 when the log is empty).
     pub async fn latest_incident_position(&self) -> Result<i64, StoreError> {
-        Ok(on_pool!(self, |pool| {
-            sqlx::query_scalar::<_, i64>(
-                "SELECT COALESCE(MAX(position), 0) FROM incident_event_log",
-            )
-            .fetch_one(pool)
-            .await?
-        }))
+        self.latest_log_position("incident_event_log").await
     }
 }

@@ -7,7 +7,7 @@
 use std::io::Write;
 use std::time::Duration;
 
-use crate::alarm_watch::{AlarmWatch, WatchOptions};
+use crate::alarm_watch::{AlarmWatch, ResumableWatch, WatchCall, WatchOptions};
 use crate::error::{describe_status, reply};
 use anyhow::{Context, Result};
 use serde_json::{Value, json};
@@ -185,17 +185,36 @@ async fn run_watch(server: &ServerArgs, args: WatchArgs) -> Result<()> {
         after_cursor: args.after,
         reconnect_for: Duration::from_secs_f64(args.reconnect_for),
     };
-    let mut watch =
-        AlarmWatch::new(connection, options).with_reconnect_notice(Box::new(|status, cursor| {
-            eprintln!(
-                "watch ended ({}); reconnecting{}",
-                describe_status(status),
-                resume_hint(cursor)
-            );
-        }));
+    let watch = AlarmWatch::new(connection, options);
+    let caught_up = |event: &v1::AlarmEvent| event.kind == v1::AlarmEventKind::CaughtUp as i32;
+    print_watch(
+        watch,
+        (args.count, args.until_caught_up),
+        caught_up,
+        event_json,
+    )
+    .await
+}
+
+/// Prints a resumable watch's events as JSON lines, reconnecting (each reconnect noted on standard
+/// error) until `count` events other than CAUGHT_UP, the CAUGHT_UP line with `until_caught_up`, or
+/// Ctrl-C. Used by `alarms watch` and `incidents watch`.
+pub(super) async fn print_watch<C: WatchCall>(
+    watch: ResumableWatch<C>,
+    (count, until_caught_up): (Option<u64>, bool),
+    is_caught_up: impl Fn(&C::Event) -> bool,
+    to_json: impl Fn(&C::Event) -> Value,
+) -> Result<()> {
+    let mut watch = watch.with_reconnect_notice(Box::new(|status, cursor| {
+        eprintln!(
+            "watch ended ({}); reconnecting{}",
+            describe_status(status),
+            resume_hint(cursor)
+        );
+    }));
     let mut events = 0;
     let mut out = std::io::stdout().lock();
-    while args.count.is_none_or(|count| events < count) {
+    while count.is_none_or(|count| events < count) {
         let next = tokio::select! {
             next = watch.next() => next,
             _ = tokio::signal::ctrl_c() => {
@@ -205,13 +224,13 @@ async fn run_watch(server: &ServerArgs, args: WatchArgs) -> Result<()> {
         };
         let event =
             next.with_context(|| format!("the watch ended{}", resume_hint(watch.cursor())))?;
-        let caught_up = event.kind == v1::AlarmEventKind::CaughtUp as i32;
+        let caught_up = is_caught_up(&event);
         if !caught_up {
             events += 1;
         }
-        writeln!(out, "{}", event_json(&event))?;
+        writeln!(out, "{}", to_json(&event))?;
         out.flush()?;
-        if caught_up && args.until_caught_up {
+        if caught_up && until_caught_up {
             break;
         }
     }

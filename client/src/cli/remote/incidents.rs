@@ -8,15 +8,15 @@
 use std::io::Write;
 use std::time::Duration;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use serde_json::{Value, json};
 use spoofwatch_proto::v1;
 
-use super::alarms::{parse_seconds, resume_hint};
+use super::alarms::{parse_seconds, print_watch};
 use super::{ResourceArgs, opt, print_table, time};
 use crate::alarm_watch::{IncidentWatch, WatchOptions};
 use crate::cli::server_flags::ServerArgs;
-use crate::error::{describe_status, reply};
+use crate::error::reply;
 
 /// `spoofwatch incidents <command>` with the server flags.
 pub type Args = ResourceArgs<Command>;
@@ -172,38 +172,16 @@ async fn run_watch(server: &ServerArgs, args: WatchArgs) -> Result<()> {
         reconnect_for: Duration::from_secs_f64(args.reconnect_for),
         ..WatchOptions::default()
     };
-    let mut watch = IncidentWatch::incidents(connection, &options).with_reconnect_notice(Box::new(
-        |status, cursor| {
-            eprintln!(
-                "watch ended ({}); reconnecting{}",
-                describe_status(status),
-                resume_hint(cursor)
-            );
-        },
-    ));
-    let mut events = 0;
-    let mut out = std::io::stdout().lock();
-    while args.count.is_none_or(|count| events < count) {
-        let next = tokio::select! {
-            next = watch.next() => next,
-            _ = tokio::signal::ctrl_c() => {
-                eprintln!("stopped{}", resume_hint(watch.cursor()));
-                return Ok(());
-            }
-        };
-        let event =
-            next.with_context(|| format!("the watch ended{}", resume_hint(watch.cursor())))?;
-        let caught_up = event.kind == v1::IncidentEventKind::CaughtUp as i32;
-        if !caught_up {
-            events += 1;
-        }
-        writeln!(out, "{}", event_json(&event))?;
-        out.flush()?;
-        if caught_up && args.until_caught_up {
-            break;
-        }
-    }
-    Ok(())
+    let watch = IncidentWatch::incidents(connection, &options);
+    let caught_up =
+        |event: &v1::IncidentEvent| event.kind == v1::IncidentEventKind::CaughtUp as i32;
+    print_watch(
+        watch,
+        (args.count, args.until_caught_up),
+        caught_up,
+        event_json,
+    )
+    .await
 }
 
 fn kind_name(kind: i32) -> &'static str {
