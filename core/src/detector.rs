@@ -17,7 +17,7 @@ use crate::explain::{Explanation, FROZEN_FIX_S};
 use crate::lifecycle::{AlarmLifecycle, LifecycleInput, OffsetSignal};
 use crate::model::artifact::ModelArtifact;
 use crate::model::{LiquidState, StepScratch};
-use crate::receiver::FlagCorroboration;
+use crate::receiver::{FlagCorroboration, FlagSignal};
 use crate::sample::{Record, Sample};
 
 /// The detector's verdict on one sample.
@@ -81,7 +81,8 @@ impl Detector {
 
     /// [`Detector::step`] with the fleet's prior: `in_incident_area` says the sample lies inside an
     /// open area incident (§11). The incident then counts as the receiver's spoofing flag does
-    /// (§7.3): evidence beside the vehicle's own, never a verdict.
+    /// (§7.3), and p̂ ≥ θ opens the alarm after [`AREA_ON_S`](crate::lifecycle::AREA_ON_S) instead
+    /// of T_on: evidence beside the vehicle's own, never a verdict.
     pub fn step_with_prior(
         &mut self,
         sample: &Sample,
@@ -103,13 +104,16 @@ impl Detector {
         let alarm = match &self.artifact.lifecycle {
             Some(lifecycle) => {
                 let offset = offset_signal(&evidence);
-                let flag = self.flags.update(
-                    sample.timestamp_s,
-                    evidence.valid,
-                    evidence.trajectory_start,
-                    sample.spoofing_state.flagged() || in_incident_area,
-                    offset.displaced,
-                );
+                let flag = FlagSignal {
+                    in_incident_area: in_incident_area && evidence.valid,
+                    ..self.flags.update(
+                        sample.timestamp_s,
+                        evidence.valid,
+                        evidence.trajectory_start,
+                        sample.spoofing_state.flagged() || in_incident_area,
+                        offset.displaced,
+                    )
+                };
                 self.lifecycle.update(
                     lifecycle,
                     &LifecycleInput {

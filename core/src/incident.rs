@@ -27,6 +27,10 @@ pub const MIN_OFFSET_M: f64 = 30.0;
 /// read up to about 0.3 m/s, in every direction. (A rate measured at an alarm soon after capture
 /// reads a fraction of the spoofer's, its 30 s scale still filling, so agreement is by direction.)
 pub const MIN_DRIFT_MPS: f64 = 0.4;
+/// A vehicle joins an open drift incident it lies in with a rate of at least this (m/s) pointing
+/// the incident's way: alarmed a few seconds into the drift (as the area prior allows), it reads a
+/// fraction of the spoofer's. It takes no part in the estimate.
+pub const MIN_JOIN_DRIFT_MPS: f64 = 0.15;
 /// Fixes that agree on one false position lie within this of each other (m): receiver noise.
 pub const POSITION_TOLERANCE_M: f64 = 50.0;
 /// Offsets agree on one translation within the larger of this (m) ...
@@ -301,6 +305,17 @@ impl Hypothesis {
         }
     }
 
+    /// As [`Self::vector`], for joining an open incident: a drift needs only
+    /// [`MIN_JOIN_DRIFT_MPS`].
+    fn joining_vector(self, onset: &AlarmOnset, reference: LatLon) -> Option<[f64; 2]> {
+        match self {
+            Hypothesis::Drift if norm(onset.drift_mps) >= MIN_JOIN_DRIFT_MPS => {
+                Some(onset.drift_mps)
+            }
+            _ => self.vector(onset, reference),
+        }
+    }
+
     /// How far apart `a` and `b` are as a share of what still agrees: at most 1 agrees. Positions
     /// and translations by distance, drifts by direction.
     fn misfit(self, a: [f64; 2], b: [f64; 2]) -> f64 {
@@ -450,7 +465,7 @@ impl AreaCorrelator {
                 let hypothesis = Hypothesis::of(&incident.spoofing);
                 near(incident)
                     && hypothesis
-                        .vector(onset, incident.centre)
+                        .joining_vector(onset, incident.centre)
                         .is_some_and(|v| hypothesis.misfit(estimate_vector(incident), v) <= 1.0)
             })
         };

@@ -8,7 +8,7 @@
 //! vehicle's noise levels are the population's, while the anchors were placed on the fix itself
 //! and are at their sharpest. It stays open while
 //! p̂ ≥ θ or the fix stays displaced from the anchors, and clears only after `off_s` seconds with
-//! neither. Every duration is measured on the samples' own timestamps, so a 1 Hz and a 10 Hz
+//! neither. Inside an open area incident p̂ needs only [`AREA_ON_S`]. Every duration is measured on the samples' own timestamps, so a 1 Hz and a 10 Hz
 //! stream of the same drive open and clear at the same times, and one false-alarm budget holds for
 //! both. (The paper's persistence N_p counts rows: 4 rows are 4 s at 1 Hz and 0.4 s at 10 Hz.)
 //!
@@ -25,6 +25,10 @@ pub const MAX_LIFECYCLE_S: f64 = 3600.0;
 /// Timestamps of a 10 Hz stream are not exact multiples of 0.1 s in binary; durations compare with
 /// this slack (s).
 const TIME_SLACK_S: f64 = 1e-6;
+/// Inside an open area incident (§11) p̂ ≥ θ opens the alarm after this many seconds, or after T_on
+/// if that is shorter: the incident says the area is spoofed, and its vehicles' own evidence needs
+/// less persistence than a vehicle alone.
+pub const AREA_ON_S: f64 = 2.0;
 /// Seconds after a trajectory starts during which p̂ ≥ θ counts towards T_on only on a sample whose
 /// fix is displaced from the anchors (models with offset evidence only).
 pub const SETTLE_S: f64 = 30.0;
@@ -138,9 +142,14 @@ impl AlarmLifecycle {
             .offset
             .held_s
             .is_some_and(|held| held + TIME_SLACK_S >= lifecycle.decisive_s);
+        let on_s = if input.flag.in_incident_area {
+            lifecycle.on_s.min(AREA_ON_S)
+        } else {
+            lifecycle.on_s
+        };
         let sustained = self
             .positive_since
-            .is_some_and(|since| time - since + TIME_SLACK_S >= lifecycle.on_s);
+            .is_some_and(|since| time - since + TIME_SLACK_S >= on_s);
         if !self.open {
             if decisive || sustained || input.flag.corroborated {
                 self.open = true;
@@ -375,6 +384,7 @@ mod tests {
             flag: FlagSignal {
                 counts: true,
                 corroborated,
+                in_incident_area: false,
             },
         };
         assert!(!alarm.update(&LIFECYCLE, &input(0.0, false, false)));
@@ -413,6 +423,7 @@ mod tests {
                         flag: FlagSignal {
                             counts: t >= flag_from_s,
                             corroborated: false,
+                            in_incident_area: false,
                         },
                     },
                 )
@@ -420,6 +431,38 @@ mod tests {
         };
         assert_eq!(onset(f64::INFINITY), Some(33.0));
         assert_eq!(onset(5.0), Some(8.0));
+    }
+
+    #[test]
+    fn inside_an_incident_area_p_needs_only_the_area_persistence() {
+        // Settled, p̂ ≥ θ from 100 s: T_on (3 s) outside an incident area, AREA_ON_S (2 s) inside
+        // one, and never longer than T_on.
+        let onset = |lifecycle: &Lifecycle, in_incident_area: bool| {
+            let mut alarm = AlarmLifecycle::default();
+            (0..400).map(|t| f64::from(t) * 0.5).find(|&t| {
+                alarm.update(
+                    lifecycle,
+                    &LifecycleInput {
+                        time_s: t,
+                        valid: true,
+                        trajectory_start: t == 0.0,
+                        positive: t >= 100.0,
+                        offset: OffsetSignal::default(),
+                        flag: FlagSignal {
+                            in_incident_area,
+                            ..FlagSignal::default()
+                        },
+                    },
+                )
+            })
+        };
+        assert_eq!(onset(&LIFECYCLE, false), Some(103.0));
+        assert_eq!(onset(&LIFECYCLE, true), Some(102.0));
+        let quick = Lifecycle {
+            on_s: 1.0,
+            ..LIFECYCLE
+        };
+        assert_eq!(onset(&quick, true), Some(101.0));
     }
 
     #[test]

@@ -36,6 +36,9 @@ pub struct FlagSignal {
     /// The flag counts and the fix has been displaced beyond the follow gate for
     /// [`CORROBORATION_S`]: the alarm opens at once.
     pub corroborated: bool,
+    /// The sample lies inside an open area incident (§11): besides counting as flagged, p̂ ≥ θ
+    /// needs only [`AREA_ON_S`](crate::lifecycle::AREA_ON_S) to open the alarm.
+    pub in_incident_area: bool,
 }
 
 /// One vehicle's memory of its receiver's spoofing flag.
@@ -82,6 +85,7 @@ impl FlagCorroboration {
         FlagSignal {
             counts,
             corroborated,
+            in_incident_area: false,
         }
     }
 }

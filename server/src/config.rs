@@ -220,8 +220,9 @@ pub struct Config {
     #[arg(long, env = "SPOOFWATCH_INCIDENT_TIMELINE", value_enum, default_value_t = defaults::INCIDENT_TIMELINE)]
     pub incident_timeline: IncidentTimeline,
     /// Whether a sample inside an open incident's area is scored with the area prior: the incident
-    /// counts as the receiver's spoofing flag does (a displaced fix held for 1 s alarms at once).
-    /// `false` scores every vehicle on its own evidence alone.
+    /// counts as the receiver's spoofing flag does (a displaced fix held for 1 s alarms at once), and
+    /// p̂ ≥ θ alarms after 2 s instead of the model's T_on. `false` scores every vehicle on its own
+    /// evidence alone.
     #[arg(long, env = "SPOOFWATCH_INCIDENT_PRIOR", default_value_t = defaults::INCIDENT_PRIOR,
           action = clap::ArgAction::Set)]
     pub incident_prior: bool,

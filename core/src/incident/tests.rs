@@ -325,6 +325,18 @@ fn drifts_agree_by_direction_whatever_their_measured_speed() {
         c.onset(drifting("d", 90.0, at(500.0, 500.0), [0.8, 0.6]))
             .is_empty()
     );
+    // Alarmed seconds into the drift, a vehicle reads 0.2 m/s: it joins the open incident it lies
+    // in, without moving the estimate; 0.1 m/s says nothing, and 0.2 m/s could not open one.
+    let estimate = changes[0].incident.spoofing;
+    assert!(
+        c.onset(drifting("e", 100.0, at(300.0, 300.0), [-0.05, 0.09]))
+            .is_empty()
+    );
+    let joined = c.onset(drifting("f", 110.0, at(300.0, 300.0), [-0.12, 0.16]));
+    assert_eq!(joined.len(), 1);
+    assert_eq!(joined[0].kind, ChangeKind::Joined);
+    assert_eq!(joined[0].incident.vehicles.len(), 4);
+    assert_eq!(joined[0].incident.spoofing, estimate);
 }
 
 #[test]
