@@ -66,8 +66,10 @@ wait_serving() { # host:port
 start_server() { # name port database [flags...]
   local name=$1 listen=$2 database=$3
   shift 3
+  # Without the area prior: with it a vehicle's detections depend on which incidents were open when,
+  # which differs between the reference and the faulted runs; what is compared is the sessions.
   "$bin/spoofwatch-server" --listen "127.0.0.1:$listen" --database "$database" \
-    --snapshot-every-samples 20 --shutdown-grace-secs 5 "$@" >>"$work/$name.log" 2>&1 &
+    --snapshot-every-samples 20 --shutdown-grace-secs 5 --incident-prior false "$@" >>"$work/$name.log" 2>&1 &
   pid[$name]=$!
   wait_serving "127.0.0.1:$listen"
 }
