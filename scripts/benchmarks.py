@@ -3,6 +3,7 @@
 
     scripts/benchmarks.py list                     # every row, its command and whether it was measured
     scripts/benchmarks.py run [--only ID,..] [--group G,..] [--runs 3] [--bin target/release]
+    scripts/benchmarks.py compare --only ID,.. --before DIR --before-label COMMIT [--runs 3]
     scripts/benchmarks.py render                   # docs/benchmarks.md from docs/benchmarks/results.json
     scripts/benchmarks.py check                    # fails when the page is not the JSON's rendering
 
@@ -10,7 +11,9 @@
 database: the server pinned to core 0 (`taskset -c 0`), the load generator to core 1. Before every run
 it notes the load average (as `uptime` shows it). It stores each run's values, their median and range,
 the machine, the git commit and the date in docs/benchmarks/results.json, row by row as they finish,
-and renders the page. Rows it did not run keep their earlier result, with that result's own date and
+and renders the page. `compare` runs rows against two server builds, alternating run by run (before,
+after, before, ...) so that both see the same machine, with one load generator (`--bin`'s), and
+keeps the pairs in docs/benchmarks/compare.json. Rows it did not run keep their earlier result, with that result's own date and
 commit; a row never measured is listed as such. Numbers are never typed in by hand.
 
 Needs release binaries (`cargo build --release -p spoofwatch-server -p spoofwatch-client
@@ -37,6 +40,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "docs" / "benchmarks" / "results.json"
+COMPARISON = ROOT / "docs" / "benchmarks" / "compare.json"
 PAGE = ROOT / "docs" / "benchmarks.md"
 PORT, SECOND_PORT, METRICS_PORT, PG_PORT = 50093, 50094, 9493, 55493
 SCHEMA = 1
@@ -127,10 +131,14 @@ ROWS = [
     bench_row("fleet-10000", "fleet", "fleet, 10,000 vehicles, one sample per message", FLEET_10K,
               goal="p99 ≤ 10 ms, 100 % delivered"),
     bench_row("fleet-20000", "fleet", "fleet, 20,000 vehicles, one sample per message",
-              ["--streams", "20000", "--batch", "1", "--rate", "20000", "--seconds", "30"],
+              ["--streams", "20000", "--batch", "1", "--rate", "20000", "--seconds", "30", "--warmup", "2"],
               goal="p99 ≤ 10 ms, 100 % delivered", heavy=True),
+    bench_row("fleet-20000-500-per-connection", "fleet",
+              "fleet, 20,000 vehicles, one sample per message, 500 streams per connection",
+              ["--streams", "20000", "--batch", "1", "--rate", "20000", "--seconds", "30", "--warmup", "2",
+               "--streams-per-connection", "500"], heavy=True),
     bench_row("fleet-50000", "fleet", "fleet, 50,000 vehicles, one sample per message",
-              ["--streams", "50000", "--batch", "1", "--rate", "50000", "--seconds", "30"],
+              ["--streams", "50000", "--batch", "1", "--rate", "50000", "--seconds", "30", "--warmup", "2"],
               server=["--max-sessions", "300000"], heavy=True),
     bench_row("gateway-100000", "fleet", "gateway, 100,000 vehicles, 100 per message",
               ["--streams", "100000", "--batch", "1", "--rate", "100000", "--vehicles-per-message",
@@ -284,6 +292,8 @@ class Env:
 
     def __init__(self, bin_dir: Path):
         self.bin = bin_dir
+        # The server's build when it is not --bin's (`compare`).
+        self.server_bin: Path | None = None
         self.work = Path(tempfile.mkdtemp(prefix="spoofwatch-bench."))
         os.chmod(self.work, 0o755)
         self.pg_url: str | None = None
@@ -328,7 +338,8 @@ class Env:
 
     def server(self, port: int, database: str, flags: list[str], core: int) -> subprocess.Popen:
         log = open(self.work / f"server-{port}.log", "w")
-        proc = subprocess.Popen(["taskset", "-c", str(core), self.tool("spoofwatch-server"),
+        server = str(self.server_bin / "spoofwatch-server") if self.server_bin else self.tool("spoofwatch-server")
+        proc = subprocess.Popen(["taskset", "-c", str(core), server,
                                  "--listen", f"127.0.0.1:{port}", "--database", database, *flags],
                                 stdout=log, stderr=subprocess.STDOUT)
         wait_for_port(port, proc)
@@ -701,10 +712,15 @@ def render(results: dict) -> str:
                         + f", {m['machine']['cpu']}")
                 out.append(f"| {name} | {result_text(m)} | {r['goal'] or '—'} | {load_text(m)} | {when} |")
         out.append("")
+    comparison = load_comparison()
+    if comparison:
+        out += comparison_section(comparison)
     machines = []
-    for r in rows.values():
-        if r["measured"] and r["measured"]["machine"] not in machines:
-            machines.append(r["measured"]["machine"])
+    measured = [r["measured"] for r in rows.values() if r["measured"]]
+    measured += [pair[side] for pair in comparison.get("rows", {}).values() for side in ("before", "after")]
+    for m in measured:
+        if m["machine"] not in machines:
+            machines.append(m["machine"])
     if machines:
         out += ["## Machines", ""]
         for m in machines:
@@ -712,6 +728,58 @@ def render(results: dict) -> str:
                        f"Linux {m['kernel']}, {m['rustc']}")
         out.append("")
     return "\n".join(out)
+
+
+def load_comparison() -> dict:
+    return json.loads(COMPARISON.read_text()) if COMPARISON.exists() else {}
+
+
+def comparison_section(comparison: dict) -> list[str]:
+    """The before-and-after table: each row's runs alternated between the two server builds."""
+    out = ["## Before and after", "",
+           f"One server build against another on the same machine, run by run alternately "
+           f"(`scripts/benchmarks.py compare`): *before* is `{comparison['before']}`, *after* is "
+           f"`{comparison['after']}`, with one load generator (the *after* build's). The ratio is "
+           "the after median over the before median.", "",
+           "| row | before | after | CPU per sample, after / before | load | measured |",
+           "|---|---|---|---|---|---|"]
+    for rid, pair in comparison["rows"].items():
+        before, after = pair["before"], pair["after"]
+        cpu = [m["summary"].get("cpu_us_per_sample", {}).get("median") for m in (before, after)]
+        ratio = f"{cpu[1] / cpu[0]:.2f}" if all(cpu) else "—"
+        loads = [r["load_before"][0] for m in (before, after) for r in m["runs"]]
+        out.append(f"| {pair['title']}<br>`{pair['command']}` | {result_text(before)} | "
+                   f"{result_text(after)} | {ratio} | {min(loads):.2f}–{max(loads):.2f} | "
+                   f"{after['date'][:10]}, {after['machine']['cpu']} |")
+    out.append("")
+    return out
+
+
+def compare(rows: list[dict], env: Env, before: Path, label: str, runs: int) -> None:
+    after = env.bin
+    after_label = provenance()["commit"] + (" (modified)" if provenance()["source_modified"] else "")
+    comparison = load_comparison()
+    if (comparison.get("before"), comparison.get("after")) != (label, after_label):
+        comparison = dict(generated_by="scripts/benchmarks.py compare", before=label, after=after_label,
+                          rows={})
+    for row in rows:
+        sides: dict[str, list] = {"before": [], "after": []}
+        for i in range(runs):
+            for side, build in (("before", before), ("after", after)):
+                env.server_bin = build
+                load = loadavg()
+                print(f"{row['id']} {side} run {i + 1}/{runs}, load {load[0]:.2f}", file=sys.stderr, flush=True)
+                sides[side].append(dict(load_before=load, values=RUNNERS[row["kind"]](env, row)))
+        pair = dict(title=row["title"], command=display_command(row))
+        for side, side_runs in sides.items():
+            pair[side] = dict(provenance(), machine=machine(), runs=side_runs, summary=summarise(side_runs))
+            print(f"{row['id']} {side}: {result_text(pair[side])}", file=sys.stderr, flush=True)
+        comparison["rows"][row["id"]] = pair
+        COMPARISON.write_text(json.dumps(comparison, indent=1, ensure_ascii=False) + "\n")
+        # The after build is this checkout's: its runs are the row's current result too.
+        results = catalogue(load_results())
+        results["rows"][row["id"]]["measured"] = pair["after"]
+        save(results)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -726,6 +794,12 @@ def main() -> None:
     run.add_argument("--heavy", action="store_true", help="include the long rows of the groups")
     run.add_argument("--runs", type=int, default=3)
     run.add_argument("--bin", type=Path, default=ROOT / "target/release")
+    cmp = sub.add_parser("compare")
+    cmp.add_argument("--only", required=True, help="row ids, comma-separated")
+    cmp.add_argument("--before", type=Path, required=True, help="directory of the earlier server build")
+    cmp.add_argument("--before-label", required=True, help="what the earlier build is (its commit)")
+    cmp.add_argument("--runs", type=int, default=3)
+    cmp.add_argument("--bin", type=Path, default=ROOT / "target/release")
     sub.add_parser("render")
     sub.add_parser("check")
     args = parser.parse_args()
@@ -751,7 +825,7 @@ def main() -> None:
         return
 
     only = {x for x in args.only.split(",") if x}
-    groups = {x for x in args.group.split(",") if x}
+    groups = {x for x in getattr(args, "group", "").split(",") if x}
     unknown = only - {r["id"] for r in ROWS}
     if unknown:
         sys.exit(f"unknown rows: {', '.join(sorted(unknown))} (see `list`)")
@@ -759,6 +833,13 @@ def main() -> None:
                 or (r["group"] in groups and (args.heavy or not r.get("heavy")))]
     if not selected:
         sys.exit("no row selected: --only ID,.. or --group G,.. (see `list`)")
+    if args.command == "compare":
+        env = Env(args.bin.resolve())
+        try:
+            compare(selected, env, args.before.resolve(), args.before_label, args.runs)
+        finally:
+            env.close()
+        return
     results = catalogue(load_results())
     env = Env(args.bin.resolve())
     try:

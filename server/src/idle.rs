@@ -12,8 +12,11 @@
 //! DEADLINE_EXCEEDED rather than CANCELLED: a time limit expired, and nobody cancelled anything.
 //! The stream's end is like any other: a detection session detaches and stays resumable.
 
+use std::pin::Pin;
 use std::time::Duration;
 
+use tokio::sync::mpsc::{Sender, error::TrySendError};
+use tokio::time::{Instant, Sleep};
 use tonic::{Status, Streaming};
 
 /// The longest a client stream may stay silent.
@@ -30,9 +33,24 @@ impl StreamIdle {
         }
     }
 
+    /// A clock for one long-lived stream, whose messages come far more often than the limit.
+    pub fn clock(&self) -> IdleClock {
+        IdleClock {
+            idle: *self,
+            last_message: Instant::now(),
+            timer: Box::pin(tokio::time::sleep(self.0)),
+        }
+    }
+
     /// Hands `reply` to the call's reply buffer; `false` when the client went away or did not
-    /// read for the whole limit (the stream must end).
-    pub async fn send<T>(&self, tx: &tokio::sync::mpsc::Sender<T>, reply: T) -> bool {
+    /// read for the whole limit (the stream must end). A buffer with room takes it at once,
+    /// without arming a timer.
+    pub async fn send<T>(&self, tx: &Sender<T>, reply: T) -> bool {
+        let reply = match tx.try_send(reply) {
+            Ok(()) => return true,
+            Err(TrySendError::Closed(_)) => return false,
+            Err(TrySendError::Full(reply)) => reply,
+        };
         match tokio::time::timeout(self.0, tx.send(reply)).await {
             Ok(sent) => sent.is_ok(),
             Err(_) => {
@@ -51,6 +69,38 @@ impl StreamIdle {
             "no message for {} s (--stream-idle-secs); resume with a new stream",
             self.0.as_secs()
         ))
+    }
+}
+
+/// The idle limit of one stream that receives many messages: a single timer, re-armed only when
+/// it fires (to the last message's time plus the limit), so a message costs a clock read and no
+/// timer of its own.
+#[derive(Debug)]
+pub struct IdleClock {
+    idle: StreamIdle,
+    last_message: Instant,
+    timer: Pin<Box<Sleep>>,
+}
+
+impl IdleClock {
+    /// As [`StreamIdle::next`]. Cancel-safe.
+    pub async fn next<T>(&mut self, stream: &mut Streaming<T>) -> Result<Option<T>, Status> {
+        loop {
+            tokio::select! {
+                biased;
+                message = stream.message() => {
+                    self.last_message = Instant::now();
+                    return message;
+                }
+                () = self.timer.as_mut() => {
+                    let due = self.last_message + self.idle.0;
+                    if Instant::now() >= due {
+                        return Err(self.idle.status());
+                    }
+                    self.timer.as_mut().reset(due);
+                }
+            }
+        }
     }
 }
 

@@ -8,6 +8,7 @@
 //! channel, which pauses only its own task. Each batch, scored or refused, is counted here for the
 //! metrics (`crate::telemetry`), once per batch.
 
+use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -33,7 +34,7 @@ use crate::edge::{
     check_routed_vehicle, model_name, optional_model_name, optional_vehicle_id, routed_vehicle_ids,
     vehicle_id,
 };
-use crate::idle::StreamIdle;
+use crate::idle::{IdleClock, StreamIdle};
 use crate::status::{invalid_field, shutting_down, to_rpc_status};
 use crate::telemetry::{self, Rpc};
 
@@ -197,26 +198,35 @@ async fn start_stream(
     })
 }
 
+/// Why an attached stream must end before its client closes it: the server drains, a newer
+/// stream took the session over, or the session's model was deleted. Made once per stream and
+/// polled beside every read.
+async fn forced_end(shutdown: &CancellationToken, attachment: &Attachment) -> Status {
+    tokio::select! {
+        biased;
+        _ = shutdown.cancelled() => shutting_down(),
+        _ = attachment.evicted.cancelled() => Status::aborted(
+            "another stream for this vehicle took the session over",
+        ),
+        _ = attachment.slot.model_deleted.cancelled() => {
+            SessionError::ModelDeleted(attachment.accepted.model.clone()).into()
+        }
+    }
+}
+
 /// The next message of an attached stream. `Ok(None)`: the client closed its side (the call ends
-/// with OK). `Err`: the call ends with that status (the server drains, a newer stream took the
-/// session over, the session's model was deleted, or the inbound stream failed).
+/// with OK). `Err`: the call ends with that status ([`forced_end`] first, or the inbound stream
+/// failed).
 async fn next_request(
-    shutdown: &CancellationToken,
-    attachment: &Attachment,
-    idle: &StreamIdle,
+    forced: Pin<&mut impl Future<Output = Status>>,
+    clock: &mut IdleClock,
     inbound: &mut Streaming<v1::StreamDetectRequest>,
 ) -> Result<Option<v1::StreamDetectRequest>, Status> {
     tokio::select! {
         biased;
-        _ = shutdown.cancelled() => Err(shutting_down()),
-        _ = attachment.evicted.cancelled() => Err(Status::aborted(
-            "another stream for this vehicle took the session over",
-        )),
-        _ = attachment.slot.model_deleted.cancelled() => {
-            Err(SessionError::ModelDeleted(attachment.accepted.model.clone()).into())
-        }
+        status = forced => Err(status),
         // e.g. an oversized message or the idle timeout: the call's status.
-        message = idle.next(inbound) => message.inspect_err(|status| {
+        message = clock.next(inbound) => message.inspect_err(|status| {
             telemetry::stream_failed(Rpc::StreamDetect, status);
         }),
     }
@@ -292,12 +302,15 @@ async fn run_stream(
     // The call's final status (None: OK), sent only after the session's snapshot is stored, so a
     // client that reconnects elsewhere at once finds it.
     let mut end = None;
+    let forced = forced_end(&shutdown, &attachment);
+    tokio::pin!(forced);
+    let mut clock = idle.clock();
     if idle
         .send(&tx, reply(ResponseKind::Accepted(accepted)))
         .await
     {
         loop {
-            let kind = match next_request(&shutdown, &attachment, &idle, &mut inbound).await {
+            let kind = match next_request(forced.as_mut(), &mut clock, &mut inbound).await {
                 Ok(Some(message)) => message.kind,
                 Ok(None) => break,
                 Err(status) => {

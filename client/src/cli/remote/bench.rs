@@ -5,7 +5,7 @@
 //! sends its next message as soon as the previous one's reply is back (one outstanding message per
 //! stream), or at a given rate, for a fixed time; reports samples/s, the per-message round trip
 //! (p50/p99/p99.9/max), the share of the messages due within the phase that were answered (late
-//! answers count: the percentiles show lateness), and the server's CPU time per sample and resident
+//! answers count: the percentiles show lateness), and the server's CPU time per sample (while the phase sends: not opening and closing its streams) and resident
 //! memory when its process id is known.
 //! Memory phase: opens many short sessions (start + one batch, then the stream closes; the session
 //! stays in memory until idle eviction) and reports the server's resident memory before and after.
@@ -60,6 +60,10 @@ pub struct Args {
     /// Length of each throughput phase in seconds (up to 600).
     #[arg(long, default_value_t = 5.0, value_parser = parse_seconds)]
     pub seconds: f64,
+    /// Seconds each phase's streams send before the measured phase begins (0 to 60): their first
+    /// messages after every stream opened at once are neither timed nor counted.
+    #[arg(long, default_value_t = 0.0, value_parser = parse_warmup)]
+    pub warmup: f64,
     /// Offered load in samples/s over all streams, spread evenly (0: as fast as replies come back,
     /// i.e. saturation). Latency at a given load needs a rate; saturation measures capacity.
     #[arg(long, default_value_t = 0.0)]
@@ -114,6 +118,18 @@ pub fn parse_prefix(text: &str) -> Result<String, String> {
         Err(format!(
             "must be 1–64 letters, digits, '-', '_', '.' or ':', got {text:?}"
         ))
+    }
+}
+
+/// A warm-up: finite, 0 to 60 s.
+fn parse_warmup(text: &str) -> Result<f64, String> {
+    let seconds: f64 = text
+        .parse()
+        .map_err(|_| format!("not a number of seconds: {text:?}"))?;
+    if seconds.is_finite() && (0.0..=60.0).contains(&seconds) {
+        Ok(seconds)
+    } else {
+        Err(format!("must be 0 to 60 seconds, got {text}"))
     }
 }
 
@@ -271,6 +287,7 @@ pub async fn load(args: &Args, url: &str, options: ConnectOptions, pid: Option<u
             per_connection: args.streams_per_connection as usize,
             batch: args.batch,
             seconds: args.seconds,
+            warmup: args.warmup,
             pace,
             prefix: &args.vehicle_prefix,
             server_pid: pid,
@@ -363,6 +380,7 @@ struct PhaseShape<'a> {
     per_connection: usize,
     batch: usize,
     seconds: f64,
+    warmup: f64,
     /// Each stream sends one batch per pace (`None`: saturation).
     pace: Option<Duration>,
     prefix: &'a str,
@@ -380,14 +398,18 @@ async fn throughput_phase(
     let pool = connections(url, options, count, shape.per_connection).await?;
     // Everyone (and this task) starts measuring once all streams are open.
     let barrier = Arc::new(Barrier::new(count + 1));
+    let sent_all = Arc::new(Barrier::new(count));
     let length = Duration::from_secs_f64(shape.seconds);
+    let warmup = Duration::from_secs_f64(shape.warmup);
     let tasks: Vec<_> = (0..count)
         .map(|i| {
             let load = StreamLoad {
                 connection: pool[i % pool.len()].clone(),
                 batch: shape.batch,
                 length,
+                warmup,
                 barrier: Arc::clone(&barrier),
+                sent_all: Arc::clone(&sent_all),
                 // Paced streams start spread over one period so their messages do not arrive in
                 // lockstep.
                 schedule: shape
@@ -412,8 +434,18 @@ async fn throughput_phase(
         })
         .collect();
     barrier.wait().await;
-    let cpu_before = shape.server_pid.map(cpu_seconds).transpose()?;
-    let started = Instant::now();
+    let started = Instant::now() + warmup;
+    // The server's CPU time over the measured phase: from the warm-up's end to the end of sending,
+    // before the streams close (closing stores every session's snapshot, which is not the cost of
+    // a message).
+    let cpu_window = shape.server_pid.map(|pid| {
+        tokio::spawn(async move {
+            tokio::time::sleep(warmup).await;
+            let before = cpu_seconds(pid)?;
+            tokio::time::sleep(length).await;
+            Ok::<_, anyhow::Error>((before, cpu_seconds(pid)?))
+        })
+    });
     let mut all = Vec::new();
     let mut samples = 0u64;
     let mut scheduled = 0u64;
@@ -434,11 +466,14 @@ async fn throughput_phase(
         }
     }
     let elapsed = started.elapsed().as_secs_f64();
-    let cpu_after = shape.server_pid.map(cpu_seconds).transpose()?;
+    let cpu = match cpu_window {
+        Some(reading) => Some(reading.await.context("reading the server's CPU time")??),
+        None => None,
+    };
     let server_rss_kb = shape.server_pid.map(resident_kb).transpose()?;
     all.sort_unstable();
-    let server_cpu_us_per_sample = match (cpu_before, cpu_after) {
-        (Some(before), Some(after)) if samples > 0 => Some((after - before) * 1e6 / samples as f64),
+    let server_cpu_us_per_sample = match cpu {
+        Some((before, after)) if samples > 0 => Some((after - before) * 1e6 / samples as f64),
         _ => None,
     };
     Ok(PhaseResult {
@@ -471,7 +506,13 @@ struct StreamLoad {
     /// Samples per vehicle per message.
     batch: usize,
     length: Duration,
+    /// Sent before the measured `length`, untimed and uncounted.
+    warmup: Duration,
     barrier: Arc<Barrier>,
+    /// Passed by every stream once it has sent its last message: streams close only after that,
+    /// so that closing (each closed session's snapshot is stored) does not weigh on the last
+    /// messages of the others.
+    sent_all: Arc<Barrier>,
     /// (pace, offset of the first send), or `None` at saturation.
     schedule: Option<(Duration, Duration)>,
 }
@@ -572,54 +613,76 @@ async fn drive<S: LoadStream>(
     opened: impl Future<Output = Result<S, ClientError>>,
 ) -> StreamResult {
     let opened = opened.await;
-    // Every task passes the barrier exactly once, even when its stream failed to open.
+    // Every task passes both barriers exactly once, even when its stream failed.
     load.barrier.wait().await;
     let mut result = StreamResult::default();
-    let mut stream = match opened {
-        Ok(stream) => stream,
+    let stream = match opened {
+        Ok(stream) => Some(stream),
         Err(error) => {
             result.error = Some(error.to_string());
-            return result;
+            None
         }
     };
+    let stream = match stream {
+        Some(stream) => send_all(load, stream, &mut result).await,
+        None => None,
+    };
+    load.sent_all.wait().await;
+    if let Some(stream) = stream
+        && let Err(error) = stream.finish().await
+    {
+        result.error = Some(error.to_string());
+    }
+    result
+}
+
+/// Sends a stream's messages of the phase; the stream, unless it failed.
+async fn send_all<S: LoadStream>(
+    load: &StreamLoad,
+    mut stream: S,
+    result: &mut StreamResult,
+) -> Option<S> {
+    let measured_from = Instant::now() + load.warmup;
     result.scheduled = load.schedule.map_or(0, |(pace, offset)| {
-        scheduled_batches(load.length, pace, offset)
+        scheduled_batches(load.warmup + load.length, pace, offset)
+            - scheduled_batches(load.warmup, pace, offset)
     });
-    let deadline = Instant::now() + load.length;
+    let deadline = measured_from + load.length;
     let mut next_send = load
         .schedule
         .map(|(_, offset)| tokio::time::Instant::now() + offset);
     let mut seq = 0;
     loop {
-        match (next_send.as_mut(), load.schedule) {
+        // Whether this message is measured: by its slot when paced, else by when it is sent.
+        let measured = match (next_send.as_mut(), load.schedule) {
             (Some(at), Some((pace, _))) => {
                 // Every slot due before the deadline is sent, even when the wake-up comes later.
-                if at.into_std() >= deadline {
+                let slot = at.into_std();
+                if slot >= deadline {
                     break;
                 }
                 tokio::time::sleep_until(*at).await;
                 *at += pace;
+                slot >= measured_from
             }
             _ if Instant::now() >= deadline => break,
-            _ => {}
-        }
+            _ => Instant::now() >= measured_from,
+        };
         seq += 1;
         let sent = Instant::now();
         match stream.send(seq).await {
-            Ok(samples) => {
+            Ok(samples) if measured => {
                 result.latencies.push(sent.elapsed());
                 result.samples += samples;
             }
+            Ok(_) => {}
             Err(error) => {
                 result.error = Some(error.to_string());
-                return result;
+                return None;
             }
         }
     }
-    if let Err(error) = stream.finish().await {
-        result.error = Some(error.to_string());
-    }
-    result
+    Some(stream)
 }
 
 /// One short session: start, one batch, close.
