@@ -63,7 +63,7 @@ def main() -> None:
         bench = subprocess.Popen(
             ["taskset", "-c", "1", str(args.bin / "spoofwatch"), "bench", "--server", f"http://127.0.0.1:{PORT}",
              "--server-pid", str(server.pid), "--sessions", "0", "--streams", str(args.vehicles), "--batch", "1",
-             "--rate", str(args.vehicles), "--seconds", str(args.seconds)],
+             "--rate", str(args.vehicles), "--seconds", str(args.seconds), "--warmup", "2"],
             stdout=subprocess.PIPE, text=True)
         # Opening the streams takes a while; the profile starts once they send.
         time.sleep(10 + args.seconds / 2 - 5)

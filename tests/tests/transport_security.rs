@@ -5,6 +5,7 @@
 //! DEADLINE_EXCEEDED and the session resumes on a new one).
 
 use std::path::Path;
+use std::time::Duration;
 
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::model_service_client::ModelServiceClient;
@@ -214,6 +215,38 @@ async fn gzip_requests_are_accepted_and_answered() {
         .into_inner();
     assert_eq!(detected.detections.len(), samples.len());
     drop((clients, connection));
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_idle_limit_counts_from_the_last_message_not_the_start() {
+    let (_dir, server, clients) = start_server(|config| config.stream_idle_secs = 1).await;
+    let (mut stream, _) = start_stream(&clients, "truck-7", "").await;
+    let samples =
+        spoofwatch_tests::track_samples(&spoofwatch_tests::normal_drive("truck-7", 20.0, 4));
+    // Three times the limit in all, each gap shorter than it: the stream stays open.
+    for (seq, sample) in (1..=6).zip(&samples) {
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        stream
+            .detect(seq, vec![*sample])
+            .await
+            .expect("a stream that keeps talking stays open");
+    }
+    let started = tokio::time::Instant::now();
+    let status = loop {
+        match stream.next().await {
+            Ok(Some(_)) => continue,
+            Ok(None) => panic!("the silent stream ended with OK"),
+            Err(error) => break error.status().expect("a gRPC status").clone(),
+        }
+    };
+    assert_eq!(status.code(), Code::DeadlineExceeded, "{status:?}");
+    assert!(
+        started.elapsed() < Duration::from_secs(5),
+        "the stream ended {:?} after its last message",
+        started.elapsed()
+    );
+    drop(clients);
     server.stop().await;
 }
 
