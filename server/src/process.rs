@@ -49,13 +49,32 @@ fn init_logging(format: LogFormat) {
     }
 }
 
+/// Connections the kernel queues before the server accepts them. A balancer opens its connections to
+/// a replica all at once when thousands of vehicles start (or reconnect) together, while the
+/// replica is busy attaching their sessions; a connect dropped from a full queue is retried only
+/// after a second, beyond a balancer's connect timeout. The kernel caps it at
+/// `net.core.somaxconn`.
+const LISTEN_BACKLOG: u32 = 4096;
+
+/// The detection listener, with [`LISTEN_BACKLOG`].
+fn listen(addr: std::net::SocketAddr) -> std::io::Result<tokio::net::TcpListener> {
+    let socket = if addr.is_ipv4() {
+        tokio::net::TcpSocket::new_v4()?
+    } else {
+        tokio::net::TcpSocket::new_v6()?
+    };
+    socket.set_reuseaddr(true)?;
+    socket.bind(addr)?;
+    socket.listen(LISTEN_BACKLOG)
+}
+
 /// The whole `spoofwatch-server` process: parses the flags, sets up logging, binds, logs the
 /// address (`spoofwatch-server listening addr=...`) and serves until SIGINT or SIGTERM.
 pub async fn run() -> std::process::ExitCode {
     // Parsed first so that the log format applies to every line (clap prints its own errors).
     let config = Config::parse();
     init_logging(config.log_format);
-    let listener = match tokio::net::TcpListener::bind(config.listen).await {
+    let listener = match listen(config.listen) {
         Ok(listener) => listener,
         Err(error) => {
             tracing::error!(%error, listen = %config.listen, "cannot listen");
