@@ -15,36 +15,8 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
 bin=$(cd "${1:-target/debug}" && pwd)
-for program in spoofwatch spoofwatch-server; do
-  [ -x "$bin/$program" ] || { echo "no $bin/$program: build it first (cargo build, or cargo test --workspace)" >&2; exit 1; }
-done
-data="${SPOOFWATCH_AVGPS_DIR:-$root/../shared/data/av-gps}"
-sudo=""; [ "$(id -u)" -eq 0 ] || sudo="sudo"
-
-for package in postgresql:pg_ctl haproxy:haproxy; do
-  if ! command -v "${package#*:}" >/dev/null && ! ls /usr/lib/postgresql/*/bin/"${package#*:}" /usr/sbin/"${package#*:}" >/dev/null 2>&1; then
-    $sudo apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${package%%:*}" >/dev/null
-  fi
-done
-haproxy=$(command -v haproxy || echo /usr/sbin/haproxy)
-
-work=$(mktemp -d /tmp/spoofwatch-fault.XXXXXX)
-chmod 755 "$work"
-declare -A pid=()
-cleanup() {
-  for p in "${pid[@]}"; do kill -9 "$p" 2>/dev/null || true; done
-  scripts/postgres-ephemeral.sh stop "$work/pg" >/dev/null 2>&1 || true
-  if [ "${KEEP_WORK:-0}" = 1 ]; then echo "work directory kept: $work"; else rm -rf "$work"; fi
-}
-trap cleanup EXIT
-fail() { echo "FAIL: $*" >&2; exit 1; }
-step() { echo "== $(date +%T) $*"; }
-
-# Ports: a block per run of the script, so that no leftover process of an earlier run answers.
-base=$((20000 + RANDOM % 20000))
-pg_port=$base; reference_port=$((base + 1)); lb_port=$((base + 2))
-declare -A port=([1]=$((base + 3)) [2]=$((base + 4)))
+source scripts/lib/fleet.sh
+fleet_setup spoofwatch-fault
 
 step "inputs: a real recording and simulated drives (half of them attacked)"
 [ -f "$data/AV-GPS-Dataset-3.csv" ] || fail "AV-GPS Dataset-3 not found under $data (set SPOOFWATCH_AVGPS_DIR)"
@@ -55,46 +27,11 @@ inputs=("$data/AV-GPS-Dataset-3.csv" "$work/normal.csv" "$work/attacked.csv")
 # Paced (10 samples/s per vehicle, batches of 5) so that a run lasts ~25 s and the faults land mid-stream.
 detect_flags=(--batch 5 --quiet --failover-secs 60)
 
-wait_serving() { # host:port
-  for _ in $(seq 1 300); do
-    "$bin/spoofwatch" health --server "$1" >/dev/null 2>&1 && return 0
-    sleep 0.1
-  done
-  fail "nothing serves on $1"
-}
-
-start_server() { # name port database [flags...]
-  local name=$1 listen=$2 database=$3
-  shift 3
-  # Without the area prior: with it a vehicle's detections depend on which incidents were open when,
-  # which differs between the reference and the faulted runs; what is compared is the sessions.
-  "$bin/spoofwatch-server" --listen "127.0.0.1:$listen" --database "$database" \
-    --snapshot-every-samples 20 --shutdown-grace-secs 5 --incident-prior false "$@" >>"$work/$name.log" 2>&1 &
-  pid[$name]=$!
-  wait_serving "127.0.0.1:$listen"
-}
-
-stop() { # name [signal]
-  kill "-${2:-TERM}" "${pid[$1]}" 2>/dev/null || true
-  wait "${pid[$1]}" 2>/dev/null || true
-  unset "pid[$1]"
-}
-
-stored_alarms() { # host:port → one line per alarm (vehicle onset end peak samples open), sorted
-  "$bin/spoofwatch" alarms list --server "$1" --json --limit 100000 | python3 -c '
-import json, sys
-rows = []
-for line in sys.stdin:
-    if line.strip():
-        a = json.loads(line)
-        rows.append((a["vehicle_id"], repr(a["onset_timestamp_s"]), repr(a.get("end_timestamp_s")),
-                     repr(a["peak_probability"]), str(a["samples"]), str(a.get("open", False))))
-for row in sorted(rows):
-    print(" ".join(row))'
-}
+# Snapshots every 20 samples, so that a failover resends little and resumes mid-drive.
+server_flags=(--snapshot-every-samples 20 --shutdown-grace-secs 5)
 
 step "reference: one uninterrupted server (SQLite)"
-start_server reference "$reference_port" "$work/reference.db"
+start_server reference "$reference_port" "$work/reference.db" "${server_flags[@]}"
 "$bin/spoofwatch" detect --server "127.0.0.1:$reference_port" --data "${inputs[@]}" --batch 5 --quiet \
   --out "$work/reference.csv" >"$work/reference-detect.log" 2>&1
 stored_alarms "127.0.0.1:$reference_port" >"$work/reference-alarms.txt"
@@ -105,20 +42,7 @@ alarms=$(wc -l <"$work/reference-alarms.txt")
 echo "reference: $rows detections, $alarms alarms"
 
 step "PostgreSQL"
-pg_url=$(scripts/postgres-ephemeral.sh start "$work/pg" "$pg_port")
-psql=$(command -v psql || ls -d /usr/lib/postgresql/*/bin/psql | sort -V | tail -1)
-new_database() { # name → URL of a new, empty database
-  "$psql" "$pg_url" -qc "CREATE DATABASE $1" >/dev/null
-  echo "${pg_url%/*}/$1"
-}
-
-start_balancer() {
-  SPOOFWATCH_LB_LISTEN="127.0.0.1:$lb_port" SPOOFWATCH_REPLICA_1="127.0.0.1:${port[1]}" \
-    SPOOFWATCH_REPLICA_2="127.0.0.1:${port[2]}" SPOOFWATCH_LB_ADMIN_SOCKET="$work/lb.sock" \
-    "$haproxy" -db -f deploy/haproxy/spoofwatch.cfg >>"$work/haproxy.log" 2>&1 &
-  pid[balancer]=$!
-  wait_serving "127.0.0.1:$lb_port"
-}
+start_postgres
 
 compare() { # run
   local run=$1
@@ -142,8 +66,8 @@ compare() { # run
 run_with() { # run fault
   local run=$1 fault=$2
   url=$(new_database "$run")
-  start_server replica-1 "${port[1]}" "$url" --instance-id replica-1
-  start_server replica-2 "${port[2]}" "$url" --instance-id replica-2
+  start_server replica-1 "${port[1]}" "$url" --instance-id replica-1 "${server_flags[@]}"
+  start_server replica-2 "${port[2]}" "$url" --instance-id replica-2 "${server_flags[@]}"
   start_balancer
   "$bin/spoofwatch" detect --server "127.0.0.1:$lb_port" --data "${inputs[@]}" "${detect_flags[@]}" \
     --rate 10 --out "$work/$run.csv" --summary "$work/$run-summary.json" >"$work/$run-detect.log" 2>&1 &
@@ -169,7 +93,7 @@ kill_one_replica() {
   stop replica-1 KILL
   sleep 5
   step "replica 1 back"
-  start_server replica-1 "${port[1]}" "$url" --instance-id replica-1
+  start_server replica-1 "${port[1]}" "$url" --instance-id replica-1 "${server_flags[@]}"
 }
 
 rolling_restart() {
@@ -177,7 +101,8 @@ rolling_restart() {
     sleep 5
     step "rolling restart: replica $replica"
     stop "replica-$replica" TERM
-    start_server "replica-$replica" "${port[$replica]}" "$url" --instance-id "replica-$replica"
+    start_server "replica-$replica" "${port[$replica]}" "$url" --instance-id "replica-$replica" \
+      "${server_flags[@]}"
   done
 }
 

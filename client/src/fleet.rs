@@ -118,6 +118,9 @@ pub struct VehicleTally {
     pub resumed_reconnects: u32,
     /// Streams reopened after a failure (a replica went away).
     pub failovers: u32,
+    /// Of the failovers, those the server answered with the session started afresh under another
+    /// model (a roll-out: `SessionAccepted.replaced_model`).
+    pub failovers_onto_another_model: u32,
     /// Steps of more than 5 s between consecutive samples.
     pub gaps: u64,
     pub false_alarms: OnsetCounts,
@@ -218,6 +221,8 @@ impl FleetTally {
                 let vehicle = self.vehicle(vehicle_id);
                 vehicle.streams += 1;
                 vehicle.failovers += 1;
+                vehicle.failovers_onto_another_model +=
+                    u32::from(!accepted.resumed && !accepted.replaced_model.is_empty());
                 vehicle.stream_resumed = accepted.resumed;
                 vehicle.resumed_reconnects += u32::from(accepted.resumed);
             }
@@ -249,6 +254,7 @@ impl FleetTally {
             summary.reconnects += u64::from(v.streams.saturating_sub(1));
             summary.resumed_reconnects += u64::from(v.resumed_reconnects);
             summary.failovers += u64::from(v.failovers);
+            summary.failovers_onto_another_model += u64::from(v.failovers_onto_another_model);
             summary.gaps += v.gaps;
             summary.false_alarms.add_all(&v.false_alarms);
             summary.session_start_onsets_on_resumed_streams += v
@@ -308,6 +314,9 @@ pub struct FleetSummary {
     pub resumed_reconnects: u64,
     /// Streams reopened after a failure (included in `reconnects`).
     pub failovers: u64,
+    /// Failovers onto a session started afresh under another model (a roll-out); the failovers
+    /// neither resumed nor rolled over started the vehicle afresh (its session was lost).
+    pub failovers_onto_another_model: u64,
     /// Steps of more than `gap_step_s` between a vehicle's consecutive samples.
     pub gaps: u64,
     /// Onsets on attack-free rows, by where they start.

@@ -27,6 +27,7 @@ pub mod report;
 pub mod retry;
 pub mod routing;
 pub mod synthetic;
+pub mod timeline;
 
 pub use alarm_watch::{AlarmWatch, IncidentWatch, ResumableWatch, WatchOptions};
 pub use connection::{AuthenticatedChannel, BearerAuth, ConnectOptions, Connection};

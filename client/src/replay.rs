@@ -21,6 +21,7 @@
 //! evaluation does, while every δ inside a trajectory stays as recorded.
 
 use std::collections::VecDeque;
+use std::sync::Arc;
 use std::time::Duration;
 
 use spoofwatch_core::evidence::MAX_BACKWARD_S;
@@ -119,6 +120,9 @@ pub struct ReplayOptions {
     /// After a stream fails because its server went away, keep reconnecting (with backoff) for
     /// up to this many seconds, then resend what the server has not seen; 0 = fail at once.
     pub failover_s: f64,
+    /// The replay's start, from which every vehicle's batches are due ([`batch_due_times`]);
+    /// `None`: when [`replay_tracks`] starts (or, for [`replay_track`] alone, the vehicle's replay).
+    pub started: Option<tokio::time::Instant>,
 }
 
 impl Default for ReplayOptions {
@@ -130,6 +134,7 @@ impl Default for ReplayOptions {
             reconnect_every_s: 0.0,
             reconnect_seed: 1,
             failover_s: DEFAULT_FAILOVER_S,
+            started: None,
         }
     }
 }
@@ -181,13 +186,17 @@ impl ReplayOptions {
 /// enough that a fleet's reconnects do not happen in step.
 const RECONNECT_JITTER: (f64, f64) = (0.5, 1.5);
 
-/// The random stream of one vehicle's reconnect times: from the seed and the vehicle id (FNV-1a),
-/// so a vehicle keeps its schedule whatever else is replayed with it.
-fn reconnect_rng(seed: u64, vehicle_id: &str) -> Rng {
-    let id_hash = vehicle_id.bytes().fold(0xcbf2_9ce4_8422_2325_u64, |h, b| {
+/// A vehicle id's FNV-1a hash: what makes a vehicle's reconnect times and send phase its own,
+/// whatever else is replayed with it.
+fn id_hash(vehicle_id: &str) -> u64 {
+    vehicle_id.bytes().fold(0xcbf2_9ce4_8422_2325_u64, |h, b| {
         (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
-    });
-    Rng::seed_from_u64(seed ^ id_hash)
+    })
+}
+
+/// The random stream of one vehicle's reconnect times: from the seed and the vehicle id.
+fn reconnect_rng(seed: u64, vehicle_id: &str) -> Rng {
+    Rng::seed_from_u64(seed ^ id_hash(vehicle_id))
 }
 
 /// Indices of the records at which a stream opens: always 0, then, when `every_s` > 0, the first
@@ -234,6 +243,13 @@ pub struct ReplayedDetection {
     pub stream: u32,
     /// The first detection received on its stream.
     pub first_on_stream: bool,
+    /// The model that made it (`models/{id}`, as its stream's `SessionAccepted.model`).
+    pub model: Arc<str>,
+    /// When its batch was due, from the replay's start (see [`batch_due_times`]).
+    pub due: Duration,
+    /// From when its batch was due to when this reply came: what the vehicle waited, resends after
+    /// a failover and a late start included.
+    pub latency: Duration,
     /// The server's verdict.
     pub detection: v1::Detection,
 }
@@ -366,14 +382,7 @@ pub async fn replay_track(
 ) -> Result<ReplaySummary, ClientError> {
     options.validate()?;
     let vehicle_id = server_vehicle_id(&track.vehicle_id);
-    let timestamps = replay_timestamps(&track.records);
-    let mut rng = reconnect_rng(options.reconnect_seed, &vehicle_id);
-    let starts = stream_starts(&timestamps, options.reconnect_every_s, &mut rng);
-    let plan: Vec<PlannedBatch> =
-        plan_streams(&track.records, &timestamps, options.batch_size, &starts)
-            .into_iter()
-            .flatten()
-            .collect();
+    let plan = plan_replay(track, &vehicle_id, options);
     let replay = VehicleReplay {
         track,
         results: vec![None; plan.len()],
@@ -383,11 +392,12 @@ pub async fn replay_track(
             samples_sent: track.records.len() as u64,
             ..ReplaySummary::default()
         },
+        pacer: Pacer::new(options, &vehicle_id),
         vehicle_id,
         options,
         events,
-        pacer: Pacer::new(options),
         streams_opened: 0,
+        model: Arc::from(""),
     };
     replay.run(connection).await
 }
@@ -404,6 +414,8 @@ struct VehicleReplay<'a> {
     summary: ReplaySummary,
     pacer: Pacer,
     streams_opened: u32,
+    /// The model of the current stream.
+    model: Arc<str>,
 }
 
 impl VehicleReplay<'_> {
@@ -473,6 +485,14 @@ impl VehicleReplay<'_> {
             .unwrap_or(self.plan.len())
     }
 
+    /// The first batch without an answer (replies come in order, so every batch before it has one).
+    fn first_unanswered(&self) -> usize {
+        self.results
+            .iter()
+            .position(Option::is_none)
+            .unwrap_or(self.plan.len())
+    }
+
     /// The record a replay resumed at batch `position` resends from.
     fn first_index_of(&self, position: usize) -> usize {
         self.plan
@@ -492,6 +512,7 @@ impl VehicleReplay<'_> {
         let model = &self.options.model;
         let (stream, accepted) =
             DetectStream::start(connection, &self.vehicle_id, model, reset).await?;
+        self.model = Arc::from(accepted.model.as_str());
         let stream_number = self.streams_opened;
         let event = match opening {
             Opening::First | Opening::Planned => {
@@ -521,12 +542,19 @@ impl VehicleReplay<'_> {
                     self.summary.resumed_reconnects += 1;
                     *position = last_seq;
                     stream
+                } else if !accepted.replaced_model.is_empty() {
+                    // The session was started afresh under another model (a roll-out): as a
+                    // vehicle does, go on with the batches not yet answered; what the previous
+                    // model said stands.
+                    *position = self.first_unanswered();
+                    stream
                 } else {
                     // A replica without the session: start the vehicle over, exactly as the first
                     // stream did (once sessions are handed over, this happens only when none was).
                     stream.finish().await?;
-                    let (fresh, _) =
+                    let (fresh, fresh_accepted) =
                         DetectStream::start(connection, &self.vehicle_id, model, true).await?;
+                    self.model = Arc::from(fresh_accepted.model.as_str());
                     *position = 0;
                     fresh
                 };
@@ -584,13 +612,17 @@ impl VehicleReplay<'_> {
                         ClientError::Protocol("a reply to a batch that was never sent".into())
                     })?;
                     let first_index = self.plan[position].first_index;
+                    let timing = (
+                        self.pacer.due_after_start(position),
+                        self.pacer.due(position).elapsed(),
+                    );
                     let mut result = BatchResult { detections: 0, alarm_onsets: 0, rejected: false };
                     match reply.outcome {
                         BatchOutcome::Detections(detections) => {
                             for (offset, detection) in detections.into_iter().enumerate() {
                                 result.detections += 1;
                                 result.alarm_onsets += u64::from(detection.alarm_onset);
-                                self.forward(first_index + offset, stream_number, first_on_stream, detection)
+                                self.forward(first_index + offset, stream_number, first_on_stream, timing, detection)
                                     .await;
                                 first_on_stream = false;
                             }
@@ -615,11 +647,10 @@ impl VehicleReplay<'_> {
                     }
                     self.results[position] = Some(result);
                 }
-                () = tokio::time::sleep_until(self.pacer.next_send_at()), if can_send => {
+                () = tokio::time::sleep_until(self.pacer.due(next)), if can_send => {
                     let planned = &self.plan[next];
                     stream.send_batch(planned.batch.seq, planned.batch.samples.clone()).await?;
                     awaiting.push_back(next);
-                    self.pacer.sent += 1;
                     next += 1;
                 }
             }
@@ -627,12 +658,14 @@ impl VehicleReplay<'_> {
         stream.finish().await
     }
 
-    /// Sends the detection of record `index` to the events.
+    /// Sends the detection of record `index` to the events; `(due, latency)` as in
+    /// [`ReplayedDetection`].
     async fn forward(
         &self,
         index: usize,
         stream: u32,
         first_on_stream: bool,
+        (due, latency): (Duration, Duration),
         detection: v1::Detection,
     ) {
         let record = &self.track.records[index];
@@ -646,32 +679,75 @@ impl VehicleReplay<'_> {
                 label: record.label,
                 stream,
                 first_on_stream,
+                model: Arc::clone(&self.model),
+                due,
+                latency,
                 detection,
             }))
             .await;
     }
 }
 
-/// When batch k of a vehicle may leave: at k × pace from the replay's start, or at once.
+/// A vehicle's whole plan: its batches, in order, over every stream it will open.
+fn plan_replay(track: &Track, vehicle_id: &str, options: &ReplayOptions) -> Vec<PlannedBatch> {
+    let timestamps = replay_timestamps(&track.records);
+    let mut rng = reconnect_rng(options.reconnect_seed, vehicle_id);
+    let starts = stream_starts(&timestamps, options.reconnect_every_s, &mut rng);
+    plan_streams(&track.records, &timestamps, options.batch_size, &starts)
+        .into_iter()
+        .flatten()
+        .collect()
+}
+
+/// When a vehicle's batches are due (see [`batch_due_times`]).
 struct Pacer {
-    pace: Option<Duration>,
+    /// The replay's start.
     started: tokio::time::Instant,
-    sent: u32,
+    /// The vehicle's send phase: its first batch's due time after the start.
+    phase: Duration,
+    pace: Option<Duration>,
 }
 
 impl Pacer {
-    fn new(options: &ReplayOptions) -> Self {
+    fn new(options: &ReplayOptions, vehicle_id: &str) -> Self {
+        let pace = pace_per_batch(options);
         Self {
-            pace: pace_per_batch(options),
-            started: tokio::time::Instant::now(),
-            sent: 0,
+            started: options.started.unwrap_or_else(tokio::time::Instant::now),
+            phase: pace.map_or(Duration::ZERO, |pace| send_phase(pace, vehicle_id)),
+            pace,
         }
     }
 
-    fn next_send_at(&self) -> tokio::time::Instant {
-        self.pace
-            .map_or(self.started, |pace| self.started + pace * self.sent)
+    /// When the batch at `position` in the plan is due, after the replay's start.
+    fn due_after_start(&self, position: usize) -> Duration {
+        self.phase + self.pace.map_or(Duration::ZERO, |p| p.mul_f64(position as f64))
     }
+
+    fn due(&self, position: usize) -> tokio::time::Instant {
+        self.started + self.due_after_start(position)
+    }
+}
+
+/// Where in each pace interval a vehicle sends: a fraction of `pace` from its id, so that a fleet's
+/// vehicles are spread over the interval (as real ones are) instead of all sending at once.
+fn send_phase(pace: Duration, vehicle_id: &str) -> Duration {
+    // The top 53 bits as a fraction in [0, 1).
+    let fraction = (id_hash(vehicle_id) >> 11) as f64 / (1_u64 << 53) as f64;
+    pace.mul_f64(fraction)
+}
+
+/// When each batch of `track` is due under `options`, from the replay's start, with its number of
+/// samples: paced, batch k at the vehicle's send phase (spread over one pace interval by vehicle
+/// id) + k × pace, where pace = batch size / rate; unpaced, all at the start. A batch resent after a
+/// failover keeps its due time (it leaves at once, late).
+pub fn batch_due_times(track: &Track, options: &ReplayOptions) -> Vec<(Duration, usize)> {
+    let vehicle_id = server_vehicle_id(&track.vehicle_id);
+    let pacer = Pacer::new(options, &vehicle_id);
+    plan_replay(track, &vehicle_id, options)
+        .iter()
+        .enumerate()
+        .map(|(position, planned)| (pacer.due_after_start(position), planned.batch.samples.len()))
+        .collect()
 }
 
 /// The batches of each stream: the records from one stream start to the next, in batches of at
@@ -728,6 +804,10 @@ pub async fn replay_tracks(
     options: &ReplayOptions,
     events: mpsc::Sender<ReplayEvent>,
 ) -> Vec<Result<ReplaySummary, ClientError>> {
+    let options = ReplayOptions {
+        started: Some(options.started.unwrap_or_else(tokio::time::Instant::now)),
+        ..options.clone()
+    };
     let handles: Vec<_> = tracks
         .into_iter()
         .map(|track| {
@@ -984,6 +1064,42 @@ mod tests {
             vec![Vec::new()],
             "an empty track is one stream without batches"
         );
+    }
+
+    fn drive(id: &str, samples: usize) -> Track {
+        Track {
+            vehicle_id: id.to_string(),
+            records: (0..samples).map(|i| record(i as f64, false)).collect(),
+        }
+    }
+
+    #[test]
+    fn paced_batches_are_due_one_interval_apart_from_a_phase_of_the_vehicle() {
+        let options = ReplayOptions {
+            rate_hz: 2.0,
+            batch_size: 2,
+            ..ReplayOptions::default()
+        };
+        // 5 samples in batches of 2 at 2 samples/s: one batch a second, the last one short.
+        let due = batch_due_times(&drive("car-1", 5), &options);
+        let phase = due[0].0;
+        assert!(phase < Duration::from_secs(1), "{phase:?}");
+        let expected: Vec<_> = [(0, 2), (1, 2), (2, 1)]
+            .map(|(k, n)| (phase + Duration::from_secs(k), n))
+            .into();
+        assert_eq!(due, expected);
+        // The phase is the vehicle's own: the same every time, another for another vehicle.
+        assert_eq!(batch_due_times(&drive("car-1", 1), &options)[0].0, phase);
+        let phases: std::collections::BTreeSet<Duration> = (0..20)
+            .map(|i| batch_due_times(&drive(&format!("car-{i}"), 1), &options)[0].0)
+            .collect();
+        assert_eq!(phases.len(), 20);
+    }
+
+    #[test]
+    fn unpaced_batches_are_all_due_at_the_start() {
+        let due = batch_due_times(&drive("car-1", 3), &ReplayOptions::default());
+        assert_eq!(due, vec![(Duration::ZERO, 1); 3]);
     }
 
     #[test]

@@ -31,6 +31,7 @@ use crate::store::FaultKind;
 use crate::telemetry::{
     self, ACTIVE_MODEL_INFO, ALARM_BACKLOG, ALARM_DROPPED_ONSETS, ALARM_FAILED_BATCHES,
     ALARM_INVALID, ALARM_STORED, JOBS, SESSIONS_CONNECTED, SESSIONS_OPEN, SNAPSHOT_BACKLOG,
+    SNAPSHOT_LAG,
     SNAPSHOT_STORED,
 };
 
@@ -90,6 +91,7 @@ impl Endpoint {
         counter!(ALARM_DROPPED_ONSETS).absolute(outbox.dropped_onsets);
         counter!(ALARM_INVALID).absolute(outbox.invalid);
         gauge!(SNAPSHOT_BACKLOG).set(outbox.snapshot_backlog as f64);
+        gauge!(SNAPSHOT_LAG).set(outbox.snapshot_lag.as_secs_f64());
         counter!(SNAPSHOT_STORED).absolute(outbox.snapshots_written);
         let (queued, running) = jobs.counts();
         gauge!(JOBS, "state" => "queued").set(queued as f64);

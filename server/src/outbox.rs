@@ -30,6 +30,8 @@ use std::time::Duration;
 
 use spoofwatch_proto::wire::convert::timestamp_from_ms;
 use tokio::sync::{Notify, oneshot};
+// Tokio's clock, so that tests can advance it.
+use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
 use crate::alarms::why::{self as alarm_why, OnsetWhy};
@@ -69,6 +71,9 @@ pub struct OutboxStats {
     pub snapshot_backlog: usize,
     /// Session snapshots stored so far.
     pub snapshots_written: u64,
+    /// How long the oldest waiting snapshot has waited (zero when none waits): a vehicle handed
+    /// over now continues from up to this much earlier, and resends the difference.
+    pub snapshot_lag: Duration,
 }
 
 /// What the queue's lock guards.
@@ -95,6 +100,9 @@ struct QueuedSnapshot {
     generation: u64,
     /// Told once this snapshot (or a newer one of the vehicle) is stored.
     waiters: Vec<oneshot::Sender<()>>,
+    /// When the vehicle's oldest unstored snapshot was queued (a newer one replacing it keeps
+    /// this): what the lag counts from.
+    waiting_since: Instant,
 }
 
 /// The queue between the sessions and the writer.
@@ -286,11 +294,13 @@ impl SessionOutbox {
         let emitted_through = pending.next_seq - 1;
         let generation = pending.next_generation;
         pending.next_generation += 1;
-        let mut waiters = pending
+        let (mut waiters, waiting_since) = pending
             .snapshots
             .remove(&row.vehicle_id)
-            .map(|older| older.waiters)
-            .unwrap_or_default();
+            .map_or_else(
+                || (Vec::new(), Instant::now()),
+                |older| (older.waiters, older.waiting_since),
+            );
         waiters.push(told);
         pending.snapshots.insert(
             row.vehicle_id.clone(),
@@ -299,6 +309,7 @@ impl SessionOutbox {
                 emitted_through,
                 generation,
                 waiters,
+                waiting_since,
             },
         );
         drop(pending);
@@ -326,9 +337,10 @@ impl SessionOutbox {
 
     /// The counters as they are now.
     pub fn stats(&self) -> OutboxStats {
-        let (backlog, snapshot_backlog) = {
+        let (backlog, snapshot_backlog, oldest_snapshot) = {
             let pending = self.pending();
-            (pending.queue.len(), pending.snapshots.len())
+            let oldest = pending.snapshots.values().map(|q| q.waiting_since).min();
+            (pending.queue.len(), pending.snapshots.len(), oldest)
         };
         OutboxStats {
             backlog,
@@ -339,6 +351,7 @@ impl SessionOutbox {
             failing: self.failing.load(Ordering::Relaxed),
             snapshot_backlog,
             snapshots_written: self.snapshots_written.load(Ordering::Relaxed),
+            snapshot_lag: oldest_snapshot.map_or(Duration::ZERO, |since| since.elapsed()),
         }
     }
 
@@ -654,6 +667,45 @@ mod tests {
         );
         let end = store.alarm_events_after(1, 2, None, 10).await.unwrap();
         assert_eq!(end[0].event.seq, first_seq_of_run(after.run_id()));
+    }
+
+    fn snapshot_of(vehicle_id: &str, samples: i64) -> SnapshotRow {
+        SnapshotRow {
+            vehicle_id: vehicle_id.into(),
+            model_id: "m".into(),
+            schema_version: 1,
+            samples,
+            last_seq: samples,
+            open_alarm_id: None,
+            writer: "1".into(),
+            updated_at_ms: 0,
+            snapshot: vec![1, 2, 3],
+        }
+    }
+
+    #[tokio::test]
+    async fn the_snapshot_lag_is_the_wait_of_the_oldest_unstored_snapshot() {
+        let (_dir, store) = temp_store().await;
+        let outbox = SessionOutbox::new(&store, 10).await.unwrap();
+        assert_eq!(outbox.stats().snapshot_lag, Duration::ZERO, "none waits");
+        tokio::time::pause();
+        let _first = outbox.save_snapshot(snapshot_of("car-1", 10));
+        tokio::time::advance(Duration::from_secs(3)).await;
+        // A newer snapshot of the same vehicle replaces the unstored one but not its wait.
+        let _newer = outbox.save_snapshot(snapshot_of("car-1", 20));
+        let _other = outbox.save_snapshot(snapshot_of("car-2", 5));
+        tokio::time::advance(Duration::from_secs(2)).await;
+        let stats = outbox.stats();
+        assert_eq!(stats.snapshot_backlog, 2);
+        assert_eq!(stats.snapshot_lag, Duration::from_secs(5));
+        tokio::time::resume();
+        let stop = CancellationToken::new();
+        stop.cancel();
+        outbox
+            .run(store.clone(), stop, Duration::from_secs(5))
+            .await;
+        let stats = outbox.stats();
+        assert_eq!((stats.snapshot_backlog, stats.snapshot_lag), (0, Duration::ZERO));
     }
 
     #[tokio::test]

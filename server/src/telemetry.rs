@@ -51,6 +51,7 @@ pub const INCIDENT_VEHICLES_JOINED: &str = "spoofwatch_incident_vehicles_joined_
 pub const INCIDENTS_ENDED: &str = "spoofwatch_incidents_ended_total";
 pub const INCIDENT_CORRELATOR: &str = "spoofwatch_incident_correlator_held";
 pub const SNAPSHOT_BACKLOG: &str = "spoofwatch_session_snapshots_backlog";
+pub const SNAPSHOT_LAG: &str = "spoofwatch_session_snapshots_lag_seconds";
 pub const SNAPSHOT_STORED: &str = "spoofwatch_session_snapshots_stored_total";
 pub const SESSIONS_OPEN: &str = "spoofwatch_sessions_open";
 pub const SESSIONS_CONNECTED: &str = "spoofwatch_sessions_connected";
@@ -192,6 +193,11 @@ pub const METRICS: &[(&str, Kind, &str)] = &[
         SNAPSHOT_BACKLOG,
         Kind::Gauge,
         "Session snapshots waiting to be stored (at most one per vehicle).",
+    ),
+    (
+        SNAPSHOT_LAG,
+        Kind::Gauge,
+        "How long the oldest session snapshot waiting to be stored has waited, in seconds (0 when none waits): a vehicle handed over now continues from up to this much earlier.",
     ),
     (
         SNAPSHOT_STORED,

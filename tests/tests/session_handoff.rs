@@ -3,14 +3,14 @@
 //! from the stored snapshot, `SessionAccepted` says so and reports `last_seq`, and once the client
 //! resends the batches after it, every detection and the alarm history equal an uninterrupted run's,
 //! bit for bit. A corrupt, foreign or other-model snapshot is refused with its reason; the session
-//! starts afresh and nothing else is lost.
+//! starts afresh and nothing else is lost, and the alarm an other-model snapshot held open ends.
 
 use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::v1;
 use spoofwatch_server::store::{AlarmEvent, SnapshotRow, Store};
 use spoofwatch_tests::{
-    Clients, TestServer, alarms_of, attacked_drive, fingerprint, normal_drive, start_stream,
-    test_config, track_samples,
+    Clients, TestServer, alarms_of, attacked_drive, export_model, fingerprint, import_model,
+    normal_drive, start_stream, test_config, track_samples,
 };
 
 const BATCH: usize = 10;
@@ -159,6 +159,54 @@ async fn corrupt_foreign_and_other_model_snapshots_start_afresh_with_their_reaso
         "the others are unaffected"
     );
     assert_eq!(intact.last_seq, last_seq);
+    drop(clients);
+    second.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_alarm_held_by_a_snapshot_of_the_replaced_model_ends_when_the_vehicle_starts_afresh() {
+    let vehicle = "rollout-1";
+    let batches = attacked_batches(vehicle);
+    let dir = tempfile::tempdir().expect("temp dir");
+    let first = TestServer::start(test_config(dir.path())).await;
+    let mut clients = Clients::of(&first).await;
+    let artifact = export_model(&mut clients.models, "models/default").await;
+    let candidate = import_model(&mut clients, artifact, "candidate").await.name;
+    // The stream stops inside the alarm; its snapshot holds the alarm open.
+    let (_, before) = stream_batches(&clients, vehicle, &batches[..20], 1).await;
+    let last_alarming = before
+        .iter()
+        .rev()
+        .find(|d| d.alarm)
+        .expect("the alarm is on at the cut")
+        .timestamp_s;
+    drop(clients);
+    first.stop().await;
+
+    // Another process, after a roll-out: the vehicle's snapshot is of the old model, so its
+    // session starts afresh under the new one, and the alarm the old session held ends.
+    let second = TestServer::start(test_config(dir.path())).await;
+    let mut clients = Clients::of(&second).await;
+    clients
+        .models
+        .set_active_model(v1::SetActiveModelRequest { name: candidate })
+        .await
+        .expect("the candidate activates");
+    let (_stream, accepted) = start_stream(&clients, vehicle, "").await;
+    assert!(!accepted.resumed, "{accepted:?}");
+    assert_eq!(accepted.replaced_model, "models/default");
+    let mut alarms = Vec::new();
+    for _ in 0..500 {
+        alarms = alarms_of(&mut clients, vehicle).await;
+        if alarms.iter().all(|alarm| !alarm.4) {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+    }
+    assert_eq!(alarms.len(), 1, "{alarms:?}");
+    let (_, end, _, _, open) = alarms[0];
+    assert!(!open, "the alarm ended: {alarms:?}");
+    assert_eq!(end, Some(last_alarming), "at the last alarming sample the session saw");
     drop(clients);
     second.stop().await;
 }

@@ -117,18 +117,27 @@ impl AlarmTrack {
 
     /// The open episode as the stored alarm row the outbox knows it by.
     pub fn open_row(&self, vehicle_id: &str, model_id: &str) -> Option<AlarmEventRow> {
-        self.open.as_ref().map(|open| AlarmEventRow {
-            peak_probability: open.peak,
-            samples: i64::from(open.samples),
+        self.open
+            .as_ref()
+            .map(|open| open.row(vehicle_id, model_id))
+    }
+}
+
+impl OpenAlarm {
+    /// The episode as the stored alarm row the outbox knows it by.
+    pub fn row(&self, vehicle_id: &str, model_id: &str) -> AlarmEventRow {
+        AlarmEventRow {
+            peak_probability: self.peak,
+            samples: i64::from(self.samples),
             ..AlarmEventRow::opened(
-                open.id,
+                self.id,
                 vehicle_id,
                 model_id,
-                open.onset_timestamp_s,
-                open.onset_at_ms,
-                open.peak,
+                self.onset_timestamp_s,
+                self.onset_at_ms,
+                self.peak,
             )
-        })
+        }
     }
 }
 

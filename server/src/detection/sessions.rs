@@ -441,6 +441,9 @@ impl SessionManager {
                 }
                 Err(refused) => {
                     tracing::warn!(vehicle = %vehicle_id, reason = %refused, "session snapshot not used: the session starts afresh");
+                    if matches!(refused, SnapshotRefused::Model { .. }) {
+                        self.end_alarm_of_replaced(vehicle_id, &row);
+                    }
                     start.afresh(Some(refused))
                 }
             },
@@ -731,6 +734,20 @@ impl SessionManager {
             episode.samples,
         );
         telemetry::alarm_end();
+    }
+
+    /// Ends the alarm a stored session of another model held open: that session is replaced by a
+    /// fresh one under the model now asked for (a roll-out), so no process will continue it. (A
+    /// session replaced in this process's memory ends its alarm in [`Self::replace_state`].)
+    fn end_alarm_of_replaced(&self, vehicle_id: &VehicleId, row: &SnapshotRow) {
+        let Some(open) = SessionSnapshot::decode(&row.snapshot)
+            .ok()
+            .and_then(|snapshot| snapshot.open_alarm)
+        else {
+            return;
+        };
+        self.outbox.adopt(open.row(vehicle_id.as_str(), &row.model_id));
+        self.record_end(open);
     }
 
     /// Ends the session's open episode, if any (when the session ends, resets or changes model

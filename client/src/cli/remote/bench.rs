@@ -25,6 +25,7 @@ use crate::detect_stream::DetectStream;
 use crate::error::ClientError;
 use crate::fleet_stream::FleetDetectStream;
 use crate::synthetic::LoopDriver;
+pub(crate) use crate::timeline::percentile;
 use anyhow::{Context, Result, bail};
 use spoofwatch_proto::v1;
 use spoofwatch_proto::wire::is_vehicle_id_char;
@@ -144,15 +145,6 @@ pub fn parse_seconds(text: &str) -> Result<f64, String> {
         ));
     }
     Ok(seconds)
-}
-
-/// The `q`-quantile (0–1) of sorted values by the nearest-rank method.
-pub fn percentile(sorted: &[Duration], q: f64) -> Option<Duration> {
-    if sorted.is_empty() {
-        return None;
-    }
-    let rank = (q * sorted.len() as f64).ceil() as usize;
-    Some(sorted[rank.clamp(1, sorted.len()) - 1])
 }
 
 /// VmRSS in kB from a `/proc/<pid>/status` text.
@@ -788,19 +780,6 @@ async fn memory_phase(url: &str, options: ConnectOptions, shape: MemoryShape<'_>
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn percentiles_use_the_nearest_rank() {
-        let values: Vec<Duration> = (1..=100).map(Duration::from_millis).collect();
-        assert_eq!(percentile(&values, 0.50), Some(Duration::from_millis(50)));
-        assert_eq!(percentile(&values, 0.99), Some(Duration::from_millis(99)));
-        assert_eq!(percentile(&values, 1.0), Some(Duration::from_millis(100)));
-        assert_eq!(
-            percentile(&values[..1], 0.99),
-            Some(Duration::from_millis(1))
-        );
-        assert_eq!(percentile(&[], 0.5), None);
-    }
 
     #[test]
     fn vm_rss_is_read_from_proc_status() {

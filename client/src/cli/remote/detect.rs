@@ -9,14 +9,17 @@
 
 use std::collections::HashMap;
 use std::path::PathBuf;
+use std::time::Duration;
 
 use crate::error::describe_rpc_status;
 use crate::failover::DEFAULT_FAILOVER_S;
 use crate::fleet::{FleetSummary, FleetTally, OnsetCounts, WorstVehicle};
 use crate::input::load_tracks;
 use crate::replay::{
-    ReplayEvent, ReplayOptions, ReplaySummary, ReplayedDetection, replay_tracks, server_vehicle_id,
+    ReplayEvent, ReplayOptions, ReplaySummary, ReplayedDetection, batch_due_times, replay_tracks,
+    server_vehicle_id,
 };
+use crate::timeline::{Timeline, TimelineRow};
 use crate::replay_log::ReplayLog;
 use anyhow::{Context, Result, bail};
 use spoofwatch_core::sample::Track;
@@ -44,9 +47,10 @@ pub struct Args {
     #[arg(long)]
     pub model: Option<String>,
     /// Write every detection as CSV (vehicle_id, line, timestamp_s, probability, positive, alarm,
-    /// alarm_onset, valid, why, offset_m, offset_bearing_deg, drift_mps, drift_bearing_deg);
-    /// timestamp_s is the recorded one, `why` the dominant evidence (empty from a server that does
-    /// not explain), bearings in degrees clockwise from north.
+    /// alarm_onset, valid, why, offset_m, offset_bearing_deg, drift_mps, drift_bearing_deg,
+    /// model); timestamp_s is the recorded one, `why` the dominant evidence (empty from a server
+    /// that does not explain), bearings in degrees clockwise from north, `model` the one that made
+    /// the detection (`models/{id}`).
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Print only alarm onsets and ends, and the per-vehicle and fleet summaries.
@@ -73,6 +77,22 @@ pub struct Args {
     /// start, detections, worst vehicles) as JSON.
     #[arg(long, value_name = "PATH")]
     pub summary: Option<PathBuf>,
+    /// With --rate: print, and write to this CSV, the delivery interval by interval (samples due,
+    /// delivered, on time, latency p50/p99/max from when each batch was due; see
+    /// --timeline-every).
+    #[arg(long, value_name = "PATH")]
+    pub timeline: Option<PathBuf>,
+    /// The timeline's interval in seconds.
+    #[arg(long, value_name = "SECONDS", default_value_t = 60.0, value_parser = parse_interval)]
+    pub timeline_every: f64,
+}
+
+/// A timeline interval in seconds: finite and > 0.
+pub fn parse_interval(text: &str) -> Result<f64, String> {
+    match parse_reconnect_every(text)? {
+        0.0 => Err("must be more than 0 seconds".to_string()),
+        seconds => Ok(seconds),
+    }
 }
 
 /// A reconnect interval in seconds: finite and ≥ 0.
@@ -116,7 +136,7 @@ pub fn parse_batch(text: &str) -> Result<usize, String> {
 }
 
 /// The CSV columns of `--out`.
-const CSV_HEADER: [&str; 13] = [
+const CSV_HEADER: [&str; 14] = [
     "vehicle_id",
     "line",
     "timestamp_s",
@@ -130,6 +150,7 @@ const CSV_HEADER: [&str; 13] = [
     "offset_bearing_deg",
     "drift_mps",
     "drift_bearing_deg",
+    "model",
 ];
 
 fn flag(b: bool) -> &'static str {
@@ -163,7 +184,7 @@ pub fn why_text(why: Option<&v1::Explanation>) -> Option<String> {
 }
 
 /// One detection as a CSV row.
-pub fn csv_row(d: &ReplayedDetection) -> [String; 13] {
+pub fn csv_row(d: &ReplayedDetection) -> [String; 14] {
     let det = &d.detection;
     let valid = det.evidence.as_ref().is_some_and(|e| e.valid);
     let why = det.why.as_ref();
@@ -184,6 +205,7 @@ pub fn csv_row(d: &ReplayedDetection) -> [String; 13] {
         number(|w| w.offset_bearing_deg),
         number(|w| w.drift_mps),
         number(|w| w.drift_bearing_deg),
+        d.model.to_string(),
     ]
 }
 
@@ -276,7 +298,7 @@ pub fn fleet_lines(s: &FleetSummary) -> Vec<String> {
         .map_or_else(|| "-".to_string(), |r| format!("{r:.2}"));
     let mut lines = vec![
         format!(
-            "fleet: {} vehicles, {} samples, {:.2} attack-free hours; {} streams ({} reconnects, {} resumed, {} failovers); {} GNSS gaps (> {} s)",
+            "fleet: {} vehicles, {} samples, {:.2} attack-free hours; {} streams ({} reconnects, {} resumed, {} failovers, {} of them onto another model); {} GNSS gaps (> {} s)",
             s.vehicles,
             s.samples,
             s.attack_free_hours,
@@ -284,6 +306,7 @@ pub fn fleet_lines(s: &FleetSummary) -> Vec<String> {
             s.reconnects,
             s.resumed_reconnects,
             s.failovers,
+            s.failovers_onto_another_model,
             s.gaps,
             s.gap_step_s
         ),
@@ -306,6 +329,57 @@ pub fn fleet_lines(s: &FleetSummary) -> Vec<String> {
         lines.extend(s.worst_vehicles.iter().map(worst_vehicle_line));
     }
     lines
+}
+
+/// The columns of `--timeline`.
+const TIMELINE_HEADER: [&str; 9] = [
+    "start_s",
+    "end_s",
+    "due",
+    "delivered",
+    "delivered_pct",
+    "on_time_pct",
+    "p50_ms",
+    "p99_ms",
+    "max_ms",
+];
+
+/// One timeline row for the console and the CSV (latencies empty when nothing was delivered).
+fn timeline_cells(row: &TimelineRow) -> [String; 9] {
+    let ms = |v: Option<f64>| v.map_or_else(String::new, |v| format!("{v:.2}"));
+    [
+        format!("{}", row.start_s),
+        format!("{}", row.end_s),
+        row.due.to_string(),
+        row.delivered.to_string(),
+        format!("{:.3}", row.delivered_pct()),
+        format!("{:.3}", row.on_time_pct()),
+        ms(row.p50_ms),
+        ms(row.p99_ms),
+        ms(row.max_ms),
+    ]
+}
+
+/// Prints the timeline and writes it as CSV.
+fn write_timeline(path: &std::path::Path, rows: &[TimelineRow]) -> Result<()> {
+    let mut writer =
+        csv::Writer::from_path(path).with_context(|| format!("creating {}", path.display()))?;
+    writer.write_record(TIMELINE_HEADER)?;
+    println!("timeline (latency from when each batch was due):");
+    println!(
+        "{:>8} {:>8} {:>9} {:>11} {:>10} {:>10} {:>10} {:>10}",
+        "from s", "to s", "due", "delivered %", "on time %", "p50 ms", "p99 ms", "max ms"
+    );
+    for row in rows {
+        let cells = timeline_cells(row);
+        println!(
+            "{:>8} {:>8} {:>9} {:>11} {:>10} {:>10} {:>10} {:>10}",
+            cells[0], cells[1], cells[2], cells[4], cells[5], cells[6], cells[7], cells[8]
+        );
+        writer.write_record(&cells)?;
+    }
+    writer.flush()?;
+    Ok(())
 }
 
 /// The vehicle ids the replay must rewrite for the server, as (recorded, sent) pairs; an error
@@ -348,6 +422,25 @@ pub async fn run(args: Args) -> Result<()> {
         reconnect_every_s: args.reconnect_every,
         reconnect_seed: args.seed,
         failover_s: args.failover_secs,
+        started: None,
+    };
+    let mut timeline = match &args.timeline {
+        Some(_) if args.rate == 0.0 => {
+            bail!("--timeline needs --rate above 0: an unpaced replay has no due times")
+        }
+        Some(_) => {
+            let every = Duration::from_secs_f64(args.timeline_every);
+            // On time: answered before the vehicle's next batch was due.
+            let pace = Duration::from_secs_f64(args.batch as f64 / args.rate);
+            let mut timeline = Timeline::new(every, pace);
+            for track in &tracks {
+                for (due, samples) in batch_due_times(track, &options) {
+                    timeline.add_due(due, samples);
+                }
+            }
+            Some(timeline)
+        }
+        None => None,
     };
     let mut csv = match &args.out {
         Some(path) => {
@@ -359,6 +452,8 @@ pub async fn run(args: Args) -> Result<()> {
         None => None,
     };
 
+    let samples: usize = tracks.iter().map(|track| track.records.len()).sum();
+    println!("replaying {} vehicles, {samples} samples", tracks.len());
     let (events_tx, mut events) = mpsc::channel(1024);
     let replay = {
         let connection = connection.clone();
@@ -427,8 +522,14 @@ pub async fn run(args: Args) -> Result<()> {
     for (_, events) in log.vehicles() {
         for event in events {
             fleet.record(event);
-            if let (Some(writer), ReplayEvent::Detection(detection)) = (csv.as_mut(), event) {
+            let ReplayEvent::Detection(detection) = event else {
+                continue;
+            };
+            if let Some(writer) = csv.as_mut() {
                 writer.write_record(csv_row(detection))?;
+            }
+            if let Some(timeline) = timeline.as_mut() {
+                timeline.add_delivered(detection.due, detection.latency);
             }
         }
     }
@@ -455,6 +556,10 @@ pub async fn run(args: Args) -> Result<()> {
     }
     if let Some(path) = &args.summary {
         write_json(path, &summary)?;
+        println!("wrote {}", path.display());
+    }
+    if let (Some(path), Some(timeline)) = (&args.timeline, timeline) {
+        write_timeline(path, &timeline.rows())?;
         println!("wrote {}", path.display());
     }
     if failures > 0 {
@@ -486,6 +591,7 @@ mod tests {
                 why,
                 ..v1::Detection::default()
             },
+            model: "models/m1".into(),
             ..ReplayedDetection::default()
         }
     }
@@ -514,7 +620,7 @@ mod tests {
         );
         let row = csv_row(&detection(Some(jump())));
         assert_eq!(row.len(), CSV_HEADER.len());
-        assert_eq!(&row[8..], ["jump", "500", "36.87", "0.25", "90"]);
+        assert_eq!(&row[8..], ["jump", "500", "36.87", "0.25", "90", "models/m1"]);
     }
 
     #[test]
@@ -526,7 +632,7 @@ mod tests {
         assert!(console_line(&detection(Some(none))).ends_with("ALARM onset"));
         assert!(console_line(&detection(None)).ends_with("ALARM onset"));
         assert_eq!(&csv_row(&detection(Some(none)))[8..10], ["none", "0"]);
-        assert_eq!(&csv_row(&detection(None))[8..], ["", "", "", "", ""]);
+        assert_eq!(&csv_row(&detection(None))[8..13], ["", "", "", "", ""]);
     }
 
     #[test]
