@@ -54,12 +54,14 @@ simulate() { # out count seed [attack flags...]
   inputs+=("$work/$out.csv")
 }
 inputs=()
+# Vehicle i of a group drives with seed + i: the groups' seeds are a million apart, so that no two
+# vehicles share a drive.
 simulate normal $((vehicles - 5 * group)) 1
-simulate jump $group 2 --attack jump --magnitude 50 --onset "$(at 10)" --attack-duration "$attack_s"
-simulate frozen $group 3 --attack frozen --onset "$(at 25)" --attack-duration "$attack_s"
-simulate ramp $group 4 --attack ramp --magnitude 1.5 --onset "$(at 45)" --attack-duration "$attack_s"
-simulate hop $group 5 --attack hop --magnitude 200 --onset "$(at 65)" --attack-duration "$attack_s"
-simulate far-jump $group 6 --attack jump --magnitude 300 --onset "$(at 85)" --attack-duration "$attack_s"
+simulate jump $group 1000001 --attack jump --magnitude 50 --onset "$(at 10)" --attack-duration "$attack_s"
+simulate frozen $group 2000001 --attack frozen --onset "$(at 25)" --attack-duration "$attack_s"
+simulate ramp $group 3000001 --attack ramp --magnitude 1.5 --onset "$(at 45)" --attack-duration "$attack_s"
+simulate hop $group 4000001 --attack hop --magnitude 200 --onset "$(at 65)" --attack-duration "$attack_s"
+simulate far-jump $group 5000001 --attack jump --magnitude 300 --onset "$(at 85)" --attack-duration "$attack_s"
 
 # Replicas as shipped, but a snapshot every tenth of the run (every 60 s, the default, in 10 minutes), so
 # that a short run hands sessions over from a snapshot as the full one does.

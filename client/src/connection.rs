@@ -151,6 +151,22 @@ impl Connection {
         Self::connect_with(&url.into(), &ConnectOptions::with_token(token)).await
     }
 
+    /// Enough connections to `address` for `streams` concurrent streams with at most
+    /// `per_connection` on each (at least one connection).
+    pub async fn pool(
+        address: &str,
+        options: &ConnectOptions,
+        streams: usize,
+        per_connection: usize,
+    ) -> Result<Vec<Connection>, ClientError> {
+        let count = streams.div_ceil(per_connection.max(1)).max(1);
+        let mut pool = Vec::with_capacity(count);
+        for _ in 0..count {
+            pool.push(Self::connect_with(address, options).await?);
+        }
+        Ok(pool)
+    }
+
     /// Connects to `address` (a URL, or `host:port`: see [`server_url`]) with `options` within
     /// [`CONNECT_TIMEOUT`] (TCP, then again for the TLS handshake). `https://` uses TLS, trusting
     /// `options.ca_cert` or else the built-in web PKI roots.

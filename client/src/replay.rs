@@ -13,7 +13,14 @@
 //! numbers are positions in the recording, so the session's `SessionAccepted.last_seq` says exactly
 //! what to resend; a session that was not resumed (a replica that never had it) is started over
 //! with `reset: true` and the whole recording resent, which yields the same detections as the
-//! first time. Resent detections replace the earlier ones ([`crate::replay_log`]).
+//! first time. A session the server started afresh under another model (a roll-out:
+//! `SessionAccepted.replaced_model`) goes on with the batches not yet answered, as a vehicle would.
+//! Resent detections replace the earlier ones ([`crate::replay_log`]).
+//!
+//! Pacing: a paced vehicle's batches are due one pace interval apart from its send phase, a
+//! fraction of the interval drawn from its id ([`batch_due_times`]); each detection carries its
+//! batch's due time and the latency from it, for a timeline of the whole replay
+//! ([`crate::timeline`]).
 //!
 //! The server sees only timestamps: it cannot see a recording's own trajectory breaks, and it rejects
 //! time going backwards. [`replay_timestamps`] therefore shifts later timestamps so that each break
@@ -720,7 +727,10 @@ impl Pacer {
 
     /// When the batch at `position` in the plan is due, after the replay's start.
     fn due_after_start(&self, position: usize) -> Duration {
-        self.phase + self.pace.map_or(Duration::ZERO, |p| p.mul_f64(position as f64))
+        self.phase
+            + self
+                .pace
+                .map_or(Duration::ZERO, |p| p.mul_f64(position as f64))
     }
 
     fn due(&self, position: usize) -> tokio::time::Instant {
@@ -796,10 +806,22 @@ fn pace_per_batch(options: &ReplayOptions) -> Option<Duration> {
         .then(|| Duration::from_secs_f64(options.batch_size as f64 / options.rate_hz))
 }
 
-/// Replays every track concurrently (one task and stream per vehicle). Events of all vehicles are
-/// interleaved on `events`; the summaries come back in track order.
+/// Replays every track concurrently (one task and stream per vehicle) over one connection. Events
+/// of all vehicles are interleaved on `events`; the summaries come back in track order.
 pub async fn replay_tracks(
     connection: &Connection,
+    tracks: Vec<Track>,
+    options: &ReplayOptions,
+    events: mpsc::Sender<ReplayEvent>,
+) -> Vec<Result<ReplaySummary, ClientError>> {
+    replay_tracks_over(std::slice::from_ref(connection), tracks, options, events).await
+}
+
+/// [`replay_tracks`] over several connections, vehicle `i` on `connections[i % n]`: one HTTP/2
+/// connection carries only so many concurrent streams (a balancer's or server's limit, about a
+/// thousand), so a large fleet needs several.
+pub async fn replay_tracks_over(
+    connections: &[Connection],
     tracks: Vec<Track>,
     options: &ReplayOptions,
     events: mpsc::Sender<ReplayEvent>,
@@ -810,7 +832,8 @@ pub async fn replay_tracks(
     };
     let handles: Vec<_> = tracks
         .into_iter()
-        .map(|track| {
+        .zip(connections.iter().cycle())
+        .map(|(track, connection)| {
             let connection = connection.clone();
             let options = options.clone();
             let events = events.clone();

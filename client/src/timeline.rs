@@ -159,8 +159,14 @@ mod tests {
         assert_eq!(rows[0].max_ms, Some(31_000.0));
         assert!((rows[0].delivered_pct() - 200.0 / 3.0).abs() < 1e-12);
         assert!((rows[0].on_time_pct() - 100.0 / 3.0).abs() < 1e-12);
-        assert_eq!((rows[1].due, rows[1].delivered, rows[1].p99_ms), (0, 0, None));
+        assert_eq!(
+            (rows[1].due, rows[1].delivered, rows[1].p99_ms),
+            (0, 0, None)
+        );
         assert_eq!(rows[1].delivered_pct(), 100.0);
-        assert_eq!((rows[2].start_s, rows[2].due, rows[2].on_time), (120.0, 1, 1));
+        assert_eq!(
+            (rows[2].start_s, rows[2].due, rows[2].on_time),
+            (120.0, 1, 1)
+        );
     }
 }

@@ -1,6 +1,6 @@
 //! The tasks that run beside the server: the session outbox's writer, the alarm and incident
-//! feeds' followers, the incident correlator, the storage watch, job leases, idle-session eviction, the identity files' reload and the metrics
-//! endpoint. They start once
+//! feeds' followers, the incident correlator, the storage watch, job leases, idle-session eviction,
+//! following the active model, the identity files' reload and the metrics endpoint. They start once
 //! the server is assembled and stop, in order, after it has drained.
 //!
 //! It owns their lifetimes, not their work: each loop lives with its subsystem (idle eviction,
@@ -21,6 +21,7 @@ use crate::config::Config;
 use crate::detection::SessionManager;
 use crate::incidents::correlator::IncidentCorrelator;
 use crate::metrics_endpoint::{self, Sources};
+use crate::models::ACTIVE_MODEL_POLL;
 use crate::router::DATABASE_SERVICES;
 use crate::store::Store;
 use crate::watch;
@@ -41,6 +42,7 @@ pub struct Background {
     storage_watch: JoinHandle<()>,
     job_leases: JoinHandle<()>,
     evictor: JoinHandle<()>,
+    active_model: JoinHandle<()>,
     identity_files: JoinHandle<()>,
     metrics: Option<JoinHandle<()>>,
     stop_metrics: CancellationToken,
@@ -110,6 +112,15 @@ impl Background {
             period,
             app.draining.clone(),
         ));
+        let active_model = tokio::spawn({
+            let registry = Arc::clone(&app.registry);
+            let stop = app.draining.clone();
+            async move {
+                registry
+                    .keep_following_active_model(ACTIVE_MODEL_POLL, stop)
+                    .await
+            }
+        });
         let identity_files = tokio::spawn(access::keep_current(
             Arc::clone(&app.access),
             app.draining.clone(),
@@ -143,6 +154,7 @@ impl Background {
             storage_watch,
             job_leases,
             evictor,
+            active_model,
             identity_files,
             metrics,
             stop_metrics,
@@ -154,6 +166,7 @@ impl Background {
     /// the end, and an open scrape connection gets a second to finish.
     pub async fn stop(self, store: &Store) {
         self.evictor.abort();
+        self.active_model.abort();
         self.identity_files.abort();
         self.storage_watch.abort();
         self.stop_alarm_feed.cancel();

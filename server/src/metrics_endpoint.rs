@@ -31,8 +31,7 @@ use crate::store::FaultKind;
 use crate::telemetry::{
     self, ACTIVE_MODEL_INFO, ALARM_BACKLOG, ALARM_DROPPED_ONSETS, ALARM_FAILED_BATCHES,
     ALARM_INVALID, ALARM_STORED, JOBS, SESSIONS_CONNECTED, SESSIONS_OPEN, SNAPSHOT_BACKLOG,
-    SNAPSHOT_LAG,
-    SNAPSHOT_STORED,
+    SNAPSHOT_LAG, SNAPSHOT_STORED,
 };
 
 /// How often histogram samples are folded into their buckets between scrapes.

@@ -294,13 +294,10 @@ impl SessionOutbox {
         let emitted_through = pending.next_seq - 1;
         let generation = pending.next_generation;
         pending.next_generation += 1;
-        let (mut waiters, waiting_since) = pending
-            .snapshots
-            .remove(&row.vehicle_id)
-            .map_or_else(
-                || (Vec::new(), Instant::now()),
-                |older| (older.waiters, older.waiting_since),
-            );
+        let (mut waiters, waiting_since) = pending.snapshots.remove(&row.vehicle_id).map_or_else(
+            || (Vec::new(), Instant::now()),
+            |older| (older.waiters, older.waiting_since),
+        );
         waiters.push(told);
         pending.snapshots.insert(
             row.vehicle_id.clone(),
@@ -705,7 +702,10 @@ mod tests {
             .run(store.clone(), stop, Duration::from_secs(5))
             .await;
         let stats = outbox.stats();
-        assert_eq!((stats.snapshot_backlog, stats.snapshot_lag), (0, Duration::ZERO));
+        assert_eq!(
+            (stats.snapshot_backlog, stats.snapshot_lag),
+            (0, Duration::ZERO)
+        );
     }
 
     #[tokio::test]

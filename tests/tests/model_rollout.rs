@@ -1,14 +1,15 @@
 //! Model roll-out reaches live vehicles: a session started or resumed without a model follows the
 //! active model (afresh, reported in SessionAccepted.replaced_model), Detect and fleet batches
 //! without a model follow it too, open streams keep theirs, and deleting a model ends the sessions
-//! that run it (streams with ABORTED, open alarms closed) so they come back on the active model.
+//! that run it (streams with ABORTED, open alarms closed) so they come back on the active model. An
+//! activation through one server reaches the others on its database.
 
 use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::v1;
 use spoofwatch_server::store::Store;
 use spoofwatch_tests::{
-    Clients, attacked_drive, code_of, database_path, export_model, final_code, import_model,
-    normal_drive, start_server, start_stream, track_samples,
+    Clients, TestServer, attacked_drive, code_of, database_path, export_model, final_code,
+    import_model, normal_drive, start_server, start_stream, test_config, track_samples,
 };
 use tonic::Code;
 
@@ -211,4 +212,38 @@ async fn deleting_a_model_ends_the_sessions_that_run_it() {
     assert_eq!(events.len(), 1, "{events:?}");
     assert!(!events[0].is_open(), "closed when its model was deleted");
     assert_eq!(events[0].model_id, candidate.trim_start_matches("models/"));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_activation_through_one_server_reaches_the_others_on_its_database() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let first = TestServer::start(test_config(dir.path())).await;
+    let second = TestServer::start(test_config(dir.path())).await;
+    let (mut first_clients, second_clients) =
+        (Clients::of(&first).await, Clients::of(&second).await);
+    let candidate = second_model(&mut first_clients).await;
+    // The second server knows the active model before the roll-out.
+    let (_before, accepted) = start_stream(&second_clients, "before", "").await;
+    assert_eq!(accepted.model, "models/default");
+
+    activate(&mut first_clients, &candidate).await;
+    // Within a few of the second server's polls of the database, its new sessions run the
+    // candidate (bounded: a hang guard, not a timing).
+    let mut followed = None;
+    for attempt in 0..100 {
+        let (_stream, accepted) =
+            start_stream(&second_clients, &format!("after-{attempt}"), "").await;
+        if accepted.model == candidate {
+            followed = Some(attempt);
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+    }
+    assert!(
+        followed.is_some(),
+        "the second server never followed the activation"
+    );
+    drop((first_clients, second_clients));
+    second.stop().await;
+    first.stop().await;
 }

@@ -134,7 +134,10 @@ async fn a_replay_through_a_roll_out_goes_on_under_the_new_model_without_resendi
         .collect();
     let (replaced, resend_from) = failovers.last().cloned().expect("a failover");
     assert_eq!(replaced, "models/default", "{failovers:?}");
-    assert!(resend_from >= 50, "went on, not from the start: {failovers:?}");
+    assert!(
+        resend_from >= 50,
+        "went on, not from the start: {failovers:?}"
+    );
     assert_eq!(summary.detections, track.records.len() as u64);
 
     let expected: Vec<_> = uninterrupted.detections("car-7").collect();
@@ -144,7 +147,10 @@ async fn a_replay_through_a_roll_out_goes_on_under_the_new_model_without_resendi
         .iter()
         .position(|d| *d.model == *candidate)
         .expect("rows under the new model");
-    assert!(switch >= 50 && switch <= resend_from, "switch at row {switch}");
+    assert!(
+        switch >= 50 && switch <= resend_from,
+        "switch at row {switch}"
+    );
     assert!(got[switch..].iter().all(|d| *d.model == *candidate));
     // Before the switch: the old model's detections, bit for bit.
     for (row, (g, e)) in got[..switch].iter().zip(&expected).enumerate() {

@@ -206,7 +206,52 @@ async fn an_alarm_held_by_a_snapshot_of_the_replaced_model_ends_when_the_vehicle
     assert_eq!(alarms.len(), 1, "{alarms:?}");
     let (_, end, _, _, open) = alarms[0];
     assert!(!open, "the alarm ended: {alarms:?}");
-    assert_eq!(end, Some(last_alarming), "at the last alarming sample the session saw");
+    assert_eq!(
+        end,
+        Some(last_alarming),
+        "at the last alarming sample the session saw"
+    );
     drop(clients);
     second.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stale_copy_left_on_a_server_does_not_overwrite_the_snapshot_of_the_one_that_went_on() {
+    let vehicle = "moved-on";
+    let batches: Vec<Vec<v1::Sample>> = track_samples(&normal_drive(vehicle, 300.0, 9))
+        .chunks(BATCH)
+        .map(<[v1::Sample]>::to_vec)
+        .collect();
+    let dir = tempfile::tempdir().expect("temp dir");
+    // Two servers on one database: the vehicle streams on the first, then goes on on the second,
+    // while the first still holds its (now stale) copy of the session.
+    let first = TestServer::start(test_config(dir.path())).await;
+    let second = TestServer::start(test_config(dir.path())).await;
+    let (first_clients, second_clients) = (Clients::of(&first).await, Clients::of(&second).await);
+    stream_batches(&first_clients, vehicle, &batches[..10], 1).await;
+    let (accepted, _) = stream_batches(&second_clients, vehicle, &batches[10..], 11).await;
+    assert!(
+        accepted.from_snapshot && accepted.last_seq == 10,
+        "{accepted:?}"
+    );
+    drop((first_clients, second_clients));
+    second.stop().await;
+
+    // The first server shuts down holding the stale copy: the snapshot stored is still the second's.
+    first.stop().await;
+    let store = Store::open(&test_config(dir.path()).database)
+        .await
+        .expect("open the database");
+    let stored = store
+        .load_snapshot(vehicle)
+        .await
+        .expect("readable")
+        .expect("stored");
+    assert_eq!(
+        stored.last_seq,
+        batches.len() as i64,
+        "written by {}",
+        stored.writer
+    );
+    store.close().await;
 }

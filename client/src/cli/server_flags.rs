@@ -91,4 +91,14 @@ impl ServerArgs {
         let options = self.transport.options(self.token.clone());
         Ok(Connection::connect_with(&self.server, &options).await?)
     }
+
+    /// Connections for `streams` concurrent streams, at most `per_connection` on each.
+    pub async fn connect_pool(
+        &self,
+        streams: usize,
+        per_connection: usize,
+    ) -> Result<Vec<Connection>> {
+        let options = self.transport.options(self.token.clone());
+        Ok(Connection::pool(&self.server, &options, streams, per_connection).await?)
+    }
 }

@@ -389,7 +389,7 @@ impl SessionManager {
         } = self.slot_for(vehicle_id, model, identity)?;
         if let Some(evicted) = made_room {
             let mut state = evicted.state.lock().await;
-            self.save(&evicted.vehicle_id, &mut state);
+            self.save_if_changed(&evicted.vehicle_id, &mut state);
             tracing::info!(vehicle = %evicted.vehicle_id, "evicted the session idle longest to make room for a new vehicle");
         }
         Ok((slot, existed))
@@ -520,6 +520,16 @@ impl SessionManager {
             updated_at_ms: now_ms,
             snapshot: snapshot.encode(),
         })
+    }
+
+    /// Snapshots a session that leaves this process (evicted, or at shutdown) unless nothing
+    /// changed since its last snapshot: that copy is stored or queued already, and by now the
+    /// vehicle may have moved on to another process, whose newer snapshot must not be overwritten
+    /// by this stale one.
+    fn save_if_changed(&self, vehicle_id: &VehicleId, state: &mut SessionState) {
+        if state.since_snapshot > 0 {
+            self.save(vehicle_id, state);
+        }
     }
 
     /// Whether the policy wants a snapshot now (checked after each batch).
@@ -746,7 +756,8 @@ impl SessionManager {
         else {
             return;
         };
-        self.outbox.adopt(open.row(vehicle_id.as_str(), &row.model_id));
+        self.outbox
+            .adopt(open.row(vehicle_id.as_str(), &row.model_id));
         self.record_end(open);
     }
 
@@ -965,7 +976,7 @@ impl SessionManager {
         // it continues, here or on another process.
         for slot in &idle {
             let mut state = slot.state.lock().await;
-            self.save(&slot.vehicle_id, &mut state);
+            self.save_if_changed(&slot.vehicle_id, &mut state);
         }
         telemetry::sessions_evicted(idle.len());
         idle.len()
@@ -1050,8 +1061,8 @@ impl SessionManager {
     }
 
     /// How long this process must see a snapshot unchanged, by its own clock, before it expires:
-    /// longer than a streaming vehicle's session goes without rewriting it (it is rewritten at
-    /// least every snapshot period while batches come, and at eviction once they stop).
+    /// longer than a held session goes without rewriting it (at least every snapshot period while
+    /// batches come; a session held without batches, up to the idle limit, keeps its last copy).
     fn expiry_confirmation(&self) -> Duration {
         self.limits.idle + self.snapshots.every
     }
@@ -1064,14 +1075,15 @@ impl SessionManager {
         (slots.len(), connected)
     }
 
-    /// Snapshots every session (shutdown): each continues from it, here after a restart or on
-    /// another process, and its open alarm stays open.
+    /// Snapshots every session that changed since its last snapshot (shutdown): each continues
+    /// from its snapshot, here after a restart or on another process, and its open alarm stays
+    /// open.
     pub async fn save_all(&self) {
         let slots: Vec<Arc<SessionSlot>> = self.slots().values().cloned().collect();
         for slot in slots {
             let mut state = slot.state.lock().await;
             if !slot.model_deleted.is_cancelled() {
-                self.save(&slot.vehicle_id, &mut state);
+                self.save_if_changed(&slot.vehicle_id, &mut state);
             }
         }
     }

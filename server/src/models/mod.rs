@@ -7,4 +7,4 @@ mod cache;
 pub mod registry;
 pub mod wire;
 
-pub use registry::{LoadedModel, Registry, RegistryError};
+pub use registry::{ACTIVE_MODEL_POLL, LoadedModel, Registry, RegistryError};

@@ -4,12 +4,14 @@
 //! write SQL (that is `store`).
 
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 use spoofwatch_core::alarm::OperatingPoint;
 use spoofwatch_core::metrics::Metrics;
 use spoofwatch_core::model::artifact::{ARTIFACT_SCHEMA_VERSION, ArtifactError, ModelArtifact};
 use spoofwatch_proto::wire::{ModelName, OperationName};
+use tokio_util::sync::CancellationToken;
 
 use super::cache::ModelCache;
 use crate::fault::Fault;
@@ -22,6 +24,9 @@ use crate::work::HeavyWork;
 pub const BUNDLED_MODEL: &[u8] = include_bytes!("../../../models/default.json");
 /// Id of the bundled model in the registry.
 pub const BUNDLED_MODEL_ID: &str = "default";
+/// How often a server reads which model is active, to follow an activation made through another
+/// server on the same database.
+pub const ACTIVE_MODEL_POLL: Duration = Duration::from_secs(2);
 
 /// Everything the registry can fail with.
 #[derive(Debug, thiserror::Error)]
@@ -154,7 +159,8 @@ impl Registry {
         self.active().as_ref().map(|model| model.name.clone())
     }
 
-    /// The active model: from memory, or read once from the store.
+    /// The active model: from memory (kept current by [`Self::follow_active_model`]), or read
+    /// from the store the first time.
     async fn active_model(&self) -> Result<LoadedModel, RegistryError> {
         if let Some(active) = self.active().clone() {
             return Ok(active);
@@ -339,6 +345,39 @@ impl Registry {
         *self.active() = Some(loaded);
         tracing::info!(model = %name, "activated model");
         Ok(row)
+    }
+
+    /// Follows the store's active model: when another process sharing the database activated
+    /// another model, this one serves it from now on too (sessions already running keep theirs,
+    /// as with an activation here). Returns the newly followed model's name.
+    pub async fn follow_active_model(&self) -> Result<Option<ModelName>, RegistryError> {
+        let Some(row) = self.store.active_model().await? else {
+            return Ok(None);
+        };
+        let name = ModelName::from_id(row.id);
+        if self.is_active(&name) {
+            return Ok(None);
+        }
+        let loaded = self.load(name.clone()).await?;
+        *self.active() = Some(loaded);
+        Ok(Some(name))
+    }
+
+    /// Keeps following the store's active model ([`Self::follow_active_model`]) every `period`
+    /// until `stop` is cancelled; an unreadable store keeps the model this process knows.
+    pub async fn keep_following_active_model(&self, period: Duration, stop: CancellationToken) {
+        let mut tick = tokio::time::interval(period);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            tokio::select! {
+                () = stop.cancelled() => break,
+                _ = tick.tick() => match self.follow_active_model().await {
+                    Ok(Some(model)) => tracing::info!(%model, "following the active model set by another server"),
+                    Ok(None) => {}
+                    Err(error) => tracing::debug!(%error, "could not read the active model; keeping this one"),
+                },
+            }
+        }
     }
 
     /// Deletes a model that is not active.

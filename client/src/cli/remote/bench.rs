@@ -5,8 +5,9 @@
 //! sends its next message as soon as the previous one's reply is back (one outstanding message per
 //! stream), or at a given rate, for a fixed time; reports samples/s, the per-message round trip
 //! (p50/p99/p99.9/max), the share of the messages due within the phase that were answered (late
-//! answers count: the percentiles show lateness), and the server's CPU time per sample (while the phase sends: not opening and closing its streams) and resident
-//! memory when its process id is known.
+//! answers count: the percentiles show lateness), and the server's CPU time per sample (while the
+//! phase sends: not opening and closing its streams) and resident memory when its process id is
+//! known.
 //! Memory phase: opens many short sessions (start + one batch, then the stream closes; the session
 //! stays in memory until idle eviction) and reports the server's resident memory before and after.
 //!
@@ -122,29 +123,34 @@ pub fn parse_prefix(text: &str) -> Result<String, String> {
     }
 }
 
-/// A warm-up: finite, 0 to 60 s.
-fn parse_warmup(text: &str) -> Result<f64, String> {
-    let seconds: f64 = text
-        .parse()
-        .map_err(|_| format!("not a number of seconds: {text:?}"))?;
-    if seconds.is_finite() && (0.0..=60.0).contains(&seconds) {
-        Ok(seconds)
-    } else {
-        Err(format!("must be 0 to 60 seconds, got {text}"))
-    }
-}
-
-/// A phase length: finite, > 0 and at most 600 s.
-pub fn parse_seconds(text: &str) -> Result<f64, String> {
+/// Seconds from `text`: a finite number for which `allowed` holds, else an error naming `range`.
+fn parse_seconds_where(
+    text: &str,
+    allowed: impl Fn(f64) -> bool,
+    range: &str,
+) -> Result<f64, String> {
     let seconds: f64 = text
         .parse()
         .map_err(|_| format!("{text:?} is not a number of seconds"))?;
-    if !(seconds.is_finite() && seconds > 0.0 && seconds <= 600.0) {
-        return Err(format!(
-            "must be more than 0 and at most 600 seconds, got {text}"
-        ));
+    if seconds.is_finite() && allowed(seconds) {
+        Ok(seconds)
+    } else {
+        Err(format!("must be {range} seconds, got {text}"))
     }
-    Ok(seconds)
+}
+
+/// A warm-up: 0 to 60 s.
+fn parse_warmup(text: &str) -> Result<f64, String> {
+    parse_seconds_where(text, |s| (0.0..=60.0).contains(&s), "0 to 60")
+}
+
+/// A phase length: more than 0 and at most 600 s.
+pub fn parse_seconds(text: &str) -> Result<f64, String> {
+    parse_seconds_where(
+        text,
+        |s| s > 0.0 && s <= 600.0,
+        "more than 0 and at most 600",
+    )
 }
 
 /// VmRSS in kB from a `/proc/<pid>/status` text.
@@ -348,21 +354,6 @@ fn results_table(results: &[PhaseResult], batch: usize) -> String {
     out
 }
 
-/// Connections for `streams` streams, `per_connection` on each.
-pub(super) async fn connections(
-    url: &str,
-    options: ConnectOptions,
-    streams: usize,
-    per_connection: usize,
-) -> Result<Vec<Connection>> {
-    let count = streams.div_ceil(per_connection.max(1)).max(1);
-    let mut out = Vec::with_capacity(count);
-    for _ in 0..count {
-        out.push(Connection::connect_with(url, &options).await?);
-    }
-    Ok(out)
-}
-
 /// The load of one throughput phase.
 struct PhaseShape<'a> {
     /// Vehicles.
@@ -387,7 +378,7 @@ async fn throughput_phase(
     let streams = shape.streams;
     let per_message = shape.per_message as usize;
     let count = (streams as usize).div_ceil(per_message);
-    let pool = connections(url, options, count, shape.per_connection).await?;
+    let pool = Connection::pool(url, &options, count, shape.per_connection).await?;
     // Everyone (and this task) starts measuring once all streams are open.
     let barrier = Arc::new(Barrier::new(count + 1));
     let sent_all = Arc::new(Barrier::new(count));
@@ -426,7 +417,6 @@ async fn throughput_phase(
         })
         .collect();
     barrier.wait().await;
-    let started = Instant::now() + warmup;
     // The server's CPU time over the measured phase: from the warm-up's end to the end of sending,
     // before the streams close (closing stores every session's snapshot, which is not the cost of
     // a message).
@@ -457,7 +447,6 @@ async fn throughput_phase(
             errors += 1;
         }
     }
-    let elapsed = started.elapsed().as_secs_f64();
     let cpu = match cpu_window {
         Some(reading) => Some(reading.await.context("reading the server's CPU time")??),
         None => None,
@@ -471,7 +460,8 @@ async fn throughput_phase(
     Ok(PhaseResult {
         streams,
         per_message: shape.per_message,
-        samples_per_s: samples as f64 / elapsed,
+        // The samples counted are those sent in the measured phase.
+        samples_per_s: samples as f64 / shape.seconds,
         batches: all.len(),
         p50: percentile(&all, 0.50),
         p99: percentile(&all, 0.99),
@@ -609,15 +599,11 @@ async fn drive<S: LoadStream>(
     load.barrier.wait().await;
     let mut result = StreamResult::default();
     let stream = match opened {
-        Ok(stream) => Some(stream),
+        Ok(stream) => send_all(load, stream, &mut result).await,
         Err(error) => {
             result.error = Some(error.to_string());
             None
         }
-    };
-    let stream = match stream {
-        Some(stream) => send_all(load, stream, &mut result).await,
-        None => None,
     };
     load.sent_all.wait().await;
     if let Some(stream) = stream
@@ -707,7 +693,7 @@ async fn memory_phase(url: &str, options: ConnectOptions, shape: MemoryShape<'_>
         server_pid: pid,
     } = shape;
     let before = pid.map(resident_kb).transpose()?;
-    let pool = connections(url, options, MEMORY_PHASE_CONCURRENCY, 1).await?;
+    let pool = Connection::pool(url, &options, MEMORY_PHASE_CONCURRENCY, 1).await?;
     let permits = Arc::new(Semaphore::new(MEMORY_PHASE_CONCURRENCY));
     let started = Instant::now();
     let work = async {

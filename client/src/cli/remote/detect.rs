@@ -16,11 +16,11 @@ use crate::failover::DEFAULT_FAILOVER_S;
 use crate::fleet::{FleetSummary, FleetTally, OnsetCounts, WorstVehicle};
 use crate::input::load_tracks;
 use crate::replay::{
-    ReplayEvent, ReplayOptions, ReplaySummary, ReplayedDetection, batch_due_times, replay_tracks,
-    server_vehicle_id,
+    ReplayEvent, ReplayOptions, ReplaySummary, ReplayedDetection, batch_due_times,
+    replay_tracks_over, server_vehicle_id,
 };
-use crate::timeline::{Timeline, TimelineRow};
 use crate::replay_log::ReplayLog;
+use crate::timeline::{Timeline, TimelineRow};
 use anyhow::{Context, Result, bail};
 use spoofwatch_core::sample::Track;
 use spoofwatch_proto::v1;
@@ -82,6 +82,11 @@ pub struct Args {
     /// --timeline-every).
     #[arg(long, value_name = "PATH")]
     pub timeline: Option<PathBuf>,
+    /// Vehicles' streams sharing one HTTP/2 connection; more vehicles open more connections (a
+    /// connection carries at most about a thousand concurrent streams: HAProxy's limit is 1,000,
+    /// the server's 1,024).
+    #[arg(long, default_value_t = 500, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    pub streams_per_connection: u32,
     /// The timeline's interval in seconds.
     #[arg(long, value_name = "SECONDS", default_value_t = 60.0, value_parser = parse_interval)]
     pub timeline_every: f64,
@@ -414,7 +419,10 @@ pub async fn run(args: Args) -> Result<()> {
             "note: vehicle {recorded:?} is sent as {sent:?} (vehicle ids are at most 128 of [A-Za-z0-9._:-])"
         );
     }
-    let connection = args.server.connect().await?;
+    let connections = args
+        .server
+        .connect_pool(tracks.len(), args.streams_per_connection as usize)
+        .await?;
     let options = ReplayOptions {
         rate_hz: args.rate,
         batch_size: args.batch,
@@ -456,8 +464,9 @@ pub async fn run(args: Args) -> Result<()> {
     println!("replaying {} vehicles, {samples} samples", tracks.len());
     let (events_tx, mut events) = mpsc::channel(1024);
     let replay = {
-        let connection = connection.clone();
-        tokio::spawn(async move { replay_tracks(&connection, tracks, &options, events_tx).await })
+        tokio::spawn(
+            async move { replay_tracks_over(&connections, tracks, &options, events_tx).await },
+        )
     };
     let mut log = ReplayLog::default();
     while let Some(event) = events.recv().await {
@@ -620,7 +629,10 @@ mod tests {
         );
         let row = csv_row(&detection(Some(jump())));
         assert_eq!(row.len(), CSV_HEADER.len());
-        assert_eq!(&row[8..], ["jump", "500", "36.87", "0.25", "90", "models/m1"]);
+        assert_eq!(
+            &row[8..],
+            ["jump", "500", "36.87", "0.25", "90", "models/m1"]
+        );
     }
 
     #[test]

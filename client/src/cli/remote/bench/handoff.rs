@@ -26,7 +26,7 @@ use crate::synthetic::LoopDriver;
 use anyhow::{Context, Result, bail};
 use tokio::sync::Semaphore;
 
-use super::{connections, ms, percentile};
+use super::{ms, percentile};
 
 /// Batches each vehicle streams to the first server before the hand-off.
 const PREPARE_BATCHES: u64 = 6;
@@ -211,9 +211,9 @@ pub async fn handoff_phase(
          seen start there the same way",
         shape.vehicles, shape.concurrency
     );
-    let first = connections(
+    let first = Connection::pool(
         from,
-        options.clone(),
+        &options,
         count.min(PREPARE_CONCURRENCY),
         shape.per_connection,
     )
@@ -227,9 +227,9 @@ pub async fn handoff_phase(
     .await
     .context("preparing the vehicles on the first server")?;
 
-    let second = connections(
+    let second = Connection::pool(
         to,
-        options,
+        &options,
         count.min(shape.concurrency as usize),
         shape.per_connection,
     )
