@@ -32,8 +32,11 @@ GAUGES = {
 }
 SAMPLE_COLUMNS = ["unix_s", "replica", "pid", "cpu_s", "rss_mb"] + list(GAUGES.values())
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
-# Memory is flat when a replica's RSS grows by at most this much while its sessions stay the same.
+# Memory is flat when a replica's RSS grows by at most this much while its sessions stay the same...
 RSS_GROWTH_LIMIT = 0.05
+# ...or by at most this many MB: room for the roll-out's second model and the allocator's arenas, which
+# outweigh 5 % of a replica holding a few hundred sessions (5 % of one holding 10,000 is more).
+RSS_GROWTH_FLOOR_MB = 16
 
 
 def scrape(address):
@@ -129,53 +132,59 @@ class Checks:
         return [r for r in self.results if not r[1]]
 
 
-def compare_detections(work, reference_model, rollout_model, checks):
-    """Row by row (both files list vehicles in the same order, rows in recorded order). Returns the
-    per-vehicle switch times (the first timestamp under the roll-out model), the onsets shown and the
-    vehicles whose last detection still alarms."""
-    switched_at = {}
-    shown_onsets = []
-    alarming = {}
-    compared = after_rollout = differing = 0
+def csv_rows(path):
+    """(header, rows): the rows as ((vehicle, line), fields), in the file's order (vehicles sorted,
+    each vehicle's rows in recorded order, as `detect --out` writes them)."""
+    f = open(path, newline="")
+    reader = csv.reader(f)
+    header = next(reader)
+    return header, (((row[0], int(row[1])), row) for row in reader)
+
+
+def compare_detections(work, reference_model, rollout_model, replies_lost, checks):
+    """Merges the run's rows with the reference's by vehicle and line. Returns the per-vehicle
+    switch times (the first timestamp under the roll-out model), the onsets shown, the vehicles
+    whose last detection still alarms, and the (vehicle, timestamp) of the rows without a
+    detection."""
+    switched_at, shown_onsets, alarming, lost = {}, [], {}, set()
+    compared = after_rollout = differing = extra = back_to_old = 0
     first_difference = None
-    back_to_old = 0
-    with open(os.path.join(work, "reference.csv")) as ref_file, open(os.path.join(work, "run.csv")) as run_file:
-        reference, run = csv.reader(ref_file), csv.reader(run_file)
-        header = next(reference)
-        if next(run) != header:
-            checks.check("same columns", False, "the run's CSV has other columns than the reference's")
-            return switched_at, shown_onsets, set()
-        model = header.index("model")
-        onset = header.index("alarm_onset")
-        alarm = header.index("alarm")
-        rows = 0
-        for ref_row, run_row in zip(reference, run, strict=False):
-            rows += 1
-            vehicle, timestamp = run_row[0], float(run_row[2])
-            if ref_row[:2] != run_row[:2]:
-                checks.check("one detection per recorded row", False,
-                             f"row {rows}: reference {ref_row[:2]}, run {run_row[:2]}")
-                return switched_at, shown_onsets, set()
-            alarming[vehicle] = run_row[alarm] == "1"
-            if run_row[onset] == "1":
-                shown_onsets.append((vehicle, timestamp))
-            if run_row[model] == rollout_model:
-                after_rollout += 1
-                switched_at.setdefault(vehicle, timestamp)
-                continue
-            if vehicle in switched_at:
-                back_to_old += 1
-            if run_row[model] != reference_model:
-                differing += 1
-                first_difference = first_difference or f"{vehicle} line {run_row[1]}: model {run_row[model]}"
-                continue
+    header, reference = csv_rows(os.path.join(work, "reference.csv"))
+    run_header, run = csv_rows(os.path.join(work, "run.csv"))
+    if run_header != header:
+        checks.check("same columns", False, "the run's CSV has other columns than the reference's")
+        return switched_at, shown_onsets, set(), lost
+    model, onset, alarm = header.index("model"), header.index("alarm_onset"), header.index("alarm")
+    ref, got = next(reference, None), next(run, None)
+    while ref or got:
+        if got is None or (ref and ref[0] < got[0]):
+            lost.add((ref[0][0], float(ref[1][2])))
+            ref = next(reference, None)
+            continue
+        if ref is None or got[0] < ref[0]:
+            extra += 1
+            got = next(run, None)
+            continue
+        (vehicle, line), run_row, ref_row = got[0], got[1], ref[1]
+        timestamp = float(run_row[2])
+        alarming[vehicle] = run_row[alarm] == "1"
+        if run_row[onset] == "1":
+            shown_onsets.append((vehicle, timestamp))
+        if run_row[model] == rollout_model:
+            after_rollout += 1
+            switched_at.setdefault(vehicle, timestamp)
+        else:
+            back_to_old += vehicle in switched_at
             compared += 1
-            if run_row != ref_row:
+            if run_row[model] != reference_model or run_row != ref_row:
                 differing += 1
-                first_difference = first_difference or f"{vehicle} line {run_row[1]}: {run_row} vs {ref_row}"
-        leftover = sum(1 for _ in reference) + sum(1 for _ in run)
-    checks.check("one detection per recorded row", leftover == 0,
-                 f"{rows} rows in both" if leftover == 0 else f"{leftover} rows in one file only")
+                first_difference = first_difference or f"{vehicle} line {line}: {run_row} vs {ref_row}"
+        ref, got = next(reference, None), next(run, None)
+    checks.check("every recorded row has its detection, but for replies lost with a failed stream",
+                 extra == 0 and len(lost) == replies_lost,
+                 f"{compared + after_rollout} rows with a detection; {len(lost)} without, where the client "
+                 f"counted {replies_lost} replies lost (the server applied the sample, the stream failed "
+                 f"before its reply arrived); {extra} rows the reference does not have")
     checks.check("detections equal the uninterrupted run's, bit for bit, under its model",
                  differing == 0 and compared > 0,
                  f"{compared} rows compared, {differing} differ"
@@ -183,17 +192,18 @@ def compare_detections(work, reference_model, rollout_model, checks):
                  + f"; {after_rollout} rows under the roll-out model")
     checks.check("each vehicle changes model once, at the roll-out", back_to_old == 0,
                  f"{len(switched_at)} vehicles moved to {rollout_model}; {back_to_old} rows back under the old model")
-    return switched_at, shown_onsets, {vehicle for vehicle, on in alarming.items() if on}
+    return switched_at, shown_onsets, {v for v, on in alarming.items() if on}, lost
 
 
-def compare_alarms(work, switched_at, shown_onsets, alarming_at_end, checks):
+def compare_alarms(work, switched_at, shown_onsets, alarming_at_end, lost, checks):
     stored = read_alarms(os.path.join(work, "run-alarms.json"))
     reference = read_alarms(os.path.join(work, "reference-alarms.json"))
     counts = Counter(alarm_key(a) for a in stored)
     duplicated = [k for k, n in counts.items() if n > 1]
     shown = Counter(shown_onsets)
     missing = [k for k in shown if k not in counts]
-    unshown = [k for k in counts if k not in shown]
+    # An onset whose reply was lost is stored without having been shown.
+    unshown = [k for k in counts if k not in shown and k not in lost]
     # Open: only a vehicle's latest alarm, when its last detection still alarmed (its session,
     # held for its return, holds the alarm open).
     latest = {}
@@ -207,7 +217,7 @@ def compare_alarms(work, switched_at, shown_onsets, alarming_at_end, checks):
     checks.check("every onset shown is stored exactly once, with its end",
                  not (missing or duplicated or unshown or wrongly_open or wrongly_ended) and shown,
                  f"{len(shown)} onsets shown, {len(stored)} alarms stored; {len(missing)} missing, "
-                 f"{len(duplicated)} duplicated, {len(unshown)} stored but never shown; "
+                 f"{len(duplicated)} duplicated, {len(unshown)} stored but never shown (nor lost in transit); "
                  f"{len(is_open)} open, those of the {len(alarming_at_end)} vehicles still alarming at their "
                  f"last sample: {len(wrongly_open)} other alarms without an end, {len(wrongly_ended)} ended early")
     # Alarms the old model ended before the vehicle's switch are the reference's exactly.
@@ -286,12 +296,14 @@ def check_memory(table, replicas, intervals, checks):
             details.append(f"{replica}: sessions not steady for two intervals; not checked")
             continue
         # From the end of the first steady interval to the end of the last.
-        growth = final["rss_mb"] / cells[steady]["rss_mb"] - 1
-        ok &= growth <= RSS_GROWTH_LIMIT
+        start_mb = cells[steady]["rss_mb"]
+        growth = final["rss_mb"] / start_mb - 1
+        ok &= final["rss_mb"] - start_mb <= max(RSS_GROWTH_LIMIT * start_mb, RSS_GROWTH_FLOOR_MB)
         details.append(f"{replica}: {cells[steady]['rss_mb']:.0f} MB at the end of interval {steady + 1}, "
                        f"{final['rss_mb']:.0f} MB at the end ({growth:+.1%}) with "
                        f"{final['sessions_open']:.0f} sessions held")
-    checks.check(f"memory flat: RSS growth at most {RSS_GROWTH_LIMIT:.0%} while the sessions held stay the same",
+    checks.check(f"memory flat: RSS growth at most {RSS_GROWTH_LIMIT:.0%} (or {RSS_GROWTH_FLOOR_MB} MB) while "
+                 "the sessions held stay the same",
                  ok, "; ".join(details))
 
 
@@ -313,9 +325,11 @@ def report(args):
     interval = seconds // 10
     start = client_start(work)
     checks = Checks()
-    switched_at, shown_onsets, alarming_at_end = compare_detections(
-        work, "models/default", args.rollout_model, checks)
-    compare_alarms(work, switched_at, shown_onsets, alarming_at_end, checks)
+    with open(os.path.join(work, "run-summary.json")) as f:
+        replies_lost = json.load(f)["replies_lost"]
+    switched_at, shown_onsets, alarming_at_end, lost = compare_detections(
+        work, "models/default", args.rollout_model, replies_lost, checks)
+    compare_alarms(work, switched_at, shown_onsets, alarming_at_end, lost, checks)
     summary = check_failovers(work, checks)
     with open(os.path.join(work, "timeline.csv")) as f:
         timeline = list(csv.DictReader(f))

@@ -121,6 +121,8 @@ pub struct VehicleTally {
     /// Of the failovers, those the server answered with the session started afresh under another
     /// model (a roll-out: `SessionAccepted.replaced_model`).
     pub failovers_onto_another_model: u32,
+    /// Samples the server applied whose replies were lost with a failed stream.
+    pub replies_lost: u64,
     /// Steps of more than 5 s between consecutive samples.
     pub gaps: u64,
     pub false_alarms: OnsetCounts,
@@ -216,9 +218,11 @@ impl FleetTally {
             ReplayEvent::Failover {
                 vehicle_id,
                 accepted,
+                replies_lost,
                 ..
             } => {
                 let vehicle = self.vehicle(vehicle_id);
+                vehicle.replies_lost += replies_lost;
                 vehicle.streams += 1;
                 vehicle.failovers += 1;
                 vehicle.failovers_onto_another_model +=
@@ -255,6 +259,7 @@ impl FleetTally {
             summary.resumed_reconnects += u64::from(v.resumed_reconnects);
             summary.failovers += u64::from(v.failovers);
             summary.failovers_onto_another_model += u64::from(v.failovers_onto_another_model);
+            summary.replies_lost += v.replies_lost;
             summary.gaps += v.gaps;
             summary.false_alarms.add_all(&v.false_alarms);
             summary.session_start_onsets_on_resumed_streams += v
@@ -317,6 +322,9 @@ pub struct FleetSummary {
     /// Failovers onto a session started afresh under another model (a roll-out); the failovers
     /// neither resumed nor rolled over started the vehicle afresh (its session was lost).
     pub failovers_onto_another_model: u64,
+    /// Samples the server applied whose replies were lost with a failed stream (no detection for
+    /// them in the replay's output).
+    pub replies_lost: u64,
     /// Steps of more than `gap_step_s` between a vehicle's consecutive samples.
     pub gaps: u64,
     /// Onsets on attack-free rows, by where they start.

@@ -285,6 +285,10 @@ pub enum ReplayEvent {
         accepted: v1::SessionAccepted,
         /// Index of the first record resent.
         resend_from: usize,
+        /// Samples the resumed session had applied whose replies never came (cut with the
+        /// connection): their detections are lost, as they would be for a vehicle, and they are
+        /// not sent again.
+        replies_lost: u64,
     },
     /// One sample's detection, in sample order.
     Detection(ReplayedDetection),
@@ -492,7 +496,25 @@ impl VehicleReplay<'_> {
             .unwrap_or(self.plan.len())
     }
 
-    /// The first batch without an answer (replies come in order, so every batch before it has one).
+    /// Marks the batches before `applied` that have no answer as done (the session applied them;
+    /// their replies were lost); returns their samples.
+    fn mark_applied_through(&mut self, applied: usize) -> u64 {
+        let mut lost = 0;
+        for (result, planned) in self.results[..applied].iter_mut().zip(&self.plan) {
+            if result.is_none() {
+                lost += planned.batch.samples.len() as u64;
+                *result = Some(BatchResult {
+                    detections: 0,
+                    alarm_onsets: 0,
+                    rejected: false,
+                });
+            }
+        }
+        lost
+    }
+
+    /// The first batch without an answer (replies come in order, and batches applied without one
+    /// are marked, so every batch before it is done).
     fn first_unanswered(&self) -> usize {
         self.results
             .iter()
@@ -534,6 +556,7 @@ impl VehicleReplay<'_> {
                 )
             }
             Opening::Failover => {
+                let mut replies_lost = 0;
                 // A session that kept its state: exactly the batches after its last_seq are missing.
                 let resumable =
                     accepted.resumed && (accepted.last_seq > 0 || accepted.samples_seen == 0);
@@ -547,6 +570,7 @@ impl VehicleReplay<'_> {
                         )));
                     }
                     self.summary.resumed_reconnects += 1;
+                    replies_lost = self.mark_applied_through(last_seq);
                     *position = last_seq;
                     stream
                 } else if !accepted.replaced_model.is_empty() {
@@ -577,6 +601,7 @@ impl VehicleReplay<'_> {
                         stream: stream_number,
                         accepted,
                         resend_from,
+                        replies_lost,
                     },
                 )
             }

@@ -89,6 +89,7 @@ mod tests {
             stream: 1,
             accepted: v1::SessionAccepted::default(),
             resend_from,
+            replies_lost: 0,
         }
     }
 

@@ -303,7 +303,7 @@ pub fn fleet_lines(s: &FleetSummary) -> Vec<String> {
         .map_or_else(|| "-".to_string(), |r| format!("{r:.2}"));
     let mut lines = vec![
         format!(
-            "fleet: {} vehicles, {} samples, {:.2} attack-free hours; {} streams ({} reconnects, {} resumed, {} failovers, {} of them onto another model); {} GNSS gaps (> {} s)",
+            "fleet: {} vehicles, {} samples, {:.2} attack-free hours; {} streams ({} reconnects, {} resumed, {} failovers, {} of them onto another model, {} replies lost with failed streams); {} GNSS gaps (> {} s)",
             s.vehicles,
             s.samples,
             s.attack_free_hours,
@@ -312,6 +312,7 @@ pub fn fleet_lines(s: &FleetSummary) -> Vec<String> {
             s.resumed_reconnects,
             s.failovers,
             s.failovers_onto_another_model,
+            s.replies_lost,
             s.gaps,
             s.gap_step_s
         ),
