@@ -43,6 +43,25 @@ async fn replay(
     (log, summary)
 }
 
+/// Samples per batch.
+const BATCH: usize = 5;
+
+/// 400 s at 1 Hz with a 2 m/s ramp from 150 s for 120 s, so that alarms (and their state) are part
+/// of what must match.
+fn ramp_drive(vehicle: &str, seed: u64) -> Track {
+    let ramp = AttackKind::RampDrift { velocity_mps: 2.0 };
+    attacked_drive(vehicle, 400.0, seed, ramp, 150.0, 120.0)
+}
+
+/// The final rows of `track` replayed as fast as the server answers, without interruption.
+async fn replay_uninterrupted(connection: &Connection, track: &Track) -> ReplayLog {
+    let fast = ReplayOptions {
+        batch_size: BATCH,
+        ..ReplayOptions::default()
+    };
+    replay(connection, track, &fast, |_| {}).await.0
+}
+
 /// Replays `track` paced at 100 samples/s; once row 50 is answered, `before_restart` runs, then the
 /// server is stopped and restarted on its port and database. Returns the final rows, the summary
 /// and the restarted server.
@@ -58,7 +77,7 @@ where
 {
     let paced = ReplayOptions {
         rate_hz: 100.0,
-        batch_size: 5,
+        batch_size: BATCH,
         ..ReplayOptions::default()
     };
     let port = server.addr.port();
@@ -98,13 +117,8 @@ async fn a_replay_through_a_roll_out_goes_on_under_the_new_model_without_resendi
     let mut clients = Clients::new(connection.clone());
     let artifact = export_model(&mut clients.models, "models/default").await;
     let candidate = import_model(&mut clients, artifact, "candidate").await.name;
-    let ramp = AttackKind::RampDrift { velocity_mps: 2.0 };
-    let track = attacked_drive("car-7", 400.0, 32, ramp, 150.0, 120.0);
-    let fast = ReplayOptions {
-        batch_size: 5,
-        ..ReplayOptions::default()
-    };
-    let (uninterrupted, _) = replay(&connection, &track, &fast, |_| {}).await;
+    let track = ramp_drive("car-7", 32);
+    let uninterrupted = replay_uninterrupted(&connection, &track).await;
 
     // The new model is activated while the vehicle streams: its open stream keeps the old model
     // until the restart ends it; the session that comes back starts afresh under the new one.
@@ -172,14 +186,8 @@ async fn a_replay_through_a_server_restart_matches_an_uninterrupted_one() {
     let connection = Connection::connect(server.url(), None)
         .await
         .expect("connect");
-    // 400 s at 1 Hz with a ramp attack, so alarms (and their state) are part of what must match.
-    let ramp = AttackKind::RampDrift { velocity_mps: 2.0 };
-    let track = attacked_drive("car-9", 400.0, 31, ramp, 150.0, 120.0);
-    let fast = ReplayOptions {
-        batch_size: 5,
-        ..ReplayOptions::default()
-    };
-    let (uninterrupted, _) = replay(&connection, &track, &fast, |_| {}).await;
+    let track = ramp_drive("car-9", 31);
+    let uninterrupted = replay_uninterrupted(&connection, &track).await;
     let (failed_over, summary, restarted, _dir) =
         replay_through_a_restart(server, dir, &connection, &track, std::future::ready(())).await;
 
