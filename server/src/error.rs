@@ -19,7 +19,7 @@ use crate::jobs::{JobError, JobFailure};
 use crate::models::RegistryError;
 use crate::status::{
     dependency_failed, failed_precondition, internal, invalid_argument, invalid_field, not_found,
-    resource_exhausted, with_code,
+    resource_exhausted, unavailable, with_code,
 };
 use crate::store::{FaultKind, JobEndError, StoreError, StoreFault};
 
@@ -112,6 +112,10 @@ impl From<SessionError> for Status {
             }
             SessionError::Model(model) => model.into(),
             SessionError::ModelDeleted(_) => with_code(Code::Aborted, error.to_string()),
+            // Retried soon: a burst of failovers or a short outage clears within seconds.
+            SessionError::SnapshotUnreadable(_) => {
+                unavailable(error.to_string(), Duration::from_secs(1))
+            }
         }
     }
 }

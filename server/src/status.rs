@@ -138,6 +138,12 @@ pub fn dependency_failed(
     Status::with_error_details(code, bounded_message(message), details)
 }
 
+/// UNAVAILABLE for a call that may succeed when retried after `retry_after`.
+pub fn unavailable(message: impl Into<String>, retry_after: std::time::Duration) -> Status {
+    let details = ErrorDetails::with_retry_info(Some(retry_after));
+    Status::with_error_details(Code::Unavailable, bounded_message(message), details)
+}
+
 /// UNAVAILABLE while the server drains.
 pub fn shutting_down() -> Status {
     let details = ErrorDetails::with_retry_info(Some(std::time::Duration::from_secs(1)));

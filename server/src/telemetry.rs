@@ -53,6 +53,7 @@ pub const INCIDENT_CORRELATOR: &str = "spoofwatch_incident_correlator_held";
 pub const SNAPSHOT_BACKLOG: &str = "spoofwatch_session_snapshots_backlog";
 pub const SNAPSHOT_LAG: &str = "spoofwatch_session_snapshots_lag_seconds";
 pub const SNAPSHOT_STORED: &str = "spoofwatch_session_snapshots_stored_total";
+pub const SNAPSHOT_UNREAD: &str = "spoofwatch_session_snapshots_unread_total";
 pub const SESSIONS_OPEN: &str = "spoofwatch_sessions_open";
 pub const SESSIONS_CONNECTED: &str = "spoofwatch_sessions_connected";
 pub const SESSIONS_EVICTED: &str = "spoofwatch_sessions_evicted_total";
@@ -218,6 +219,12 @@ pub const METRICS: &[(&str, Kind, &str)] = &[
         SESSIONS_EVICTED,
         Kind::Counter,
         "Sessions evicted after being idle without a stream.",
+    ),
+    (
+        SNAPSHOT_UNREAD,
+        Kind::Counter,
+        "Streams refused (UNAVAILABLE, to be retried) because their vehicle's stored session could \
+         not be read in time.",
     ),
     (
         SESSIONS_REFUSED,
@@ -388,6 +395,7 @@ pub fn install(
         ALARM_ENDS,
         SESSIONS_EVICTED,
         SESSIONS_REFUSED,
+        SNAPSHOT_UNREAD,
         INCIDENTS_OPENED,
         INCIDENT_VEHICLES_JOINED,
         INCIDENTS_ENDED,
@@ -497,6 +505,11 @@ pub fn sessions_evicted(count: usize) {
 /// A new session was refused: the table is full.
 pub fn session_refused() {
     counter!(SESSIONS_REFUSED).increment(1);
+}
+
+/// A stream was refused because its vehicle's stored session could not be read.
+pub fn snapshot_unread() {
+    counter!(SNAPSHOT_UNREAD).increment(1);
 }
 
 /// A job finished in `state` (succeeded, failed or cancelled).

@@ -4,7 +4,10 @@
 //! health is NOT_SERVING and DetectionService stays SERVING (so a balancer keeps the replica). When
 //! the same cluster is back, without a restart of the server, storage health is SERVING again, the
 //! alarm events and session snapshots held in the meantime are stored, and another server on the
-//! database resumes the vehicle from the snapshot.
+//! database resumes the vehicle from the snapshot. A vehicle that moves to a replica holding no
+//! session for it while the database is down is refused with UNAVAILABLE, to retry, rather than
+//! started afresh behind its stored snapshot, and resumes from that snapshot once the database is
+//! back.
 //!
 //! Runs where PostgreSQL is available to the tests (`SPOOFWATCH_TEST_POSTGRES_URL` set; the test
 //! only needs the binaries); skipped otherwise, failed under `SPOOFWATCH_REQUIRE_POSTGRES=1`.
@@ -18,9 +21,12 @@ use spoofwatch_proto::v1;
 use spoofwatch_server::Config;
 use spoofwatch_server::store::test_database::{REQUIRE_VARIABLE, URL_VARIABLE};
 use spoofwatch_tests::{
-    Clients, ServingStatus, TestServer, alarms_of, attacked_drive, fingerprint, health_of,
-    start_stream, test_config, track_samples, wait_for_health,
+    Clients, ServingStatus, TestServer, alarms_of, attacked_drive, code_of, fingerprint, health_of,
+    normal_drive, open_stream, start_request, start_stream, test_config, track_samples,
+    wait_for_health,
 };
+use tonic::Code;
+use tonic_types::StatusExt;
 
 const STORAGE: &str = "spoofwatch.storage";
 const BATCH: usize = 10;
@@ -179,4 +185,63 @@ async fn detection_continues_through_a_database_outage_and_storage_catches_up() 
     assert_eq!(accepted.last_seq, batches.len() as u64);
     drop(clients);
     next.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_vehicle_moving_while_the_database_is_down_waits_for_its_snapshot() {
+    if !postgres_available() {
+        return;
+    }
+    let vehicle = "outage-moves";
+    let batches: Vec<Vec<v1::Sample>> = track_samples(&normal_drive(vehicle, 60.0, 7))
+        .chunks(BATCH)
+        .map(<[v1::Sample]>::to_vec)
+        .collect();
+    let (postgres, url) = Cluster::start();
+    let first = TestServer::start(replica(&url)).await;
+    let second = TestServer::start(replica(&url)).await;
+    let first_clients = Clients::of(&first).await;
+    let (mut stream, _) = start_stream(&first_clients, vehicle, "").await;
+    for (seq, batch) in (1..).zip(&batches) {
+        stream.detect(seq, batch.clone()).await.expect("detections");
+    }
+    stream
+        .finish()
+        .await
+        .expect("the stream ends (its snapshot is stored)");
+
+    postgres.stop();
+    let second_clients = Clients::of(&second).await;
+    let refused = match open_stream(&second_clients, start_request(vehicle, "", false)).await {
+        Ok(mut stream) => stream
+            .accepted()
+            .await
+            .expect_err("no session while unreadable"),
+        Err(error) => error,
+    };
+    assert_eq!(code_of(&refused), Code::Unavailable, "{refused}");
+    let status = refused.status().expect("a status");
+    assert!(
+        status
+            .message()
+            .contains("stored session could not be read"),
+        "{}",
+        status.message()
+    );
+    assert!(
+        status.get_details_retry_info().is_some(),
+        "UNAVAILABLE says when to retry"
+    );
+
+    postgres.restart();
+    wait_for_health(&second, STORAGE, ServingStatus::Serving).await;
+    let (_stream, accepted) = start_stream(&second_clients, vehicle, "").await;
+    assert!(
+        accepted.resumed && accepted.from_snapshot,
+        "the refused start left nothing behind to shadow the snapshot: {accepted:?}"
+    );
+    assert_eq!(accepted.last_seq, batches.len() as u64);
+    drop((first_clients, second_clients));
+    first.stop().await;
+    second.stop().await;
 }

@@ -70,8 +70,10 @@ pub enum SnapshotRefused {
     Model { snapshot: String, session: String },
     #[error("the stored session snapshot does not fit model {model}: {reason}")]
     Unfit { model: String, reason: RestoreError },
-    #[error("the session store could not be read ({0})")]
-    Unreadable(String),
+    /// `retry`: the fault may pass and the vehicle has not waited long for it, so its stream is
+    /// refused, to be retried, rather than start afresh (see `super::snapshot_reads`).
+    #[error("the session store could not be read ({why})")]
+    Unreadable { why: String, retry: bool },
 }
 
 /// A [`SessionSnapshot`] of schema version 4: the same fields, the detector's without its

@@ -63,8 +63,12 @@ pub enum Origin {
     Snapshot(SnapshotRow),
     /// The session this process holds, as it is.
     Memory,
-    /// A fresh session; the reason the stored copy could not be read, if it could not.
+    /// A fresh session; why the stored copy was not used, if one was found and refused.
     Fresh(Option<SnapshotRefused>),
+    /// None yet: the store could not be read (the reason), the fault may pass, and nothing held
+    /// goes on. The stream is refused, to be retried, rather than start afresh behind a snapshot
+    /// nobody could see.
+    Unreadable(String),
 }
 
 /// What a stream is told about where its session continues from.
@@ -121,7 +125,7 @@ impl Start {
 
     /// Where the session continues from, given the vehicle's stored copy and how far it got
     /// (`Ok(None)`: none; a reset reads none) and this process's snapshot writer id. An unreadable
-    /// store does not stop a held session from going on.
+    /// store does not stop a held session from going on; it stops any other start.
     pub fn origin(
         &self,
         stored: Result<Option<(SnapshotRow, Progress)>, SnapshotRefused>,
@@ -135,6 +139,9 @@ impl Start {
                 if self.stored_is_newer(&row.writer, &progress, this_writer) =>
             {
                 Origin::Snapshot(row)
+            }
+            Err(SnapshotRefused::Unreadable { why, retry: true }) if !self.held_continues() => {
+                Origin::Unreadable(why)
             }
             Err(refused) if !self.held_continues() => Origin::Fresh(Some(refused)),
             _ if self.held_continues() => Origin::Memory,
@@ -218,8 +225,20 @@ mod tests {
         }
     }
 
+    /// The store could not be read; the vehicle may wait for it.
     fn unreadable() -> SnapshotRefused {
-        SnapshotRefused::Unreadable("down".to_string())
+        SnapshotRefused::Unreadable {
+            why: "down".to_string(),
+            retry: true,
+        }
+    }
+
+    /// The store could not be read and waiting will not help (or the vehicle waited long enough).
+    fn lost() -> SnapshotRefused {
+        SnapshotRefused::Unreadable {
+            why: "lost".to_string(),
+            retry: false,
+        }
     }
 
     #[test]
@@ -254,9 +273,18 @@ mod tests {
             Origin::Snapshot(stored_row(THIS))
         );
         assert_eq!(new.origin(Ok(None), THIS), Origin::Fresh(None));
+        // A copy that may exist but cannot be read: not yet, rather than afresh.
         assert_eq!(
             new.origin(Err(unreadable()), THIS),
-            Origin::Fresh(Some(unreadable()))
+            Origin::Unreadable("down".to_string())
+        );
+        // A store that will not answer soon: afresh, saying why.
+        assert_eq!(new.origin(Err(lost()), THIS), Origin::Fresh(Some(lost())));
+        // A copy read but refused (corrupt, another schema): afresh, saying why.
+        let corrupt = SnapshotRefused::Corrupt("truncated".to_string());
+        assert_eq!(
+            new.origin(Err(corrupt.clone()), THIS),
+            Origin::Fresh(Some(corrupt))
         );
     }
 
@@ -290,6 +318,7 @@ mod tests {
         assert_eq!(held.origin(Ok(None), THIS), Origin::Memory);
         // An unreadable store does not stop it.
         assert_eq!(held.origin(Err(unreadable()), THIS), Origin::Memory);
+        assert_eq!(held.origin(Err(lost()), THIS), Origin::Memory);
     }
 
     #[test]
@@ -304,9 +333,10 @@ mod tests {
             Origin::Fresh(None)
         );
         assert_eq!(other_model.origin(Ok(None), THIS), Origin::Fresh(None));
+        // A newer copy under the new model may exist on another replica: not yet.
         assert_eq!(
             other_model.origin(Err(unreadable()), THIS),
-            Origin::Fresh(Some(unreadable()))
+            Origin::Unreadable("down".to_string())
         );
     }
 

@@ -35,6 +35,7 @@ use super::episodes::{AlarmSignal, EpisodeChange};
 use super::handoff::{OpenAlarm, SNAPSHOT_SCHEMA, SessionSnapshot, SnapshotRefused, reads_schema};
 use super::resume::{Origin, Progress, Resumption, Start};
 use super::sequence::SeqCheck;
+use super::snapshot_reads::{SnapshotReads, UNREAD_GRACE, Unread, UnreadSince};
 use super::state::SessionState;
 use super::validate::validate_batch;
 use crate::alarms::why::OnsetWhy;
@@ -63,6 +64,14 @@ pub enum SessionError {
     /// The requested model cannot be served.
     #[error(transparent)]
     Model(#[from] RegistryError),
+    /// The vehicle's stored session could not be read, and this process holds none to go on
+    /// with: the stream is refused rather than start afresh behind it.
+    #[error(
+        "the vehicle's stored session could not be read ({0}); retry to resume it (after {grace} s \
+         of this it starts afresh without it), or start with reset to begin afresh now",
+        grace = UNREAD_GRACE.as_secs()
+    )]
+    SnapshotUnreadable(String),
     /// The session's model was deleted: the session ended.
     #[error(
         "{0} was deleted, which ended this session; start a new one (an empty model follows the active model)"
@@ -244,8 +253,12 @@ pub struct SessionManager {
     slots: Mutex<HashMap<VehicleId, Arc<SessionSlot>>>,
     registry: Arc<Registry>,
     outbox: Arc<SessionOutbox>,
-    /// Where snapshots are read from (they are written through `alarms`).
+    /// Where snapshots are deleted and expired (they are written through the outbox).
     store: Store,
+    /// Where snapshots are read, many vehicles' in one query.
+    reads: SnapshotReads,
+    /// How long vehicles have waited for a store that could not be read.
+    unread_since: UnreadSince,
     limits: SessionLimits,
     snapshots: SnapshotPolicy,
     next_stream_id: AtomicU64,
@@ -286,6 +299,8 @@ impl SessionManager {
             slots: Mutex::new(HashMap::new()),
             registry,
             outbox,
+            reads: SnapshotReads::start(store.clone()),
+            unread_since: UnreadSince::default(),
             store,
             limits,
             snapshots,
@@ -413,6 +428,11 @@ impl SessionManager {
         } else {
             self.stored_snapshot(vehicle_id).await
         };
+        if let Err(SnapshotRefused::Unreadable { why, retry: true }) = &stored
+            && self.lookup(vehicle_id).is_none()
+        {
+            return Err(self.refuse_unreadable(vehicle_id, why.clone()));
+        }
         let (slot, existed) = self.admit(vehicle_id, &model, identity).await?;
         let evicted = CancellationToken::new();
         let stream_id = self.next_stream_id.fetch_add(1, Ordering::Relaxed);
@@ -448,6 +468,11 @@ impl SessionManager {
                 }
             },
             Origin::Memory => Resumption::in_memory(),
+            Origin::Unreadable(why) => {
+                drop(state);
+                self.abandon(&slot, stream_id, existed);
+                return Err(self.refuse_unreadable(vehicle_id, why));
+            }
             Origin::Fresh(refused) => {
                 if let Some(refused) = &refused {
                     tracing::warn!(vehicle = %vehicle_id, reason = %refused, "session snapshot not read: the session starts afresh");
@@ -475,6 +500,36 @@ impl SessionManager {
             evicted,
             accepted,
         })
+    }
+
+    /// The refusal of a stream whose vehicle's stored session could not be read.
+    fn refuse_unreadable(&self, vehicle_id: &VehicleId, why: String) -> SessionError {
+        tracing::warn!(vehicle = %vehicle_id, reason = %why, "session snapshot not read: the stream is refused, to be retried");
+        telemetry::snapshot_unread();
+        SessionError::SnapshotUnreadable(why)
+    }
+
+    /// Undoes an attachment refused before it began: the stream lets go of the session, and a
+    /// session made for it leaves the table again.
+    fn abandon(&self, slot: &Arc<SessionSlot>, stream_id: u64, existed: bool) {
+        if let Ok(mut owner) = slot.owner.lock()
+            && owner.as_ref().is_some_and(|o| o.id == stream_id)
+        {
+            *owner = None;
+        }
+        if existed {
+            return;
+        }
+        let removed = {
+            let mut table = self.slots();
+            let ours = table
+                .get(&slot.vehicle_id)
+                .is_some_and(|held| Arc::ptr_eq(held, slot));
+            ours && table.remove(&slot.vehicle_id).is_some()
+        };
+        if removed {
+            self.forget(slot);
+        }
     }
 
     /// Releases a stream's hold (if it still holds the session) and snapshots the session; the
@@ -564,15 +619,20 @@ impl SessionManager {
         if let Some(queued) = self.outbox.queued_snapshot(vehicle_id.as_str()) {
             return Ok(Some(queued));
         }
-        let load = self.store.load_snapshot(vehicle_id.as_str());
-        match tokio::time::timeout(SNAPSHOT_WAIT, load).await {
-            Ok(Ok(row)) => Ok(row),
-            Ok(Err(error)) => Err(SnapshotRefused::Unreadable(error.to_string())),
-            Err(_) => Err(SnapshotRefused::Unreadable(format!(
-                "no answer within {} s",
-                SNAPSHOT_WAIT.as_secs()
-            ))),
-        }
+        let read = self.reads.read(vehicle_id.as_str());
+        let unread = match tokio::time::timeout(SNAPSHOT_WAIT, read).await {
+            Ok(Ok(row)) => {
+                self.unread_since.read(vehicle_id.as_str());
+                return Ok(row);
+            }
+            Ok(Err(unread)) => unread,
+            Err(_) => Unread::no_answer_within(SNAPSHOT_WAIT),
+        };
+        let retry = unread.may_pass && self.unread_since.may_wait(vehicle_id.as_str());
+        Err(SnapshotRefused::Unreadable {
+            why: unread.why,
+            retry,
+        })
     }
 
     /// The session a stored snapshot continues under `model`.

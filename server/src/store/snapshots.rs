@@ -76,6 +76,32 @@ impl Store {
         }))
     }
 
+    /// The latest snapshots of these vehicles, those that have one, in any order: one query for
+    /// many vehicles (a burst of streams failing over at once).
+    pub async fn load_snapshots(
+        &self,
+        vehicle_ids: &[&str],
+    ) -> Result<Vec<SnapshotRow>, StoreError> {
+        if vehicle_ids.is_empty() {
+            return Ok(Vec::new());
+        }
+        Ok(on_pool!(self, |pool| {
+            let mut query = sqlx::QueryBuilder::new(
+                "SELECT vehicle_id, model_id, schema_version, samples, last_seq, open_alarm_id, \
+                 writer, updated_at, snapshot FROM session_snapshots WHERE vehicle_id IN (",
+            );
+            let mut ids = query.separated(", ");
+            for id in vehicle_ids {
+                ids.push_bind(*id);
+            }
+            query.push(")");
+            query
+                .build_query_as::<SnapshotRow>()
+                .fetch_all(pool)
+                .await?
+        }))
+    }
+
     /// Deletes the snapshots of sessions that ran `model_id` (the model was deleted); returns how
     /// many.
     pub async fn delete_snapshots_of_model(&self, model_id: &str) -> Result<u64, StoreError> {
