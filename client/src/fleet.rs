@@ -219,10 +219,12 @@ impl FleetTally {
                 vehicle_id,
                 accepted,
                 replies_lost,
+                replies_recovered,
                 ..
             } => {
                 let vehicle = self.vehicle(vehicle_id);
-                vehicle.replies_lost += replies_lost;
+                vehicle.replies_lost =
+                    (vehicle.replies_lost + replies_lost).saturating_sub(*replies_recovered);
                 vehicle.streams += 1;
                 vehicle.failovers += 1;
                 vehicle.failovers_onto_another_model +=
@@ -584,5 +586,33 @@ mod tests {
         assert_eq!(summary.attack_free_hours, 0.0);
         assert_eq!(summary.false_alarms_per_attack_free_hour, None);
         assert_eq!(summary.detections, 1);
+    }
+
+    fn failover(vehicle: &str, replies_lost: u64, replies_recovered: u64) -> ReplayEvent {
+        ReplayEvent::Failover {
+            vehicle_id: vehicle.to_string(),
+            stream: 1,
+            accepted: v1::SessionAccepted {
+                resumed: true,
+                ..v1::SessionAccepted::default()
+            },
+            resend_from: 0,
+            replies_lost,
+            replies_recovered,
+        }
+    }
+
+    #[test]
+    fn replies_lost_at_one_failover_and_resent_at_a_later_one_are_not_lost() {
+        let mut fleet = FleetTally::default();
+        // Five replies lost; a later failover finds the session further back and resends three
+        // of them; then two more are lost.
+        fleet.record(&failover("car", 5, 0));
+        fleet.record(&failover("car", 0, 3));
+        fleet.record(&failover("car", 2, 0));
+        let summary = fleet.summary();
+        assert_eq!(summary.replies_lost, 4);
+        assert_eq!(summary.failovers, 3);
+        assert_eq!(summary.resumed_reconnects, 3);
     }
 }

@@ -289,6 +289,9 @@ pub enum ReplayEvent {
         /// connection): their detections are lost, as they would be for a vehicle, and they are
         /// not sent again.
         replies_lost: u64,
+        /// Samples an earlier failover counted in `replies_lost` that this one resends (the
+        /// session it found had not got as far): their detections come after all.
+        replies_recovered: u64,
     },
     /// One sample's detection, in sample order.
     Detection(ReplayedDetection),
@@ -360,6 +363,8 @@ struct BatchResult {
     detections: u64,
     alarm_onsets: u64,
     rejected: bool,
+    /// Applied by the session, its reply lost with a failed stream.
+    reply_lost: bool,
 }
 
 /// How the next stream of a vehicle starts.
@@ -507,6 +512,7 @@ impl VehicleReplay<'_> {
                     detections: 0,
                     alarm_onsets: 0,
                     rejected: false,
+                    reply_lost: true,
                 });
             }
         }
@@ -590,8 +596,14 @@ impl VehicleReplay<'_> {
                     fresh
                 };
                 self.summary.failovers += 1;
-                for result in &mut self.results[*position..] {
-                    *result = None;
+                let mut replies_recovered = 0;
+                for (result, planned) in self.results[*position..]
+                    .iter_mut()
+                    .zip(&self.plan[*position..])
+                {
+                    if result.take().is_some_and(|r| r.reply_lost) {
+                        replies_recovered += planned.batch.samples.len() as u64;
+                    }
                 }
                 let resend_from = self.first_index_of(*position);
                 (
@@ -602,6 +614,7 @@ impl VehicleReplay<'_> {
                         accepted,
                         resend_from,
                         replies_lost,
+                        replies_recovered,
                     },
                 )
             }
@@ -648,7 +661,7 @@ impl VehicleReplay<'_> {
                         self.pacer.due_after_start(position),
                         self.pacer.due(position).elapsed(),
                     );
-                    let mut result = BatchResult { detections: 0, alarm_onsets: 0, rejected: false };
+                    let mut result = BatchResult { detections: 0, alarm_onsets: 0, rejected: false, reply_lost: false };
                     match reply.outcome {
                         BatchOutcome::Detections(detections) => {
                             for (offset, detection) in detections.into_iter().enumerate() {

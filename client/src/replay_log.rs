@@ -90,6 +90,7 @@ mod tests {
             accepted: v1::SessionAccepted::default(),
             resend_from,
             replies_lost: 0,
+            replies_recovered: 0,
         }
     }
 
