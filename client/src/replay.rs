@@ -414,6 +414,7 @@ pub async fn replay_track(
         events,
         streams_opened: 0,
         model: Arc::from(""),
+        session_start: 0,
     };
     replay.run(connection).await
 }
@@ -432,6 +433,9 @@ struct VehicleReplay<'a> {
     streams_opened: u32,
     /// The model of the current stream.
     model: Arc<str>,
+    /// The first batch the server's current session for the vehicle was sent: 0, or where the
+    /// replay went on after a roll-out started the session afresh under another model.
+    session_start: usize,
 }
 
 impl VehicleReplay<'_> {
@@ -547,7 +551,7 @@ impl VehicleReplay<'_> {
         let model = &self.options.model;
         let (stream, accepted) =
             DetectStream::start(connection, &self.vehicle_id, model, reset).await?;
-        self.model = Arc::from(accepted.model.as_str());
+        let previous_model = std::mem::replace(&mut self.model, Arc::from(accepted.model.as_str()));
         let stream_number = self.streams_opened;
         let event = match opening {
             Opening::First | Opening::Planned => {
@@ -563,10 +567,16 @@ impl VehicleReplay<'_> {
             }
             Opening::Failover => {
                 let mut replies_lost = 0;
-                // A session that kept its state: exactly the batches after its last_seq are missing.
-                let resumable =
-                    accepted.resumed && (accepted.last_seq > 0 || accepted.samples_seen == 0);
-                let stream = if resumable {
+                let applied_none = accepted.last_seq == 0 && accepted.samples_seen == 0;
+                // Started afresh under another model (a roll-out), also when the stream that was
+                // told so failed before this replay heard it: the retry then finds that fresh
+                // session, resumed with nothing applied, on a model the answers so far did not
+                // come from.
+                let rolled_out = !accepted.replaced_model.is_empty()
+                    || (accepted.resumed && applied_none && *accepted.model != *previous_model);
+                let stream = if accepted.resumed && accepted.last_seq > 0 {
+                    // A session that kept its state: exactly the batches after its last_seq are
+                    // missing.
                     let last_seq = usize::try_from(accepted.last_seq).unwrap_or(usize::MAX);
                     if last_seq > self.plan.len() {
                         return Err(ClientError::Protocol(format!(
@@ -579,11 +589,17 @@ impl VehicleReplay<'_> {
                     replies_lost = self.mark_applied_through(last_seq);
                     *position = last_seq;
                     stream
-                } else if !accepted.replaced_model.is_empty() {
-                    // The session was started afresh under another model (a roll-out): as a
-                    // vehicle does, go on with the batches not yet answered; what the previous
-                    // model said stands.
-                    *position = self.first_unanswered();
+                } else if rolled_out {
+                    // As a vehicle does, go on with the batches not yet answered; what the
+                    // previous model said stands.
+                    self.summary.resumed_reconnects += u32::from(accepted.resumed);
+                    self.session_start = self.first_unanswered();
+                    *position = self.session_start;
+                    stream
+                } else if accepted.resumed && applied_none {
+                    // A session with nothing applied yet: from where it started.
+                    self.summary.resumed_reconnects += 1;
+                    *position = self.session_start;
                     stream
                 } else {
                     // A replica without the session: start the vehicle over, exactly as the first
@@ -592,6 +608,7 @@ impl VehicleReplay<'_> {
                     let (fresh, fresh_accepted) =
                         DetectStream::start(connection, &self.vehicle_id, model, true).await?;
                     self.model = Arc::from(fresh_accepted.model.as_str());
+                    self.session_start = 0;
                     *position = 0;
                     fresh
                 };
