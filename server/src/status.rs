@@ -116,8 +116,11 @@ pub fn failed_precondition(reason: &str, message: impl Into<String>) -> Status {
 
 /// RESOURCE_EXHAUSTED with a retry hint.
 pub fn resource_exhausted(message: impl Into<String>) -> Status {
-    let details = ErrorDetails::with_retry_info(Some(std::time::Duration::from_secs(5)));
-    Status::with_error_details(Code::ResourceExhausted, bounded_message(message), details)
+    retry_later(
+        Code::ResourceExhausted,
+        message,
+        std::time::Duration::from_secs(5),
+    )
 }
 
 /// RESOURCE_EXHAUSTED (`exhausted`) or UNAVAILABLE for a resource the server depends on, with the
@@ -134,24 +137,26 @@ pub fn dependency_failed(
     } else {
         Code::Unavailable
     };
-    let details = ErrorDetails::with_retry_info(Some(retry_after));
-    Status::with_error_details(code, bounded_message(message), details)
+    retry_later(code, message, retry_after)
 }
 
 /// UNAVAILABLE for a call that may succeed when retried after `retry_after`.
 pub fn unavailable(message: impl Into<String>, retry_after: std::time::Duration) -> Status {
-    let details = ErrorDetails::with_retry_info(Some(retry_after));
-    Status::with_error_details(Code::Unavailable, bounded_message(message), details)
+    retry_later(Code::Unavailable, message, retry_after)
 }
 
 /// UNAVAILABLE while the server drains.
 pub fn shutting_down() -> Status {
-    let details = ErrorDetails::with_retry_info(Some(std::time::Duration::from_secs(1)));
-    Status::with_error_details(
-        Code::Unavailable,
+    unavailable(
         "server is shutting down; reconnect to another replica or retry",
-        details,
+        std::time::Duration::from_secs(1),
     )
+}
+
+/// `code` with a RetryInfo detail: a retry after `retry_after` may succeed.
+fn retry_later(code: Code, message: impl Into<String>, retry_after: std::time::Duration) -> Status {
+    let details = ErrorDetails::with_retry_info(Some(retry_after));
+    Status::with_error_details(code, bounded_message(message), details)
 }
 
 /// INTERNAL for an unexpected failure, logged with its cause.

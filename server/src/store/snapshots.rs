@@ -65,15 +65,7 @@ pub(super) use upsert_snapshot;
 impl Store {
     /// The latest snapshot of `vehicle_id`'s session, if one is stored.
     pub async fn load_snapshot(&self, vehicle_id: &str) -> Result<Option<SnapshotRow>, StoreError> {
-        Ok(on_pool!(self, |pool| {
-            sqlx::query_as::<_, SnapshotRow>(
-                "SELECT vehicle_id, model_id, schema_version, samples, last_seq, open_alarm_id, \
-                 writer, updated_at, snapshot FROM session_snapshots WHERE vehicle_id = $1",
-            )
-            .bind(vehicle_id)
-            .fetch_optional(pool)
-            .await?
-        }))
+        Ok(self.load_snapshots(&[vehicle_id]).await?.pop())
     }
 
     /// The latest snapshots of these vehicles, those that have one, in any order: one query for
