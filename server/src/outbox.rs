@@ -415,6 +415,27 @@ impl SessionOutbox {
             .fetch_add(snapshots.len() as u64, Ordering::Relaxed);
     }
 
+    /// Ends the alarm a snapshot holds open that the store did not take, because another process
+    /// replaced its session (a roll-out) and ended the alarm from the copy it had read: at this
+    /// copy's progress, which the store keeps if it got further.
+    fn end_replaced_copy(&self, copy: &SnapshotRow) {
+        let (Some(id), Some(last), Some(peak), Some(samples)) = (
+            copy.open_alarm_id,
+            copy.open_alarm_last_timestamp_s,
+            copy.open_alarm_peak_probability,
+            copy.open_alarm_samples,
+        ) else {
+            return;
+        };
+        tracing::info!(
+            vehicle = %copy.vehicle_id,
+            alarm_id = id,
+            "a session snapshot was not stored: another process replaced the session; its alarm \
+             ends at this copy's last alarming sample if that is later"
+        );
+        self.end_at(id, Some(last), peak, samples);
+    }
+
     /// The writer: stores queued writes until `stop` is cancelled and the queue is empty, or until
     /// `grace` has passed after `stop` with the store still refusing (what is left is logged).
     pub async fn run(&self, store: Store, stop: CancellationToken, grace: Duration) {
@@ -434,7 +455,10 @@ impl SessionOutbox {
             }
             let write = store.write_alarms_and_snapshots(&batch, &snapshots);
             match telemetry::db_timed("alarm_batch_write", write).await {
-                Ok(()) => {
+                Ok(replaced) => {
+                    for index in replaced {
+                        self.end_replaced_copy(&snapshots[index]);
+                    }
                     self.committed(batch.len(), &snapshots, &generations);
                     if !batch.is_empty() {
                         self.stored.notify_one();
@@ -601,6 +625,59 @@ mod tests {
     }
 
     #[tokio::test]
+    async fn a_copy_of_a_session_another_process_replaced_moves_its_alarms_end_on() {
+        let (_dir, store) = temp_store().await;
+        let outbox = Arc::new(SessionOutbox::new(&store, 100).await.unwrap());
+        let stop = CancellationToken::new();
+        let writer = tokio::spawn({
+            let (outbox, store, stop) = (Arc::clone(&outbox), store.clone(), stop.clone());
+            async move { outbox.run(store, stop, Duration::from_secs(5)).await }
+        });
+        let id = outbox.onset("car-1", "m1", 100.0, 1, 0.5, None);
+        let copy_at = |last: f64, samples: i64| SnapshotRow {
+            open_alarm_id: Some(id),
+            open_alarm_last_timestamp_s: Some(last),
+            open_alarm_peak_probability: Some(0.9),
+            open_alarm_samples: Some(samples),
+            ..snapshot_of("car-1", samples)
+        };
+        outbox.save_snapshot(copy_at(150.0, 51)).await.unwrap();
+
+        // Another process replaces the session from that copy: it ends the alarm at 150 s and
+        // stores a session of another model.
+        let mut from_copy = AlarmEventRow::opened(id, "car-1", "m1", 100.0, 1, 0.5);
+        from_copy = from_copy.ended(Some(150.0), 2, 0.9, 51);
+        let replacement = SnapshotRow {
+            model_id: "m2".into(),
+            writer: "other".into(),
+            ..snapshot_of("car-1", 0)
+        };
+        store
+            .write_alarms_and_snapshots(
+                &[AlarmEvent {
+                    seq: 1,
+                    kind: AlarmEventKind::End,
+                    alarm: from_copy,
+                }],
+                std::slice::from_ref(&replacement),
+            )
+            .await
+            .unwrap();
+
+        // This process's later copy is not stored, and the alarm ends where that copy got.
+        outbox.save_snapshot(copy_at(170.0, 71)).await.unwrap();
+        wait_until("the alarm's end moved on", || outbox.stats().backlog == 0).await;
+        let alarm = &store.list_alarm_events(Some("car-1"), 1).await.unwrap()[0];
+        assert_eq!((alarm.end_timestamp_s, alarm.samples), (Some(170.0), 71));
+        assert_eq!(
+            store.load_snapshot("car-1").await.unwrap(),
+            Some(replacement)
+        );
+        stop.cancel();
+        writer.await.unwrap();
+    }
+
+    #[tokio::test]
     async fn a_full_queue_drops_new_onsets_but_keeps_ends() {
         let (_dir, store) = temp_store().await;
         let outbox = SessionOutbox::new(&store, 2).await.unwrap();
@@ -667,17 +744,7 @@ mod tests {
     }
 
     fn snapshot_of(vehicle_id: &str, samples: i64) -> SnapshotRow {
-        SnapshotRow {
-            vehicle_id: vehicle_id.into(),
-            model_id: "m".into(),
-            schema_version: 1,
-            samples,
-            last_seq: samples,
-            open_alarm_id: None,
-            writer: "1".into(),
-            updated_at_ms: 0,
-            snapshot: vec![1, 2, 3],
-        }
+        SnapshotRow::opaque(vehicle_id, samples)
     }
 
     #[tokio::test]

@@ -213,15 +213,11 @@ mod tests {
 
     fn stored_row(writer: &str) -> SnapshotRow {
         SnapshotRow {
-            vehicle_id: "car-1".to_string(),
             model_id: "a".to_string(),
-            schema_version: 1,
-            samples: 10,
             last_seq: 3,
-            open_alarm_id: None,
             writer: writer.to_string(),
             updated_at_ms: -3_600_000,
-            snapshot: vec![1, 2, 3],
+            ..SnapshotRow::opaque("car-1", 10)
         }
     }
 

@@ -563,14 +563,17 @@ impl SessionManager {
         state.since_snapshot = 0;
         state.snapshot_taken = Instant::now();
         let snapshot = state.snapshot();
-        let open_alarm_id = snapshot.open_alarm.as_ref().map(|open| open.id);
+        let open = snapshot.open_alarm.as_ref();
         self.outbox.save_snapshot(SnapshotRow {
             vehicle_id: vehicle_id.to_string(),
             model_id: snapshot.model_id.clone(),
             schema_version: i64::from(SNAPSHOT_SCHEMA),
             samples: i64::try_from(state.samples).unwrap_or(i64::MAX),
             last_seq: i64::try_from(state.seqs.last()).unwrap_or(i64::MAX),
-            open_alarm_id,
+            open_alarm_id: open.map(|open| open.id),
+            open_alarm_last_timestamp_s: open.map(|open| open.last_timestamp_s),
+            open_alarm_peak_probability: open.map(|open| open.peak),
+            open_alarm_samples: open.map(|open| i64::from(open.samples)),
             writer: self.writer(),
             updated_at_ms: now_ms,
             snapshot: snapshot.encode(),

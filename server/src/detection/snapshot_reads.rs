@@ -188,17 +188,7 @@ mod tests {
     use crate::store::AlarmEvent;
 
     fn snapshot(vehicle_id: &str) -> SnapshotRow {
-        SnapshotRow {
-            vehicle_id: vehicle_id.to_string(),
-            model_id: "m1".to_string(),
-            schema_version: 5,
-            samples: 1,
-            last_seq: 1,
-            open_alarm_id: None,
-            writer: "1".to_string(),
-            updated_at_ms: 1,
-            snapshot: vehicle_id.as_bytes().to_vec(),
-        }
+        SnapshotRow::opaque(vehicle_id, 1)
     }
 
     /// A read started at once on its own task (so that many wait together).

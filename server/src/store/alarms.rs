@@ -238,6 +238,23 @@ pub struct AlarmFilter {
     pub state: AlarmState,
 }
 
+/// `end` as it stands against the stored snapshot copy of its session's progress on the alarm
+/// (latest alarming sample's time, peak, samples): taken from that copy when it got further.
+pub(super) fn furthest_end(
+    end: &AlarmEvent,
+    stored_copy: Option<(Option<f64>, Option<f64>, Option<i64>)>,
+) -> AlarmEvent {
+    let mut end = end.clone();
+    if let Some((Some(last), Some(peak), Some(samples))) = stored_copy
+        && end.alarm.end_timestamp_s.is_none_or(|ends| last > ends)
+    {
+        end.alarm.end_timestamp_s = Some(last);
+        end.alarm.peak_probability = end.alarm.peak_probability.max(peak);
+        end.alarm.samples = end.alarm.samples.max(samples);
+    }
+    end
+}
+
 /// Listing name inside page tokens.
 const LISTING: &str = "alarms";
 
@@ -292,54 +309,77 @@ macro_rules! log_event {
 }
 pub(super) use log_event;
 
-/// Applies `event` inside the write transaction `$tx`: an onset inserts its alarm, an end closes it
-/// (only while it is open), and an event that changed its alarm is appended to the event log. A
-/// retry of a stored event changes nothing. A macro so that it compiles for either backend's
-/// transaction (used by the joint write, `super::outbox`).
+/// Applies `event` inside the write transaction `$tx`: an onset inserts its alarm, an end closes it,
+/// and an event that changed its alarm is appended to the event log, as it left the alarm. A retry
+/// of a stored event changes nothing. A macro so that it compiles for either backend's transaction
+/// (used by the joint write, `super::outbox`).
+///
+/// An alarm ends at the latest alarming sample any copy of its session saw. A process that
+/// replaces a session (a roll-out) ends its alarm from the copy it read, which may lag the copy
+/// another process stored meanwhile, or stores later: so an end takes the stored snapshot's
+/// progress on the alarm when that got further, and an end later than the stored one moves it on
+/// (an end without a sample time moves nothing that has one).
 macro_rules! apply_event {
     ($tx:ident, $event:expr) => {{
         let event: &AlarmEvent = $event;
         let alarm = &event.alarm;
-        let applied = match event.kind {
-            AlarmEventKind::Onset => sqlx::query(
-                "INSERT INTO alarm_events (id, vehicle_id, model_id, \
-                 onset_timestamp_s, onset_at, peak_probability, samples, why_kind, \
-                 why_offset_east_m, why_offset_north_m, why_drift_east_mps, why_drift_north_mps, \
-                 onset_latitude_deg, onset_longitude_deg) \
-                 VALUES ($1, $2, $3, $4, $5, $6, 1, $7, $8, $9, $10, $11, $12, $13) \
-                 ON CONFLICT DO NOTHING",
-            )
-            .bind(alarm.id)
-            .bind(&alarm.vehicle_id)
-            .bind(&alarm.model_id)
-            .bind(alarm.onset_timestamp_s)
-            .bind(alarm.onset_at_ms)
-            .bind(alarm.peak_probability)
-            .bind(alarm.why.why_kind.as_deref())
-            .bind(alarm.why.why_offset_east_m)
-            .bind(alarm.why.why_offset_north_m)
-            .bind(alarm.why.why_drift_east_mps)
-            .bind(alarm.why.why_drift_north_mps)
-            .bind(alarm.place.onset_latitude_deg)
-            .bind(alarm.place.onset_longitude_deg)
-            .execute(&mut *$tx)
-            .await?
-            .rows_affected(),
-            AlarmEventKind::End => sqlx::query(
-                "UPDATE alarm_events SET end_timestamp_s = $2, ended_at = $3, \
-                 peak_probability = $4, samples = $5 WHERE id = $1 AND ended_at IS NULL",
-            )
-            .bind(alarm.id)
-            .bind(alarm.end_timestamp_s)
-            .bind(alarm.ended_at_ms)
-            .bind(alarm.peak_probability)
-            .bind(alarm.samples)
-            .execute(&mut *$tx)
-            .await?
-            .rows_affected(),
-        };
-        if applied > 0 {
-            $crate::store::alarms::log_event!($tx, event);
+        match event.kind {
+            AlarmEventKind::Onset => {
+                let inserted = sqlx::query(
+                    "INSERT INTO alarm_events (id, vehicle_id, model_id, \
+                     onset_timestamp_s, onset_at, peak_probability, samples, why_kind, \
+                     why_offset_east_m, why_offset_north_m, why_drift_east_mps, \
+                     why_drift_north_mps, onset_latitude_deg, onset_longitude_deg) \
+                     VALUES ($1, $2, $3, $4, $5, $6, 1, $7, $8, $9, $10, $11, $12, $13) \
+                     ON CONFLICT DO NOTHING",
+                )
+                .bind(alarm.id)
+                .bind(&alarm.vehicle_id)
+                .bind(&alarm.model_id)
+                .bind(alarm.onset_timestamp_s)
+                .bind(alarm.onset_at_ms)
+                .bind(alarm.peak_probability)
+                .bind(alarm.why.why_kind.as_deref())
+                .bind(alarm.why.why_offset_east_m)
+                .bind(alarm.why.why_offset_north_m)
+                .bind(alarm.why.why_drift_east_mps)
+                .bind(alarm.why.why_drift_north_mps)
+                .bind(alarm.place.onset_latitude_deg)
+                .bind(alarm.place.onset_longitude_deg)
+                .execute(&mut *$tx)
+                .await?
+                .rows_affected();
+                if inserted > 0 {
+                    $crate::store::alarms::log_event!($tx, event);
+                }
+            }
+            AlarmEventKind::End => {
+                let stored_copy = sqlx::query_as::<_, (Option<f64>, Option<f64>, Option<i64>)>(
+                    "SELECT open_alarm_last_timestamp_s, open_alarm_peak_probability, \
+                     open_alarm_samples FROM session_snapshots WHERE open_alarm_id = $1",
+                )
+                .bind(alarm.id)
+                .fetch_optional(&mut *$tx)
+                .await?;
+                let event = &$crate::store::alarms::furthest_end(event, stored_copy);
+                let alarm = &event.alarm;
+                let ended = sqlx::query(
+                    "UPDATE alarm_events SET end_timestamp_s = $2, ended_at = $3, \
+                     peak_probability = $4, samples = $5 WHERE id = $1 AND (ended_at IS NULL \
+                     OR end_timestamp_s < $2 OR (end_timestamp_s IS NULL AND $2 IS NOT NULL))",
+                )
+                .bind(alarm.id)
+                .bind(alarm.end_timestamp_s)
+                .bind(alarm.ended_at_ms)
+                .bind(alarm.peak_probability)
+                .bind(alarm.samples)
+                .execute(&mut *$tx)
+                .await?
+                .rows_affected();
+                if ended > 0 {
+                    $crate::store::alarms::log_event!($tx, event);
+                }
+            }
         }
     }};
 }

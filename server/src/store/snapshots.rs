@@ -23,6 +23,11 @@ pub struct SnapshotRow {
     pub last_seq: i64,
     /// The alarm the session holds open, if any.
     pub open_alarm_id: Option<i64>,
+    /// How far the session got on that alarm: its latest alarming sample's time, peak probability
+    /// and samples. The alarm's end is taken from the copy of the session that got furthest.
+    pub open_alarm_last_timestamp_s: Option<f64>,
+    pub open_alarm_peak_probability: Option<f64>,
+    pub open_alarm_samples: Option<i64>,
     /// The server process that wrote it.
     pub writer: String,
     /// When it was written, unix epoch milliseconds.
@@ -32,20 +37,56 @@ pub struct SnapshotRow {
     pub snapshot: Vec<u8>,
 }
 
+#[cfg(test)]
+impl SnapshotRow {
+    /// A snapshot of `vehicle_id` by writer "1" under model "m1" that holds no alarm open, whose
+    /// encoding is the vehicle's name (opaque to the store).
+    pub fn opaque(vehicle_id: &str, samples: i64) -> Self {
+        Self {
+            vehicle_id: vehicle_id.to_string(),
+            model_id: "m1".to_string(),
+            schema_version: 5,
+            samples,
+            last_seq: samples,
+            open_alarm_id: None,
+            open_alarm_last_timestamp_s: None,
+            open_alarm_peak_probability: None,
+            open_alarm_samples: None,
+            writer: "1".to_string(),
+            updated_at_ms: 1_000 + samples,
+            snapshot: vehicle_id.as_bytes().to_vec(),
+        }
+    }
+}
+
 /// Stores `$row` (a `&SnapshotRow`) as its vehicle's latest snapshot inside the write transaction
-/// `$tx` (the joint write of `super::outbox`).
+/// `$tx` (the joint write of `super::outbox`); evaluates to whether it was stored.
+///
+/// It is not stored over a snapshot of another session of the vehicle when it holds open an alarm
+/// that has ended: it is then a copy of a session that another process replaced (a roll-out),
+/// ending that alarm from the copy it read, and the replacement's snapshot must stay. The caller
+/// ends the alarm at this copy's progress, which may be further than the copy the other process
+/// read (`apply_event!` keeps the furthest end).
 macro_rules! upsert_snapshot {
     ($tx:ident, $row:expr) => {{
         let row: &SnapshotRow = $row;
         sqlx::query(
             "INSERT INTO session_snapshots (vehicle_id, model_id, schema_version, samples, \
-             last_seq, open_alarm_id, writer, updated_at, snapshot) \
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9) \
+             last_seq, open_alarm_id, open_alarm_last_timestamp_s, open_alarm_peak_probability, \
+             open_alarm_samples, writer, updated_at, snapshot) \
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12) \
              ON CONFLICT (vehicle_id) DO UPDATE SET model_id = excluded.model_id, \
              schema_version = excluded.schema_version, samples = excluded.samples, \
              last_seq = excluded.last_seq, open_alarm_id = excluded.open_alarm_id, \
+             open_alarm_last_timestamp_s = excluded.open_alarm_last_timestamp_s, \
+             open_alarm_peak_probability = excluded.open_alarm_peak_probability, \
+             open_alarm_samples = excluded.open_alarm_samples, \
              writer = excluded.writer, updated_at = excluded.updated_at, \
-             snapshot = excluded.snapshot",
+             snapshot = excluded.snapshot \
+             WHERE excluded.open_alarm_id IS NULL \
+             OR session_snapshots.open_alarm_id = excluded.open_alarm_id \
+             OR NOT EXISTS (SELECT 1 FROM alarm_events a \
+                            WHERE a.id = excluded.open_alarm_id AND a.ended_at IS NOT NULL)",
         )
         .bind(&row.vehicle_id)
         .bind(&row.model_id)
@@ -53,11 +94,16 @@ macro_rules! upsert_snapshot {
         .bind(row.samples)
         .bind(row.last_seq)
         .bind(row.open_alarm_id)
+        .bind(row.open_alarm_last_timestamp_s)
+        .bind(row.open_alarm_peak_probability)
+        .bind(row.open_alarm_samples)
         .bind(&row.writer)
         .bind(row.updated_at_ms)
         .bind(&row.snapshot)
         .execute(&mut *$tx)
-        .await?;
+        .await?
+        .rows_affected()
+            > 0
     }};
 }
 pub(super) use upsert_snapshot;
@@ -80,6 +126,7 @@ impl Store {
         Ok(on_pool!(self, |pool| {
             let mut query = sqlx::QueryBuilder::new(
                 "SELECT vehicle_id, model_id, schema_version, samples, last_seq, open_alarm_id, \
+                 open_alarm_last_timestamp_s, open_alarm_peak_probability, open_alarm_samples, \
                  writer, updated_at, snapshot FROM session_snapshots WHERE vehicle_id IN (",
             );
             let mut ids = query.separated(", ");

@@ -7,7 +7,12 @@ use crate::store::{
 };
 
 /// The onset of alarm `id` (seq `id`), opened at wall time `1_000 + id`.
-fn onset(id: i64, vehicle_id: &str, onset_timestamp_s: f64, probability: f64) -> AlarmEvent {
+pub(super) fn onset(
+    id: i64,
+    vehicle_id: &str,
+    onset_timestamp_s: f64,
+    probability: f64,
+) -> AlarmEvent {
     AlarmEvent {
         seq: id,
         kind: AlarmEventKind::Onset,
@@ -24,7 +29,12 @@ fn onset(id: i64, vehicle_id: &str, onset_timestamp_s: f64, probability: f64) ->
 
 /// The end of alarm `id` (seq `1_000 + id`) at wall time `2_000 + id`. The store reads only the
 /// id and the end's own values of an end.
-fn end(id: i64, end_timestamp_s: f64, peak_probability: f64, samples: i64) -> AlarmEvent {
+pub(super) fn end(
+    id: i64,
+    end_timestamp_s: f64,
+    peak_probability: f64,
+    samples: i64,
+) -> AlarmEvent {
     AlarmEvent {
         seq: 1_000 + id,
         kind: AlarmEventKind::End,
@@ -129,9 +139,12 @@ async fn a_retried_batch_stores_everything_exactly_once(store: Store) {
     store.write_alarms(&batch).await.unwrap();
     let first = store.list_alarm_events(None, 10).await.unwrap();
     // The outcome of a batch can be unknown (e.g. a lost commit acknowledgement): writing it again
-    // changes nothing, and a later end of a closed alarm keeps the first end.
+    // changes nothing, nor does an end at an earlier sample (another copy of the session that got
+    // less far; one that got further moves the end on, see the snapshot tests).
     store.write_alarms(&batch).await.unwrap();
-    store.write_alarms(&[end(1, 99.0, 0.99, 99)]).await.unwrap();
+    let mut earlier = end(1, 14.0, 0.99, 5);
+    earlier.seq += 1;
+    store.write_alarms(&[earlier]).await.unwrap();
     assert_eq!(store.list_alarm_events(None, 10).await.unwrap(), first);
     assert_eq!(ids(first), [2, 1]);
 }

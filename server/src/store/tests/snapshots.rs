@@ -1,20 +1,12 @@
-//! Session snapshots: one vehicle's read and many vehicles' in one query agree.
+//! Session snapshots: one vehicle's read and many vehicles' in one query agree; two copies of a
+//! session that another process replaced, stored in either order, end its alarm at the copy that
+//! got furthest, and the replacement's snapshot stays.
 
-use crate::store::{AlarmEvent, SnapshotRow, Store};
+use super::alarms::{end, onset};
+use crate::store::{AlarmEvent, AlarmEventRow, SnapshotRow, Store};
 
-/// A snapshot of `vehicle_id` whose encoding is its name (opaque to the store).
 fn snapshot(vehicle_id: &str, samples: i64) -> SnapshotRow {
-    SnapshotRow {
-        vehicle_id: vehicle_id.to_string(),
-        model_id: "m1".to_string(),
-        schema_version: 5,
-        samples,
-        last_seq: samples,
-        open_alarm_id: None,
-        writer: "1".to_string(),
-        updated_at_ms: 1_000 + samples,
-        snapshot: vehicle_id.as_bytes().to_vec(),
-    }
+    SnapshotRow::opaque(vehicle_id, samples)
 }
 
 async fn many_vehicles_are_read_in_one_query(store: Store) {
@@ -53,7 +45,148 @@ async fn a_burst_sized_batch_is_read_whole(store: Store) {
     assert_eq!(read.len(), 600);
 }
 
+/// Writer `writer`'s copy of car-7's session under model m1, holding alarm 7 open, its latest
+/// alarming sample at `last` s (peak and samples grow with it).
+fn copy_holding_alarm_7(writer: &str, last: f64) -> SnapshotRow {
+    SnapshotRow {
+        open_alarm_id: Some(7),
+        open_alarm_last_timestamp_s: Some(last),
+        open_alarm_peak_probability: Some(last / 200.0),
+        open_alarm_samples: Some(last as i64 - 99),
+        writer: writer.to_string(),
+        ..snapshot("car-7", last as i64)
+    }
+}
+
+/// The session that replaced it on writer "1": another model, no alarm.
+fn replacement() -> SnapshotRow {
+    SnapshotRow {
+        model_id: "m2".to_string(),
+        writer: "1".to_string(),
+        ..snapshot("car-7", 0)
+    }
+}
+
+/// Alarm 7 as stored: (end time, peak, samples).
+async fn alarm_7(store: &Store) -> (Option<f64>, f64, i64) {
+    let rows: Vec<AlarmEventRow> = store.list_alarm_events(Some("car-7"), 1).await.unwrap();
+    (
+        rows[0].end_timestamp_s,
+        rows[0].peak_probability,
+        rows[0].samples,
+    )
+}
+
+/// The end times the event log holds for alarm 7, in log order.
+async fn logged_ends_of_alarm_7(store: &Store) -> Vec<Option<f64>> {
+    let logged = store
+        .alarm_events_after(0, i64::MAX, Some("car-7"), 10)
+        .await
+        .unwrap();
+    logged
+        .iter()
+        .skip(1)
+        .map(|e| e.event.alarm.end_timestamp_s)
+        .collect()
+}
+
+/// Process "1" replaces car-7's session (a roll-out) from the copy stored at 150 s and ends its
+/// alarm there; process "2", which held the session, stores its copy at 170 s afterwards.
+async fn a_later_copy_of_a_replaced_session_moves_its_alarms_end_on(store: Store) {
+    let onset_7 = onset(7, "car-7", 100.0, 0.5);
+    store
+        .write_alarms_and_snapshots(&[onset_7], &[copy_holding_alarm_7("2", 150.0)])
+        .await
+        .unwrap();
+    let replaced = store
+        .write_alarms_and_snapshots(&[end(7, 150.0, 0.75, 51)], &[replacement()])
+        .await
+        .unwrap();
+    assert_eq!(replaced, Vec::<usize>::new());
+    assert_eq!(alarm_7(&store).await, (Some(150.0), 0.75, 51));
+
+    // The later copy is not stored over the replacement, and is reported.
+    let later = copy_holding_alarm_7("2", 170.0);
+    let refused = store
+        .write_alarms_and_snapshots::<AlarmEvent>(&[], &[later])
+        .await
+        .unwrap();
+    assert_eq!(refused, vec![0]);
+    assert_eq!(
+        store.load_snapshot("car-7").await.unwrap(),
+        Some(replacement())
+    );
+
+    // Its writer ends the alarm at the copy's progress: the end moves on, and is logged.
+    let mut its_end = end(7, 170.0, 0.85, 71);
+    its_end.seq += 1;
+    store.write_alarms(&[its_end.clone()]).await.unwrap();
+    assert_eq!(alarm_7(&store).await, (Some(170.0), 0.85, 71));
+    // A retry, an earlier end, or one without a sample time changes nothing.
+    let mut earlier = end(7, 160.0, 0.8, 61);
+    earlier.seq += 2;
+    let mut untimed = end(7, 0.0, 0.5, 1);
+    untimed.seq += 3;
+    untimed.alarm.end_timestamp_s = None;
+    store
+        .write_alarms(&[its_end, earlier, untimed])
+        .await
+        .unwrap();
+    assert_eq!(alarm_7(&store).await, (Some(170.0), 0.85, 71));
+    assert_eq!(
+        logged_ends_of_alarm_7(&store).await,
+        [Some(150.0), Some(170.0)]
+    );
+}
+
+/// Process "2" stores its copy at 170 s before process "1", which read the copy at 150 s, ends the
+/// alarm and replaces the session: the end is the stored copy's.
+async fn an_end_from_a_lagging_copy_takes_the_stored_copys_progress(store: Store) {
+    let onset_7 = onset(7, "car-7", 100.0, 0.5);
+    store
+        .write_alarms_and_snapshots(&[onset_7], &[copy_holding_alarm_7("2", 150.0)])
+        .await
+        .unwrap();
+    store
+        .write_alarms_and_snapshots::<AlarmEvent>(&[], &[copy_holding_alarm_7("2", 170.0)])
+        .await
+        .unwrap();
+    let replaced = store
+        .write_alarms_and_snapshots(&[end(7, 150.0, 0.75, 51)], &[replacement()])
+        .await
+        .unwrap();
+    assert_eq!(replaced, Vec::<usize>::new());
+    assert_eq!(alarm_7(&store).await, (Some(170.0), 0.85, 71));
+    assert_eq!(logged_ends_of_alarm_7(&store).await, [Some(170.0)]);
+    assert_eq!(
+        store.load_snapshot("car-7").await.unwrap(),
+        Some(replacement())
+    );
+}
+
+/// A session's own copy holding its alarm open is stored even after that alarm ended (a snapshot
+/// taken before the end, stored in a later batch): it replaces nothing of another session.
+async fn a_sessions_own_older_copy_is_stored_after_its_alarm_ended(store: Store) {
+    let onset_7 = onset(7, "car-7", 100.0, 0.5);
+    store
+        .write_alarms_and_snapshots(&[onset_7], &[copy_holding_alarm_7("2", 150.0)])
+        .await
+        .unwrap();
+    store.write_alarms(&[end(7, 180.0, 0.9, 81)]).await.unwrap();
+    let own = copy_holding_alarm_7("2", 170.0);
+    let refused = store
+        .write_alarms_and_snapshots::<AlarmEvent>(&[], std::slice::from_ref(&own))
+        .await
+        .unwrap();
+    assert_eq!(refused, Vec::<usize>::new());
+    assert_eq!(store.load_snapshot("car-7").await.unwrap(), Some(own));
+    assert_eq!(alarm_7(&store).await, (Some(180.0), 0.9, 81));
+}
+
 on_both_backends!(
     many_vehicles_are_read_in_one_query,
-    a_burst_sized_batch_is_read_whole
+    a_burst_sized_batch_is_read_whole,
+    a_later_copy_of_a_replaced_session_moves_its_alarms_end_on,
+    an_end_from_a_lagging_copy_takes_the_stored_copys_progress,
+    a_sessions_own_older_copy_is_stored_after_its_alarm_ended
 );
