@@ -428,9 +428,11 @@ fn bench_rows(output: &str) -> Vec<Vec<String>> {
 
 #[test]
 fn bench_drives_one_stream_per_vehicle_or_gateway_streams_without_errors() {
-    for per_message in ["1", "10"] {
+    for (per_message, spread) in [("1", "streams"), ("1", "connections"), ("10", "streams")] {
         let output = stdout(&lab(&[
             "bench",
+            "--spread",
+            spread,
             "--streams",
             "25",
             "--batch",

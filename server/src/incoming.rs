@@ -3,13 +3,16 @@
 //! deadline. Without it a client could hold any number of connections open by never speaking: hyper
 //! waits for the preface forever. Connections are vetted concurrently, so a slow client delays
 //! nobody. With TLS, tonic then runs the handshake on the vetted connection, bounded by the same
-//! timeout (`tls::server_tls`), so a client that stalls mid-handshake is closed too.
+//! timeout (`tls::server_tls`), so a client that stalls mid-handshake is closed too. Each is
+//! handed over with its writes coalesced (`crate::coalesce`).
 
 use std::time::Duration;
 
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
+
+use crate::coalesce::Coalescing;
 
 /// Bytes of the HTTP/2 client connection preface (`PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n`).
 const PREFACE_BYTES: usize = 24;
@@ -23,7 +26,7 @@ const PEEK_PAUSE: Duration = Duration::from_millis(5);
 pub fn vetted(
     listener: TcpListener,
     deadline: Duration,
-) -> ReceiverStream<std::io::Result<TcpStream>> {
+) -> ReceiverStream<std::io::Result<Coalescing<TcpStream>>> {
     let (tx, rx) = mpsc::channel(QUEUE);
     tokio::spawn(async move {
         loop {
@@ -46,7 +49,7 @@ pub fn vetted(
                 match tokio::time::timeout(deadline, preface_sent(&stream)).await {
                     Ok(Ok(())) => {
                         let _ = stream.set_nodelay(true);
-                        let _ = tx.send(Ok(stream)).await;
+                        let _ = tx.send(Ok(Coalescing::new(stream))).await;
                     }
                     Ok(Err(error)) => {
                         tracing::debug!(%peer, %error, "connection failed before its preface")

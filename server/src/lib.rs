@@ -29,6 +29,7 @@ mod access;
 mod alarms;
 mod app;
 mod background;
+mod coalesce;
 pub mod config;
 mod datasets;
 mod detection;

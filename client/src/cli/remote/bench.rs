@@ -36,6 +36,7 @@ use super::detect::parse_batch;
 use crate::cli::server_flags::OptionalServerArgs;
 
 mod admin_load;
+mod h2_streams;
 mod handoff;
 
 use admin_load::AdminLoad;
@@ -70,6 +71,11 @@ pub struct Args {
     /// i.e. saturation). Latency at a given load needs a rate; saturation measures capacity.
     #[arg(long, default_value_t = 0.0)]
     pub rate: f64,
+    /// How paced streams' sends are spread over each period: `streams`, each stream at its own
+    /// moment; `connections`, the streams of one connection together and the connections spread (a
+    /// gateway forwarding its vehicles' fixes of one GNSS second at once).
+    #[arg(long, value_enum, default_value_t = Spread::Streams)]
+    pub spread: Spread,
     /// Sessions opened in the memory phase (0 skips it).
     #[arg(long, default_value_t = 10_000,
           value_parser = clap::value_parser!(u32).range(0..=i64::from(MAX_SESSIONS)))]
@@ -108,6 +114,15 @@ pub struct Args {
     #[arg(long, default_value_t = 1,
           value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_SESSIONS)))]
     pub handoff_concurrency: u32,
+}
+
+/// How the sends of paced streams are spread over a period.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Spread {
+    /// Each stream at its own moment.
+    Streams,
+    /// The streams of one connection at the same moment, the connections spread.
+    Connections,
 }
 
 /// A vehicle-id prefix: 1–64 characters that keep the ids valid (letters, digits, `-`, `_`, `.`, `:`).
@@ -260,7 +275,11 @@ pub async fn load(args: &Args, url: &str, options: ConnectOptions, pid: Option<u
         anyhow::bail!("--rate must be a non-negative number of samples per second");
     }
     let load = if args.rate > 0.0 {
-        format!("offered load {} samples/s", args.rate)
+        let spread = match args.spread {
+            Spread::Streams => "each stream at its own moment of the period",
+            Spread::Connections => "the streams of a connection together",
+        };
+        format!("offered load {} samples/s, {spread}", args.rate)
     } else {
         "saturation (each stream sends as soon as its reply is back)".to_string()
     };
@@ -287,6 +306,7 @@ pub async fn load(args: &Args, url: &str, options: ConnectOptions, pid: Option<u
             seconds: args.seconds,
             warmup: args.warmup,
             pace,
+            spread: args.spread,
             prefix: &args.vehicle_prefix,
             server_pid: pid,
         };
@@ -366,6 +386,7 @@ struct PhaseShape<'a> {
     warmup: f64,
     /// Each stream sends one batch per pace (`None`: saturation).
     pace: Option<Duration>,
+    spread: Spread,
     prefix: &'a str,
     server_pid: Option<u32>,
 }
@@ -378,44 +399,77 @@ async fn throughput_phase(
     let streams = shape.streams;
     let per_message = shape.per_message as usize;
     let count = (streams as usize).div_ceil(per_message);
-    let pool = Connection::pool(url, &options, count, shape.per_connection).await?;
+    let connections = count.div_ceil(shape.per_connection.max(1)).max(1);
+    // Paced one-vehicle streams over plaintext go straight on HTTP/2, one task per connection;
+    // the rest through tonic, one task per stream.
+    let direct = match (shape.pace, per_message) {
+        (Some(pace), 1) => h2_streams::Target::plaintext(url, &options).map(|t| (t, pace)),
+        _ => None,
+    };
+    let tasks = if direct.is_some() { connections } else { count };
     // Everyone (and this task) starts measuring once all streams are open.
-    let barrier = Arc::new(Barrier::new(count + 1));
-    let sent_all = Arc::new(Barrier::new(count));
-    let length = Duration::from_secs_f64(shape.seconds);
-    let warmup = Duration::from_secs_f64(shape.warmup);
-    let tasks: Vec<_> = (0..count)
-        .map(|i| {
-            let load = StreamLoad {
-                connection: pool[i % pool.len()].clone(),
-                batch: shape.batch,
-                length,
-                warmup,
-                barrier: Arc::clone(&barrier),
-                sent_all: Arc::clone(&sent_all),
-                // Paced streams start spread over one period so their messages do not arrive in
-                // lockstep.
-                schedule: shape
-                    .pace
-                    .map(|pace| (pace, pace.mul_f64(i as f64 / count as f64))),
-            };
-            let vehicle = |v: usize| (format!("{}-s{streams}-{v}", shape.prefix), v as u64);
-            let first = i * per_message;
-            let vehicles: Vec<(String, u64)> = (first..(first + per_message).min(streams as usize))
-                .map(vehicle)
-                .collect();
-            tokio::spawn(async move {
-                if per_message == 1 {
-                    let vehicle = vehicles.into_iter().next().unwrap_or_default();
-                    let opened = VehicleStream::open(&load, vehicle);
-                    drive(&load, opened).await
-                } else {
-                    let opened = GatewayStream::open(&load, vehicles);
-                    drive(&load, opened).await
-                }
+    let timing = PhaseTiming {
+        batch: shape.batch,
+        length: Duration::from_secs_f64(shape.seconds),
+        warmup: Duration::from_secs_f64(shape.warmup),
+        barrier: Arc::new(Barrier::new(tasks + 1)),
+        sent_all: Arc::new(Barrier::new(tasks)),
+    };
+    let (length, warmup, barrier) = (timing.length, timing.warmup, Arc::clone(&timing.barrier));
+    let vehicle = |v: usize| (format!("{}-s{streams}-{v}", shape.prefix), v as u64);
+    // Paced streams start spread over one period so that not all their messages arrive in
+    // lockstep: each stream, or each connection's streams together.
+    let offset = |pace: Duration, i: usize| {
+        let (place, places) = match shape.spread {
+            Spread::Streams => (i, count),
+            Spread::Connections => (i % connections, connections),
+        };
+        pace.mul_f64(place as f64 / places as f64)
+    };
+    let tasks: Vec<tokio::task::JoinHandle<Vec<StreamResult>>> = if let Some((target, pace)) =
+        direct
+    {
+        (0..connections)
+            .map(|c| {
+                // Stream i is on connection i % connections, as with tonic's pool.
+                let (vehicles, offsets) = (c..count)
+                    .step_by(connections)
+                    .map(|i| (vehicle(i), offset(pace, i)))
+                    .unzip();
+                let (target, timing) = (target.clone(), timing.clone());
+                tokio::spawn(async move {
+                    h2_streams::drive_connection(&target, &timing, vehicles, (pace, offsets)).await
+                })
             })
-        })
-        .collect();
+            .collect()
+    } else {
+        let pool = Connection::pool(url, &options, count, shape.per_connection).await?;
+        (0..count)
+            .map(|i| {
+                let connection = pool[i % pool.len()].clone();
+                let load = StreamLoad {
+                    timing: timing.clone(),
+                    schedule: shape.pace.map(|pace| (pace, offset(pace, i))),
+                };
+                let first = i * per_message;
+                let vehicles: Vec<(String, u64)> = (first
+                    ..(first + per_message).min(streams as usize))
+                    .map(vehicle)
+                    .collect();
+                tokio::spawn(async move {
+                    let result = if per_message == 1 {
+                        let vehicle = vehicles.into_iter().next().unwrap_or_default();
+                        let opened = VehicleStream::open(&connection, &load, vehicle);
+                        drive(&load, opened).await
+                    } else {
+                        let opened = GatewayStream::open(&connection, &load, vehicles);
+                        drive(&load, opened).await
+                    };
+                    vec![result]
+                })
+            })
+            .collect()
+    };
     barrier.wait().await;
     // The server's CPU time over the measured phase: from the warm-up's end to the end of sending,
     // before the streams close (closing stores every session's snapshot, which is not the cost of
@@ -433,18 +487,22 @@ async fn throughput_phase(
     let mut scheduled = 0u64;
     let mut errors = 0usize;
     for task in tasks {
-        let result = task.await.unwrap_or_else(|e| StreamResult {
-            error: Some(format!("stream task failed: {e}")),
-            ..StreamResult::default()
+        let results = task.await.unwrap_or_else(|e| {
+            vec![StreamResult {
+                error: Some(format!("stream task failed: {e}")),
+                ..StreamResult::default()
+            }]
         });
-        samples += result.samples;
-        scheduled += result.scheduled;
-        all.extend(result.latencies);
-        if let Some(error) = result.error {
-            if errors == 0 {
-                eprintln!("{streams} streams: {error}");
+        for result in results {
+            samples += result.samples;
+            scheduled += result.scheduled;
+            all.extend(result.latencies);
+            if let Some(error) = result.error {
+                if errors == 0 {
+                    eprintln!("{streams} streams: {error}");
+                }
+                errors += 1;
             }
-            errors += 1;
         }
     }
     let cpu = match cpu_window {
@@ -482,9 +540,9 @@ fn scheduled_batches(length: Duration, pace: Duration, offset: Duration) -> u64 
     ((length - offset).as_secs_f64() / pace.as_secs_f64()).ceil() as u64
 }
 
-/// What a stream of a phase is given: where it runs, what it sends and when.
-struct StreamLoad {
-    connection: Connection,
+/// What every stream of a phase shares: what it sends, for how long, and where the streams meet.
+#[derive(Clone)]
+struct PhaseTiming {
     /// Samples per vehicle per message.
     batch: usize,
     length: Duration,
@@ -495,6 +553,11 @@ struct StreamLoad {
     /// so that closing (each closed session's snapshot is stored) does not weigh on the last
     /// messages of the others.
     sent_all: Arc<Barrier>,
+}
+
+/// What a stream of a phase is given: what it sends and when.
+struct StreamLoad {
+    timing: PhaseTiming,
     /// (pace, offset of the first send), or `None` at saturation.
     schedule: Option<(Duration, Duration)>,
 }
@@ -515,14 +578,15 @@ struct VehicleStream {
 
 impl VehicleStream {
     async fn open(
+        connection: &Connection,
         load: &StreamLoad,
         (vehicle_id, seed): (String, u64),
     ) -> Result<Self, ClientError> {
-        let (stream, _) = DetectStream::start(&load.connection, &vehicle_id, "", true).await?;
+        let (stream, _) = DetectStream::start(connection, &vehicle_id, "", true).await?;
         Ok(Self {
             stream,
             driver: LoopDriver::new(seed),
-            batch: load.batch,
+            batch: load.timing.batch,
         })
     }
 }
@@ -547,14 +611,18 @@ struct GatewayStream {
 }
 
 impl GatewayStream {
-    async fn open(load: &StreamLoad, vehicles: Vec<(String, u64)>) -> Result<Self, ClientError> {
+    async fn open(
+        connection: &Connection,
+        load: &StreamLoad,
+        vehicles: Vec<(String, u64)>,
+    ) -> Result<Self, ClientError> {
         Ok(Self {
-            stream: FleetDetectStream::open(&load.connection).await?,
+            stream: FleetDetectStream::open(connection).await?,
             vehicles: vehicles
                 .into_iter()
                 .map(|(id, seed)| (id, LoopDriver::new(seed)))
                 .collect(),
-            batch: load.batch,
+            batch: load.timing.batch,
         })
     }
 }
@@ -596,7 +664,7 @@ async fn drive<S: LoadStream>(
 ) -> StreamResult {
     let opened = opened.await;
     // Every task passes both barriers exactly once, even when its stream failed.
-    load.barrier.wait().await;
+    load.timing.barrier.wait().await;
     let mut result = StreamResult::default();
     let stream = match opened {
         Ok(stream) => send_all(load, stream, &mut result).await,
@@ -605,7 +673,7 @@ async fn drive<S: LoadStream>(
             None
         }
     };
-    load.sent_all.wait().await;
+    load.timing.sent_all.wait().await;
     if let Some(stream) = stream
         && let Err(error) = stream.finish().await
     {
@@ -620,12 +688,12 @@ async fn send_all<S: LoadStream>(
     mut stream: S,
     result: &mut StreamResult,
 ) -> Option<S> {
-    let measured_from = Instant::now() + load.warmup;
+    let measured_from = Instant::now() + load.timing.warmup;
     result.scheduled = load.schedule.map_or(0, |(pace, offset)| {
-        scheduled_batches(load.warmup + load.length, pace, offset)
-            - scheduled_batches(load.warmup, pace, offset)
+        scheduled_batches(load.timing.warmup + load.timing.length, pace, offset)
+            - scheduled_batches(load.timing.warmup, pace, offset)
     });
-    let deadline = measured_from + load.length;
+    let deadline = measured_from + load.timing.length;
     let mut next_send = load
         .schedule
         .map(|(_, offset)| tokio::time::Instant::now() + offset);
