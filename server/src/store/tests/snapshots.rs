@@ -90,19 +90,32 @@ async fn logged_ends_of_alarm_7(store: &Store) -> Vec<Option<f64>> {
         .collect()
 }
 
-/// Process "1" replaces car-7's session (a roll-out) from the copy stored at 150 s and ends its
-/// alarm there; process "2", which held the session, stores its copy at 170 s afterwards.
-async fn a_later_copy_of_a_replaced_session_moves_its_alarms_end_on(store: Store) {
-    let onset_7 = onset(7, "car-7", 100.0, 0.5);
+/// Alarm 7's onset, and process "2"'s copy of the session at 150 s.
+async fn alarm_7_opened_and_its_copy_stored_at_150(store: &Store) {
     store
-        .write_alarms_and_snapshots(&[onset_7], &[copy_holding_alarm_7("2", 150.0)])
+        .write_alarms_and_snapshots(
+            &[onset(7, "car-7", 100.0, 0.5)],
+            &[copy_holding_alarm_7("2", 150.0)],
+        )
         .await
         .unwrap();
-    let replaced = store
+}
+
+/// Process "1" replaces the session from the copy at 150 s: it ends alarm 7 there and stores its
+/// own session; both are taken.
+async fn replaced_from_the_copy_at_150(store: &Store) {
+    let refused = store
         .write_alarms_and_snapshots(&[end(7, 150.0, 0.75, 51)], &[replacement()])
         .await
         .unwrap();
-    assert_eq!(replaced, Vec::<usize>::new());
+    assert_eq!(refused, Vec::<usize>::new());
+}
+
+/// Process "1" replaces car-7's session (a roll-out) from the copy stored at 150 s and ends its
+/// alarm there; process "2", which held the session, stores its copy at 170 s afterwards.
+async fn a_later_copy_of_a_replaced_session_moves_its_alarms_end_on(store: Store) {
+    alarm_7_opened_and_its_copy_stored_at_150(&store).await;
+    replaced_from_the_copy_at_150(&store).await;
     assert_eq!(alarm_7(&store).await, (Some(150.0), 0.75, 51));
 
     // The later copy is not stored over the replacement, and is reported.
@@ -142,20 +155,12 @@ async fn a_later_copy_of_a_replaced_session_moves_its_alarms_end_on(store: Store
 /// Process "2" stores its copy at 170 s before process "1", which read the copy at 150 s, ends the
 /// alarm and replaces the session: the end is the stored copy's.
 async fn an_end_from_a_lagging_copy_takes_the_stored_copys_progress(store: Store) {
-    let onset_7 = onset(7, "car-7", 100.0, 0.5);
-    store
-        .write_alarms_and_snapshots(&[onset_7], &[copy_holding_alarm_7("2", 150.0)])
-        .await
-        .unwrap();
+    alarm_7_opened_and_its_copy_stored_at_150(&store).await;
     store
         .write_alarms_and_snapshots::<AlarmEvent>(&[], &[copy_holding_alarm_7("2", 170.0)])
         .await
         .unwrap();
-    let replaced = store
-        .write_alarms_and_snapshots(&[end(7, 150.0, 0.75, 51)], &[replacement()])
-        .await
-        .unwrap();
-    assert_eq!(replaced, Vec::<usize>::new());
+    replaced_from_the_copy_at_150(&store).await;
     assert_eq!(alarm_7(&store).await, (Some(170.0), 0.85, 71));
     assert_eq!(logged_ends_of_alarm_7(&store).await, [Some(170.0)]);
     assert_eq!(
@@ -167,11 +172,7 @@ async fn an_end_from_a_lagging_copy_takes_the_stored_copys_progress(store: Store
 /// A session's own copy holding its alarm open is stored even after that alarm ended (a snapshot
 /// taken before the end, stored in a later batch): it replaces nothing of another session.
 async fn a_sessions_own_older_copy_is_stored_after_its_alarm_ended(store: Store) {
-    let onset_7 = onset(7, "car-7", 100.0, 0.5);
-    store
-        .write_alarms_and_snapshots(&[onset_7], &[copy_holding_alarm_7("2", 150.0)])
-        .await
-        .unwrap();
+    alarm_7_opened_and_its_copy_stored_at_150(&store).await;
     store.write_alarms(&[end(7, 180.0, 0.9, 81)]).await.unwrap();
     let own = copy_holding_alarm_7("2", 170.0);
     let refused = store
