@@ -32,6 +32,15 @@ pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
 /// them single messages such as lists of models) may grow, so leave ample room over tonic's 4 MiB.
 pub const MAX_DECODING_MESSAGE_BYTES: usize = 64 << 20;
 
+/// The `authorization` header value for `token`: `Bearer <token>`. [`ClientError::InvalidToken`]
+/// for an empty token or one with characters a header cannot carry.
+pub fn bearer_value(token: &str) -> Result<String, ClientError> {
+    if token.is_empty() || !token.chars().all(|c| c.is_ascii_graphic()) {
+        return Err(ClientError::InvalidToken);
+    }
+    Ok(format!("Bearer {token}"))
+}
+
 /// Adds `authorization: Bearer <token>` to every request when a token is configured.
 #[derive(Clone, Debug, Default)]
 pub struct BearerAuth {
@@ -44,10 +53,7 @@ impl BearerAuth {
         let header = match token {
             None => None,
             Some(token) => {
-                if token.is_empty() || !token.chars().all(|c| c.is_ascii_graphic()) {
-                    return Err(ClientError::InvalidToken);
-                }
-                let mut value = AsciiMetadataValue::try_from(format!("Bearer {token}"))
+                let mut value = AsciiMetadataValue::try_from(bearer_value(token)?)
                     .map_err(|_| ClientError::InvalidToken)?;
                 // Keeps the token out of Debug output and logs.
                 value.set_sensitive(true);

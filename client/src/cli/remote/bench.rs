@@ -406,14 +406,14 @@ async fn throughput_phase(
         (Some(pace), 1) => h2_streams::Target::plaintext(url, &options).map(|t| (t, pace)),
         _ => None,
     };
-    let tasks = if direct.is_some() { connections } else { count };
+    let drivers = if direct.is_some() { connections } else { count };
     // Everyone (and this task) starts measuring once all streams are open.
     let timing = PhaseTiming {
         batch: shape.batch,
         length: Duration::from_secs_f64(shape.seconds),
         warmup: Duration::from_secs_f64(shape.warmup),
-        barrier: Arc::new(Barrier::new(tasks + 1)),
-        sent_all: Arc::new(Barrier::new(tasks)),
+        barrier: Arc::new(Barrier::new(drivers + 1)),
+        sent_all: Arc::new(Barrier::new(drivers)),
     };
     let (length, warmup, barrier) = (timing.length, timing.warmup, Arc::clone(&timing.barrier));
     let vehicle = |v: usize| (format!("{}-s{streams}-{v}", shape.prefix), v as u64);

@@ -27,7 +27,7 @@ use spoofwatch_proto::wire::routing::VEHICLE_ID_HEADER;
 use tokio::net::TcpStream;
 
 use super::{PhaseTiming, StreamResult, scheduled_batches};
-use crate::connection::{ConnectOptions, server_url};
+use crate::connection::{ConnectOptions, bearer_value, server_url};
 use crate::detect_stream::{batch_request, start_request};
 use crate::synthetic::LoopDriver;
 
@@ -53,13 +53,12 @@ impl Target {
             return None;
         }
         let authority = uri.authority()?;
-        let authorization = match &options.token {
-            None => None,
-            Some(token) if !token.is_empty() && token.chars().all(|c| c.is_ascii_graphic()) => {
-                Some(format!("Bearer {token}"))
-            }
-            Some(_) => return None,
-        };
+        let authorization = options
+            .token
+            .as_deref()
+            .map(bearer_value)
+            .transpose()
+            .ok()?;
         Some(Self {
             authority: format!(
                 "{}:{}",
@@ -113,7 +112,7 @@ pub fn next_message(buffer: &mut BytesMut) -> Result<Option<v1::StreamDetectResp
 /// What one stream's response body yields.
 enum Arrival {
     Data(Bytes),
-    /// The call ended: its status as the trailers gave it (`None`: no trailers).
+    /// The call ended: OK, or why not, as its trailers tell.
     End(Result<(), String>),
     Failed(String),
 }
@@ -218,8 +217,8 @@ pub async fn drive_connection(
     let count = vehicles.len();
     let opened = open(target, load.batch, vehicles).await;
     load.barrier.wait().await;
-    let mut streams = match opened {
-        Ok(opened) => opened,
+    let (mut streams, replies): (Vec<VehicleStream>, Vec<Replies>) = match opened {
+        Ok(opened) => opened.into_iter().unzip(),
         Err(error) => {
             load.sent_all.wait().await;
             return (0..count)
@@ -230,12 +229,7 @@ pub async fn drive_connection(
                 .collect();
         }
     };
-    let (mut streams_of, mut replies) = (Vec::new(), SelectAll::new());
-    for (stream, body) in streams.drain(..) {
-        replies.push(body);
-        streams_of.push(stream);
-    }
-    let mut streams = streams_of;
+    let mut replies: SelectAll<Replies> = replies.into_iter().collect();
     let started = tokio::time::Instant::now();
     let measured_from = started + load.warmup;
     let deadline = measured_from + load.length;
@@ -257,7 +251,7 @@ pub async fn drive_connection(
             }
             if stream.awaiting.is_some() {
                 busy = true;
-            } else if stream.slot < deadline && !stream.ended {
+            } else if stream.slot < deadline {
                 next_wake = Some(next_wake.map_or(stream.slot, |w| w.min(stream.slot)));
             }
         }
