@@ -51,6 +51,8 @@ const SNAPSHOT_BATCH: usize = 256;
 const MAX_LOGGED_UNSTORED: usize = 10_000;
 /// Retry delays after a failed batch: doubling from the first to the last.
 const BACKOFF: (Duration, Duration) = (Duration::from_millis(50), Duration::from_secs(5));
+/// While batches keep failing, the failure is logged again this often (never a silent loop).
+const FAILING_REMINDER: Duration = Duration::from_secs(60);
 
 /// Counters of the outbox, for logs, tests and metrics.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -118,6 +120,8 @@ pub struct SessionOutbox {
     invalid: AtomicU64,
     failed_batches: AtomicU64,
     failing: AtomicBool,
+    /// Why the last batch was refused, while batches are refused (for the storage health's log).
+    failure: Mutex<Option<String>>,
     snapshots_written: AtomicU64,
     run: i64,
 }
@@ -152,6 +156,7 @@ impl SessionOutbox {
             invalid: AtomicU64::new(0),
             failed_batches: AtomicU64::new(0),
             failing: AtomicBool::new(false),
+            failure: Mutex::new(None),
             snapshots_written: AtomicU64::new(0),
             run,
         })
@@ -372,6 +377,21 @@ impl SessionOutbox {
         }
     }
 
+    /// Why batches are being refused, while they are: the last refusal's error and its causes.
+    pub fn failure(&self) -> Option<String> {
+        self.failure
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone()
+    }
+
+    fn set_failure(&self, failure: Option<String>) {
+        *self
+            .failure
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = failure;
+    }
+
     /// The next write: up to [`BATCH`] queued events and the snapshots that may be stored with
     /// them (every event emitted before each snapshot is in the batch or already stored).
     fn next_write(&self) -> (Vec<Arc<AlarmEvent>>, Vec<SnapshotRow>, Vec<u64>) {
@@ -441,6 +461,7 @@ impl SessionOutbox {
     pub async fn run(&self, store: Store, stop: CancellationToken, grace: Duration) {
         let mut backoff = BACKOFF.0;
         let mut deadline = None;
+        let mut last_logged = None;
         loop {
             let (batch, snapshots, generations) = self.next_write();
             if batch.is_empty() && snapshots.is_empty() {
@@ -464,6 +485,7 @@ impl SessionOutbox {
                         self.stored.notify_one();
                     }
                     if self.failing.swap(false, Ordering::Relaxed) {
+                        self.set_failure(None);
                         tracing::info!(
                             failed_batches = self.failed_batches.load(Ordering::Relaxed),
                             "alarm writer recovered: the database accepts alarm events again"
@@ -472,11 +494,18 @@ impl SessionOutbox {
                     backoff = BACKOFF.0;
                 }
                 Err(error) => {
-                    self.failed_batches.fetch_add(1, Ordering::Relaxed);
-                    if !self.failing.swap(true, Ordering::Relaxed) {
+                    let failed = self.failed_batches.fetch_add(1, Ordering::Relaxed) + 1;
+                    let reason = with_causes(&error);
+                    self.set_failure(Some(reason.clone()));
+                    let started = !self.failing.swap(true, Ordering::Relaxed);
+                    let remind =
+                        last_logged.is_none_or(|at: Instant| at.elapsed() >= FAILING_REMINDER);
+                    if started || remind {
+                        last_logged = Some(Instant::now());
                         tracing::error!(
-                            %error,
+                            reason,
                             detail = ?error,
+                            failed_batches = failed,
                             backlog = self.stats().backlog,
                             "could not store alarm events; retrying until the database accepts them"
                         );
@@ -498,6 +527,19 @@ impl SessionOutbox {
             }
         }
     }
+}
+
+/// `error` and its causes, joined by ": " (a store error's own text hides its database cause from
+/// clients; the operator's log needs it).
+fn with_causes(error: &StoreError) -> String {
+    let mut text = error.to_string();
+    let mut cause = std::error::Error::source(error);
+    while let Some(inner) = cause {
+        text.push_str(": ");
+        text.push_str(&inner.to_string());
+        cause = inner.source();
+    }
+    text
 }
 
 /// The structured log line of an emitted alarm event (one per onset, one per end). An onset's
@@ -601,11 +643,14 @@ mod tests {
         wait_until("two batches failed", || outbox.stats().failed_batches >= 2).await;
         assert_eq!(outbox.stats().backlog, 3);
         assert!(outbox.stats().failing);
+        let failure = outbox.failure().expect("the refusal is kept");
+        assert!(failure.contains("injected fault"), "{failure}");
         assert_eq!(store.list_alarm_events(None, 10).await.unwrap().len(), 1);
 
         store.execute_for_test("DROP TRIGGER refuse").await;
         wait_until("the backlog is stored", || outbox.stats().backlog == 0).await;
         assert!(!outbox.stats().failing);
+        assert_eq!(outbox.failure(), None);
         let rows = store.list_alarm_events(None, 10).await.unwrap();
         let stored: Vec<_> = rows
             .iter()

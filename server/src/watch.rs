@@ -64,6 +64,7 @@ pub async fn watch_storage(
                 if !lost {
                     tracing::error!(
                         backlog = stats.backlog,
+                        reason = outbox.failure().unwrap_or_default(),
                         "storage NOT_SERVING: alarm events are waiting for the database"
                     );
                 }

@@ -1,11 +1,11 @@
 //! The real `spoofwatch-server` binary: it starts on a free port with a fresh database, serves,
-//! exits cleanly (code 0) on SIGTERM, recovers after a crash, and holds a large upload within
-//! twice its size in memory.
+//! exits cleanly (code 0) on SIGTERM, recovers after a crash, loses no alarm to another process
+//! reading its database file, and holds a large upload within twice its size in memory.
 #![cfg(unix)]
 
 use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
@@ -613,4 +613,190 @@ async fn a_128_mib_csv_upload_peaks_within_twice_its_size() {
         "the server's resident memory peaked at {peak_kib} KiB for an upload of {upload_kib} KiB"
     );
     assert!(signal_and_wait(&mut server, "-TERM").await.success());
+}
+
+/// Another process reading the database file while the server stores bursts of alarm onsets (a
+/// `sqlite3` shell, a backup, a monitoring script) must not take the write-ahead log from under
+/// it: a reader that opens, reads and closes the file deletes the log whenever the server holds
+/// no lock on it, and the server then writes into a deleted file. Every onset the clients were
+/// shown is readable by other processes, still stored after a `kill -9`, and a restarted server
+/// stores more. The reader is Python's `sqlite3` module, a SQLite client of its own, as the
+/// `sqlite3` shell would be.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stray_reader_of_the_database_loses_no_alarm() {
+    const VEHICLES: usize = 60;
+    const BURSTS: usize = 4;
+    let dir = tempfile::tempdir().expect("temp dir");
+    let database = dir.path().join("stray-reader.db");
+    let Running {
+        process: mut server,
+        addr,
+        ..
+    } = spawn_server(&database);
+    let channel = wait_until_serving(addr).await;
+    let reader = StrayReader::start(&database);
+
+    // Each burst: every vehicle drives up to its frozen fix, then all send the frozen part at
+    // once. Between bursts the server goes idle, and the reader reads alone.
+    let attacked = drive(
+        "stray",
+        160.0,
+        31,
+        Some((AttackKind::FrozenPosition, 100.0, 60.0)),
+    );
+    let (before, during): (Vec<_>, Vec<_>) = attacked
+        .records
+        .iter()
+        .map(|r| to_proto(&r.sample))
+        .partition(|s| s.timestamp_s < 100.0);
+    let mut shown = 0;
+    for burst in 0..BURSTS {
+        let vehicles: Vec<String> = (0..VEHICLES)
+            .map(|v| format!("stray-{burst}-{v}"))
+            .collect();
+        for part in [&before, &during] {
+            let mut calls = tokio::task::JoinSet::new();
+            for vehicle in &vehicles {
+                let mut detection = DetectionServiceClient::new(channel.clone());
+                let request = v1::DetectRequest {
+                    vehicle_id: vehicle.clone(),
+                    samples: part.clone(),
+                    ..v1::DetectRequest::default()
+                };
+                calls.spawn(async move { detection.detect(request).await });
+            }
+            while let Some(call) = calls.join_next().await {
+                let response = call.expect("the call ran").expect("Detect works");
+                shown += response
+                    .into_inner()
+                    .detections
+                    .iter()
+                    .filter(|d| d.alarm_onset)
+                    .count();
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+    assert!(
+        shown >= VEHICLES * BURSTS,
+        "every frozen fix alarmed: {shown}"
+    );
+
+    // Another process sees every onset shown, while the stray reader still reads.
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        let store = open_store(&database).await;
+        let stored = stored_onsets(&store).await;
+        store.close().await;
+        if stored == shown {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{stored} of {shown} onsets shown are visible to other processes"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let reads = reader.stop();
+    assert!(reads > 10, "the stray reader read {reads} times");
+
+    let status = signal_and_wait(&mut server, "-KILL").await;
+    assert_eq!(status.code(), None, "killed by a signal");
+    let store = open_store(&database).await;
+    assert_eq!(stored_onsets(&store).await, shown, "stored after the kill");
+    store.close().await;
+
+    // Nothing is wedged: a restarted server stores a new alarm.
+    let Running {
+        process: mut restarted,
+        addr,
+        ..
+    } = spawn_server(&database);
+    let mut detection = DetectionServiceClient::new(wait_until_serving(addr).await);
+    let samples = attacked.records.iter().map(|r| to_proto(&r.sample));
+    let onsets = detection
+        .detect(v1::DetectRequest {
+            vehicle_id: "after-the-kill".into(),
+            samples: samples.collect(),
+            ..v1::DetectRequest::default()
+        })
+        .await
+        .expect("Detect works after the restart")
+        .into_inner()
+        .detections
+        .iter()
+        .filter(|d| d.alarm_onset)
+        .count();
+    assert!(onsets >= 1, "the frozen fix alarmed after the restart");
+    drop(detection);
+    assert_eq!(
+        signal_and_wait(&mut restarted, "-TERM").await.code(),
+        Some(0)
+    );
+    let store = open_store(&database).await;
+    assert_eq!(stored_onsets(&store).await, shown + onsets);
+    store.close().await;
+}
+
+/// A Python process that opens the database with its own SQLite, reads and closes it, every 2 ms,
+/// until told to stop.
+struct StrayReader {
+    process: ServerProcess,
+    stop_file: PathBuf,
+}
+
+impl StrayReader {
+    const SCRIPT: &str = "\
+import os, sqlite3, sys, time
+database, stop_file = sys.argv[1], sys.argv[2]
+reads = 0
+while not os.path.exists(stop_file):
+    try:
+        connection = sqlite3.connect(database, timeout=0.1)
+        connection.execute('SELECT count(*) FROM alarm_events').fetchone()
+        connection.close()
+        reads += 1
+    except sqlite3.Error:
+        pass  # a busy or locked file is part of sharing it: try again
+    time.sleep(0.002)
+print(reads)
+";
+
+    fn start(database: &Path) -> StrayReader {
+        let stop_file = database.with_extension("stop-reading");
+        let child = Command::new("python3")
+            .args(["-c", Self::SCRIPT])
+            .arg(database)
+            .arg(&stop_file)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .spawn()
+            .expect("python3 runs (the stray reader)");
+        StrayReader {
+            process: ServerProcess(child),
+            stop_file,
+        }
+    }
+
+    /// Stops the reader; returns how many times it read.
+    fn stop(mut self) -> usize {
+        std::fs::write(&self.stop_file, b"").expect("the stop file is written");
+        let mut out = String::new();
+        std::io::Read::read_to_string(
+            self.process.0.stdout.as_mut().expect("stdout is piped"),
+            &mut out,
+        )
+        .expect("the reader's count");
+        assert!(self.process.0.wait().expect("waited").success());
+        out.trim().parse().expect("a count")
+    }
+}
+
+/// How many alarm onsets the database holds.
+async fn stored_onsets(store: &Store) -> usize {
+    store
+        .list_alarm_events(None, 100_000)
+        .await
+        .expect("alarm events")
+        .len()
 }

@@ -570,14 +570,19 @@ async fn certificates_are_their_vehicle_by_default_and_the_roles_file_reloads() 
         );
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
-    // A broken file keeps what is in force.
-    std::fs::write(dir.path().join("roles.toml"), "[certificates\n").expect("written");
-    tokio::time::sleep(Duration::from_secs(5)).await;
-    assert_eq!(
-        call("Detect", &truck, "truck-7").await,
-        Code::Unauthenticated
-    );
-    assert_eq!(call("ListModels", &admin_connection, "").await, Code::Ok);
+    // A broken file, and one truncated to nothing (an editor's write, a ConfigMap caught
+    // mid-update), keep what is in force: the revocation, the admin, the gateway's scope.
+    for broken in ["[certificates\n", ""] {
+        std::fs::write(dir.path().join("roles.toml"), broken).expect("written");
+        tokio::time::sleep(Duration::from_secs(5)).await;
+        assert_eq!(
+            call("Detect", &truck, "truck-7").await,
+            Code::Unauthenticated,
+            "{broken:?}"
+        );
+        assert_eq!(call("ListModels", &admin_connection, "").await, Code::Ok);
+        assert_eq!(call("Detect", &gateway, "eu-3").await, Code::Ok);
+    }
     drop((
         truck,
         gateway,

@@ -1,7 +1,8 @@
 //! Servers' wall clocks never decide a vehicle's fate: a hand-off picks the copy of a session that
 //! got further by the vehicle's own sample time and sequence numbers, whatever the replicas'
 //! clocks wrote; a snapshot that looks a day old by the clock does not end the alarm of a vehicle
-//! that is still streaming; and millisecond times sent as seconds are refused at a session's start.
+//! that is still streaming, while an abandoned vehicle's expired snapshot does end its alarm, at
+//! its last alarming sample; and millisecond times sent as seconds are refused at a session's start.
 
 use std::time::Duration;
 
@@ -10,7 +11,7 @@ use spoofwatch_proto::v1;
 use spoofwatch_server::store::{AlarmEvent, Store};
 use spoofwatch_tests::{
     BatchOutcome, Clients, TestServer, alarms_of, attacked_drive, field_violations, normal_drive,
-    open_stream, start_request, start_stream, test_config, track_samples,
+    open_stream, sessions_on, start_request, start_stream, test_config, track_samples,
 };
 use tonic::Code;
 
@@ -126,6 +127,62 @@ async fn a_snapshot_that_looks_old_by_the_clock_does_not_end_a_streaming_vehicle
         );
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
+    drop(clients);
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_abandoned_vehicles_alarm_ends_at_its_last_alarming_sample_when_its_snapshot_expires() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut config = test_config(dir.path());
+    config.session_idle_secs = 2;
+    config.snapshot_every_secs = 1;
+    config.snapshot_ttl_secs = 10;
+    let database = config.database.clone();
+    let server = TestServer::start(config).await;
+    let mut clients = Clients::of(&server).await;
+    let track = attacked_drive("lorry", 240.0, 23, AttackKind::FrozenPosition, 100.0, 60.0);
+    let samples = track_samples(&track);
+    let (mut stream, _) = start_stream(&clients, "lorry", "").await;
+    let mut last_alarming = None;
+    for (seq, batch) in samples.chunks(20).enumerate() {
+        let detections = stream
+            .detect(seq as u64 + 1, batch.to_vec())
+            .await
+            .expect("scored");
+        if let Some(last) = detections.iter().rev().find(|d| d.alarm) {
+            last_alarming = Some(last.timestamp_s);
+        }
+        // The vehicle goes away in the middle of its alarm.
+        if detections.last().is_some_and(|d| d.alarm) {
+            break;
+        }
+    }
+    let last_alarming = last_alarming.expect("the frozen fix raised an alarm");
+    stream.finish().await.expect("ended");
+    // Evicted once idle, its session leaves its snapshot, which then looks old by the clock.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    while !sessions_on(&clients).await.is_empty() {
+        assert!(tokio::time::Instant::now() < deadline, "never evicted");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    restamp_snapshot(&database, "lorry", |_| 0).await;
+    loop {
+        let alarms = alarms_of(&mut clients, "lorry").await;
+        assert_eq!(alarms.len(), 1, "{alarms:?}");
+        if !alarms[0].4 {
+            assert_eq!(alarms[0].1, Some(last_alarming), "{alarms:?}");
+            break;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the abandoned alarm never ended: {alarms:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let store = Store::open(&database).await.expect("open the database");
+    assert_eq!(store.load_snapshot("lorry").await.expect("readable"), None);
+    store.close().await;
     drop(clients);
     server.stop().await;
 }

@@ -16,6 +16,11 @@
 //! certificate_sha256 = []   # SHA-256 of a certificate's DER, for one certificate of a name
 //! tokens_sha256 = []
 //! ```
+//!
+//! It fails closed: a file that lists nothing (an editor's truncation, a ConfigMap caught
+//! mid-update) is refused unless it says `empty = true`; a gateway of the whole fleet says
+//! `all_vehicles = true` rather than an empty prefix; a token digest listed twice, in two letter
+//! cases, is refused rather than one grant silently replacing the other.
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::Arc;
@@ -140,11 +145,19 @@ pub enum RolesError {
     Syntax(String),
     #[error("{entry}: {problem}")]
     Entry { entry: String, problem: String },
+    #[error(
+        "the roles file lists no identity and no revocation (a truncated file?); write \
+         `empty = true` to serve with none on purpose"
+    )]
+    Empty,
 }
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct File {
+    /// Says that a file listing no identity and no revocation means it.
+    #[serde(default)]
+    empty: bool,
     #[serde(default)]
     certificates: BTreeMap<String, Entry>,
     #[serde(default)]
@@ -163,6 +176,9 @@ struct Entry {
     vehicles: Vec<String>,
     #[serde(default)]
     vehicle_prefixes: Vec<String>,
+    /// A gateway for every vehicle of the fleet.
+    #[serde(default)]
+    all_vehicles: bool,
 }
 
 #[derive(Default, Deserialize)]
@@ -187,6 +203,7 @@ impl Roles {
             let message = e.to_string();
             RolesError::Syntax(message.lines().take(6).collect::<Vec<_>>().join("\n"))
         })?;
+        check_emptiness(&file)?;
         let mut roles = Roles::default();
         for (name, entry) in file.certificates {
             let at = format!("certificates.{name:?}");
@@ -204,6 +221,8 @@ impl Roles {
             let grant = Grant::new(&name, entry.role, scope_of(&at, &entry)?);
             roles.certificates.insert(name, grant);
         }
+        // Each digest as written, by its lower-case form.
+        let mut seen_digests: HashMap<String, String> = HashMap::new();
         for (digest, entry) in file.tokens {
             let at = format!("tokens.{digest:?}");
             check_sha256(&at, &digest)?;
@@ -220,7 +239,20 @@ impl Roles {
                 })?;
             }
             let grant = Grant::new(&name, entry.role, scope_of(&at, &entry)?);
-            roles.tokens.insert(digest.to_ascii_lowercase(), grant);
+            let key = digest.to_ascii_lowercase();
+            if let Some(other) = seen_digests.get(&key) {
+                return Err(entry_error(
+                    &format!(
+                        "tokens.{other:?} (line {}) and {at} (line {})",
+                        line_of(text, other),
+                        line_of(text, &digest)
+                    ),
+                    "the same token digest listed twice, in other letter cases (digests are \
+                     compared without case): keep one entry",
+                ));
+            }
+            seen_digests.insert(key.clone(), digest.clone());
+            roles.tokens.insert(key, grant);
         }
         for (i, name) in file.deny.certificates.into_iter().enumerate() {
             check_name(&format!("deny.certificates[{i}]"), &name)?;
@@ -242,30 +274,68 @@ impl Roles {
     }
 }
 
+/// A file that grants and revokes nothing is refused unless it says `empty = true`, and one that
+/// says so must list nothing: a truncated file must not put an empty policy in force.
+fn check_emptiness(file: &File) -> Result<(), RolesError> {
+    let lists_nothing = file.certificates.is_empty()
+        && file.tokens.is_empty()
+        && file.deny.certificates.is_empty()
+        && file.deny.certificate_sha256.is_empty()
+        && file.deny.tokens_sha256.is_empty();
+    match (lists_nothing, file.empty) {
+        (true, false) => Err(RolesError::Empty),
+        (false, true) => Err(entry_error(
+            "empty",
+            "`empty = true` says the file lists nothing, but it lists identities or revocations",
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// The 1-based line of the first line of `text` whose key is `"key"` (0 when none is).
+fn line_of(text: &str, key: &str) -> usize {
+    let quoted = format!("\"{key}\"");
+    text.lines()
+        .position(|line| line.trim_start().starts_with(&quoted))
+        .map_or(0, |index| index + 1)
+}
+
 /// A gateway's vehicles; the other roles must not list any (their scope follows from the role).
 fn scope_of(at: &str, entry: &Entry) -> Result<VehicleScope, RolesError> {
     let listed = !entry.vehicles.is_empty() || !entry.vehicle_prefixes.is_empty();
     match entry.role {
+        Role::Gateway if entry.all_vehicles && listed => Err(entry_error(
+            at,
+            "all_vehicles: a gateway for every vehicle lists no `vehicles` or `vehicle_prefixes`",
+        )),
+        Role::Gateway if entry.all_vehicles => Ok(VehicleScope::All),
         Role::Gateway if !listed => Err(entry_error(
             at,
-            "a gateway needs `vehicles` or `vehicle_prefixes` (the vehicles it may stream for)",
+            "a gateway needs `vehicles`, `vehicle_prefixes` or `all_vehicles = true` (the \
+             vehicles it may stream for)",
         )),
         Role::Gateway => {
             for (i, id) in entry.vehicles.iter().enumerate() {
                 VehicleId::parse(id).map_err(|e| entry_error(at, format!("vehicles[{i}]: {e}")))?;
             }
-            // An empty prefix is every vehicle: a gateway trusted with the whole fleet.
             for (i, prefix) in entry.vehicle_prefixes.iter().enumerate() {
-                if !prefix.is_empty() {
-                    check_name(&format!("{at}.vehicle_prefixes[{i}]"), prefix)?;
+                if prefix.is_empty() {
+                    return Err(entry_error(
+                        at,
+                        format!(
+                            "vehicle_prefixes[{i}]: an empty prefix would grant every vehicle; \
+                             write `all_vehicles = true` to mean that"
+                        ),
+                    ));
                 }
+                check_name(&format!("{at}.vehicle_prefixes[{i}]"), prefix)?;
             }
             Ok(VehicleScope::Some {
                 ids: entry.vehicles.iter().cloned().collect(),
                 prefixes: entry.vehicle_prefixes.clone(),
             })
         }
-        role if listed => Err(entry_error(
+        role if listed || entry.all_vehicles => Err(entry_error(
             at,
             format!(
                 "only a gateway lists vehicles (a {} has its scope by its role)",
@@ -345,7 +415,63 @@ mod tests {
         assert_eq!(admin.scope, VehicleScope::All);
         assert!(roles.denied_certificate_names.contains("truck-13"));
         assert!(roles.denied_token_sha256.contains(DIGEST));
-        assert_eq!(Roles::parse("").expect("empty is valid"), Roles::default());
+    }
+
+    #[test]
+    fn a_file_that_lists_nothing_must_say_so() {
+        for text in [
+            "",
+            "\n  \n",
+            "# all commented out\n",
+            "[certificates]\n[tokens]\n[deny]\n",
+        ] {
+            assert_eq!(Roles::parse(text), Err(RolesError::Empty), "{text:?}");
+        }
+        assert_eq!(Roles::parse("empty = true\n"), Ok(Roles::default()));
+        let contradiction = "empty = true\n[deny]\ncertificates = [\"truck-13\"]\n";
+        let error = Roles::parse(contradiction).expect_err("lists a revocation");
+        assert!(error.to_string().starts_with("empty: "), "{error}");
+    }
+
+    #[test]
+    fn a_digest_listed_in_two_cases_is_refused_naming_both_lines() {
+        let text = format!(
+            "[tokens]\n\"{}\" = {{ name = \"old\", role = \"admin\" }}\n\
+             \"{DIGEST}\" = {{ name = \"new\", role = \"operator\" }}\n",
+            DIGEST.to_ascii_uppercase()
+        );
+        let error = Roles::parse(&text).expect_err("a duplicate").to_string();
+        assert!(
+            error.contains("(line 2)") && error.contains("(line 3)"),
+            "{error}"
+        );
+        assert!(error.contains("listed twice"), "{error}");
+    }
+
+    #[test]
+    fn a_gateway_of_every_vehicle_says_all_vehicles() {
+        let roles =
+            Roles::parse("[certificates]\n\"gw\" = { role = \"gateway\", all_vehicles = true }\n")
+                .expect("valid");
+        assert_eq!(roles.certificates["gw"].scope, VehicleScope::All);
+        let cases = [
+            (
+                "[certificates]\n\"gw\" = { role = \"gateway\", vehicle_prefixes = [\"\"] }",
+                "vehicle_prefixes[0]: an empty prefix would grant every vehicle",
+            ),
+            (
+                "[certificates]\n\"gw\" = { role = \"gateway\", all_vehicles = true, vehicles = [\"a\"] }",
+                "all_vehicles: a gateway for every vehicle lists no",
+            ),
+            (
+                "[certificates]\n\"op\" = { role = \"operator\", all_vehicles = true }",
+                "only a gateway lists vehicles",
+            ),
+        ];
+        for (text, expected) in cases {
+            let error = Roles::parse(text).expect_err(text).to_string();
+            assert!(error.contains(expected), "{text:?}: {error}");
+        }
     }
 
     #[test]

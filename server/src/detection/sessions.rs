@@ -1094,8 +1094,8 @@ impl SessionManager {
         let mut ended = 0;
         // A few hundred per transaction: a mass expiry never holds the database's write lock long.
         for batch in confirmed.chunks(EXPIRY_BATCH) {
-            let abandoned = match self.store.expire_snapshots(batch).await {
-                Ok(abandoned) => abandoned,
+            let expired = match self.store.expire_snapshots(batch).await {
+                Ok(expired) => expired,
                 Err(error) => {
                     tracing::warn!(%error, "could not expire old session snapshots; retrying later");
                     break;
@@ -1109,8 +1109,18 @@ impl SessionManager {
                 seen.remove(version);
             }
             drop(seen);
-            ended += abandoned.len();
-            for (alarm, snapshot) in abandoned {
+            // Seen afresh, such a version is tried again after another confirmation period.
+            for ((vehicle, updated_at_ms), reason) in expired.unreadable {
+                tracing::warn!(
+                    vehicle = %vehicle,
+                    updated_at_ms,
+                    reason,
+                    "a session snapshot cannot expire: its rows cannot be read; the other \
+                     snapshots expire as usual"
+                );
+            }
+            ended += expired.abandoned.len();
+            for (alarm, snapshot) in expired.abandoned {
                 let last = SessionSnapshot::decode(&snapshot)
                     .ok()
                     .and_then(|s| s.open_alarm)

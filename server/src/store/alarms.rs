@@ -276,6 +276,7 @@ macro_rules! select_alarms {
         )
     };
 }
+pub(super) use select_alarms;
 
 /// Appends `event` to the event log inside the write transaction `tx` (skipped when its seq is
 /// already there: a retry), at the next log position. A macro so that it compiles for either

@@ -332,6 +332,19 @@ pub(crate) fn insert_error(error: sqlx::Error, kind: &'static str, id: &str) -> 
     }
 }
 
+/// Whether `error` lies in a row's values (a column missing, or a value of another type than the
+/// field it decodes into) rather than in the database or the connection: retrying cannot help,
+/// but the other rows are unaffected.
+pub(crate) fn is_row_error(error: &sqlx::Error) -> bool {
+    matches!(
+        error,
+        sqlx::Error::ColumnDecode { .. }
+            | sqlx::Error::Decode(_)
+            | sqlx::Error::ColumnNotFound(_)
+            | sqlx::Error::ColumnIndexOutOfBounds { .. }
+    )
+}
+
 /// The length of a blob as the INTEGER its `size_bytes` column holds.
 pub(crate) fn byte_length(field: &'static str, bytes: &[u8]) -> Result<i64, StoreError> {
     i64::try_from(bytes.len()).map_err(|_| StoreError::InvalidValue {

@@ -142,7 +142,7 @@ pub use jobs::{EpochRow, JobEndError, JobFilter, JobKind, JobOutcome, JobRow, Jo
 pub use models::{ModelRow, ModelSource, NewModel};
 pub use paging::{DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE, Page, PageRequest};
 pub use postgres::{POOL_ACQUIRE_TIMEOUT, POOL_MAX_CONNECTIONS, STATEMENT_TIMEOUT};
-pub use snapshots::SnapshotRow;
+pub use snapshots::{ExpiredSnapshots, SnapshotRow};
 
 /// The service's database: a cheap-to-clone handle over a connection pool.
 #[derive(Debug, Clone)]
@@ -247,7 +247,7 @@ impl Store {
     /// Closes every connection, waiting for in-flight queries; later calls fail with `PoolClosed`.
     pub async fn close(&self) {
         match &self.backend {
-            Backend::Sqlite(sqlite) => sqlite.pool.close().await,
+            Backend::Sqlite(sqlite) => sqlite.close().await,
             Backend::Postgres(pool) => pool.close().await,
         }
     }

@@ -5,7 +5,10 @@
 //! It owns the snapshot table; the alarm rows it returns are `super::alarms`'s, and it must not
 //! write alarm events.
 
-use super::alarms::AlarmEventRow;
+use sqlx::Acquire;
+
+use super::alarms::{AlarmEventRow, select_alarms};
+use super::error::is_row_error;
 use super::{Store, StoreError};
 
 /// A stored session snapshot. `snapshot` is opaque here (the detection layer encodes it).
@@ -168,40 +171,77 @@ impl Store {
 
     /// Deletes exactly these snapshot versions, (vehicle, written at): one rewritten since is
     /// kept. Returns the alarms they held open, still open, each with its snapshot (the caller
-    /// ends them at their last alarming sample).
+    /// ends them at their last alarming sample), and the versions whose rows could not be read.
+    ///
+    /// Each version is expired in a savepoint of its own, so a row that cannot be decoded is left
+    /// in place and reported while the others go; a database fault still fails the whole call
+    /// (nothing is deleted, and the caller retries later).
     pub async fn expire_snapshots(
         &self,
         versions: &[(String, i64)],
-    ) -> Result<Vec<(AlarmEventRow, Vec<u8>)>, StoreError> {
+    ) -> Result<ExpiredSnapshots, StoreError> {
         in_write_tx!(self, |tx| {
-            let mut abandoned = Vec::new();
-            for (vehicle_id, updated_at) in versions {
-                let held = sqlx::query_as::<_, AlarmEventRow>(
-                    "SELECT a.id, a.vehicle_id, a.model_id, a.onset_timestamp_s, \
-                     a.end_timestamp_s, a.onset_at, a.ended_at, a.peak_probability, a.samples, \
-                     a.why_kind, a.why_offset_east_m, a.why_offset_north_m, a.why_drift_east_mps, \
-                     a.why_drift_north_mps \
-                     FROM session_snapshots s JOIN alarm_events a ON a.id = s.open_alarm_id \
-                     WHERE s.vehicle_id = $1 AND s.updated_at = $2 AND a.ended_at IS NULL",
-                )
-                .bind(vehicle_id)
-                .bind(updated_at)
-                .fetch_optional(&mut *tx)
-                .await?;
-                let deleted = sqlx::query_scalar::<_, Vec<u8>>(
-                    "DELETE FROM session_snapshots WHERE vehicle_id = $1 AND updated_at = $2 \
-                     RETURNING snapshot",
-                )
-                .bind(vehicle_id)
-                .bind(updated_at)
-                .fetch_optional(&mut *tx)
-                .await?;
-                if let (Some(alarm), Some(snapshot)) = (held, deleted) {
-                    abandoned.push((alarm, snapshot));
+            let mut expired = ExpiredSnapshots::default();
+            for version in versions {
+                let (vehicle_id, updated_at) = version;
+                // A savepoint: a version that cannot be read is rolled back alone.
+                let mut one = Acquire::begin(&mut tx).await?;
+                let attempt: Result<_, sqlx::Error> = async {
+                    let open_alarm_id: Option<Option<i64>> = sqlx::query_scalar(
+                        "SELECT open_alarm_id FROM session_snapshots \
+                         WHERE vehicle_id = $1 AND updated_at = $2",
+                    )
+                    .bind(vehicle_id)
+                    .bind(updated_at)
+                    .fetch_optional(&mut *one)
+                    .await?;
+                    let held = match open_alarm_id.flatten() {
+                        Some(id) => {
+                            sqlx::query_as::<_, AlarmEventRow>(select_alarms!(
+                                "WHERE id = $1 AND ended_at IS NULL"
+                            ))
+                            .bind(id)
+                            .fetch_optional(&mut *one)
+                            .await?
+                        }
+                        None => None,
+                    };
+                    let deleted = sqlx::query_scalar::<_, Vec<u8>>(
+                        "DELETE FROM session_snapshots WHERE vehicle_id = $1 AND updated_at = $2 \
+                         RETURNING snapshot",
+                    )
+                    .bind(vehicle_id)
+                    .bind(updated_at)
+                    .fetch_optional(&mut *one)
+                    .await?;
+                    Ok(held.zip(deleted))
+                }
+                .await;
+                match attempt {
+                    Ok(abandoned) => {
+                        one.commit().await?;
+                        expired.abandoned.extend(abandoned);
+                    }
+                    Err(error) if is_row_error(&error) => {
+                        one.rollback().await?;
+                        expired
+                            .unreadable
+                            .push((version.clone(), error.to_string()));
+                    }
+                    Err(error) => return Err(error.into()),
                 }
             }
             tx.commit().await?;
-            Ok(abandoned)
+            Ok(expired)
         })
     }
+}
+
+/// What [`Store::expire_snapshots`] did.
+#[derive(Debug, Default)]
+pub struct ExpiredSnapshots {
+    /// The alarms the deleted snapshots held open, still open, each with its snapshot.
+    pub abandoned: Vec<(AlarmEventRow, Vec<u8>)>,
+    /// Versions left in place because a row of theirs cannot be decoded, each with the reason.
+    pub unreadable: Vec<((String, i64), String)>,
 }

@@ -1,6 +1,12 @@
 //! The SQLite backend's setup and robustness: connection options, the file-identity check, the
-//! size limit and the connection hygiene hooks. Queries live with their tables, written once for
-//! both backends.
+//! size limit, the connection hygiene hooks and the connection that holds the file for the life of
+//! the store. Queries live with their tables, written once for both backends.
+//!
+//! No code here opens the database file outside SQLite's own connections: a POSIX `close` of any
+//! descriptor on the file releases every lock this process holds on it, and another process that
+//! then opens and closes the file (a `sqlite3` shell, a backup) would take it for the last user and
+//! delete the write-ahead log under the running server. Files are checked with `stat` and
+//! `access` only.
 
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
@@ -12,6 +18,7 @@ use sqlx::sqlite::{
     SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
 };
 use sqlx::{Connection, SqliteConnection};
+use tokio::sync::Mutex;
 
 use super::error::{migration_error, outlived_no_fault};
 use super::{FaultKind, StoreError, StoreFault, StoreOptions};
@@ -29,6 +36,11 @@ pub(super) struct SqliteBackend {
     /// The file opened, for databases on disk: checked so that a deleted or replaced file is
     /// noticed instead of writing into an unlinked inode.
     file: Option<Arc<DatabaseFile>>,
+    /// For databases on disk, a connection that runs no query and stays open until the store
+    /// closes: while the pool retires and replaces its connections, this process still holds
+    /// its shared lock on the write-ahead log, so no other process ever checkpoints and deletes
+    /// the log under it.
+    holder: Option<Arc<Mutex<Option<SqliteConnection>>>>,
 }
 
 /// Opens (creating if missing) and migrates the SQLite database at `url_or_path`.
@@ -42,13 +54,12 @@ pub(super) async fn open(
     }
     let in_memory = is_in_memory(url_or_path);
     let path = (!in_memory).then(|| connect.get_filename().to_path_buf());
+    let mut holder = None;
     if path.is_some() {
-        // Create the file now, once; the pool's connections never create one, so a file
-        // deleted while the server runs is not silently replaced by an empty one.
-        SqliteConnection::connect_with(&connect)
-            .await?
-            .close()
-            .await?;
+        // The first connection creates the file, once (the pool's connections never create one,
+        // so a file deleted while the server runs is not silently replaced by an empty one), and
+        // then holds it until the store closes.
+        holder = Some(SqliteConnection::connect_with(&connect).await?);
         connect = connect.create_if_missing(false);
     }
     let pool_options = if let Some(path) = path.clone() {
@@ -81,7 +92,11 @@ pub(super) async fn open(
         Some(path) => Some(Arc::new(DatabaseFile::opened(path)?)),
         None => None,
     };
-    Ok(SqliteBackend { pool, file })
+    Ok(SqliteBackend {
+        pool,
+        file,
+        holder: holder.map(|connection| Arc::new(Mutex::new(Some(connection)))),
+    })
 }
 
 impl SqliteBackend {
@@ -93,6 +108,18 @@ impl SqliteBackend {
                 format!("{} is not the file opened", file.path.display()),
             ))),
             _ => Ok(()),
+        }
+    }
+
+    /// Closes the pool, then the connection holding the file: the last to close checkpoints the
+    /// write-ahead log into the database and removes it.
+    pub(super) async fn close(&self) {
+        self.pool.close().await;
+        if let Some(holder) = &self.holder
+            && let Some(connection) = holder.lock().await.take()
+            && let Err(error) = connection.close().await
+        {
+            tracing::warn!(%error, "closing the database file's holding connection failed");
         }
     }
 
@@ -129,10 +156,11 @@ async fn warn_if_new(pool: &SqlitePool, path: Option<&Path>) -> Result<(), Store
 /// SQLite may roll a transaction back by itself; sqlx then still counts it as open, its own ROLLBACK
 /// fails, and every later `BEGIN IMMEDIATE` on that connection would fail until a restart. Such a
 /// connection is closed instead (the pool opens a fresh one when needed). So is any connection
-/// released while the file cannot be opened for writing: SQLite opens such a file read-only and
-/// the connection would stay read-only after the file is writable again.
+/// released while the file is not writable (`access(2)`, which opens nothing: see the module
+/// docs): SQLite opens such a file read-only and the connection would stay read-only after the
+/// file is writable again.
 async fn still_usable(connection: &mut SqliteConnection, path: &Path) -> Result<bool, sqlx::Error> {
-    if std::fs::OpenOptions::new().write(true).open(path).is_err() {
+    if rustix::fs::access(path, rustix::fs::Access::WRITE_OK).is_err() {
         tracing::debug!("closing a database connection: the file is not writable");
         return Ok(false);
     }

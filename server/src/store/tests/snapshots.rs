@@ -1,9 +1,10 @@
 //! Session snapshots: one vehicle's read and many vehicles' in one query agree; two copies of a
 //! session that another process replaced, stored in either order, end its alarm at the copy that
-//! got furthest, and the replacement's snapshot stays.
+//! got furthest, and the replacement's snapshot stays; an expired snapshot gives back the alarm it
+//! held open, whole, and one whose alarm cannot be read blocks no other.
 
 use super::alarms::{end, onset};
-use crate::store::{AlarmEvent, AlarmEventRow, SnapshotRow, Store};
+use crate::store::{AlarmEvent, AlarmEventRow, SnapshotRow, Store, StoredPlace, StoredWhy};
 
 fn snapshot(vehicle_id: &str, samples: i64) -> SnapshotRow {
     SnapshotRow::opaque(vehicle_id, samples)
@@ -184,10 +185,95 @@ async fn a_sessions_own_older_copy_is_stored_after_its_alarm_ended(store: Store)
     assert_eq!(alarm_7(&store).await, (Some(180.0), 0.9, 81));
 }
 
+/// Alarm 7's onset as the server stores it (with its explanation and place), and car-7's copy
+/// holding it open; car-8's snapshot holds no alarm.
+async fn alarm_7_held_by_an_abandoned_snapshot(store: &Store) -> AlarmEventRow {
+    let mut opened = onset(7, "car-7", 100.0, 0.5);
+    opened.alarm.why = StoredWhy {
+        why_kind: Some("jump".to_string()),
+        why_offset_east_m: Some(120.0),
+        why_offset_north_m: Some(-35.0),
+        why_drift_east_mps: Some(0.0),
+        why_drift_north_mps: Some(0.0),
+    };
+    opened.alarm.place = StoredPlace {
+        onset_latitude_deg: Some(32.23),
+        onset_longitude_deg: Some(-110.91),
+    };
+    store
+        .write_alarms_and_snapshots(
+            std::slice::from_ref(&opened),
+            &[copy_holding_alarm_7("2", 150.0), snapshot("car-8", 5)],
+        )
+        .await
+        .unwrap();
+    opened.alarm
+}
+
+/// The TTL passed for every stored snapshot: each version as stored, by vehicle.
+async fn every_snapshot_is_stale(store: &Store) -> Vec<(String, i64)> {
+    let mut stale = store.stale_snapshots(i64::MAX).await.unwrap();
+    stale.sort();
+    stale
+}
+
+async fn an_expired_snapshot_gives_back_the_alarm_it_held_open_and_goes(store: Store) {
+    let opened = alarm_7_held_by_an_abandoned_snapshot(&store).await;
+    let stale = every_snapshot_is_stale(&store).await;
+    assert_eq!(stale.len(), 2);
+    // car-8's snapshot was rewritten since it was found stale: that version is gone, the new
+    // one stays.
+    let rewritten = (stale[1].0.clone(), stale[1].1 - 1);
+    let expired = store
+        .expire_snapshots(&[stale[0].clone(), rewritten])
+        .await
+        .unwrap();
+    assert_eq!(expired.unreadable, vec![]);
+    assert_eq!(expired.abandoned, vec![(opened, b"car-7".to_vec())]);
+    assert_eq!(store.load_snapshot("car-7").await.unwrap(), None);
+    assert_eq!(
+        store.load_snapshot("car-8").await.unwrap(),
+        Some(snapshot("car-8", 5))
+    );
+}
+
 on_both_backends!(
+    an_expired_snapshot_gives_back_the_alarm_it_held_open_and_goes,
     many_vehicles_are_read_in_one_query,
     a_burst_sized_batch_is_read_whole,
     a_later_copy_of_a_replaced_session_moves_its_alarms_end_on,
     an_end_from_a_lagging_copy_takes_the_stored_copys_progress,
     a_sessions_own_older_copy_is_stored_after_its_alarm_ended
 );
+
+/// A snapshot whose alarm row cannot be decoded (a value of the wrong type, which only SQLite can
+/// hold) stays, reported, and the others in its batch expire.
+#[tokio::test]
+async fn an_unreadable_alarm_blocks_no_other_expiry() {
+    let (_dir, store) = super::temp_store().await;
+    let opened = alarm_7_held_by_an_abandoned_snapshot(&store).await;
+    let broken = SnapshotRow {
+        open_alarm_id: Some(9),
+        ..snapshot("car-9", 9)
+    };
+    store
+        .write_alarms_and_snapshots(
+            &[onset(9, "car-9", 10.0, 0.5)],
+            std::slice::from_ref(&broken),
+        )
+        .await
+        .unwrap();
+    store
+        .execute_for_test("UPDATE alarm_events SET peak_probability = 'high' WHERE id = 9")
+        .await;
+    let stale = every_snapshot_is_stale(&store).await;
+    let expired = store.expire_snapshots(&stale).await.unwrap();
+    assert_eq!(expired.abandoned, vec![(opened, b"car-7".to_vec())]);
+    let [(version, reason)] = expired.unreadable.as_slice() else {
+        panic!("one unreadable version: {:?}", expired.unreadable);
+    };
+    assert_eq!(version, &("car-9".to_string(), broken.updated_at_ms));
+    assert!(reason.contains("peak_probability"), "{reason}");
+    assert_eq!(store.load_snapshot("car-8").await.unwrap(), None);
+    assert_eq!(store.load_snapshot("car-9").await.unwrap(), Some(broken));
+}
