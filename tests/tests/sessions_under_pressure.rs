@@ -33,8 +33,8 @@ async fn one_identity_cannot_take_more_than_its_quota_of_sessions() {
     std::fs::write(
         &roles,
         format!(
-            "[tokens]\n\"{}\" = {{ name = \"flood\", role = \"gateway\", vehicle_prefixes = [\"\"] }}\n\
-             \"{}\" = {{ name = \"fleet\", role = \"gateway\", vehicle_prefixes = [\"\"] }}\n",
+            "[tokens]\n\"{}\" = {{ name = \"flood\", role = \"gateway\", all_vehicles = true }}\n\
+             \"{}\" = {{ name = \"fleet\", role = \"gateway\", all_vehicles = true }}\n",
             token_sha256("flood-token"),
             token_sha256("fleet-token")
         ),
