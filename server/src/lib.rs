@@ -36,6 +36,7 @@ mod detection;
 mod drain;
 mod edge;
 mod error;
+mod error_chain;
 mod event_log;
 mod fault;
 mod identity;

@@ -35,6 +35,7 @@ use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
 use crate::alarms::why::{self as alarm_why, OnsetWhy};
+use crate::error_chain::error_chain;
 use crate::store::{
     AlarmEvent, AlarmEventKind, AlarmEventRow, SnapshotRow, Store, StoreError, first_seq_of_run,
     now_unix_ms,
@@ -495,7 +496,7 @@ impl SessionOutbox {
                 }
                 Err(error) => {
                     let failed = self.failed_batches.fetch_add(1, Ordering::Relaxed) + 1;
-                    let reason = with_causes(&error);
+                    let reason = error_chain(&error);
                     self.set_failure(Some(reason.clone()));
                     let started = !self.failing.swap(true, Ordering::Relaxed);
                     let remind =
@@ -527,19 +528,6 @@ impl SessionOutbox {
             }
         }
     }
-}
-
-/// `error` and its causes, joined by ": " (a store error's own text hides its database cause from
-/// clients; the operator's log needs it).
-fn with_causes(error: &StoreError) -> String {
-    let mut text = error.to_string();
-    let mut cause = std::error::Error::source(error);
-    while let Some(inner) = cause {
-        text.push_str(": ");
-        text.push_str(&inner.to_string());
-        cause = inner.source();
-    }
-    text
 }
 
 /// The structured log line of an emitted alarm event (one per onset, one per end). An onset's

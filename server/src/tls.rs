@@ -10,6 +10,7 @@ use rustls_pki_types::{CertificateDer, PrivateKeyDer};
 use tonic::transport::{Certificate, Identity, Server, ServerTlsConfig};
 
 use crate::config::Config;
+use crate::error_chain::error_chain;
 
 /// Why the TLS settings cannot be used.
 #[derive(Debug, thiserror::Error)]
@@ -62,18 +63,6 @@ pub fn configure(server: Server, config: &Config) -> Result<Server, TlsError> {
             .tls_config(tls)
             .map_err(|e| TlsError::Refused(error_chain(&e))),
     }
-}
-
-/// An error and its causes on one line: tonic's transport errors say little at the top level.
-fn error_chain(error: &dyn std::error::Error) -> String {
-    let mut out = error.to_string();
-    let mut source = error.source();
-    while let Some(cause) = source {
-        out.push_str(": ");
-        out.push_str(&cause.to_string());
-        source = cause.source();
-    }
-    out
 }
 
 /// The TLS configuration of `config` (`None`: plaintext), with every file read and checked.
