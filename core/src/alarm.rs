@@ -157,6 +157,7 @@ fn fill_lifecycle_alarms(
                 valid: row.valid,
                 trajectory_start: i == 0 || rows[i - 1].trajectory != row.trajectory,
                 positive: row.score >= theta,
+                probability: row.score,
                 offset: offset.get(i).copied().unwrap_or_default(),
                 // The search chooses the durations of p̂ and the offset; the flag rule's are fixed (§7.3).
                 flag: FlagSignal::default(),

@@ -19,6 +19,7 @@ use crate::model::artifact::ModelArtifact;
 use crate::model::{LiquidState, StepScratch};
 use crate::receiver::{FlagCorroboration, FlagSignal};
 use crate::sample::{Record, Sample};
+use crate::severity::{Escalation, Severity};
 
 /// The detector's verdict on one sample.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -36,6 +37,11 @@ pub struct Decision {
     pub alarm_onset: bool,
     /// The confirmed alarm ended at this sample (1 → 0).
     pub alarm_end: bool,
+    /// The open alarm's severity (§7.4); `None` while no alarm is open. Models without a
+    /// critical test raise warnings only.
+    pub severity: Option<Severity>,
+    /// The alarm turned critical at this sample (at its onset, or later in the episode).
+    pub escalation: bool,
     /// Why: the dominant evidence, the offset from the anchor and the drift rate.
     pub explanation: Explanation,
 }
@@ -57,8 +63,11 @@ pub struct Detector {
     state: LiquidState,
     alarm: PersistenceAlarm,
     lifecycle: AlarmLifecycle,
+    escalation: Escalation,
     flags: FlagCorroboration,
     alarm_on: bool,
+    /// The previous sample's severity, to mark an escalation.
+    severity: Option<Severity>,
 }
 
 impl Detector {
@@ -68,8 +77,10 @@ impl Detector {
             state: LiquidState::zeros(artifact.model.config()),
             alarm: PersistenceAlarm::new(artifact.operating_point.n_p),
             lifecycle: AlarmLifecycle::default(),
+            escalation: Escalation::default(),
             flags: FlagCorroboration::default(),
             alarm_on: false,
+            severity: None,
             artifact,
         }
     }
@@ -114,13 +125,16 @@ impl Detector {
                         offset.displaced,
                     )
                 };
-                self.lifecycle.update(
+                self.lifecycle.update_graded(
                     lifecycle,
+                    self.artifact.critical.as_ref(),
+                    &mut self.escalation,
                     &LifecycleInput {
                         time_s: sample.timestamp_s,
                         valid: evidence.valid,
                         trajectory_start: evidence.trajectory_start,
                         positive,
+                        probability,
                         offset,
                         flag,
                     },
@@ -130,6 +144,10 @@ impl Detector {
                 .alarm
                 .update(positive, evidence.valid, evidence.trajectory_start),
         };
+        let severity = match &self.artifact.lifecycle {
+            Some(_) => self.escalation.severity(alarm),
+            None => alarm.then_some(Severity::Warning),
+        };
         let decision = Decision {
             evidence,
             features,
@@ -138,9 +156,13 @@ impl Detector {
             alarm,
             alarm_onset: alarm && !self.alarm_on,
             alarm_end: !alarm && self.alarm_on,
+            severity,
+            escalation: severity == Some(Severity::Critical)
+                && self.severity != Some(Severity::Critical),
             explanation: Explanation::of(&evidence, positive),
         };
         self.alarm_on = alarm;
+        self.severity = severity;
         decision
     }
 }
@@ -179,9 +201,14 @@ pub struct DetectorState {
     #[serde(default)]
     lifecycle: AlarmLifecycle,
     alarm_on: bool,
-    /// Last, so that a state saved without it ([`DetectorStateWithoutFlags`]) is this one cut short.
+    /// After the lifecycle, so that a state saved without it ([`DetectorStateWithoutFlags`]) is
+    /// this one cut short.
     #[serde(default)]
     flags: FlagCorroboration,
+    /// Last, so that a state saved before severities existed is this one cut short: it continues
+    /// as an episode that has not escalated.
+    #[serde(default)]
+    escalation: Escalation,
 }
 
 /// A [`DetectorState`] as saved before the detector kept its receiver flag's memory: the same
@@ -206,6 +233,7 @@ impl From<DetectorStateWithoutFlags> for DetectorState {
             lifecycle: old.lifecycle,
             alarm_on: old.alarm_on,
             flags: FlagCorroboration::default(),
+            escalation: Escalation::default(),
         }
     }
 }
@@ -246,6 +274,7 @@ impl Detector {
             lifecycle: self.lifecycle,
             alarm_on: self.alarm_on,
             flags: self.flags,
+            escalation: self.escalation,
         }
     }
 
@@ -269,13 +298,19 @@ impl Detector {
                 found: saved.alarm.n_p(),
             });
         }
+        let severity = match &artifact.lifecycle {
+            Some(_) => saved.escalation.severity(saved.alarm_on),
+            None => saved.alarm_on.then_some(Severity::Warning),
+        };
         Ok(Self {
             evidence: EvidenceBuilder::restore(artifact.evidence, saved.evidence)?,
             state: saved.liquid,
             alarm: saved.alarm,
             lifecycle: saved.lifecycle,
+            escalation: saved.escalation,
             flags: saved.flags,
             alarm_on: saved.alarm_on,
+            severity,
             artifact,
         })
     }

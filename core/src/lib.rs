@@ -8,12 +8,13 @@
 //!
 //! Where things live: samples and their parsing ([`sample`], [`data`]) → evidence ([`evidence`],
 //! [`geo`]) → the model and its artifact ([`model`], [`model::artifact`]) → running it on a stream
-//! ([`detector`]) → alarms ([`lifecycle`], [`explain`]), area incidents across vehicles ([`incident`]) and operating points ([`alarm`]) → scoring and metrics ([`evaluation`],
+//! ([`detector`]) → alarms ([`lifecycle`], [`severity`], [`explain`]), area incidents across vehicles ([`incident`]) and operating points ([`alarm`], [`critical_search`]) → scoring and metrics ([`evaluation`],
 //! [`metrics`]). Training is one use case ([`train::detector::train_detector`]); the classical
 //! comparator is [`cusum`]; labelled attack scenarios are [`scenario`].
 
 pub mod alarm;
 pub mod canary;
+pub mod critical_search;
 pub mod cusum;
 pub mod data;
 pub mod detector;
@@ -31,6 +32,7 @@ pub mod receiver;
 pub mod rng;
 pub mod sample;
 pub mod scenario;
+pub mod severity;
 #[cfg(feature = "test-support")]
 pub mod testdata;
 pub mod train;

@@ -19,6 +19,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::receiver::FlagSignal;
 use crate::sample::readable;
+use crate::severity::{CriticalInput, CriticalTest, Escalation};
 
 /// Longest accepted duration of the lifecycle (s): an hour.
 pub const MAX_LIFECYCLE_S: f64 = 3600.0;
@@ -89,6 +90,8 @@ pub struct LifecycleInput {
     pub trajectory_start: bool,
     /// p̂_t ≥ θ.
     pub positive: bool,
+    /// p̂_t, for the critical test (§7.4).
+    pub probability: f64,
     pub offset: OffsetSignal,
     /// What the receiver's spoofing flag says (§7.3): while it counts, p̂ ≥ θ counts towards T_on
     /// during the settling seconds as on a displaced fix; corroborated by a displaced fix, it opens
@@ -118,12 +121,27 @@ impl AlarmLifecycle {
 
     /// Feeds one sample; returns whether the alarm is open after it. A trajectory start closes the
     /// alarm and forgets the runs (as the persistence N_p does); a ν = 0 sample changes nothing.
+    /// Without a critical test every episode stays a warning.
     pub fn update(&mut self, lifecycle: &Lifecycle, input: &LifecycleInput) -> bool {
+        self.update_graded(lifecycle, None, &mut Escalation::default(), input)
+    }
+
+    /// [`AlarmLifecycle::update`] with the critical test (§7.4) and its state, kept apart from
+    /// the lifecycle's: an episode turns critical, or opens as critical, once the test says so,
+    /// and stays critical until it clears.
+    pub fn update_graded(
+        &mut self,
+        lifecycle: &Lifecycle,
+        critical: Option<&CriticalTest>,
+        escalation: &mut Escalation,
+        input: &LifecycleInput,
+    ) -> bool {
         if input.trajectory_start {
             *self = Self {
                 trajectory_since: Some(input.time_s),
                 ..Self::default()
             };
+            *escalation = Escalation::default();
         }
         if !input.valid {
             return self.open;
@@ -150,8 +168,20 @@ impl AlarmLifecycle {
         let sustained = self
             .positive_since
             .is_some_and(|since| time - since + TIME_SLACK_S >= on_s);
+        // The vehicle's own evidence only: neither the flag nor an area incident pages.
+        let critical_now = critical.is_some_and(|test| {
+            escalation.observe(
+                test,
+                &CriticalInput {
+                    time_s: time,
+                    probability: input.probability,
+                    probability_counts: !settling || input.offset.displaced,
+                    decisive_held_s: input.offset.held_s,
+                },
+            )
+        });
         if !self.open {
-            if decisive || sustained || input.flag.corroborated {
+            if decisive || sustained || input.flag.corroborated || critical_now {
                 self.open = true;
                 self.quiet_since = None;
             }
@@ -162,7 +192,11 @@ impl AlarmLifecycle {
             if time - since + TIME_SLACK_S >= lifecycle.off_s {
                 self.open = false;
                 self.quiet_since = None;
+                escalation.episode_ended();
             }
+        }
+        if self.open && critical_now {
+            escalation.escalate(time);
         }
         self.open
     }
@@ -228,6 +262,7 @@ mod tests {
                     valid: true,
                     trajectory_start: i == 0 || (time_s - stream.restart_s).abs() < 1e-9,
                     positive: positive(time_s),
+                    probability: 0.5,
                     offset: OffsetSignal {
                         held_s,
                         displaced: displaced(time_s),
@@ -297,6 +332,7 @@ mod tests {
             valid,
             trajectory_start: start,
             positive: true,
+            probability: 0.5,
             offset: OffsetSignal::default(),
             flag: FlagSignal::default(),
         };
@@ -355,6 +391,7 @@ mod tests {
             valid: true,
             trajectory_start: false,
             positive: true,
+            probability: 0.5,
             offset: OffsetSignal {
                 held_s: None,
                 displaced: false,
@@ -376,6 +413,7 @@ mod tests {
             valid: true,
             trajectory_start: time_s == 0.0,
             positive: false,
+            probability: 0.5,
             offset: OffsetSignal {
                 held_s: None,
                 displaced,
@@ -415,6 +453,7 @@ mod tests {
                         valid: true,
                         trajectory_start: t == 0.0,
                         positive: true,
+                        probability: 0.5,
                         offset: OffsetSignal {
                             held_s: None,
                             displaced: false,
@@ -447,6 +486,7 @@ mod tests {
                         valid: true,
                         trajectory_start: t == 0.0,
                         positive: t >= 100.0,
+                        probability: 0.5,
                         offset: OffsetSignal::default(),
                         flag: FlagSignal {
                             in_incident_area,
@@ -478,5 +518,104 @@ mod tests {
         };
         assert_eq!(bad.validate().expect_err("too long").0, "on_s");
         assert!(LIFECYCLE.validate().is_ok());
+    }
+
+    const CRITICAL: CriticalTest = CriticalTest {
+        reference_logit: 2.0,
+        threshold: 20.0,
+        decisive_s: 3.0,
+    };
+
+    /// Feeds samples every second from 0 to `end_s` with p̂ = `probability(t)` (positive at
+    /// p̂ ≥ 0.8), the offset held beyond the decisive gate from `held_since` and the receiver's
+    /// flag corroborated per `flag(t)`; returns per second (open, severity).
+    fn graded(
+        end_s: u32,
+        probability: impl Fn(f64) -> f64,
+        held_since: Option<f64>,
+        flag: impl Fn(f64) -> bool,
+    ) -> Vec<(bool, Option<crate::severity::Severity>)> {
+        let mut alarm = AlarmLifecycle::default();
+        let mut escalation = Escalation::default();
+        (0..=end_s)
+            .map(f64::from)
+            .map(|t| {
+                let held_s = held_since.filter(|&s| t >= s).map(|s| t - s);
+                let open = alarm.update_graded(
+                    &LIFECYCLE,
+                    Some(&CRITICAL),
+                    &mut escalation,
+                    &LifecycleInput {
+                        time_s: t,
+                        valid: true,
+                        trajectory_start: t == 0.0,
+                        positive: probability(t) >= 0.8,
+                        probability: probability(t),
+                        offset: OffsetSignal {
+                            held_s,
+                            displaced: held_s.is_some() || flag(t),
+                            anchored: false,
+                        },
+                        flag: FlagSignal {
+                            counts: flag(t),
+                            corroborated: flag(t),
+                            in_incident_area: flag(t),
+                        },
+                    },
+                );
+                (open, escalation.severity(open))
+            })
+            .collect()
+    }
+
+    fn logistic(logit: f64) -> f64 {
+        1.0 / (1.0 + (-logit).exp())
+    }
+
+    #[test]
+    fn an_episode_turns_critical_once_its_evidence_crosses_the_threshold_and_stays_so() {
+        use crate::severity::Severity::{Critical, Warning};
+        // p̂ at logit 5 from 10 s to 40 s: the warning opens after T_on (13 s); S grows by 3 a
+        // second, counted over the step ending on each sample from 10 s, and reaches 20 at 16 s;
+        // the episode stays critical until it clears T_off after p̂ falls (45 s).
+        let run = graded(
+            60,
+            |t| logistic(if (10.0..40.0).contains(&t) { 5.0 } else { -5.0 }),
+            None,
+            |_| false,
+        );
+        assert_eq!(run[12], (false, None));
+        assert_eq!(run[13], (true, Some(Warning)));
+        assert_eq!(run[15], (true, Some(Warning)));
+        assert_eq!(run[16], (true, Some(Critical)));
+        assert_eq!(run[44], (true, Some(Critical)));
+        assert_eq!(run[45], (false, None));
+        // A marginal p̂ (logit 1.5 < k) opens a warning that never escalates.
+        let run = graded(
+            600,
+            |t| logistic(if t >= 10.0 { 1.5 } else { -5.0 }),
+            None,
+            |_| false,
+        );
+        assert!(run[13..].iter().all(|&step| step == (true, Some(Warning))));
+    }
+
+    #[test]
+    fn decisive_evidence_escalates_after_the_critical_hold() {
+        use crate::severity::Severity::{Critical, Warning};
+        // An offset held from 100 s: decisive for the warning after 2 s, critical after 3 s.
+        let run = graded(120, |_| 0.01, Some(100.0), |_| false);
+        assert_eq!(run[101], (false, None));
+        assert_eq!(run[102], (true, Some(Warning)));
+        assert_eq!(run[103], (true, Some(Critical)));
+    }
+
+    #[test]
+    fn neither_a_flag_nor_an_area_incident_escalates() {
+        use crate::severity::Severity::Warning;
+        // Corroborated from 50 s, p̂ low: the alarm opens at once and stays a warning.
+        let run = graded(120, |_| 0.01, None, |t| t >= 50.0);
+        assert_eq!(run[50], (true, Some(Warning)));
+        assert!(run[50..].iter().all(|&step| step == (true, Some(Warning))));
     }
 }

@@ -24,6 +24,7 @@ use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{
     AttackKind, AttackSpec, DriveSpec, OnboardErrors, inject, simulate_drive,
 };
+use spoofwatch_core::severity::{CriticalTest, Escalation};
 use spoofwatch_core::train::TrainConfig;
 use spoofwatch_core::train::data::{
     fit_evidence, sequences, split_chronologically, split_with_warmup, trajectory_ranges,
@@ -81,6 +82,11 @@ fn artifact_of(
             off_s: 5.0,
             decisive_s: 2.0,
         }),
+        critical: schema.has_offset().then_some(CriticalTest {
+            reference_logit: 0.0,
+            threshold: 5.0,
+            decisive_s: 3.0,
+        }),
         provenance: Provenance::default(),
     })
 }
@@ -99,6 +105,8 @@ fn streaming_detector_equals_the_whole_trajectory_pass_and_the_model_forward() {
         let live = detector.step(&record.sample, record.trajectory_break);
         assert_eq!(live.probability.to_bits(), expected.probability.to_bits());
         assert_eq!(live.alarm, expected.alarm);
+        assert_eq!(live.severity, expected.severity);
+        assert_eq!(live.escalation, expected.escalation);
     }
 
     // The same probabilities from the model's sequence pass over the scaled features, trajectory by
@@ -106,6 +114,7 @@ fn streaming_detector_equals_the_whole_trajectory_pass_and_the_model_forward() {
     // or the persistence rule.
     let mut alarm = PersistenceAlarm::new(op.n_p);
     let mut lifecycle = AlarmLifecycle::default();
+    let mut escalation = Escalation::default();
     for range in trajectory_ranges(&track.records) {
         let records = &track.records[range.clone()];
         let decisions = &offline[range];
@@ -119,13 +128,16 @@ fn streaming_detector_equals_the_whole_trajectory_pass_and_the_model_forward() {
         for ((d, p), record) in decisions.iter().zip(probabilities).zip(records) {
             assert_eq!(d.probability.to_bits(), p.to_bits());
             let expected = match &artifact.lifecycle {
-                Some(durations) => lifecycle.update(
+                Some(durations) => lifecycle.update_graded(
                     durations,
+                    artifact.critical.as_ref(),
+                    &mut escalation,
                     &LifecycleInput {
                         time_s: record.sample.timestamp_s,
                         valid: d.evidence.valid,
                         trajectory_start: d.evidence.trajectory_start,
                         positive: p >= op.theta,
+                        probability: p,
                         offset: offset_signal(&d.evidence),
                         flag: FlagSignal::default(),
                     },
@@ -133,6 +145,7 @@ fn streaming_detector_equals_the_whole_trajectory_pass_and_the_model_forward() {
                 None => alarm.update(p >= op.theta, d.evidence.valid, d.evidence.trajectory_start),
             };
             assert_eq!(d.alarm, expected);
+            assert_eq!(d.severity, escalation.severity(expected));
         }
     }
     assert_eq!(offline[300].evidence.trajectory, 1);
@@ -160,6 +173,12 @@ fn a_detector_restored_from_its_saved_state_continues_bit_for_bit() {
             offline.iter().any(|d| d.alarm_onset),
             "{schema:?}: the run alarms"
         );
+        if schema == FeatureSchema::V3 {
+            assert!(
+                offline.iter().any(|d| d.escalation),
+                "{schema:?}: the run escalates"
+            );
+        }
         // Hand-offs before the drift calibration is warm, during the attack, right after a
         // trajectory break, and at the very start.
         for cut in [0, 1, 150, 230, 260, 421, 499] {
@@ -179,6 +198,8 @@ fn a_detector_restored_from_its_saved_state_continues_bit_for_bit() {
                         d.alarm,
                         d.alarm_onset,
                         d.alarm_end,
+                        d.severity,
+                        d.escalation,
                     )
                 };
                 assert_eq!(bits(&live), bits(expected), "{schema:?}, restored at {cut}");

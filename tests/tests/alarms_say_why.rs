@@ -57,6 +57,7 @@ fn untrained_v3_artifact() -> Vec<u8> {
             off_s: 5.0,
             decisive_s: 2.0,
         }),
+        critical: None,
         provenance: Provenance::default(),
     };
     artifact.to_vec().expect("the artifact is valid")

@@ -22,6 +22,7 @@ use crate::evidence::{
 use crate::lifecycle::Lifecycle;
 use crate::metrics::Metrics;
 use crate::sample::readable;
+use crate::severity::CriticalTest;
 
 /// Version of the artifact schema (weights layout, evidence definition, feature order).
 /// Bump it whenever an older artifact would be served differently by this code.
@@ -44,6 +45,10 @@ pub struct ModelArtifact {
     /// The alarm lifecycle in seconds (`None`: the persistence N_p of the operating point, in rows).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lifecycle: Option<Lifecycle>,
+    /// When an alarm turns critical (`docs/detector.md` §7.4); `None`: warnings only (artifacts
+    /// made before severities existed, and models without a lifecycle).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub critical: Option<CriticalTest>,
     pub provenance: Provenance,
 }
 
@@ -359,6 +364,8 @@ struct RawArtifact {
     operating_point: OperatingPoint,
     #[serde(default)]
     lifecycle: Option<Lifecycle>,
+    #[serde(default)]
+    critical: Option<CriticalTest>,
     provenance: Provenance,
 }
 
@@ -380,6 +387,7 @@ impl RawArtifact {
             scaler,
             operating_point: self.operating_point,
             lifecycle: self.lifecycle,
+            critical: self.critical,
             provenance: self.provenance,
         })
     }
@@ -541,6 +549,17 @@ impl ModelArtifact {
         if let Some(lifecycle) = &self.lifecycle {
             lifecycle.validate().map_err(|(field, reason)| {
                 ArtifactError::field_error(format!("lifecycle.{field}"), reason)
+            })?;
+        }
+        if let Some(critical) = &self.critical {
+            if self.lifecycle.is_none() {
+                return Err(ArtifactError::field_error(
+                    "critical",
+                    "a critical test needs the alarm lifecycle in seconds (`lifecycle`)",
+                ));
+            }
+            critical.validate().map_err(|(field, reason)| {
+                ArtifactError::field_error(format!("critical.{field}"), reason)
             })?;
         }
         self.provenance.validate().map_err(|(field, reason)| {

@@ -173,6 +173,7 @@ fn train_candidate(
         // Provisional: probabilities do not depend on it; replaced below.
         operating_point: OperatingPoint { theta: 0.5, n_p: 1 },
         lifecycle: None,
+        critical: None,
         provenance: Provenance {
             created_by: format!("spoofwatch {}", env!("CARGO_PKG_VERSION")),
             training_data: Provenance::bounded_training_data(spec.data_description.clone()),

@@ -6,23 +6,29 @@
 //! first 8 bytes of the SHA-256 of everything before them. A snapshot that fails any of these is
 //! refused with a [`SnapshotRefused`] naming why; the session then starts afresh.
 //!
-//! Version 4 is version 5 without the detector's receiver-flag memory (the last field of its state,
-//! and of the snapshot); it is still read, as a session whose receiver has raised no flag.
+//! Older versions still read:
+//! - version 5 is version 6 without the alarm's escalation (the last field of the detector's state,
+//!   and of the snapshot): it continues as an episode that has not turned critical;
+//! - version 4 is version 5 without the detector's receiver-flag memory: it continues as a session
+//!   whose receiver has raised no flag either.
 
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use spoofwatch_core::detector::{DetectorState, DetectorStateWithoutFlags, RestoreError};
+use spoofwatch_core::severity::Escalation;
 
 /// The encoding this server writes. Bump it when [`SessionSnapshot`] or anything inside
 /// [`DetectorState`] changes shape: older snapshots are then refused (fresh sessions), never
 /// misread, unless [`SessionSnapshot::decode`] is taught to read them.
-pub const SNAPSHOT_SCHEMA: u16 = 5;
+pub const SNAPSHOT_SCHEMA: u16 = 6;
+/// The version before alarm severities, still read.
+const SNAPSHOT_SCHEMA_WITHOUT_SEVERITY: u16 = 5;
 /// The version before the receiver-flag memory, still read.
 const SNAPSHOT_SCHEMA_WITHOUT_FLAGS: u16 = 4;
 
 /// Whether this server reads stored snapshots of schema version `version`.
 pub fn reads_schema(version: i64) -> bool {
-    version == i64::from(SNAPSHOT_SCHEMA) || version == i64::from(SNAPSHOT_SCHEMA_WITHOUT_FLAGS)
+    (i64::from(SNAPSHOT_SCHEMA_WITHOUT_FLAGS)..=i64::from(SNAPSHOT_SCHEMA)).contains(&version)
 }
 
 const MAGIC: &[u8; 4] = b"SWSS";
@@ -63,7 +69,7 @@ pub enum SnapshotRefused {
     Corrupt(String),
     #[error(
         "the stored session snapshot has schema version {found}; this server reads versions \
-         {SNAPSHOT_SCHEMA_WITHOUT_FLAGS} and {SNAPSHOT_SCHEMA}"
+         {SNAPSHOT_SCHEMA_WITHOUT_FLAGS} to {SNAPSHOT_SCHEMA}"
     )]
     Schema { found: i64 },
     #[error("the stored session snapshot ran model {snapshot}, this stream runs {session}")]
@@ -121,8 +127,8 @@ impl SessionSnapshot {
         bytes
     }
 
-    /// Decodes `bytes` written by [`SessionSnapshot::encode`] of this schema version or of
-    /// version 4.
+    /// Decodes `bytes` written by [`SessionSnapshot::encode`] of this schema version or of an
+    /// older one still read (see the module docs).
     pub fn decode(bytes: &[u8]) -> Result<Self, SnapshotRefused> {
         let corrupt = |why: &str| SnapshotRefused::Corrupt(why.to_string());
         if bytes.len() < HEADER + CHECKSUM || !bytes.starts_with(MAGIC) {
@@ -143,6 +149,12 @@ impl SessionSnapshot {
             return postcard::from_bytes::<SessionSnapshotWithoutFlags>(&body[HEADER..])
                 .map(Self::from)
                 .map_err(undecodable);
+        }
+        if version == SNAPSHOT_SCHEMA_WITHOUT_SEVERITY {
+            // Cut short before the escalation: the bytes of one that has not escalated complete it.
+            let mut payload = body[HEADER..].to_vec();
+            payload.extend(postcard::to_allocvec(&Escalation::default()).unwrap_or_default());
+            return postcard::from_bytes(&payload).map_err(undecodable);
         }
         postcard::from_bytes(&body[HEADER..]).map_err(undecodable)
     }
@@ -199,27 +211,46 @@ mod tests {
         );
     }
 
-    /// `snapshot` as a server of schema version 4 stored it: the same bytes without the detector's
-    /// receiver-flag memory (two absent times, the last two bytes of the payload), under version 4.
-    fn as_version_4(snapshot: &SessionSnapshot) -> Vec<u8> {
+    /// Bytes of an unescalated escalation at the end of the payload: a warning (0), no time (0),
+    /// no evidence (eight zero bytes of 0.0) and no time fed (0).
+    const NO_ESCALATION: [u8; 11] = [0; 11];
+    /// Bytes of an empty receiver-flag memory before it: two absent times.
+    const NO_FLAGS: [u8; 2] = [0; 2];
+
+    /// `snapshot` as a server of an older schema `version` stored it: the same bytes without the
+    /// payload's last `cut` bytes.
+    fn as_version(snapshot: &SessionSnapshot, version: u16, cut: usize) -> Vec<u8> {
         let bytes = snapshot.encode();
         let payload = &bytes[HEADER..bytes.len() - CHECKSUM];
-        assert_eq!(payload[payload.len() - 2..], [0, 0], "an empty flag memory");
         let mut old = b"SWSS".to_vec();
-        old.extend_from_slice(&4u16.to_le_bytes());
-        old.extend_from_slice(&payload[..payload.len() - 2]);
+        old.extend_from_slice(&version.to_le_bytes());
+        old.extend_from_slice(&payload[..payload.len() - cut]);
         let checksum = Sha256::digest(&old);
         old.extend_from_slice(&checksum[..CHECKSUM]);
         old
     }
 
     #[test]
-    fn a_version_4_snapshot_continues_as_one_without_receiver_flags() {
+    fn older_snapshots_continue_without_what_they_did_not_keep() {
         let original = snapshot();
-        let decoded = SessionSnapshot::decode(&as_version_4(&original)).expect("version 4 reads");
-        assert_eq!(decoded.encode(), original.encode());
-        assert_eq!(decoded.open_alarm, original.open_alarm);
-        assert!(reads_schema(4) && reads_schema(5) && !reads_schema(3));
+        let bytes = original.encode();
+        let payload = &bytes[HEADER..bytes.len() - CHECKSUM];
+        let tail = [NO_FLAGS.as_slice(), NO_ESCALATION.as_slice()].concat();
+        assert_eq!(
+            payload[payload.len() - tail.len()..],
+            tail[..],
+            "no flag memory, then no escalation"
+        );
+        let version_5 = as_version(&original, 5, NO_ESCALATION.len());
+        let version_4 = as_version(&original, 4, tail.len());
+        for (version, old) in [(5, version_5), (4, version_4)] {
+            let decoded = SessionSnapshot::decode(&old)
+                .unwrap_or_else(|e| panic!("version {version} reads: {e}"));
+            assert_eq!(decoded.encode(), bytes, "version {version}");
+            assert_eq!(decoded.open_alarm, original.open_alarm);
+        }
+        assert!(reads_schema(4) && reads_schema(5) && reads_schema(6));
+        assert!(!reads_schema(3) && !reads_schema(7));
     }
 
     #[test]
@@ -252,7 +283,7 @@ mod tests {
         assert_eq!(
             refusal(&older).as_deref(),
             Some(
-                "the stored session snapshot has schema version 1; this server reads versions 4 and 5"
+                "the stored session snapshot has schema version 1; this server reads versions 4 to 6"
             )
         );
 

@@ -1,0 +1,280 @@
+//! Choosing the critical test (`docs/detector.md` §7.4) on validation data, after the warning's
+//! θ and lifecycle: the stricter budget (critical onsets per attack-free hour, counted as the
+//! warning's are) must hold pooled and at every sample rate with room for one; among the tests
+//! within it, the one that escalates the most attacks, soonest.
+//!
+//! Owns the critical test's search grid and objective. Must not run the model, build evidence or
+//! choose the warning's operating point (that is `alarm.rs`).
+
+use std::cmp::Ordering;
+
+use serde::{Deserialize, Serialize};
+
+use crate::alarm::AlarmError;
+use crate::lifecycle::{AlarmLifecycle, Lifecycle, LifecycleInput, OffsetSignal};
+use crate::metrics::{self, EventRules, Metrics, RateGroup, ScoredRow};
+use crate::receiver::FlagSignal;
+use crate::severity::{CriticalTest, Escalation, Severity};
+
+/// Grid of k, the logit of p̂ above which evidence accumulates: p̂ from 0.5 to 0.9975.
+pub const REFERENCE_LOGIT_GRID: [f64; 7] = [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0];
+/// Grid of h (logit·s): from a few seconds of strong evidence to minutes of it.
+pub const THRESHOLD_GRID: [f64; 9] = [5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 640.0, 1280.0];
+/// Grid of the seconds decisive evidence must hold to be critical at once: within the 10 s a
+/// jump must be paged in.
+pub const CRITICAL_DECISIVE_S_GRID: [f64; 6] = [1.0, 2.0, 3.0, 5.0, 7.0, 9.0];
+
+/// The chosen test and what it achieves on the validation rows.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CriticalSelection {
+    pub test: CriticalTest,
+    /// Metrics of the critical rows (an episode from its escalation to its end) as alarms.
+    pub metrics: Metrics,
+    /// Critical onsets on attack-free rows, per sample rate: (rate in Hz, onsets, attack-free
+    /// hours).
+    pub false_onsets_by_rate: Vec<(u32, u64, f64)>,
+}
+
+/// Whether each row is inside a critical episode, under θ, `lifecycle` and `test`, with the
+/// offset evidence of each row (`offset` empty: none). A change of trajectory key starts a new
+/// trajectory; a NaN score is never positive.
+pub fn critical_rows(
+    rows: &[ScoredRow],
+    offset: &[OffsetSignal],
+    theta: f64,
+    lifecycle: &Lifecycle,
+    test: &CriticalTest,
+) -> Vec<bool> {
+    let mut critical = Vec::with_capacity(rows.len());
+    fill_critical_rows(rows, offset, (theta, lifecycle, test), &mut critical);
+    critical
+}
+
+fn fill_critical_rows(
+    rows: &[ScoredRow],
+    offset: &[OffsetSignal],
+    (theta, lifecycle, test): (f64, &Lifecycle, &CriticalTest),
+    critical: &mut Vec<bool>,
+) {
+    critical.clear();
+    let mut state = AlarmLifecycle::default();
+    let mut escalation = Escalation::default();
+    for (i, row) in rows.iter().enumerate() {
+        let open = state.update_graded(
+            lifecycle,
+            Some(test),
+            &mut escalation,
+            &LifecycleInput {
+                time_s: row.time_s,
+                valid: row.valid,
+                trajectory_start: i == 0 || rows[i - 1].trajectory != row.trajectory,
+                positive: row.score >= theta,
+                probability: row.score,
+                offset: offset.get(i).copied().unwrap_or_default(),
+                // Neither the flag nor an area incident escalates (§7.4).
+                flag: FlagSignal::default(),
+            },
+        );
+        critical.push(escalation.severity(open) == Some(Severity::Critical));
+    }
+}
+
+/// Chooses the critical test from [`REFERENCE_LOGIT_GRID`] × [`THRESHOLD_GRID`] ×
+/// [`CRITICAL_DECISIVE_S_GRID`] for the warning's θ and `lifecycle`: at most `per_hour` critical
+/// onsets per attack-free hour, pooled and at each sample rate with room for one; then the most
+/// attack events escalated, the shortest mean delay to escalation, the best F1 of the critical rows,
+/// the lowest FPR; ties go to the larger k, the larger h and the longer hold (the quieter test).
+pub fn choose_critical(
+    rows: &[ScoredRow],
+    offset: &[OffsetSignal],
+    theta: f64,
+    lifecycle: &Lifecycle,
+    per_hour: f64,
+    rules: EventRules,
+) -> Result<CriticalSelection, AlarmError> {
+    let normal_hours = metrics::normal_hours(rows);
+    let rate_groups: Vec<RateGroup> = metrics::rate_groups(rows);
+    let binding: Vec<&RateGroup> = rate_groups
+        .iter()
+        .filter(|g| per_hour * g.normal_hours >= 1.0)
+        .collect();
+    let mut best: Option<(CriticalTest, Metrics)> = None;
+    let mut critical = Vec::with_capacity(rows.len());
+    for reference_logit in REFERENCE_LOGIT_GRID {
+        for threshold in THRESHOLD_GRID {
+            for decisive_s in CRITICAL_DECISIVE_S_GRID {
+                let test = CriticalTest {
+                    reference_logit,
+                    threshold,
+                    decisive_s,
+                };
+                fill_critical_rows(rows, offset, (theta, lifecycle, &test), &mut critical);
+                let candidate = metrics::alarm_metrics(rows, &critical, rules);
+                let within_budget = candidate.false_alarm_onsets as f64 <= per_hour * normal_hours
+                    && binding.iter().all(|g| {
+                        g.false_alarm_onsets(rows, &critical) as f64 <= per_hour * g.normal_hours
+                    });
+                let improves = best.as_ref().is_none_or(|(b_test, b_metrics)| {
+                    compare((&test, &candidate), (b_test, b_metrics)) == Ordering::Greater
+                });
+                if within_budget && improves {
+                    best = Some((test, candidate));
+                }
+            }
+        }
+    }
+    let Some((test, _)) = best else {
+        return Err(AlarmError::OverBudget {
+            per_hour,
+            normal_hours,
+        });
+    };
+    let critical = critical_rows(rows, offset, theta, lifecycle, &test);
+    Ok(CriticalSelection {
+        test,
+        metrics: metrics::evaluate(rows, &critical, rules),
+        false_onsets_by_rate: rate_groups
+            .iter()
+            .map(|g| {
+                (
+                    g.rate_hz,
+                    g.false_alarm_onsets(rows, &critical),
+                    g.normal_hours,
+                )
+            })
+            .collect(),
+    })
+}
+
+/// The search's order: greater is better.
+fn compare(a: (&CriticalTest, &Metrics), b: (&CriticalTest, &Metrics)) -> Ordering {
+    let ((a_test, a_metrics), (b_test, b_metrics)) = (a, b);
+    a_metrics
+        .detected_events
+        .cmp(&b_metrics.detected_events)
+        .then(shorter_delay(
+            a_metrics.mean_delay_s,
+            b_metrics.mean_delay_s,
+        ))
+        .then(a_metrics.f1.total_cmp(&b_metrics.f1))
+        .then(b_metrics.fpr.total_cmp(&a_metrics.fpr))
+        .then(a_test.reference_logit.total_cmp(&b_test.reference_logit))
+        .then(a_test.threshold.total_cmp(&b_test.threshold))
+        .then(a_test.decisive_s.total_cmp(&b_test.decisive_s))
+}
+
+/// Lower delay is better; no detection at all is worst.
+fn shorter_delay(a: Option<f64>, b: Option<f64>) -> Ordering {
+    match (a, b) {
+        (Some(a), Some(b)) => b.total_cmp(&a),
+        (Some(_), None) => Ordering::Greater,
+        (None, Some(_)) => Ordering::Less,
+        (None, None) => Ordering::Equal,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const LIFECYCLE: Lifecycle = Lifecycle {
+        on_s: 2.0,
+        off_s: 5.0,
+        decisive_s: 2.0,
+    };
+
+    fn logistic(logit: f64) -> f64 {
+        1.0 / (1.0 + (-logit).exp())
+    }
+
+    /// One trajectory of `seconds` at 1 Hz with p̂ = logistic(`logit(t)`), labelled attacked per
+    /// `attacked(t)`.
+    fn trajectory(
+        key: u64,
+        seconds: u32,
+        logit: impl Fn(f64) -> f64,
+        attacked: impl Fn(f64) -> bool,
+    ) -> Vec<ScoredRow> {
+        (0..seconds)
+            .map(f64::from)
+            .map(|t| ScoredRow {
+                trajectory: key,
+                time_s: t,
+                valid: true,
+                label: attacked(t),
+                score: logistic(logit(t)),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_chosen_test_escalates_attacks_and_keeps_clean_hours_within_the_budget() {
+        // Attacks: p̂ at logit 6 for 60 s. Clean hours: a false alarm every ten minutes at logit
+        // 3 for 20 s, which a quiet test never escalates, and one at logit 6 for 4 s per hour.
+        let mut rows = Vec::new();
+        for key in 0..10 {
+            rows.extend(trajectory(
+                key,
+                300,
+                |t| {
+                    if (100.0..160.0).contains(&t) {
+                        6.0
+                    } else {
+                        -6.0
+                    }
+                },
+                |t| (100.0..160.0).contains(&t),
+            ));
+        }
+        for key in 100..103 {
+            rows.extend(trajectory(
+                key,
+                3600,
+                |t| {
+                    if t % 600.0 >= 300.0 && t % 600.0 < 320.0 {
+                        3.0
+                    } else if (1000.0..1004.0).contains(&t) {
+                        6.0
+                    } else {
+                        -6.0
+                    }
+                },
+                |_| false,
+            ));
+        }
+        // A budget of 1 per hour allows the three strong blips; 0.01 per hour allows none.
+        let offset = Vec::new();
+        let loose = choose_critical(&rows, &offset, 0.8, &LIFECYCLE, 1.0, EventRules::Spec)
+            .expect("a test");
+        let strict = choose_critical(&rows, &offset, 0.8, &LIFECYCLE, 0.01, EventRules::Spec)
+            .expect("a test");
+        for selection in [&loose, &strict] {
+            assert_eq!(selection.metrics.detected_events, 10, "{selection:?}");
+        }
+        assert!(loose.metrics.false_alarm_onsets <= 3, "{loose:?}");
+        assert_eq!(strict.metrics.false_alarm_onsets, 0, "{strict:?}");
+        // The strict test waits for more than four seconds of logit 6 above its k.
+        let strict_rows = critical_rows(&rows, &offset, 0.8, &LIFECYCLE, &strict.test);
+        let clean_start = 10 * 300;
+        assert!(!strict_rows[clean_start..].iter().any(|&c| c));
+        assert!(
+            strict.metrics.mean_delay_s.expect("detected")
+                >= loose.metrics.mean_delay_s.expect("detected")
+        );
+        let by_rate: Vec<(u32, u64)> = strict
+            .false_onsets_by_rate
+            .iter()
+            .map(|&(rate, onsets, _)| (rate, onsets))
+            .collect();
+        assert_eq!(by_rate, vec![(1, 0)]);
+    }
+
+    #[test]
+    fn no_test_within_the_budget_is_an_error() {
+        // Every clean minute looks like an attack.
+        let rows = trajectory(0, 3600, |_| 8.0, |_| false);
+        let error = choose_critical(&rows, &[], 0.8, &LIFECYCLE, 0.01, EventRules::Spec)
+            .expect_err("over budget");
+        assert!(matches!(error, AlarmError::OverBudget { .. }), "{error}");
+    }
+}

@@ -1,0 +1,392 @@
+//! Alarm severities (`docs/detector.md` §7.4): an open alarm is a *warning* (shown on dashboards,
+//! about one false alarm per vehicle-hour) until its evidence is strong enough to page someone,
+//! then *critical* (at most one false alarm per hundred vehicle-hours). One episode, whose
+//! severity only rises: it is not two alarms.
+//!
+//! An episode turns critical
+//! - at once on decisive evidence held for [`CriticalTest::decisive_s`]: an offset beyond the
+//!   decisive gate (a jump, a hop) or a fix frozen on a moving vehicle. Their likelihood ratios are
+//!   enormous, so the stricter budget costs them little;
+//! - when a sequential test on p̂ crosses its threshold: S ← max(0, S + δ·(x − k)), x the logit of
+//!   p̂ capped at ±[`LOGIT_CAP`] (at most 0 while a trajectory settles and nothing vouches for p̂,
+//!   as for the warning), critical once S ≥ h. A CUSUM in seconds: the same drive at 1 Hz and at
+//!   10 Hz accumulates the same evidence, and a strong p̂ escalates sooner than a marginal one.
+//!   k and h are chosen on attack-free validation hours at every sample rate
+//!   ([`crate::critical_search`]).
+//!
+//! Neither the receiver's spoofing flag nor an area incident makes an episode critical: they open
+//! alarms sooner, but a page must rest on the vehicle's own evidence.
+//!
+//! Owns the critical test's parameters and its per-vehicle state. Must not decide when an alarm
+//! opens or clears (that is `lifecycle.rs`) or choose the test's parameters.
+
+use serde::{Deserialize, Serialize};
+
+use crate::lifecycle::MAX_LIFECYCLE_S;
+use crate::sample::readable;
+
+/// |logit p̂| counts up to this: one saturated probability (p̂ = 1 − 10⁻¹²) must not weigh as much
+/// as minutes of strong evidence.
+pub const LOGIT_CAP: f64 = 10.0;
+/// Largest accepted threshold h (logit·s): an hour at the cap.
+pub const MAX_THRESHOLD: f64 = LOGIT_CAP * MAX_LIFECYCLE_S;
+/// Longest step the test integrates over (s), as the liquid cell clamps δ.
+const MAX_STEP_S: f64 = 5.0;
+/// Durations compare with this slack (s), as in the lifecycle.
+const TIME_SLACK_S: f64 = 1e-6;
+
+/// How loud an alarm is.
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum Severity {
+    /// Shown on dashboards and in alarm watches; not paged.
+    #[default]
+    Warning,
+    /// Pages an operator.
+    Critical,
+}
+
+impl Severity {
+    /// Both, from the lower.
+    pub const ALL: [Severity; 2] = [Severity::Warning, Severity::Critical];
+
+    /// The name used in logs, metrics labels, CSV columns and the CLI.
+    pub fn name(self) -> &'static str {
+        match self {
+            Severity::Warning => "warning",
+            Severity::Critical => "critical",
+        }
+    }
+
+    /// The severity called `name`, if any.
+    pub fn from_name(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|s| s.name() == name)
+    }
+}
+
+/// When an episode turns critical; chosen on validation data and carried by the artifact
+/// (`critical`). An artifact without it raises warnings only.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CriticalTest {
+    /// k: the logit of p̂ above which evidence accumulates (per second).
+    pub reference_logit: f64,
+    /// h: the accumulated evidence (logit·s above k) at which the episode turns critical.
+    pub threshold: f64,
+    /// Seconds decisive evidence must hold to be critical at once.
+    pub decisive_s: f64,
+}
+
+impl CriticalTest {
+    /// k within ±[`LOGIT_CAP`], h in (0, [`MAX_THRESHOLD`]], the hold in [0, an hour]; the error
+    /// names the field.
+    pub fn validate(&self) -> Result<(), (&'static str, String)> {
+        if !(-LOGIT_CAP..=LOGIT_CAP).contains(&self.reference_logit) {
+            return Err((
+                "reference_logit",
+                format!(
+                    "must be finite and within ±{LOGIT_CAP} (a logit of p̂), got {}",
+                    readable(self.reference_logit)
+                ),
+            ));
+        }
+        if !(self.threshold > 0.0 && self.threshold <= MAX_THRESHOLD) {
+            return Err((
+                "threshold",
+                format!(
+                    "must be in (0, {MAX_THRESHOLD}] (logit seconds), got {}",
+                    readable(self.threshold)
+                ),
+            ));
+        }
+        if !(0.0..=MAX_LIFECYCLE_S).contains(&self.decisive_s) {
+            return Err((
+                "decisive_s",
+                format!(
+                    "must be finite and in [0, {MAX_LIFECYCLE_S}] s, got {}",
+                    readable(self.decisive_s)
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// One sample's inputs to the critical test.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CriticalInput {
+    pub time_s: f64,
+    /// p̂_t.
+    pub probability: f64,
+    /// p̂ may count: the trajectory has settled, or the fix is displaced from an anchor.
+    pub probability_counts: bool,
+    /// Seconds decisive evidence has held (an offset beyond the decisive gate, or a frozen fix on
+    /// a moving vehicle); `None` without it.
+    pub decisive_held_s: Option<f64>,
+}
+
+/// The test's per-vehicle state: the accumulated evidence S and the time it was last fed.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct CriticalEvidence {
+    accumulated: f64,
+    last_time_s: Option<f64>,
+}
+
+impl CriticalEvidence {
+    /// The accumulated evidence S (logit·s above k).
+    pub fn accumulated(&self) -> f64 {
+        self.accumulated
+    }
+
+    /// Feeds one valid sample; returns whether the evidence is critical now.
+    pub fn update(&mut self, test: &CriticalTest, input: &CriticalInput) -> bool {
+        let delta_s = self
+            .last_time_s
+            .map_or(0.0, |last| (input.time_s - last).clamp(0.0, MAX_STEP_S));
+        self.last_time_s = Some(input.time_s);
+        let logit = capped_logit(input.probability);
+        let counted = if input.probability_counts {
+            logit
+        } else {
+            logit.min(0.0)
+        };
+        self.accumulated = (self.accumulated + delta_s * (counted - test.reference_logit)).max(0.0);
+        let decisive = input
+            .decisive_held_s
+            .is_some_and(|held| held + TIME_SLACK_S >= test.decisive_s);
+        decisive || self.accumulated >= test.threshold
+    }
+
+    /// Forgets the evidence (an episode ended); the clock goes on.
+    pub fn clear(&mut self) {
+        self.accumulated = 0.0;
+    }
+}
+
+/// An alarm episode's severity and the critical test's evidence, per vehicle. Kept apart from the
+/// lifecycle's runs (and after them in a saved detector state), so that a state saved before
+/// severities existed is this one cut short.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Escalation {
+    /// Critical once the open episode escalated; warning otherwise.
+    severity: Severity,
+    /// When the open episode turned critical.
+    escalated_at: Option<f64>,
+    evidence: CriticalEvidence,
+}
+
+impl Escalation {
+    /// The severity of an episode that is open (`open`), else `None`.
+    pub fn severity(&self, open: bool) -> Option<Severity> {
+        open.then_some(self.severity)
+    }
+
+    /// When the open episode turned critical; `None` while it is a warning.
+    pub fn escalated_at(&self) -> Option<f64> {
+        self.escalated_at
+    }
+
+    /// The critical test's accumulated evidence S.
+    pub fn evidence(&self) -> f64 {
+        self.evidence.accumulated()
+    }
+
+    /// Feeds one valid sample to the test; whether the evidence is critical now.
+    pub fn observe(&mut self, test: &CriticalTest, input: &CriticalInput) -> bool {
+        self.evidence.update(test, input)
+    }
+
+    /// The open episode is critical from `time_s` on (no change once it is).
+    pub fn escalate(&mut self, time_s: f64) {
+        if self.severity == Severity::Warning {
+            self.severity = Severity::Critical;
+            self.escalated_at = Some(time_s);
+        }
+    }
+
+    /// The episode cleared: the next one starts as a warning and escalates on its own evidence.
+    pub fn episode_ended(&mut self) {
+        self.severity = Severity::Warning;
+        self.escalated_at = None;
+        self.evidence.clear();
+    }
+}
+
+/// ln(p / (1 − p)) within ±[`LOGIT_CAP`]; a NaN probability carries no evidence for an attack.
+pub fn capped_logit(probability: f64) -> f64 {
+    if probability.is_nan() {
+        return -LOGIT_CAP;
+    }
+    (probability.ln() - (-probability).ln_1p()).clamp(-LOGIT_CAP, LOGIT_CAP)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const TEST: CriticalTest = CriticalTest {
+        reference_logit: 2.0,
+        threshold: 20.0,
+        decisive_s: 3.0,
+    };
+
+    fn input(time_s: f64, probability: f64) -> CriticalInput {
+        CriticalInput {
+            time_s,
+            probability,
+            probability_counts: true,
+            decisive_held_s: None,
+        }
+    }
+
+    /// Runs the test on samples every `step_s` of p̂ = `probability(t)`; the first time it is
+    /// critical.
+    fn first_critical(step_s: f64, end_s: f64, probability: impl Fn(f64) -> f64) -> Option<f64> {
+        let mut evidence = CriticalEvidence::default();
+        let steps = (end_s / step_s).round() as usize;
+        (0..=steps)
+            .map(|i| i as f64 * step_s)
+            .find(|&t| evidence.update(&TEST, &input(t, probability(t))))
+    }
+
+    #[test]
+    fn the_logit_is_capped_and_symmetric() {
+        assert!((capped_logit(0.5)).abs() < 1e-15);
+        // logit(0.9) = ln 9.
+        assert!((capped_logit(0.9) - 9f64.ln()).abs() < 1e-12);
+        assert!((capped_logit(0.1) + 9f64.ln()).abs() < 1e-12);
+        assert_eq!(capped_logit(1.0), LOGIT_CAP);
+        assert_eq!(capped_logit(0.0), -LOGIT_CAP);
+        assert_eq!(capped_logit(f64::NAN), -LOGIT_CAP);
+    }
+
+    #[test]
+    fn evidence_accumulates_in_seconds_whatever_the_rate() {
+        // p̂ with logit 7 from t = 10 s: 5 per second above k = 2, counted over the step that
+        // ends on each sample, so S reaches 20 after four seconds' worth of samples from t = 10.
+        let strong = |t: f64| {
+            if t >= 10.0 {
+                1.0 / (1.0 + (-7.0f64).exp())
+            } else {
+                0.01
+            }
+        };
+        for step_s in [1.0, 0.2, 0.1] {
+            let at = first_critical(step_s, 60.0, strong).expect("critical");
+            // 14 − step exactly, or one step later when the sum rounds just below 20.
+            assert!(
+                at > 14.0 - step_s - 1e-6 && at < 14.0 + 1e-6,
+                "{step_s}: critical at {at}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_marginal_probability_never_escalates() {
+        // logit 1.9 < k = 2: an hour of it accumulates nothing.
+        let marginal = |_| 1.0 / (1.0 + (-1.9f64).exp());
+        assert_eq!(first_critical(1.0, 3600.0, marginal), None);
+    }
+
+    #[test]
+    fn a_dip_costs_evidence_but_does_not_restart_the_test() {
+        // 3 s at logit 7 (15 in S), 1 s at p̂ = 0.5 (−2), then logit 7 again: 20 is reached
+        // 1.4 s into the second run, sooner than the 4 s a fresh start needs.
+        let p7 = 1.0 / (1.0 + (-7.0f64).exp());
+        let mut evidence = CriticalEvidence::default();
+        let mut critical_at = None;
+        for i in 0..=200 {
+            let t = i as f64 * 0.1;
+            let p = if (3.0..4.0).contains(&(t - 0.05)) {
+                0.5
+            } else {
+                p7
+            };
+            if evidence.update(&TEST, &input(t, p)) {
+                critical_at = Some(t);
+                break;
+            }
+        }
+        let at = critical_at.expect("critical");
+        assert!((at - 5.4).abs() < 0.11, "critical at {at}");
+    }
+
+    #[test]
+    fn a_probability_that_does_not_count_only_lowers_the_evidence() {
+        let mut evidence = CriticalEvidence::default();
+        for i in 0..100 {
+            let critical = evidence.update(
+                &TEST,
+                &CriticalInput {
+                    probability_counts: false,
+                    ..input(f64::from(i), 0.999_999)
+                },
+            );
+            assert!(!critical);
+        }
+        assert_eq!(evidence.accumulated(), 0.0);
+    }
+
+    #[test]
+    fn decisive_evidence_is_critical_once_held_long_enough() {
+        let mut evidence = CriticalEvidence::default();
+        let held = |held_s| CriticalInput {
+            decisive_held_s: Some(held_s),
+            ..input(held_s, 0.0)
+        };
+        assert!(!evidence.update(&TEST, &held(2.9)));
+        assert!(evidence.update(&TEST, &held(3.0)));
+    }
+
+    #[test]
+    fn clearing_forgets_the_evidence_but_not_the_clock() {
+        let mut evidence = CriticalEvidence::default();
+        let p7 = 1.0 / (1.0 + (-7.0f64).exp());
+        for t in 0..3 {
+            evidence.update(&TEST, &input(f64::from(t), p7));
+        }
+        assert!(evidence.accumulated() > 9.0);
+        evidence.clear();
+        assert_eq!(evidence.accumulated(), 0.0);
+        evidence.update(&TEST, &input(3.0, p7));
+        assert!((evidence.accumulated() - 5.0).abs() < 1e-2);
+    }
+
+    #[test]
+    fn validation_names_the_field() {
+        let bad = |test: CriticalTest| test.validate().unwrap_err().0;
+        assert_eq!(
+            bad(CriticalTest {
+                reference_logit: f64::NAN,
+                ..TEST
+            }),
+            "reference_logit"
+        );
+        assert_eq!(
+            bad(CriticalTest {
+                threshold: 0.0,
+                ..TEST
+            }),
+            "threshold"
+        );
+        assert_eq!(
+            bad(CriticalTest {
+                decisive_s: -1.0,
+                ..TEST
+            }),
+            "decisive_s"
+        );
+        assert!(TEST.validate().is_ok());
+    }
+
+    #[test]
+    fn names_round_trip() {
+        for severity in Severity::ALL {
+            assert_eq!(Severity::from_name(severity.name()), Some(severity));
+        }
+        assert_eq!(Severity::from_name("page"), None);
+        assert!(Severity::Critical > Severity::Warning);
+    }
+}
