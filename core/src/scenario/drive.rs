@@ -1076,4 +1076,32 @@ mod tests {
             );
         }
     }
+
+    #[test]
+    fn realistic_drives_are_unchanged_bit_for_bit() {
+        // Drives of `realistic().draw(seed)` (10 Hz; 5 Hz; 1 Hz with outages and multipath) simulated
+        // before the fleet error sources existed.
+        let pinned: [(u64, f64, usize, usize, usize, u64); 3] = [
+            (0, 900.0, 9001, 0, 32, 0xcac2_0353_b7e6_8ca7),
+            (1, 900.0, 4501, 0, 7, 0x793b_fe0c_4c0e_a6d1),
+            (42, 3600.0, 3480, 6, 28, 0x2707_5716_caf3_7455),
+        ];
+        let distribution = super::super::DriveDistribution::realistic();
+        for (seed, duration_s, rows, outages, multipath, fingerprint) in pinned {
+            let spec = DriveSpec {
+                duration_s,
+                ..distribution.draw(seed)
+            };
+            let drive = simulate_drive_with_truth(&spec, "v").expect("a drawn spec is valid");
+            assert_eq!(drive.track.records.len(), rows, "seed {seed}");
+            assert_eq!(drive.outages.len(), outages, "seed {seed}");
+            assert_eq!(drive.multipath_rows.len(), multipath, "seed {seed}");
+            assert_eq!(
+                drive_fingerprint(&drive),
+                fingerprint,
+                "seed {seed}: {:#018x}",
+                drive_fingerprint(&drive)
+            );
+        }
+    }
 }
