@@ -483,7 +483,7 @@ impl DriveSpec {
             (
                 "heading_bias_wander.time_constant_s",
                 w.time_constant_s,
-                w.time_constant_s > 0.0 || (w.time_constant_s == 0.0 && w.std_deg == 0.0),
+                time_constant_ok(w.time_constant_s, w.std_deg),
                 "> 0 s (0 only without wander)",
             ),
             (
@@ -514,7 +514,7 @@ impl DriveSpec {
             (
                 "reacquisition.time_constant_s",
                 r.time_constant_s,
-                r.time_constant_s > 0.0 || (r.time_constant_s == 0.0 && r.offset_std_m == 0.0),
+                time_constant_ok(r.time_constant_s, r.offset_std_m),
                 "> 0 s (0 only without an offset)",
             ),
         ];
@@ -535,6 +535,11 @@ impl DriveSpec {
         // The small epsilon keeps e.g. 0.3 s at 10 Hz at 4 samples despite rounding.
         (self.duration_s * self.rate_hz + 1e-9).floor() as usize + 1
     }
+}
+
+/// A correlation or decay time of an error source of size `std`: > 0, or 0 when the source is off.
+fn time_constant_ok(time_constant_s: f64, std: f64) -> bool {
+    time_constant_s > 0.0 || (time_constant_s == 0.0 && std == 0.0)
 }
 
 /// The true vehicle state at one output sample.
