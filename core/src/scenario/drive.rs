@@ -3,21 +3,23 @@
 //! The truth is integrated at `SUBSTEPS_PER_SAMPLE` (10) substeps per sample from a speed and a heading that
 //! move towards targets at bounded rates (acceleration, braking, yaw rate, lateral acceleration), so both
 //! evolve smoothly. Targets come from a seeded maneuver planner (cruise at a new speed, turn, stop).
-//! The planner, the sensor noise, multipath and outages draw from separate streams of the seed, so changing
-//! a noise level or turning on an error keeps the same ground truth and the same other errors.
+//! The planner, the sensor noise, multipath, outages, heading-bias wander and reacquisition offsets draw
+//! from separate streams of the seed, so changing a noise level or turning on an error keeps the same ground
+//! truth and the same other errors.
 //!
-//! Owns simulated drives and their spec. Must not inject attacks (that is `attack.rs`) or draw specs at
-//! random (that is `randomise.rs`).
+//! Owns simulated drives, their spec and the road kind a spec describes. Must not inject attacks (that is
+//! `attack.rs`) or draw specs at random (that is `randomise.rs`).
 
 use std::collections::VecDeque;
 
 use serde::{Deserialize, Serialize};
 
 use super::impairments::{
-    GnssOutage, Multipath, MultipathModel, OnboardErrors, OutageSchedule, Outages,
+    GnssOutage, HeadingBiasWander, HeadingWanderModel, Multipath, MultipathModel, OnboardErrors,
+    OutageSchedule, Outages, Reacquisition, ReacquisitionModel, StaticHold, StaticHoldModel,
 };
 use super::{ScenarioError, bearing_unit};
-use crate::geo::displace_fix;
+use crate::geo::{LatLon, displace_fix};
 use crate::rng::Rng;
 use crate::sample::{MAX_SPEED_MPS, Record, Sample, Track};
 
@@ -33,6 +35,38 @@ const MIN_TURNING_SPEED_MPS: f64 = 0.1;
 const HOMING_JITTER_DEG: f64 = 30.0;
 /// Largest onboard timing offset (s): enough for real loggers, and it bounds the kept truth history.
 const MAX_TIMING_OFFSET_S: f64 = 1.0;
+/// A drive whose highest cruise speed reaches this (m/s, 54 km/h) is a highway drive ([`RoadKind`]):
+/// above the 50 km/h limit of most city streets.
+pub const HIGHWAY_CRUISE_MAX_MPS: f64 = 15.0;
+
+/// The kind of road a drive is on, so reports can group results by it. Rule
+/// ([`DriveSpec::road_kind`]): [`RoadKind::Highway`] when the drive's highest cruise speed
+/// (`speed.cruise_max_mps`) is at least [`HIGHWAY_CRUISE_MAX_MPS`] (15 m/s), else [`RoadKind::Urban`].
+/// In `DriveDistribution::realistic()` and `fleet()` about a quarter of the drives are highway drives.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RoadKind {
+    /// City streets, car parks and test tracks: slow, with frequent stops and turns.
+    Urban,
+    /// Highways and rural roads: fast, long straights, few stops.
+    Highway,
+}
+
+impl RoadKind {
+    /// `"urban"` or `"highway"` (as serialised).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Urban => "urban",
+            Self::Highway => "highway",
+        }
+    }
+}
+
+impl std::fmt::Display for RoadKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
 
 /// Speed behaviour: log-uniform cruise speeds (slow driving dominates, like the AV-GPS test track), bounded
 /// acceleration and braking, and stops.
@@ -181,7 +215,16 @@ pub struct DriveSpec {
     pub multipath: Multipath,
     /// GNSS outages (default: none).
     pub outages: Outages,
-    /// Seed of the maneuver, noise, multipath and outage streams.
+    /// Slow wander of the onboard heading bias (default: none).
+    #[serde(default, skip_serializing_if = "HeadingBiasWander::is_default")]
+    pub heading_bias_wander: HeadingBiasWander,
+    /// The receiver's static hold at standstill (default: none).
+    #[serde(default, skip_serializing_if = "StaticHold::is_default")]
+    pub static_hold: StaticHold,
+    /// Offset first fixes after an outage (default: none).
+    #[serde(default, skip_serializing_if = "Reacquisition::is_default")]
+    pub reacquisition: Reacquisition,
+    /// Seed of the maneuver, noise, multipath, outage, heading-bias wander and reacquisition streams.
     pub seed: u64,
 }
 
@@ -200,12 +243,24 @@ impl Default for DriveSpec {
             onboard_errors: OnboardErrors::default(),
             multipath: Multipath::default(),
             outages: Outages::default(),
+            heading_bias_wander: HeadingBiasWander::default(),
+            static_hold: StaticHold::default(),
+            reacquisition: Reacquisition::default(),
             seed: 0,
         }
     }
 }
 
 impl DriveSpec {
+    /// The kind of road this drive is on (see [`RoadKind`] for the rule).
+    pub fn road_kind(&self) -> RoadKind {
+        if self.speed.cruise_max_mps >= HIGHWAY_CRUISE_MAX_MPS {
+            RoadKind::Highway
+        } else {
+            RoadKind::Urban
+        }
+    }
+
     /// Checks every field (finite, in range, min ≤ max); the first problem is reported.
     pub fn validate(&self) -> Result<(), ScenarioError> {
         let s = &self.speed;
@@ -215,8 +270,11 @@ impl DriveSpec {
         let e = &self.onboard_errors;
         let m = &self.multipath;
         let gaps = &self.outages;
+        let w = &self.heading_bias_wander;
+        let hold = &self.static_hold;
+        let r = &self.reacquisition;
         let samples = self.duration_s * self.rate_hz;
-        let checks: [(&'static str, f64, bool, &str); 34] = [
+        let checks: [(&'static str, f64, bool, &str); 41] = [
             (
                 "duration_s",
                 self.duration_s,
@@ -416,6 +474,49 @@ impl DriveSpec {
                 gaps.max_s >= gaps.min_s,
                 ">= min_s",
             ),
+            (
+                "heading_bias_wander.std_deg",
+                w.std_deg,
+                (0.0..=30.0).contains(&w.std_deg),
+                "in [0, 30] degrees (0 = no wander)",
+            ),
+            (
+                "heading_bias_wander.time_constant_s",
+                w.time_constant_s,
+                time_constant_ok(w.time_constant_s, w.std_deg),
+                "> 0 s (0 only without wander)",
+            ),
+            (
+                "static_hold.engage_speed_mps",
+                hold.engage_speed_mps,
+                (0.0..=5.0).contains(&hold.engage_speed_mps),
+                "in [0, 5] m/s (0 = no static hold)",
+            ),
+            (
+                "static_hold.release_speed_mps",
+                hold.release_speed_mps,
+                hold.release_speed_mps >= hold.engage_speed_mps
+                    && hold.release_speed_mps <= MAX_SPEED_MPS,
+                "in [engage_speed_mps, 80] m/s",
+            ),
+            (
+                "static_hold.release_distance_m",
+                hold.release_distance_m,
+                hold.release_distance_m >= 0.0,
+                ">= 0 m",
+            ),
+            (
+                "reacquisition.offset_std_m",
+                r.offset_std_m,
+                (0.0..=1000.0).contains(&r.offset_std_m),
+                "in [0, 1000] m (0 = none)",
+            ),
+            (
+                "reacquisition.time_constant_s",
+                r.time_constant_s,
+                time_constant_ok(r.time_constant_s, r.offset_std_m),
+                "> 0 s (0 only without an offset)",
+            ),
         ];
         for (field, value, ok, expected) in checks {
             if !value.is_finite() || !ok {
@@ -434,6 +535,11 @@ impl DriveSpec {
         // The small epsilon keeps e.g. 0.3 s at 10 Hz at 4 samples despite rounding.
         (self.duration_s * self.rate_hz + 1e-9).floor() as usize + 1
     }
+}
+
+/// A correlation or decay time of an error source of size `std`: > 0, or 0 when the source is off.
+fn time_constant_ok(time_constant_s: f64, std: f64) -> bool {
+    time_constant_s > 0.0 || (time_constant_s == 0.0 && std == 0.0)
 }
 
 /// The true vehicle state at one output sample.
@@ -463,6 +569,10 @@ pub struct SimulatedDrive {
     pub multipath_rows: Vec<usize>,
     /// The GNSS outages that dropped fixes, in time order.
     pub outages: Vec<GnssOutage>,
+    /// Indices into `track.records` of the fixes pinned by [`StaticHold`]: each repeats the fix of the
+    /// row where its hold engaged (not listed itself).
+    #[serde(default)]
+    pub held_rows: Vec<usize>,
 }
 
 /// Simulates a drive (see [`simulate_drive_with_truth`]) and returns the measured track only.
@@ -471,9 +581,11 @@ pub fn simulate_drive(spec: &DriveSpec, vehicle_id: &str) -> Result<Track, Scena
 }
 
 /// Simulates a drive: timestamps 0, 1/rate, …; GNSS fix = truth + [`GnssNoise`] (+ a [`Multipath`]
-/// outlier now and then); onboard speed/heading = truth at t − τ_L with the [`OnboardErrors`] +
-/// [`OnboardNoise`]; fixes inside [`Outages`] dropped; every label `Some(false)`; `line` = 1-based sample
-/// number (so it skips over outages). Deterministic for a spec (including its seed).
+/// outlier now and then, + the decaying [`Reacquisition`] offset after an outage), pinned while
+/// [`StaticHold`] holds it; onboard speed/heading = truth at t − τ_L with the [`OnboardErrors`] (the
+/// heading bias plus its [`HeadingBiasWander`]) + [`OnboardNoise`]; fixes inside [`Outages`] dropped;
+/// every label `Some(false)`; `line` = 1-based sample number (so it skips over outages). Deterministic for
+/// a spec (including its seed).
 pub fn simulate_drive_with_truth(
     spec: &DriveSpec,
     vehicle_id: &str,
@@ -486,10 +598,14 @@ pub fn simulate_drive_with_truth(
     let mut truth_stream = TruthStream::new(spec);
     let mut sensors = Sensors::new(spec);
     let mut outages = OutageSchedule::new(spec.outages, spec.seed, sample_interval_s);
+    let mut reacquisition = ReacquisitionModel::new(spec.reacquisition, spec.seed);
+    let mut static_hold = StaticHoldModel::new(spec.static_hold);
     let count = spec.sample_count();
     let mut records = Vec::with_capacity(count);
     let mut truth = Vec::with_capacity(count);
     let mut multipath_rows = Vec::new();
+    let mut held_rows = Vec::new();
+    let mut previous_dropped = false;
     for index in 0..count {
         let fix_substep = index * SUBSTEPS_PER_SAMPLE;
         let at_fix = truth_stream.at(fix_substep);
@@ -502,12 +618,25 @@ pub fn simulate_drive_with_truth(
         };
         let onboard_motion = truth_stream.motion_at(fix_substep as f64 - onboard_lag_substeps);
         truth_stream.forget_before(fix_substep as f64 - onboard_lag_substeps.max(0.0));
+        let dropped = outages.drops(state.timestamp_s);
+        if previous_dropped && !dropped {
+            reacquisition.reacquire(state.timestamp_s);
+        }
+        previous_dropped = dropped;
+        let extra_offset_m = reacquisition.offset_m(state.timestamp_s);
         // Every sample is measured, even a dropped one, so an outage does not shift the noise streams.
-        let measured = sensors.measure(&state, onboard_motion, index > 0);
-        if outages.drops(state.timestamp_s) {
+        let mut measured = sensors.measure(&state, onboard_motion, index > 0, extra_offset_m);
+        if dropped {
+            static_hold.lose_fix();
             continue;
         }
-        if measured.has_multipath {
+        let fix = LatLon::new(measured.sample.latitude_deg, measured.sample.longitude_deg);
+        let true_position = LatLon::new(state.latitude_deg, state.longitude_deg);
+        if let Some(held) = static_hold.pinned(state.speed_mps, true_position, fix) {
+            measured.sample.latitude_deg = held.lat_deg;
+            measured.sample.longitude_deg = held.lon_deg;
+            held_rows.push(records.len());
+        } else if measured.has_multipath {
             multipath_rows.push(records.len());
         }
         records.push(Record {
@@ -528,6 +657,7 @@ pub fn simulate_drive_with_truth(
         truth,
         multipath_rows,
         outages: outages.into_dropped_gaps(),
+        held_rows,
     })
 }
 
@@ -769,13 +899,15 @@ struct Measurement {
     has_multipath: bool,
 }
 
-/// GNSS and onboard measurement models, drawing from the seeded noise stream (multipath from its own).
+/// GNSS and onboard measurement models, drawing from the seeded noise stream (multipath and heading-bias
+/// wander from their own).
 struct Sensors {
     rng: Rng,
     gnss: GnssNoise,
     onboard: OnboardNoise,
     errors: OnboardErrors,
     multipath: MultipathModel,
+    heading_wander: HeadingWanderModel,
     /// Gauss–Markov factor φ per sample.
     bias_decay: f64,
     bias_east_m: f64,
@@ -794,16 +926,27 @@ impl Sensors {
             onboard: spec.onboard_noise,
             errors: spec.onboard_errors,
             multipath: MultipathModel::new(spec.multipath, spec.seed),
+            heading_wander: HeadingWanderModel::new(
+                spec.heading_bias_wander,
+                spec.seed,
+                spec.rate_hz,
+            ),
             bias_decay: (-1.0 / (spec.rate_hz * gnss.bias_time_constant_s)).exp(),
             bias_east_m,
             bias_north_m,
         }
     }
 
-    /// Measures the fix at one truth state and the onboard motion (the truth at t − τ_L); `advance_bias`
-    /// is false for the first sample (bias already stationary). Always draws the same count of deviates,
-    /// so noise levels only scale the same stream.
-    fn measure(&mut self, truth: &TrueState, onboard: Motion, advance_bias: bool) -> Measurement {
+    /// Measures the fix at one truth state (plus `extra_offset_m`, east and north, if given) and the
+    /// onboard motion (the truth at t − τ_L); `advance_bias` is false for the first sample (bias already
+    /// stationary). Always draws the same count of deviates, so noise levels only scale the same stream.
+    fn measure(
+        &mut self,
+        truth: &TrueState,
+        onboard: Motion,
+        advance_bias: bool,
+        extra_offset_m: Option<[f64; 2]>,
+    ) -> Measurement {
         if advance_bias {
             let innovation_std = self.gnss.bias_std_m * (1.0 - self.bias_decay.powi(2)).sqrt();
             self.bias_east_m =
@@ -815,6 +958,10 @@ impl Sensors {
         let mut error_north_m = self.bias_north_m + self.gnss.white_std_m * self.rng.normal();
         let outlier = self.multipath.next_outlier();
         if let Some((east_m, north_m)) = outlier {
+            error_east_m += east_m;
+            error_north_m += north_m;
+        }
+        if let Some([east_m, north_m]) = extra_offset_m {
             error_east_m += east_m;
             error_north_m += north_m;
         }
@@ -832,8 +979,10 @@ impl Sensors {
         } else {
             0.0
         };
-        let heading_deg =
-            wrap_degrees(onboard.heading_deg + self.errors.heading_bias_deg + heading_noise);
+        let heading_bias_deg = self
+            .heading_wander
+            .next_bias_deg(self.errors.heading_bias_deg);
+        let heading_deg = wrap_degrees(onboard.heading_deg + heading_bias_deg + heading_noise);
         Measurement {
             sample: Sample::new(
                 truth.timestamp_s,
@@ -910,6 +1059,24 @@ mod tests {
         stream.forget_before(n as f64 + 0.5);
         assert_eq!(stream.first_substep, n);
         assert_eq!(Motion::of(stream.at(n + 1)), after);
+    }
+
+    #[test]
+    fn the_road_kind_follows_the_highest_cruise_speed() {
+        let with_top_speed = |cruise_max_mps| {
+            let mut spec = DriveSpec::default();
+            spec.speed.cruise_max_mps = cruise_max_mps;
+            spec.road_kind()
+        };
+        assert_eq!(DriveSpec::default().road_kind(), RoadKind::Urban);
+        assert_eq!(with_top_speed(14.9), RoadKind::Urban);
+        assert_eq!(with_top_speed(15.0), RoadKind::Highway);
+        assert_eq!(with_top_speed(30.0), RoadKind::Highway);
+        assert_eq!(RoadKind::Highway.to_string(), "highway");
+        assert_eq!(
+            serde_json::to_string(&[RoadKind::Urban, RoadKind::Highway]).expect("serialises"),
+            r#"["urban","highway"]"#
+        );
     }
 
     #[test]
@@ -1072,6 +1239,34 @@ mod tests {
                 fingerprint,
                 "seed {}: {:#018x}",
                 spec.seed,
+                drive_fingerprint(&drive)
+            );
+        }
+    }
+
+    #[test]
+    fn realistic_drives_are_unchanged_bit_for_bit() {
+        // Drives of `realistic().draw(seed)` (10 Hz; 5 Hz; 1 Hz with outages and multipath) simulated
+        // before the fleet error sources existed.
+        let pinned: [(u64, f64, usize, usize, usize, u64); 3] = [
+            (0, 900.0, 9001, 0, 32, 0xcac2_0353_b7e6_8ca7),
+            (1, 900.0, 4501, 0, 7, 0x793b_fe0c_4c0e_a6d1),
+            (42, 3600.0, 3480, 6, 28, 0x2707_5716_caf3_7455),
+        ];
+        let distribution = super::super::DriveDistribution::realistic();
+        for (seed, duration_s, rows, outages, multipath, fingerprint) in pinned {
+            let spec = DriveSpec {
+                duration_s,
+                ..distribution.draw(seed)
+            };
+            let drive = simulate_drive_with_truth(&spec, "v").expect("a drawn spec is valid");
+            assert_eq!(drive.track.records.len(), rows, "seed {seed}");
+            assert_eq!(drive.outages.len(), outages, "seed {seed}");
+            assert_eq!(drive.multipath_rows.len(), multipath, "seed {seed}");
+            assert_eq!(
+                drive_fingerprint(&drive),
+                fingerprint,
+                "seed {seed}: {:#018x}",
                 drive_fingerprint(&drive)
             );
         }

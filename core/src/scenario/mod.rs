@@ -21,14 +21,16 @@ mod receiver_flags;
 
 pub use attack::{AttackKind, AttackSpec, InjectedTrack, inject};
 pub use drive::{
-    DriveSpec, GnssNoise, OnboardNoise, SimulatedDrive, SpeedProfile, TrueState, TurnBehaviour,
-    simulate_drive, simulate_drive_with_truth,
+    DriveSpec, GnssNoise, HIGHWAY_CRUISE_MAX_MPS, OnboardNoise, RoadKind, SimulatedDrive,
+    SpeedProfile, TrueState, TurnBehaviour, simulate_drive, simulate_drive_with_truth,
 };
 pub use fleet::{
     CaptureEpisode, CapturedFix, FleetScene, FleetSpec, FleetTruth, RegionalAttack, Spoofer,
     VehicleTruth, generate_fleet, offset_from_spoofer_m,
 };
-pub use impairments::{GnssOutage, Multipath, OnboardErrors, Outages};
+pub use impairments::{
+    GnssOutage, HeadingBiasWander, Multipath, OnboardErrors, Outages, Reacquisition, StaticHold,
+};
 pub use plan::{AttackDuration, RAMP_SWEEP_VELOCITIES_MPS, ScenarioPlan, generate};
 pub use randomise::{ClippedNormal, DriveDistribution, Range, UrbanToRural};
 pub use receiver_flags::{FlagWindow, raise_flags};

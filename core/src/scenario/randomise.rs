@@ -2,22 +2,29 @@
 //! many vehicles, sensors and error levels instead of one tuned simulator (SUBTLE-DRIFT §5: a threshold
 //! calibrated on one trajectory does not hold on another).
 //!
-//! Owns the distribution of drive specs, its range checks and the seeded draw. Must not simulate (that is
-//! `drive.rs`); the drawn spec's duration and start position are the caller's.
+//! Owns the distribution of drive specs (the realistic one and the fleet one, which adds heading-bias
+//! wander, static hold and reacquisition offsets), its range checks and the seeded draw. Must not simulate
+//! (that is `drive.rs`); the drawn spec's duration and start position are the caller's.
 
 use serde::{Deserialize, Serialize};
 
 use super::ScenarioError;
 use super::drive::{DriveSpec, GnssNoise, OnboardNoise, SpeedProfile, TurnBehaviour};
-use super::impairments::{Multipath, OnboardErrors, Outages};
+use super::impairments::{
+    HeadingBiasWander, Multipath, OnboardErrors, Outages, Reacquisition, StaticHold,
+};
 use crate::rng::Rng;
 use crate::sample::MAX_SPEED_MPS;
 
 /// Mixed into the seed for the stream the spec is drawn from (the drive's own streams use the seed itself).
 const DISTRIBUTION_STREAM: u64 = 0x7261_6E64_6F6D_6973;
+/// Mixed into the seed for the stream the fleet error sources (heading-bias wander, static hold,
+/// reacquisition) are drawn from, so adding them leaves every other drawn value unchanged.
+const FLEET_ERROR_STREAM: u64 = 0x666C_6565_745F_6572;
 
-/// A closed range; each field's doc says whether it is drawn uniformly or log-uniformly.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+/// A closed range; each field's doc says whether it is drawn uniformly or log-uniformly. `Default` is
+/// [0, 0] (a source drawn from it is off).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Range {
     pub min: f64,
@@ -27,6 +34,10 @@ pub struct Range {
 impl Range {
     const fn new(min: f64, max: f64) -> Self {
         Self { min, max }
+    }
+
+    fn is_default(&self) -> bool {
+        *self == Self::default()
     }
 
     fn uniform(self, rng: &mut Rng) -> f64 {
@@ -125,6 +136,35 @@ pub struct DriveDistribution {
     pub outage_mean_interval_s: Range,
     /// Outage lengths (s): a drive's outages are uniform in this range.
     pub outage_length_s: Range,
+    /// 1-sigma of the heading-bias wander (degrees), uniform; [0, 0] (the default) = no wander.
+    #[serde(default, skip_serializing_if = "Range::is_default")]
+    pub heading_bias_wander_std_deg: Range,
+    /// Correlation time of the heading-bias wander (s), uniform.
+    #[serde(default, skip_serializing_if = "Range::is_default")]
+    pub heading_bias_wander_time_constant_s: Range,
+    /// Share of receivers with static hold; 0 (the default) = none.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub static_hold_share: f64,
+    /// Static hold engages below this true speed (m/s), uniform.
+    #[serde(default, skip_serializing_if = "Range::is_default")]
+    pub static_hold_engage_speed_mps: Range,
+    /// Static hold releases above the engage speed × this factor (≥ 1), uniform.
+    #[serde(default, skip_serializing_if = "Range::is_default")]
+    pub static_hold_release_speed_factor: Range,
+    /// Static hold releases when the true position moved farther than this (m), uniform.
+    #[serde(default, skip_serializing_if = "Range::is_default")]
+    pub static_hold_release_distance_m: Range,
+    /// 1-sigma per axis of the first fix's offset after an outage (m), uniform; [0, 0] (the default) =
+    /// none.
+    #[serde(default, skip_serializing_if = "Range::is_default")]
+    pub reacquisition_offset_std_m: Range,
+    /// Time constant of that offset's decay (s), uniform.
+    #[serde(default, skip_serializing_if = "Range::is_default")]
+    pub reacquisition_time_constant_s: Range,
+}
+
+fn is_zero(value: &f64) -> bool {
+    *value == 0.0
 }
 
 impl Default for DriveDistribution {
@@ -200,6 +240,43 @@ impl DriveDistribution {
             outage_free_share: 0.5,
             outage_mean_interval_s: Range::new(120.0, 600.0),
             outage_length_s: Range::new(6.0, 30.0),
+            // No heading-bias wander, static hold or reacquisition offset: `fleet()` adds them.
+            heading_bias_wander_std_deg: Range::default(),
+            heading_bias_wander_time_constant_s: Range::default(),
+            static_hold_share: 0.0,
+            static_hold_engage_speed_mps: Range::default(),
+            static_hold_release_speed_factor: Range::default(),
+            static_hold_release_distance_m: Range::default(),
+            reacquisition_offset_std_m: Range::default(),
+            reacquisition_time_constant_s: Range::default(),
+        }
+    }
+
+    /// An attack-free fleet for false-alarm studies: [`DriveDistribution::realistic`] plus every error
+    /// source real fleets show that it lacks (heading-bias wander, static hold, offset first fixes after
+    /// outages). Its draws agree with `realistic()`'s in every other field, seed for seed. Each range says
+    /// why.
+    pub fn fleet() -> Self {
+        Self {
+            // Compass and gyro alignment drift with temperature and magnetic surroundings: about a degree
+            // around the constant bias, over minutes to half an hour (a cabin warming up, a car park's
+            // steel).
+            heading_bias_wander_std_deg: Range::new(0.5, 1.5),
+            heading_bias_wander_time_constant_s: Range::new(300.0, 1800.0),
+            // Static hold is a setting of u-blox's automotive dynamic model and of many automotive
+            // receivers, off in others: about a third of a mixed fleet pins its fix at standstill.
+            static_hold_share: 0.3,
+            // Engage thresholds of 10–50 cm/s (u-blox's static-hold threshold is set in this range);
+            // release at 1–2 × that speed (hysteresis, so a creeping vehicle does not toggle the hold)
+            // or after 1–5 m of true motion (u-blox's static-hold exit distance).
+            static_hold_engage_speed_mps: Range::new(0.1, 0.5),
+            static_hold_release_speed_factor: Range::new(1.0, 2.0),
+            static_hold_release_distance_m: Range::new(1.0, 5.0),
+            // A receiver reconverging after a tunnel: the first fix a few metres off, settling within
+            // seconds (a warm restart's position filter).
+            reacquisition_offset_std_m: Range::new(1.0, 5.0),
+            reacquisition_time_constant_s: Range::new(2.0, 10.0),
+            ..Self::realistic()
         }
     }
 
@@ -262,6 +339,7 @@ impl DriveDistribution {
                 max_s: self.outage_length_s.max,
             }
         };
+        let (heading_bias_wander, static_hold, reacquisition) = self.draw_fleet_errors(seed);
         DriveSpec {
             rate_hz,
             start_heading_deg,
@@ -272,9 +350,40 @@ impl DriveDistribution {
             onboard_errors,
             multipath,
             outages,
+            heading_bias_wander,
+            static_hold,
+            reacquisition,
             seed,
             ..DriveSpec::default()
         }
+    }
+
+    /// Heading-bias wander, static hold and reacquisition, drawn from a stream of their own (every value
+    /// drawn even when unused, in this order). Their default ranges give the defaults (off).
+    fn draw_fleet_errors(&self, seed: u64) -> (HeadingBiasWander, StaticHold, Reacquisition) {
+        let mut rng = Rng::seed_from_u64(seed ^ FLEET_ERROR_STREAM);
+        let heading_bias_wander = HeadingBiasWander {
+            std_deg: self.heading_bias_wander_std_deg.uniform(&mut rng),
+            time_constant_s: self.heading_bias_wander_time_constant_s.uniform(&mut rng),
+        };
+        let has_static_hold = rng.uniform() < self.static_hold_share;
+        let engage_speed_mps = self.static_hold_engage_speed_mps.uniform(&mut rng);
+        let release_speed_factor = self.static_hold_release_speed_factor.uniform(&mut rng);
+        let release_distance_m = self.static_hold_release_distance_m.uniform(&mut rng);
+        let static_hold = if has_static_hold {
+            StaticHold {
+                engage_speed_mps,
+                release_speed_mps: engage_speed_mps * release_speed_factor,
+                release_distance_m,
+            }
+        } else {
+            StaticHold::default()
+        };
+        let reacquisition = Reacquisition {
+            offset_std_m: self.reacquisition_offset_std_m.uniform(&mut rng),
+            time_constant_s: self.reacquisition_time_constant_s.uniform(&mut rng),
+        };
+        (heading_bias_wander, static_hold, reacquisition)
     }
 
     /// 0 for the slowest speed band, 1 for the fastest.
@@ -468,7 +577,88 @@ impl DriveDistribution {
             |v| v >= 0.0,
             ">= 0 s",
         );
+        self.check_fleet_errors(&mut checks);
         checks.first_problem()
+    }
+
+    /// The ranges of heading-bias wander, static hold and reacquisition; a source's other ranges are
+    /// checked only when it is on (its std range or share above 0).
+    fn check_fleet_errors(&self, checks: &mut Checks) {
+        checks.range(
+            [
+                "heading_bias_wander_std_deg.min",
+                "heading_bias_wander_std_deg.max",
+            ],
+            self.heading_bias_wander_std_deg,
+            |v| (0.0..=30.0).contains(&v),
+            "in [0, 30] degrees",
+        );
+        if self.heading_bias_wander_std_deg.max > 0.0 {
+            checks.range(
+                [
+                    "heading_bias_wander_time_constant_s.min",
+                    "heading_bias_wander_time_constant_s.max",
+                ],
+                self.heading_bias_wander_time_constant_s,
+                |v| v > 0.0,
+                "> 0 s",
+            );
+        }
+        checks.value(
+            "static_hold_share",
+            self.static_hold_share,
+            (0.0..=1.0).contains(&self.static_hold_share),
+            "in [0, 1]",
+        );
+        if self.static_hold_share > 0.0 {
+            checks.range(
+                [
+                    "static_hold_engage_speed_mps.min",
+                    "static_hold_engage_speed_mps.max",
+                ],
+                self.static_hold_engage_speed_mps,
+                |v| (0.0..=5.0).contains(&v),
+                "in [0, 5] m/s",
+            );
+            checks.range(
+                [
+                    "static_hold_release_speed_factor.min",
+                    "static_hold_release_speed_factor.max",
+                ],
+                self.static_hold_release_speed_factor,
+                |v| (1.0..=16.0).contains(&v),
+                "in [1, 16]",
+            );
+            checks.range(
+                [
+                    "static_hold_release_distance_m.min",
+                    "static_hold_release_distance_m.max",
+                ],
+                self.static_hold_release_distance_m,
+                |v| v >= 0.0,
+                ">= 0 m",
+            );
+        }
+        checks.range(
+            [
+                "reacquisition_offset_std_m.min",
+                "reacquisition_offset_std_m.max",
+            ],
+            self.reacquisition_offset_std_m,
+            |v| (0.0..=1000.0).contains(&v),
+            "in [0, 1000] m",
+        );
+        if self.reacquisition_offset_std_m.max > 0.0 {
+            checks.range(
+                [
+                    "reacquisition_time_constant_s.min",
+                    "reacquisition_time_constant_s.max",
+                ],
+                self.reacquisition_time_constant_s,
+                |v| v > 0.0,
+                "> 0 s",
+            );
+        }
     }
 }
 
@@ -544,7 +734,7 @@ impl Checks {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::scenario::simulate_drive_with_truth;
+    use crate::scenario::{RoadKind, simulate_drive_with_truth};
 
     fn draws(count: u64) -> Vec<DriveSpec> {
         let distribution = DriveDistribution::realistic();
@@ -555,6 +745,108 @@ mod tests {
     fn the_realistic_distribution_is_the_default_and_valid() {
         assert_eq!(DriveDistribution::default(), DriveDistribution::realistic());
         assert_eq!(DriveDistribution::realistic().validate(), Ok(()));
+    }
+
+    /// `realistic().draw(seed)` for a few seeds, serialised before the fleet error sources existed: the
+    /// realistic distribution must keep drawing exactly these specs (experiments and trained models
+    /// depend on them), and specs written then must still parse.
+    const REALISTIC_DRAWS: [&str; 5] = [
+        r#"{"duration_s":1800.0,"rate_hz":10.0,"start_lat_deg":32.23,"start_lon_deg":-110.91,"start_heading_deg":41.899911125587245,"speed":{"cruise_min_mps":1.5997816578463118,"cruise_max_mps":4.493722046607788,"acceleration_mps2":1.1537685865584635,"braking_mps2":1.0985534974447029,"maneuver_min_s":13.470151003082593,"maneuver_max_s":80.82090601849555,"stop_probability":0.17397386747688057,"stop_min_s":5.0,"stop_max_s":40.0},"turns":{"turn_probability":0.5392723574460546,"turn_min_deg":15.0,"turn_max_deg":114.7947734953761,"max_yaw_rate_dps":20.0,"max_lateral_accel_mps2":2.0,"roam_radius_m":311.45687709664116},"gnss_noise":{"white_std_m":0.28771540078199326,"bias_std_m":1.9708992721089198,"bias_time_constant_s":253.01786118326194},"onboard_noise":{"speed_std_mps":0.14576059394887203,"heading_std_deg":2.708599974592045},"onboard_errors":{"speed_scale_error":0.015002238012749358,"heading_bias_deg":-0.06470139384002077,"timing_offset_s":0.13287332975922184},"multipath":{"probability":0.0027384102482079196,"std_m":5.846834618299369},"outages":{"mean_interval_s":0.0,"min_s":0.0,"max_s":0.0},"seed":0}"#,
+        r#"{"duration_s":1800.0,"rate_hz":5.0,"start_lat_deg":32.23,"start_lon_deg":-110.91,"start_heading_deg":280.7404177102521,"speed":{"cruise_min_mps":1.3666046818931754,"cruise_max_mps":2.933201354977798,"acceleration_mps2":0.8407624415424352,"braking_mps2":2.101329338317557,"maneuver_min_s":12.306673112442034,"maneuver_max_s":73.8400386746522,"stop_probability":0.18269995165668473,"stop_min_s":5.0,"stop_max_s":40.0},"turns":{"turn_probability":0.5596332205322644,"turn_min_deg":15.0,"turn_max_deg":116.53999033133695,"max_yaw_rate_dps":20.0,"max_lateral_accel_mps2":2.0,"roam_radius_m":171.02577210298173},"gnss_noise":{"white_std_m":0.9879993110454968,"bias_std_m":1.4008661462818541,"bias_time_constant_s":246.9178019707237},"onboard_noise":{"speed_std_mps":0.08496096493367816,"heading_std_deg":2.251017995009152},"onboard_errors":{"speed_scale_error":0.029818043663073498,"heading_bias_deg":2.220308664914762,"timing_offset_s":-0.007637065267231569},"multipath":{"probability":0.002316251288054575,"std_m":10.951695780822394},"outages":{"mean_interval_s":0.0,"min_s":0.0,"max_s":0.0},"seed":1}"#,
+        r#"{"duration_s":1800.0,"rate_hz":1.0,"start_lat_deg":32.23,"start_lon_deg":-110.91,"start_heading_deg":188.15104346230197,"speed":{"cruise_min_mps":4.254440883191751,"cruise_max_mps":6.6260080152974385,"acceleration_mps2":0.52598573203972,"braking_mps2":1.6044627134531866,"maneuver_min_s":20.693770377645492,"maneuver_max_s":124.16262226587295,"stop_probability":0.1197967221676588,"stop_min_s":5.0,"stop_max_s":40.0},"turns":{"turn_probability":0.41285901839120387,"turn_min_deg":15.0,"turn_max_deg":103.95934443353175,"max_yaw_rate_dps":20.0,"max_lateral_accel_mps2":2.0,"roam_radius_m":513.5452851831795},"gnss_noise":{"white_std_m":0.6629909406360242,"bias_std_m":0.531014786125771,"bias_time_constant_s":104.63802916563958},"onboard_noise":{"speed_std_mps":0.1692829244929548,"heading_std_deg":2.3344395215096903},"onboard_errors":{"speed_scale_error":-0.032285328470109974,"heading_bias_deg":3.968969028538357,"timing_offset_s":0.031813116907468464},"multipath":{"probability":0.009468588723308998,"std_m":27.997004696144167},"outages":{"mean_interval_s":415.773845693473,"min_s":6.0,"max_s":30.0},"seed":42}"#,
+        r#"{"duration_s":1800.0,"rate_hz":1.0,"start_lat_deg":32.23,"start_lon_deg":-110.91,"start_heading_deg":135.21230263081299,"speed":{"cruise_min_mps":1.1140768530281198,"cruise_max_mps":2.448827991468274,"acceleration_mps2":0.8778983930441088,"braking_mps2":1.9522456560250905,"maneuver_min_s":10.797814807399954,"maneuver_max_s":64.78688884439973,"stop_probability":0.19401638894450035,"stop_min_s":5.0,"stop_max_s":40.0},"turns":{"turn_probability":0.5860382408705008,"turn_min_deg":15.0,"turn_max_deg":118.80327778890006,"max_yaw_rate_dps":20.0,"max_lateral_accel_mps2":2.0,"roam_radius_m":266.8650686353368},"gnss_noise":{"white_std_m":0.5454125823741043,"bias_std_m":1.102324311534832,"bias_time_constant_s":89.18128747566132},"onboard_noise":{"speed_std_mps":0.038080376880574654,"heading_std_deg":2.4971540393151397},"onboard_errors":{"speed_scale_error":0.0038948790322987604,"heading_bias_deg":-2.4892439561638295,"timing_offset_s":-0.12871576396281345},"multipath":{"probability":0.005919705336422146,"std_m":12.059570259830839},"outages":{"mean_interval_s":0.0,"min_s":0.0,"max_s":0.0},"seed":2024}"#,
+        r#"{"duration_s":1800.0,"rate_hz":1.0,"start_lat_deg":32.23,"start_lon_deg":-110.91,"start_heading_deg":234.85923056661804,"speed":{"cruise_min_mps":3.6988005815502807,"cruise_max_mps":8.186319977187962,"acceleration_mps2":0.6720064933619748,"braking_mps2":2.254644395287679,"maneuver_min_s":19.660150313429952,"maneuver_max_s":117.96090188057973,"stop_probability":0.12754887264927534,"stop_min_s":5.0,"stop_max_s":40.0},"turns":{"turn_probability":0.4309473695149758,"turn_min_deg":15.0,"turn_max_deg":105.50977452985506,"max_yaw_rate_dps":20.0,"max_lateral_accel_mps2":2.0,"roam_radius_m":484.6518088834895},"gnss_noise":{"white_std_m":0.23358824920251353,"bias_std_m":0.7011241301691902,"bias_time_constant_s":256.3490882571294},"onboard_noise":{"speed_std_mps":0.04576632668295948,"heading_std_deg":1.3603657794237245},"onboard_errors":{"speed_scale_error":-0.013251683037972799,"heading_bias_deg":-3.3041132361651653,"timing_offset_s":-0.049129842292934656},"multipath":{"probability":0.005745177951782838,"std_m":15.765732264451533},"outages":{"mean_interval_s":0.0,"min_s":0.0,"max_s":0.0},"seed":987654321}"#,
+    ];
+
+    #[test]
+    fn realistic_draws_are_unchanged_bit_for_bit() {
+        for json in REALISTIC_DRAWS {
+            let pinned: DriveSpec =
+                serde_json::from_str(json).expect("a spec written earlier parses");
+            assert_eq!(
+                DriveDistribution::realistic().draw(pinned.seed),
+                pinned,
+                "seed {}",
+                pinned.seed
+            );
+        }
+    }
+
+    #[test]
+    fn the_fleet_distribution_is_valid_and_adds_only_the_fleet_error_sources() {
+        let fleet = DriveDistribution::fleet();
+        assert_eq!(fleet.validate(), Ok(()));
+        let mut with_ranges_off = fleet.clone();
+        with_ranges_off.heading_bias_wander_std_deg = Range::default();
+        with_ranges_off.heading_bias_wander_time_constant_s = Range::default();
+        with_ranges_off.static_hold_share = 0.0;
+        with_ranges_off.static_hold_engage_speed_mps = Range::default();
+        with_ranges_off.static_hold_release_speed_factor = Range::default();
+        with_ranges_off.static_hold_release_distance_m = Range::default();
+        with_ranges_off.reacquisition_offset_std_m = Range::default();
+        with_ranges_off.reacquisition_time_constant_s = Range::default();
+        assert_eq!(with_ranges_off, DriveDistribution::realistic());
+        let inside = |value: f64, low: f64, high: f64| (low..=high).contains(&value);
+        let mut held = 0;
+        let mut highway = 0;
+        for seed in 0..400 {
+            let spec = fleet.draw(seed);
+            assert_eq!(spec.validate(), Ok(()), "seed {seed}");
+            // Every other field is the realistic draw of the same seed.
+            let realistic = DriveDistribution::realistic().draw(seed);
+            assert_eq!(
+                DriveSpec {
+                    heading_bias_wander: HeadingBiasWander::default(),
+                    static_hold: StaticHold::default(),
+                    reacquisition: Reacquisition::default(),
+                    ..spec
+                },
+                realistic
+            );
+            assert_eq!(spec.road_kind(), realistic.road_kind());
+            let w = spec.heading_bias_wander;
+            assert!(inside(w.std_deg, 0.5, 1.5) && inside(w.time_constant_s, 300.0, 1800.0));
+            let r = spec.reacquisition;
+            assert!(inside(r.offset_std_m, 1.0, 5.0) && inside(r.time_constant_s, 2.0, 10.0));
+            let h = spec.static_hold;
+            if h != StaticHold::default() {
+                held += 1;
+                assert!(inside(h.engage_speed_mps, 0.1, 0.5), "{h:?}");
+                let factor = h.release_speed_mps / h.engage_speed_mps;
+                assert!(inside(factor, 1.0 - 1e-12, 2.0 + 1e-12), "{h:?}");
+                assert!(inside(h.release_distance_m, 1.0, 5.0), "{h:?}");
+            }
+            if spec.road_kind() == RoadKind::Highway {
+                highway += 1;
+            }
+        }
+        // Fleet drives simulate, with every source on.
+        for seed in 0..6 {
+            let spec = DriveSpec {
+                duration_s: 600.0,
+                ..fleet.draw(seed)
+            };
+            simulate_drive_with_truth(&spec, "v").expect("a drawn spec simulates");
+        }
+        // 30 % of 400 = 120 with static hold (binomial std 9); about a quarter on highways.
+        assert!((90..=150).contains(&held), "{held} with static hold");
+        assert!((60..=140).contains(&highway), "{highway} highway drives");
+    }
+
+    #[test]
+    fn a_distribution_written_before_the_fleet_error_sources_still_reads() {
+        let realistic = DriveDistribution::realistic();
+        let json = serde_json::to_string(&realistic).expect("serialises");
+        // The realistic distribution writes exactly the fields it had before.
+        for field in ["heading_bias_wander", "static_hold", "reacquisition"] {
+            assert!(!json.contains(field), "{json}");
+        }
+        let back: DriveDistribution = serde_json::from_str(&json).expect("parses");
+        assert_eq!(back, realistic);
+        let fleet = DriveDistribution::fleet();
+        let json = serde_json::to_string(&fleet).expect("serialises");
+        let back: DriveDistribution = serde_json::from_str(&json).expect("parses");
+        assert_eq!(back, fleet);
     }
 
     #[test]
@@ -657,7 +949,8 @@ mod tests {
     #[test]
     fn invalid_fields_are_named() {
         let realistic = DriveDistribution::realistic;
-        let cases: [(&str, DriveDistribution); 6] = [
+        let fleet = DriveDistribution::fleet;
+        let cases: [(&str, DriveDistribution); 12] = [
             (
                 "rates_hz",
                 DriveDistribution {
@@ -703,6 +996,48 @@ mod tests {
                         urban: 0.5,
                         rural: 1.5,
                     },
+                    ..realistic()
+                },
+            ),
+            (
+                "heading_bias_wander_std_deg.max",
+                DriveDistribution {
+                    heading_bias_wander_std_deg: Range::new(0.5, 45.0),
+                    ..fleet()
+                },
+            ),
+            (
+                "heading_bias_wander_time_constant_s.min",
+                DriveDistribution {
+                    heading_bias_wander_time_constant_s: Range::new(0.0, 600.0),
+                    ..fleet()
+                },
+            ),
+            (
+                "static_hold_share",
+                DriveDistribution {
+                    static_hold_share: -0.1,
+                    ..fleet()
+                },
+            ),
+            (
+                "static_hold_release_speed_factor.min",
+                DriveDistribution {
+                    static_hold_release_speed_factor: Range::new(0.5, 2.0),
+                    ..fleet()
+                },
+            ),
+            (
+                "static_hold_release_distance_m.max",
+                DriveDistribution {
+                    static_hold_release_distance_m: Range::new(1.0, f64::NAN),
+                    ..fleet()
+                },
+            ),
+            (
+                "reacquisition_time_constant_s.min",
+                DriveDistribution {
+                    reacquisition_offset_std_m: Range::new(1.0, 5.0),
                     ..realistic()
                 },
             ),
