@@ -17,12 +17,13 @@ use crate::receiver::FlagSignal;
 use crate::severity::{CriticalTest, Escalation, Severity};
 
 /// Grid of k, the logit of p̂ above which evidence accumulates: p̂ from 0.5 to 0.9975.
-pub const REFERENCE_LOGIT_GRID: [f64; 7] = [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0];
+pub const REFERENCE_LOGIT_GRID: [f64; 6] = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0];
 /// Grid of h (logit·s): from a few seconds of strong evidence to minutes of it.
-pub const THRESHOLD_GRID: [f64; 9] = [5.0, 10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 640.0, 1280.0];
-/// Grid of the seconds decisive evidence must hold to be critical at once: within the 10 s a
-/// jump must be paged in.
-pub const CRITICAL_DECISIVE_S_GRID: [f64; 6] = [1.0, 2.0, 3.0, 5.0, 7.0, 9.0];
+pub const THRESHOLD_GRID: [f64; 7] = [10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 640.0];
+/// Grid of the NIS gate of the decisive path: from the decisive gate of §4.2 (5σ) to 20σ.
+pub const GATE_GRID: [f64; 4] = [25.0, 100.0, 400.0, 1600.0];
+/// Grid of the seconds the NIS must stay beyond the gate: within the 10 s a jump must be paged in.
+pub const CRITICAL_DECISIVE_S_GRID: [f64; 5] = [1.0, 2.0, 3.0, 5.0, 8.0];
 
 /// The chosen test and what it achieves on the validation rows.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -79,11 +80,12 @@ fn fill_critical_rows(
     }
 }
 
-/// Chooses the critical test from [`REFERENCE_LOGIT_GRID`] × [`THRESHOLD_GRID`] ×
+/// Chooses the critical test from [`REFERENCE_LOGIT_GRID`] × [`THRESHOLD_GRID`] × [`GATE_GRID`] ×
 /// [`CRITICAL_DECISIVE_S_GRID`] for the warning's θ and `lifecycle`: at most `per_hour` critical
 /// onsets per attack-free hour, pooled and at each sample rate with room for one; then the most
 /// attack events escalated, the shortest mean delay to escalation, the best F1 of the critical rows,
-/// the lowest FPR; ties go to the larger k, the larger h and the longer hold (the quieter test).
+/// the lowest FPR; ties go to the larger k, the larger h, the higher gate and the longer hold (the
+/// quieter test).
 pub fn choose_critical(
     rows: &[ScoredRow],
     offset: &[OffsetSignal],
@@ -100,27 +102,18 @@ pub fn choose_critical(
         .collect();
     let mut best: Option<(CriticalTest, Metrics)> = None;
     let mut critical = Vec::with_capacity(rows.len());
-    for reference_logit in REFERENCE_LOGIT_GRID {
-        for threshold in THRESHOLD_GRID {
-            for decisive_s in CRITICAL_DECISIVE_S_GRID {
-                let test = CriticalTest {
-                    reference_logit,
-                    threshold,
-                    decisive_s,
-                };
-                fill_critical_rows(rows, offset, (theta, lifecycle, &test), &mut critical);
-                let candidate = metrics::alarm_metrics(rows, &critical, rules);
-                let within_budget = candidate.false_alarm_onsets as f64 <= per_hour * normal_hours
-                    && binding.iter().all(|g| {
-                        g.false_alarm_onsets(rows, &critical) as f64 <= per_hour * g.normal_hours
-                    });
-                let improves = best.as_ref().is_none_or(|(b_test, b_metrics)| {
-                    compare((&test, &candidate), (b_test, b_metrics)) == Ordering::Greater
-                });
-                if within_budget && improves {
-                    best = Some((test, candidate));
-                }
-            }
+    for test in grid() {
+        fill_critical_rows(rows, offset, (theta, lifecycle, &test), &mut critical);
+        let candidate = metrics::alarm_metrics(rows, &critical, rules);
+        let within_budget = candidate.false_alarm_onsets as f64 <= per_hour * normal_hours
+            && binding
+                .iter()
+                .all(|g| g.false_alarm_onsets(rows, &critical) as f64 <= per_hour * g.normal_hours);
+        let improves = best.as_ref().is_none_or(|(b_test, b_metrics)| {
+            compare((&test, &candidate), (b_test, b_metrics)) == Ordering::Greater
+        });
+        if within_budget && improves {
+            best = Some((test, candidate));
         }
     }
     let Some((test, _)) = best else {
@@ -146,6 +139,26 @@ pub fn choose_critical(
     })
 }
 
+/// Every test of the grid.
+fn grid() -> impl Iterator<Item = CriticalTest> {
+    REFERENCE_LOGIT_GRID
+        .into_iter()
+        .flat_map(|reference_logit| {
+            THRESHOLD_GRID.into_iter().flat_map(move |threshold| {
+                GATE_GRID.into_iter().flat_map(move |gate| {
+                    CRITICAL_DECISIVE_S_GRID
+                        .into_iter()
+                        .map(move |decisive_s| CriticalTest {
+                            reference_logit,
+                            threshold,
+                            gate,
+                            decisive_s,
+                        })
+                })
+            })
+        })
+}
+
 /// The search's order: greater is better.
 fn compare(a: (&CriticalTest, &Metrics), b: (&CriticalTest, &Metrics)) -> Ordering {
     let ((a_test, a_metrics), (b_test, b_metrics)) = (a, b);
@@ -160,6 +173,7 @@ fn compare(a: (&CriticalTest, &Metrics), b: (&CriticalTest, &Metrics)) -> Orderi
         .then(b_metrics.fpr.total_cmp(&a_metrics.fpr))
         .then(a_test.reference_logit.total_cmp(&b_test.reference_logit))
         .then(a_test.threshold.total_cmp(&b_test.threshold))
+        .then(a_test.gate.total_cmp(&b_test.gate))
         .then(a_test.decisive_s.total_cmp(&b_test.decisive_s))
 }
 

@@ -185,6 +185,7 @@ pub fn offset_signal(evidence: &Evidence) -> OffsetSignal {
             },
             displaced: o.displaced(),
             anchored: true,
+            nis: o.max_nis(),
         }
     })
 }

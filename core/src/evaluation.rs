@@ -12,6 +12,7 @@ use crate::lifecycle::OffsetSignal;
 use crate::metrics::{EventRules, Metrics, ScoredRow, evaluate};
 use crate::model::artifact::ModelArtifact;
 use crate::sample::{Record, Track};
+use crate::severity::Severity;
 
 /// The metrics' trajectory key of trajectory `trajectory` of the `track_index`-th track: unique per
 /// (track, trajectory), so trajectories of different tracks never merge.
@@ -78,6 +79,9 @@ pub struct RowResult {
 #[derive(Clone, Debug, PartialEq)]
 pub struct Evaluation {
     pub overall: Metrics,
+    /// The same metrics with the critical episodes as the alarms (§7.4: each from its escalation
+    /// to its end); `None` when the model has no critical test (warnings only).
+    pub critical: Option<Metrics>,
     /// In track order; only filled when there are several vehicles.
     pub per_vehicle: Vec<(String, Metrics)>,
     pub rows: Vec<RowResult>,
@@ -117,10 +121,19 @@ pub fn evaluate_tracks(
 ) -> Evaluation {
     let mut rows = Vec::new();
     let mut scored = Scored::default();
+    let mut critical_alarms = Vec::new();
     let mut per_vehicle = Vec::new();
     for (index, track) in tracks.iter().enumerate() {
         let decisions = run_records(artifact, &track.records);
         let track_scored = scored_track(index, &track.records, &decisions);
+        critical_alarms.extend(
+            track
+                .records
+                .iter()
+                .zip(&decisions)
+                .filter(|(r, _)| !r.warmup)
+                .map(|(_, d)| d.severity == Some(Severity::Critical)),
+        );
         if tracks.len() > 1 {
             per_vehicle.push((track.vehicle_id.clone(), track_scored.metrics(rules)));
         }
@@ -142,6 +155,10 @@ pub fn evaluate_tracks(
     }
     Evaluation {
         overall: scored.metrics(rules),
+        critical: artifact
+            .critical
+            .is_some()
+            .then(|| evaluate(&scored.rows, &critical_alarms, rules)),
         per_vehicle,
         rows,
     }

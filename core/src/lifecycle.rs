@@ -79,6 +79,9 @@ pub struct OffsetSignal {
     /// The sample has offset evidence (the model has the offset channels), so `displaced` can
     /// vouch for p̂ while a trajectory settles.
     pub anchored: bool,
+    /// The larger anchor NIS (§4.2), for the critical test's gate; 0 without offset evidence.
+    #[serde(default)]
+    pub nis: f64,
 }
 
 /// One sample's inputs to the lifecycle.
@@ -176,7 +179,7 @@ impl AlarmLifecycle {
                     time_s: time,
                     probability: input.probability,
                     probability_counts: !settling || input.offset.displaced,
-                    decisive_held_s: input.offset.held_s,
+                    nis: input.offset.nis,
                 },
             )
         });
@@ -267,6 +270,7 @@ mod tests {
                         held_s,
                         displaced: displaced(time_s),
                         anchored: stream.anchored,
+                        nis: 0.0,
                     },
                     flag: FlagSignal::default(),
                 },
@@ -396,6 +400,7 @@ mod tests {
                 held_s: None,
                 displaced: false,
                 anchored: true,
+                nis: 0.0,
             },
             flag: FlagSignal::default(),
         };
@@ -418,6 +423,7 @@ mod tests {
                 held_s: None,
                 displaced,
                 anchored: true,
+                nis: 0.0,
             },
             flag: FlagSignal {
                 counts: true,
@@ -458,6 +464,7 @@ mod tests {
                             held_s: None,
                             displaced: false,
                             anchored: true,
+                            nis: 0.0,
                         },
                         flag: FlagSignal {
                             counts: t >= flag_from_s,
@@ -523,6 +530,7 @@ mod tests {
     const CRITICAL: CriticalTest = CriticalTest {
         reference_logit: 2.0,
         threshold: 20.0,
+        gate: 100.0,
         decisive_s: 3.0,
     };
 
@@ -555,6 +563,7 @@ mod tests {
                             held_s,
                             displaced: held_s.is_some() || flag(t),
                             anchored: false,
+                            nis: if held_s.is_some() { 400.0 } else { 0.0 },
                         },
                         flag: FlagSignal {
                             counts: flag(t),

@@ -4,9 +4,11 @@
 //! severity only rises: it is not two alarms.
 //!
 //! An episode turns critical
-//! - at once on decisive evidence held for [`CriticalTest::decisive_s`]: an offset beyond the
-//!   decisive gate (a jump, a hop) or a fix frozen on a moving vehicle. Their likelihood ratios are
-//!   enormous, so the stricter budget costs them little;
+//! - at once on decisive evidence: the fix displaced from the dead-reckoning anchors with a NIS of
+//!   at least [`CriticalTest::gate`], held for [`CriticalTest::decisive_s`] (a jump or a hop far
+//!   beyond the vehicle's own noise, or a fix frozen on a moving vehicle, whose offset grows with
+//!   every metre driven). Their likelihood ratios are enormous, so the stricter budget costs them
+//!   little;
 //! - when a sequential test on p̂ crosses its threshold: S ← max(0, S + δ·(x − k)), x the logit of
 //!   p̂ capped at ±[`LOGIT_CAP`] (at most 0 while a trajectory settles and nothing vouches for p̂,
 //!   as for the warning), critical once S ≥ h. A CUSUM in seconds: the same drive at 1 Hz and at
@@ -30,6 +32,9 @@ use crate::sample::readable;
 pub const LOGIT_CAP: f64 = 10.0;
 /// Largest accepted threshold h (logit·s): an hour at the cap.
 pub const MAX_THRESHOLD: f64 = LOGIT_CAP * MAX_LIFECYCLE_S;
+/// Accepted NIS gates of the decisive path: from the follow gate to a 1 km offset of a metre's
+/// noise.
+pub const GATE_RANGE: (f64, f64) = (16.0, 1e6);
 /// Longest step the test integrates over (s), as the liquid cell clamps δ.
 const MAX_STEP_S: f64 = 5.0;
 /// Durations compare with this slack (s), as in the lifecycle.
@@ -75,7 +80,9 @@ pub struct CriticalTest {
     pub reference_logit: f64,
     /// h: the accumulated evidence (logit·s above k) at which the episode turns critical.
     pub threshold: f64,
-    /// Seconds decisive evidence must hold to be critical at once.
+    /// The NIS (the larger anchor's, §4.2) beyond which an offset is decisive for a page.
+    pub gate: f64,
+    /// Seconds the NIS must stay at or beyond the gate to be critical at once.
     pub decisive_s: f64,
 }
 
@@ -101,6 +108,17 @@ impl CriticalTest {
                 ),
             ));
         }
+        if !(GATE_RANGE.0..=GATE_RANGE.1).contains(&self.gate) {
+            return Err((
+                "gate",
+                format!(
+                    "must be in [{}, {}] (a NIS), got {}",
+                    GATE_RANGE.0,
+                    GATE_RANGE.1,
+                    readable(self.gate)
+                ),
+            ));
+        }
         if !(0.0..=MAX_LIFECYCLE_S).contains(&self.decisive_s) {
             return Err((
                 "decisive_s",
@@ -122,16 +140,17 @@ pub struct CriticalInput {
     pub probability: f64,
     /// p̂ may count: the trajectory has settled, or the fix is displaced from an anchor.
     pub probability_counts: bool,
-    /// Seconds decisive evidence has held (an offset beyond the decisive gate, or a frozen fix on
-    /// a moving vehicle); `None` without it.
-    pub decisive_held_s: Option<f64>,
+    /// The larger anchor NIS of the sample (0 without offset evidence).
+    pub nis: f64,
 }
 
-/// The test's per-vehicle state: the accumulated evidence S and the time it was last fed.
+/// The test's per-vehicle state: the accumulated evidence S, the time it was last fed, and since
+/// when the NIS has stayed at or beyond the gate.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct CriticalEvidence {
     accumulated: f64,
     last_time_s: Option<f64>,
+    beyond_gate_since: Option<f64>,
 }
 
 impl CriticalEvidence {
@@ -153,9 +172,14 @@ impl CriticalEvidence {
             logit.min(0.0)
         };
         self.accumulated = (self.accumulated + delta_s * (counted - test.reference_logit)).max(0.0);
-        let decisive = input
-            .decisive_held_s
-            .is_some_and(|held| held + TIME_SLACK_S >= test.decisive_s);
+        if input.nis >= test.gate {
+            self.beyond_gate_since.get_or_insert(input.time_s);
+        } else {
+            self.beyond_gate_since = None;
+        }
+        let decisive = self
+            .beyond_gate_since
+            .is_some_and(|since| input.time_s - since + TIME_SLACK_S >= test.decisive_s);
         decisive || self.accumulated >= test.threshold
     }
 
@@ -229,6 +253,7 @@ mod tests {
     const TEST: CriticalTest = CriticalTest {
         reference_logit: 2.0,
         threshold: 20.0,
+        gate: 100.0,
         decisive_s: 3.0,
     };
 
@@ -237,7 +262,7 @@ mod tests {
             time_s,
             probability,
             probability_counts: true,
-            decisive_held_s: None,
+            nis: 0.0,
         }
     }
 
@@ -330,14 +355,22 @@ mod tests {
     }
 
     #[test]
-    fn decisive_evidence_is_critical_once_held_long_enough() {
+    fn decisive_evidence_is_critical_once_held_beyond_the_gate_long_enough() {
         let mut evidence = CriticalEvidence::default();
-        let held = |held_s| CriticalInput {
-            decisive_held_s: Some(held_s),
-            ..input(held_s, 0.0)
+        let at = |time_s, nis| CriticalInput {
+            nis,
+            ..input(time_s, 0.0)
         };
-        assert!(!evidence.update(&TEST, &held(2.9)));
-        assert!(evidence.update(&TEST, &held(3.0)));
+        // Beyond the gate from 10 s, a dip below it at 12 s restarts the hold: critical at 16 s.
+        let critical: Vec<bool> = [(9.0, 99.0), (10.0, 100.0), (11.0, 400.0), (12.0, 50.0)]
+            .into_iter()
+            .chain((13..=16).map(|t| (f64::from(t), 150.0)))
+            .map(|(t, nis)| evidence.update(&TEST, &at(t, nis)))
+            .collect();
+        assert_eq!(
+            critical,
+            [false, false, false, false, false, false, false, true]
+        );
     }
 
     #[test]
@@ -378,6 +411,7 @@ mod tests {
             }),
             "decisive_s"
         );
+        assert_eq!(bad(CriticalTest { gate: 4.0, ..TEST }), "gate");
         assert!(TEST.validate().is_ok());
     }
 

@@ -85,6 +85,7 @@ fn artifact_of(
         critical: schema.has_offset().then_some(CriticalTest {
             reference_logit: 0.0,
             threshold: 5.0,
+            gate: 100.0,
             decisive_s: 3.0,
         }),
         provenance: Provenance::default(),

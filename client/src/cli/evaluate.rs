@@ -107,10 +107,23 @@ impl Offline {
         let evaluation = evaluate_tracks(&self.artifact, &self.tracks, self.rules.into());
         let op = self.artifact.operating_point;
         println!("operating point: theta = {:.2}, N_p = {}", op.theta, op.n_p);
+        match &self.artifact.critical {
+            Some(test) => println!(
+                "critical test: k = {}, h = {} logit·s, decisive hold {} s",
+                test.reference_logit, test.threshold, test.decisive_s
+            ),
+            None => println!("critical test: none (the model raises warnings only)"),
+        }
         let mut table = vec![("overall".to_string(), &evaluation.overall)];
         table.extend(evaluation.per_vehicle.iter().map(|(v, m)| (v.clone(), m)));
+        if let Some(critical) = &evaluation.critical {
+            table.push(("overall, critical".to_string(), critical));
+        }
         print!("{}", metrics_table(&table));
         println!("event delays (s): {}", delays(&evaluation.overall));
+        if let Some(critical) = &evaluation.critical {
+            println!("event delays to critical (s): {}", delays(critical));
+        }
         if let Some(path) = &self.json {
             let per_vehicle: serde_json::Map<String, serde_json::Value> = evaluation
                 .per_vehicle
@@ -121,6 +134,7 @@ impl Offline {
                 "model": self.model.display().to_string(),
                 "operating_point": op,
                 "overall": evaluation.overall,
+                "critical": evaluation.critical,
                 "per_vehicle": per_vehicle,
             });
             write_json(path, &doc)?;
@@ -146,6 +160,7 @@ fn write_rows(path: &PathBuf, evaluation: &Evaluation) -> Result<()> {
         "positive",
         "alarm",
         "alarm_onset",
+        "severity",
     ])?;
     for row in &evaluation.rows {
         let d = &row.decision;
@@ -161,6 +176,7 @@ fn write_rows(path: &PathBuf, evaluation: &Evaluation) -> Result<()> {
             flag(d.positive),
             flag(d.alarm),
             flag(d.alarm_onset),
+            d.severity.map_or(String::new(), |s| s.name().to_string()),
         ])?;
     }
     out.flush()?;

@@ -5,6 +5,7 @@
 
 mod avgps;
 mod common;
+mod fleet_alarms;
 mod incidents;
 mod offsets;
 mod parallel;
@@ -27,6 +28,9 @@ pub enum Command {
     /// Jumps, hops, frozen fixes and drifts at 1, 5 and 10 Hz, early and late in a session;
     /// false alarms per hour at each rate.
     Offsets(offsets::Args),
+    /// Both alarm severities as a fleet counts them: the critical test chosen on attack-free
+    /// validation hours, clean fleets of 1,000 vehicle-hours per rate, detection at both levels.
+    FleetAlarms(fleet_alarms::Args),
     /// Regional spoofing replayed through the server: captured vehicles alarmed, their delay, the
     /// time to the area incident; clean fleets with independent attacks make no incident.
     Incidents(incidents::Args),
@@ -39,5 +43,6 @@ pub fn run(cmd: Command) -> Result<()> {
         Command::SubtleD2(args) => subtle_d2::run(args),
         Command::Offsets(args) => offsets::run(args),
         Command::Incidents(args) => incidents::run(args),
+        Command::FleetAlarms(args) => fleet_alarms::run(args),
     }
 }

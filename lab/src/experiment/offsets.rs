@@ -113,7 +113,7 @@ fn schema_name(name: &str) -> Result<FeatureSchema, String> {
 }
 
 /// Sample rates of the test drives (Hz).
-const RATES_HZ: [f64; 3] = [1.0, 5.0, 10.0];
+pub(super) const RATES_HZ: [f64; 3] = [1.0, 5.0, 10.0];
 /// Length of a clean validation or test drive (s): an hour, because a vehicle's levels take the first
 /// half hour to settle, and a budget met on short drives need not hold on a vehicle in service.
 const CLEAN_DRIVE_S: f64 = 3_600.0;
@@ -130,18 +130,18 @@ const EARLY_ONSET_S: f64 = 15.0;
 /// Late onsets are drawn from this range (s): the onboard calibration is warm.
 const LATE_ONSET_S: (f64, f64) = (300.0, 600.0);
 /// A false alarm this soon after a session starts or an outage ends is counted apart (s).
-const AFTER_START_S: f64 = 30.0;
+pub(super) const AFTER_START_S: f64 = 30.0;
 /// Dataset-2's validation parts and its injected training pieces are scored as continuations of the
 /// rover's stream, after this many seconds of its earlier rows (s): the per-vehicle levels and the
 /// dead-reckoning misfit need minutes to learn a vehicle, as they have on a vehicle in service.
 const RECORDED_WARMUP_S: f64 = 900.0;
 /// Rows further apart than this (s) are an outage.
-const OUTAGE_S: f64 = 5.0;
+pub(super) const OUTAGE_S: f64 = 5.0;
 
 /// A test attack and its deadline: detected counts only within it.
-struct TestKind {
-    kind: AttackKind,
-    within_s: f64,
+pub(super) struct TestKind {
+    pub(super) kind: AttackKind,
+    pub(super) within_s: f64,
     motion: Motion,
 }
 
@@ -176,7 +176,7 @@ impl TestKind {
         }
     }
 
-    fn label(&self) -> String {
+    pub(super) fn label(&self) -> String {
         let family = self.kind.family();
         match self.motion {
             Motion::Any => family.to_string(),
@@ -298,15 +298,18 @@ fn training_attack(rng: &mut Rng, early: bool) -> AttackKind {
 
 /// Seeds of the drive populations (kept apart so no drive appears in two of them).
 #[derive(Clone, Copy)]
-enum Population {
+pub(super) enum Population {
     Train = 11,
     Validation = 12,
     CleanTest = 13,
     AttackedTest = 14,
     CleanValidation = 15,
+    /// Attack-free fleet drives of the fleet-alarms study, and its validation drives.
+    FleetClean = 16,
+    FleetValidation = 17,
 }
 
-fn drive_seed(seed: u64, population: Population, index: u64) -> u64 {
+pub(super) fn drive_seed(seed: u64, population: Population, index: u64) -> u64 {
     seed.wrapping_mul(1_000_003)
         .wrapping_add((population as u64) << 40)
         .wrapping_add(index)
@@ -397,15 +400,15 @@ fn training_mix(
 }
 
 /// One attacked test drive and what it is.
-struct TestDrive {
-    injected: InjectedTrack,
-    kind_index: usize,
-    rate_index: usize,
-    early: bool,
-    onset_s: f64,
+pub(super) struct TestDrive {
+    pub(super) injected: InjectedTrack,
+    pub(super) kind_index: usize,
+    pub(super) rate_index: usize,
+    pub(super) early: bool,
+    pub(super) onset_s: f64,
     /// Detected counts when the alarm opens within this many seconds of the onset.
-    deadline_s: f64,
-    mean_speed_mps: f64,
+    pub(super) deadline_s: f64,
+    pub(super) mean_speed_mps: f64,
 }
 
 /// Mean onboard speed of `injected` from its attack's first row to `deadline_s` after it (m/s).
@@ -422,15 +425,15 @@ fn mean_speed_to_deadline(injected: &InjectedTrack, deadline_s: f64) -> f64 {
 }
 
 /// The drives every detector is scored on.
-struct TestSet {
-    kinds: Vec<TestKind>,
-    attacked: Vec<TestDrive>,
+pub(super) struct TestSet {
+    pub(super) kinds: Vec<TestKind>,
+    pub(super) attacked: Vec<TestDrive>,
     /// Clean drives per rate.
     clean: Vec<Vec<Track>>,
     threads: usize,
 }
 
-fn test_set(
+pub(super) fn test_set(
     seed: u64,
     repeats: u64,
     clean_drives_per_rate: u64,
@@ -603,7 +606,7 @@ fn per_track(
     map_parallel(&jobs, threads, |&i| score(std::slice::from_ref(&tracks[i])))
 }
 
-fn median(mut values: Vec<f64>) -> Option<f64> {
+pub(super) fn median(mut values: Vec<f64>) -> Option<f64> {
     values.sort_by(f64::total_cmp);
     let n = values.len();
     (n > 0).then(|| {
