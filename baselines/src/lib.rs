@@ -19,10 +19,10 @@ use spoofwatch_core::alarm::{
 };
 use spoofwatch_core::evaluation::Scored;
 use spoofwatch_core::evidence::FeatureSchema;
+use spoofwatch_core::evidence::{EvidenceFit, EvidenceFitError, fit_evidence};
 use spoofwatch_core::geo::Projection;
 use spoofwatch_core::metrics::{EventRules, Metrics, ScoredRow};
 use spoofwatch_core::train::TrainConfig;
-use spoofwatch_core::train::data::{DataError, EvidenceFit, fit_evidence};
 use spoofwatch_core::train::spec::{
     DEFAULT_KAPPA_RHO, Recipe, SMALL_DATA_BATCH, SMALL_DATA_LEARNING_RATE,
 };
@@ -35,7 +35,7 @@ pub use crate::rows::{Dataset, GPS_IDS_COLUMNS, Input, RowTable};
 #[derive(Debug, thiserror::Error)]
 pub enum BaselineError {
     #[error(transparent)]
-    Data(#[from] DataError),
+    Data(#[from] EvidenceFitError),
     #[error("the raw-column input needs the recording's columns, and none were given")]
     NoColumns,
     #[error(

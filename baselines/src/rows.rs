@@ -5,11 +5,11 @@ use std::ops::Range;
 
 use spoofwatch_core::data::NumericColumns;
 use spoofwatch_core::evaluation::trajectory_key;
+use spoofwatch_core::evidence::EvidenceFit;
 use spoofwatch_core::evidence::{FeatureSchema, build_track};
 use spoofwatch_core::metrics::ScoredRow;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::train::ClassWeights;
-use spoofwatch_core::train::data::EvidenceFit;
 
 use crate::BaselineError;
 
