@@ -25,9 +25,10 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
+use super::error::SessionError;
+use super::persistence::SNAPSHOT_WAIT;
 use super::sessions::{
-    Accepted, Attachment, Decisions, ForVehicle, SNAPSHOT_WAIT, SessionError, SessionManager,
-    SessionSummary,
+    Accepted, Attachment, Decisions, ForVehicle, SessionManager, SessionSummary,
 };
 use crate::access::Caller;
 use crate::edge::{
