@@ -9,8 +9,8 @@ use forust_ml::objective::ObjectiveType;
 use forust_ml::sampler::SampleMethod;
 use serde::Serialize;
 
+use crate::common::{BaselineError, Epoch};
 use crate::rows::RowTable;
-use crate::{BaselineError, Epoch};
 
 /// The paper's XGBoost recipe (REFERENCE-NOTES §6).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]

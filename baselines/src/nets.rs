@@ -17,8 +17,8 @@ use spoofwatch_core::metrics::auroc;
 use spoofwatch_core::rng::Rng;
 use spoofwatch_core::train::TrainConfig;
 
+use crate::common::{BaselineError, Epoch};
 use crate::rows::RowTable;
-use crate::{BaselineError, Epoch};
 
 /// Which net.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]

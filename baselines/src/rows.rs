@@ -11,7 +11,7 @@ use spoofwatch_core::metrics::ScoredRow;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::train::ClassWeights;
 
-use crate::BaselineError;
+use crate::common::BaselineError;
 
 /// The AV-GPS columns of the GPS-IDS-style row: the vehicle's own dynamics and the receiver's
 /// quality figures, as a per-row classifier would read them. Left out on purpose: the label
