@@ -24,6 +24,12 @@
 //!   checked at startup), `idle` (the stream idle timeout).
 //!
 //! Wire conversions live in `spoofwatch_proto::wire`.
+//!
+//! Layers, from the top down: background, drain | router | app, error, metrics_endpoint,
+//! model_service | detection, server_error, watch | outbox, process, tls | alarms, config, jobs |
+//! datasets, incidents | access, edge, event_log, incoming, models | coalesce, error_chain, fault,
+//! identity, idle, inprocess, status, store, telemetry, work. A module imports only from its own
+//! layer's others or from below (`scripts/fence.py` holds CI to it).
 
 mod access;
 mod alarms;
