@@ -13,6 +13,7 @@ use crate::store::{AlarmEventKind, AlarmEventRow, LoggedAlarmEvent, StoredWhy};
 
 /// A stored or emitted alarm on the wire.
 pub fn alarm_to_proto(alarm: &AlarmEventRow) -> v1::Alarm {
+    let why = why_to_proto(&alarm.why);
     v1::Alarm {
         id: alarm.id,
         vehicle_id: alarm.vehicle_id.clone(),
@@ -24,7 +25,7 @@ pub fn alarm_to_proto(alarm: &AlarmEventRow) -> v1::Alarm {
         peak_probability: alarm.peak_probability,
         samples: u64::try_from(alarm.samples).unwrap_or(0),
         open: alarm.is_open(),
-        why: why_to_proto(&alarm.why),
+        why,
         onset_latitude_deg: alarm.place.onset_latitude_deg,
         onset_longitude_deg: alarm.place.onset_longitude_deg,
     }
