@@ -12,7 +12,7 @@ use serde::Serialize;
 use crate::common::{BaselineError, Epoch};
 use crate::rows::RowTable;
 
-/// The paper's XGBoost recipe (REFERENCE-NOTES §6).
+/// The paper's XGBoost recipe (`docs/baselines.md`).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct TreeParams {
     pub max_trees: usize,

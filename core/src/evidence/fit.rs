@@ -1,4 +1,4 @@
-//! Fitting the evidence parameters on labelled training tracks (SPEC §4, REFERENCE-NOTES §2.5): Σ̂ and
+//! Fitting the evidence parameters on labelled training tracks (SPEC §4): Σ̂ and
 //! μ_e from normal rows, and evidence v2's drift parameters from their settled drift rates. Both run
 //! the streaming builder over the tracks. [`fit_evidence`] is a model's whole evidence fit (Σ̂, μ_e,
 //! the channels' parameters and the scaler): training and the comparators share it.

@@ -93,7 +93,8 @@ pub enum Recipe {
 /// split gives ~340), [`Recipe::Auto`] switches to the small-data recipe.
 pub const SMALL_DATA_WINDOWS: usize = 256;
 /// Small-data recipe: windows per optimiser step and learning rate, chosen by Dataset-2 validation
-/// F1 over batch {1, 2, 4} × learning rate {1e-3, 2e-3, 3e-3} (README, "Training recipe").
+/// F1 over batch {1, 2, 4} × learning rate {1e-3, 2e-3, 3e-3} (`docs/experiments.md`, "Training
+/// recipe").
 pub const SMALL_DATA_BATCH: usize = 2;
 pub const SMALL_DATA_LEARNING_RATE: f64 = 3e-3;
 
