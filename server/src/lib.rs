@@ -25,9 +25,8 @@
 //!
 //! Wire conversions live in `spoofwatch_proto::wire`.
 //!
-//! Layers, from the top down: background, drain | router | app, error, metrics_endpoint,
-//! model_service | detection, server_error, storage_health | outbox, process, tls | alarms, config,
-//! jobs | datasets, incidents | access, edge, event_log, incoming, models | coalesce, error_chain, fault,
+//! Layers, from the top down: background, drain | router | app, error, metrics_endpoint |
+//! detection, server_error, storage_health | outbox, process, tls | alarms, config, jobs | datasets, incidents | access, edge, event_log, incoming, models | coalesce, error_chain, fault,
 //! identity, idle, inprocess, status, store, telemetry, work. A module imports only from its own
 //! layer's others or from below (`scripts/fence.py` holds CI to it).
 
@@ -52,7 +51,6 @@ mod incoming;
 pub mod inprocess;
 mod jobs;
 mod metrics_endpoint;
-mod model_service;
 pub mod models;
 mod outbox;
 pub mod process;

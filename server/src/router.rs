@@ -29,7 +29,7 @@ use crate::datasets::DatasetApi;
 use crate::detection::DetectionApi;
 use crate::idle::StreamIdle;
 use crate::jobs::{Jobs, OperationsApi, TrainingApi};
-use crate::model_service::ModelApi;
+use crate::models::service::ModelApi;
 use crate::server_error::ServerError;
 use crate::storage_health;
 
@@ -101,7 +101,7 @@ pub async fn build(server: Server, app: &App, config: &Config) -> Result<Routes,
     .max_decoding_message_size(limit);
     let models = gzip!(ModelServiceServer::new(ModelApi {
         registry: Arc::clone(&app.registry),
-        sessions: Arc::clone(&app.sessions),
+        deletion: Arc::clone(&app.sessions) as _,
         stream_idle,
     }))
     .max_decoding_message_size(limit);
