@@ -19,7 +19,7 @@ from pathlib import Path
 
 MAX_FILE_LINES = 900
 MAX_FN_LINES = 150
-CRATES = ["core", "baselines", "proto", "client", "server", "lab"]
+CRATES = ["core", "baselines", "proto", "client", "server", "lab", "examples"]
 # The research tenant does not ship: its experiments are held to the import rules, not to the
 # product's file and function sizes.
 NOT_PRODUCT = {"lab"}
