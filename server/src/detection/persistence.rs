@@ -379,18 +379,11 @@ impl SessionKeeper {
 
 #[cfg(test)]
 mod tests {
-    use spoofwatch_core::model::artifact::ModelArtifact;
-
+    use super::super::state::test_model;
     use super::*;
-    use crate::models::registry::BUNDLED_MODEL;
 
     fn model(id: &str) -> LoadedModel {
-        LoadedModel {
-            name: ModelName::from_id(id),
-            artifact: Arc::new(
-                ModelArtifact::from_slice(BUNDLED_MODEL).expect("the bundled model"),
-            ),
-        }
+        test_model(id)
     }
 
     fn policy(every_samples: u64, every: Duration) -> SnapshotPolicy {

@@ -278,19 +278,11 @@ fn forget_creator(per_identity: &mut HashMap<Arc<str>, usize>, identity: &Arc<st
 
 #[cfg(test)]
 mod tests {
-    use spoofwatch_core::model::artifact::ModelArtifact;
-    use spoofwatch_proto::wire::ModelName;
-
+    use super::super::state::test_model;
     use super::*;
-    use crate::models::registry::BUNDLED_MODEL;
 
     fn model() -> LoadedModel {
-        LoadedModel {
-            name: ModelName::from_id("m"),
-            artifact: Arc::new(
-                ModelArtifact::from_slice(BUNDLED_MODEL).expect("the bundled model"),
-            ),
-        }
+        test_model("m")
     }
 
     fn limits(max_sessions: usize, max_per_identity: usize) -> SessionLimits {
