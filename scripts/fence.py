@@ -224,7 +224,7 @@ def functions(path):
         while j < len(lines):
             code = re.sub(r'"(\\.|[^"\\])*"|//.*$', "", lines[j])
             code = re.sub(r"'(\\.|[^'\\])'", "", code)
-            if not started and ";" in code and "{" not in code:
+            if not started and code.rstrip().endswith(";") and "{" not in code:
                 break  # a declaration without a body
             depth += code.count("{") - code.count("}")
             started = started or "{" in code
