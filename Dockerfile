@@ -1,7 +1,7 @@
 # Multi-stage build of the Spoofwatch server and the operator's CLI (`spoofwatch`, which links no
 # server, learned baselines or plotting). The research CLI (`spoofwatch-lab`) is not shipped. Not
-# built in this repository's CI: the development machines have no Docker engine (see README,
-# "Containers").
+# built in this repository's CI: the development machines have no Docker engine (see
+# docs/getting-started.md, "Containers").
 #
 # CPU: like every x86-64 build of this repository (.cargo/config.toml), the binaries target
 # x86-64-v3 and need AVX2 (Intel Haswell / AMD Excavator or newer). For older CPUs build with

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Fleet fault test (README "Running a fleet"): PostgreSQL + two server replicas + HAProxy on loopback.
+# Fleet fault test (docs/fleet.md, "Running a fleet"): PostgreSQL + two server replicas + HAProxy on loopback.
 # ~100 vehicles (a real AV-GPS recording and simulated drives, half of them attacked) stream through the
 # balancer while
 #   1. one replica is killed with SIGKILL mid-stream (its vehicles fail over to the other, which continues

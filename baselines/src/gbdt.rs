@@ -9,10 +9,10 @@ use forust_ml::objective::ObjectiveType;
 use forust_ml::sampler::SampleMethod;
 use serde::Serialize;
 
+use crate::common::{BaselineError, Epoch};
 use crate::rows::RowTable;
-use crate::{BaselineError, Epoch};
 
-/// The paper's XGBoost recipe (REFERENCE-NOTES §6).
+/// The paper's XGBoost recipe (`docs/baselines.md`).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct TreeParams {
     pub max_trees: usize,

@@ -8,49 +8,30 @@
 //! AV-GPS vehicle-dynamics columns ([`rows::GPS_IDS_COLUMNS`]). These are offline comparators for
 //! the experiments; nothing here is served. Must not do I/O.
 
+mod common;
 pub mod gbdt;
 pub mod nets;
 pub mod rows;
 
 use serde::Serialize;
 use spoofwatch_core::alarm::{
-    AlarmError, N_P_GRID, OperatingPoint, OperatingPointRule, choose_operating_point,
-    confirmed_alarms, theta_grid,
+    N_P_GRID, OperatingPoint, OperatingPointRule, choose_operating_point, confirmed_alarms,
+    theta_grid,
 };
 use spoofwatch_core::evaluation::Scored;
 use spoofwatch_core::evidence::FeatureSchema;
+use spoofwatch_core::evidence::{EvidenceFit, fit_evidence};
 use spoofwatch_core::geo::Projection;
 use spoofwatch_core::metrics::{EventRules, Metrics, ScoredRow};
 use spoofwatch_core::train::TrainConfig;
-use spoofwatch_core::train::data::{DataError, EvidenceFit, fit_evidence};
 use spoofwatch_core::train::spec::{
     DEFAULT_KAPPA_RHO, Recipe, SMALL_DATA_BATCH, SMALL_DATA_LEARNING_RATE,
 };
 
+pub use crate::common::{BaselineError, Epoch};
 use crate::gbdt::{TreeParams, Trees};
 use crate::nets::{Net, NetKind};
 pub use crate::rows::{Dataset, GPS_IDS_COLUMNS, Input, RowTable};
-
-/// Why a baseline could not be fitted or scored.
-#[derive(Debug, thiserror::Error)]
-pub enum BaselineError {
-    #[error(transparent)]
-    Data(#[from] DataError),
-    #[error("the raw-column input needs the recording's columns, and none were given")]
-    NoColumns,
-    #[error(
-        "{vehicle}: source line {line} is not among the raw columns (columns of another file?)"
-    )]
-    MissingRow { vehicle: String, line: u64 },
-    #[error("training needs ν = 1 rows of both classes")]
-    OneClass,
-    #[error("tensor computation: {0}")]
-    Tensor(String),
-    #[error("gradient boosting: {0}")]
-    Trees(String),
-    #[error("operating point: {0}")]
-    OperatingPoint(#[from] AlarmError),
-}
 
 /// Which model learns.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -94,27 +75,6 @@ impl Baseline {
             (Learner::Lstm, _) => "LSTM",
         };
         format!("{learner} ({})", self.input.name())
-    }
-}
-
-/// One epoch of a net, or one tree of an ensemble (then `val_auroc` is `None`).
-#[derive(Clone, Debug, PartialEq, Serialize)]
-pub struct Epoch {
-    pub epoch: usize,
-    pub train_loss: f64,
-    pub val_loss: f64,
-    pub val_auroc: Option<f64>,
-}
-
-impl From<&spoofwatch_core::train::EpochProgress> for Epoch {
-    /// HO-LLN's own epoch, for curves drawn beside the baselines'.
-    fn from(e: &spoofwatch_core::train::EpochProgress) -> Self {
-        Self {
-            epoch: e.epoch,
-            train_loss: e.train_loss,
-            val_loss: e.val_loss,
-            val_auroc: e.val_auroc,
-        }
     }
 }
 

@@ -17,8 +17,8 @@ use spoofwatch_core::metrics::auroc;
 use spoofwatch_core::rng::Rng;
 use spoofwatch_core::train::TrainConfig;
 
+use crate::common::{BaselineError, Epoch};
 use crate::rows::RowTable;
-use crate::{BaselineError, Epoch};
 
 /// Which net.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -39,7 +39,7 @@ impl NetKind {
     }
 }
 
-/// Sizes of the paper's baselines (REFERENCE-NOTES §6).
+/// Sizes of the paper's baselines (`docs/baselines.md`).
 pub const MLP_HIDDEN: [usize; 2] = [128, 64];
 pub const MLP_DROPOUT: f64 = 0.1;
 pub const MLP_BATCH: usize = 512;

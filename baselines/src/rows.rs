@@ -5,13 +5,13 @@ use std::ops::Range;
 
 use spoofwatch_core::data::NumericColumns;
 use spoofwatch_core::evaluation::trajectory_key;
+use spoofwatch_core::evidence::EvidenceFit;
 use spoofwatch_core::evidence::{FeatureSchema, build_track};
 use spoofwatch_core::metrics::ScoredRow;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::train::ClassWeights;
-use spoofwatch_core::train::data::EvidenceFit;
 
-use crate::BaselineError;
+use crate::common::BaselineError;
 
 /// The AV-GPS columns of the GPS-IDS-style row: the vehicle's own dynamics and the receiver's
 /// quality figures, as a per-row classifier would read them. Left out on purpose: the label

@@ -6,9 +6,8 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use rustls_pki_types::pem::PemObject;
-use rustls_pki_types::{CertificateDer, PrivateKeyDer};
 use spoofwatch_proto::longrunning::operations_client::OperationsClient;
+use spoofwatch_proto::pem;
 use spoofwatch_proto::v1::alarm_service_client::AlarmServiceClient;
 use spoofwatch_proto::v1::dataset_service_client::DatasetServiceClient;
 use spoofwatch_proto::v1::detection_service_client::DetectionServiceClient;
@@ -314,33 +313,12 @@ fn client_tls(options: &ConnectOptions) -> Result<ClientTlsConfig, ClientError> 
 
 /// The bytes of a PEM file holding at least one certificate.
 fn certificates_pem(option: &'static str, path: &Path) -> Result<Vec<u8>, ClientError> {
-    let pem = read_file(option, path)?;
-    let mut count = 0;
-    for item in CertificateDer::pem_slice_iter(&pem) {
-        item.map_err(|e| tls_file_error(option, path, format!("not valid PEM: {e}")))?;
-        count += 1;
-    }
-    if count == 0 {
-        return Err(tls_file_error(option, path, "holds no PEM certificate"));
-    }
-    Ok(pem)
+    pem::certificates(path).map_err(|reason| tls_file_error(option, path, reason))
 }
 
 /// The bytes of a PEM file holding a private key.
 fn key_pem(option: &'static str, path: &Path) -> Result<Vec<u8>, ClientError> {
-    let pem = read_file(option, path)?;
-    PrivateKeyDer::from_pem_slice(&pem).map_err(|e| {
-        tls_file_error(
-            option,
-            path,
-            format!("holds no usable PEM private key: {e}"),
-        )
-    })?;
-    Ok(pem)
-}
-
-fn read_file(option: &'static str, path: &Path) -> Result<Vec<u8>, ClientError> {
-    std::fs::read(path).map_err(|e| tls_file_error(option, path, format!("cannot read: {e}")))
+    pem::private_key(path).map_err(|reason| tls_file_error(option, path, reason))
 }
 
 fn tls_file_error(option: &'static str, path: &Path, reason: impl Into<String>) -> ClientError {

@@ -21,6 +21,7 @@ pub mod fleet;
 pub mod fleet_stream;
 pub mod input;
 pub mod progress;
+pub mod reconnects;
 pub mod replay;
 pub mod replay_log;
 pub mod report;

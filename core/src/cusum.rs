@@ -17,12 +17,13 @@ use crate::alarm::{
     self, AlarmError, N_P_GRID, OperatingPoint, OperatingPointRule, PersistenceAlarm,
 };
 use crate::evaluation::{Scored, trajectory_key};
-use crate::evidence::{EvidenceParams, FeatureSchema, build_track};
+use crate::evidence::{
+    DEFAULT_KAPPA, DEFAULT_RHO, EvidenceFitError, EvidenceParams, FeatureSchema, build_track,
+    fit_evidence,
+};
 use crate::geo::Projection;
 use crate::metrics::{EventRules, Metrics, ScoredRow};
 use crate::sample::Track;
-use crate::train::data::{DataError, fit_evidence};
-use crate::train::spec::DEFAULT_KAPPA_RHO;
 
 /// The fitted comparator's parameters.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -340,7 +341,7 @@ pub struct CusumComparator {
 #[derive(Debug, thiserror::Error)]
 pub enum ComparatorError {
     #[error(transparent)]
-    Data(#[from] DataError),
+    Data(#[from] EvidenceFitError),
     #[error("no CUSUM operating point: {0}")]
     NoOperatingPoint(#[from] CusumError),
 }
@@ -386,7 +387,7 @@ pub fn fit_cusum_comparator(
     projection: Projection,
     rule: OperatingPointRule,
 ) -> Result<CusumComparator, ComparatorError> {
-    let (kappa, rho) = DEFAULT_KAPPA_RHO;
+    let (kappa, rho) = (DEFAULT_KAPPA, DEFAULT_RHO);
     let fit = fit_evidence(train, projection, kappa, rho, FeatureSchema::Paper)?;
     let rows = cusum_rows(&fit.params, validation);
     let cusum = fit_cusum(

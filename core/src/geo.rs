@@ -2,8 +2,9 @@
 //! inverse, moving a fix by metres (used by the scenarios).
 //!
 //! Two projections: the default WGS-84 local form (meridian and prime-vertical radii at the previous
-//! fix) and the reference code's spherical equirectangular form (REFERENCE-NOTES §2.1), which the
-//! parity tests use. Must not know about samples, evidence or tracks.
+//! fix) and the reference code's spherical equirectangular form (one Earth radius for both axes,
+//! [`EQUIRECTANGULAR_RADIUS_M`]), which the parity tests use. Must not know about samples, evidence or
+//! tracks.
 
 use serde::{Deserialize, Serialize};
 

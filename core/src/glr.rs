@@ -15,12 +15,13 @@ use crate::alarm::{
 };
 use crate::cusum::threshold_grid;
 use crate::evaluation::{Scored, trajectory_key};
-use crate::evidence::{EvidenceParams, FeatureSchema, build_track};
+use crate::evidence::{
+    DEFAULT_KAPPA, DEFAULT_RHO, EvidenceFitError, EvidenceParams, FeatureSchema, build_track,
+    fit_evidence,
+};
 use crate::geo::Projection;
 use crate::metrics::{EventRules, ScoredRow};
 use crate::sample::Track;
-use crate::train::data::{DataError, fit_evidence};
-use crate::train::spec::DEFAULT_KAPPA_RHO;
 
 /// A fitted directional GLR comparator: the evidence parameters (with drift parameters) and its
 /// operating point on the G scale (`theta` = g).
@@ -34,7 +35,7 @@ pub struct GlrComparator {
 #[derive(Debug, thiserror::Error)]
 pub enum GlrError {
     #[error(transparent)]
-    Data(#[from] DataError),
+    Data(#[from] EvidenceFitError),
     #[error("the drift statistic is 0 on every valid validation row; no threshold to choose")]
     NoThresholds,
     #[error("no GLR operating point: {0}")]
@@ -70,7 +71,7 @@ pub fn fit_glr_comparator(
     projection: Projection,
     rule: OperatingPointRule,
 ) -> Result<GlrComparator, GlrError> {
-    let (kappa, rho) = DEFAULT_KAPPA_RHO;
+    let (kappa, rho) = (DEFAULT_KAPPA, DEFAULT_RHO);
     let evidence = fit_evidence(train, projection, kappa, rho, FeatureSchema::V2)?.params;
     let rows = statistic_rows(&evidence, validation);
     let valid_statistics: Vec<f64> = rows.iter().filter(|r| r.valid).map(|r| r.score).collect();

@@ -36,7 +36,7 @@ pub enum EventRules {
     /// before the trajectory began).
     #[default]
     Spec,
-    /// The reference's legacy evaluator (REFERENCE-NOTES §5.4), only to compare with the paper: events
+    /// The reference code's legacy evaluator, only to compare with the paper: events
     /// are runs of label-1 ∧ ν = 1 rows (a ν = 0 row splits them); any c̄ = 1 row inside detects, so an
     /// alarm already on at the event start gives delay 0; delays use cumulative positive time steps.
     Legacy,
@@ -467,7 +467,7 @@ fn spec_event_delays(rows: &[ScoredRow], alarms: &[bool], delays_s: &mut Vec<Opt
     }
 }
 
-/// Legacy events of one trajectory (REFERENCE-NOTES §5.4): label-1 ∧ ν = 1 runs, detected by any
+/// Legacy events of one trajectory (the reference code's evaluator): label-1 ∧ ν = 1 runs, detected by any
 /// alarm inside, delay in cumulative time (sum of the positive time steps).
 fn legacy_event_delays(rows: &[ScoredRow], alarms: &[bool], delays_s: &mut Vec<Option<f64>>) {
     let cumulative_time = cumulative_positive_time(rows);

@@ -1,4 +1,5 @@
-//! The AV-GPS files read, segmented and validated as REFERENCE-NOTES §8 measured them.
+//! The AV-GPS files read, segmented and validated: the row counts, trajectories and ν asserted
+//! below are those of the shared data.
 //! Needs SPOOFWATCH_AVGPS_DIR (skipped when unset).
 
 use spoofwatch_core::data::{Format, read_path};

@@ -12,6 +12,7 @@ use spoofwatch_core::detector::{
 use spoofwatch_core::evaluation::{evaluate_tracks, score_tracks};
 use spoofwatch_core::evidence::FeatureSchema;
 use spoofwatch_core::evidence::build_track;
+use spoofwatch_core::evidence::fit_evidence;
 use spoofwatch_core::geo::Projection;
 use spoofwatch_core::lifecycle::{AlarmLifecycle, Lifecycle, LifecycleInput};
 use spoofwatch_core::metrics::EventRules;
@@ -27,7 +28,7 @@ use spoofwatch_core::scenario::{
 use spoofwatch_core::severity::{CriticalTest, Escalation};
 use spoofwatch_core::train::TrainConfig;
 use spoofwatch_core::train::data::{
-    fit_evidence, sequences, split_chronologically, split_with_warmup, trajectory_ranges,
+    sequences, split_chronologically, split_with_warmup, trajectory_ranges,
 };
 use spoofwatch_core::train::detector::{TrainingData, train_detector};
 use spoofwatch_core::train::spec::{SplitFractions, TrainingSpec};

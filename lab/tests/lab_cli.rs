@@ -173,7 +173,7 @@ fn cusum_and_the_bundled_model_on_the_av_gps_data() {
     assert!(cusum.contains("CUSUM: mu_e ="), "{cusum}");
     assert!(cusum.contains("| data |"), "{cusum}");
 
-    // The committed paper-schema model (`models/paper.json`) reproduces its documented Dataset-3 scores (README).
+    // The committed paper-schema model (`models/paper.json`) reproduces its documented Dataset-3 scores (`docs/experiments.md`).
     let bundled = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/paper.json");
     let dir = tempfile::tempdir().expect("tempdir");
     let json = path(dir.path(), "d3.json");

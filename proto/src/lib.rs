@@ -1,9 +1,11 @@
 //! Generated gRPC types and services of the Spoofwatch API, plus [`wire`]: the one hand-written layer
 //! between them and the core's types (conversions, resource names, limits), and [`codec`]: the
-//! servers' codec (a malformed request is INVALID_ARGUMENT). The generated modules
+//! servers' codec (a malformed request is INVALID_ARGUMENT), and [`pem`]: the TLS files both ends
+//! read, checked as they are read. The generated modules
 //! mirror the proto packages because generated code refers across them with relative paths.
 
 pub mod codec;
+pub mod pem;
 pub mod wire;
 
 #[allow(clippy::all, missing_docs, rust_2018_idioms)]

@@ -23,8 +23,8 @@ use crate::incidents::correlator::IncidentCorrelator;
 use crate::metrics_endpoint::{self, Sources};
 use crate::models::ACTIVE_MODEL_POLL;
 use crate::router::DATABASE_SERVICES;
+use crate::storage_health;
 use crate::store::Store;
-use crate::watch;
 
 /// The metrics endpoint's listener and the installed recorder it renders.
 pub type MetricsEndpoint = (TcpListener, PrometheusHandle);
@@ -95,7 +95,7 @@ impl Background {
             )
             .run(app.draining.clone()),
         );
-        let storage_watch = tokio::spawn(watch::watch_storage(
+        let storage_watch = tokio::spawn(storage_health::watch_storage(
             app.store.clone(),
             Arc::clone(&app.outbox),
             health,

@@ -6,6 +6,9 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
+use crate::incidents::settings::IncidentSettings;
+pub use crate::incidents::settings::IncidentTimeline;
+
 /// The default of every setting, shared by clap's `default_value_t` and [`Config::default`].
 pub mod defaults {
     use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4};
@@ -59,16 +62,6 @@ pub enum LogFormat {
     Text,
     /// One JSON object per line, the event's fields at the top level.
     Json,
-}
-
-/// Which clock places alarms in time for area incidents.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
-pub enum IncidentTimeline {
-    /// The servers' wall clock at each onset and end (live fleets).
-    #[default]
-    Wall,
-    /// The vehicles' sample times: replays of recordings whose vehicles share one clock.
-    Samples,
 }
 
 /// Everything the server needs to start.
@@ -326,9 +319,7 @@ impl Config {
     }
 
     /// How incidents are correlated; the error names the flag out of range.
-    pub fn incident_settings(
-        &self,
-    ) -> Result<crate::incidents::correlator::IncidentSettings, String> {
+    pub fn incident_settings(&self) -> Result<IncidentSettings, String> {
         if !(0.1..=200.0).contains(&self.incident_radius_km) {
             return Err(format!(
                 "--incident-radius-km must be finite and in [0.1, 200] km, got {}",
@@ -351,7 +342,7 @@ impl Config {
             };
             return Err(format!("{flag}: {reason}"));
         }
-        Ok(crate::incidents::correlator::IncidentSettings {
+        Ok(IncidentSettings {
             area,
             timeline: self.incident_timeline,
             prior: self.incident_prior,

@@ -15,8 +15,8 @@
 //!   GetIncident, WatchIncidents);
 //! - below them: `event_log` (the live feed and resumable watch of a stored event log, for alarms
 //!   and incidents), `outbox` (the session outbox: alarm events and session snapshots on their way
-//!   to the store), `watch` (database file and outbox health), `store` (the only SQL, on SQLite or
-//!   PostgreSQL), `telemetry` (every metric's recording), `error` (the one error → status
+//!   to the store), `storage_health` (database file and outbox health, reported through gRPC
+//!   health), `store` (the only SQL, on SQLite or PostgreSQL), `telemetry` (every metric's recording), `error` (the one error → status
 //!   mapping), `fault` (a server-side fault inside a subsystem's error), `edge` (request decoding
 //!   shared by the services), `status`, `identity` (ids and digests), `work` (the bounded pool
 //!   of CPU-heavy work, off the runtime's threads);
@@ -24,6 +24,11 @@
 //!   checked at startup), `idle` (the stream idle timeout).
 //!
 //! Wire conversions live in `spoofwatch_proto::wire`.
+//!
+//! Layers, from the top down: background, drain | router | app, error, metrics_endpoint |
+//! detection, server_error, storage_health | outbox, process, tls | alarms, config, jobs | datasets, incidents | access, edge, event_log, incoming, models | coalesce, error_chain, fault,
+//! identity, idle, inprocess, status, store, telemetry, work. A module imports only from its own
+//! layer's others or from below (`scripts/fence.py` holds CI to it).
 
 mod access;
 mod alarms;
@@ -46,17 +51,16 @@ mod incoming;
 pub mod inprocess;
 mod jobs;
 mod metrics_endpoint;
-mod model_service;
 pub mod models;
 mod outbox;
 pub mod process;
 mod router;
 mod server_error;
 mod status;
+mod storage_health;
 pub mod store;
 mod telemetry;
 pub mod tls;
-mod watch;
 mod work;
 
 use std::future::Future;

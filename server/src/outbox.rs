@@ -2,8 +2,8 @@
 //! snapshots, leaves the detection path at once (no database call while a session is locked), and
 //! one background writer stores it in batches, one transaction per batch, retried with backoff
 //! until the store accepts them, and drained at shutdown; after each commit it tells the live alarm
-//! feed (`crate::alarms::feed`) to read the new rows. Alarm events are also logged as they are
-//! queued. Only the latest unstored snapshot of each vehicle is kept, and it is stored in the same
+//! feed (`crate::alarms::feed`) to read the new rows. Each alarm event is counted and logged as it is
+//! queued (`crate::alarms::event::emitted`). Only the latest unstored snapshot of each vehicle is kept, and it is stored in the same
 //! transaction as, or after, every alarm event emitted before it, so a session continued from a
 //! stored snapshot never emits a stored event again (the joint write is
 //! `Store::write_alarms_and_snapshots`).
@@ -28,13 +28,12 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use spoofwatch_proto::wire::convert::timestamp_from_ms;
 use tokio::sync::{Notify, oneshot};
 // Tokio's clock, so that tests can advance it.
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
-use crate::alarms::why::{self as alarm_why, OnsetWhy};
+use crate::alarms::event::{self as alarm, OnsetWhy};
 use crate::error_chain::error_chain;
 use crate::store::{
     AlarmEvent, AlarmEventKind, AlarmEventRow, SnapshotRow, Store, StoreError, first_seq_of_run,
@@ -137,7 +136,7 @@ impl SessionOutbox {
         let first_seq = first_seq_of_run(run);
         let closed = store.close_open_alarms(now, first_seq).await?;
         for event in &closed {
-            log_event(event);
+            alarm::ended_at_start(event);
         }
         let next_seq = first_seq + i64::try_from(closed.len()).unwrap_or(i64::MAX);
         Ok(Self {
@@ -196,20 +195,15 @@ impl SessionOutbox {
         let event = AlarmEvent {
             seq: 0, // assigned when queued
             kind: AlarmEventKind::Onset,
-            alarm: AlarmEventRow {
-                why: why
-                    .map(|w| alarm_why::stored(w.explanation))
-                    .unwrap_or_default(),
-                place: why.map(|w| alarm_why::place(w.fix)).unwrap_or_default(),
-                ..AlarmEventRow::opened(
-                    id,
-                    vehicle_id,
-                    model_id,
-                    timestamp_s,
-                    onset_at_ms,
-                    probability,
-                )
-            },
+            alarm: alarm::opened(
+                id,
+                vehicle_id,
+                model_id,
+                timestamp_s,
+                onset_at_ms,
+                probability,
+                why,
+            ),
         };
         if pending.queue.len() >= self.capacity {
             drop(pending);
@@ -228,7 +222,7 @@ impl SessionOutbox {
         pending.open.insert(id, event.alarm.clone());
         let event = self.emit(&mut pending, event);
         drop(pending);
-        log_event(&event);
+        alarm::emitted(&event);
         id
     }
 
@@ -271,12 +265,18 @@ impl SessionOutbox {
         let event = AlarmEvent {
             seq: 0, // assigned when queued
             kind: AlarmEventKind::End,
-            alarm: onset.ended(end_timestamp_s, now_unix_ms(), peak_probability, samples),
+            alarm: alarm::ended(
+                &onset,
+                end_timestamp_s,
+                now_unix_ms(),
+                peak_probability,
+                samples,
+            ),
         };
         if self.acceptable(&event) {
             let event = self.emit(&mut pending, event);
             drop(pending);
-            log_event(&event);
+            alarm::emitted(&event);
         }
     }
 
@@ -530,46 +530,6 @@ impl SessionOutbox {
     }
 }
 
-/// The structured log line of an emitted alarm event (one per onset, one per end). An onset's
-/// line says why: the dominant evidence, the offset's distance and bearing, the drift's speed and
-/// bearing (left out when the onset has no explanation).
-fn log_event(event: &AlarmEvent) {
-    let alarm = &event.alarm;
-    match event.kind {
-        AlarmEventKind::Onset => {
-            let why = alarm_why::explanation(&alarm.why);
-            let offset = why.map(|x| x.offset_polar());
-            let drift = why.map(|x| x.drift_polar());
-            tracing::info!(
-                vehicle_id = %alarm.vehicle_id,
-                model = %alarm.model_id,
-                alarm_id = alarm.id,
-                probability = alarm.peak_probability,
-                onset_timestamp_s = alarm.onset_timestamp_s,
-                onset_at = %timestamp_from_ms(alarm.onset_at_ms),
-                why = why.map(|x| x.dominant.name()),
-                offset_m = offset.map(|o| o.0),
-                offset_bearing_deg = offset.map(|o| o.1),
-                drift_mps = drift.map(|d| d.0),
-                drift_bearing_deg = drift.map(|d| d.1),
-                "alarm onset"
-            )
-        }
-        AlarmEventKind::End => tracing::info!(
-            vehicle_id = %alarm.vehicle_id,
-            model = %alarm.model_id,
-            alarm_id = alarm.id,
-            peak_probability = alarm.peak_probability,
-            samples = alarm.samples,
-            onset_timestamp_s = alarm.onset_timestamp_s,
-            end_timestamp_s = alarm.end_timestamp_s,
-            onset_at = %timestamp_from_ms(alarm.onset_at_ms),
-            ended_at = %timestamp_from_ms(alarm.ended_at_ms.unwrap_or_default()),
-            "alarm end"
-        ),
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use std::sync::Arc;
@@ -601,7 +561,7 @@ mod tests {
             .write_alarms(&[AlarmEvent {
                 seq: 1,
                 kind: AlarmEventKind::Onset,
-                alarm: AlarmEventRow::opened(41, "old", "m", 1.0, 1, 0.9),
+                alarm: alarm::opened(41, "old", "m", 1.0, 1, 0.9, None),
             }])
             .await
             .unwrap();
@@ -678,8 +638,8 @@ mod tests {
 
         // Another process replaces the session from that copy: it ends the alarm at 150 s and
         // stores a session of another model.
-        let mut from_copy = AlarmEventRow::opened(id, "car-1", "m1", 100.0, 1, 0.5);
-        from_copy = from_copy.ended(Some(150.0), 2, 0.9, 51);
+        let mut from_copy = alarm::opened(id, "car-1", "m1", 100.0, 1, 0.5, None);
+        from_copy = alarm::ended(&from_copy, Some(150.0), 2, 0.9, 51);
         let replacement = SnapshotRow {
             model_id: "m2".into(),
             writer: "other".into(),

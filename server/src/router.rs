@@ -3,7 +3,7 @@
 //! API service and for the storage health name.
 //!
 //! It owns what is served and how, not what a service does (each lives with its subsystem) nor
-//! when health changes later (`crate::watch`, `crate::drain`).
+//! when health changes later (`crate::storage_health`, `crate::drain`).
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -29,9 +29,9 @@ use crate::datasets::DatasetApi;
 use crate::detection::DetectionApi;
 use crate::idle::StreamIdle;
 use crate::jobs::{Jobs, OperationsApi, TrainingApi};
-use crate::model_service::ModelApi;
+use crate::models::service::ModelApi;
 use crate::server_error::ServerError;
-use crate::watch;
+use crate::storage_health;
 
 /// The detection service's health name: it runs from memory, so it stays SERVING while the
 /// database is down.
@@ -69,7 +69,7 @@ pub async fn build(server: Server, app: &App, config: &Config) -> Result<Routes,
     for service in [DETECTION_SERVICE]
         .into_iter()
         .chain(DATABASE_SERVICES)
-        .chain([watch::STORAGE_HEALTH])
+        .chain([storage_health::STORAGE_HEALTH])
     {
         health
             .set_service_status(service, ServingStatus::Serving)
@@ -101,7 +101,7 @@ pub async fn build(server: Server, app: &App, config: &Config) -> Result<Routes,
     .max_decoding_message_size(limit);
     let models = gzip!(ModelServiceServer::new(ModelApi {
         registry: Arc::clone(&app.registry),
-        sessions: Arc::clone(&app.sessions),
+        deletion: Arc::clone(&app.sessions) as _,
         stream_idle,
     }))
     .max_decoding_message_size(limit);

@@ -72,7 +72,7 @@ pub enum Kind {
 }
 
 /// Every metric: name, kind, and the HELP text (label values are listed with their recording
-/// calls below, and in the README).
+/// calls below, and in `docs/operating.md`, "Metrics").
 pub const METRICS: &[(&str, Kind, &str)] = &[
     (
         BUILD_INFO,

@@ -5,8 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
-use rustls_pki_types::pem::PemObject;
-use rustls_pki_types::{CertificateDer, PrivateKeyDer};
+use spoofwatch_proto::pem;
 use tonic::transport::{Certificate, Identity, Server, ServerTlsConfig};
 
 use crate::config::Config;
@@ -109,37 +108,12 @@ pub fn transport(config: &Config) -> Transport {
 
 /// The bytes of a PEM file holding at least one certificate.
 fn certificates_pem(flag: &'static str, path: &Path) -> Result<Vec<u8>, TlsError> {
-    let pem = read(flag, path)?;
-    let mut count = 0;
-    for item in CertificateDer::pem_slice_iter(&pem) {
-        item.map_err(|e| file_error(flag, path, format!("not valid PEM: {e}")))?;
-        count += 1;
-    }
-    if count == 0 {
-        return Err(file_error(
-            flag,
-            path,
-            "holds no PEM certificate (-----BEGIN CERTIFICATE-----)",
-        ));
-    }
-    Ok(pem)
+    pem::certificates(path).map_err(|reason| file_error(flag, path, reason))
 }
 
 /// The bytes of a PEM file holding a private key.
 fn key_pem(flag: &'static str, path: &Path) -> Result<Vec<u8>, TlsError> {
-    let pem = read(flag, path)?;
-    PrivateKeyDer::from_pem_slice(&pem).map_err(|e| {
-        file_error(
-            flag,
-            path,
-            format!("holds no usable PEM private key (PKCS#8, PKCS#1 or SEC1): {e}"),
-        )
-    })?;
-    Ok(pem)
-}
-
-fn read(flag: &'static str, path: &Path) -> Result<Vec<u8>, TlsError> {
-    std::fs::read(path).map_err(|e| file_error(flag, path, format!("cannot read: {e}")))
+    pem::private_key(path).map_err(|reason| file_error(flag, path, reason))
 }
 
 fn file_error(flag: &'static str, path: &Path, reason: impl Into<String>) -> TlsError {

@@ -10,12 +10,12 @@ use std::time::Duration;
 
 use spoofwatch_core::alarm::OperatingPoint;
 use spoofwatch_core::evidence::FeatureSchema;
+use spoofwatch_core::evidence::fit_evidence;
 use spoofwatch_core::geo::Projection;
 use spoofwatch_core::lifecycle::Lifecycle;
 use spoofwatch_core::model::artifact::{ARTIFACT_SCHEMA_VERSION, ModelArtifact, Provenance};
 use spoofwatch_core::model::{Model, ModelConfig};
 use spoofwatch_core::scenario::AttackKind;
-use spoofwatch_core::train::data::fit_evidence;
 use spoofwatch_proto::v1;
 use spoofwatch_tests::{
     Clients, TestServer, attacked_drive, import_model, normal_drive, start_server, start_stream,

@@ -18,6 +18,7 @@ mod clocks_never_decide;
 mod dashboard_metrics;
 mod error_statuses_are_bounded;
 mod evaluation_jobs;
+mod examples_run_against_a_server;
 mod haproxy_routes_vehicles;
 mod incidents_across_replicas;
 mod invalid_input_is_refused;

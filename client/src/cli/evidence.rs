@@ -7,10 +7,10 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use clap::builder::{PossibleValuesParser, TypedValueParser};
 use spoofwatch_core::evidence::drift::DriftEvidence;
+use spoofwatch_core::evidence::fit_evidence;
 use spoofwatch_core::evidence::offset::OffsetEvidence;
 use spoofwatch_core::evidence::{Evidence, EvidenceParams, FeatureSchema, build_track};
 use spoofwatch_core::model::artifact::ModelArtifact;
-use spoofwatch_core::train::data::fit_evidence;
 
 use crate::cli::flags::ProjectionArg;
 use crate::input::load_tracks;

@@ -1,4 +1,5 @@
-//! AV-GPS dataset files (REFERENCE-NOTES §1.2–1.5, §8): one vehicle per file, time from the clock
+//! AV-GPS dataset files (their columns and time formats: `docs/getting-started.md`, "Data formats"):
+//! one vehicle per file, time from the clock
 //! with a Run Time fallback, trajectory breaks by the reference's boundary rule.
 //!
 //! Owns the AV-GPS column mapping. Must not validate samples beyond parsing (that is `sample.rs`).

@@ -1,4 +1,4 @@
-//! The AV-GPS time formats (REFERENCE-NOTES §1.4): `H:MM:SS` durations (hours may exceed 24),
+//! The AV-GPS time formats: `H:MM:SS` durations (hours may exceed 24),
 //! `H:MM:SS` 24-hour clock times and month-first `M/D/YYYY` dates. Empty text is `None`.
 //!
 //! Owns timestamp parsing. Must not know about file formats.

@@ -1,4 +1,4 @@
-//! The streaming, per-vehicle evidence builder (SPEC §3–4, REFERENCE-NOTES §2.2–2.8).
+//! The streaming, per-vehicle evidence builder (SPEC §3–4).
 //!
 //! Owns the streaming per-vehicle evidence builder. Must not fit statistics or scale features.
 

@@ -1,13 +1,13 @@
-//! Fitting the evidence parameters on labelled training tracks (SPEC §4, REFERENCE-NOTES §2.5): Σ̂ and
+//! Fitting the evidence parameters on labelled training tracks (SPEC §4): Σ̂ and
 //! μ_e from normal rows, and evidence v2's drift parameters from their settled drift rates. Both run
-//! the streaming builder over the tracks.
+//! the streaming builder over the tracks. [`fit_evidence`] is a model's whole evidence fit (Σ̂, μ_e,
+//! the channels' parameters and the scaler): training and the comparators share it.
 //!
 //! Owns the fits from tracks and residuals. Must not build evidence (that is `builder.rs`), define the
 //! drift channels' own normalisation fit (that is `drift.rs`) or scale features (that is `scaler.rs`).
 
 use serde::{Deserialize, Serialize};
 
-use super::EvidenceError;
 use super::builder::build_track;
 use super::drift::{
     DriftParams, SettledRates, covariances_from_rates, robust_residual_sigma, thresholds_from_rates,
@@ -18,7 +18,9 @@ use super::offset::{
     offset_params_from_points,
 };
 use super::params::{EvidenceParams, SIGMA_EPSILON};
+use super::scaler::RobustScaler;
 use super::stats::{covariance, median, quantile_sorted};
+use super::{EvidenceError, FeatureSchema};
 use crate::geo::Projection;
 use crate::sample::Track;
 
@@ -210,6 +212,84 @@ pub fn stats_from_residuals(residuals: &[[f64; 2]]) -> Result<NormalStats, Evide
         sigma_hat,
         mu_e,
         rows: residuals.len(),
+    })
+}
+
+/// Evidence settings chosen for a model: statistics from training normal rows plus κ, ρ.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EvidenceFit {
+    pub params: EvidenceParams,
+    pub scaler: RobustScaler,
+    /// Normal ν = 1 training rows behind Σ̂ and μ_e.
+    pub normal_rows: usize,
+}
+
+/// Why the evidence could not be fitted on training tracks.
+#[derive(Debug, thiserror::Error)]
+pub enum EvidenceFitError {
+    #[error("fitting the evidence statistics: {0}")]
+    Evidence(#[from] EvidenceError),
+    #[error("no training rows")]
+    NoTrainingRows,
+}
+
+/// Fits Σ̂, μ_e (and, for the v2 schema, the drift parameters) on the training tracks' normal rows
+/// and the robust scaler on all their rows.
+pub fn fit_evidence(
+    train: &[Track],
+    projection: Projection,
+    kappa: f64,
+    rho: f64,
+    schema: FeatureSchema,
+) -> Result<EvidenceFit, EvidenceFitError> {
+    fit_evidence_with(train, projection, kappa, rho, schema, true)
+}
+
+/// [`fit_evidence`], with the per-vehicle levels of the drift and offset channels switched off
+/// unless `vehicle_levels` (the ablation [`Ablation::no_vehicle_levels`](crate::model::Ablation)):
+/// the scaler is then fitted on the channels as that model will see them.
+pub fn fit_evidence_with(
+    train: &[Track],
+    projection: Projection,
+    kappa: f64,
+    rho: f64,
+    schema: FeatureSchema,
+    vehicle_levels: bool,
+) -> Result<EvidenceFit, EvidenceFitError> {
+    let stats = fit_normal_stats(train, projection)?;
+    let drift = schema
+        .has_drift()
+        .then(|| fit_drift_params(train, projection))
+        .transpose()?;
+    let offset = match drift {
+        Some(drift) if schema.has_offset() => Some(fit_offset_params(train, projection, drift)?),
+        _ => None,
+    };
+    let drift = drift.map(|d| DriftParams {
+        vehicle_levels: d.vehicle_levels && vehicle_levels,
+        ..d
+    });
+    let offset = offset.map(|o| OffsetParams {
+        vehicle_levels: o.vehicle_levels && vehicle_levels,
+        ..o
+    });
+    let params = EvidenceParams {
+        drift,
+        offset,
+        ..EvidenceParams::with_accumulator(stats.sigma_hat, stats.mu_e, kappa, rho, projection)?
+    };
+    params.validate()?;
+    let evidence: Vec<_> = train
+        .iter()
+        .flat_map(|t| build_track(&params, &t.records))
+        .collect();
+    if evidence.is_empty() {
+        return Err(EvidenceFitError::NoTrainingRows);
+    }
+    Ok(EvidenceFit {
+        scaler: RobustScaler::fit(&evidence, schema)?,
+        params,
+        normal_rows: stats.rows,
     })
 }
 

@@ -25,8 +25,8 @@ pub use builder::{
     DriftChannelsDiffer, Evidence, EvidenceBuilder, MAX_BACKWARD_S, MAX_GAP_S, build_track,
 };
 pub use fit::{
-    MIN_NORMAL_ROWS, NormalStats, fit_drift_params, fit_normal_stats, fit_offset_params,
-    normal_residuals, stats_from_residuals,
+    EvidenceFit, EvidenceFitError, MIN_NORMAL_ROWS, NormalStats, fit_drift_params, fit_evidence,
+    fit_evidence_with, fit_normal_stats, fit_offset_params, normal_residuals, stats_from_residuals,
 };
 pub(crate) use params::UncheckedParams;
 pub use params::{

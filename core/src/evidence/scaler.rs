@@ -1,4 +1,4 @@
-//! The label-free robust scaler of every ξ component except ν (SPEC §4, REFERENCE-NOTES §2.9).
+//! The label-free robust scaler of every ξ component except ν (SPEC §4).
 //!
 //! Owns the robust feature scaler. Must not build evidence.
 

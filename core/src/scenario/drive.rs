@@ -145,7 +145,7 @@ impl Default for TurnBehaviour {
 /// b_k = φ·b_{k−1} + σ_b·√(1−φ²)·w, φ = exp(−δ/τ), started from its stationary distribution.
 ///
 /// Defaults (0.5 m white, 1.5 m bias with τ = 120 s) give metre-level absolute errors and a median
-/// step residual of ≈0.9 m, like the AV-GPS normal rows (REFERENCE-NOTES §8.5: 0.92 m on Dataset-2).
+/// step residual of ≈0.9 m, like the AV-GPS normal rows (0.92 m on Dataset-2's).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct GnssNoise {

@@ -6,12 +6,7 @@
 
 use std::ops::Range;
 
-use crate::evidence::drift::DriftParams;
-use crate::evidence::offset::OffsetParams;
-use crate::evidence::{
-    EvidenceBuilder, EvidenceParams, FeatureSchema, Features, RobustScaler, build_track,
-    fit_drift_params, fit_normal_stats, fit_offset_params,
-};
+use crate::evidence::{EvidenceBuilder, EvidenceFit, EvidenceParams, Features, build_track};
 use crate::geo::Projection;
 use crate::sample::{Record, Track};
 use crate::train::Sequence;
@@ -100,84 +95,6 @@ pub fn split_with_warmup(
         }
     }
     split
-}
-
-/// Evidence settings chosen for a model: statistics from training normal rows plus κ, ρ.
-#[derive(Clone, Debug, PartialEq)]
-pub struct EvidenceFit {
-    pub params: EvidenceParams,
-    pub scaler: RobustScaler,
-    /// Normal ν = 1 training rows behind Σ̂ and μ_e.
-    pub normal_rows: usize,
-}
-
-/// Errors while preparing training data.
-#[derive(Debug, thiserror::Error)]
-pub enum DataError {
-    #[error("fitting the evidence statistics: {0}")]
-    Evidence(#[from] crate::evidence::EvidenceError),
-    #[error("no training rows")]
-    NoTrainingRows,
-}
-
-/// Fits Σ̂, μ_e (and, for the v2 schema, the drift parameters) on the training tracks' normal rows
-/// and the robust scaler on all their rows.
-pub fn fit_evidence(
-    train: &[Track],
-    projection: Projection,
-    kappa: f64,
-    rho: f64,
-    schema: FeatureSchema,
-) -> Result<EvidenceFit, DataError> {
-    fit_evidence_with(train, projection, kappa, rho, schema, true)
-}
-
-/// [`fit_evidence`], with the per-vehicle levels of the drift and offset channels switched off
-/// unless `vehicle_levels` (the ablation [`Ablation::no_vehicle_levels`](crate::model::Ablation)):
-/// the scaler is then fitted on the channels as that model will see them.
-pub fn fit_evidence_with(
-    train: &[Track],
-    projection: Projection,
-    kappa: f64,
-    rho: f64,
-    schema: FeatureSchema,
-    vehicle_levels: bool,
-) -> Result<EvidenceFit, DataError> {
-    let stats = fit_normal_stats(train, projection)?;
-    let drift = schema
-        .has_drift()
-        .then(|| fit_drift_params(train, projection))
-        .transpose()?;
-    let offset = match drift {
-        Some(drift) if schema.has_offset() => Some(fit_offset_params(train, projection, drift)?),
-        _ => None,
-    };
-    let drift = drift.map(|d| DriftParams {
-        vehicle_levels: d.vehicle_levels && vehicle_levels,
-        ..d
-    });
-    let offset = offset.map(|o| OffsetParams {
-        vehicle_levels: o.vehicle_levels && vehicle_levels,
-        ..o
-    });
-    let params = EvidenceParams {
-        drift,
-        offset,
-        ..EvidenceParams::with_accumulator(stats.sigma_hat, stats.mu_e, kappa, rho, projection)?
-    };
-    params.validate()?;
-    let evidence: Vec<_> = train
-        .iter()
-        .flat_map(|t| build_track(&params, &t.records))
-        .collect();
-    if evidence.is_empty() {
-        return Err(DataError::NoTrainingRows);
-    }
-    Ok(EvidenceFit {
-        scaler: RobustScaler::fit(&evidence, schema)?,
-        params,
-        normal_rows: stats.rows,
-    })
 }
 
 /// Normal rows within this many seconds after an attack's last row leave the loss (unless

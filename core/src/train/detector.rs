@@ -16,10 +16,11 @@ use crate::alarm::{
     theta_grid,
 };
 use crate::evaluation::score_tracks;
+use crate::evidence::{EvidenceFitError, fit_evidence_with};
 use crate::metrics::{EventRules, Metrics};
 use crate::model::artifact::{ARTIFACT_SCHEMA_VERSION, ModelArtifact, Provenance};
 use crate::sample::Track;
-use crate::train::data::{DataError, fit_evidence_with, sequences, split_chronologically};
+use crate::train::data::{sequences, split_chronologically};
 use crate::train::spec::TrainingSpec;
 use crate::train::{EpochProgress, TrainError, train};
 
@@ -77,7 +78,7 @@ impl TrainedDetector {
 #[derive(Debug, thiserror::Error)]
 pub enum TrainDetectorError {
     #[error(transparent)]
-    Data(#[from] DataError),
+    Data(#[from] EvidenceFitError),
     #[error("training: {0}")]
     Train(#[from] TrainError),
     #[error("no operating point: the validation data needs both normal and spoofed valid rows")]

@@ -6,14 +6,14 @@
 //! [`super::detector`] executes a spec.
 
 use crate::alarm::OperatingPointRule;
-use crate::evidence::FeatureSchema;
+use crate::evidence::{DEFAULT_KAPPA, DEFAULT_RHO, FeatureSchema};
 use crate::geo::Projection;
 use crate::metrics::EventRules;
 use crate::model::{Ablation, ModelConfig};
 use crate::train::{Sequence, TrainConfig};
 
 /// (κ, ρ) of the evidence accumulator when they are not selected on validation (SPEC §4).
-pub const DEFAULT_KAPPA_RHO: (f64, f64) = (0.0, 0.98);
+pub const DEFAULT_KAPPA_RHO: (f64, f64) = (DEFAULT_KAPPA, DEFAULT_RHO);
 /// Small (κ, ρ) grid searched when the caller asks for selection on validation (SPEC §4).
 pub const KAPPA_RHO_GRID: [(f64, f64); 6] = [
     (0.0, 0.95),
@@ -93,7 +93,8 @@ pub enum Recipe {
 /// split gives ~340), [`Recipe::Auto`] switches to the small-data recipe.
 pub const SMALL_DATA_WINDOWS: usize = 256;
 /// Small-data recipe: windows per optimiser step and learning rate, chosen by Dataset-2 validation
-/// F1 over batch {1, 2, 4} × learning rate {1e-3, 2e-3, 3e-3} (README, "Training recipe").
+/// F1 over batch {1, 2, 4} × learning rate {1e-3, 2e-3, 3e-3} (`docs/experiments.md`, "Training
+/// recipe").
 pub const SMALL_DATA_BATCH: usize = 2;
 pub const SMALL_DATA_LEARNING_RATE: f64 = 3e-3;
 

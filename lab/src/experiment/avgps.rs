@@ -32,7 +32,7 @@ pub struct Args {
     #[command(flatten)]
     common: CommonArgs,
     /// Headline model: train with injected subtle attacks added to the training part (SPEC §9 switch;
-    /// off by default because it lowers the AV-GPS scores, see README).
+    /// off by default because it lowers the AV-GPS scores, see `docs/experiments.md`).
     #[arg(long)]
     subtle_training: bool,
     /// Skip the retrained ablations (faster).

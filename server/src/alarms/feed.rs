@@ -3,7 +3,7 @@
 
 use spoofwatch_proto::v1;
 
-use super::service::{caught_up, event_to_proto};
+use super::wire::{caught_up, event_to_proto};
 use crate::event_log::EventLog;
 use crate::event_log::feed::Feed;
 use crate::store::{LoggedAlarmEvent, Store, StoreError};

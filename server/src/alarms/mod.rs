@@ -1,10 +1,13 @@
-//! The alarm API: [`service`] serves ListAlarms from the store and WatchAlarms from the stored event
-//! log, then from the live [`feed`] of newly stored events (of every replica). Events the session
-//! outbox (`crate::outbox`) has queued and not stored yet are not sent to watchers. [`why`] maps an
-//! alarm's explanation between the detector, the store and the wire.
+//! The alarm: its domain ([`event`]: it opens and ends, why it was raised, and the one place an
+//! emitted event is counted and logged), its wire form ([`wire`]), and the alarm API: [`service`]
+//! serves ListAlarms from the store and WatchAlarms from the stored event log, then from the live
+//! [`feed`] of newly stored events (of every replica). Events the session outbox (`crate::outbox`)
+//! has queued and not stored yet are not sent to watchers.
 //!
-//! It only reads: alarm events are written by the outbox, never here.
+//! Inside, each file uses only those listed before it: `event`, `wire`, `feed`, `service`. It
+//! only reads the store: alarm events are written by the outbox, never here.
 
+pub mod event;
 pub mod feed;
 pub mod service;
-pub mod why;
+pub mod wire;

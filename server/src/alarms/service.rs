@@ -7,20 +7,18 @@ use std::sync::Arc;
 
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::alarm_service_server::AlarmService;
-use spoofwatch_proto::wire::convert::timestamp_from_ms;
-use spoofwatch_proto::wire::{ModelName, VehicleId};
+use spoofwatch_proto::wire::VehicleId;
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status};
 
 use super::feed::{AlarmFeed, AlarmLog};
+use super::wire::alarm_to_proto;
 use crate::edge::{optional_model_name, optional_vehicle_id, page_request};
 use crate::event_log::watch::{self, WatchContext, WatchRequest, WatchStream};
 use crate::idle::StreamIdle;
 use crate::incidents::service::{self as incidents, IncidentFeed, IncidentLog};
 use crate::status::invalid_field;
-use crate::store::{
-    AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent, Store,
-};
+use crate::store::{AlarmFilter, AlarmState, Store};
 
 /// The AlarmService implementation.
 #[derive(Debug, Clone)]
@@ -32,45 +30,6 @@ pub struct AlarmApi {
     pub shutdown: CancellationToken,
     /// How long a watcher may leave a pending event unread.
     pub stream_idle: StreamIdle,
-}
-
-/// A stored or emitted alarm on the wire.
-fn alarm_to_proto(alarm: &AlarmEventRow) -> v1::Alarm {
-    v1::Alarm {
-        id: alarm.id,
-        vehicle_id: alarm.vehicle_id.clone(),
-        model: ModelName::from_id(&alarm.model_id).to_string(),
-        onset_timestamp_s: alarm.onset_timestamp_s,
-        end_timestamp_s: alarm.end_timestamp_s,
-        onset_time: Some(timestamp_from_ms(alarm.onset_at_ms)),
-        end_time: alarm.ended_at_ms.map(timestamp_from_ms),
-        peak_probability: alarm.peak_probability,
-        samples: u64::try_from(alarm.samples).unwrap_or(0),
-        open: alarm.is_open(),
-        why: super::why::to_proto(&alarm.why),
-        onset_latitude_deg: alarm.place.onset_latitude_deg,
-        onset_longitude_deg: alarm.place.onset_longitude_deg,
-    }
-}
-
-pub(super) fn event_to_proto(logged: &LoggedAlarmEvent) -> v1::AlarmEvent {
-    let kind = match logged.event.kind {
-        AlarmEventKind::Onset => v1::AlarmEventKind::Onset,
-        AlarmEventKind::End => v1::AlarmEventKind::End,
-    };
-    v1::AlarmEvent {
-        cursor: logged.position,
-        kind: kind as i32,
-        alarm: Some(alarm_to_proto(&logged.event.alarm)),
-    }
-}
-
-pub(super) fn caught_up(cursor: i64) -> v1::AlarmEvent {
-    v1::AlarmEvent {
-        cursor,
-        kind: v1::AlarmEventKind::CaughtUp as i32,
-        alarm: None,
-    }
 }
 
 /// A `vehicle_id` filter: empty = every vehicle.

@@ -8,6 +8,7 @@
 use spoofwatch_core::detector::Decision;
 
 use super::handoff::OpenAlarm;
+use crate::alarms::event as alarm;
 use crate::store::AlarmEventRow;
 
 /// What one decision says about the confirmed alarm.
@@ -129,13 +130,14 @@ impl OpenAlarm {
         AlarmEventRow {
             peak_probability: self.peak,
             samples: i64::from(self.samples),
-            ..AlarmEventRow::opened(
+            ..alarm::opened(
                 self.id,
                 vehicle_id,
                 model_id,
                 self.onset_timestamp_s,
                 self.onset_at_ms,
                 self.peak,
+                None,
             )
         }
     }
@@ -307,7 +309,7 @@ mod tests {
             AlarmEventRow {
                 peak_probability: 0.9,
                 samples: 2,
-                ..AlarmEventRow::opened(7, "car-1", "m", 10.0, 1_000, 0.9)
+                ..alarm::opened(7, "car-1", "m", 10.0, 1_000, 0.9, None)
             }
         );
         assert_eq!((row.end_timestamp_s, row.ended_at_ms), (None, None));

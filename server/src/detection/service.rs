@@ -17,6 +17,7 @@ use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::detection_service_server::DetectionService;
 use spoofwatch_proto::v1::stream_detect_request::Kind as RequestKind;
 use spoofwatch_proto::v1::stream_detect_response::Kind as ResponseKind;
+use spoofwatch_proto::wire::ModelName;
 use spoofwatch_proto::wire::VehicleId;
 use spoofwatch_proto::wire::convert::{detection_to_proto, sample_from_proto, timestamp_from_ms};
 use spoofwatch_proto::wire::limits::{DEFAULT_SESSION_PAGE_SIZE, MAX_SESSION_PAGE_SIZE};
@@ -25,9 +26,10 @@ use tokio_stream::wrappers::ReceiverStream;
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
+use super::error::SessionError;
+use super::persistence::SNAPSHOT_WAIT;
 use super::sessions::{
-    Accepted, Attachment, Decisions, ForVehicle, SNAPSHOT_WAIT, SessionError, SessionManager,
-    SessionSummary,
+    Accepted, Attachment, Decisions, ForVehicle, SessionManager, SessionSummary,
 };
 use crate::access::Caller;
 use crate::edge::{
@@ -35,6 +37,7 @@ use crate::edge::{
     vehicle_id,
 };
 use crate::idle::{IdleClock, StreamIdle};
+use crate::models::service::ModelDeletion;
 use crate::status::{invalid_field, shutting_down, to_rpc_status};
 use crate::telemetry::{self, Rpc};
 
@@ -690,6 +693,14 @@ impl DetectionService for DetectionApi {
         check_routed_vehicle(&routed, "vehicle_id", vehicle.as_str())?;
         let session = self.sessions.reset(&vehicle).await?;
         Ok(Response::new(session_to_proto(session)))
+    }
+}
+
+/// DeleteModel ends a deleted model's sessions through the session manager.
+#[tonic::async_trait]
+impl ModelDeletion for SessionManager {
+    async fn delete_and_end_sessions(&self, name: &ModelName) -> Result<usize, Status> {
+        Ok(self.delete_model(name).await?)
     }
 }
 

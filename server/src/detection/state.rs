@@ -107,22 +107,29 @@ impl SessionState {
     }
 }
 
+/// The bundled model under the id `id`, for the detection tests.
+#[cfg(test)]
+pub(super) fn test_model(id: &str) -> LoadedModel {
+    use spoofwatch_core::model::artifact::ModelArtifact;
+    use spoofwatch_proto::wire::ModelName;
+
+    use crate::models::registry::BUNDLED_MODEL;
+
+    LoadedModel {
+        name: ModelName::from_id(id),
+        artifact: Arc::new(ModelArtifact::from_slice(BUNDLED_MODEL).expect("the bundled model")),
+    }
+}
+
 #[cfg(test)]
 mod tests {
-    use spoofwatch_core::model::artifact::ModelArtifact;
     use spoofwatch_core::sample::Sample;
     use spoofwatch_proto::wire::ModelName;
 
     use super::*;
-    use crate::models::registry::BUNDLED_MODEL;
 
     fn model(id: &str) -> LoadedModel {
-        LoadedModel {
-            name: ModelName::from_id(id),
-            artifact: Arc::new(
-                ModelArtifact::from_slice(BUNDLED_MODEL).expect("the bundled model"),
-            ),
-        }
+        test_model(id)
     }
 
     fn sample(t: f64) -> Sample {

@@ -32,6 +32,13 @@ pub fn validate_batch(
             ),
         )]);
     }
+    // A first batch's time unit is checked before its samples' own fields (it reads the fixes'
+    // geometry first) and reported after them.
+    let unit = if last_timestamp_s.is_none() {
+        milliseconds_at_start(samples, prefix)
+    } else {
+        None
+    };
     let mut violations = Vec::new();
     let mut previous = last_timestamp_s;
     for (i, sample) in samples.iter().enumerate() {
@@ -69,9 +76,7 @@ pub fn validate_batch(
             previous = Some(previous.map_or(t, |p| p.max(t)));
         }
     }
-    if last_timestamp_s.is_none() {
-        violations.extend(milliseconds_at_start(samples, prefix));
-    }
+    violations.extend(unit);
     if violations.is_empty() {
         Ok(())
     } else {
@@ -84,6 +89,33 @@ pub fn validate_batch(
 /// what the fixes and the reported speed say. Accepted, they would turn every second of driving
 /// into a 17-minute outage and hide any attack.
 fn milliseconds_at_start(samples: &[Sample], prefix: &str) -> Option<(String, String)> {
+    let relative = 'pairs: {
+        let mut checked = 0;
+        for pair in samples.windows(2) {
+            let (a, b) = (&pair[0], &pair[1]);
+            let gap = b.timestamp_s - a.timestamp_s;
+            if !(gap >= UNIT_CHECK_GAP_S && a.speed_mps >= MOVING_MPS) {
+                continue;
+            }
+            let [east, north] = wgs84_local_displacement(
+                LatLon::new(a.latitude_deg, a.longitude_deg),
+                LatLon::new(b.latitude_deg, b.longitude_deg),
+            );
+            if east.hypot(north) >= UNIT_CHECK_RATIO * a.speed_mps * gap {
+                break 'pairs None;
+            }
+            checked += 1;
+        }
+        (checked >= 2).then(|| {
+            (
+                format!("{prefix}[1].timestamp_s"),
+                "the samples are seconds apart by the fixes and the reported speed, but their \
+                 times are 1,000 times further apart: send seconds (this looks like milliseconds)"
+                    .to_string(),
+            )
+        })
+    };
+    // An absolute time beyond the bound is named first: it says which sample is wrong.
     if let Some(i) = samples.iter().position(|s| s.timestamp_s > MAX_TIMESTAMP_S) {
         return Some((
             format!("{prefix}[{i}].timestamp_s"),
@@ -93,30 +125,7 @@ fn milliseconds_at_start(samples: &[Sample], prefix: &str) -> Option<(String, St
             ),
         ));
     }
-    let mut checked = 0;
-    for pair in samples.windows(2) {
-        let (a, b) = (&pair[0], &pair[1]);
-        let gap = b.timestamp_s - a.timestamp_s;
-        if !(gap >= UNIT_CHECK_GAP_S && a.speed_mps >= MOVING_MPS) {
-            continue;
-        }
-        let [east, north] = wgs84_local_displacement(
-            LatLon::new(a.latitude_deg, a.longitude_deg),
-            LatLon::new(b.latitude_deg, b.longitude_deg),
-        );
-        if east.hypot(north) >= UNIT_CHECK_RATIO * a.speed_mps * gap {
-            return None;
-        }
-        checked += 1;
-    }
-    (checked >= 2).then(|| {
-        (
-            format!("{prefix}[1].timestamp_s"),
-            "the samples are seconds apart by the fixes and the reported speed, but their times \
-             are 1,000 times further apart: send seconds (this looks like milliseconds)"
-                .to_string(),
-        )
-    })
+    relative
 }
 
 #[cfg(test)]

@@ -5,7 +5,7 @@
 //! stops (or is killed) another takes the lease over within [`LEASE`] and continues from the stored
 //! place and state, exactly.
 //!
-//! Alarms are placed on the incident timeline (`crate::config::IncidentTimeline`): the servers' wall clock at onset and
+//! Alarms are placed on the incident timeline (`super::settings::IncidentTimeline`): the servers' wall clock at onset and
 //! end by default, or the vehicles' own sample times for replays of recordings on one common clock.
 //! Alarms stored before onsets kept their place (schema version 8) take no part.
 //!
@@ -18,15 +18,14 @@ use std::time::Duration;
 
 use spoofwatch_core::geo::LatLon;
 use spoofwatch_core::incident::{
-    AlarmEnd, AlarmOnset, AreaConfig, AreaCorrelator, AreaState, ChangeKind, Incident,
-    IncidentChange,
+    AlarmEnd, AlarmOnset, AreaCorrelator, AreaState, ChangeKind, Incident, IncidentChange,
 };
 use tokio::sync::Notify;
 use tokio::time::MissedTickBehavior;
 use tokio_util::sync::CancellationToken;
 
 use super::areas::IncidentAreas;
-use crate::config::IncidentTimeline as Timeline;
+use super::settings::{IncidentSettings, IncidentTimeline as Timeline};
 use crate::store::{
     AlarmEventKind, CorrelationStep, CorrelatorPlace, IncidentEventKind, IncidentWrite,
     LoggedAlarmEvent, Store, StoreError, now_unix_ms,
@@ -39,15 +38,6 @@ pub const TICK: Duration = Duration::from_secs(1);
 pub const LEASE: Duration = Duration::from_secs(10);
 /// Alarm events read per step.
 const PAGE: u32 = 1_000;
-
-/// How this server correlates incidents.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct IncidentSettings {
-    pub area: AreaConfig,
-    pub timeline: Timeline,
-    /// Whether samples inside an open incident's area are scored with the area prior.
-    pub prior: bool,
-}
 
 /// The correlator loop of one server process.
 pub struct IncidentCorrelator {
@@ -354,10 +344,11 @@ fn report(change: &IncidentChange) {
 mod tests {
     use spoofwatch_core::explain::{EvidenceKind, Explanation};
     use spoofwatch_core::geo::displace_fix;
+    use spoofwatch_core::incident::AreaConfig;
     use spoofwatch_proto::v1;
 
     use super::*;
-    use crate::alarms::why::OnsetWhy;
+    use crate::alarms::event::OnsetWhy;
     use crate::incidents::service;
     use crate::outbox::SessionOutbox;
 

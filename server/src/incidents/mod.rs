@@ -2,7 +2,7 @@
 //! lease) turns the fleet's stored alarms into incidents with the core's correlator and stores
 //! them; [`service`] serves ListIncidents, GetIncident and WatchIncidents from the store and the
 //! incident event log; [`areas`] holds the open incidents' areas that the sessions score with (the
-//! area prior).
+//! area prior); [`settings`] is how this server correlates them.
 //!
 //! Alarms reach it only through the store (every replica's alarm event log), never from the
 //! detection path.
@@ -10,3 +10,4 @@
 pub mod areas;
 pub mod correlator;
 pub mod service;
+pub mod settings;

@@ -19,13 +19,13 @@ use tokio_util::sync::CancellationToken;
 
 use super::records::{EvaluationRequest, JobRequest, Progress, to_json};
 use super::runner::{JobFailure, LiveJob, Runner};
-use crate::datasets::DatasetError;
+use crate::datasets::{Catalog, DatasetError};
 use crate::fault::Fault;
 use crate::identity::new_id;
-use crate::models::RegistryError;
+use crate::models::{Registry, RegistryError};
 use crate::store::{
-    EpochRow, JobEndError, JobFilter, JobKind, JobRow, NewJob, Page, PageRequest, StoreError,
-    now_unix_ms,
+    EpochRow, JobEndError, JobFilter, JobKind, JobRow, NewJob, Page, PageRequest, Store,
+    StoreError, now_unix_ms,
 };
 use crate::telemetry;
 
@@ -90,7 +90,14 @@ pub enum JobError {
 /// Queues, runs (through the [`Runner`]) and tracks jobs.
 #[derive(Debug)]
 pub struct JobManager {
+    /// Executes admitted jobs and records their ends.
     runner: Runner,
+    /// The job rows: admission, reads, cancellation and leases (the runner's store, shared).
+    store: Store,
+    /// Where an evaluation's model is resolved at admission.
+    registry: Arc<Registry>,
+    /// Where admission finds a job's datasets and their sizes.
+    catalog: Catalog,
     settings: JobSettings,
     /// This server's instance id: the owner of the jobs it admits.
     instance: String,
@@ -105,6 +112,9 @@ impl JobManager {
         Arc::new(Self {
             slots: Arc::new(Semaphore::new(settings.max_running.max(1))),
             input: Arc::new(Semaphore::new(settings.input_kib)),
+            store: runner.store.clone(),
+            registry: Arc::clone(&runner.registry),
+            catalog: runner.catalog.clone(),
             runner,
             settings,
             instance,
@@ -128,7 +138,7 @@ impl JobManager {
         model: Option<&ModelName>,
         datasets: Vec<DatasetName>,
     ) -> Result<JobRow, JobError> {
-        let model = self.runner.registry.resolve(model).await?;
+        let model = self.registry.resolve(model).await?;
         let request = JobRequest::Evaluation(EvaluationRequest {
             model: model.name,
             datasets,
@@ -141,7 +151,7 @@ impl JobManager {
     pub async fn create(self: &Arc<Self>, request: JobRequest) -> Result<JobRow, JobError> {
         let mut input_bytes = 0_usize;
         for (field, name) in request.datasets() {
-            match self.runner.catalog.get(name).await {
+            match self.catalog.get(name).await {
                 Ok(row) => {
                     let size = usize::try_from(row.size_bytes).unwrap_or(usize::MAX);
                     input_bytes = input_bytes.saturating_add(size);
@@ -173,7 +183,7 @@ impl JobManager {
             return Err(JobError::QueueFull(self.settings.max_pending));
         }
         let name = OperationName::from_id(new_id());
-        let insert = self.runner.store.insert_job(NewJob {
+        let insert = self.store.insert_job(NewJob {
             id: name.id().to_string(),
             kind,
             request: to_json(&request),
@@ -229,8 +239,7 @@ impl JobManager {
 
     /// A job's row.
     pub async fn get(&self, name: &OperationName) -> Result<JobRow, JobError> {
-        self.runner
-            .store
+        self.store
             .get_job(name.id())
             .await?
             .ok_or_else(|| JobError::NotFound(name.clone()))
@@ -238,7 +247,7 @@ impl JobManager {
 
     /// A job's per-epoch history.
     pub async fn epochs(&self, row: &JobRow) -> Result<Vec<EpochRow>, JobError> {
-        Ok(self.runner.store.job_epochs(&row.id).await?)
+        Ok(self.store.job_epochs(&row.id).await?)
     }
 
     /// One page of jobs, newest first.
@@ -247,12 +256,12 @@ impl JobManager {
         filter: &JobFilter,
         page: &PageRequest,
     ) -> Result<Page<JobRow>, JobError> {
-        Ok(self.runner.store.list_jobs(filter, page).await?)
+        Ok(self.store.list_jobs(filter, page).await?)
     }
 
     /// Deletes a finished job.
     pub async fn delete(&self, name: &OperationName) -> Result<(), JobError> {
-        Ok(self.runner.store.delete_job(name.id()).await?)
+        Ok(self.store.delete_job(name.id()).await?)
     }
 
     /// Requests cancellation (queued jobs end at once, running ones at the next batch boundary).
@@ -261,7 +270,7 @@ impl JobManager {
         if row.state.is_finished() {
             return Ok(()); // google.longrunning: cancelling a finished operation is a no-op.
         }
-        self.runner.store.request_cancel(name.id()).await?;
+        self.store.request_cancel(name.id()).await?;
         if let Some(job) = self.live().get(name) {
             job.cancel.cancel();
         }
@@ -294,7 +303,7 @@ impl JobManager {
     /// replicas whose lease expired. Returns how many were failed.
     pub async fn fail_abandoned_at_start(&self) -> Result<u64, StoreError> {
         let cutoff = now_unix_ms() - JOB_LEASE.as_millis() as i64;
-        let store = &self.runner.store;
+        let store = &self.store;
         store
             .fail_abandoned_jobs(&abandoned(), &self.instance, true, cutoff)
             .await
@@ -311,7 +320,7 @@ impl JobManager {
                 _ = stop.cancelled() => return,
                 _ = tick.tick() => {}
             }
-            let store = &self.runner.store;
+            let store = &self.store;
             match store.renew_job_leases(&self.instance, now_unix_ms()).await {
                 Ok(owned) => self.apply_stored_state(&owned),
                 Err(error) => {

@@ -19,8 +19,8 @@ use crate::identity::{new_id, sha256_hex};
 use crate::store::{ModelRow, ModelSource, NewModel, Page, PageRequest, Store, StoreError};
 use crate::work::HeavyWork;
 
-/// The artifact bundled into the binary: the v2 model of `spoofwatch experiment subtle` (seed 42, see
-/// README).
+/// The artifact bundled into the binary: the `v3` model of `spoofwatch-lab experiment offsets` (see
+/// `docs/getting-started.md`, "Bundled models").
 pub const BUNDLED_MODEL: &[u8] = include_bytes!("../../../models/default.json");
 /// Id of the bundled model in the registry.
 pub const BUNDLED_MODEL_ID: &str = "default";

@@ -127,48 +127,6 @@ impl AlarmEventRow {
     pub fn is_open(&self) -> bool {
         self.ended_at_ms.is_none()
     }
-
-    /// A new open alarm of one sample whose peak is its onset probability.
-    pub fn opened(
-        id: i64,
-        vehicle_id: &str,
-        model_id: &str,
-        onset_timestamp_s: f64,
-        onset_at_ms: i64,
-        probability: f64,
-    ) -> Self {
-        Self {
-            id,
-            vehicle_id: vehicle_id.to_string(),
-            model_id: model_id.to_string(),
-            onset_timestamp_s,
-            end_timestamp_s: None,
-            onset_at_ms,
-            ended_at_ms: None,
-            peak_probability: probability,
-            samples: 1,
-            why: StoredWhy::default(),
-            place: StoredPlace::default(),
-        }
-    }
-
-    /// This alarm closed at wall time `ended_at_ms` after its last alarming sample (`None` when its
-    /// session or the server stopped while it was on).
-    pub fn ended(
-        &self,
-        end_timestamp_s: Option<f64>,
-        ended_at_ms: i64,
-        peak_probability: f64,
-        samples: i64,
-    ) -> Self {
-        Self {
-            end_timestamp_s,
-            ended_at_ms: Some(ended_at_ms),
-            peak_probability,
-            samples,
-            ..self.clone()
-        }
-    }
 }
 
 impl AlarmEvent {
@@ -537,7 +495,12 @@ impl Store {
                 let event = AlarmEvent {
                     seq,
                     kind: AlarmEventKind::End,
-                    alarm: alarm.ended(None, ended_at_ms, alarm.peak_probability, alarm.samples),
+                    // Ended without a last sample time; its peak and samples as stored.
+                    alarm: AlarmEventRow {
+                        end_timestamp_s: None,
+                        ended_at_ms: Some(ended_at_ms),
+                        ..alarm
+                    },
                 };
                 log_event!(tx, &event);
                 events.push(event);

@@ -8,13 +8,13 @@ use std::io::Write;
 use std::time::Duration;
 
 use crate::alarm_watch::{AlarmWatch, ResumableWatch, WatchCall, WatchOptions};
-use crate::error::{describe_status, reply};
+use crate::error::describe_status;
 use anyhow::{Context, Result};
 use serde_json::{Value, json};
 use spoofwatch_proto::v1;
 
 use super::detect::why_name;
-use super::{ResourceArgs, opt, print_table, time};
+use super::{ResourceArgs, opt, pages_up_to, print_table, time};
 use crate::cli::server_flags::ServerArgs;
 
 /// `spoofwatch alarms <command>` with the server flags.
@@ -130,18 +130,20 @@ pub fn list_request(args: &ListArgs) -> v1::ListAlarmsRequest {
 async fn run_list(server: &ServerArgs, args: ListArgs) -> Result<()> {
     let connection = server.connect().await?;
     let mut client = connection.alarms();
-    let limit = args.limit.unwrap_or(usize::MAX);
-    let mut request = list_request(&args);
-    let mut alarms = Vec::new();
-    while alarms.len() < limit {
-        let page = reply("listing alarms", client.list_alarms(request.clone())).await?;
-        alarms.extend(page.alarms);
-        if page.next_page_token.is_empty() {
-            break;
-        }
-        request.page_token = page.next_page_token;
-    }
-    alarms.truncate(limit);
+    let request = list_request(&args);
+    let alarms = pages_up_to(
+        "listing alarms",
+        args.limit.unwrap_or(usize::MAX),
+        async |page_token| {
+            let request = v1::ListAlarmsRequest {
+                page_token,
+                ..request.clone()
+            };
+            client.list_alarms(request).await
+        },
+        |page| (page.alarms, page.next_page_token),
+    )
+    .await?;
     if args.json {
         let mut out = std::io::stdout().lock();
         for alarm in &alarms {

@@ -13,7 +13,7 @@ use serde_json::{Value, json};
 use spoofwatch_proto::v1;
 
 use super::alarms::{parse_seconds, print_watch};
-use super::{ResourceArgs, opt, print_table, time};
+use super::{ResourceArgs, opt, pages_up_to, print_table, time};
 use crate::alarm_watch::{IncidentWatch, WatchOptions};
 use crate::cli::server_flags::ServerArgs;
 use crate::error::reply;
@@ -95,21 +95,20 @@ async fn run_list(server: &ServerArgs, args: ListArgs) -> Result<()> {
         StateArg::Open => v1::IncidentStateFilter::Open,
         StateArg::Ended => v1::IncidentStateFilter::Ended,
     };
-    let mut request = v1::ListIncidentsRequest {
-        state: state as i32,
-        ..v1::ListIncidentsRequest::default()
-    };
-    let limit = args.limit.unwrap_or(usize::MAX);
-    let mut incidents = Vec::new();
-    while incidents.len() < limit {
-        let page = reply("listing incidents", client.list_incidents(request.clone())).await?;
-        incidents.extend(page.incidents);
-        if page.next_page_token.is_empty() {
-            break;
-        }
-        request.page_token = page.next_page_token;
-    }
-    incidents.truncate(limit);
+    let incidents = pages_up_to(
+        "listing incidents",
+        args.limit.unwrap_or(usize::MAX),
+        async |page_token| {
+            let request = v1::ListIncidentsRequest {
+                state: state as i32,
+                page_token,
+                ..v1::ListIncidentsRequest::default()
+            };
+            client.list_incidents(request).await
+        },
+        |page| (page.incidents, page.next_page_token),
+    )
+    .await?;
     if args.json {
         let mut out = std::io::stdout().lock();
         for incident in &incidents {

@@ -106,12 +106,22 @@ pub fn bytes(n: u64) -> String {
 /// page apart into the items and the next page token, which is empty after the last page.
 pub async fn all_pages<P, T>(
     context: &str,
+    fetch: impl AsyncFnMut(String) -> Result<tonic::Response<P>, tonic::Status>,
+    split: impl Fn(P) -> (Vec<T>, String),
+) -> Result<Vec<T>> {
+    pages_up_to(context, usize::MAX, fetch, split).await
+}
+
+/// [`all_pages`], stopping once `limit` items came (and keeping only `limit`).
+pub async fn pages_up_to<P, T>(
+    context: &str,
+    limit: usize,
     mut fetch: impl AsyncFnMut(String) -> Result<tonic::Response<P>, tonic::Status>,
     split: impl Fn(P) -> (Vec<T>, String),
 ) -> Result<Vec<T>> {
     let mut items = Vec::new();
     let mut page_token = String::new();
-    loop {
+    while items.len() < limit {
         let page = retry::unary(context, Idempotency::Idempotent, async || {
             fetch(page_token.clone()).await
         })
@@ -119,10 +129,12 @@ pub async fn all_pages<P, T>(
         let (page, next_page_token) = split(page);
         items.extend(page);
         if next_page_token.is_empty() {
-            return Ok(items);
+            break;
         }
         page_token = next_page_token;
     }
+    items.truncate(limit);
+    Ok(items)
 }
 
 /// Prints a listing: one row per item under `header`.

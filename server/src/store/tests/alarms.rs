@@ -1,6 +1,7 @@
 //! Alarm events: batched onsets and ends with server-assigned ids, retries, list, recovery of open
 //! alarms, and the event log's positions (assigned by the database in commit order).
 
+use crate::alarms::event::{ended, opened};
 use crate::store::{
     AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent,
     PageRequest, Store, StoreError, StoredWhy,
@@ -16,13 +17,14 @@ pub(super) fn onset(
     AlarmEvent {
         seq: id,
         kind: AlarmEventKind::Onset,
-        alarm: AlarmEventRow::opened(
+        alarm: opened(
             id,
             vehicle_id,
             "m1",
             onset_timestamp_s,
             1_000 + id,
             probability,
+            None,
         ),
     }
 }
@@ -38,7 +40,8 @@ pub(super) fn end(
     AlarmEvent {
         seq: 1_000 + id,
         kind: AlarmEventKind::End,
-        alarm: AlarmEventRow::opened(id, "unread", "unread", 0.0, 0, 0.5).ended(
+        alarm: ended(
+            &opened(id, "unread", "unread", 0.0, 0, 0.5, None),
             Some(end_timestamp_s),
             2_000 + id,
             peak_probability,
@@ -261,7 +264,7 @@ async fn the_event_log_replays_each_event_as_it_was_emitted_in_position_order(st
     assert_eq!(replayed[2].event.kind, AlarmEventKind::End);
     assert_eq!(
         replayed[2].event.alarm,
-        events[0].alarm.ended(Some(15.0), 2_001, 0.95, 6)
+        ended(&events[0].alarm, Some(15.0), 2_001, 0.95, 6)
     );
     let positions =
         |events: Vec<LoggedAlarmEvent>| events.iter().map(|e| e.position).collect::<Vec<_>>();

@@ -3,9 +3,10 @@
 use serde_json::json;
 
 use super::{count_rows, db_path, new_dataset, new_job, new_model, temp_store};
+use crate::alarms::event::opened;
 use crate::store::{
-    AlarmEvent, AlarmEventKind, AlarmEventRow, EpochRow, FaultKind, JobKind, JobOutcome, JobState,
-    PageRequest, Store, StoreError, StoreOptions,
+    AlarmEvent, AlarmEventKind, EpochRow, FaultKind, JobKind, JobOutcome, JobState, PageRequest,
+    Store, StoreError, StoreOptions,
 };
 use sqlx::Connection;
 
@@ -201,7 +202,7 @@ fn alarm_onset(id: i64) -> AlarmEvent {
     AlarmEvent {
         seq: id,
         kind: AlarmEventKind::Onset,
-        alarm: AlarmEventRow::opened(id, "v1", "m1", 10.0, 1_000, 0.9),
+        alarm: opened(id, "v1", "m1", 10.0, 1_000, 0.9, None),
     }
 }
 
@@ -294,7 +295,7 @@ fn onset(id: i64, vehicle_id: &str, onset_timestamp_s: f64) -> AlarmEvent {
     AlarmEvent {
         seq: id,
         kind: AlarmEventKind::Onset,
-        alarm: AlarmEventRow::opened(id, vehicle_id, "m2", onset_timestamp_s, 1, 0.9),
+        alarm: opened(id, vehicle_id, "m2", onset_timestamp_s, 1, 0.9, None),
     }
 }
 

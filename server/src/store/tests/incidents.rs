@@ -3,9 +3,10 @@
 
 use serde_json::json;
 
+use crate::alarms::event::opened;
 use crate::store::{
-    AlarmEvent, AlarmEventKind, AlarmEventRow, CorrelationStep, CorrelatorPlace, IncidentEventKind,
-    IncidentState, IncidentWrite, PageRequest, Store, StoredPlace,
+    AlarmEvent, AlarmEventKind, CorrelationStep, CorrelatorPlace, IncidentEventKind, IncidentState,
+    IncidentWrite, PageRequest, Store, StoredPlace,
 };
 
 const LEASE_MS: i64 = 10_000;
@@ -194,7 +195,7 @@ async fn a_step_stores_incidents_their_events_and_the_place_together(store: Stor
 }
 
 async fn an_onset_keeps_where_it_started(store: Store) {
-    let mut row = AlarmEventRow::opened(5, "car-5", "m", 10.0, 1_000, 0.9);
+    let mut row = opened(5, "car-5", "m", 10.0, 1_000, 0.9, None);
     row.place = StoredPlace {
         onset_latitude_deg: Some(32.25),
         onset_longitude_deg: Some(-110.5),

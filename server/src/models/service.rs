@@ -1,7 +1,8 @@
 //! The ModelService RPCs: the edge between the wire and the model [`Registry`]. Decodes and
 //! validates requests, calls the registry and maps its errors once (through `crate::error`); it
-//! must not hold registry logic or touch the store directly. It sits above both the registry and
-//! the detection sessions because deleting a model ends the sessions that run it.
+//! must not hold registry logic or touch the store directly. Deleting a model ends the sessions
+//! that run it: DeleteModel goes through a [`ModelDeletion`], which the detection sessions provide,
+//! so that models need not know them.
 
 use std::pin::Pin;
 use std::sync::Arc;
@@ -12,19 +13,27 @@ use spoofwatch_proto::wire::limits::{EXPORT_CHUNK_BYTES, MAX_ARTIFACT_BYTES};
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 
-use crate::detection::SessionManager;
 use crate::edge::{display_name, model_name, page_request};
 use crate::idle::StreamIdle;
-use crate::models::Registry;
-use crate::models::wire::{model_summary_to_proto, model_to_proto};
+use spoofwatch_proto::wire::ModelName;
+
+use super::Registry;
+use super::wire::{model_summary_to_proto, model_to_proto};
 use crate::status::invalid_field;
+
+/// Deletes a model (not the active one) and ends the sessions that use it, so that none starts on
+/// it meanwhile; returns how many ended.
+#[tonic::async_trait]
+pub trait ModelDeletion: Send + Sync + std::fmt::Debug {
+    async fn delete_and_end_sessions(&self, name: &ModelName) -> Result<usize, Status>;
+}
 
 /// The ModelService implementation.
 #[derive(Debug, Clone)]
 pub struct ModelApi {
     pub registry: Arc<Registry>,
-    /// Deleting a model ends the sessions that use it.
-    pub sessions: Arc<SessionManager>,
+    /// Deletes a model and ends the sessions that use it.
+    pub deletion: Arc<dyn ModelDeletion>,
     /// How long an import may send nothing.
     pub stream_idle: StreamIdle,
 }
@@ -73,7 +82,7 @@ impl ModelService for ModelApi {
         request: Request<v1::DeleteModelRequest>,
     ) -> Result<Response<()>, Status> {
         let name = model_name("name", &request.into_inner().name)?;
-        self.sessions.delete_model(&name).await?;
+        self.deletion.delete_and_end_sessions(&name).await?;
         Ok(Response::new(()))
     }
 
