@@ -8,13 +8,14 @@
 //!
 //! Where things live: samples and their parsing ([`sample`], [`data`]) → evidence ([`evidence`],
 //! [`geo`]) → the model and its artifact ([`model`], [`model::artifact`]) → running it on a stream
-//! ([`detector`]) → alarms ([`lifecycle`], [`severity`], [`explain`]), area incidents across vehicles ([`incident`]) and operating points ([`alarm`], [`critical_search`]) → scoring and metrics ([`evaluation`],
-//! [`metrics`]). Training is one use case ([`train::detector::train_detector`]); the classical
+//! ([`detector`]) → alarms ([`lifecycle`], [`severity`], [`explain`]), area incidents across
+//! vehicles ([`incident`]) and operating points ([`alarm`], [`critical_search`]) → scoring and
+//! metrics ([`evaluation`], [`metrics`]). Training is one use case ([`train::detector::train_detector`]); the classical
 //! comparator is [`cusum`]; labelled attack scenarios are [`scenario`].
 //!
 //! Layers, from the top down: glr, cusum, gate, train | canary, evaluation | detector | model |
-//! alarm, data, explain, testdata | evidence, incident, lifecycle, scenario | geo, metrics,
-//! receiver, rng, sample. A module imports only from its own layer's others or from below
+//! alarm, critical_search, data, explain, testdata | evidence, incident, lifecycle, scenario | geo,
+//! metrics, receiver, rng, sample, severity. A module imports only from its own layer's others or from below
 //! (`scripts/fence.py` holds CI to it).
 
 pub mod alarm;

@@ -24,14 +24,15 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::lifecycle::MAX_LIFECYCLE_S;
 use crate::sample::readable;
 
 /// |logit p̂| counts up to this: one saturated probability (p̂ = 1 − 10⁻¹²) must not weigh as much
 /// as minutes of strong evidence.
 pub const LOGIT_CAP: f64 = 10.0;
+/// Longest accepted decisive hold (s): an hour, as the lifecycle's durations.
+pub const MAX_HOLD_S: f64 = 3600.0;
 /// Largest accepted threshold h (logit·s): an hour at the cap.
-pub const MAX_THRESHOLD: f64 = LOGIT_CAP * MAX_LIFECYCLE_S;
+pub const MAX_THRESHOLD: f64 = LOGIT_CAP * MAX_HOLD_S;
 /// Accepted NIS gates of the decisive path: from the follow gate to a 1 km offset of a metre's
 /// noise.
 pub const GATE_RANGE: (f64, f64) = (16.0, 1e6);
@@ -119,11 +120,11 @@ impl CriticalTest {
                 ),
             ));
         }
-        if !(0.0..=MAX_LIFECYCLE_S).contains(&self.decisive_s) {
+        if !(0.0..=MAX_HOLD_S).contains(&self.decisive_s) {
             return Err((
                 "decisive_s",
                 format!(
-                    "must be finite and in [0, {MAX_LIFECYCLE_S}] s, got {}",
+                    "must be finite and in [0, {MAX_HOLD_S}] s, got {}",
                     readable(self.decisive_s)
                 ),
             ));

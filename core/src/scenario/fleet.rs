@@ -29,8 +29,9 @@
 use serde::{Deserialize, Serialize};
 
 use super::ScenarioError;
-use super::drive::{DriveSpec, TrueState, simulate_drive_with_truth};
+use super::drive::{TrueState, simulate_drive_with_truth};
 use super::randomise::DriveDistribution;
+use super::spec::DriveSpec;
 use crate::geo::{LatLon, displace_fix, wgs84_local_displacement};
 use crate::rng::Rng;
 use crate::sample::{MAX_SPEED_MPS, Sample, SpoofingState, Track};

@@ -18,12 +18,10 @@ mod impairments;
 mod plan;
 mod randomise;
 mod receiver_flags;
+mod spec;
 
 pub use attack::{AttackKind, AttackSpec, InjectedTrack, inject};
-pub use drive::{
-    DriveSpec, GnssNoise, HIGHWAY_CRUISE_MAX_MPS, OnboardNoise, RoadKind, SimulatedDrive,
-    SpeedProfile, TrueState, TurnBehaviour, simulate_drive, simulate_drive_with_truth,
-};
+pub use drive::{SimulatedDrive, TrueState, simulate_drive, simulate_drive_with_truth};
 pub use fleet::{
     CaptureEpisode, CapturedFix, FleetScene, FleetSpec, FleetTruth, RegionalAttack, Spoofer,
     VehicleTruth, generate_fleet, offset_from_spoofer_m,
@@ -34,6 +32,10 @@ pub use impairments::{
 pub use plan::{AttackDuration, RAMP_SWEEP_VELOCITIES_MPS, ScenarioPlan, generate};
 pub use randomise::{ClippedNormal, DriveDistribution, Range, UrbanToRural};
 pub use receiver_flags::{FlagWindow, raise_flags};
+pub use spec::{
+    DriveSpec, GnssNoise, HIGHWAY_CRUISE_MAX_MPS, OnboardNoise, RoadKind, SpeedProfile,
+    TurnBehaviour,
+};
 
 /// Ramp drift velocities accepted by [`AttackKind::RampDrift`] (m/s, inclusive; SPEC §9).
 pub const RAMP_VELOCITY_RANGE_MPS: (f64, f64) = (0.05, 2.0);

@@ -9,10 +9,10 @@
 use serde::{Deserialize, Serialize};
 
 use super::ScenarioError;
-use super::drive::{DriveSpec, GnssNoise, OnboardNoise, SpeedProfile, TurnBehaviour};
 use super::impairments::{
     HeadingBiasWander, Multipath, OnboardErrors, Outages, Reacquisition, StaticHold,
 };
+use super::spec::{DriveSpec, GnssNoise, OnboardNoise, SpeedProfile, TurnBehaviour};
 use crate::rng::Rng;
 use crate::sample::MAX_SPEED_MPS;
 

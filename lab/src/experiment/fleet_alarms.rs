@@ -49,7 +49,7 @@ const CLEAN_DRIVE_S: f64 = 3_600.0;
 /// for a hundred times fewer false alarms is about ln 100 ≈ 4.6 nats above the warning's ≈ 8.
 const DRIFT_CRITICAL_FACTOR: f64 = 1.5;
 /// Mixed into the seed of the validation drives, so that no validation drive is a test drive.
-const VALIDATION_SEED: u64 = 0x5EED_0F_7A11;
+const VALIDATION_SEED: u64 = 0x005E_ED0F_7A11;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
