@@ -214,9 +214,11 @@ impl SessionOutbox {
                 dropped,
                 "alarm queue full: an alarm onset was not stored (the database is not keeping up)"
             );
+            alarm::not_queued(AlarmEventKind::Onset);
             return id;
         }
         if !self.acceptable(&event) {
+            alarm::not_queued(AlarmEventKind::Onset);
             return id;
         }
         pending.open.insert(id, event.alarm.clone());
@@ -260,6 +262,8 @@ impl SessionOutbox {
     fn end_at(&self, id: i64, end_timestamp_s: Option<f64>, peak_probability: f64, samples: i64) {
         let mut pending = self.pending();
         let Some(onset) = pending.open.remove(&id) else {
+            // Its onset was dropped or refused: the end is not stored, but the alarm did end.
+            alarm::not_queued(AlarmEventKind::End);
             return;
         };
         let event = AlarmEvent {
@@ -277,6 +281,8 @@ impl SessionOutbox {
             let event = self.emit(&mut pending, event);
             drop(pending);
             alarm::emitted(&event);
+        } else {
+            alarm::not_queued(AlarmEventKind::End);
         }
     }
 

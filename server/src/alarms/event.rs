@@ -119,6 +119,16 @@ pub fn emitted(event: &AlarmEvent) {
     log(event);
 }
 
+/// An onset or end the outbox could not queue (the queue was full, the event was invalid, or its
+/// onset was never queued): counted all the same, because the vehicle's alarm did turn on or off;
+/// the outbox logs why it was not stored.
+pub fn not_queued(kind: AlarmEventKind) {
+    match kind {
+        AlarmEventKind::Onset => telemetry::alarm_onset(),
+        AlarmEventKind::End => telemetry::alarm_end(),
+    }
+}
+
 /// An alarm a previous run left open, ended by the store as this process starts: logged, not
 /// counted (this process never counted it open).
 pub fn ended_at_start(event: &AlarmEvent) {
