@@ -408,7 +408,7 @@ pub(crate) fn compare_candidates(
 }
 
 /// Lower delay is better; no detection at all is worst.
-fn compare_mean_delay(a: Option<f64>, b: Option<f64>) -> Ordering {
+pub(crate) fn compare_mean_delay(a: Option<f64>, b: Option<f64>) -> Ordering {
     match (a, b) {
         (Some(a), Some(b)) => b.total_cmp(&a),
         (Some(_), None) => Ordering::Greater,

@@ -10,7 +10,7 @@ use std::cmp::Ordering;
 
 use serde::{Deserialize, Serialize};
 
-use crate::alarm::AlarmError;
+use crate::alarm::{AlarmError, compare_mean_delay};
 use crate::lifecycle::{AlarmLifecycle, Lifecycle, LifecycleInput, OffsetSignal};
 use crate::metrics::{self, EventRules, Metrics, RateGroup, ScoredRow};
 use crate::receiver::FlagSignal;
@@ -165,7 +165,7 @@ fn compare(a: (&CriticalTest, &Metrics), b: (&CriticalTest, &Metrics)) -> Orderi
     a_metrics
         .detected_events
         .cmp(&b_metrics.detected_events)
-        .then(shorter_delay(
+        .then(compare_mean_delay(
             a_metrics.mean_delay_s,
             b_metrics.mean_delay_s,
         ))
@@ -175,16 +175,6 @@ fn compare(a: (&CriticalTest, &Metrics), b: (&CriticalTest, &Metrics)) -> Orderi
         .then(a_test.threshold.total_cmp(&b_test.threshold))
         .then(a_test.gate.total_cmp(&b_test.gate))
         .then(a_test.decisive_s.total_cmp(&b_test.decisive_s))
-}
-
-/// Lower delay is better; no detection at all is worst.
-fn shorter_delay(a: Option<f64>, b: Option<f64>) -> Ordering {
-    match (a, b) {
-        (Some(a), Some(b)) => b.total_cmp(&a),
-        (Some(_), None) => Ordering::Greater,
-        (None, Some(_)) => Ordering::Less,
-        (None, None) => Ordering::Equal,
-    }
 }
 
 #[cfg(test)]
