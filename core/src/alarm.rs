@@ -149,20 +149,29 @@ fn fill_lifecycle_alarms(
 ) {
     alarms.clear();
     let mut state = AlarmLifecycle::default();
-    for (i, row) in rows.iter().enumerate() {
-        alarms.push(state.update(
-            lifecycle,
-            &LifecycleInput {
-                time_s: row.time_s,
-                valid: row.valid,
-                trajectory_start: i == 0 || rows[i - 1].trajectory != row.trajectory,
-                positive: row.score >= theta,
-                probability: row.score,
-                offset: offset.get(i).copied().unwrap_or_default(),
-                // The search chooses the durations of p̂ and the offset; the flag rule's are fixed (§7.3).
-                flag: FlagSignal::default(),
-            },
-        ));
+    for i in 0..rows.len() {
+        alarms.push(state.update(lifecycle, &lifecycle_input(rows, offset, theta, i)));
+    }
+}
+
+/// Row `i` of scored `rows` as the lifecycle's input under θ: a change of trajectory key starts a
+/// new trajectory, and no receiver flag is read (the searches choose the durations of p̂ and the
+/// offset; the flag's rule is fixed, §7.3, and it never escalates, §7.4).
+pub(crate) fn lifecycle_input(
+    rows: &[ScoredRow],
+    offset: &[OffsetSignal],
+    theta: f64,
+    i: usize,
+) -> LifecycleInput {
+    let row = &rows[i];
+    LifecycleInput {
+        time_s: row.time_s,
+        valid: row.valid,
+        trajectory_start: i == 0 || rows[i - 1].trajectory != row.trajectory,
+        positive: row.score >= theta,
+        probability: row.score,
+        offset: offset.get(i).copied().unwrap_or_default(),
+        flag: FlagSignal::default(),
     }
 }
 

@@ -10,10 +10,9 @@ use std::cmp::Ordering;
 
 use serde::{Deserialize, Serialize};
 
-use crate::alarm::{AlarmError, compare_mean_delay};
-use crate::lifecycle::{AlarmLifecycle, Lifecycle, LifecycleInput, OffsetSignal};
+use crate::alarm::{AlarmError, compare_mean_delay, lifecycle_input};
+use crate::lifecycle::{AlarmLifecycle, Lifecycle, OffsetSignal};
 use crate::metrics::{self, EventRules, Metrics, RateGroup, ScoredRow};
-use crate::receiver::FlagSignal;
 use crate::severity::{CriticalTest, Escalation, Severity};
 
 /// Grid of k, the logit of p̂ above which evidence accumulates: p̂ from 0.5 to 0.9975.
@@ -60,22 +59,9 @@ fn fill_critical_rows(
     critical.clear();
     let mut state = AlarmLifecycle::default();
     let mut escalation = Escalation::default();
-    for (i, row) in rows.iter().enumerate() {
-        let open = state.update_graded(
-            lifecycle,
-            Some(test),
-            &mut escalation,
-            &LifecycleInput {
-                time_s: row.time_s,
-                valid: row.valid,
-                trajectory_start: i == 0 || rows[i - 1].trajectory != row.trajectory,
-                positive: row.score >= theta,
-                probability: row.score,
-                offset: offset.get(i).copied().unwrap_or_default(),
-                // Neither the flag nor an area incident escalates (§7.4).
-                flag: FlagSignal::default(),
-            },
-        );
+    for i in 0..rows.len() {
+        let input = lifecycle_input(rows, offset, theta, i);
+        let open = state.update_graded(lifecycle, Some(test), &mut escalation, &input);
         critical.push(escalation.severity(open) == Some(Severity::Critical));
     }
 }
