@@ -3,6 +3,7 @@
 //! rows) and [`RegistryError`]; it must not know about gRPC (the edge is `crate::model_service`) nor
 //! write SQL (that is `store`).
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -129,6 +130,9 @@ pub struct Registry {
     /// the cache, so it is never evicted. This server is the only writer of the activation, so it
     /// is set where it activates.
     active: Mutex<Option<LoadedModel>>,
+    /// Activations made by this server, counted under the `active` lock: a follow of the store
+    /// that read the activation before one of them must not put its older model back.
+    activations: AtomicU64,
 }
 
 impl Registry {
@@ -140,6 +144,7 @@ impl Registry {
             store,
             cache: Mutex::new(ModelCache::new(cache_bytes)),
             active: Mutex::new(None),
+            activations: AtomicU64::new(0),
         }
     }
 
@@ -342,7 +347,11 @@ impl Registry {
     pub async fn activate(&self, name: &ModelName) -> Result<ModelRow, RegistryError> {
         let loaded = self.resolve(Some(name)).await?;
         let row = self.store.set_active_model(name.id()).await?;
-        *self.active() = Some(loaded);
+        {
+            let mut active = self.active();
+            *active = Some(loaded);
+            self.activations.fetch_add(1, Ordering::Relaxed);
+        }
         tracing::info!(model = %name, "activated model");
         Ok(row)
     }
@@ -351,6 +360,7 @@ impl Registry {
     /// another model, this one serves it from now on too (sessions already running keep theirs,
     /// as with an activation here). Returns the newly followed model's name.
     pub async fn follow_active_model(&self) -> Result<Option<ModelName>, RegistryError> {
+        let activations = self.activations.load(Ordering::Relaxed);
         let Some(row) = self.store.active_model().await? else {
             return Ok(None);
         };
@@ -359,7 +369,12 @@ impl Registry {
             return Ok(None);
         }
         let loaded = self.load(name.clone()).await?;
-        *self.active() = Some(loaded);
+        let mut active = self.active();
+        if self.activations.load(Ordering::Relaxed) != activations {
+            // This server activated a model after the store was read: that one stands.
+            return Ok(None);
+        }
+        *active = Some(loaded);
         Ok(Some(name))
     }
 
