@@ -40,6 +40,10 @@ pub struct TrainingFlags {
     /// population's noise alone).
     #[arg(long)]
     pub no_vehicle_levels: bool,
+    /// Ablation: trust the onboard calibration by the clock (its channels on after 240 s of valid
+    /// data) instead of by its own uncertainty.
+    #[arg(long)]
+    pub timer_trust: bool,
     /// Ablation: with offset evidence (`v3`), persistence N_p in rows instead of the alarm
     /// lifecycle in seconds.
     #[arg(long)]
@@ -111,6 +115,7 @@ impl TrainingFlags {
             first_order_cell: false,
             no_exit_mask: false,
             no_vehicle_levels: false,
+            timer_trust: false,
             rows_lifecycle: false,
             features: FeatureGroups::default(),
             schema: FeatureSchema::default(),
@@ -130,6 +135,7 @@ impl TrainingFlags {
             features: self.features,
             no_exit_mask: self.no_exit_mask,
             no_vehicle_levels: self.no_vehicle_levels,
+            timer_trust: self.timer_trust,
             rows_lifecycle: self.rows_lifecycle,
         }
     }

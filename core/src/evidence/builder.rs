@@ -439,8 +439,8 @@ impl EvidenceBuilder {
             velocity[0] - from.velocity[0],
             velocity[1] - from.velocity[1],
         ];
-        let correction = drift.and_then(|d| d.calibration_correction(motion, velocity_change));
-        if let Some(correction) = correction {
+        let in_use = drift.and_then(|d| d.calibration_in_use(motion, velocity_change));
+        if let Some((correction, _)) = in_use {
             residual = [residual[0] + correction[0], residual[1] + correction[1]];
         }
         if !(residual[0].is_finite() && residual[1].is_finite()) {
@@ -451,7 +451,8 @@ impl EvidenceBuilder {
             residual,
             motion,
             delta_t,
-            calibrated: correction.is_some(),
+            calibrated: in_use.is_some(),
+            calibration_error: in_use.map_or([0.0; 3], |(_, error)| error),
         }))
     }
 

@@ -18,8 +18,14 @@
 use serde::{Deserialize, Serialize};
 
 use super::EvidenceError;
+use super::calibration::{
+    CALIBRATION_BLOCK_S, CALIBRATION_DELAY_S, CalibrationTrust, WARM_UP_S, add, apply,
+    calibration_covariance, in_use_error, information_trust, least_squares_step, prior_covariance,
+    regressors,
+};
 use super::linalg::{
-    IDENTITY, Mat2, inverse_sqrt_symmetric, is_symmetric_positive_definite, mul_vec,
+    IDENTITY, Mat2, add_diagonal, inverse_sqrt_positive_definite, inverse_sqrt_symmetric,
+    is_symmetric_positive_definite, mul_vec,
 };
 use super::stats::{covariance, median, quantile_sorted};
 use crate::sample::readable;
@@ -32,19 +38,6 @@ pub const DRIFT_SCALES_S: [f64; SCALE_COUNT] = [10.0, 30.0, 60.0, 120.0];
 const REPORTED_SCALE: usize = 1;
 /// The clip radius in robust residual sigmas: c = 4 σ̂_r.
 pub const CLIP_SIGMAS: f64 = 4.0;
-/// Memory of the calibration (s): forgetting λ = exp(−δ/600) per row.
-pub const CALIBRATION_MEMORY_S: f64 = 600.0;
-/// The calibration in use is a snapshot at least this old (s of valid data).
-pub const CALIBRATION_DELAY_S: f64 = 120.0;
-/// Seconds of valid data before the calibrated channels switch on (ω_t reaches 1).
-pub const WARM_UP_S: f64 = 240.0;
-/// Prior (and cap) of the calibration's standard deviations: speed scale 5 %, heading bias 5°, timing 1 s.
-pub const CALIBRATION_PRIOR_STD: [f64; 3] = [0.05, 5.0 * std::f64::consts::PI / 180.0, 1.0];
-/// The calibration learns from blocks of consecutive valid rows at least this long (s): GNSS white
-/// noise telescopes in a block's summed residual while the onboard errors add up, so every block
-/// carries the same information at 1 Hz and at 10 Hz (row by row, a 10 Hz stream would calibrate
-/// ten times more slowly).
-pub const CALIBRATION_BLOCK_S: f64 = 1.0;
 /// Memory of a vehicle's own χ² level (s): vehicles differ ten-fold in how noisy their drift rates
 /// are (GNSS bias dynamics, heading noise at speed), so each χ² is divided by the vehicle's level,
 /// learned like the calibration from data at least `CALIBRATION_DELAY_S` old.
@@ -68,6 +61,9 @@ const MAD_TO_SIGMA: f64 = 1.4826;
 const RATE_EPSILON: f64 = 1e-9;
 /// A row is settled for scale τ_k this many τ_k into its trajectory.
 const SETTLE_SCALES: f64 = 2.0;
+/// The onboard speed (m/s) at and above which a vehicle moves, for the stale-fix channel: a
+/// receiver's static hold pins the fix below walking pace.
+pub const MOVING_MPS: f64 = 1.0;
 /// Fewest settled normal rows per scale for a drift-rate covariance.
 pub const MIN_SETTLED_ROWS: usize = 30;
 
@@ -91,6 +87,14 @@ pub struct DriftParams {
     /// the covariances.
     #[serde(default)]
     pub vehicle_levels: bool,
+    /// How far the onboard calibration is trusted: by the clock (artifacts written before
+    /// information-driven trust), or by its own uncertainty.
+    #[serde(default, skip_serializing_if = "CalibrationTrust::is_timers")]
+    pub trust: CalibrationTrust,
+    /// The stale-fix channel counts only the seconds the onboard motion says the vehicle moved: a
+    /// receiver that holds its fix at standstill is where the vehicle is.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub stale_fix_while_moving: bool,
 }
 
 /// The serialised form, checked by `TryFrom` (or by [`super::EvidenceParams::validate`] when it is
@@ -105,6 +109,10 @@ pub(crate) struct UncheckedDriftParams {
     calibrated_threshold: [f64; SCALE_COUNT],
     #[serde(default)]
     vehicle_levels: bool,
+    #[serde(default)]
+    trust: CalibrationTrust,
+    #[serde(default)]
+    stale_fix_while_moving: bool,
 }
 
 impl TryFrom<UncheckedDriftParams> for DriftParams {
@@ -128,11 +136,13 @@ impl DriftParams {
             raw_threshold: raw.raw_threshold,
             calibrated_threshold: raw.calibrated_threshold,
             vehicle_levels: raw.vehicle_levels,
+            trust: raw.trust,
+            stale_fix_while_moving: raw.stale_fix_while_moving,
         }
     }
 
-    /// Parameters that whiten nothing (identity covariances, unit thresholds): the fit runs with them
-    /// to read the raw drift rates.
+    /// Parameters that whiten nothing (identity covariances, unit thresholds, the calibration
+    /// trusted by the clock): the fit runs with them to read the raw drift rates.
     pub fn unwhitened(residual_sigma_m: f64) -> Self {
         Self {
             residual_sigma_m,
@@ -142,6 +152,8 @@ impl DriftParams {
             raw_threshold: [1.0; SCALE_COUNT],
             calibrated_threshold: [1.0; SCALE_COUNT],
             vehicle_levels: false,
+            trust: CalibrationTrust::Timers,
+            stale_fix_while_moving: false,
         }
     }
 
@@ -208,7 +220,9 @@ pub struct DriftEvidence {
     /// The onboard errors in use (a snapshot ≥ 120 s old): speed scale error (fraction), heading bias
     /// (degrees), GNSS/onboard timing offset (s).
     pub calibration: [f64; 3],
-    /// ω_t = min(1, valid seconds seen / 240 s); the calibrated channels are on when ω = 1.
+    /// ω_t, how far the calibration in use is trusted, in [0, 1]. With timers, min(1, valid
+    /// seconds seen / 240 s), the calibrated channels on at 1; with information-driven trust,
+    /// 1 − its remaining error as a share of the prior's (the calibrated channels always on).
     pub warm_up: f64,
     /// Whitened EWMA of r^c/δ per scale (east, north); 0 at a trajectory start.
     pub raw_z: [[f64; 2]; SCALE_COUNT],
@@ -360,10 +374,14 @@ struct TrackerConstants {
     noise_variance: f64,
     raw_whitening: [Mat2; SCALE_COUNT],
     calibrated_whitening: [Mat2; SCALE_COUNT],
+    /// Σ_k + εI of the calibrated rates (information-driven trust adds the calibration's share).
+    calibrated_covariance: [Mat2; SCALE_COUNT],
     raw_threshold: [f64; SCALE_COUNT],
     calibrated_threshold: [f64; SCALE_COUNT],
     /// Whether χ² are divided by the vehicle's level.
     vehicle_levels: bool,
+    trust: CalibrationTrust,
+    stale_fix_while_moving: bool,
 }
 
 impl DriftTracker {
@@ -374,9 +392,14 @@ impl DriftTracker {
             noise_variance: params.residual_sigma_m * params.residual_sigma_m,
             raw_whitening: params.raw_covariance.map(|c| whitening(&c)),
             calibrated_whitening: params.calibrated_covariance.map(|c| whitening(&c)),
+            calibrated_covariance: params
+                .calibrated_covariance
+                .map(|c| add_diagonal(c, RATE_EPSILON)),
             raw_threshold: params.raw_threshold,
             calibrated_threshold: params.calibrated_threshold,
             vehicle_levels: params.vehicle_levels,
+            trust: params.trust,
+            stale_fix_while_moving: params.stale_fix_while_moving,
         })
     }
 
@@ -439,21 +462,41 @@ impl DriftTracker {
         };
     }
 
-    /// H θ of the calibration in use once it is warm: added to a raw residual over an interval with
-    /// onboard displacement `motion` and velocity change `velocity_change`, it gives the calibrated
-    /// residual. `None` before the calibration is warm.
-    pub fn calibration_correction(
+    /// The calibration in use for a step with onboard displacement `motion` and velocity change
+    /// `velocity_change`: H θ (added to the raw residual it gives the calibrated one) and the
+    /// mean squared error of speed scale and heading bias ([`in_use_error`]; 0 with timers).
+    /// `None` while timers keep the calibration out of use.
+    pub fn calibration_in_use(
         &self,
         motion: [f64; 2],
         velocity_change: [f64; 2],
-    ) -> Option<[f64; 2]> {
-        if self.clock_s < WARM_UP_S {
-            return None;
+    ) -> Option<([f64; 2], [f64; 3])> {
+        let correction = apply(&regressors(motion, velocity_change), &self.theta_in_use);
+        match self.constants.trust {
+            CalibrationTrust::Timers => {
+                (self.clock_s >= WARM_UP_S).then_some((correction, [0.0; 3]))
+            }
+            CalibrationTrust::Information => Some((correction, self.in_use_error())),
         }
-        Some(apply(
-            &regressors(motion, velocity_change),
-            &self.theta_in_use,
-        ))
+    }
+
+    /// [`in_use_error`] of this vehicle's calibration now.
+    fn in_use_error(&self) -> [f64; 3] {
+        in_use_error(&self.covariance, &self.theta, &self.theta_in_use)
+    }
+
+    /// ω_t, whether the calibrated channels are on, and the calibration's error in use.
+    fn trust_now(&self) -> (f64, bool, [f64; 3]) {
+        match self.constants.trust {
+            CalibrationTrust::Timers => {
+                let warm_up = (self.clock_s / WARM_UP_S).min(1.0);
+                (warm_up, warm_up >= 1.0, [0.0; 3])
+            }
+            CalibrationTrust::Information => {
+                let error = self.in_use_error();
+                (information_trust(&error), true, error)
+            }
+        }
     }
 
     /// The channels of a row with ν = 0: everything held, residuals undefined.
@@ -481,41 +524,45 @@ impl DriftTracker {
         }
         self.update_rates(clipped, cleaned, input.delta_t);
 
-        let warm_up = (self.clock_s / WARM_UP_S).min(1.0);
+        let (warm_up, calibrated_on, error) = self.trust_now();
+        // Information-driven trust tests the calibrated rates against Σ_k plus what the
+        // calibration's error makes of the vehicle's current velocity.
+        let uncertainty = (self.constants.trust == CalibrationTrust::Information).then(|| {
+            let velocity = [
+                input.motion[0] / input.delta_t,
+                input.motion[1] / input.delta_t,
+            ];
+            calibration_covariance(velocity, &error)
+        });
         let population_raw: [[f64; 2]; SCALE_COUNT] =
             std::array::from_fn(|k| mul_vec(&self.constants.raw_whitening[k], self.raw_rate[k]));
-        let population_calibrated: [[f64; 2]; SCALE_COUNT] = std::array::from_fn(|k| {
-            mul_vec(
-                &self.constants.calibrated_whitening[k],
-                self.calibrated_rate[k],
-            )
-        });
+        let population_calibrated: [[f64; 2]; SCALE_COUNT] =
+            std::array::from_fn(|k| self.whitened_calibrated(k, 1.0, uncertainty.as_ref()));
         if self.constants.vehicle_levels {
             self.update_levels(
                 &population_raw,
                 &population_calibrated,
-                warm_up >= 1.0,
+                calibrated_on,
                 input,
             );
         }
         let used = self.levels_in_use;
         let raw_z = std::array::from_fn(|k| scaled(population_raw[k], used.raw[k]));
-        let calibrated_z = if warm_up >= 1.0 {
-            std::array::from_fn(|k| scaled(population_calibrated[k], used.calibrated[k]))
-        } else {
+        let calibrated_z = if !calibrated_on {
             [[0.0; 2]; SCALE_COUNT]
+        } else if let Some(uncertainty) = &uncertainty {
+            std::array::from_fn(|k| {
+                self.whitened_calibrated(k, used.calibrated[k], Some(uncertainty))
+            })
+        } else {
+            std::array::from_fn(|k| scaled(population_calibrated[k], used.calibrated[k]))
         };
-        let statistic = if warm_up >= 1.0 {
+        let statistic = if calibrated_on {
             normalised_max(&calibrated_z, &self.constants.calibrated_threshold)
         } else {
             normalised_max(&raw_z, &self.constants.raw_threshold)
         };
         let [scale, heading, timing] = self.theta_in_use;
-        let stale_fix_s = if input.fix_repeated {
-            self.last.stale_fix_s + input.delta_t
-        } else {
-            0.0
-        };
         self.last = DriftEvidence {
             clipped_residual: clipped,
             cleaned_residual: cleaned,
@@ -524,16 +571,48 @@ impl DriftTracker {
             raw_z,
             calibrated_z,
             statistic,
-            stale_fix_s,
+            stale_fix_s: self.stale_fix_s(input),
             residual_log: (input.residual[0].hypot(input.residual[1]) / self.constants.clip_m)
                 .ln_1p(),
-            rate_mps: if warm_up >= 1.0 {
+            rate_mps: if calibrated_on {
                 self.calibrated_rate[REPORTED_SCALE]
             } else {
                 self.raw_rate[REPORTED_SCALE]
             },
         };
         self.last
+    }
+
+    /// Scale k's calibrated drift rate whitened by the population's covariance; with
+    /// `uncertainty` (information-driven trust), by `level`·Σ_k plus it, else by Σ_k alone (the
+    /// caller divides by the level).
+    fn whitened_calibrated(&self, k: usize, level: f64, uncertainty: Option<&Mat2>) -> [f64; 2] {
+        let rate = self.calibrated_rate[k];
+        match uncertainty {
+            None => mul_vec(&self.constants.calibrated_whitening[k], rate),
+            Some(c) => {
+                let level = level.clamp(LEVEL_RANGE.0, LEVEL_RANGE.1);
+                let sigma = &self.constants.calibrated_covariance[k];
+                let total: Mat2 =
+                    std::array::from_fn(|a| std::array::from_fn(|b| level * sigma[a][b] + c[a][b]));
+                mul_vec(&inverse_sqrt_positive_definite(&total), rate)
+            }
+        }
+    }
+
+    /// How long the fix has repeated: 0 on a row whose fix moved; otherwise one more step, unless
+    /// the stale-fix channel counts only while moving and the onboard motion says the vehicle
+    /// stood (a receiver holding its fix at standstill is where the vehicle is).
+    fn stale_fix_s(&self, input: &DriftInput) -> f64 {
+        if !input.fix_repeated {
+            return 0.0;
+        }
+        let speed = input.motion[0].hypot(input.motion[1]) / input.delta_t;
+        if self.constants.stale_fix_while_moving && speed < MOVING_MPS {
+            self.last.stale_fix_s
+        } else {
+            self.last.stale_fix_s + input.delta_t
+        }
     }
 
     /// Running mean of χ²/2 per scale (E = 1 for a vehicle like the population), starting from the
@@ -584,44 +663,22 @@ impl DriftTracker {
         }
     }
 
-    /// One recursive-least-squares step with exponential forgetting on the model r^c = −H θ + noise,
-    /// then the snapshot bookkeeping that delays what is used by ≥ `CALIBRATION_DELAY_S`.
+    /// One recursive-least-squares step ([`least_squares_step`]), then the snapshot bookkeeping
+    /// that delays what is used by ≥ `CALIBRATION_DELAY_S`.
     fn update_calibration(&mut self, h: &[[f64; 2]; 3], clipped: [f64; 2], delta_t: f64) {
-        let forgetting = (-delta_t / CALIBRATION_MEMORY_S).exp();
-        let p: [[f64; 3]; 3] = self.covariance.map(|row| row.map(|x| x / forgetting));
-        // With A = −H: S = H P Hᵀ + σ²I, K = −P Hᵀ S⁻¹, innovation = r^c + H θ.
-        let ph: [[f64; 2]; 3] = std::array::from_fn(|i| {
-            std::array::from_fn(|a| (0..3).map(|j| p[i][j] * h[j][a]).sum())
-        });
-        let mut s: Mat2 = std::array::from_fn(|a| {
-            std::array::from_fn(|b| (0..3).map(|i| h[i][a] * ph[i][b]).sum())
-        });
-        s[0][0] += self.constants.noise_variance;
-        s[1][1] += self.constants.noise_variance;
-        let Some(s_inv) = inverse(&s) else {
+        let Some((theta, covariance)) = least_squares_step(
+            &self.theta,
+            &self.covariance,
+            h,
+            clipped,
+            delta_t,
+            self.constants.noise_variance,
+            self.constants.trust,
+        ) else {
             return;
         };
-        let innovation = add(clipped, apply(h, &self.theta));
-        // G = P Hᵀ S⁻¹ (3×2); θ −= G·innovation; P −= G H P.
-        let gain: [[f64; 2]; 3] = std::array::from_fn(|i| {
-            std::array::from_fn(|b| ph[i][0] * s_inv[0][b] + ph[i][1] * s_inv[1][b])
-        });
-        let mut theta = self.theta;
-        for (i, value) in theta.iter_mut().enumerate() {
-            *value -= gain[i][0] * innovation[0] + gain[i][1] * innovation[1];
-        }
-        let mut updated = p;
-        for (i, row) in updated.iter_mut().enumerate() {
-            for (j, cell) in row.iter_mut().enumerate() {
-                *cell -= gain[i][0] * ph[j][0] + gain[i][1] * ph[j][1];
-            }
-        }
-        if !(theta.iter().all(|x| x.is_finite()) && updated.iter().flatten().all(|x| x.is_finite()))
-        {
-            return;
-        }
         self.theta = theta;
-        self.covariance = cap_covariance(symmetrised(updated));
+        self.covariance = covariance;
         self.clock_s += delta_t;
         self.take_snapshot();
     }
@@ -685,60 +742,6 @@ pub fn clip(residual: [f64; 2], clip_m: f64) -> [f64; 2] {
     }
 }
 
-/// Columns of H_t = [u, J u, −Δv], J(x, y) = (y, −x): to first order a speed scale error ε, a heading
-/// bias β and an onboard lag τ_L make r = −ε u − β J u + τ_L Δv = −H θ.
-fn regressors(u: [f64; 2], dv: [f64; 2]) -> [[f64; 2]; 3] {
-    [u, [u[1], -u[0]], [-dv[0], -dv[1]]]
-}
-
-/// H θ.
-fn apply(h: &[[f64; 2]; 3], theta: &[f64; 3]) -> [f64; 2] {
-    [
-        h[0][0] * theta[0] + h[1][0] * theta[1] + h[2][0] * theta[2],
-        h[0][1] * theta[0] + h[1][1] * theta[1] + h[2][1] * theta[2],
-    ]
-}
-
-fn add(a: [f64; 2], b: [f64; 2]) -> [f64; 2] {
-    [a[0] + b[0], a[1] + b[1]]
-}
-
-fn inverse(m: &Mat2) -> Option<Mat2> {
-    let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
-    (det.is_finite() && det > 0.0).then(|| {
-        [
-            [m[1][1] / det, -m[0][1] / det],
-            [-m[1][0] / det, m[0][0] / det],
-        ]
-    })
-}
-
-fn prior_covariance() -> [[f64; 3]; 3] {
-    let mut p = [[0.0; 3]; 3];
-    for (i, std) in CALIBRATION_PRIOR_STD.iter().enumerate() {
-        p[i][i] = std * std;
-    }
-    p
-}
-
-fn symmetrised(p: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
-    std::array::from_fn(|i| std::array::from_fn(|j| 0.5 * (p[i][j] + p[j][i])))
-}
-
-/// D P D with D_ii = min(1, prior_i/√P_ii): no variance exceeds the prior, so directions the drive
-/// does not excite (a straight road) cannot wind the gain up; the congruence keeps P positive definite.
-fn cap_covariance(p: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
-    let d: [f64; 3] = std::array::from_fn(|i| {
-        let std = p[i][i].max(0.0).sqrt();
-        if std > CALIBRATION_PRIOR_STD[i] {
-            CALIBRATION_PRIOR_STD[i] / std
-        } else {
-            1.0
-        }
-    });
-    std::array::from_fn(|i| std::array::from_fn(|j| d[i] * p[i][j] * d[j]))
-}
-
 /// (Σ + εI)^{-1/2}.
 fn whitening(covariance: &Mat2) -> Mat2 {
     inverse_sqrt_symmetric(&super::linalg::add_diagonal(*covariance, RATE_EPSILON))
@@ -785,11 +788,18 @@ pub struct SettledRates {
 }
 
 /// Scale k's z-vectors of the rows at least 2τ_k into their trajectory (a zero-started EWMA then has
-/// 98 % of its stationary variance); for the calibrated channel only warm rows.
-fn settled_z(rows: &[SettledRates], k: usize, calibrated: bool) -> Vec<[f64; 2]> {
+/// 98 % of its stationary variance); for the calibrated channel only warm rows, unless the
+/// calibration is trusted by its information (`trust`), when the channel is always on.
+fn settled_z(
+    rows: &[SettledRates],
+    k: usize,
+    calibrated: bool,
+    trust: CalibrationTrust,
+) -> Vec<[f64; 2]> {
+    let every_row = trust == CalibrationTrust::Information;
     rows.iter()
         .filter(|r| r.elapsed_s >= SETTLE_SCALES * DRIFT_SCALES_S[k])
-        .filter(|r| !calibrated || r.drift.is_warm())
+        .filter(|r| !calibrated || every_row || r.drift.is_warm())
         .map(|r| {
             if calibrated {
                 r.drift.calibrated_z[k]
@@ -825,7 +835,7 @@ pub fn covariances_from_rates(
     params.vehicle_levels = true;
     for k in 0..SCALE_COUNT {
         for calibrated in [false, true] {
-            let rates = settled_z(rows, k, calibrated);
+            let rates = settled_z(rows, k, calibrated, CalibrationTrust::Timers);
             if rates.len() < MIN_SETTLED_ROWS {
                 return Err(too_few_settled(k, calibrated, rates.len()));
             }
@@ -849,7 +859,7 @@ pub fn thresholds_from_rates(
 ) -> Result<DriftParams, EvidenceError> {
     for k in 0..SCALE_COUNT {
         for calibrated in [false, true] {
-            let mut chi2: Vec<f64> = settled_z(rows, k, calibrated)
+            let mut chi2: Vec<f64> = settled_z(rows, k, calibrated, params.trust)
                 .into_iter()
                 .map(norm_squared)
                 .collect();

@@ -9,6 +9,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::builder::build_track;
+use super::calibration::{CalibrationTrust, FIT_TRUST};
 use super::drift::{
     DriftParams, SettledRates, covariances_from_rates, robust_residual_sigma, thresholds_from_rates,
 };
@@ -73,19 +74,26 @@ pub fn normal_residuals(tracks: &[Track], projection: Projection) -> Vec<[f64; 2
 }
 
 /// Evidence v2's drift parameters from the label-0 rows of `tracks` (`params` gives the projection):
-/// the clip from the robust σ of r, then the drift-rate covariances and per-scale thresholds on
-/// settled rows (a row of an attacked track counts once it is normal and valid; its EWMAs may still
-/// carry an earlier attack, which only widens the normalisation).
+/// the clip from the robust σ of r, then the drift-rate covariances (calibrated: on rows after the
+/// clock's warm-up, where the calibration has converged on a training drive) and per-scale
+/// thresholds on settled rows under `trust` (a row of an attacked track counts once it is normal
+/// and valid; its EWMAs may still carry an earlier attack, which only widens the normalisation).
+/// The stale-fix channel counts only while the vehicle moves.
 pub fn fit_drift_params(
     tracks: &[Track],
     projection: Projection,
+    trust: CalibrationTrust,
 ) -> Result<DriftParams, EvidenceError> {
     let residual_sigma = robust_residual_sigma(&normal_residuals(tracks, projection))?;
     let unwhitened = DriftParams::unwhitened(residual_sigma);
-    let whitened = covariances_from_rates(
-        residual_sigma,
-        &settled_rates(tracks, projection, unwhitened),
-    )?;
+    let whitened = DriftParams {
+        trust,
+        stale_fix_while_moving: true,
+        ..covariances_from_rates(
+            residual_sigma,
+            &settled_rates(tracks, projection, unwhitened),
+        )?
+    };
     thresholds_from_rates(whitened, &settled_rates(tracks, projection, whitened))
 }
 
@@ -156,6 +164,12 @@ pub fn fit_offset_params(
             last_time = Some(time);
             attacked |= record.label == Some(true);
             let Some(offset) = e.offset else { continue };
+            // Under information-driven trust, offsets enter the fit once the calibration is
+            // known: the test adds what is still unknown about it on top of this growth.
+            let unknown = e.drift.is_some_and(|d| d.warm_up < FIT_TRUST);
+            if drift.trust == CalibrationTrust::Information && unknown {
+                continue;
+            }
             let new_second = (clock_s + delta).floor() > clock_s;
             clock_s += delta;
             if !new_second || attacked || record.label != Some(false) || record.warmup {
@@ -242,24 +256,51 @@ pub fn fit_evidence(
     rho: f64,
     schema: FeatureSchema,
 ) -> Result<EvidenceFit, EvidenceFitError> {
-    fit_evidence_with(train, projection, kappa, rho, schema, true)
+    fit_evidence_with(
+        train,
+        projection,
+        kappa,
+        rho,
+        schema,
+        EvidenceOptions::default(),
+    )
 }
 
-/// [`fit_evidence`], with the per-vehicle levels of the drift and offset channels switched off
-/// unless `vehicle_levels` (the ablation [`Ablation::no_vehicle_levels`](crate::model::Ablation)):
-/// the scaler is then fitted on the channels as that model will see them.
+/// The choices a retrained ablation makes in the evidence fit.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct EvidenceOptions {
+    /// The per-vehicle levels of the drift and offset channels (off: the ablation
+    /// [`Ablation::no_vehicle_levels`](crate::model::Ablation)).
+    pub vehicle_levels: bool,
+    /// How far the onboard calibration is trusted (timers: the ablation
+    /// [`Ablation::timer_trust`](crate::model::Ablation)).
+    pub trust: CalibrationTrust,
+}
+
+impl Default for EvidenceOptions {
+    fn default() -> Self {
+        Self {
+            vehicle_levels: true,
+            trust: CalibrationTrust::Information,
+        }
+    }
+}
+
+/// [`fit_evidence`] with `options`: the scaler is fitted on the channels as that model will see
+/// them.
 pub fn fit_evidence_with(
     train: &[Track],
     projection: Projection,
     kappa: f64,
     rho: f64,
     schema: FeatureSchema,
-    vehicle_levels: bool,
+    options: EvidenceOptions,
 ) -> Result<EvidenceFit, EvidenceFitError> {
+    let vehicle_levels = options.vehicle_levels;
     let stats = fit_normal_stats(train, projection)?;
     let drift = schema
         .has_drift()
-        .then(|| fit_drift_params(train, projection))
+        .then(|| fit_drift_params(train, projection, options.trust))
         .transpose()?;
     let offset = match drift {
         Some(drift) if schema.has_offset() => Some(fit_offset_params(train, projection, drift)?),

@@ -3,11 +3,12 @@
 //! Owns evidence ξ_t (SPEC §4): builder, parameters, statistics, scaler. Must not know about models,
 //! alarms or training.
 //!
-//! Inside, each file uses only those listed before it: `linalg` and `stats` (pure numerics), `drift`
-//! (the v2 channels), `offset` (the v3 anchors), `params`, `builder` (the streaming builder), `scaler`, then `fit` (the fits from
+//! Inside, each file uses only those listed before it: `linalg` and `stats` (pure numerics),
+//! `calibration` (the onboard calibration's numerics and trust), `drift` (the v2 channels), `offset` (the v3 anchors), `params`, `builder` (the streaming builder), `scaler`, then `fit` (the fits from
 //! training tracks, which run the builder).
 
 mod builder;
+pub mod calibration;
 pub mod drift;
 mod fit;
 pub mod linalg;
@@ -18,6 +19,8 @@ mod stats;
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod trust_tests;
 
 use serde::{Deserialize, Serialize};
 
@@ -25,8 +28,9 @@ pub use builder::{
     DriftChannelsDiffer, Evidence, EvidenceBuilder, MAX_BACKWARD_S, MAX_GAP_S, build_track,
 };
 pub use fit::{
-    EvidenceFit, EvidenceFitError, MIN_NORMAL_ROWS, NormalStats, fit_drift_params, fit_evidence,
-    fit_evidence_with, fit_normal_stats, fit_offset_params, normal_residuals, stats_from_residuals,
+    EvidenceFit, EvidenceFitError, EvidenceOptions, MIN_NORMAL_ROWS, NormalStats, fit_drift_params,
+    fit_evidence, fit_evidence_with, fit_normal_stats, fit_offset_params, normal_residuals,
+    stats_from_residuals,
 };
 pub(crate) use params::UncheckedParams;
 pub use params::{

@@ -302,6 +302,10 @@ pub struct Ablation {
     /// no dead-reckoning misfit (the drift and offset channels' online adaptation is off).
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub no_vehicle_levels: bool,
+    /// Trust the onboard calibration by the clock (the calibrated channels on after 240 s of valid
+    /// data) instead of by its own uncertainty.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub timer_trust: bool,
     /// With offset evidence, choose the persistence N_p in rows (the rule of older schemas) instead
     /// of the alarm lifecycle in seconds.
     #[serde(skip_serializing_if = "std::ops::Not::not")]

@@ -16,7 +16,8 @@ use crate::alarm::{
     theta_grid,
 };
 use crate::evaluation::score_tracks;
-use crate::evidence::{EvidenceFitError, fit_evidence_with};
+use crate::evidence::calibration::CalibrationTrust;
+use crate::evidence::{EvidenceFitError, EvidenceOptions, fit_evidence_with};
 use crate::metrics::{EventRules, Metrics};
 use crate::model::artifact::{ARTIFACT_SCHEMA_VERSION, ModelArtifact, Provenance};
 use crate::sample::Track;
@@ -151,7 +152,14 @@ fn train_candidate(
         kappa,
         rho,
         spec.model.schema,
-        !spec.model.ablation.no_vehicle_levels,
+        EvidenceOptions {
+            vehicle_levels: !spec.model.ablation.no_vehicle_levels,
+            trust: if spec.model.ablation.timer_trust {
+                CalibrationTrust::Timers
+            } else {
+                CalibrationTrust::Information
+            },
+        },
     )?;
     let mask_exits = !spec.model.ablation.no_exit_mask;
     let train_seqs = sequences(&fit, train_tracks, mask_exits);

@@ -33,8 +33,8 @@ use spoofwatch_core::scenario::{AttackKind, DriveDistribution, Range, RoadKind, 
 use spoofwatch_core::severity::{CriticalTest, Severity};
 
 use super::offsets::{
-    AFTER_START_S, OUTAGE_S, Population, RATES_HZ, TestDrive, TestKind, drive_seed, median,
-    test_set,
+    AFTER_START_S, Distribution, OUTAGE_S, Population, RATES_HZ, TestDrive, TestKind, drive_seed,
+    median, test_set,
 };
 use super::parallel::{default_threads, map_parallel};
 use super::subtle::delay_and_coverage;
@@ -69,6 +69,9 @@ pub struct Args {
     /// Attack-free test hours per sample rate.
     #[arg(long, default_value_t = 1000, value_parser = clap::value_parser!(u64).range(1..=100_000))]
     test_hours: u64,
+    /// The distribution the attacked drives (validation and test) are drawn from.
+    #[arg(long, value_enum, default_value = "fleet")]
+    distribution: Distribution,
     /// Attacked drives per attack kind, onset and rate, for validation and for the test.
     #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u64).range(1..=1000))]
     repeats: u64,
@@ -269,7 +272,7 @@ fn validation_rows(
         ..artifact.clone()
     });
     let distribution = fleet_distribution(&args.without);
-    let attacked = test_set(seed, args.repeats, 0, threads)?;
+    let attacked = test_set((seed, args.distribution), args.repeats, 0, threads)?;
     let mut tracks: Vec<_> = attacked
         .attacked
         .into_iter()
@@ -435,7 +438,7 @@ fn attack_rows(
     args: &Args,
     threads: usize,
 ) -> Result<Vec<AttackRow>> {
-    let set = test_set(args.seed, args.repeats, 0, threads)?;
+    let set = test_set((args.seed, args.distribution), args.repeats, 0, threads)?;
     let outcomes = map_parallel(&set.attacked, threads, |drive| {
         let decisions = run_records(artifact, &drive.injected.track.records);
         let warning = scored_levels(&drive.injected.track.records, &decisions, |d| d.alarm);

@@ -59,6 +59,13 @@ pub struct Args {
     /// Test drives per attack kind, onset and sample rate.
     #[arg(long, default_value_t = 10)]
     repeats: u64,
+    /// The distribution every drive of the suite (training, validation, test) is drawn from.
+    #[arg(long, value_enum, default_value = "realistic")]
+    distribution: Distribution,
+    /// Trust the onboard calibration by the clock (the 240 s warm-up) instead of by its own
+    /// uncertainty (a retrained ablation).
+    #[arg(long)]
+    timer_trust: bool,
     /// Train the HO-LLN models with this many seeds (the training seed, + 1, …).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=20))]
     seeds: u64,
@@ -315,16 +322,36 @@ pub(super) fn drive_seed(seed: u64, population: Population, index: u64) -> u64 {
         .wrapping_add(index)
 }
 
-/// A realistic drive of `duration_s` (its rate forced to `rate_hz` when given); without outages
-/// when it will carry an attack (an attack must not span a trajectory break).
+/// The distribution the suite's drives are drawn from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub(super) enum Distribution {
+    /// `DriveDistribution::realistic()`: GNSS bias, multipath, onboard errors, outages.
+    Realistic,
+    /// `DriveDistribution::fleet()`: the realistic drives plus what a fleet in service adds (a
+    /// heading bias that wanders, receivers that hold their fix at standstill, reacquisition
+    /// with an offset first fix).
+    Fleet,
+}
+
+impl Distribution {
+    fn drives(self) -> DriveDistribution {
+        match self {
+            Self::Realistic => DriveDistribution::realistic(),
+            Self::Fleet => DriveDistribution::fleet(),
+        }
+    }
+}
+
+/// A drive of `distribution` lasting `duration_s` (its rate forced to `rate_hz` when given);
+/// without outages when it will carry an attack (an attack must not span a trajectory break).
 fn drive(
-    seed: u64,
+    (seed, distribution): (u64, Distribution),
     duration_s: f64,
     rate_hz: Option<f64>,
     outages: bool,
     vehicle_id: &str,
 ) -> Result<Track> {
-    let mut spec = DriveDistribution::realistic().draw(seed);
+    let mut spec = distribution.drives().draw(seed);
     spec.duration_s = duration_s;
     if let Some(rate_hz) = rate_hz {
         spec.rate_hz = rate_hz;
@@ -338,7 +365,7 @@ fn drive(
 /// `kind` injected `onset_s` into a drive at `rate_hz` (random direction), the drive going on for
 /// `after_s` after the attack.
 fn attacked(
-    seed: u64,
+    (seed, distribution): (u64, Distribution),
     kind: AttackKind,
     (onset_s, duration_s, after_s): (f64, f64, f64),
     rate_hz: Option<f64>,
@@ -353,7 +380,7 @@ fn attacked(
         seed: Some(seed),
     };
     let base = drive(
-        seed,
+        (seed, distribution),
         onset_s + duration_s + after_s,
         rate_hz,
         false,
@@ -368,7 +395,7 @@ fn attacked(
 /// 60–180 s long, the drive going on for 30 s to `max_after_s` after it), the others clean with
 /// outages, an hour; every rate of the realistic distribution.
 fn training_mix(
-    seed: u64,
+    (seed, distribution): (u64, Distribution),
     population: Population,
     (count, max_after_s): (u64, f64),
     threads: usize,
@@ -378,7 +405,13 @@ fn training_mix(
         let drive_seed = drive_seed(seed, population, i);
         let id = format!("mix{}-{i}", population as u8);
         if i % 2 == 1 {
-            return drive(drive_seed, TRAINING_CLEAN_DRIVE_S, None, true, &id);
+            return drive(
+                (drive_seed, distribution),
+                TRAINING_CLEAN_DRIVE_S,
+                None,
+                true,
+                &id,
+            );
         }
         let mut rng = Rng::seed_from_u64(drive_seed ^ 0x7EA1_A77A);
         let early = rng.below(3) == 0;
@@ -393,7 +426,7 @@ fn training_mix(
         // Drawn last, so that the default (30 s) leaves every other draw as it was.
         let after_s = rng.uniform_range(MIN_AFTER_ATTACK_S, max_after_s).round();
         let timing = (onset_s, duration_s, after_s);
-        attacked(drive_seed, kind, timing, None, &id).map(|a| a.track)
+        attacked((drive_seed, distribution), kind, timing, None, &id).map(|a| a.track)
     })
     .into_iter()
     .collect()
@@ -434,7 +467,7 @@ pub(super) struct TestSet {
 }
 
 pub(super) fn test_set(
-    seed: u64,
+    (seed, distribution): (u64, Distribution),
     repeats: u64,
     clean_drives_per_rate: u64,
     threads: usize,
@@ -463,7 +496,7 @@ pub(super) fn test_set(
                     .round()
             };
             let injected = attacked(
-                seed,
+                (seed, distribution),
                 test_kind.kind,
                 (onset_s, TEST_ATTACK_S, TEST_AFTER_ATTACK_S),
                 Some(RATES_HZ[rate_index]),
@@ -492,14 +525,19 @@ pub(super) fn test_set(
     Ok(TestSet {
         kinds,
         attacked,
-        clean: clean_drives(seed, Population::CleanTest, clean_drives_per_rate, threads)?,
+        clean: clean_drives(
+            (seed, distribution),
+            Population::CleanTest,
+            clean_drives_per_rate,
+            threads,
+        )?,
         threads,
     })
 }
 
 /// `per_rate` attack-free drives of [`CLEAN_DRIVE_S`] (with outages) at each of [`RATES_HZ`].
 fn clean_drives(
-    seed: u64,
+    (seed, distribution): (u64, Distribution),
     population: Population,
     per_rate: u64,
     threads: usize,
@@ -516,7 +554,7 @@ fn clean_drives(
             map_parallel(&indices, threads, |&i| {
                 let index = rate_index as u64 * 1_000_000 + i;
                 drive(
-                    drive_seed(seed, population, index),
+                    (drive_seed(seed, population, index), distribution),
                     CLEAN_DRIVE_S,
                     Some(*rate_hz),
                     true,
@@ -775,20 +813,20 @@ pub fn run(args: Args) -> Result<()> {
         RECORDED_WARMUP_S,
         args.simulated_only,
         training_mix(
-            seed,
+            (seed, args.distribution),
             Population::Train,
             (args.drives, args.after_attack_s),
             threads,
         )?,
         [
             training_mix(
-                seed,
+                (seed, args.distribution),
                 Population::Validation,
                 (args.drives, args.after_attack_s),
                 threads,
             )?,
             clean_drives(
-                seed,
+                (seed, args.distribution),
                 Population::CleanValidation,
                 args.validation_clean_drives,
                 threads,
@@ -797,7 +835,12 @@ pub fn run(args: Args) -> Result<()> {
         ]
         .concat(),
     )?;
-    let test = test_set(seed, args.repeats, args.clean_drives, threads)?;
+    let test = test_set(
+        (seed, args.distribution),
+        args.repeats,
+        args.clean_drives,
+        threads,
+    )?;
     eprintln!(
         "offsets: {} training and {} validation tracks; test: {} attacked drives, {} clean drives",
         train.len(),
@@ -834,6 +877,7 @@ pub fn run(args: Args) -> Result<()> {
                 features,
                 no_exit_mask: args.no_exit_mask,
                 no_vehicle_levels: args.no_vehicle_levels,
+                timer_trust: args.timer_trust,
                 rows_lifecycle: args.rows_lifecycle,
                 ..Ablation::default()
             },
@@ -1320,8 +1364,14 @@ mod tests {
             intervals.sort_by(f64::total_cmp);
             1.0 / intervals[intervals.len() / 2]
         };
-        let validation = clean_drives(7, Population::CleanValidation, 1, 1).unwrap();
-        let test = clean_drives(7, Population::CleanTest, 1, 1).unwrap();
+        let validation = clean_drives(
+            (7, Distribution::Realistic),
+            Population::CleanValidation,
+            1,
+            1,
+        )
+        .unwrap();
+        let test = clean_drives((7, Distribution::Realistic), Population::CleanTest, 1, 1).unwrap();
         assert_eq!(validation.len(), RATES_HZ.len());
         for ((drives, test_drives), rate_hz) in validation.iter().zip(&test).zip(RATES_HZ) {
             let drive = &drives[0];

@@ -33,6 +33,7 @@ pub fn job_request(
     if let Some(flag) = [
         ("--no-exit-mask", flags.no_exit_mask),
         ("--no-vehicle-levels", flags.no_vehicle_levels),
+        ("--timer-trust", flags.timer_trust),
         ("--rows-lifecycle", flags.rows_lifecycle),
     ]
     .into_iter()
@@ -40,7 +41,8 @@ pub fn job_request(
     {
         bail!(
             "{flag} is an offline ablation, not supported by remote training (the server trains \
-             the detector with its exit masking, per-vehicle levels and lifecycle in seconds)"
+             the detector with its exit masking, per-vehicle levels, calibration trusted by its \
+             uncertainty and lifecycle in seconds)"
         );
     }
     Ok(v1::CreateTrainingJobRequest {
@@ -268,11 +270,17 @@ mod tests {
 
     #[test]
     fn offline_ablations_are_refused_by_name_not_dropped() {
-        for name in ["--no-exit-mask", "--no-vehicle-levels", "--rows-lifecycle"] {
+        for name in [
+            "--no-exit-mask",
+            "--no-vehicle-levels",
+            "--timer-trust",
+            "--rows-lifecycle",
+        ] {
             let mut flags = TrainingFlags::defaults();
             match name {
                 "--no-exit-mask" => flags.no_exit_mask = true,
                 "--no-vehicle-levels" => flags.no_vehicle_levels = true,
+                "--timer-trust" => flags.timer_trust = true,
                 _ => flags.rows_lifecycle = true,
             }
             let error = job_request(&remote(&["d"]), &flags).expect_err(name);

@@ -9,6 +9,8 @@ use serde::{Deserialize, Serialize};
 use super::params::{
     AGREEMENT_S, FOLLOW_GATE, GAP_ACCELERATION_MPS2, OffsetParams, OffsetStep, norm_squared,
 };
+use crate::evidence::calibration::calibration_covariance;
+use crate::evidence::linalg::Mat2;
 
 /// One anchor's state.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -66,6 +68,17 @@ impl Anchor {
             + params.raw_growth[k] * norm_squared(self.carried_raw)
             + params.calibrated_growth[k] * norm_squared(self.carried)
             + self.gap_m2
+    }
+
+    /// What the calibration's error (`calibration::in_use_error`) makes of the distance
+    /// carried behind the anchor (m²); 0 when the calibration is trusted by the clock.
+    pub(super) fn calibration_share(&self, error: &[f64; 3]) -> Mat2 {
+        calibration_covariance(self.carried, error)
+    }
+
+    /// The same for the distance carried since the freeze.
+    pub(super) fn calibration_share_since_freeze(&self, error: &[f64; 3]) -> Mat2 {
+        calibration_covariance(self.carried_since_freeze, error)
     }
 
     /// Stops following at the current offset (the last trusted fix).

@@ -6,6 +6,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::evidence::EvidenceError;
+use crate::evidence::linalg::Mat2;
 use crate::sample::readable;
 
 /// Anchors per vehicle, one per follow time constant.
@@ -120,8 +121,12 @@ pub struct OffsetStep {
     pub motion: [f64; 2],
     /// Seconds since the last usable sample, in (0, [`MAX_CARRY_GAP_S`]].
     pub delta_t: f64,
-    /// The onboard calibration was warm (the residual is calibrated).
+    /// The onboard calibration was in use (the residual is calibrated).
     pub calibrated: bool,
+    /// The calibration in use's mean squared error of speed scale and heading bias
+    /// (`calibration::in_use_error`); 0 when the calibration is trusted by the clock. With it,
+    /// every offset is tested against what that error makes of the distance it carries.
+    pub calibration_error: [f64; 3],
 }
 
 /// The offset channels of one sample.
@@ -193,4 +198,25 @@ impl OffsetEvidence {
 /// ‖v‖² of an east/north vector.
 pub(super) fn norm_squared(v: [f64; 2]) -> f64 {
     v[0] * v[0] + v[1] * v[1]
+}
+
+/// vᵀ (a·I + C)⁻¹ v: `v`'s squared distance against a per-axis variance `a` (m²) and the
+/// calibration's share `c`; ‖v‖²/a exactly when C = 0 (the calibration trusted by the clock).
+pub(super) fn nis(v: [f64; 2], a: f64, c: &Mat2) -> f64 {
+    if *c == [[0.0; 2]; 2] {
+        return norm_squared(v) / a;
+    }
+    let (xx, xy, yy) = (a + c[0][0], 0.5 * (c[0][1] + c[1][0]), a + c[1][1]);
+    let det = xx * yy - xy * xy;
+    (yy * v[0] * v[0] - 2.0 * xy * v[0] * v[1] + xx * v[1] * v[1]) / det
+}
+
+/// The variance (m²) of a per-axis variance `a` plus the calibration's share `c` along `v`'s
+/// direction (`a` alone for a zero `v`).
+pub(super) fn along(v: [f64; 2], a: f64, c: &Mat2) -> f64 {
+    let n = norm_squared(v);
+    if n == 0.0 {
+        return a;
+    }
+    a + (v[0] * (c[0][0] * v[0] + c[0][1] * v[1]) + v[1] * (c[1][0] * v[0] + c[1][1] * v[1])) / n
 }

@@ -22,6 +22,7 @@ fn step(residual: [f64; 2], delta_t: f64) -> OffsetStep {
         motion: [0.0, 10.0 * delta_t],
         delta_t,
         calibrated: false,
+        calibration_error: [0.0; 3],
     }
 }
 
@@ -264,6 +265,7 @@ fn the_uncertainty_grows_with_the_distance_carried() {
         motion: [0.0, 100.0],
         delta_t: 1.0,
         calibrated: false,
+        calibration_error: [0.0; 3],
     });
     for k in 0..ANCHOR_COUNT {
         let a = keep(1.0, k);
@@ -279,6 +281,7 @@ fn the_uncertainty_grows_with_the_distance_carried() {
         motion: [100.0, 0.0],
         delta_t: 1.0,
         calibrated: true,
+        calibration_error: [0.0; 3],
     });
     for k in 0..ANCHOR_COUNT {
         let a = keep(1.0, k);
@@ -476,4 +479,44 @@ fn validation_names_the_field() {
     };
     let err = params.validate().expect_err("step noise");
     assert!(err.to_string().contains("offset.step_noise_m2"), "{err}");
+}
+
+#[test]
+fn the_calibration_share_enters_the_test_as_a_covariance() {
+    use super::params::{along, nis};
+    // (3, 4) against a·I + diag(0, 3) with a = 1: 3²/1 + 4²/4 = 13.
+    let c = [[0.0, 0.0], [0.0, 3.0]];
+    assert!((nis([3.0, 4.0], 1.0, &c) - 13.0).abs() < 1e-12);
+    // Without a share, ‖v‖²/a exactly.
+    assert_eq!(nis([3.0, 4.0], 2.0, &[[0.0; 2]; 2]), 12.5);
+    // Along north the share adds 3, along east nothing; a zero vector sees a alone.
+    assert_eq!(along([0.0, 2.0], 1.0, &c), 4.0);
+    assert_eq!(along([5.0, 0.0], 1.0, &c), 1.0);
+    assert_eq!(along([0.0, 0.0], 1.0, &c), 1.0);
+}
+
+#[test]
+fn an_offset_the_calibration_error_explains_is_not_held() {
+    // North at 10 m/s with a 2° heading error left in the calibration in use: 0.35 m east per
+    // step. Tested against the GNSS noise alone the anchors freeze on it; with the calibration's
+    // error in the test, the offset is what that error makes of the distance carried.
+    let beta = 2f64.to_radians();
+    let run = |error: [f64; 3]| {
+        let mut tracker = trusted(&unit_params());
+        let mut worst = 0.0f64;
+        for _ in 0..300 {
+            let e = tracker.push(&OffsetStep {
+                residual: [10.0 * beta, 0.0],
+                calibrated: true,
+                calibration_error: error,
+                ..step([0.0; 2], 1.0)
+            });
+            worst = worst.max(e.max_nis());
+        }
+        worst
+    };
+    let without = run([0.0; 3]);
+    let with = run([0.0, 0.0, beta * beta]);
+    assert!(without >= FOLLOW_GATE, "{without}");
+    assert!(with < 4.0, "{with}");
 }

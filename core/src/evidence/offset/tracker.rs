@@ -10,11 +10,13 @@ use super::held_jump::{RETURN_SHARE, StepHold};
 use super::misfit::POPULATION_LOG_LEVEL;
 use super::params::{
     AGREEMENT_S, ANCHOR_COUNT, DECISIVE_GATE, FOLLOW_GATE, FOLLOW_S, LEVEL_COUNT, LEVEL_RANGE,
-    OffsetEvidence, OffsetParams, OffsetStep, SHARE_S, STEP_GROWTH_S, STEP_LEVEL, TRUST_S,
-    norm_squared,
+    OffsetEvidence, OffsetParams, OffsetStep, SHARE_S, STEP_GROWTH_S, STEP_LEVEL, TRUST_S, along,
+    nis, norm_squared,
 };
 use super::state::{AnchorPoint, LEVEL_SNAPSHOTS, LevelSnapshot, OffsetTracker};
 use crate::evidence::MAX_GAP_S;
+use crate::evidence::calibration::calibration_covariance;
+use crate::evidence::linalg::Mat2;
 
 /// What one row is tested against, fixed before any anchor moves.
 struct Row {
@@ -28,6 +30,10 @@ struct Row {
     gap_m2: f64,
     /// One row's residual variance in the vehicle's level: the step test's noise (m²).
     step_test_m2: f64,
+    /// The calibration in use's error (`OffsetStep::calibration_error`), and its share of this
+    /// one step's residual (m²).
+    calibration_error: [f64; 3],
+    step_share: Mat2,
     /// The residual is a one-row outlier.
     outlier: bool,
     /// The vehicle's dead reckoning can carry an anchor (its misfit is within the level's bound).
@@ -165,13 +171,16 @@ impl OffsetTracker {
         // A one-row outlier stops every anchor at the last trusted fix before it moves them: a
         // spike comes back within the agreement time, a jump stays and is tested from there.
         let step_test_m2 = self.params.step_noise_m2 * levels[STEP_LEVEL];
+        let step_share = calibration_covariance(step.motion, &step.calibration_error);
         Row {
             growth,
             levels,
             misfits,
             gap_m2,
             step_test_m2,
-            outlier: norm_squared(step.residual) >= FOLLOW_GATE * step_test_m2,
+            calibration_error: step.calibration_error,
+            step_share,
+            outlier: nis(step.residual, step_test_m2, &step_share) >= FOLLOW_GATE,
             // A held jump is tested against pure dead reckoning: on a vehicle whose dead
             // reckoning cannot carry an anchor (a misfit beyond the level's bound) it means
             // nothing.
@@ -238,7 +247,8 @@ impl OffsetTracker {
             anchor.gap_since_freeze_m2 += row.gap_m2;
             anchor.frozen_s += delta_t;
             let variance = anchor.variance(&self.params, k);
-            test.population_nis[k] = norm_squared(anchor.offset) / variance;
+            let share = anchor.calibration_share(&row.calibration_error);
+            test.population_nis[k] = nis(anchor.offset, variance, &share);
             // While frozen, a misfit vehicle's dead-reckoning error beyond the population's (as its
             // shadow shows it over one follow time) keeps growing, like a bias, with the time
             // since the freeze (a step's own row stays one row's noise).
@@ -248,16 +258,17 @@ impl OffsetTracker {
             } else {
                 0.0
             };
-            test.nis[k] = norm_squared(anchor.offset) / (variance * row.levels[k] + bias_m2);
+            test.nis[k] = nis(anchor.offset, variance * row.levels[k] + bias_m2, &share);
             if anchor.frozen {
                 test.nis[k] = test.nis[k].max(change_nis(anchor, k, row, bias_m2));
             }
             if k == ANCHOR_COUNT - 1 {
-                test.sigma_m = (variance * row.levels[k]).sqrt();
+                test.sigma_m = along(anchor.offset, variance * row.levels[k], &share).sqrt();
             }
             anchor.gate(test.nis[k], delta_t);
         }
-        test.population_nis[STEP_LEVEL] = norm_squared(step.residual) / self.params.step_noise_m2;
+        test.population_nis[STEP_LEVEL] =
+            nis(step.residual, self.params.step_noise_m2, &row.step_share);
         test
     }
 
@@ -272,7 +283,11 @@ impl OffsetTracker {
         let mut shadow_nis = [0.0; ANCHOR_COUNT];
         for (k, shadow) in self.shadows.iter_mut().enumerate() {
             shadow.advance(step, (-delta_t / FOLLOW_S[k]).exp(), row.gap_m2);
-            shadow_nis[k] = norm_squared(shadow.offset) / shadow.variance(&self.params, k);
+            shadow_nis[k] = nis(
+                shadow.offset,
+                shadow.variance(&self.params, k),
+                &shadow.calibration_share(&row.calibration_error),
+            );
             shadow.agreement_s = if shadow_nis[k] < FOLLOW_GATE * row.levels[k] {
                 shadow.agreement_s + delta_t
             } else {
@@ -392,7 +407,8 @@ impl OffsetTracker {
             let mut moved = *anchor;
             moved.carry(step, 1.0);
             let variance = moved.variance(&self.params, k) + gap_m2;
-            norm_squared(offset) / (variance * levels[k]) < FOLLOW_GATE
+            let share = moved.calibration_share(&step.calibration_error);
+            nis(offset, variance * levels[k], &share) < FOLLOW_GATE
         })
     }
 
@@ -436,5 +452,9 @@ fn change_nis(anchor: &Anchor, k: usize, row: &Row, bias_m2: f64) -> f64 {
         + row.misfits[k] * row.growth[k] * norm_squared(anchor.carried_since_freeze)
         + bias_m2
         + anchor.gap_since_freeze_m2;
-    norm_squared(change) / step_variance
+    nis(
+        change,
+        step_variance,
+        &anchor.calibration_share_since_freeze(&row.calibration_error),
+    )
 }

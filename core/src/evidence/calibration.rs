@@ -1,0 +1,322 @@
+//! The vehicle's onboard calibration (`docs/detector.md` §4.1): speed scale ε, heading bias β and
+//! GNSS/onboard lag τ_L, learnt by recursive least squares, and how far the detector may trust it.
+//!
+//! Two ways of trusting it ([`CalibrationTrust`]):
+//! - **Timers** (artifacts written before information-driven trust): the calibrated channels switch on
+//!   after 240 s of valid data, and the anchors test raw dead reckoning against a raw growth until
+//!   then.
+//! - **Information**: every residual is cleaned with the calibration in use from the first row, and
+//!   tested against a covariance that includes what is still unknown about it. The calibration in
+//!   use is a snapshot at least two minutes old (a fresh drift is not absorbed); its mean squared
+//!   error under the current posterior is M = P + (θ − θ_in_use)(θ − θ_in_use)ᵀ, so a vehicle that
+//!   has turned (P small) and whose calibration has not moved since the snapshot is trusted within
+//!   seconds, and one whose estimate is still converging, or whose compass wanders, is tested
+//!   against the disagreement it carries instead of meeting a cliff at minute four.
+//!
+//! Owns the regressors H, one least-squares step, the calibration's prior, its bound and the
+//! predictive covariance H M Hᵀ. Must not keep a vehicle's state (the drift tracker does) or build
+//! channels.
+
+use serde::{Deserialize, Serialize};
+
+use super::linalg::Mat2;
+
+/// Memory of the calibration (s): forgetting λ = exp(−δ/600) per row.
+pub const CALIBRATION_MEMORY_S: f64 = 600.0;
+/// The calibration in use is a snapshot at least this old (s of valid data).
+pub const CALIBRATION_DELAY_S: f64 = 120.0;
+/// With timers: seconds of valid data before the calibrated channels switch on (ω_t reaches 1).
+pub const WARM_UP_S: f64 = 240.0;
+/// Prior (and cap) of the calibration's standard deviations: speed scale 5 %, heading bias 5°, timing 1 s.
+pub const CALIBRATION_PRIOR_STD: [f64; 3] = [0.05, 5.0 * std::f64::consts::PI / 180.0, 1.0];
+/// The calibration learns from blocks of consecutive valid rows at least this long (s): GNSS white
+/// noise telescopes in a block's summed residual while the onboard errors add up, so every block
+/// carries the same information at 1 Hz and at 10 Hz (row by row, a 10 Hz stream would calibrate
+/// ten times more slowly).
+pub const CALIBRATION_BLOCK_S: f64 = 1.0;
+/// With information-driven trust: how fast a compass's bias may wander, as a random walk
+/// (rad²/s). (0.05°)²/s wanders by about 0.9° in five minutes and 2.1° in half an hour, the
+/// range a mounted compass or an INS heading drifts by in service.
+pub const HEADING_WANDER_RAD2_PER_S: f64 = 7.615e-7;
+/// With information-driven trust: θ stays within this many prior standard deviations of the prior
+/// (0): ±15 % speed scale, ±15° heading bias, ±3 s lag. A spoofer who teaches the calibrator
+/// cannot move it further, and no vehicle in service is off by more.
+pub const THETA_BOUND_PRIORS: f64 = 3.0;
+/// With information-driven trust: a calibration whose remaining uncertainty is at most this share
+/// of the prior's counts as known where the fits need calibrated rows only.
+pub const FIT_TRUST: f64 = 0.75;
+
+/// How the detector decides how far to trust the vehicle's onboard calibration.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CalibrationTrust {
+    /// The calibrated channels switch on after [`WARM_UP_S`] of valid data (artifacts written
+    /// before information-driven trust).
+    #[default]
+    Timers,
+    /// Residuals, drift rates and offsets are cleaned with the calibration in use from the first
+    /// row and tested against a covariance that includes its uncertainty.
+    Information,
+}
+
+impl CalibrationTrust {
+    /// Its name in artifacts and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Timers => "timers",
+            Self::Information => "information",
+        }
+    }
+
+    /// The trust of a [`Self::name`].
+    pub fn from_name(name: &str) -> Option<Self> {
+        [Self::Timers, Self::Information]
+            .into_iter()
+            .find(|trust| trust.name() == name)
+    }
+
+    pub(crate) fn is_timers(&self) -> bool {
+        *self == Self::Timers
+    }
+}
+
+/// Columns of H_t = [u, J u, −Δv], J(x, y) = (y, −x): to first order a speed scale error ε, a heading
+/// bias β and an onboard lag τ_L make r = −ε u − β J u + τ_L Δv = −H θ.
+pub(super) fn regressors(u: [f64; 2], dv: [f64; 2]) -> [[f64; 2]; 3] {
+    [u, [u[1], -u[0]], [-dv[0], -dv[1]]]
+}
+
+/// H θ.
+pub(super) fn apply(h: &[[f64; 2]; 3], theta: &[f64; 3]) -> [f64; 2] {
+    [
+        h[0][0] * theta[0] + h[1][0] * theta[1] + h[2][0] * theta[2],
+        h[0][1] * theta[0] + h[1][1] * theta[1] + h[2][1] * theta[2],
+    ]
+}
+
+pub(super) fn add(a: [f64; 2], b: [f64; 2]) -> [f64; 2] {
+    [a[0] + b[0], a[1] + b[1]]
+}
+
+fn inverse(m: &Mat2) -> Option<Mat2> {
+    let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
+    (det.is_finite() && det > 0.0).then(|| {
+        [
+            [m[1][1] / det, -m[0][1] / det],
+            [-m[1][0] / det, m[0][0] / det],
+        ]
+    })
+}
+
+pub(super) fn prior_covariance() -> [[f64; 3]; 3] {
+    let mut p = [[0.0; 3]; 3];
+    for (i, std) in CALIBRATION_PRIOR_STD.iter().enumerate() {
+        p[i][i] = std * std;
+    }
+    p
+}
+
+fn symmetrised(p: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    std::array::from_fn(|i| std::array::from_fn(|j| 0.5 * (p[i][j] + p[j][i])))
+}
+
+/// D P D with D_ii = min(1, prior_i/√P_ii): no variance exceeds the prior, so directions the drive
+/// does not excite (a straight road) cannot wind the gain up; the congruence keeps P positive definite.
+fn cap_covariance(p: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    let d: [f64; 3] = std::array::from_fn(|i| {
+        let std = p[i][i].max(0.0).sqrt();
+        if std > CALIBRATION_PRIOR_STD[i] {
+            CALIBRATION_PRIOR_STD[i] / std
+        } else {
+            1.0
+        }
+    });
+    std::array::from_fn(|i| std::array::from_fn(|j| d[i] * p[i][j] * d[j]))
+}
+
+/// One recursive-least-squares step with exponential forgetting on the model r^c = −H θ + noise
+/// (`noise_variance` per axis) over `delta_t` seconds. With information-driven trust the heading
+/// bias may also have wandered since the last step, and θ stays within its bound. `None` when the
+/// step would not be finite (θ and P are then kept).
+pub(super) fn least_squares_step(
+    theta: &[f64; 3],
+    covariance: &[[f64; 3]; 3],
+    h: &[[f64; 2]; 3],
+    clipped: [f64; 2],
+    delta_t: f64,
+    noise_variance: f64,
+    trust: CalibrationTrust,
+) -> Option<([f64; 3], [[f64; 3]; 3])> {
+    let forgetting = (-delta_t / CALIBRATION_MEMORY_S).exp();
+    let mut p: [[f64; 3]; 3] = covariance.map(|row| row.map(|x| x / forgetting));
+    if trust == CalibrationTrust::Information {
+        p[1][1] += HEADING_WANDER_RAD2_PER_S * delta_t;
+    }
+    // With A = −H: S = H P Hᵀ + σ²I, K = −P Hᵀ S⁻¹, innovation = r^c + H θ.
+    let ph: [[f64; 2]; 3] =
+        std::array::from_fn(|i| std::array::from_fn(|a| (0..3).map(|j| p[i][j] * h[j][a]).sum()));
+    let mut s: Mat2 =
+        std::array::from_fn(|a| std::array::from_fn(|b| (0..3).map(|i| h[i][a] * ph[i][b]).sum()));
+    s[0][0] += noise_variance;
+    s[1][1] += noise_variance;
+    let s_inv = inverse(&s)?;
+    let innovation = add(clipped, apply(h, theta));
+    // G = P Hᵀ S⁻¹ (3×2); θ −= G·innovation; P −= G H P.
+    let gain: [[f64; 2]; 3] = std::array::from_fn(|i| {
+        std::array::from_fn(|b| ph[i][0] * s_inv[0][b] + ph[i][1] * s_inv[1][b])
+    });
+    let mut next = *theta;
+    for (i, value) in next.iter_mut().enumerate() {
+        *value -= gain[i][0] * innovation[0] + gain[i][1] * innovation[1];
+    }
+    let mut updated = p;
+    for (i, row) in updated.iter_mut().enumerate() {
+        for (j, cell) in row.iter_mut().enumerate() {
+            *cell -= gain[i][0] * ph[j][0] + gain[i][1] * ph[j][1];
+        }
+    }
+    if !(next.iter().all(|x| x.is_finite()) && updated.iter().flatten().all(|x| x.is_finite())) {
+        return None;
+    }
+    if trust == CalibrationTrust::Information {
+        for (value, std) in next.iter_mut().zip(CALIBRATION_PRIOR_STD) {
+            *value = value.clamp(-THETA_BOUND_PRIORS * std, THETA_BOUND_PRIORS * std);
+        }
+    }
+    Some((next, cap_covariance(symmetrised(updated))))
+}
+
+/// The mean squared error of the calibration in use for speed scale and heading bias, as
+/// (M_εε, M_εβ, M_ββ): M = P + (θ − θ_in_use)(θ − θ_in_use)ᵀ, the current posterior's spread
+/// around the delayed estimate.
+pub(super) fn in_use_error(
+    covariance: &[[f64; 3]; 3],
+    theta: &[f64; 3],
+    in_use: &[f64; 3],
+) -> [f64; 3] {
+    let d = [theta[0] - in_use[0], theta[1] - in_use[1]];
+    [
+        covariance[0][0] + d[0] * d[0],
+        0.5 * (covariance[0][1] + covariance[1][0]) + d[0] * d[1],
+        covariance[1][1] + d[1] * d[1],
+    ]
+}
+
+/// The covariance (m²) that a calibration error with mean squared error `error` (from
+/// [`in_use_error`]) leaves in a displacement dead-reckoned as `u`: [u, J u] M [u, J u]ᵀ.
+/// (The lag's share, τ_L·Δv, is left out: a velocity change is short and the lag small.)
+pub fn calibration_covariance(u: [f64; 2], error: &[f64; 3]) -> Mat2 {
+    let [m_ss, m_sh, m_hh] = *error;
+    let ju = [u[1], -u[0]];
+    std::array::from_fn(|a| {
+        std::array::from_fn(|b| {
+            m_ss * u[a] * u[b] + m_sh * (u[a] * ju[b] + ju[a] * u[b]) + m_hh * ju[a] * ju[b]
+        })
+    })
+}
+
+/// ω: how well the calibration in use is known, 1 − (its root mean squared error as a share of the
+/// prior's, speed scale and heading bias together), within [0, 1]. 0 at the prior; 1 when known
+/// exactly.
+pub(super) fn information_trust(error: &[f64; 3]) -> f64 {
+    let [p_ss, p_hh] = [
+        CALIBRATION_PRIOR_STD[0] * CALIBRATION_PRIOR_STD[0],
+        CALIBRATION_PRIOR_STD[1] * CALIBRATION_PRIOR_STD[1],
+    ];
+    let share = (0.5 * (error[0] / p_ss + error[2] / p_hh)).sqrt();
+    (1.0 - share).clamp(0.0, 1.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_known_calibration_leaves_no_covariance_and_full_trust() {
+        let error = in_use_error(&[[0.0; 3]; 3], &[0.01, 0.02, 0.1], &[0.01, 0.02, 0.3]);
+        assert_eq!(error, [0.0; 3], "the lag does not enter");
+        assert_eq!(calibration_covariance([10.0, 0.0], &error), [[0.0; 2]; 2]);
+        assert_eq!(information_trust(&error), 1.0);
+        assert_eq!(
+            information_trust(&in_use_error(&prior_covariance(), &[0.0; 3], &[0.0; 3])),
+            0.0
+        );
+    }
+
+    #[test]
+    fn a_heading_error_widens_only_across_the_track() {
+        // 1° of heading uncertainty at 20 m east: 20·(π/180) ≈ 0.349 m across (north), 0 along.
+        let beta = 1f64.to_radians();
+        let c = calibration_covariance([20.0, 0.0], &[0.0, 0.0, beta * beta]);
+        assert!(c[0][0].abs() < 1e-15 && c[0][1].abs() < 1e-15);
+        assert!((c[1][1] - (20.0 * beta).powi(2)).abs() < 1e-12, "{c:?}");
+        // A speed scale error of 2 % widens along it: (0.4 m)².
+        let c = calibration_covariance([20.0, 0.0], &[0.02 * 0.02, 0.0, 0.0]);
+        assert!((c[0][0] - 0.16).abs() < 1e-12 && c[1][1].abs() < 1e-15);
+    }
+
+    #[test]
+    fn the_error_of_a_delayed_estimate_adds_its_distance_from_the_current_one() {
+        // P = diag(1e-4, 4e-4); θ moved by (0.01, 0.02) since the snapshot in use.
+        let p = [[1e-4, 0.0, 0.0], [0.0, 4e-4, 0.0], [0.0, 0.0, 1.0]];
+        let error = in_use_error(&p, &[0.01, 0.02, 0.0], &[0.0, 0.0, 0.5]);
+        let expected = [1e-4 + 1e-4, 2e-4, 4e-4 + 4e-4];
+        for (got, want) in error.iter().zip(expected) {
+            assert!((got - want).abs() < 1e-18, "{error:?}");
+        }
+        // Trust: 1 − √(½(2e-4/0.0025 + 8e-4/(5°)²)).
+        let share = (0.5 * (2e-4 / 0.0025 + 8e-4 / 5f64.to_radians().powi(2))).sqrt();
+        assert!((information_trust(&error) - (1.0 - share)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn information_trust_bounds_theta_and_lets_the_heading_wander() {
+        // A residual that would teach a 40° heading bias in one step stops at 15°.
+        let h = regressors([10.0, 0.0], [0.0, 0.0]);
+        let huge = [0.0, 10.0 * 40f64.to_radians()];
+        let p = prior_covariance();
+        let (timers, _) =
+            least_squares_step(&[0.0; 3], &p, &h, huge, 1.0, 1e-6, CalibrationTrust::Timers)
+                .expect("finite");
+        let (information, _) = least_squares_step(
+            &[0.0; 3],
+            &p,
+            &h,
+            huge,
+            1.0,
+            1e-6,
+            CalibrationTrust::Information,
+        )
+        .expect("finite");
+        assert!(timers[1].to_degrees().abs() > 30.0, "{timers:?}");
+        assert!(
+            (information[1].abs() - 15f64.to_radians()).abs() < 1e-12,
+            "{information:?}"
+        );
+        // With no information in the step (u = 0), P grows by the forgetting, and with
+        // information trust by the wander too.
+        let tiny = [[1e-8, 0.0, 0.0], [0.0, 1e-8, 0.0], [0.0, 0.0, 1e-8]];
+        let still = regressors([0.0, 0.0], [0.0, 0.0]);
+        let step = |trust| {
+            least_squares_step(&[0.0; 3], &tiny, &still, [0.0; 2], 1.0, 1.0, trust)
+                .expect("finite")
+                .1
+        };
+        let forgetting = (-1.0f64 / CALIBRATION_MEMORY_S).exp();
+        assert!((step(CalibrationTrust::Timers)[1][1] - 1e-8 / forgetting).abs() < 1e-20);
+        assert!(
+            (step(CalibrationTrust::Information)[1][1]
+                - (1e-8 / forgetting + HEADING_WANDER_RAD2_PER_S))
+                .abs()
+                < 1e-20
+        );
+    }
+
+    #[test]
+    fn trust_names_round_trip() {
+        for trust in [CalibrationTrust::Timers, CalibrationTrust::Information] {
+            assert_eq!(CalibrationTrust::from_name(trust.name()), Some(trust));
+        }
+        assert_eq!(CalibrationTrust::from_name("clock"), None);
+    }
+}
