@@ -4,6 +4,7 @@
 use std::hint::black_box;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use spoofwatch_core::evidence::calibration::CalibrationTrust;
 use spoofwatch_core::evidence::drift::DriftParams;
 use spoofwatch_core::evidence::offset::OffsetParams;
 use spoofwatch_core::evidence::{EvidenceBuilder, EvidenceParams};
@@ -44,12 +45,19 @@ fn synthetic_drive(seed: u64, with_uncertainty: bool) -> Vec<Sample> {
         .collect()
 }
 
-fn params(projection: Projection, drift: bool, offset: bool) -> EvidenceParams {
+fn params(
+    projection: Projection,
+    drift: bool,
+    offset: bool,
+    trust: CalibrationTrust,
+) -> EvidenceParams {
     let paper = EvidenceParams::new([[3.936, 0.183], [0.183, 2.150]], 0.294, projection)
         .expect("valid parameters");
     // Evidence v2: the drift tracker with per-vehicle levels (whitening values do not change the cost).
     let drift = drift.then(|| DriftParams {
         vehicle_levels: true,
+        trust,
+        stale_fix_while_moving: true,
         ..DriftParams::unwhitened(1.2)
     });
     // Evidence v3: the anchors with the trained default's scale (values do not change the cost).
@@ -70,22 +78,39 @@ fn params(projection: Projection, drift: bool, offset: bool) -> EvidenceParams {
 fn bench_builder(c: &mut Criterion) {
     let mut group = c.benchmark_group("evidence_builder");
     group.throughput(Throughput::Elements(SAMPLES as u64));
+    let (timers, information) = (CalibrationTrust::Timers, CalibrationTrust::Information);
     let cases = [
-        ("wgs84_local", Projection::Wgs84Local, false, false, false),
+        (
+            "wgs84_local",
+            Projection::Wgs84Local,
+            false,
+            false,
+            false,
+            timers,
+        ),
         (
             "equirectangular",
             Projection::Equirectangular,
             false,
             false,
             false,
+            timers,
         ),
-        ("per_step_sigma", Projection::Wgs84Local, true, false, false),
+        (
+            "per_step_sigma",
+            Projection::Wgs84Local,
+            true,
+            false,
+            false,
+            timers,
+        ),
         (
             "v2_drift_channels",
             Projection::Wgs84Local,
             false,
             true,
             false,
+            timers,
         ),
         (
             "v3_offset_channels",
@@ -93,11 +118,21 @@ fn bench_builder(c: &mut Criterion) {
             false,
             true,
             true,
+            timers,
+        ),
+        // The calibration trusted from its uncertainty: the covariance of every test carries it.
+        (
+            "v3_offset_channels_information_trust",
+            Projection::Wgs84Local,
+            false,
+            true,
+            true,
+            information,
         ),
     ];
-    for (name, projection, with_uncertainty, drift, offset) in cases {
+    for (name, projection, with_uncertainty, drift, offset, trust) in cases {
         let samples = synthetic_drive(3, with_uncertainty);
-        let mut builder = EvidenceBuilder::new(params(projection, drift, offset));
+        let mut builder = EvidenceBuilder::new(params(projection, drift, offset, trust));
         group.bench_function(name, |b| {
             b.iter(|| {
                 builder.reset();

@@ -78,7 +78,8 @@ pub struct Args {
     /// Measure the model's own critical test instead of choosing one.
     #[arg(long)]
     keep_critical: bool,
-    /// Write the model with the chosen critical test to this file.
+    /// Write the model with the chosen critical test to this file (without its training wall time,
+    /// so that retraining writes the same bytes).
     #[arg(long)]
     write_model: Option<PathBuf>,
     /// Drive every clean drive (validation and test) without these error sources of the fleet
@@ -191,6 +192,9 @@ pub fn run(args: Args) -> Result<()> {
     };
     if let Some(path) = &args.write_model {
         let mut written = artifact.clone();
+        // The one field that differs between two runs of the same training: a model written here
+        // (the bundled default) is reproducible bit for bit.
+        written.provenance.train_wall_time_s = 0.0;
         written.provenance.notes = format!(
             "{}; critical test chosen by `spoofwatch-lab experiment fleet-alarms --seed {} \
              --validation-hours {} --repeats {}`",
