@@ -25,8 +25,10 @@ pub use spoofwatch_client::{
     AuthenticatedChannel, ClientError, ConnectOptions, Connection, DetectStream,
 };
 use spoofwatch_core::data::telemetry::write_tracks;
+use spoofwatch_core::model::artifact::ModelArtifact;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
+use spoofwatch_core::severity::CriticalTest;
 use spoofwatch_proto::longrunning;
 use spoofwatch_proto::longrunning::operation;
 use spoofwatch_proto::longrunning::operations_client::OperationsClient;
@@ -39,6 +41,7 @@ use spoofwatch_proto::v1::training_service_client::TrainingServiceClient;
 use spoofwatch_proto::wire::convert::sample_to_proto;
 use spoofwatch_server::Config;
 use spoofwatch_server::inprocess::{InProcessError, InProcessServer};
+use spoofwatch_server::models::registry::BUNDLED_MODEL;
 use spoofwatch_server::store::AlarmEventRow;
 use tonic::Code;
 use tonic::transport::Channel;
@@ -389,6 +392,27 @@ pub fn field_violations(status: &tonic_types::Status) -> Vec<(String, String)> {
         })
         .map(|v| (v.field, v.description))
         .collect()
+}
+
+/// The critical test the black-box tests give the bundled model (`docs/detector.md` §7.4): an
+/// alarm turns critical once the anchor NIS stays at or beyond 400 for 1 s (a large jump), or once
+/// the logit of p̂ above 5, summed over seconds, reaches 10. Made up for the tests (not chosen on
+/// validation hours): what is under test is the severity's path through the server.
+pub const TEST_CRITICAL: CriticalTest = CriticalTest {
+    reference_logit: 5.0,
+    threshold: 10.0,
+    gate: 400.0,
+    decisive_s: 1.0,
+};
+
+/// The bundled default model's artifact with a critical level, [`TEST_CRITICAL`] (the bundled
+/// model itself has none: it raises warnings only).
+pub fn artifact_with_critical_level() -> Vec<u8> {
+    let mut artifact = ModelArtifact::from_slice(BUNDLED_MODEL).expect("the bundled model");
+    artifact.critical = Some(TEST_CRITICAL);
+    artifact
+        .to_vec()
+        .expect("the artifact with a critical level is valid")
 }
 
 /// Drains a server-streaming model export into the artifact's bytes.

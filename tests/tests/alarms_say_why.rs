@@ -87,6 +87,7 @@ async fn watched(clients: &mut Clients) -> Vec<v1::AlarmEvent> {
             vehicle_id: VEHICLE.to_string(),
             after_cursor: Some(0),
             stop_when_caught_up: true,
+            ..Default::default()
         })
         .await
         .expect("WatchAlarms")

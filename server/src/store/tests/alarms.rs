@@ -1,7 +1,7 @@
 //! Alarm events: batched onsets and ends with server-assigned ids, retries, list, recovery of open
 //! alarms, and the event log's positions (assigned by the database in commit order).
 
-use crate::alarms::event::{ended, opened};
+use crate::alarms::event::{Onset, ended, opened};
 use crate::store::{
     AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent,
     PageRequest, Store, StoreError, StoredWhy,
@@ -19,12 +19,7 @@ pub(super) fn onset(
         kind: AlarmEventKind::Onset,
         alarm: opened(
             id,
-            vehicle_id,
-            "m1",
-            onset_timestamp_s,
-            1_000 + id,
-            probability,
-            None,
+            &Onset::warning(vehicle_id, "m1", onset_timestamp_s, 1_000 + id, probability),
         ),
     }
 }
@@ -41,7 +36,7 @@ pub(super) fn end(
         seq: 1_000 + id,
         kind: AlarmEventKind::End,
         alarm: ended(
-            &opened(id, "unread", "unread", 0.0, 0, 0.5, None),
+            &opened(id, &Onset::warning("unread", "unread", 0.0, 0, 0.5)),
             Some(end_timestamp_s),
             2_000 + id,
             peak_probability,

@@ -40,6 +40,7 @@ mod incidents;
 mod jobs;
 mod models;
 mod postgres;
+mod severities;
 mod snapshots;
 
 use serde_json::json;
