@@ -3,8 +3,9 @@
 //! or critical at once), its escalation when it opened as a warning (a drift does), and its end,
 //! critical;
 //! ListAlarms and WatchAlarms filtered by CRITICAL return it, and an unknown severity filter is
-//! INVALID_ARGUMENT naming `severity`. A model without a critical level raises warnings only, and
-//! says so (Model.critical is absent).
+//! INVALID_ARGUMENT naming `severity`. An alarm held over a session hand-off keeps its severity
+//! and escalation. A model without a critical level raises warnings only, and says so
+//! (Model.critical is absent).
 //!
 //! The critical level is the bundled model's with a made-up critical test
 //! ([`spoofwatch_tests::TEST_CRITICAL`]): the server's path is under test, not the test's choice.
@@ -14,8 +15,8 @@ use std::time::Duration;
 use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::v1;
 use spoofwatch_tests::{
-    Clients, TEST_CRITICAL, artifact_with_critical_level, attacked_drive, import_model,
-    start_server, start_stream, track_samples,
+    Clients, TEST_CRITICAL, TestServer, artifact_with_critical_level, attacked_drive, import_model,
+    start_server, start_stream, test_config, track_samples,
 };
 use tonic::Code;
 use tonic_types::StatusExt;
@@ -261,6 +262,102 @@ async fn on_a_model_with_a_critical_level_an_alarm_turns_critical_as_one_alarm()
 
     drop(clients);
     server.stop().await;
+}
+
+/// Sends `batches` (numbered from `first_seq`) on a stream of `vehicle` through `model`; returns
+/// the detections.
+async fn stream_batches(
+    clients: &Clients,
+    (vehicle, model): (&str, &str),
+    batches: &[Vec<v1::Sample>],
+    first_seq: u64,
+) -> (v1::SessionAccepted, Vec<v1::Detection>) {
+    let (mut stream, accepted) = start_stream(clients, vehicle, model).await;
+    let mut detections = Vec::new();
+    for (seq, batch) in (first_seq..).zip(batches) {
+        detections.extend(
+            stream
+                .detect(seq, batch.clone())
+                .await
+                .expect("one detection per sample"),
+        );
+    }
+    stream.finish().await.expect("the stream ends with OK");
+    (accepted, detections)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_alarm_held_over_a_hand_off_keeps_its_severity_and_escalation() {
+    let vehicle = "handed-over";
+    let drift = AttackKind::RampDrift { velocity_mps: 2.0 };
+    let track = attacked_drive(vehicle, 300.0, 41, drift, 100.0, 120.0);
+    let batches: Vec<Vec<v1::Sample>> = track_samples(&track)
+        .chunks(10)
+        .map(<[v1::Sample]>::to_vec)
+        .collect();
+    let cut = 20; // batches: 200 s, inside the drift, after its alarm turned critical
+
+    let dir = tempfile::tempdir().expect("temp dir");
+    let first = TestServer::start(test_config(dir.path())).await;
+    let mut clients = Clients::of(&first).await;
+    let model = import_model(&mut clients, artifact_with_critical_level(), "paging").await;
+    let on = (vehicle, model.name.as_str());
+    let (_, before) = stream_batches(&clients, on, &batches[..cut], 1).await;
+    let last = before.last().expect("detections");
+    assert_eq!(
+        (last.alarm, last.severity),
+        (true, CRITICAL),
+        "the alarm is critical at the cut"
+    );
+    let escalated_s = before
+        .iter()
+        .find(|d| d.alarm_escalated)
+        .map(|d| d.timestamp_s);
+    assert!(
+        before
+            .iter()
+            .any(|d| d.alarm_onset && d.severity == WARNING),
+        "it opened as a warning"
+    );
+    drop(clients);
+    first.stop().await;
+
+    // The next server on the database continues the session, and the alarm, from the snapshot.
+    let second = TestServer::start(test_config(dir.path())).await;
+    let mut clients = Clients::of(&second).await;
+    let (accepted, after) = stream_batches(&clients, on, &batches[cut..], cut as u64 + 1).await;
+    assert!(accepted.from_snapshot, "{accepted:?}");
+    let first_after = after.first().expect("detections");
+    assert_eq!((first_after.alarm, first_after.severity), (true, CRITICAL));
+    assert!(
+        after
+            .iter()
+            .take_while(|d| d.alarm)
+            .all(|d| !d.alarm_onset && !d.alarm_escalated && d.severity == CRITICAL),
+        "the alarm held over goes on, critical: no second onset, no second escalation"
+    );
+
+    let alarms = ended_alarms(&mut clients, vehicle).await;
+    let alarm = &alarms[0];
+    assert_eq!(
+        (alarm.severity, alarm.escalated_timestamp_s),
+        (CRITICAL, escalated_s)
+    );
+    let events: Vec<_> = watched(&mut clients, vehicle, 0)
+        .await
+        .into_iter()
+        .filter(|e| e.1 == alarm.id)
+        .collect();
+    assert_eq!(
+        events,
+        [
+            (ONSET, alarm.id, WARNING),
+            (ESCALATED, alarm.id, CRITICAL),
+            (END, alarm.id, CRITICAL)
+        ]
+    );
+    drop(clients);
+    second.stop().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

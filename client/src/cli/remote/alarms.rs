@@ -14,7 +14,7 @@ use anyhow::{Context, Result};
 use serde_json::{Value, json};
 use spoofwatch_proto::v1;
 
-use super::detect::why_name;
+use super::detect::{severity_name, why_name};
 use super::{ResourceArgs, opt, pages_up_to, print_table, time};
 use crate::cli::server_flags::ServerArgs;
 
@@ -288,16 +288,6 @@ pub(super) async fn print_watch<C: WatchCall>(
 /// `; resume with --after N` when there is a cursor.
 pub(super) fn resume_hint(cursor: Option<i64>) -> String {
     cursor.map_or_else(String::new, |c| format!("; resume with --after {c}"))
-}
-
-/// The lowercase name of a severity on the wire (`warning`, `critical`); `None` for UNSPECIFIED
-/// (no alarm open) or a number this build does not know.
-pub fn severity_name(severity: i32) -> Option<&'static str> {
-    match v1::AlarmSeverity::try_from(severity).ok()? {
-        v1::AlarmSeverity::Unspecified => None,
-        v1::AlarmSeverity::Warning => Some("warning"),
-        v1::AlarmSeverity::Critical => Some("critical"),
-    }
 }
 
 /// An alarm as one JSON object (the shape `list --json` and `watch` print).
