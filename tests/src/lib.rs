@@ -349,6 +349,28 @@ pub async fn start_stream(
     (stream, accepted)
 }
 
+/// Sends `batches` (numbered from `first_seq`) on a stream of `vehicle` through `model` (empty: the
+/// active one), ends it, and returns its `SessionAccepted` and the batches' detections.
+pub async fn stream_batches(
+    clients: &Clients,
+    (vehicle, model): (&str, &str),
+    batches: &[Vec<v1::Sample>],
+    first_seq: u64,
+) -> (v1::SessionAccepted, Vec<v1::Detection>) {
+    let (mut stream, accepted) = start_stream(clients, vehicle, model).await;
+    let mut detections = Vec::new();
+    for (seq, batch) in (first_seq..).zip(batches) {
+        detections.extend(
+            stream
+                .detect(seq, batch.clone())
+                .await
+                .expect("one detection per sample"),
+        );
+    }
+    stream.finish().await.expect("the stream ends with OK");
+    (accepted, detections)
+}
+
 /// Opens a call whose first message is `first` (replies bounded by [`REPLY_TIMEOUT`]); `Err` when
 /// the call itself is refused.
 pub async fn open_stream(
@@ -680,6 +702,51 @@ pub async fn alarms_of(
             )
         })
         .collect()
+}
+
+/// The stored alarms of `vehicle` of at least `severity` (an `AlarmSeverity` number; 0 for every
+/// alarm), oldest first.
+pub async fn listed_alarms(clients: &mut Clients, vehicle: &str, severity: i32) -> Vec<v1::Alarm> {
+    let mut alarms = clients
+        .alarms
+        .list_alarms(v1::ListAlarmsRequest {
+            vehicle_id: vehicle.to_string(),
+            severity,
+            ..Default::default()
+        })
+        .await
+        .expect("ListAlarms")
+        .into_inner()
+        .alarms;
+    alarms.sort_by_key(|a| a.id);
+    alarms
+}
+
+/// Every stored alarm event of `vehicle` of at least `severity` (0 for every event), replayed by
+/// WatchAlarms from the start; the CAUGHT_UP event is left out.
+pub async fn replayed_alarm_events(
+    clients: &mut Clients,
+    vehicle: &str,
+    severity: i32,
+) -> Vec<v1::AlarmEvent> {
+    let mut stream = clients
+        .alarms
+        .watch_alarms(v1::WatchAlarmsRequest {
+            vehicle_id: vehicle.to_string(),
+            after_cursor: Some(0),
+            stop_when_caught_up: true,
+            severity,
+        })
+        .await
+        .expect("WatchAlarms")
+        .into_inner();
+    let mut events = Vec::new();
+    while let Some(event) = stream.message().await.expect("the replay goes on") {
+        if event.kind != v1::AlarmEventKind::CaughtUp as i32 {
+            events.push(event);
+        }
+    }
+    events
 }
 
 /// The health status the server reports for `service` ("" = overall).

@@ -16,7 +16,8 @@ use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::v1;
 use spoofwatch_tests::{
     Clients, TEST_CRITICAL, TestServer, artifact_with_critical_level, attacked_drive, import_model,
-    start_server, start_stream, test_config, track_samples,
+    listed_alarms, replayed_alarm_events, start_server, start_stream, stream_batches, test_config,
+    track_samples,
 };
 use tonic::Code;
 use tonic_types::StatusExt;
@@ -26,7 +27,6 @@ const CRITICAL: i32 = v1::AlarmSeverity::Critical as i32;
 const ONSET: i32 = v1::AlarmEventKind::Onset as i32;
 const ESCALATED: i32 = v1::AlarmEventKind::Escalated as i32;
 const END: i32 = v1::AlarmEventKind::End as i32;
-const CAUGHT_UP: i32 = v1::AlarmEventKind::CaughtUp as i32;
 
 /// A 300 s drive attacked by `attack` from 100 s for 120 s, through `model`, 50 samples per
 /// batch; the detections.
@@ -51,58 +51,30 @@ async fn stream_attack(
     detections
 }
 
-/// The stored alarms of `vehicle` at least `severity` (a wire number), oldest first.
-async fn listed(clients: &mut Clients, vehicle: &str, severity: i32) -> Vec<v1::Alarm> {
-    let mut alarms = clients
-        .alarms
-        .list_alarms(v1::ListAlarmsRequest {
-            vehicle_id: vehicle.to_string(),
-            severity,
-            ..Default::default()
+/// Every stored event of `vehicle` of at least `severity`, replayed from the start, as (kind,
+/// alarm id, alarm severity).
+async fn watched(clients: &mut Clients, vehicle: &str, severity: i32) -> Vec<(i32, i64, i32)> {
+    let events = replayed_alarm_events(clients, vehicle, severity).await;
+    events
+        .into_iter()
+        .map(|event| {
+            let alarm = event.alarm.expect("an alarm event carries its alarm");
+            (event.kind, alarm.id, alarm.severity)
         })
-        .await
-        .expect("ListAlarms")
-        .into_inner()
-        .alarms;
-    alarms.sort_by_key(|a| a.id);
-    alarms
+        .collect()
 }
 
 /// The stored alarms of `vehicle` once every one has ended (they are stored in the background;
 /// polled every 50 ms, failing after 30 s: a hang guard, not a timing assertion).
 async fn ended_alarms(clients: &mut Clients, vehicle: &str) -> Vec<v1::Alarm> {
     for _ in 0..600 {
-        let alarms = listed(clients, vehicle, 0).await;
+        let alarms = listed_alarms(clients, vehicle, 0).await;
         if !alarms.is_empty() && alarms.iter().all(|a| !a.open) {
             return alarms;
         }
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     panic!("the alarms of {vehicle} were not stored as ended");
-}
-
-/// Every stored event of `vehicle` at least `severity`, replayed from the start, as (kind, alarm
-/// id, alarm severity).
-async fn watched(clients: &mut Clients, vehicle: &str, severity: i32) -> Vec<(i32, i64, i32)> {
-    let mut stream = clients
-        .alarms
-        .watch_alarms(v1::WatchAlarmsRequest {
-            vehicle_id: vehicle.to_string(),
-            after_cursor: Some(0),
-            stop_when_caught_up: true,
-            severity,
-        })
-        .await
-        .expect("WatchAlarms")
-        .into_inner();
-    let mut events = Vec::new();
-    while let Some(event) = stream.message().await.expect("the replay goes on") {
-        if event.kind != CAUGHT_UP {
-            let alarm = event.alarm.expect("an alarm event carries its alarm");
-            events.push((event.kind, alarm.id, alarm.severity));
-        }
-    }
-    events
 }
 
 /// The detections' severities are those of one episode: UNSPECIFIED while no alarm is on, set
@@ -192,7 +164,7 @@ async fn check_the_alarm_that_turned_critical(
         of_alarm(watched(clients, vehicle, CRITICAL).await),
         expected[expected.len() - 2..]
     );
-    let critical_alarms = listed(clients, vehicle, CRITICAL).await;
+    let critical_alarms = listed_alarms(clients, vehicle, CRITICAL).await;
     assert!(critical_alarms.iter().all(|a| a.severity == CRITICAL));
     assert!(critical_alarms.iter().any(|a| a.id == alarm.id));
     let warnings = alarms.iter().filter(|a| a.severity == WARNING).count();
@@ -262,28 +234,6 @@ async fn on_a_model_with_a_critical_level_an_alarm_turns_critical_as_one_alarm()
 
     drop(clients);
     server.stop().await;
-}
-
-/// Sends `batches` (numbered from `first_seq`) on a stream of `vehicle` through `model`; returns
-/// the detections.
-async fn stream_batches(
-    clients: &Clients,
-    (vehicle, model): (&str, &str),
-    batches: &[Vec<v1::Sample>],
-    first_seq: u64,
-) -> (v1::SessionAccepted, Vec<v1::Detection>) {
-    let (mut stream, accepted) = start_stream(clients, vehicle, model).await;
-    let mut detections = Vec::new();
-    for (seq, batch) in (first_seq..).zip(batches) {
-        detections.extend(
-            stream
-                .detect(seq, batch.clone())
-                .await
-                .expect("one detection per sample"),
-        );
-    }
-    stream.finish().await.expect("the stream ends with OK");
-    (accepted, detections)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -390,7 +340,11 @@ async fn a_model_without_a_critical_level_raises_warnings_only() {
             .iter()
             .all(|a| a.severity == WARNING && a.escalated_timestamp_s.is_none())
     );
-    assert!(listed(&mut clients, "warned", CRITICAL).await.is_empty());
+    assert!(
+        listed_alarms(&mut clients, "warned", CRITICAL)
+            .await
+            .is_empty()
+    );
     assert!(watched(&mut clients, "warned", CRITICAL).await.is_empty());
     let events = watched(&mut clients, "warned", WARNING).await;
     assert_eq!(events.len(), 2 * alarms.len(), "an onset and an end each");

@@ -194,7 +194,6 @@ mod alarms_before_version_10_are_warnings {
     use spoofwatch_core::severity::Severity;
 
     use super::escalation;
-    use crate::store::test_database::TestDatabase;
     use crate::store::{AlarmEventKind, AlarmFilter, PageRequest, Store};
 
     const OLD: [&str; 2] = [
@@ -243,40 +242,5 @@ mod alarms_before_version_10_are_warnings {
         );
     }
 
-    #[tokio::test]
-    async fn sqlite() {
-        let dir = tempfile::tempdir().expect("temp dir");
-        let path = dir.path().join("v9.db");
-        let url = format!("sqlite://{}?mode=rwc", path.display());
-        let pool = sqlx::SqlitePool::connect(&url).await.expect("connect");
-        sqlx::migrate!("../migrations/sqlite")
-            .run_to(9, &pool)
-            .await
-            .expect("schema version 9");
-        for sql in OLD {
-            sqlx::query(sql).execute(&pool).await.expect(sql);
-        }
-        pool.close().await;
-        check(Store::open(&path.to_string_lossy()).await.expect("open")).await;
-    }
-
-    #[tokio::test]
-    async fn postgres() {
-        let Some(database) = TestDatabase::create("alarms_before_version_10").await else {
-            return;
-        };
-        let pool = sqlx::PgPool::connect(&database.url).await.expect("connect");
-        sqlx::migrate!("../migrations/postgres")
-            .run_to(9, &pool)
-            .await
-            .expect("schema version 9");
-        for sql in OLD {
-            sqlx::query(sql).execute(&pool).await.expect(sql);
-        }
-        pool.close().await;
-        let store = Store::open(&database.url).await.expect("open");
-        check(store.clone()).await;
-        store.close().await;
-        database.drop_database().await;
-    }
+    from_schema_version!(9, sqlite: OLD, postgres: OLD);
 }
