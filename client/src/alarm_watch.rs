@@ -38,10 +38,11 @@ pub trait WatchCall: Send + Sync {
     fn cursor(event: &Self::Event) -> i64;
 }
 
-/// WatchAlarms, for one vehicle or (empty) the whole fleet.
+/// WatchAlarms, for one vehicle or (empty) the whole fleet, of at least a severity.
 #[derive(Clone, Debug, Default)]
 pub struct AlarmCall {
     pub vehicle_id: String,
+    pub min_severity: v1::AlarmSeverity,
 }
 
 impl WatchCall for AlarmCall {
@@ -57,6 +58,7 @@ impl WatchCall for AlarmCall {
             vehicle_id: self.vehicle_id.clone(),
             after_cursor,
             stop_when_caught_up: false,
+            severity: self.min_severity as i32,
         };
         Ok(connection
             .alarms()
@@ -104,6 +106,9 @@ impl WatchCall for IncidentCall {
 pub struct WatchOptions {
     /// One vehicle's alarm events only (empty: the whole fleet; incidents are not filtered).
     pub vehicle_id: String,
+    /// Alarm events at least this severe only (UNSPECIFIED or WARNING: every event; CRITICAL:
+    /// critical onsets, escalations and ends of critical alarms; incidents are not filtered).
+    pub min_severity: v1::AlarmSeverity,
     /// Start after this cursor (`Some(0)`: every stored event); `None`: only events from now on.
     pub after_cursor: Option<i64>,
     /// Keep trying to reconnect for this long after the call ended with UNAVAILABLE (zero: never
@@ -136,6 +141,7 @@ impl AlarmWatch {
     pub fn new(connection: Connection, options: WatchOptions) -> Self {
         let call = AlarmCall {
             vehicle_id: options.vehicle_id.clone(),
+            min_severity: options.min_severity,
         };
         ResumableWatch::of(connection, call, &options)
     }

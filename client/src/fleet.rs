@@ -2,7 +2,9 @@
 //! samples, attack-free hours, reconnects and GNSS gaps, and every alarm onset on an attack-free
 //! row classified by where it starts — within 30 s of a session (stream) start, within 30 s after
 //! a GNSS gap, or elsewhere — so that alarm storms at reconnects and tunnels show up as such.
-//! Onsets on attacked rows are counted apart, as detections.
+//! Onsets on attacked rows are counted apart, as detections. The alarms that turned critical (the
+//! paging level: an onset that was critical at once, or an escalation) are counted the same way,
+//! by where they turned critical.
 //!
 //! It owns the tally and the onset classification and reads nothing but [`ReplayEvent`]s. It must
 //! not talk to the server, read files or print: the commands and tests do.
@@ -127,8 +129,12 @@ pub struct VehicleTally {
     pub gaps: u64,
     pub false_alarms: OnsetCounts,
     pub false_alarm_onsets: Vec<FalseAlarm>,
+    /// Alarms that turned critical on attack-free rows, by where they turned critical.
+    pub critical_false_alarms: OnsetCounts,
     /// Onsets on attacked (label 1) rows.
     pub detections: u64,
+    /// Alarms that turned critical on attacked rows.
+    pub critical_detections: u64,
     /// Onsets on unlabelled rows (neither false alarms nor detections).
     pub unlabelled_onsets: u64,
     #[serde(skip)]
@@ -167,6 +173,17 @@ impl VehicleTally {
             }
         }
         self.previous_t = Some(t);
+        if d.detection.alarm_escalated {
+            match d.label {
+                Some(false) => self.critical_false_alarms.add(classify_onset(
+                    t,
+                    self.stream_start_s,
+                    self.gap_end_s,
+                )),
+                Some(true) => self.critical_detections += 1,
+                None => {}
+            }
+        }
         if !d.detection.alarm_onset {
             return;
         }
@@ -272,10 +289,19 @@ impl FleetTally {
             summary.vehicles_with_false_alarms += usize::from(v.false_alarms.total() > 0);
             summary.detections += v.detections;
             summary.unlabelled_onsets += v.unlabelled_onsets;
+            summary
+                .critical_false_alarms
+                .add_all(&v.critical_false_alarms);
+            summary.critical_detections += v.critical_detections;
         }
         summary.attack_free_hours = attack_free_s / SECONDS_PER_HOUR;
-        summary.false_alarms_per_attack_free_hour = (summary.attack_free_hours > 0.0)
-            .then(|| summary.false_alarms.total() as f64 / summary.attack_free_hours);
+        let per_hour = |count: &OnsetCounts| {
+            (summary.attack_free_hours > 0.0)
+                .then(|| count.total() as f64 / summary.attack_free_hours)
+        };
+        summary.false_alarms_per_attack_free_hour = per_hour(&summary.false_alarms);
+        summary.critical_false_alarms_per_attack_free_hour =
+            per_hour(&summary.critical_false_alarms);
         let mut worst: Vec<&VehicleTally> = self
             .vehicles
             .values()
@@ -341,6 +367,13 @@ pub struct FleetSummary {
     pub detections: u64,
     /// Onsets on unlabelled rows.
     pub unlabelled_onsets: u64,
+    /// Alarms that turned critical (the paging level) on attack-free rows, by where they turned
+    /// critical; all zero for a model without a critical level.
+    pub critical_false_alarms: OnsetCounts,
+    /// `critical_false_alarms` in total per attack-free hour (`None` without attack-free time).
+    pub critical_false_alarms_per_attack_free_hour: Option<f64>,
+    /// Alarms that turned critical on attacked rows.
+    pub critical_detections: u64,
     pub worst_vehicles: Vec<WorstVehicle>,
     /// The classification's windows and gap rule, so a summary file explains itself.
     pub session_start_window_s: f64,
@@ -576,6 +609,38 @@ mod tests {
             json["worst_vehicles"][0]["onsets"][0]["place"],
             "session_start"
         );
+    }
+
+    #[test]
+    fn alarms_that_turn_critical_are_counted_by_where_they_turned_critical() {
+        let mut fleet = FleetTally::default();
+        fleet.record(&accepted("car", 0, false));
+        // Warnings from 5 s and 100 s; the first turns critical at 10 s (within 30 s of the
+        // start), the second at 150 s; an attack from 200 s opens critical at once.
+        for t in 0..=210 {
+            let t = f64::from(t);
+            let mut event = detection("car", t, Some(t >= 200.0), false, t == 0.0);
+            if let ReplayEvent::Detection(d) = &mut event {
+                d.detection.alarm_onset = [5.0, 100.0, 201.0].contains(&t);
+                d.detection.alarm_escalated = [10.0, 150.0, 201.0].contains(&t);
+            }
+            fleet.record(&event);
+        }
+        let summary = fleet.summary();
+        assert_eq!(summary.false_alarms.total(), 2);
+        assert_eq!(
+            summary.critical_false_alarms,
+            OnsetCounts {
+                session_start: 1,
+                after_gap: 0,
+                elsewhere: 1
+            }
+        );
+        assert_eq!(
+            summary.critical_false_alarms_per_attack_free_hour,
+            Some(2.0 / summary.attack_free_hours)
+        );
+        assert_eq!((summary.detections, summary.critical_detections), (1, 1));
     }
 
     #[test]

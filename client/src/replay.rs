@@ -278,6 +278,8 @@ pub struct ReplaySummary {
     pub rejected_batches: u64,
     /// Confirmed alarm onsets in the final output.
     pub alarm_onsets: u64,
+    /// Of those alarms, the ones that turned critical (at their onset or later).
+    pub critical_alarms: u64,
     /// Streams opened (1 + reconnects, failovers included).
     pub streams: u32,
     /// Reconnects the server answered by resuming the session (`SessionAccepted.resumed`).
@@ -319,6 +321,7 @@ struct PlannedBatch {
 struct BatchResult {
     detections: u64,
     alarm_onsets: u64,
+    critical_alarms: u64,
     rejected: bool,
     /// Applied by the session, its reply lost with a failed stream.
     reply_lost: bool,
@@ -434,6 +437,7 @@ impl VehicleReplay<'_> {
         for result in self.results.iter().flatten() {
             self.summary.detections += result.detections;
             self.summary.alarm_onsets += result.alarm_onsets;
+            self.summary.critical_alarms += result.critical_alarms;
             self.summary.rejected_batches += u64::from(result.rejected);
         }
         Ok(self.summary)
@@ -472,6 +476,7 @@ impl VehicleReplay<'_> {
                 *result = Some(BatchResult {
                     detections: 0,
                     alarm_onsets: 0,
+                    critical_alarms: 0,
                     rejected: false,
                     reply_lost: true,
                 });
@@ -635,12 +640,13 @@ impl VehicleReplay<'_> {
                         self.pacer.due_after_start(position),
                         self.pacer.due(position).elapsed(),
                     );
-                    let mut result = BatchResult { detections: 0, alarm_onsets: 0, rejected: false, reply_lost: false };
+                    let mut result = BatchResult { detections: 0, alarm_onsets: 0, critical_alarms: 0, rejected: false, reply_lost: false };
                     match reply.outcome {
                         BatchOutcome::Detections(detections) => {
                             for (offset, detection) in detections.into_iter().enumerate() {
                                 result.detections += 1;
                                 result.alarm_onsets += u64::from(detection.alarm_onset);
+                                result.critical_alarms += u64::from(detection.alarm_escalated);
                                 self.forward(first_index + offset, stream_number, first_on_stream, timing, detection)
                                     .await;
                                 first_on_stream = false;

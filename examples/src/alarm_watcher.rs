@@ -23,6 +23,8 @@ pub async fn run(
         vehicle_id: String::new(), // the whole fleet
         after_cursor,
         stop_when_caught_up,
+        // Every event: warnings and critical ones (CRITICAL would send only what pages).
+        severity: v1::AlarmSeverity::Unspecified as i32,
     };
     let mut events = client.watch_alarms(request).await?.into_inner();
     let mut cursor = after_cursor.unwrap_or(0);
@@ -32,8 +34,11 @@ pub async fn run(
             (v1::AlarmEventKind::CaughtUp, _) => writeln!(out, "caught up at cursor {cursor}")?,
             (kind, Some(alarm)) => writeln!(
                 out,
-                "cursor {cursor}: {kind:?} alarm {} of {} (p = {:.2})",
-                alarm.id, alarm.vehicle_id, alarm.peak_probability
+                "cursor {cursor}: {kind:?} alarm {} of {} ({:?}, p = {:.2})",
+                alarm.id,
+                alarm.vehicle_id,
+                alarm.severity(),
+                alarm.peak_probability
             )?,
             (kind, None) => writeln!(out, "cursor {cursor}: {kind:?}")?,
         }

@@ -1,5 +1,5 @@
-//! The session outbox: what detection sessions must store, alarm onsets and ends and session
-//! snapshots, leaves the detection path at once (no database call while a session is locked), and
+//! The session outbox: what detection sessions must store, alarm onsets, escalations and ends and
+//! session snapshots, leaves the detection path at once (no database call while a session is locked), and
 //! one background writer stores it in batches, one transaction per batch, retried with backoff
 //! until the store accepts them, and drained at shutdown; after each commit it tells the live alarm
 //! feed (`crate::alarms::feed`) to read the new rows. Each alarm event is counted and logged as it is
@@ -10,7 +10,7 @@
 //!
 //! Alarm ids and event seqs are assigned here. Each server start (a run, numbered by the store)
 //! takes a block of both ([`first_seq_of_run`]), so processes sharing a database never collide, a
-//! retried batch is idempotent and an end always names its own onset. Seqs increase in emission
+//! retried batch is idempotent and an escalation or end always names its own onset. Seqs increase in emission
 //! order under the queue's lock, so the queue holds events in emission order. The WatchAlarms
 //! cursor is not assigned here but by the database when an event is stored (its log position, in
 //! commit order across every process sharing the database).
@@ -33,7 +33,9 @@ use tokio::sync::{Notify, oneshot};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
-use crate::alarms::event::{self as alarm, OnsetWhy};
+use spoofwatch_core::severity::Severity;
+
+use crate::alarms::event::{self as alarm, Onset};
 use crate::error_chain::error_chain;
 use crate::store::{
     AlarmEvent, AlarmEventKind, AlarmEventRow, SnapshotRow, Store, StoreError, first_seq_of_run,
@@ -177,48 +179,32 @@ impl SessionOutbox {
         self.pending.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// Queues an alarm onset, with the explanation of its onset sample when there is one, and
-    /// returns its id (also when the onset had to be dropped, so that the session's later end
-    /// refers to it and stays a no-op).
-    pub fn onset(
-        &self,
-        vehicle_id: &str,
-        model_id: &str,
-        timestamp_s: f64,
-        onset_at_ms: i64,
-        probability: f64,
-        why: Option<OnsetWhy<'_>>,
-    ) -> i64 {
+    /// Queues an alarm onset (as a warning, or critical at once), with the explanation of its
+    /// onset sample when there is one, and returns its id (also when the onset had to be dropped,
+    /// so that the session's later escalation and end refer to it and stay no-ops).
+    pub fn onset(&self, onset: &Onset<'_>) -> i64 {
         let mut pending = self.pending();
         let id = pending.next_id;
         pending.next_id += 1;
         let event = AlarmEvent {
             seq: 0, // assigned when queued
             kind: AlarmEventKind::Onset,
-            alarm: alarm::opened(
-                id,
-                vehicle_id,
-                model_id,
-                timestamp_s,
-                onset_at_ms,
-                probability,
-                why,
-            ),
+            alarm: alarm::opened(id, onset),
         };
         if pending.queue.len() >= self.capacity {
             drop(pending);
             let dropped = self.dropped_onsets.fetch_add(1, Ordering::Relaxed) + 1;
             tracing::error!(
-                vehicle = vehicle_id,
+                vehicle = onset.vehicle_id,
                 alarm = id,
                 dropped,
                 "alarm queue full: an alarm onset was not stored (the database is not keeping up)"
             );
-            alarm::not_queued(AlarmEventKind::Onset);
+            alarm::not_queued(AlarmEventKind::Onset, onset.severity);
             return id;
         }
         if !self.acceptable(&event) {
-            alarm::not_queued(AlarmEventKind::Onset);
+            alarm::not_queued(AlarmEventKind::Onset, onset.severity);
             return id;
         }
         pending.open.insert(id, event.alarm.clone());
@@ -228,14 +214,51 @@ impl SessionOutbox {
         id
     }
 
+    /// Queues the escalation of open alarm `id` to critical at sample time `timestamp_s` (server
+    /// wall time `at_ms`), with its peak and samples then (nothing when its onset was dropped or
+    /// refused, or it is critical already).
+    pub fn escalate(&self, id: i64, timestamp_s: f64, at_ms: i64, peak: f64, samples: u32) {
+        let mut pending = self.pending();
+        let Some(open) = pending.open.get(&id) else {
+            drop(pending);
+            alarm::not_queued(AlarmEventKind::Escalated, Severity::Critical);
+            return;
+        };
+        if open.severity.0 == Severity::Critical {
+            return;
+        }
+        let event = AlarmEvent {
+            seq: 0, // assigned when queued
+            kind: AlarmEventKind::Escalated,
+            alarm: alarm::escalated(open, timestamp_s, at_ms, peak, i64::from(samples)),
+        };
+        if !self.acceptable(&event) {
+            drop(pending);
+            alarm::not_queued(AlarmEventKind::Escalated, Severity::Critical);
+            return;
+        }
+        pending.open.insert(id, event.alarm.clone());
+        let event = self.emit(&mut pending, event);
+        drop(pending);
+        alarm::emitted(&event);
+    }
+
     /// Queues the end of alarm `id` at its last alarming sample (nothing when its onset was
-    /// dropped or refused).
-    pub fn end(&self, id: i64, end_timestamp_s: f64, peak_probability: f64, samples: u32) {
+    /// dropped or refused; it is counted as an end of `severity` then).
+    pub fn end(
+        &self,
+        id: i64,
+        end_timestamp_s: f64,
+        peak_probability: f64,
+        samples: u32,
+        severity: Severity,
+    ) {
         self.end_at(
             id,
             Some(end_timestamp_s),
             peak_probability,
             i64::from(samples),
+            severity,
         );
     }
 
@@ -250,20 +273,31 @@ impl SessionOutbox {
     /// stored at its onset, and without a sample time).
     pub fn end_abandoned(&self, alarm: AlarmEventRow, last: Option<(f64, f64, i64)>) {
         let (id, peak, samples) = (alarm.id, alarm.peak_probability, alarm.samples);
+        let severity = alarm.severity.0;
         self.adopt(alarm);
         match last {
             Some((last_timestamp_s, peak, samples)) => {
-                self.end_at(id, Some(last_timestamp_s), peak, samples)
+                self.end_at(id, Some(last_timestamp_s), peak, samples, severity)
             }
-            None => self.end_at(id, None, peak, samples),
+            None => self.end_at(id, None, peak, samples, severity),
         }
     }
 
-    fn end_at(&self, id: i64, end_timestamp_s: Option<f64>, peak_probability: f64, samples: i64) {
+    /// Ends alarm `id`; `severity` is what it is counted as when it is not open here (its onset
+    /// was dropped or refused).
+    fn end_at(
+        &self,
+        id: i64,
+        end_timestamp_s: Option<f64>,
+        peak_probability: f64,
+        samples: i64,
+        severity: Severity,
+    ) {
         let mut pending = self.pending();
         let Some(onset) = pending.open.remove(&id) else {
             // Its onset was dropped or refused: the end is not stored, but the alarm did end.
-            alarm::not_queued(AlarmEventKind::End);
+            drop(pending);
+            alarm::not_queued(AlarmEventKind::End, severity);
             return;
         };
         let event = AlarmEvent {
@@ -282,7 +316,8 @@ impl SessionOutbox {
             drop(pending);
             alarm::emitted(&event);
         } else {
-            alarm::not_queued(AlarmEventKind::End);
+            drop(pending);
+            alarm::not_queued(AlarmEventKind::End, event.alarm.severity.0);
         }
     }
 
@@ -460,7 +495,9 @@ impl SessionOutbox {
             "a session snapshot was not stored: another process replaced the session; its alarm \
              ends at this copy's last alarming sample if that is later"
         );
-        self.end_at(id, Some(last), peak, samples);
+        // Open here, it ends with the severity it has here; otherwise it ended here already and
+        // this end is neither stored nor counted as more than a warning's.
+        self.end_at(id, Some(last), peak, samples, Severity::Warning);
     }
 
     /// The writer: stores queued writes until `stop` is cancelled and the queue is empty, or until
@@ -567,7 +604,7 @@ mod tests {
             .write_alarms(&[AlarmEvent {
                 seq: 1,
                 kind: AlarmEventKind::Onset,
-                alarm: alarm::opened(41, "old", "m", 1.0, 1, 0.9, None),
+                alarm: alarm::opened(41, &Onset::warning("old", "m", 1.0, 1, 0.9)),
             }])
             .await
             .unwrap();
@@ -585,9 +622,9 @@ mod tests {
             async move { outbox.run(store, stop, Duration::from_secs(5)).await }
         });
 
-        let first = outbox.onset("car-1", "m", 10.0, 1, 0.9, None);
-        let second = outbox.onset("car-2", "m", 11.0, 1, 0.8, None);
-        outbox.end(first, 14.0, 0.95, 5);
+        let first = outbox.onset(&Onset::warning("car-1", "m", 10.0, 1, 0.9));
+        let second = outbox.onset(&Onset::warning("car-2", "m", 11.0, 1, 0.8));
+        outbox.end(first, 14.0, 0.95, 5, Severity::Warning);
         let base = first_seq_of_run(outbox.run_id());
         assert_eq!(
             (first, second),
@@ -632,7 +669,7 @@ mod tests {
             let (outbox, store, stop) = (Arc::clone(&outbox), store.clone(), stop.clone());
             async move { outbox.run(store, stop, Duration::from_secs(5)).await }
         });
-        let id = outbox.onset("car-1", "m1", 100.0, 1, 0.5, None);
+        let id = outbox.onset(&Onset::warning("car-1", "m1", 100.0, 1, 0.5));
         let copy_at = |last: f64, samples: i64| SnapshotRow {
             open_alarm_id: Some(id),
             open_alarm_last_timestamp_s: Some(last),
@@ -644,7 +681,7 @@ mod tests {
 
         // Another process replaces the session from that copy: it ends the alarm at 150 s and
         // stores a session of another model.
-        let mut from_copy = alarm::opened(id, "car-1", "m1", 100.0, 1, 0.5, None);
+        let mut from_copy = alarm::opened(id, &Onset::warning("car-1", "m1", 100.0, 1, 0.5));
         from_copy = alarm::ended(&from_copy, Some(150.0), 2, 0.9, 51);
         let replacement = SnapshotRow {
             model_id: "m2".into(),
@@ -677,11 +714,60 @@ mod tests {
     }
 
     #[tokio::test]
+    async fn an_escalation_makes_the_open_alarm_critical_once_and_its_end_stays_critical() {
+        let (_dir, store) = temp_store().await;
+        let outbox = SessionOutbox::new(&store, 10).await.unwrap();
+        let id = outbox.onset(&Onset::warning("car", "m", 10.0, 1, 0.6));
+        outbox.escalate(id, 14.0, 2, 0.99, 5);
+        outbox.escalate(id, 15.0, 3, 0.99, 6); // critical already: nothing more
+        outbox.end(id, 20.0, 0.99, 11, Severity::Warning);
+        outbox.escalate(id, 21.0, 4, 0.99, 12); // ended: nothing
+        let stop = CancellationToken::new();
+        stop.cancel();
+        outbox
+            .run(store.clone(), stop, Duration::from_secs(5))
+            .await;
+        let logged = store
+            .alarm_events_after(0, i64::MAX, None, 10)
+            .await
+            .unwrap();
+        let logged: Vec<_> = logged
+            .iter()
+            .map(|e| {
+                let a = &e.event.alarm;
+                (
+                    e.event.kind,
+                    a.severity.0,
+                    a.escalated_timestamp_s,
+                    a.samples,
+                )
+            })
+            .collect();
+        assert_eq!(
+            logged,
+            [
+                (AlarmEventKind::Onset, Severity::Warning, None, 1),
+                (AlarmEventKind::Escalated, Severity::Critical, Some(14.0), 5),
+                (AlarmEventKind::End, Severity::Critical, Some(14.0), 11),
+            ]
+        );
+        let stored = &store.list_alarm_events(Some("car"), 1).await.unwrap()[0];
+        assert_eq!(
+            (
+                stored.severity.0,
+                stored.escalated_at_ms,
+                stored.end_timestamp_s
+            ),
+            (Severity::Critical, Some(2), Some(20.0))
+        );
+    }
+
+    #[tokio::test]
     async fn a_full_queue_drops_new_onsets_but_keeps_ends() {
         let (_dir, store) = temp_store().await;
         let outbox = SessionOutbox::new(&store, 2).await.unwrap();
         let ids: Vec<i64> = (0..3)
-            .map(|i| outbox.onset("car", "m", f64::from(i), 1, 0.9, None))
+            .map(|i| outbox.onset(&Onset::warning("car", "m", f64::from(i), 1, 0.9)))
             .collect();
         let base = first_seq_of_run(outbox.run_id());
         assert_eq!(
@@ -689,7 +775,7 @@ mod tests {
             [base, base + 1, base + 2],
             "a dropped onset still gets its own id"
         );
-        outbox.end(ids[0], 5.0, 0.9, 2);
+        outbox.end(ids[0], 5.0, 0.9, 2, Severity::Warning);
         let stats = outbox.stats();
         assert_eq!((stats.backlog, stats.dropped_onsets), (3, 1));
     }
@@ -698,10 +784,10 @@ mod tests {
     async fn invalid_values_are_refused_before_they_can_block_the_queue() {
         let (_dir, store) = temp_store().await;
         let outbox = SessionOutbox::new(&store, 10).await.unwrap();
-        let refused = outbox.onset("car", "m", f64::NAN, 1, 0.9, None);
-        outbox.end(refused, 2.0, 0.9, 2); // its onset was refused: nothing to end
-        let id = outbox.onset("car", "m", 3.0, 1, 0.9, None);
-        outbox.end(id, 4.0, f64::NAN, 2);
+        let refused = outbox.onset(&Onset::warning("car", "m", f64::NAN, 1, 0.9));
+        outbox.end(refused, 2.0, 0.9, 2, Severity::Warning); // its onset was refused: nothing to end
+        let id = outbox.onset(&Onset::warning("car", "m", 3.0, 1, 0.9));
+        outbox.end(id, 4.0, f64::NAN, 2, Severity::Warning);
         let stats = outbox.stats();
         assert_eq!((stats.backlog, stats.invalid), (1, 2));
     }
@@ -710,14 +796,14 @@ mod tests {
     async fn a_restart_continues_above_every_earlier_seq_and_ends_the_alarms_left_open() {
         let (_dir, store) = temp_store().await;
         let before = SessionOutbox::new(&store, 10).await.unwrap();
-        let left_open = before.onset("car", "m", 1.0, 1, 0.9, None);
+        let left_open = before.onset(&Onset::warning("car", "m", 1.0, 1, 0.9));
         let stop = CancellationToken::new();
         stop.cancel();
         before
             .run(store.clone(), stop, Duration::from_secs(5))
             .await;
         // An event a crash kept from being stored: its seq is never reused.
-        let unstored = before.onset("car-2", "m", 2.0, 1, 0.9, None);
+        let unstored = before.onset(&Onset::warning("car-2", "m", 2.0, 1, 0.9));
         assert_ne!(unstored, left_open);
 
         let after = SessionOutbox::new(&store, 10).await.unwrap();
@@ -779,8 +865,8 @@ mod tests {
         let (_dir, store) = temp_store().await;
         let outbox = SessionOutbox::new(&store, 10_000).await.unwrap();
         for i in 0..1_500 {
-            let id = outbox.onset(&format!("car-{i}"), "m", 1.0, 1, 0.9, None);
-            outbox.end(id, 2.0, 0.9, 2);
+            let id = outbox.onset(&Onset::warning(&format!("car-{i}"), "m", 1.0, 1, 0.9));
+            outbox.end(id, 2.0, 0.9, 2, Severity::Warning);
         }
         let stop = CancellationToken::new();
         stop.cancel();

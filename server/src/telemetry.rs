@@ -23,6 +23,7 @@ use metrics::{
     histogram,
 };
 use metrics_exporter_prometheus::{BuildError, Matcher, PrometheusBuilder, PrometheusHandle};
+use spoofwatch_core::severity::Severity;
 use tonic::{Code, Status};
 use tonic_types::StatusExt;
 
@@ -39,6 +40,7 @@ pub const UNAUTHENTICATED: &str = "spoofwatch_unauthenticated_requests_total";
 pub const PERMISSION_DENIED: &str = "spoofwatch_permission_denied_total";
 pub const IDENTITY_RELOADS: &str = "spoofwatch_identity_reloads_total";
 pub const ALARM_ONSETS: &str = "spoofwatch_alarm_onsets_total";
+pub const ALARM_ESCALATIONS: &str = "spoofwatch_alarm_escalations_total";
 pub const ALARM_ENDS: &str = "spoofwatch_alarm_ends_total";
 pub const ALARMS_OPEN: &str = "spoofwatch_alarms_open";
 pub const ALARM_BACKLOG: &str = "spoofwatch_alarm_outbox_backlog";
@@ -137,14 +139,23 @@ pub const METRICS: &[(&str, Kind, &str)] = &[
     (
         ALARM_ONSETS,
         Kind::Counter,
-        "Alarm onsets (a vehicle's confirmed spoofing alarm turned on).",
+        "Alarm onsets (a vehicle's confirmed spoofing alarm turned on), by the `severity` it opened with (warning, critical).",
+    ),
+    (
+        ALARM_ESCALATIONS,
+        Kind::Counter,
+        "Open warning alarms that turned critical (`severity` is always critical).",
     ),
     (
         ALARM_ENDS,
         Kind::Counter,
-        "Alarm ends (the alarm turned off, or its session reset, changed model, was evicted or the server stopped).",
+        "Alarm ends (the alarm turned off, or its session reset, changed model, was evicted or the server stopped), by the `severity` it ended with.",
     ),
-    (ALARMS_OPEN, Kind::Gauge, "Alarms on right now."),
+    (
+        ALARMS_OPEN,
+        Kind::Gauge,
+        "Alarms on right now, by `severity` (warning, critical).",
+    ),
     (
         ALARM_BACKLOG,
         Kind::Gauge,
@@ -153,7 +164,7 @@ pub const METRICS: &[(&str, Kind, &str)] = &[
     (
         ALARM_STORED,
         Kind::Counter,
-        "Alarm events (onsets and ends) stored in the database.",
+        "Alarm events (onsets, escalations and ends) stored in the database.",
     ),
     (
         ALARM_FAILED_BATCHES,
@@ -389,10 +400,15 @@ pub fn install(
             counter!(REJECTED_SAMPLES, "rpc" => rpc.label(), "reason" => reason).increment(0);
         }
     }
+    for severity in Severity::ALL {
+        let severity = severity.name();
+        counter!(ALARM_ONSETS, "severity" => severity).increment(0);
+        counter!(ALARM_ENDS, "severity" => severity).increment(0);
+        gauge!(ALARMS_OPEN, "severity" => severity).increment(0.0);
+    }
+    counter!(ALARM_ESCALATIONS, "severity" => Severity::Critical.name()).increment(0);
     for name in [
         UNAUTHENTICATED,
-        ALARM_ONSETS,
-        ALARM_ENDS,
         SESSIONS_EVICTED,
         SESSIONS_REFUSED,
         SNAPSHOT_UNREAD,
@@ -402,7 +418,6 @@ pub fn install(
     ] {
         counter!(name).increment(0);
     }
-    gauge!(ALARMS_OPEN).increment(0.0);
     gauge!(INCIDENT_CORRELATOR).increment(0.0);
     for result in ["applied", "refused"] {
         counter!(IDENTITY_RELOADS, "result" => result).increment(0);
@@ -465,16 +480,24 @@ pub fn identities_reloaded(applied: bool) {
     counter!(IDENTITY_RELOADS, "result" => result).increment(1);
 }
 
-/// An alarm turned on.
-pub fn alarm_onset() {
-    counter!(ALARM_ONSETS).increment(1);
-    gauge!(ALARMS_OPEN).increment(1.0);
+/// An alarm turned on as `severity`.
+pub fn alarm_onset(severity: Severity) {
+    counter!(ALARM_ONSETS, "severity" => severity.name()).increment(1);
+    gauge!(ALARMS_OPEN, "severity" => severity.name()).increment(1.0);
 }
 
-/// An alarm turned off (or its session ended while alarming).
-pub fn alarm_end() {
-    counter!(ALARM_ENDS).increment(1);
-    gauge!(ALARMS_OPEN).decrement(1.0);
+/// An open warning turned critical.
+pub fn alarm_escalated() {
+    let (warning, critical) = (Severity::Warning.name(), Severity::Critical.name());
+    counter!(ALARM_ESCALATIONS, "severity" => critical).increment(1);
+    gauge!(ALARMS_OPEN, "severity" => warning).decrement(1.0);
+    gauge!(ALARMS_OPEN, "severity" => critical).increment(1.0);
+}
+
+/// An alarm of `severity` turned off (or its session ended while alarming).
+pub fn alarm_end(severity: Severity) {
+    counter!(ALARM_ENDS, "severity" => severity.name()).increment(1);
+    gauge!(ALARMS_OPEN, "severity" => severity.name()).decrement(1.0);
 }
 
 /// This server took (or lost) the incident correlator's lease.

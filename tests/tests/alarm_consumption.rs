@@ -30,6 +30,7 @@ fn watch(clients: &Clients, vehicle_id: &str, after_cursor: Option<i64>) -> Alar
             vehicle_id: vehicle_id.to_string(),
             after_cursor,
             reconnect_for: Duration::from_secs(60),
+            ..WatchOptions::default()
         },
     )
 }
@@ -72,6 +73,7 @@ async fn history(clients: &Clients, vehicle_id: &str) -> Vec<v1::AlarmEvent> {
         vehicle_id: vehicle_id.to_string(),
         after_cursor: Some(0),
         stop_when_caught_up: true,
+        ..Default::default()
     };
     let mut stream = clients
         .alarms

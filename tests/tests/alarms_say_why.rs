@@ -18,8 +18,8 @@ use spoofwatch_core::model::{Model, ModelConfig};
 use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::v1;
 use spoofwatch_tests::{
-    Clients, TestServer, attacked_drive, import_model, normal_drive, start_server, start_stream,
-    test_config, track_samples,
+    Clients, TestServer, attacked_drive, import_model, listed_alarms, normal_drive,
+    replayed_alarm_events, start_server, start_stream, test_config, track_samples,
 };
 
 const VEHICLE: &str = "jumper";
@@ -61,43 +61,6 @@ fn untrained_v3_artifact() -> Vec<u8> {
         provenance: Provenance::default(),
     };
     artifact.to_vec().expect("the artifact is valid")
-}
-
-/// The stored alarms of [`VEHICLE`], oldest first.
-async fn listed(clients: &mut Clients) -> Vec<v1::Alarm> {
-    let mut alarms = clients
-        .alarms
-        .list_alarms(v1::ListAlarmsRequest {
-            vehicle_id: VEHICLE.to_string(),
-            ..Default::default()
-        })
-        .await
-        .expect("ListAlarms")
-        .into_inner()
-        .alarms;
-    alarms.sort_by_key(|a| a.id);
-    alarms
-}
-
-/// Every stored onset and end of [`VEHICLE`], replayed by WatchAlarms from the start.
-async fn watched(clients: &mut Clients) -> Vec<v1::AlarmEvent> {
-    let mut stream = clients
-        .alarms
-        .watch_alarms(v1::WatchAlarmsRequest {
-            vehicle_id: VEHICLE.to_string(),
-            after_cursor: Some(0),
-            stop_when_caught_up: true,
-        })
-        .await
-        .expect("WatchAlarms")
-        .into_inner();
-    let mut events = Vec::new();
-    while let Some(event) = stream.message().await.expect("the replay goes on") {
-        if event.kind != v1::AlarmEventKind::CaughtUp as i32 {
-            events.push(event);
-        }
-    }
-    events
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -158,7 +121,7 @@ async fn a_jump_alarm_says_jump_with_its_offset_also_after_a_restart() {
     // The alarm is stored in the background: wait until it is listed.
     let mut stored = Vec::new();
     for _ in 0..600 {
-        stored = listed(&mut clients).await;
+        stored = listed_alarms(&mut clients, VEHICLE, 0).await;
         if stored
             .iter()
             .any(|a| a.onset_timestamp_s == first.timestamp_s)
@@ -176,7 +139,7 @@ async fn a_jump_alarm_says_jump_with_its_offset_also_after_a_restart() {
         Some(&why),
         "the stored alarm says what its onset said"
     );
-    let replayed = watched(&mut clients).await;
+    let replayed = replayed_alarm_events(&mut clients, VEHICLE, 0).await;
     assert!(
         replayed
             .iter()
@@ -189,7 +152,7 @@ async fn a_jump_alarm_says_jump_with_its_offset_also_after_a_restart() {
 
     let server = TestServer::start(test_config(dir.path())).await;
     let mut clients = Clients::of(&server).await;
-    let after = listed(&mut clients).await;
+    let after = listed_alarms(&mut clients, VEHICLE, 0).await;
     let restored = after
         .iter()
         .find(|a| a.id == alarm.id)
@@ -200,7 +163,7 @@ async fn a_jump_alarm_says_jump_with_its_offset_also_after_a_restart() {
         "the explanation survives a restart"
     );
     assert!(
-        watched(&mut clients)
+        replayed_alarm_events(&mut clients, VEHICLE, 0)
             .await
             .iter()
             .any(|e| e.alarm.as_ref().and_then(|a| a.why.as_ref()) == Some(&why))

@@ -10,6 +10,7 @@ mod raw_grpc;
 mod a_clean_fleet_does_not_alarm;
 mod a_gateway_streams_many_vehicles;
 mod alarm_consumption;
+mod alarm_severities;
 mod alarms_say_why;
 mod authentication;
 mod authorization;

@@ -2,6 +2,8 @@
 //! Grafana dashboard (`deploy/grafana/*.json`) and the Prometheus rules (`deploy/prometheus/*.rules.yml`)
 //! must appear in a real scrape of a server that has scored a drive, raised an alarm and stored it.
 //! A histogram counts under its `_bucket`, `_sum` and `_count` series as well as its family name.
+//! Every label value they select with `label="value"` (the alarm metrics' `severity`, the store
+//! faults' `kind`) must be one the scrape carries for that metric.
 //!
 //! One server in this file: the metrics recorder is per process (see `metrics_endpoint.rs`).
 
@@ -50,6 +52,33 @@ fn metric_names(text: &str) -> BTreeSet<String> {
     names
 }
 
+/// Every `label="value"` matcher of `text` on a `spoofwatch_*` metric, as (metric, label, value):
+/// the labels the server sets (not `job` or `instance`, which Prometheus adds), and fixed values
+/// only (not a dashboard's `$variable`, nor `=~` or `!=` matchers). Quotes escaped in JSON count.
+fn label_matchers(text: &str) -> BTreeSet<(String, String, String)> {
+    let text = text.replace("\\\"", "\"");
+    let mut matchers = BTreeSet::new();
+    for name in metric_names(&text) {
+        let opening = format!("{name}{{");
+        for (start, _) in text.match_indices(&opening) {
+            let selector = &text[start + opening.len()..];
+            let selector = &selector[..selector.find('}').unwrap_or(selector.len())];
+            for matcher in selector.split(',') {
+                let Some((label, value)) = matcher.trim().split_once('=') else {
+                    continue;
+                };
+                let label = label.trim();
+                let fixed = value.starts_with('"') && !value.contains('$');
+                if fixed && !label.ends_with('!') && !["job", "instance"].contains(&label) {
+                    let value = value.trim_matches('"').to_string();
+                    matchers.insert((name.clone(), label.to_string(), value));
+                }
+            }
+        }
+    }
+    matchers
+}
+
 /// The series names a scrape exports: every sample's name, and each histogram family's name.
 fn exported_names(exposition: &str) -> BTreeSet<String> {
     let mut names = BTreeSet::new();
@@ -80,6 +109,16 @@ fn names_are_found_in_queries() {
             "spoofwatch_db_operation_duration_seconds_bucket"
         ]
     );
+    let matchers = label_matchers(
+        r#"sum(increase(spoofwatch_a_total{severity="critical"}[5m])) spoofwatch_b{job="x", kind!="y"}
+           "expr": "sum(spoofwatch_c{job=~\"$job\", severity=\"warning\", rpc=~\"$rpc\"})""#,
+    );
+    let expected = [
+        ("spoofwatch_a_total", "severity", "critical"),
+        ("spoofwatch_c", "severity", "warning"),
+    ]
+    .map(|(m, l, v)| (m.to_string(), l.to_string(), v.to_string()));
+    assert_eq!(matchers.into_iter().collect::<Vec<_>>(), expected);
     let exported = exported_names(
         "# TYPE spoofwatch_h histogram\nspoofwatch_h_bucket{le=\"1\"} 2\nspoofwatch_g 1\n",
     );
@@ -115,10 +154,11 @@ async fn every_metric_of_the_dashboard_and_the_rules_is_exported() {
     let episodes = stream_frozen_fix_drive(&clients, "dash-1").await;
     assert!(!episodes.is_empty(), "the frozen fix raises an alarm");
     let deadline = Instant::now() + REPLY_TIMEOUT;
-    let exported = loop {
-        let exported = exported_names(&scrape(metrics).await);
+    let (exported, exposition) = loop {
+        let exposition = scrape(metrics).await;
+        let exported = exported_names(&exposition);
         if exported.contains("spoofwatch_db_operation_duration_seconds") {
-            break exported;
+            break (exported, exposition);
         }
         assert!(
             Instant::now() < deadline,
@@ -136,6 +176,16 @@ async fn every_metric_of_the_dashboard_and_the_rules_is_exported() {
         for name in used {
             if !exported.contains(&name) {
                 missing.push(format!("{}: {name}", file.display()));
+            }
+        }
+        for (name, label, value) in label_matchers(&text) {
+            let series = format!("{name}{{");
+            let pair = format!("{label}=\"{value}\"");
+            let carried = exposition
+                .lines()
+                .any(|line| line.starts_with(&series) && line.contains(&pair));
+            if !carried {
+                missing.push(format!("{}: {name}{{{pair}}}", file.display()));
             }
         }
     }

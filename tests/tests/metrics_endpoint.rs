@@ -21,10 +21,46 @@ use spoofwatch_client::FleetDetectStream;
 use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::v1;
 use spoofwatch_tests::{
-    REPLY_TIMEOUT, attacked_drive, expect_item_error, normal_drive, start_server, start_stream,
-    track_samples,
+    REPLY_TIMEOUT, artifact_with_critical_level, attacked_drive, expect_item_error, import_model,
+    normal_drive, start_server, start_stream, track_samples,
 };
 use tonic::Code;
+
+/// The alarm transitions detections show, by severity (index 0 warning, 1 critical): onsets by the
+/// severity they opened with, escalations of open warnings, ends by the severity they ended with.
+#[derive(Debug, Default)]
+struct Transitions {
+    onsets: [usize; 2],
+    escalations: usize,
+    ends: [usize; 2],
+    /// The open alarm's severity index (after its onset or escalation).
+    open: usize,
+}
+
+impl Transitions {
+    fn add(&mut self, detections: &[v1::Detection]) {
+        let critical = v1::AlarmSeverity::Critical as i32;
+        for d in detections {
+            if d.alarm_end {
+                self.ends[self.open] += 1;
+            }
+            let index = usize::from(d.severity == critical);
+            if d.alarm_onset {
+                self.onsets[index] += 1;
+            } else if d.alarm_escalated {
+                self.escalations += 1;
+            }
+            if d.alarm {
+                self.open = index;
+            }
+        }
+    }
+
+    /// Events emitted: onsets, escalations and ends.
+    fn events(&self) -> usize {
+        self.onsets.iter().chain(&self.ends).sum::<usize>() + self.escalations
+    }
+}
 
 /// GETs `/metrics` and returns the exposition text (checking the status and the content type).
 async fn scrape_text(addr: SocketAddr) -> String {
@@ -154,7 +190,7 @@ async fn a_scrape_after_a_replay_counts_what_was_sent() {
     );
     let samples = track_samples(&frozen);
     let (mut stream, _) = start_stream(&clients, "m-frozen", "").await;
-    let (mut batches, mut alarming, mut onsets, mut ends) = (0, 0, 0, 0);
+    let (mut batches, mut alarming, mut transitions) = (0, 0, Transitions::default());
     for (seq, batch) in samples.chunks(20).enumerate() {
         let detections = stream
             .detect(seq as u64 + 1, batch.to_vec())
@@ -162,10 +198,10 @@ async fn a_scrape_after_a_replay_counts_what_was_sent() {
             .expect("one detection per sample, for this batch");
         batches += 1;
         alarming += detections.iter().filter(|d| d.alarm).count();
-        onsets += detections.iter().filter(|d| d.alarm_onset).count();
-        ends += detections.iter().filter(|d| d.alarm_end).count();
+        transitions.add(&detections);
     }
-    assert!(onsets >= 1, "the frozen fix raises an alarm");
+    assert!(transitions.onsets[0] >= 1, "the frozen fix raises an alarm");
+    let mut streamed = samples.len();
 
     // Refused on the same stream: a NaN latitude (5 samples), then an empty batch.
     let mut bad = samples[samples.len() - 5..].to_vec();
@@ -181,6 +217,35 @@ async fn a_scrape_after_a_replay_counts_what_was_sent() {
     assert_eq!(value(&live, "spoofwatch_sessions_open", &[]), 1.0);
     assert_eq!(value(&live, "spoofwatch_sessions_connected", &[]), 1.0);
     stream.finish().await.expect("the stream ends with OK");
+
+    // StreamDetect on a model with a critical level: a 500 m jump pages, and a 2 m/s drift opens
+    // as a warning and escalates.
+    let paging = import_model(&mut clients, artifact_with_critical_level(), "paging").await;
+    let attacks = [
+        AttackKind::Jump { offset_m: 500.0 },
+        AttackKind::RampDrift { velocity_mps: 2.0 },
+    ];
+    for (k, attack) in attacks.into_iter().enumerate() {
+        let vehicle = format!("m-paging-{k}");
+        let track = attacked_drive(&vehicle, 300.0, 41, attack, 100.0, 120.0);
+        let samples = track_samples(&track);
+        let (mut stream, _) = start_stream(&clients, &vehicle, &paging.name).await;
+        for (seq, batch) in samples.chunks(50).enumerate() {
+            let detections = stream
+                .detect(seq as u64 + 1, batch.to_vec())
+                .await
+                .expect("one detection per sample, for this batch");
+            batches += 1;
+            alarming += detections.iter().filter(|d| d.alarm).count();
+            transitions.add(&detections);
+        }
+        streamed += samples.len();
+        stream.finish().await.expect("the stream ends with OK");
+    }
+    assert!(
+        transitions.onsets[1] >= 1 && transitions.escalations >= 1,
+        "{transitions:?}"
+    );
 
     // Detect: one stateless call, one for a model that does not exist.
     let normal = track_samples(&normal_drive("m-detect", 29.0, 5));
@@ -232,7 +297,7 @@ async fn a_scrape_after_a_replay_counts_what_was_sent() {
         .expect("the fleet stream ends with OK");
 
     // The alarm events reach the database in the background: wait (bounded) until they are stored.
-    let events = (onsets + ends) as f64;
+    let events = transitions.events() as f64;
     let mut scrape = parse(&scrape_text(metrics).await);
     for _ in 0..300 {
         if value(&scrape, "spoofwatch_alarm_outbox_stored_writes_total", &[]) >= events {
@@ -248,7 +313,7 @@ async fn a_scrape_after_a_replay_counts_what_was_sent() {
     let stream_rpc = [("rpc", "StreamDetect")];
     assert_eq!(
         v("spoofwatch_detection_samples_total", &stream_rpc),
-        samples.len() as f64
+        streamed as f64
     );
     assert_eq!(
         v("spoofwatch_detection_batches_total", &stream_rpc),
@@ -304,9 +369,31 @@ async fn a_scrape_after_a_replay_counts_what_was_sent() {
     assert_eq!(v("spoofwatch_detection_samples_total", &fleet_rpc), 10.0);
     assert_eq!(refused("StreamDetectFleet", "invalid_request"), (1.0, 4.0));
 
-    assert_eq!(v("spoofwatch_alarm_onsets_total", &[]), onsets as f64);
-    assert_eq!(v("spoofwatch_alarm_ends_total", &[]), ends as f64);
-    assert_eq!(v("spoofwatch_alarms_open", &[]), (onsets - ends) as f64);
+    let t = &transitions;
+    for (index, severity) in ["warning", "critical"].into_iter().enumerate() {
+        let labels = [("severity", severity)];
+        assert_eq!(
+            v("spoofwatch_alarm_onsets_total", &labels),
+            t.onsets[index] as f64
+        );
+        assert_eq!(
+            v("spoofwatch_alarm_ends_total", &labels),
+            t.ends[index] as f64
+        );
+    }
+    let critical = [("severity", "critical")];
+    assert_eq!(
+        v("spoofwatch_alarm_escalations_total", &critical),
+        t.escalations as f64
+    );
+    // An escalation moves an open alarm from the warnings to the critical ones.
+    let open_warnings = t.onsets[0] - t.escalations - t.ends[0];
+    let open_critical = t.onsets[1] + t.escalations - t.ends[1];
+    assert_eq!(
+        v("spoofwatch_alarms_open", &[("severity", "warning")]),
+        open_warnings as f64
+    );
+    assert_eq!(v("spoofwatch_alarms_open", &critical), open_critical as f64);
     assert_eq!(
         v("spoofwatch_alarm_outbox_stored_writes_total", &[]),
         events
@@ -323,8 +410,9 @@ async fn a_scrape_after_a_replay_counts_what_was_sent() {
         "the outbox's writes are timed"
     );
 
-    // Sessions: the streamed vehicle and the fleet's scored one (a stateless Detect keeps none).
-    assert_eq!(v("spoofwatch_sessions_open", &[]), 2.0);
+    // Sessions: the three streamed vehicles and the fleet's scored one (a stateless Detect keeps
+    // none).
+    assert_eq!(v("spoofwatch_sessions_open", &[]), 4.0);
     assert_eq!(v("spoofwatch_sessions_connected", &[]), 0.0);
     assert_eq!(v("spoofwatch_sessions_refused_total", &[]), 0.0);
     assert_eq!(v("spoofwatch_jobs", &[("state", "queued")]), 0.0);

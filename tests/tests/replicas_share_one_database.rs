@@ -149,6 +149,7 @@ async fn watch_alarms(
         vehicle_id: String::new(),
         after_cursor,
         stop_when_caught_up,
+        ..Default::default()
     };
     clients
         .alarms

@@ -10,31 +10,10 @@ use spoofwatch_proto::v1;
 use spoofwatch_server::store::{AlarmEvent, SnapshotRow, Store};
 use spoofwatch_tests::{
     Clients, TestServer, alarms_of, attacked_drive, export_model, fingerprint, import_model,
-    normal_drive, start_stream, test_config, track_samples,
+    normal_drive, start_stream, stream_batches, test_config, track_samples,
 };
 
 const BATCH: usize = 10;
-
-/// Sends `batches` (numbered from `first_seq`) on a stream and returns their detections.
-async fn stream_batches(
-    clients: &Clients,
-    vehicle: &str,
-    batches: &[Vec<v1::Sample>],
-    first_seq: u64,
-) -> (v1::SessionAccepted, Vec<v1::Detection>) {
-    let (mut stream, accepted) = start_stream(clients, vehicle, "").await;
-    let mut detections = Vec::new();
-    for (seq, batch) in (first_seq..).zip(batches) {
-        detections.extend(
-            stream
-                .detect(seq, batch.clone())
-                .await
-                .expect("one detection per sample"),
-        );
-    }
-    stream.finish().await.expect("the stream ends cleanly");
-    (accepted, detections)
-}
 
 /// An attacked drive, batched, with a hand-off point inside the alarm.
 fn attacked_batches(vehicle: &str) -> Vec<Vec<v1::Sample>> {
@@ -54,7 +33,7 @@ async fn a_stream_continues_on_another_server_exactly_as_if_uninterrupted() {
     let reference_dir = tempfile::tempdir().expect("temp dir");
     let reference = TestServer::start(test_config(reference_dir.path())).await;
     let mut reference_clients = Clients::of(&reference).await;
-    let (_, uninterrupted) = stream_batches(&reference_clients, vehicle, &batches, 1).await;
+    let (_, uninterrupted) = stream_batches(&reference_clients, (vehicle, ""), &batches, 1).await;
     let expected_alarms = alarms_of(&mut reference_clients, vehicle).await;
     assert!(
         uninterrupted.iter().any(|d| d.alarm_onset),
@@ -68,7 +47,7 @@ async fn a_stream_continues_on_another_server_exactly_as_if_uninterrupted() {
     let cut = 20; // batches, 200 s: the frozen fix started at 150 s
     let first = TestServer::start(test_config(dir.path())).await;
     let clients = Clients::of(&first).await;
-    let (_, before) = stream_batches(&clients, vehicle, &batches[..cut], 1).await;
+    let (_, before) = stream_batches(&clients, (vehicle, ""), &batches[..cut], 1).await;
     assert!(before.iter().any(|d| d.alarm), "the alarm is on at the cut");
     drop(clients);
     first.stop().await;
@@ -77,7 +56,7 @@ async fn a_stream_continues_on_another_server_exactly_as_if_uninterrupted() {
     let second = TestServer::start(test_config(dir.path())).await;
     let mut clients = Clients::of(&second).await;
     let (accepted, after) =
-        stream_batches(&clients, vehicle, &batches[cut..], cut as u64 + 1).await;
+        stream_batches(&clients, (vehicle, ""), &batches[cut..], cut as u64 + 1).await;
     assert!(accepted.resumed && accepted.from_snapshot, "{accepted:?}");
     assert_eq!(accepted.last_seq, cut as u64);
     assert_eq!(accepted.samples_seen, (cut * BATCH) as u64);
@@ -101,7 +80,7 @@ async fn corrupt_foreign_and_other_model_snapshots_start_afresh_with_their_reaso
     for (seed, vehicle) in (1..).zip(vehicles) {
         let samples = track_samples(&normal_drive(vehicle, 60.0, seed));
         let batches: Vec<Vec<v1::Sample>> = samples.chunks(BATCH).map(<[_]>::to_vec).collect();
-        stream_batches(&clients, vehicle, &batches, 1).await;
+        stream_batches(&clients, (vehicle, ""), &batches, 1).await;
         last_seq = batches.len() as u64;
     }
     drop(clients);
@@ -173,7 +152,7 @@ async fn an_alarm_held_by_a_snapshot_of_the_replaced_model_ends_when_the_vehicle
     let artifact = export_model(&mut clients.models, "models/default").await;
     let candidate = import_model(&mut clients, artifact, "candidate").await.name;
     // The stream stops inside the alarm; its snapshot holds the alarm open.
-    let (_, before) = stream_batches(&clients, vehicle, &batches[..20], 1).await;
+    let (_, before) = stream_batches(&clients, (vehicle, ""), &batches[..20], 1).await;
     let last_alarming = before
         .iter()
         .rev()
@@ -228,8 +207,8 @@ async fn a_stale_copy_left_on_a_server_does_not_overwrite_the_snapshot_of_the_on
     let first = TestServer::start(test_config(dir.path())).await;
     let second = TestServer::start(test_config(dir.path())).await;
     let (first_clients, second_clients) = (Clients::of(&first).await, Clients::of(&second).await);
-    stream_batches(&first_clients, vehicle, &batches[..10], 1).await;
-    let (accepted, _) = stream_batches(&second_clients, vehicle, &batches[10..], 11).await;
+    stream_batches(&first_clients, (vehicle, ""), &batches[..10], 1).await;
+    let (accepted, _) = stream_batches(&second_clients, (vehicle, ""), &batches[10..], 11).await;
     assert!(
         accepted.from_snapshot && accepted.last_seq == 10,
         "{accepted:?}"

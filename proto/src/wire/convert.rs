@@ -11,6 +11,7 @@ use spoofwatch_core::evidence::offset::OffsetEvidence;
 use spoofwatch_core::explain::{EvidenceKind, Explanation};
 use spoofwatch_core::metrics::Metrics;
 use spoofwatch_core::sample::{FieldViolation, JammingState, ReceiverState, Sample, SpoofingState};
+use spoofwatch_core::severity::{CriticalTest, Severity};
 
 use crate::v1;
 
@@ -210,6 +211,38 @@ pub fn detection_to_proto(timestamp_s: f64, d: &Decision, model: &str) -> v1::De
         evidence: Some(evidence_to_proto(&d.evidence)),
         model: model.to_string(),
         why: Some(explanation_to_proto(&d.explanation)),
+        severity: severity_to_proto(d.severity) as i32,
+        alarm_escalated: d.escalation,
+    }
+}
+
+/// A severity on the wire: UNSPECIFIED for none (no alarm open, or no filter).
+pub fn severity_to_proto(severity: Option<Severity>) -> v1::AlarmSeverity {
+    match severity {
+        None => v1::AlarmSeverity::Unspecified,
+        Some(Severity::Warning) => v1::AlarmSeverity::Warning,
+        Some(Severity::Critical) => v1::AlarmSeverity::Critical,
+    }
+}
+
+/// A wire severity as the core's: `Ok(None)` for UNSPECIFIED, `Err(number)` for a number this
+/// build does not know.
+pub fn severity_from_proto(number: i32) -> Result<Option<Severity>, i32> {
+    match v1::AlarmSeverity::try_from(number) {
+        Ok(v1::AlarmSeverity::Unspecified) => Ok(None),
+        Ok(v1::AlarmSeverity::Warning) => Ok(Some(Severity::Warning)),
+        Ok(v1::AlarmSeverity::Critical) => Ok(Some(Severity::Critical)),
+        Err(_) => Err(number),
+    }
+}
+
+/// A model's critical test on the wire.
+pub fn critical_test_to_proto(test: &CriticalTest) -> v1::CriticalTest {
+    v1::CriticalTest {
+        reference_logit: test.reference_logit,
+        threshold: test.threshold,
+        gate: test.gate,
+        decisive_s: test.decisive_s,
     }
 }
 
@@ -410,6 +443,19 @@ mod tests {
         assert_eq!((p.share_10s, p.share_60s), (0.6, 0.1));
         assert!(p.frozen && p.arrived_by_step);
         assert_eq!(p.anchor_age_s, 90.0);
+    }
+
+    #[test]
+    fn severities_round_trip_and_unknown_numbers_are_kept() {
+        for severity in [None, Some(Severity::Warning), Some(Severity::Critical)] {
+            assert_eq!(
+                severity_from_proto(severity_to_proto(severity) as i32),
+                Ok(severity)
+            );
+        }
+        assert_eq!(severity_to_proto(Some(Severity::Critical)) as i32, 2);
+        assert_eq!(severity_from_proto(3), Err(3));
+        assert_eq!(severity_from_proto(-1), Err(-1));
     }
 
     #[test]

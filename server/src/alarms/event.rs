@@ -1,11 +1,12 @@
-//! The alarm's domain: its transitions (it opens, it ends), why it was raised, and the one place
-//! where an emitted transition is counted and logged.
+//! The alarm's domain: its transitions (it opens, it turns critical, it ends), why it was raised,
+//! and the one place where an emitted transition is counted and logged.
 //!
 //! The transitions build the alarm's row as each event leaves it: [`opened`] (one sample, its peak
-//! the onset probability, with why and where it started) and [`ended`]. A later severity adds its
-//! transition here, beside them (an alarm that escalates). Why an alarm was raised is mapped between
-//! the core's [`Explanation`] of the onset sample and the row's [`StoredWhy`]. [`emitted`] is called
-//! once for each event the outbox emits: it counts it (`crate::telemetry`) and logs it.
+//! the onset probability, with why and where it started, as a warning or already critical),
+//! [`escalated`] (an open warning turns critical: one alarm whose severity rises, never a second
+//! alarm) and [`ended`]. Why an alarm was raised is mapped between the core's [`Explanation`] of
+//! the onset sample and the row's [`StoredWhy`]. [`emitted`] is called once for each event the
+//! outbox emits: it counts it by severity (`crate::telemetry`) and logs it.
 //!
 //! Owns those rules and that mapping. Must not queue, store or serve anything: the outbox
 //! (`crate::outbox`) queues, the store keeps the rows and their write guards, and `super::wire`
@@ -13,9 +14,12 @@
 
 use spoofwatch_core::explain::{EvidenceKind, Explanation};
 use spoofwatch_core::geo::LatLon;
+use spoofwatch_core::severity::Severity;
 use spoofwatch_proto::wire::convert::timestamp_from_ms;
 
-use crate::store::{AlarmEvent, AlarmEventKind, AlarmEventRow, StoredPlace, StoredWhy};
+use crate::store::{
+    AlarmEvent, AlarmEventKind, AlarmEventRow, StoredPlace, StoredSeverity, StoredWhy,
+};
 use crate::telemetry;
 
 /// Why and where an alarm started: its onset sample's explanation and fix.
@@ -25,29 +29,82 @@ pub struct OnsetWhy<'a> {
     pub fix: LatLon,
 }
 
-/// A new open alarm of one sample whose peak is its onset probability, with why and where it
-/// started when the onset has an explanation.
-pub fn opened(
-    id: i64,
-    vehicle_id: &str,
-    model_id: &str,
-    onset_timestamp_s: f64,
-    onset_at_ms: i64,
-    probability: f64,
-    why: Option<OnsetWhy<'_>>,
-) -> AlarmEventRow {
+/// An alarm's first sample: whose, which model raised it, when (sample time and server wall
+/// time), its probability, its severity then, and why and where it started (when the onset has an
+/// explanation).
+#[derive(Clone, Copy, Debug)]
+pub struct Onset<'a> {
+    pub vehicle_id: &'a str,
+    pub model_id: &'a str,
+    pub timestamp_s: f64,
+    pub at_ms: i64,
+    pub probability: f64,
+    /// Critical when the onset sample is already critical (decisive evidence): the alarm then
+    /// escalated at its onset.
+    pub severity: Severity,
+    pub why: Option<OnsetWhy<'a>>,
+}
+
+#[cfg(test)]
+impl<'a> Onset<'a> {
+    /// A warning onset without an explanation.
+    pub fn warning(
+        vehicle_id: &'a str,
+        model_id: &'a str,
+        timestamp_s: f64,
+        at_ms: i64,
+        probability: f64,
+    ) -> Self {
+        Self {
+            vehicle_id,
+            model_id,
+            timestamp_s,
+            at_ms,
+            probability,
+            severity: Severity::Warning,
+            why: None,
+        }
+    }
+}
+
+/// A new open alarm `id` of one sample whose peak is its onset probability, with why and where it
+/// started when the onset has an explanation; one that opens critical escalated at its onset.
+pub fn opened(id: i64, onset: &Onset<'_>) -> AlarmEventRow {
+    let critical = onset.severity == Severity::Critical;
     AlarmEventRow {
         id,
-        vehicle_id: vehicle_id.to_string(),
-        model_id: model_id.to_string(),
-        onset_timestamp_s,
+        vehicle_id: onset.vehicle_id.to_string(),
+        model_id: onset.model_id.to_string(),
+        onset_timestamp_s: onset.timestamp_s,
         end_timestamp_s: None,
-        onset_at_ms,
+        onset_at_ms: onset.at_ms,
         ended_at_ms: None,
-        peak_probability: probability,
+        peak_probability: onset.probability,
         samples: 1,
-        why: why.map(|w| stored(w.explanation)).unwrap_or_default(),
-        place: why.map(|w| place(w.fix)).unwrap_or_default(),
+        why: onset.why.map(|w| stored(w.explanation)).unwrap_or_default(),
+        place: onset.why.map(|w| place(w.fix)).unwrap_or_default(),
+        severity: StoredSeverity(onset.severity),
+        escalated_timestamp_s: critical.then_some(onset.timestamp_s),
+        escalated_at_ms: critical.then_some(onset.at_ms),
+    }
+}
+
+/// Open `alarm` turned critical at sample time `timestamp_s` (server wall time `at_ms`), with its
+/// peak and samples then. An alarm already critical keeps its first escalation.
+pub fn escalated(
+    alarm: &AlarmEventRow,
+    timestamp_s: f64,
+    at_ms: i64,
+    peak_probability: f64,
+    samples: i64,
+) -> AlarmEventRow {
+    AlarmEventRow {
+        severity: StoredSeverity(Severity::Critical),
+        escalated_timestamp_s: alarm.escalated_timestamp_s.or(Some(timestamp_s)),
+        escalated_at_ms: alarm.escalated_at_ms.or(Some(at_ms)),
+        peak_probability,
+        samples,
+        ..alarm.clone()
     }
 }
 
@@ -107,25 +164,23 @@ pub fn explanation(why: &StoredWhy) -> Option<Explanation> {
     })
 }
 
-/// An event the outbox emitted (queued for the store): counted, and logged as one structured line
-/// (one per onset, one per end). An onset's line says why: the dominant evidence, the offset's
-/// distance and bearing, the drift's speed and bearing (left out when the onset has no
-/// explanation).
+/// An event the outbox emitted (queued for the store): counted by severity, and logged as one
+/// structured line (one per onset, escalation and end), which carries the severity. An onset's
+/// line says why: the dominant evidence, the offset's distance and bearing, the drift's speed and
+/// bearing (left out when the onset has no explanation).
 pub fn emitted(event: &AlarmEvent) {
-    match event.kind {
-        AlarmEventKind::Onset => telemetry::alarm_onset(),
-        AlarmEventKind::End => telemetry::alarm_end(),
-    }
+    not_queued(event.kind, event.alarm.severity.0);
     log(event);
 }
 
-/// An onset or end the outbox could not queue (the queue was full, the event was invalid, or its
-/// onset was never queued): counted all the same, because the vehicle's alarm did turn on or off;
-/// the outbox logs why it was not stored.
-pub fn not_queued(kind: AlarmEventKind) {
+/// An onset, escalation or end of an alarm of `severity` the outbox could not queue (the queue was
+/// full, the event was invalid, or its onset was never queued): counted all the same, because the
+/// vehicle's alarm did turn on, critical or off; the outbox logs why it was not stored.
+pub fn not_queued(kind: AlarmEventKind, severity: Severity) {
     match kind {
-        AlarmEventKind::Onset => telemetry::alarm_onset(),
-        AlarmEventKind::End => telemetry::alarm_end(),
+        AlarmEventKind::Onset => telemetry::alarm_onset(severity),
+        AlarmEventKind::Escalated => telemetry::alarm_escalated(),
+        AlarmEventKind::End => telemetry::alarm_end(severity),
     }
 }
 
@@ -137,6 +192,8 @@ pub fn ended_at_start(event: &AlarmEvent) {
 
 fn log(event: &AlarmEvent) {
     let alarm = &event.alarm;
+    let severity = alarm.severity.0.name();
+    let escalated_at = alarm.escalated_at_ms.map(timestamp_from_ms);
     match event.kind {
         AlarmEventKind::Onset => {
             let why = explanation(&alarm.why);
@@ -146,6 +203,7 @@ fn log(event: &AlarmEvent) {
                 vehicle_id = %alarm.vehicle_id,
                 model = %alarm.model_id,
                 alarm_id = alarm.id,
+                severity,
                 probability = alarm.peak_probability,
                 onset_timestamp_s = alarm.onset_timestamp_s,
                 onset_at = %timestamp_from_ms(alarm.onset_at_ms),
@@ -157,16 +215,30 @@ fn log(event: &AlarmEvent) {
                 "alarm onset"
             )
         }
+        AlarmEventKind::Escalated => tracing::info!(
+            vehicle_id = %alarm.vehicle_id,
+            model = %alarm.model_id,
+            alarm_id = alarm.id,
+            severity,
+            peak_probability = alarm.peak_probability,
+            samples = alarm.samples,
+            onset_timestamp_s = alarm.onset_timestamp_s,
+            escalated_timestamp_s = alarm.escalated_timestamp_s,
+            escalated_at = escalated_at.map(tracing::field::display),
+            "alarm escalated"
+        ),
         AlarmEventKind::End => tracing::info!(
             vehicle_id = %alarm.vehicle_id,
             model = %alarm.model_id,
             alarm_id = alarm.id,
+            severity,
             peak_probability = alarm.peak_probability,
             samples = alarm.samples,
             onset_timestamp_s = alarm.onset_timestamp_s,
             end_timestamp_s = alarm.end_timestamp_s,
             onset_at = %timestamp_from_ms(alarm.onset_at_ms),
             ended_at = %timestamp_from_ms(alarm.ended_at_ms.unwrap_or_default()),
+            escalated_timestamp_s = alarm.escalated_timestamp_s,
             "alarm end"
         ),
     }
@@ -199,8 +271,17 @@ mod tests {
             explanation: &x,
             fix: LatLon::new(32.0, -110.0),
         };
-        let open = opened(7, "car-7", "m", 100.0, 5_000, 0.8, Some(why));
+        let onset = Onset {
+            why: Some(why),
+            ..Onset::warning("car-7", "m", 100.0, 5_000, 0.8)
+        };
+        let open = opened(7, &onset);
         assert!(open.is_open());
+        assert_eq!(open.severity, StoredSeverity(Severity::Warning));
+        assert_eq!(
+            (open.escalated_timestamp_s, open.escalated_at_ms),
+            (None, None)
+        );
         assert_eq!((open.samples, open.peak_probability), (1, 0.8));
         assert_eq!(explanation(&open.why), Some(x));
         assert_eq!(open.place.onset_latitude_deg, Some(32.0));
@@ -212,7 +293,36 @@ mod tests {
             (closed.id, closed.onset_at_ms, closed.why),
             (7, 5_000, open.why)
         );
-        let bare = opened(8, "car-8", "m", 1.0, 1, 0.5, None);
+        let bare = opened(8, &Onset::warning("car-8", "m", 1.0, 1, 0.5));
         assert_eq!((bare.why, bare.place), Default::default());
+    }
+
+    #[test]
+    fn an_alarm_turns_critical_once_and_keeps_its_first_escalation() {
+        let open = opened(7, &Onset::warning("car-7", "m", 100.0, 5_000, 0.8));
+        let critical = escalated(&open, 104.0, 9_000, 0.99, 5);
+        assert_eq!(critical.severity, StoredSeverity(Severity::Critical));
+        assert_eq!(
+            (critical.escalated_timestamp_s, critical.escalated_at_ms),
+            (Some(104.0), Some(9_000))
+        );
+        assert_eq!((critical.peak_probability, critical.samples), (0.99, 5));
+        assert_eq!((critical.id, critical.onset_timestamp_s), (7, 100.0));
+        let again = escalated(&critical, 110.0, 15_000, 0.999, 11);
+        assert_eq!(again.escalated_timestamp_s, Some(104.0));
+        // Opened critical: escalated at the onset, and it stays critical when it ends.
+        let at_once = opened(
+            8,
+            &Onset {
+                severity: Severity::Critical,
+                ..Onset::warning("car-8", "m", 50.0, 2_000, 0.9)
+            },
+        );
+        assert_eq!(
+            (at_once.escalated_timestamp_s, at_once.escalated_at_ms),
+            (Some(50.0), Some(2_000))
+        );
+        let closed = ended(&at_once, Some(60.0), 3_000, 0.95, 11);
+        assert_eq!(closed.severity, StoredSeverity(Severity::Critical));
     }
 }

@@ -1,6 +1,7 @@
 //! The alarm event log as an [`EventLog`]: what WatchAlarms follows (the live feed of newly stored
 //! events is `crate::event_log::feed`).
 
+use spoofwatch_core::severity::Severity;
 use spoofwatch_proto::v1;
 
 use super::wire::{caught_up, event_to_proto};
@@ -8,16 +9,26 @@ use crate::event_log::EventLog;
 use crate::event_log::feed::Feed;
 use crate::store::{LoggedAlarmEvent, Store, StoreError};
 
-/// The alarm event log (the filter is a vehicle id).
+/// The alarm event log (filtered by vehicle and by severity).
 #[derive(Debug)]
 pub struct AlarmLog;
+
+/// What a WatchAlarms caller asks for beyond the whole fleet's events.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct AlarmWatchFilter {
+    /// Only this vehicle's events.
+    pub vehicle_id: Option<String>,
+    /// Only events that left their alarm at least this severe (warning: every event; critical:
+    /// onsets as critical, escalations, ends of critical alarms).
+    pub min_severity: Severity,
+}
 
 /// The live feed of stored alarm events.
 pub type AlarmFeed = Feed<AlarmLog>;
 
 impl EventLog for AlarmLog {
     type Event = LoggedAlarmEvent;
-    type Filter = String;
+    type Filter = AlarmWatchFilter;
     type Message = v1::AlarmEvent;
     const NAME: &'static str = "alarm";
     const LISTING_RPC: &'static str = "ListAlarms";
@@ -30,11 +41,18 @@ impl EventLog for AlarmLog {
         store: &Store,
         after: i64,
         through: i64,
-        vehicle: Option<&String>,
+        filter: Option<&AlarmWatchFilter>,
         limit: u32,
     ) -> Result<Vec<LoggedAlarmEvent>, StoreError> {
+        let filter = filter.cloned().unwrap_or_default();
         store
-            .alarm_events_after(after, through, vehicle.map(String::as_str), limit)
+            .alarm_events_at_least(
+                after,
+                through,
+                filter.vehicle_id.as_deref(),
+                filter.min_severity,
+                limit,
+            )
             .await
     }
 
@@ -42,8 +60,12 @@ impl EventLog for AlarmLog {
         store.latest_alarm_position().await
     }
 
-    fn wanted(vehicle: Option<&String>, event: &LoggedAlarmEvent) -> bool {
-        vehicle.is_none_or(|v| *v == event.event.alarm.vehicle_id)
+    fn wanted(filter: Option<&AlarmWatchFilter>, event: &LoggedAlarmEvent) -> bool {
+        let alarm = &event.event.alarm;
+        filter.is_none_or(|f| {
+            f.vehicle_id.as_ref().is_none_or(|v| *v == alarm.vehicle_id)
+                && alarm.severity.0 >= f.min_severity
+        })
     }
 
     fn message(event: &LoggedAlarmEvent) -> v1::AlarmEvent {
@@ -62,6 +84,7 @@ mod tests {
     use tokio_util::sync::CancellationToken;
 
     use super::*;
+    use crate::alarms::event::Onset;
     use crate::outbox::SessionOutbox;
     use crate::store::AlarmEventKind;
 
@@ -84,14 +107,14 @@ mod tests {
 
         let stop = CancellationToken::new();
         stop.cancel();
-        let first = here.onset("car-1", "m", 1.0, 1, 0.9, None);
+        let first = here.onset(&Onset::warning("car-1", "m", 1.0, 1, 0.9));
         here.run(store.clone(), stop.clone(), Duration::from_secs(1))
             .await;
-        let second = there.onset("car-2", "m", 2.0, 1, 0.8, None);
+        let second = there.onset(&Onset::warning("car-2", "m", 2.0, 1, 0.8));
         there
             .run(store.clone(), stop.clone(), Duration::from_secs(1))
             .await;
-        here.end(first, 3.0, 0.95, 3);
+        here.end(first, 3.0, 0.95, 3, Severity::Warning);
         here.run(store.clone(), stop, Duration::from_secs(1)).await;
         feed.read_new(&store).await.unwrap();
 

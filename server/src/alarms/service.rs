@@ -5,13 +5,15 @@
 
 use std::sync::Arc;
 
+use spoofwatch_core::severity::Severity;
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::alarm_service_server::AlarmService;
 use spoofwatch_proto::wire::VehicleId;
+use spoofwatch_proto::wire::convert::severity_from_proto;
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status};
 
-use super::feed::{AlarmFeed, AlarmLog};
+use super::feed::{AlarmFeed, AlarmLog, AlarmWatchFilter};
 use super::wire::alarm_to_proto;
 use crate::edge::{optional_model_name, optional_vehicle_id, page_request};
 use crate::event_log::watch::{self, WatchContext, WatchRequest, WatchStream};
@@ -35,6 +37,30 @@ pub struct AlarmApi {
 /// A `vehicle_id` filter: empty = every vehicle.
 fn vehicle_filter(vehicle_id: &str) -> Result<Option<String>, Status> {
     Ok(optional_vehicle_id("vehicle_id", vehicle_id)?.map(VehicleId::into_string))
+}
+
+/// A `severity` filter: the least severity wanted (UNSPECIFIED: warning, every alarm).
+fn min_severity(number: i32) -> Result<Severity, Status> {
+    severity_from_proto(number)
+        .map(Option::unwrap_or_default)
+        .map_err(|number| {
+            invalid_field(
+                "severity",
+                format!(
+                    "unknown severity {number}: use ALARM_SEVERITY_WARNING (1) or \
+                     ALARM_SEVERITY_CRITICAL (2), or leave it unset for every alarm"
+                ),
+            )
+        })
+}
+
+/// The WatchAlarms filter: `None` when it asks for every event of the fleet.
+fn watch_filter(r: &v1::WatchAlarmsRequest) -> Result<Option<AlarmWatchFilter>, Status> {
+    let filter = AlarmWatchFilter {
+        vehicle_id: vehicle_filter(&r.vehicle_id)?,
+        min_severity: min_severity(r.severity)?,
+    };
+    Ok((filter != AlarmWatchFilter::default()).then_some(filter))
 }
 
 /// An optional timestamp field as unix milliseconds (sub-millisecond parts are truncated).
@@ -89,6 +115,7 @@ fn list_filter(r: &v1::ListAlarmsRequest) -> Result<AlarmFilter, Status> {
         onset_from_ms,
         onset_before_ms,
         state,
+        min_severity: min_severity(r.severity)?,
     })
 }
 
@@ -126,7 +153,7 @@ impl AlarmService for AlarmApi {
                 idle: self.stream_idle,
             },
             WatchRequest {
-                filter: vehicle_filter(&r.vehicle_id)?,
+                filter: watch_filter(&r)?,
                 after_cursor: r.after_cursor,
                 stop_when_caught_up: r.stop_when_caught_up,
             },
@@ -185,6 +212,7 @@ mod tests {
     use tonic::Code;
 
     use super::*;
+    use crate::alarms::event::Onset;
     use crate::outbox::SessionOutbox;
 
     async fn watch(api: &AlarmApi, after_cursor: Option<i64>) -> Vec<(i32, i64)> {
@@ -218,8 +246,8 @@ mod tests {
         let other_replica = SessionOutbox::new(&store, 10).await.expect("outbox");
         let stop = CancellationToken::new();
         stop.cancel();
-        let alarm = other_replica.onset("car-1", "m", 1.0, 1, 0.9, None);
-        other_replica.end(alarm, 3.0, 0.95, 3);
+        let alarm = other_replica.onset(&Onset::warning("car-1", "m", 1.0, 1, 0.9));
+        other_replica.end(alarm, 3.0, 0.95, 3, Severity::Warning);
         other_replica
             .run(store.clone(), stop, Duration::from_secs(1))
             .await;

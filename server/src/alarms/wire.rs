@@ -6,7 +6,7 @@
 
 use spoofwatch_proto::v1;
 use spoofwatch_proto::wire::ModelName;
-use spoofwatch_proto::wire::convert::{explanation_to_proto, timestamp_from_ms};
+use spoofwatch_proto::wire::convert::{explanation_to_proto, severity_to_proto, timestamp_from_ms};
 
 use super::event::explanation;
 use crate::store::{AlarmEventKind, AlarmEventRow, LoggedAlarmEvent, StoredWhy};
@@ -28,6 +28,9 @@ pub fn alarm_to_proto(alarm: &AlarmEventRow) -> v1::Alarm {
         why,
         onset_latitude_deg: alarm.place.onset_latitude_deg,
         onset_longitude_deg: alarm.place.onset_longitude_deg,
+        severity: severity_to_proto(Some(alarm.severity.0)) as i32,
+        escalated_timestamp_s: alarm.escalated_timestamp_s,
+        escalated_time: alarm.escalated_at_ms.map(timestamp_from_ms),
     }
 }
 
@@ -35,6 +38,7 @@ pub fn alarm_to_proto(alarm: &AlarmEventRow) -> v1::Alarm {
 pub fn event_to_proto(logged: &LoggedAlarmEvent) -> v1::AlarmEvent {
     let kind = match logged.event.kind {
         AlarmEventKind::Onset => v1::AlarmEventKind::Onset,
+        AlarmEventKind::Escalated => v1::AlarmEventKind::Escalated,
         AlarmEventKind::End => v1::AlarmEventKind::End,
     };
     v1::AlarmEvent {

@@ -1,14 +1,16 @@
 //! A session's alarm episodes: how the detector's confirmed alarm, decision by decision, opens,
-//! extends and ends the episode a session holds open, and that episode as a stored alarm row.
+//! extends, escalates (a warning turns critical: the same episode) and ends the episode a session
+//! holds open, and that episode as a stored alarm row.
 //!
 //! Pure bookkeeping over [`AlarmTrack`]: it must not queue events, read clocks, take locks or touch
 //! the store. The session manager records what a step reports (an onset gets its id from the alarm
-//! outbox, then opens here).
+//! outbox, then opens here; an escalation gets its wall time there, then is recorded here).
 
 use spoofwatch_core::detector::Decision;
+use spoofwatch_core::severity::Severity;
 
-use super::handoff::OpenAlarm;
-use crate::alarms::event as alarm;
+use super::handoff::{Escalated, OpenAlarm};
+use crate::alarms::event::{self as alarm, Onset};
 use crate::store::AlarmEventRow;
 
 /// What one decision says about the confirmed alarm.
@@ -42,9 +44,12 @@ impl AlarmSignal {
 /// What a step asks the session manager to record.
 #[derive(Debug, PartialEq)]
 pub enum EpisodeChange {
-    /// An episode starts at this sample: record its onset, then [`AlarmTrack::open`] it under the
-    /// onset's id.
-    Onset,
+    /// An episode starts at this sample with this severity (critical on decisive evidence):
+    /// record its onset, then [`AlarmTrack::open`] it under the onset's id.
+    Onset(Severity),
+    /// The open episode, a warning, turned critical at this sample: [`AlarmTrack::escalate`] it
+    /// and record the escalation.
+    Escalated,
     /// This episode ended at its last alarming sample: record its end.
     Ended(OpenAlarm),
 }
@@ -61,26 +66,31 @@ pub struct AlarmTrack {
 }
 
 impl AlarmTrack {
-    /// Follows one decision on a sample at `timestamp_s` with spoofing probability `probability`.
+    /// Follows one decision on a sample at `timestamp_s` with spoofing probability `probability`;
+    /// `escalation`: the alarm turned critical at this sample (the decision's).
     pub fn step(
         &mut self,
         signal: AlarmSignal,
         timestamp_s: f64,
         probability: f64,
+        escalation: bool,
     ) -> Option<EpisodeChange> {
         self.active = matches!(signal, AlarmSignal::Onset | AlarmSignal::On);
         match signal {
             AlarmSignal::Onset => {
                 self.raised += 1;
-                Some(EpisodeChange::Onset)
+                Some(EpisodeChange::Onset(if escalation {
+                    Severity::Critical
+                } else {
+                    Severity::Warning
+                }))
             }
             AlarmSignal::On => {
-                if let Some(open) = self.open.as_mut() {
-                    open.peak = open.peak.max(probability);
-                    open.samples += 1;
-                    open.last_timestamp_s = timestamp_s;
-                }
-                None
+                let open = self.open.as_mut()?;
+                open.peak = open.peak.max(probability);
+                open.samples += 1;
+                open.last_timestamp_s = timestamp_s;
+                (escalation && open.escalated.is_none()).then_some(EpisodeChange::Escalated)
             }
             AlarmSignal::End => self.close().map(EpisodeChange::Ended),
             AlarmSignal::Off => None,
@@ -88,8 +98,16 @@ impl AlarmTrack {
     }
 
     /// Opens the episode an [`EpisodeChange::Onset`] announced, under the id its onset was
-    /// recorded with (`onset_at_ms`: the wall time recorded with it).
-    pub fn open(&mut self, id: i64, timestamp_s: f64, onset_at_ms: i64, probability: f64) {
+    /// recorded with (`onset_at_ms`: the wall time recorded with it); one that opens critical
+    /// escalated at its onset.
+    pub fn open(
+        &mut self,
+        id: i64,
+        timestamp_s: f64,
+        onset_at_ms: i64,
+        probability: f64,
+        severity: Severity,
+    ) {
         self.open = Some(OpenAlarm {
             id,
             onset_timestamp_s: timestamp_s,
@@ -97,7 +115,20 @@ impl AlarmTrack {
             peak: probability,
             samples: 1,
             last_timestamp_s: timestamp_s,
+            escalated: (severity == Severity::Critical).then_some(Escalated {
+                timestamp_s,
+                at_ms: onset_at_ms,
+            }),
         });
+    }
+
+    /// Makes the open episode critical from sample time `timestamp_s` (wall time `at_ms`), as an
+    /// [`EpisodeChange::Escalated`] announced; returns it as it is now (`None` when none is open).
+    pub fn escalate(&mut self, timestamp_s: f64, at_ms: i64) -> Option<&OpenAlarm> {
+        let open = self.open.as_mut()?;
+        open.escalated
+            .get_or_insert(Escalated { timestamp_s, at_ms });
+        Some(open)
     }
 
     /// Takes the open episode out, to record its end (also when the session ends, resets or
@@ -125,19 +156,33 @@ impl AlarmTrack {
 }
 
 impl OpenAlarm {
+    /// Warning, or critical once it escalated.
+    pub fn severity(&self) -> Severity {
+        if self.escalated.is_some() {
+            Severity::Critical
+        } else {
+            Severity::Warning
+        }
+    }
+
     /// The episode as the stored alarm row the outbox knows it by.
     pub fn row(&self, vehicle_id: &str, model_id: &str) -> AlarmEventRow {
         AlarmEventRow {
             peak_probability: self.peak,
             samples: i64::from(self.samples),
+            escalated_timestamp_s: self.escalated.map(|e| e.timestamp_s),
+            escalated_at_ms: self.escalated.map(|e| e.at_ms),
             ..alarm::opened(
                 self.id,
-                vehicle_id,
-                model_id,
-                self.onset_timestamp_s,
-                self.onset_at_ms,
-                self.peak,
-                None,
+                &Onset {
+                    vehicle_id,
+                    model_id,
+                    timestamp_s: self.onset_timestamp_s,
+                    at_ms: self.onset_at_ms,
+                    probability: self.peak,
+                    severity: self.severity(),
+                    why: None,
+                },
             )
         }
     }
@@ -195,6 +240,7 @@ mod tests {
             peak: 0.9,
             samples: 2,
             last_timestamp_s: 11.0,
+            escalated: None,
         }
     }
 
@@ -210,8 +256,8 @@ mod tests {
     fn an_onset_counts_the_episode_and_asks_for_it_to_be_recorded() {
         let mut track = AlarmTrack::default();
         assert_eq!(
-            track.step(AlarmSignal::Onset, 10.0, 0.8),
-            Some(EpisodeChange::Onset)
+            track.step(AlarmSignal::Onset, 10.0, 0.8, false),
+            Some(EpisodeChange::Onset(Severity::Warning))
         );
         assert!(track.active);
         assert_eq!(track.raised, 1);
@@ -219,7 +265,7 @@ mod tests {
             track.open, None,
             "opened only under the recorded onset's id"
         );
-        track.open(7, 10.0, 1_000, 0.8);
+        track.open(7, 10.0, 1_000, 0.8, Severity::Warning);
         assert_eq!(
             track.open,
             Some(OpenAlarm {
@@ -229,15 +275,71 @@ mod tests {
                 peak: 0.8,
                 samples: 1,
                 last_timestamp_s: 10.0,
+                escalated: None,
             })
         );
     }
 
     #[test]
+    fn a_critical_onset_opens_an_episode_that_escalated_at_its_onset() {
+        let mut track = AlarmTrack::default();
+        assert_eq!(
+            track.step(AlarmSignal::Onset, 10.0, 0.99, true),
+            Some(EpisodeChange::Onset(Severity::Critical))
+        );
+        track.open(7, 10.0, 1_000, 0.99, Severity::Critical);
+        let open = track.open.clone().expect("open");
+        assert_eq!(open.severity(), Severity::Critical);
+        assert_eq!(
+            open.escalated,
+            Some(Escalated {
+                timestamp_s: 10.0,
+                at_ms: 1_000
+            })
+        );
+        // Nothing more to escalate.
+        assert_eq!(track.step(AlarmSignal::On, 11.0, 0.99, true), None);
+    }
+
+    #[test]
+    fn a_warning_escalates_once_as_the_same_episode() {
+        let mut track = track_with(Some(open_alarm(7)));
+        assert_eq!(track.step(AlarmSignal::On, 12.0, 0.97, false), None);
+        assert_eq!(
+            track.step(AlarmSignal::On, 13.0, 0.99, true),
+            Some(EpisodeChange::Escalated)
+        );
+        let open = track.escalate(13.0, 5_000).expect("open").clone();
+        assert_eq!((open.id, open.samples, open.peak), (7, 4, 0.99));
+        assert_eq!(open.severity(), Severity::Critical);
+        // A second escalation keeps the first time.
+        track.escalate(14.0, 6_000);
+        assert_eq!(
+            track.open.as_ref().and_then(|o| o.escalated),
+            Some(Escalated {
+                timestamp_s: 13.0,
+                at_ms: 5_000
+            })
+        );
+        let row = track.open_row("car-1", "m").expect("open");
+        assert_eq!(
+            (
+                row.severity.0,
+                row.escalated_timestamp_s,
+                row.escalated_at_ms
+            ),
+            (Severity::Critical, Some(13.0), Some(5_000))
+        );
+        assert_eq!(track.escalate(15.0, 7_000).map(|o| o.id), Some(7));
+        track.close();
+        assert_eq!(track.escalate(15.0, 7_000), None);
+    }
+
+    #[test]
     fn an_ongoing_alarm_extends_the_open_episode() {
         let mut track = track_with(Some(open_alarm(7)));
-        assert_eq!(track.step(AlarmSignal::On, 12.0, 0.95), None);
-        assert_eq!(track.step(AlarmSignal::On, 13.0, 0.85), None);
+        assert_eq!(track.step(AlarmSignal::On, 12.0, 0.95, false), None);
+        assert_eq!(track.step(AlarmSignal::On, 13.0, 0.85, false), None);
         let open = track.open.clone().expect("still open");
         assert_eq!(
             (open.peak, open.samples, open.last_timestamp_s),
@@ -251,7 +353,7 @@ mod tests {
     #[test]
     fn an_ongoing_alarm_without_an_open_episode_changes_only_the_flag() {
         let mut track = track_with(None);
-        assert_eq!(track.step(AlarmSignal::On, 12.0, 0.95), None);
+        assert_eq!(track.step(AlarmSignal::On, 12.0, 0.95, false), None);
         assert_eq!(
             track,
             AlarmTrack {
@@ -266,18 +368,18 @@ mod tests {
     fn an_end_hands_back_the_episode_at_its_last_alarming_sample() {
         let mut track = track_with(Some(open_alarm(7)));
         assert_eq!(
-            track.step(AlarmSignal::End, 12.0, 0.1),
+            track.step(AlarmSignal::End, 12.0, 0.1, false),
             Some(EpisodeChange::Ended(open_alarm(7)))
         );
         assert_eq!(track, track_with(None).with_active(false));
         // Nothing open: nothing to record.
-        assert_eq!(track.step(AlarmSignal::End, 13.0, 0.1), None);
+        assert_eq!(track.step(AlarmSignal::End, 13.0, 0.1, false), None);
     }
 
     #[test]
     fn no_alarm_changes_nothing_but_the_flag() {
         let mut track = track_with(Some(open_alarm(7)));
-        assert_eq!(track.step(AlarmSignal::Off, 12.0, 0.1), None);
+        assert_eq!(track.step(AlarmSignal::Off, 12.0, 0.1, false), None);
         assert_eq!(track, track_with(Some(open_alarm(7))).with_active(false));
     }
 
@@ -309,7 +411,7 @@ mod tests {
             AlarmEventRow {
                 peak_probability: 0.9,
                 samples: 2,
-                ..alarm::opened(7, "car-1", "m", 10.0, 1_000, 0.9, None)
+                ..alarm::opened(7, &Onset::warning("car-1", "m", 10.0, 1_000, 0.9))
             }
         );
         assert_eq!((row.end_timestamp_s, row.ended_at_ms), (None, None));

@@ -7,8 +7,10 @@
 //! refused with a [`SnapshotRefused`] naming why; the session then starts afresh.
 //!
 //! Older versions still read:
-//! - version 5 is version 6 without the alarm's escalation (the last field of the detector's state,
-//!   and of the snapshot): it continues as an episode that has not turned critical;
+//! - version 6 is version 7 without the open alarm's escalation times ([`OpenAlarm::escalated`]):
+//!   its open alarm continues as a warning (a server of version 6 stored no critical alarm);
+//! - version 5 is version 6 without the detector's escalation (the last field of the detector's
+//!   state, and of the snapshot): it continues as an episode that has not turned critical;
 //! - version 4 is version 5 without the detector's receiver-flag memory: it continues as a session
 //!   whose receiver has raised no flag either.
 
@@ -20,7 +22,9 @@ use spoofwatch_core::severity::Escalation;
 /// The encoding this server writes. Bump it when [`SessionSnapshot`] or anything inside
 /// [`DetectorState`] changes shape: older snapshots are then refused (fresh sessions), never
 /// misread, unless [`SessionSnapshot::decode`] is taught to read them.
-pub const SNAPSHOT_SCHEMA: u16 = 6;
+pub const SNAPSHOT_SCHEMA: u16 = 7;
+/// The version before the open alarm kept its escalation, still read.
+const SNAPSHOT_SCHEMA_WITHOUT_ESCALATED_ALARM: u16 = 6;
 /// The version before alarm severities, still read.
 const SNAPSHOT_SCHEMA_WITHOUT_SEVERITY: u16 = 5;
 /// The version before the receiver-flag memory, still read.
@@ -45,6 +49,41 @@ pub struct OpenAlarm {
     pub samples: u32,
     /// Sample time of the latest alarming sample: the event's end time (`alarm_events` semantics).
     pub last_timestamp_s: f64,
+    /// When it turned critical (the onset's times when it opened critical); `None`: a warning.
+    pub escalated: Option<Escalated>,
+}
+
+/// When an open alarm turned critical: sample time and server wall time (unix ms).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Escalated {
+    pub timestamp_s: f64,
+    pub at_ms: i64,
+}
+
+/// An [`OpenAlarm`] as snapshots of version 6 and older keep it: a warning.
+#[derive(Deserialize)]
+#[cfg_attr(test, derive(Serialize))]
+struct OpenWarning {
+    id: i64,
+    onset_timestamp_s: f64,
+    onset_at_ms: i64,
+    peak: f64,
+    samples: u32,
+    last_timestamp_s: f64,
+}
+
+impl From<OpenWarning> for OpenAlarm {
+    fn from(old: OpenWarning) -> Self {
+        Self {
+            id: old.id,
+            onset_timestamp_s: old.onset_timestamp_s,
+            onset_at_ms: old.onset_at_ms,
+            peak: old.peak,
+            samples: old.samples,
+            last_timestamp_s: old.last_timestamp_s,
+            escalated: None,
+        }
+    }
 }
 
 /// Everything a session carries besides its model.
@@ -82,10 +121,11 @@ pub enum SnapshotRefused {
     Unreadable { why: String, retry: bool },
 }
 
-/// A [`SessionSnapshot`] of schema version 4: the same fields, the detector's without its
-/// receiver-flag memory.
+/// A [`SessionSnapshot`] of schema versions 4 to 6: the same fields, the open alarm a warning,
+/// the detector's state `D` as that version kept it.
 #[derive(Deserialize)]
-struct SessionSnapshotWithoutFlags {
+#[cfg_attr(test, derive(Serialize))]
+struct SessionSnapshotOfWarnings<D> {
     model_id: String,
     samples: u64,
     trajectories: u32,
@@ -93,12 +133,12 @@ struct SessionSnapshotWithoutFlags {
     last_timestamp_s: Option<f64>,
     alarm_active: bool,
     alarms_raised: u64,
-    open_alarm: Option<OpenAlarm>,
-    detector: DetectorStateWithoutFlags,
+    open_alarm: Option<OpenWarning>,
+    detector: D,
 }
 
-impl From<SessionSnapshotWithoutFlags> for SessionSnapshot {
-    fn from(old: SessionSnapshotWithoutFlags) -> Self {
+impl<D: Into<DetectorState>> From<SessionSnapshotOfWarnings<D>> for SessionSnapshot {
+    fn from(old: SessionSnapshotOfWarnings<D>) -> Self {
         Self {
             model_id: old.model_id,
             samples: old.samples,
@@ -107,7 +147,7 @@ impl From<SessionSnapshotWithoutFlags> for SessionSnapshot {
             last_timestamp_s: old.last_timestamp_s,
             alarm_active: old.alarm_active,
             alarms_raised: old.alarms_raised,
-            open_alarm: old.open_alarm,
+            open_alarm: old.open_alarm.map(OpenAlarm::from),
             detector: old.detector.into(),
         }
     }
@@ -145,18 +185,29 @@ impl SessionSnapshot {
             return Err(corrupt("checksum mismatch"));
         }
         let undecodable = |error: postcard::Error| corrupt(&format!("undecodable: {error}"));
-        if version == SNAPSHOT_SCHEMA_WITHOUT_FLAGS {
-            return postcard::from_bytes::<SessionSnapshotWithoutFlags>(&body[HEADER..])
-                .map(Self::from)
-                .map_err(undecodable);
+        let payload = &body[HEADER..];
+        match version {
+            SNAPSHOT_SCHEMA_WITHOUT_FLAGS => postcard::from_bytes::<
+                SessionSnapshotOfWarnings<DetectorStateWithoutFlags>,
+            >(payload)
+            .map(Self::from)
+            .map_err(undecodable),
+            SNAPSHOT_SCHEMA_WITHOUT_SEVERITY => {
+                // Cut short before the detector's escalation: the bytes of one that has not
+                // escalated complete it.
+                let mut payload = payload.to_vec();
+                payload.extend(postcard::to_allocvec(&Escalation::default()).unwrap_or_default());
+                postcard::from_bytes::<SessionSnapshotOfWarnings<DetectorState>>(&payload)
+                    .map(Self::from)
+                    .map_err(undecodable)
+            }
+            SNAPSHOT_SCHEMA_WITHOUT_ESCALATED_ALARM => {
+                postcard::from_bytes::<SessionSnapshotOfWarnings<DetectorState>>(payload)
+                    .map(Self::from)
+                    .map_err(undecodable)
+            }
+            _ => postcard::from_bytes(payload).map_err(undecodable),
         }
-        if version == SNAPSHOT_SCHEMA_WITHOUT_SEVERITY {
-            // Cut short before the escalation: the bytes of one that has not escalated complete it.
-            let mut payload = body[HEADER..].to_vec();
-            payload.extend(postcard::to_allocvec(&Escalation::default()).unwrap_or_default());
-            return postcard::from_bytes(&payload).map_err(undecodable);
-        }
-        postcard::from_bytes(&body[HEADER..]).map_err(undecodable)
     }
 }
 
@@ -189,6 +240,10 @@ mod tests {
                 peak: 0.97,
                 samples: 3,
                 last_timestamp_s: 1_700_000_000.5,
+                escalated: Some(Escalated {
+                    timestamp_s: 1_700_000_000.25,
+                    at_ms: 1_700_000_000_400,
+                }),
             }),
             detector: Detector::new(artifact).save(),
         }
@@ -217,17 +272,36 @@ mod tests {
     /// Bytes of an empty receiver-flag memory before it: two absent times.
     const NO_FLAGS: [u8; 2] = [0; 2];
 
-    /// `snapshot` as a server of an older schema `version` stored it: the same bytes without the
-    /// payload's last `cut` bytes.
+    /// `snapshot` as a server of schema version 6 stored it (its open alarm a warning), cut short
+    /// by `cut` bytes and labelled `version`: 6 uncut, 5 without the escalation, 4 without the
+    /// flags too.
     fn as_version(snapshot: &SessionSnapshot, version: u16, cut: usize) -> Vec<u8> {
-        let bytes = snapshot.encode();
-        let payload = &bytes[HEADER..bytes.len() - CHECKSUM];
-        let mut old = b"SWSS".to_vec();
-        old.extend_from_slice(&version.to_le_bytes());
-        old.extend_from_slice(&payload[..payload.len() - cut]);
-        let checksum = Sha256::digest(&old);
-        old.extend_from_slice(&checksum[..CHECKSUM]);
-        old
+        let open = snapshot.open_alarm.clone().expect("an open alarm");
+        let old = SessionSnapshotOfWarnings {
+            model_id: snapshot.model_id.clone(),
+            samples: snapshot.samples,
+            trajectories: snapshot.trajectories,
+            last_seq: snapshot.last_seq,
+            last_timestamp_s: snapshot.last_timestamp_s,
+            alarm_active: snapshot.alarm_active,
+            alarms_raised: snapshot.alarms_raised,
+            open_alarm: Some(OpenWarning {
+                id: open.id,
+                onset_timestamp_s: open.onset_timestamp_s,
+                onset_at_ms: open.onset_at_ms,
+                peak: open.peak,
+                samples: open.samples,
+                last_timestamp_s: open.last_timestamp_s,
+            }),
+            detector: snapshot.detector.clone(),
+        };
+        let payload = postcard::to_allocvec(&old).expect("encodes");
+        let mut bytes = b"SWSS".to_vec();
+        bytes.extend_from_slice(&version.to_le_bytes());
+        bytes.extend_from_slice(&payload[..payload.len() - cut]);
+        let checksum = Sha256::digest(&bytes);
+        bytes.extend_from_slice(&checksum[..CHECKSUM]);
+        bytes
     }
 
     #[test]
@@ -241,16 +315,23 @@ mod tests {
             tail[..],
             "no flag memory, then no escalation"
         );
-        let version_5 = as_version(&original, 5, NO_ESCALATION.len());
-        let version_4 = as_version(&original, 4, tail.len());
-        for (version, old) in [(5, version_5), (4, version_4)] {
+        // What this version writes, with the open alarm a warning: what the older ones continue as.
+        let as_warning = SessionSnapshot {
+            open_alarm: original.open_alarm.clone().map(|open| OpenAlarm {
+                escalated: None,
+                ..open
+            }),
+            ..original.clone()
+        };
+        for (version, cut) in [(6, 0), (5, NO_ESCALATION.len()), (4, tail.len())] {
+            let old = as_version(&original, version, cut);
             let decoded = SessionSnapshot::decode(&old)
                 .unwrap_or_else(|e| panic!("version {version} reads: {e}"));
-            assert_eq!(decoded.encode(), bytes, "version {version}");
-            assert_eq!(decoded.open_alarm, original.open_alarm);
+            assert_eq!(decoded.encode(), as_warning.encode(), "version {version}");
+            assert_eq!(decoded.open_alarm, as_warning.open_alarm);
         }
-        assert!(reads_schema(4) && reads_schema(5) && reads_schema(6));
-        assert!(!reads_schema(3) && !reads_schema(7));
+        assert!((4..=7).all(reads_schema));
+        assert!(!reads_schema(3) && !reads_schema(8));
     }
 
     #[test]
@@ -283,7 +364,7 @@ mod tests {
         assert_eq!(
             refusal(&older).as_deref(),
             Some(
-                "the stored session snapshot has schema version 1; this server reads versions 4 to 6"
+                "the stored session snapshot has schema version 1; this server reads versions 4 to 7"
             )
         );
 

@@ -15,6 +15,7 @@ use std::time::{Duration, Instant};
 use spoofwatch_core::explain::Explanation;
 use spoofwatch_core::geo::LatLon;
 use spoofwatch_core::sample::Sample;
+use spoofwatch_core::severity::Severity;
 use spoofwatch_proto::wire::{ModelName, VehicleId};
 use tokio::sync::oneshot;
 
@@ -22,7 +23,7 @@ use super::handoff::{OpenAlarm, SNAPSHOT_SCHEMA, SessionSnapshot, SnapshotRefuse
 use super::resume::Progress;
 use super::snapshot_reads::{SnapshotReads, Unread, UnreadSince};
 use super::state::SessionState;
-use crate::alarms::event::OnsetWhy;
+use crate::alarms::event::{Onset, OnsetWhy};
 use crate::models::LoadedModel;
 use crate::outbox::SessionOutbox;
 use crate::store::{SnapshotRow, Store, now_unix_ms};
@@ -218,30 +219,41 @@ impl SessionKeeper {
         SessionState::restore(model.clone(), snapshot)
     }
 
-    /// Queues an alarm onset (with `why`, the onset sample's explanation) and opens its episode
-    /// under the id the outbox gave it.
+    /// Queues an alarm onset of `severity` (with `why`, the onset sample's explanation) and opens
+    /// its episode under the id the outbox gave it.
     pub(super) fn record_onset(
         &self,
         state: &mut SessionState,
         vehicle: &VehicleId,
         sample: &Sample,
-        p: f64,
+        (p, severity): (f64, Severity),
         why: &Explanation,
     ) {
         let onset_at_ms = now_unix_ms();
         let timestamp_s = sample.timestamp_s;
-        let id = self.outbox.onset(
-            vehicle.as_str(),
-            state.model.name.id(),
+        let id = self.outbox.onset(&Onset {
+            vehicle_id: vehicle.as_str(),
+            model_id: state.model.name.id(),
             timestamp_s,
-            onset_at_ms,
-            p,
-            Some(OnsetWhy {
+            at_ms: onset_at_ms,
+            probability: p,
+            severity,
+            why: Some(OnsetWhy {
                 explanation: why,
                 fix: LatLon::new(sample.latitude_deg, sample.longitude_deg),
             }),
-        );
-        state.alarm.open(id, timestamp_s, onset_at_ms, p);
+        });
+        state.alarm.open(id, timestamp_s, onset_at_ms, p, severity);
+    }
+
+    /// Makes the session's open episode critical from the sample at `timestamp_s` and queues the
+    /// escalation.
+    pub(super) fn record_escalation(&self, state: &mut SessionState, timestamp_s: f64) {
+        let at_ms = now_unix_ms();
+        if let Some(open) = state.alarm.escalate(timestamp_s, at_ms) {
+            self.outbox
+                .escalate(open.id, timestamp_s, at_ms, open.peak, open.samples);
+        }
     }
 
     /// Queues the end of an episode at its last alarming sample.
@@ -251,6 +263,7 @@ impl SessionKeeper {
             episode.last_timestamp_s,
             episode.peak,
             episode.samples,
+            episode.severity(),
         );
     }
 

@@ -385,17 +385,22 @@ impl SessionManager {
                     .map_or(sample.timestamp_s, |t| t.max(sample.timestamp_s)),
             );
             let signal = AlarmSignal::of(&decision);
-            match state
-                .alarm
-                .step(signal, sample.timestamp_s, decision.probability)
-            {
-                Some(EpisodeChange::Onset) => self.keeper.record_onset(
+            match state.alarm.step(
+                signal,
+                sample.timestamp_s,
+                decision.probability,
+                decision.escalation,
+            ) {
+                Some(EpisodeChange::Onset(severity)) => self.keeper.record_onset(
                     state,
                     &slot.vehicle_id,
                     sample,
-                    decision.probability,
+                    (decision.probability, severity),
                     &decision.explanation,
                 ),
+                Some(EpisodeChange::Escalated) => {
+                    self.keeper.record_escalation(state, sample.timestamp_s)
+                }
                 Some(EpisodeChange::Ended(episode)) => self.keeper.record_end(episode),
                 None => {}
             }
@@ -403,9 +408,11 @@ impl SessionManager {
         }
         state.seqs.apply(seq);
         state.since_snapshot += samples.len() as u64;
-        // An alarm onset or end is stored together with a snapshot that includes it, so that a
-        // session continued elsewhere neither repeats nor loses it.
-        let alarm_changed = decisions.iter().any(|d| d.alarm_onset || d.alarm_end);
+        // An alarm onset, escalation or end is stored together with a snapshot that includes it,
+        // so that a session continued elsewhere neither repeats nor loses it.
+        let alarm_changed = decisions
+            .iter()
+            .any(|d| d.alarm_onset || d.escalation || d.alarm_end);
         if alarm_changed || self.keeper.snapshot_due(state) {
             self.keeper.save(&slot.vehicle_id, state);
         }

@@ -241,11 +241,13 @@ impl IncidentCorrelator {
     }
 
     /// `logged` as the correlator's input, on the timeline; `None` for an onset stored without its
-    /// place or explanation.
+    /// place or explanation, and for an escalation (an area incident rests on where alarms start
+    /// and end; how loud one became is no evidence of where).
     fn input(&mut self, logged: &LoggedAlarmEvent, now_ms: i64) -> Option<Input> {
         let alarm = &logged.event.alarm;
         let timeline = self.settings.timeline;
         let time_s = match (logged.event.kind, timeline) {
+            (AlarmEventKind::Escalated, _) => return None,
             (AlarmEventKind::Onset, Timeline::Wall) => alarm.onset_at_ms as f64 / 1000.0,
             (AlarmEventKind::Onset, Timeline::Samples) => alarm.onset_timestamp_s,
             (AlarmEventKind::End, Timeline::Wall) => {
@@ -277,6 +279,7 @@ impl IncidentCorrelator {
                 alarm_id: alarm.id,
                 time_s,
             })),
+            AlarmEventKind::Escalated => None,
         }
     }
 }
@@ -348,7 +351,7 @@ mod tests {
     use spoofwatch_proto::v1;
 
     use super::*;
-    use crate::alarms::event::OnsetWhy;
+    use crate::alarms::event::{Onset, OnsetWhy};
     use crate::incidents::service;
     use crate::outbox::SessionOutbox;
 
@@ -362,17 +365,13 @@ mod tests {
             offset_m: [0.0, 150.0],
             drift_rate_mps: [0.0, 0.0],
         };
-        outbox.onset(
-            vehicle,
-            "m",
-            1.0,
-            now_unix_ms(),
-            0.9,
-            Some(OnsetWhy {
+        outbox.onset(&Onset {
+            why: Some(OnsetWhy {
                 explanation: &explanation,
                 fix: LatLon::new(lat, lon),
             }),
-        );
+            ..Onset::warning(vehicle, "m", 1.0, now_unix_ms(), 0.9)
+        });
         let stop = CancellationToken::new();
         stop.cancel();
         outbox

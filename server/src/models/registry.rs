@@ -11,6 +11,7 @@ use serde::{Deserialize, Serialize};
 use spoofwatch_core::alarm::OperatingPoint;
 use spoofwatch_core::metrics::Metrics;
 use spoofwatch_core::model::artifact::{ARTIFACT_SCHEMA_VERSION, ArtifactError, ModelArtifact};
+use spoofwatch_core::severity::CriticalTest;
 use spoofwatch_proto::wire::{ModelName, OperationName};
 use tokio_util::sync::CancellationToken;
 
@@ -61,6 +62,10 @@ pub struct ModelMetadata {
     pub train_wall_time_s: f64,
     pub epochs_run: u32,
     pub notes: String,
+    /// The artifact's critical test; `None`: the model raises warnings only. Absent (so `None`) in
+    /// metadata stored by servers before alarm severities were served.
+    #[serde(default)]
+    pub critical: Option<CriticalTest>,
 }
 
 impl ModelMetadata {
@@ -95,6 +100,7 @@ impl ModelMetadata {
             train_wall_time_s: p.train_wall_time_s,
             epochs_run: p.epochs_run,
             notes: p.notes.clone(),
+            critical: artifact.critical,
         }
     }
 
@@ -106,6 +112,18 @@ impl ModelMetadata {
                 tracing::warn!(%error, model = %row.id, "unreadable model metadata");
             })
             .ok()
+    }
+}
+
+/// Logs that `name` now serves as the active model, and says so when its alarms can only be
+/// warnings (the artifact has no critical level: nothing it raises pages anyone).
+fn announce_active(name: &ModelName, artifact: &ModelArtifact, how: &'static str) {
+    tracing::info!(model = %name, "{how}");
+    if artifact.critical.is_none() {
+        tracing::warn!(
+            model = %name,
+            "the active model has no critical level: its alarms are warnings only, none is critical"
+        );
     }
 }
 
@@ -177,6 +195,7 @@ impl Registry {
             .ok_or(RegistryError::NoActiveModel)?;
         let name = ModelName::from_id(row.id);
         let loaded = self.load(name).await?;
+        announce_active(&loaded.name, &loaded.artifact, "serving the active model");
         *self.active() = Some(loaded.clone());
         Ok(loaded)
     }
@@ -257,11 +276,9 @@ impl Registry {
         let artifact = Arc::new(artifact.clone());
         if activate {
             let row = self.store.insert_active_model(model).await?;
-            *self.active() = Some(LoadedModel {
-                name: ModelName::from_id(id),
-                artifact,
-            });
-            tracing::info!(model = %id, "activated model");
+            let name = ModelName::from_id(id);
+            announce_active(&name, &artifact, "activated model");
+            *self.active() = Some(LoadedModel { name, artifact });
             return Ok(row);
         }
         let row = self.store.insert_model(model).await?;
@@ -347,12 +364,12 @@ impl Registry {
     pub async fn activate(&self, name: &ModelName) -> Result<ModelRow, RegistryError> {
         let loaded = self.resolve(Some(name)).await?;
         let row = self.store.set_active_model(name.id()).await?;
+        announce_active(name, &loaded.artifact, "activated model");
         {
             let mut active = self.active();
             *active = Some(loaded);
             self.activations.fetch_add(1, Ordering::Relaxed);
         }
-        tracing::info!(model = %name, "activated model");
         Ok(row)
     }
 
@@ -374,6 +391,11 @@ impl Registry {
             // This server activated a model after the store was read: that one stands.
             return Ok(None);
         }
+        announce_active(
+            &name,
+            &loaded.artifact,
+            "following the active model set by another server",
+        );
         *active = Some(loaded);
         Ok(Some(name))
     }
@@ -387,8 +409,7 @@ impl Registry {
             tokio::select! {
                 () = stop.cancelled() => break,
                 _ = tick.tick() => match self.follow_active_model().await {
-                    Ok(Some(model)) => tracing::info!(%model, "following the active model set by another server"),
-                    Ok(None) => {}
+                    Ok(_) => {}
                     Err(error) => tracing::debug!(%error, "could not read the active model; keeping this one"),
                 },
             }

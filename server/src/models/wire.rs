@@ -5,7 +5,7 @@ use spoofwatch_core::model::artifact::{Provenance, bounded_provenance_text};
 use spoofwatch_proto::v1;
 use spoofwatch_proto::wire::ModelName;
 use spoofwatch_proto::wire::convert::{
-    metrics_to_proto, operating_point_to_proto, timestamp_from_ms,
+    critical_test_to_proto, metrics_to_proto, operating_point_to_proto, timestamp_from_ms,
 };
 
 use super::registry::ModelMetadata;
@@ -42,6 +42,7 @@ pub fn model_to_proto(row: &ModelRow) -> v1::Model {
         model.train_wall_time_s = m.train_wall_time_s;
         model.epochs_run = m.epochs_run;
         model.notes = bounded_provenance_text(m.notes);
+        model.critical = m.critical.as_ref().map(critical_test_to_proto);
     }
     model
 }

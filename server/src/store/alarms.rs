@@ -1,10 +1,13 @@
-//! Confirmed-alarm history: one row per alarm episode of a vehicle, written at onset and at end (by
-//! the server's session outbox, in batches: see `super::outbox`) so an alarm is never lost even if
-//! the in-memory session is. Each onset and end is also appended to the event log behind
-//! WatchAlarms, at a position the database assigns in commit order (see `log_event!`).
+//! Confirmed-alarm history: one row per alarm episode of a vehicle, written at onset, at its
+//! escalation to critical and at end (by the server's session outbox, in batches: see
+//! `super::outbox`) so an alarm is never lost even if the in-memory session is. Each onset,
+//! escalation and end is also appended to the event log behind WatchAlarms, at a position the
+//! database assigns in commit order (see `log_event!`).
 //!
 //! It owns the alarm tables and their reads; it must not know session snapshots (their table is
 //! `super::snapshots`, the joint write `super::outbox`).
+
+use spoofwatch_core::severity::Severity;
 
 use super::error::{require_finite, require_probability};
 use super::paging::PagePlan;
@@ -41,7 +44,31 @@ pub struct AlarmEventRow {
     /// Where it started (the onset sample's fix); `None` on rows stored before schema version 8.
     #[sqlx(flatten)]
     pub place: StoredPlace,
+    /// The highest severity it reached (warning on rows stored before schema version 10).
+    pub severity: StoredSeverity,
+    /// When it turned critical, sample time; `None` while it is a warning.
+    pub escalated_timestamp_s: Option<f64>,
+    /// When it turned critical, wall-clock unix ms; `None` while it is a warning.
+    #[sqlx(rename = "escalated_at")]
+    pub escalated_at_ms: Option<i64>,
 }
+
+/// An alarm's severity as the store keeps it: its name (`warning`, `critical`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, PartialOrd, Ord)]
+pub struct StoredSeverity(pub Severity);
+
+impl StoredSeverity {
+    /// The name stored in the database.
+    pub fn as_str(self) -> &'static str {
+        self.0.name()
+    }
+
+    fn from_str_opt(name: &str) -> Option<Self> {
+        Severity::from_name(name).map(Self)
+    }
+}
+
+text_enum!(StoredSeverity);
 
 /// An alarm's onset fix as the alarm row stores it, degrees. Written with the onset, never changed
 /// by its end.
@@ -71,6 +98,8 @@ pub struct StoredWhy {
 pub enum AlarmEventKind {
     /// The alarm started: its row is inserted.
     Onset,
+    /// The open alarm, a warning, turned critical: its row is updated.
+    Escalated,
     /// The alarm ended: its row is closed.
     End,
 }
@@ -80,6 +109,7 @@ impl AlarmEventKind {
     pub fn as_str(self) -> &'static str {
         match self {
             AlarmEventKind::Onset => "onset",
+            AlarmEventKind::Escalated => "escalated",
             AlarmEventKind::End => "end",
         }
     }
@@ -87,6 +117,7 @@ impl AlarmEventKind {
     fn from_str_opt(name: &str) -> Option<Self> {
         match name {
             "onset" => Some(AlarmEventKind::Onset),
+            "escalated" => Some(AlarmEventKind::Escalated),
             "end" => Some(AlarmEventKind::End),
             _ => None,
         }
@@ -95,8 +126,8 @@ impl AlarmEventKind {
 
 text_enum!(AlarmEventKind);
 
-/// One alarm onset or end, as the server emits it: stored by the background writer (the alarm row
-/// and the event log). Ids and seqs come from the server (never from an insert), so a write can be
+/// One alarm onset, escalation or end, as the server emits it: stored by the background writer
+/// (the alarm row and the event log). Ids and seqs come from the server (never from an insert), so a write can be
 /// retried and an end always names its onset.
 #[derive(Debug, Clone, PartialEq, sqlx::FromRow)]
 pub struct AlarmEvent {
@@ -104,9 +135,10 @@ pub struct AlarmEvent {
     /// across restarts, and unique among the processes sharing the database (a retried write is
     /// skipped by it). Not the WatchAlarms cursor: see [`LoggedAlarmEvent::position`].
     pub seq: i64,
-    /// Onset or end.
+    /// Onset, escalation or end.
     pub kind: AlarmEventKind,
-    /// The alarm as this event left it (open with one sample for an onset, closed for an end).
+    /// The alarm as this event left it (open with one sample for an onset, critical with its
+    /// escalation times for an escalation, closed for an end).
     #[sqlx(flatten)]
     pub alarm: AlarmEventRow,
 }
@@ -131,9 +163,25 @@ impl AlarmEventRow {
 
 impl AlarmEvent {
     /// [`StoreError::InvalidValue`] for a non-finite timestamp or explanation, a probability
-    /// outside [0, 1] or an end without an end time.
+    /// outside [0, 1], an end without an end time, or a critical alarm without its escalation
+    /// times (and a warning with them).
     pub fn validate(&self) -> Result<(), StoreError> {
         let alarm = &self.alarm;
+        if let Some(escalated) = alarm.escalated_timestamp_s {
+            require_finite("escalated_timestamp_s", escalated)?;
+        }
+        let critical = alarm.severity.0 == Severity::Critical;
+        if critical != alarm.escalated_timestamp_s.is_some()
+            || critical != alarm.escalated_at_ms.is_some()
+            || (self.kind == AlarmEventKind::Escalated && !critical)
+        {
+            return Err(StoreError::InvalidValue {
+                field: "severity",
+                reason: "a critical alarm has both escalation times, a warning neither, and an \
+                         escalation is critical"
+                    .to_string(),
+            });
+        }
         match self.kind {
             AlarmEventKind::Onset => {
                 require_finite("onset_timestamp_s", alarm.onset_timestamp_s)?;
@@ -151,6 +199,9 @@ impl AlarmEvent {
                         require_finite(field, value)?;
                     }
                 }
+            }
+            AlarmEventKind::Escalated => {
+                require_probability("peak_probability", alarm.peak_probability)?;
             }
             AlarmEventKind::End => {
                 if let Some(end) = alarm.end_timestamp_s {
@@ -194,6 +245,8 @@ pub struct AlarmFilter {
     pub onset_before_ms: Option<i64>,
     /// Open, closed or both.
     pub state: AlarmState,
+    /// The least severity listed: warning lists every alarm, critical those that are critical.
+    pub min_severity: Severity,
 }
 
 /// `end` as it stands against the stored snapshot copy of its session's progress on the alarm
@@ -229,7 +282,7 @@ macro_rules! select_alarms {
             "SELECT id, vehicle_id, model_id, onset_timestamp_s, end_timestamp_s, onset_at, \
              ended_at, peak_probability, samples, why_kind, why_offset_east_m, \
              why_offset_north_m, why_drift_east_mps, why_drift_north_mps, onset_latitude_deg, \
-             onset_longitude_deg FROM alarm_events ",
+             onset_longitude_deg, severity, escalated_timestamp_s, escalated_at FROM alarm_events ",
             $rest
         )
     };
@@ -251,9 +304,9 @@ macro_rules! log_event {
         let alarm = &event.alarm;
         sqlx::query(
             "INSERT INTO alarm_event_log (position, seq, alarm_id, kind, end_timestamp_s, \
-             ended_at, peak_probability, samples) VALUES \
-             ((SELECT COALESCE(MAX(position), 0) + 1 FROM alarm_event_log), \
-             $1, $2, $3, $4, $5, $6, $7) ON CONFLICT DO NOTHING",
+             ended_at, peak_probability, samples, severity, escalated_timestamp_s, escalated_at) \
+             VALUES ((SELECT COALESCE(MAX(position), 0) + 1 FROM alarm_event_log), \
+             $1, $2, $3, $4, $5, $6, $7, $8, $9, $10) ON CONFLICT DO NOTHING",
         )
         .bind(event.seq)
         .bind(alarm.id)
@@ -262,22 +315,26 @@ macro_rules! log_event {
         .bind(alarm.ended_at_ms)
         .bind(alarm.peak_probability)
         .bind(alarm.samples)
+        .bind(alarm.severity)
+        .bind(alarm.escalated_timestamp_s)
+        .bind(alarm.escalated_at_ms)
         .execute(&mut *$tx)
         .await?;
     }};
 }
 pub(super) use log_event;
 
-/// Applies `event` inside the write transaction `$tx`: an onset inserts its alarm, an end closes it,
-/// and an event that changed its alarm is appended to the event log, as it left the alarm. A retry
-/// of a stored event changes nothing. A macro so that it compiles for either backend's transaction
+/// Applies `event` inside the write transaction `$tx`: an onset inserts its alarm, an escalation
+/// makes the open alarm critical, an end closes it, and an event that changed its alarm is appended
+/// to the event log, as it left the alarm. A retry of a stored event changes nothing. A macro so that it compiles for either backend's transaction
 /// (used by the joint write, `super::outbox`).
 ///
 /// An alarm ends at the latest alarming sample any copy of its session saw. A process that
 /// replaces a session (a roll-out) ends its alarm from the copy it read, which may lag the copy
 /// another process stored meanwhile, or stores later: so an end takes the stored snapshot's
 /// progress on the alarm when that got further, and an end later than the stored one moves it on
-/// (an end without a sample time moves nothing that has one).
+/// (an end without a sample time moves nothing that has one). Severity only rises: an end keeps the
+/// stored escalation when its copy of the alarm had not seen it, and is logged with it.
 macro_rules! apply_event {
     ($tx:ident, $event:expr) => {{
         let event: &AlarmEvent = $event;
@@ -288,9 +345,10 @@ macro_rules! apply_event {
                     "INSERT INTO alarm_events (id, vehicle_id, model_id, \
                      onset_timestamp_s, onset_at, peak_probability, samples, why_kind, \
                      why_offset_east_m, why_offset_north_m, why_drift_east_mps, \
-                     why_drift_north_mps, onset_latitude_deg, onset_longitude_deg) \
-                     VALUES ($1, $2, $3, $4, $5, $6, 1, $7, $8, $9, $10, $11, $12, $13) \
-                     ON CONFLICT DO NOTHING",
+                     why_drift_north_mps, onset_latitude_deg, onset_longitude_deg, severity, \
+                     escalated_timestamp_s, escalated_at) \
+                     VALUES ($1, $2, $3, $4, $5, $6, 1, $7, $8, $9, $10, $11, $12, $13, $14, \
+                     $15, $16) ON CONFLICT DO NOTHING",
                 )
                 .bind(alarm.id)
                 .bind(&alarm.vehicle_id)
@@ -305,10 +363,34 @@ macro_rules! apply_event {
                 .bind(alarm.why.why_drift_north_mps)
                 .bind(alarm.place.onset_latitude_deg)
                 .bind(alarm.place.onset_longitude_deg)
+                .bind(alarm.severity)
+                .bind(alarm.escalated_timestamp_s)
+                .bind(alarm.escalated_at_ms)
                 .execute(&mut *$tx)
                 .await?
                 .rows_affected();
                 if inserted > 0 {
+                    $crate::store::alarms::log_event!($tx, event);
+                }
+            }
+            AlarmEventKind::Escalated => {
+                // Only an open warning escalates: a retry, or an alarm another process ended
+                // meanwhile, changes nothing.
+                let escalated = sqlx::query(
+                    "UPDATE alarm_events SET severity = $2, escalated_timestamp_s = $3, \
+                     escalated_at = $4, peak_probability = $5, samples = $6 \
+                     WHERE id = $1 AND ended_at IS NULL AND severity <> $2",
+                )
+                .bind(alarm.id)
+                .bind(alarm.severity)
+                .bind(alarm.escalated_timestamp_s)
+                .bind(alarm.escalated_at_ms)
+                .bind(alarm.peak_probability)
+                .bind(alarm.samples)
+                .execute(&mut *$tx)
+                .await?
+                .rows_affected();
+                if escalated > 0 {
                     $crate::store::alarms::log_event!($tx, event);
                 }
             }
@@ -320,23 +402,39 @@ macro_rules! apply_event {
                 .bind(alarm.id)
                 .fetch_optional(&mut *$tx)
                 .await?;
-                let event = &$crate::store::alarms::furthest_end(event, stored_copy);
+                let mut event = $crate::store::alarms::furthest_end(event, stored_copy);
                 let alarm = &event.alarm;
-                let ended = sqlx::query(
+                let ended = sqlx::query_as::<
+                    _,
+                    (
+                        $crate::store::alarms::StoredSeverity,
+                        Option<f64>,
+                        Option<i64>,
+                    ),
+                >(
                     "UPDATE alarm_events SET end_timestamp_s = $2, ended_at = $3, \
-                     peak_probability = $4, samples = $5 WHERE id = $1 AND (ended_at IS NULL \
-                     OR end_timestamp_s < $2 OR (end_timestamp_s IS NULL AND $2 IS NOT NULL))",
+                     peak_probability = $4, samples = $5, \
+                     severity = CASE WHEN $6 = 'critical' THEN $6 ELSE severity END, \
+                     escalated_timestamp_s = COALESCE(escalated_timestamp_s, $7), \
+                     escalated_at = COALESCE(escalated_at, $8) WHERE id = $1 AND (ended_at IS NULL \
+                     OR end_timestamp_s < $2 OR (end_timestamp_s IS NULL AND $2 IS NOT NULL)) \
+                     RETURNING severity, escalated_timestamp_s, escalated_at",
                 )
                 .bind(alarm.id)
                 .bind(alarm.end_timestamp_s)
                 .bind(alarm.ended_at_ms)
                 .bind(alarm.peak_probability)
                 .bind(alarm.samples)
-                .execute(&mut *$tx)
-                .await?
-                .rows_affected();
-                if ended > 0 {
-                    $crate::store::alarms::log_event!($tx, event);
+                .bind(alarm.severity)
+                .bind(alarm.escalated_timestamp_s)
+                .bind(alarm.escalated_at_ms)
+                .fetch_optional(&mut *$tx)
+                .await?;
+                if let Some((severity, escalated_timestamp_s, escalated_at_ms)) = ended {
+                    event.alarm.severity = severity;
+                    event.alarm.escalated_timestamp_s = escalated_timestamp_s;
+                    event.alarm.escalated_at_ms = escalated_at_ms;
+                    $crate::store::alarms::log_event!($tx, &event);
                 }
             }
         }
@@ -397,6 +495,7 @@ impl Store {
              AND ($3 IS NULL OR onset_at >= $3) AND ($4 IS NULL OR onset_at < $4) \
              AND ($5 = 'any' OR ($5 = 'open') = (ended_at IS NULL)) \
              AND ($6 IS NULL OR id > $6) \
+             AND ($8 = 'warning' OR severity = $8) \
              ORDER BY id LIMIT $7"
         );
         let state = match filter.state {
@@ -415,6 +514,7 @@ impl Store {
                 .bind(state)
                 .bind(plan.after_created_at())
                 .bind(plan.fetch_limit())
+                .bind(StoredSeverity(filter.min_severity))
                 .fetch_all(pool)
                 .await?
         });
@@ -430,22 +530,40 @@ impl Store {
         vehicle_id: Option<&str>,
         limit: u32,
     ) -> Result<Vec<LoggedAlarmEvent>, StoreError> {
+        self.alarm_events_at_least(after, through, vehicle_id, Severity::Warning, limit)
+            .await
+    }
+
+    /// [`Store::alarm_events_after`] of at least `min_severity`: with critical, only the events
+    /// that left their alarm critical (an onset as critical, an escalation, the end of a critical
+    /// alarm).
+    pub async fn alarm_events_at_least(
+        &self,
+        after: i64,
+        through: i64,
+        vehicle_id: Option<&str>,
+        min_severity: Severity,
+        limit: u32,
+    ) -> Result<Vec<LoggedAlarmEvent>, StoreError> {
         Ok(on_pool!(self, |pool| {
             sqlx::query_as::<_, LoggedAlarmEvent>(
                 "SELECT l.position, l.seq, l.kind, a.id, a.vehicle_id, a.model_id, \
                  a.onset_timestamp_s, l.end_timestamp_s, a.onset_at, l.ended_at, \
                  l.peak_probability, l.samples, a.why_kind, a.why_offset_east_m, \
                  a.why_offset_north_m, a.why_drift_east_mps, a.why_drift_north_mps, \
-                 a.onset_latitude_deg, a.onset_longitude_deg \
+                 a.onset_latitude_deg, a.onset_longitude_deg, l.severity, \
+                 l.escalated_timestamp_s, l.escalated_at \
                  FROM alarm_event_log l JOIN alarm_events a ON a.id = l.alarm_id \
                  WHERE l.position > $1 AND l.position <= $2 \
                  AND ($3 IS NULL OR a.vehicle_id = $3) \
+                 AND ($5 = 'warning' OR l.severity = $5) \
                  ORDER BY l.position LIMIT $4",
             )
             .bind(after)
             .bind(through)
             .bind(vehicle_id)
             .bind(i64::from(limit))
+            .bind(StoredSeverity(min_severity))
             .fetch_all(pool)
             .await?
         }))

@@ -130,7 +130,7 @@ use sqlx::PgPool;
 
 pub use alarms::{
     AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent,
-    StoredPlace, StoredWhy, first_seq_of_run,
+    StoredPlace, StoredSeverity, StoredWhy, first_seq_of_run,
 };
 pub use datasets::{DatasetRow, NewDataset};
 pub use error::{FaultKind, MigrationError, StoreError, StoreFault};

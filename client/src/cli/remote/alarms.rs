@@ -1,5 +1,6 @@
 //! `spoofwatch alarms`: the fleet's confirmed alarms (AlarmService): `list` the stored ones as a
-//! table or JSON lines, `watch` onsets and ends as JSON lines, resuming after reconnects.
+//! table or JSON lines, `watch` onsets, escalations and ends as JSON lines, resuming after
+//! reconnects; both filter by the least severity (`--severity`).
 //!
 //! It owns the command line and the JSON shape of an alarm; the resumable feed is the library's
 //! [`AlarmWatch`], tables come from `remote`.
@@ -13,7 +14,7 @@ use anyhow::{Context, Result};
 use serde_json::{Value, json};
 use spoofwatch_proto::v1;
 
-use super::detect::why_name;
+use super::detect::{severity_name, why_name};
 use super::{ResourceArgs, opt, pages_up_to, print_table, time};
 use crate::cli::server_flags::ServerArgs;
 
@@ -24,9 +25,31 @@ pub type Args = ResourceArgs<Command>;
 pub enum Command {
     /// List stored alarms in opening order.
     List(ListArgs),
-    /// Print alarm onsets and ends as they happen, one JSON object per line, each with its
-    /// cursor; reconnects and resumes after the last cursor when the server is unavailable.
+    /// Print alarm onsets, escalations and ends as they happen, one JSON object per line, each
+    /// with its cursor; reconnects and resumes after the last cursor when the server is
+    /// unavailable.
     Watch(WatchArgs),
+}
+
+/// The least severity shown.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum SeverityArg {
+    /// Every alarm (warnings and critical ones).
+    #[default]
+    Warning,
+    /// Only alarms that are critical: opened critical or escalated (for `watch`: critical onsets,
+    /// escalations and the ends of critical alarms).
+    Critical,
+}
+
+impl SeverityArg {
+    /// The filter on the wire.
+    pub fn to_proto(self) -> v1::AlarmSeverity {
+        match self {
+            SeverityArg::Warning => v1::AlarmSeverity::Warning,
+            SeverityArg::Critical => v1::AlarmSeverity::Critical,
+        }
+    }
 }
 
 /// Which alarms `list` shows.
@@ -59,6 +82,9 @@ pub struct ListArgs {
     /// Open, closed or any.
     #[arg(long, value_enum, default_value_t)]
     pub state: StateArg,
+    /// The least severity listed: warning (every alarm) or critical.
+    #[arg(long, value_enum, default_value_t)]
+    pub severity: SeverityArg,
     /// At most this many alarms (default: all).
     #[arg(long)]
     pub limit: Option<usize>,
@@ -76,10 +102,14 @@ pub struct WatchArgs {
     /// events. Each printed line carries its cursor; pass the last one to resume.
     #[arg(long, value_parser = clap::value_parser!(i64).range(0..))]
     pub after: Option<i64>,
+    /// The least severity of the events printed: warning (every event) or critical (critical
+    /// onsets, escalations and the ends of critical alarms).
+    #[arg(long, value_enum, default_value_t)]
+    pub severity: SeverityArg,
     /// Keep reconnecting for this many seconds while the server is unavailable (0: never).
     #[arg(long, default_value_t = 300.0, value_parser = parse_seconds)]
     pub reconnect_for: f64,
-    /// Stop after this many onsets and ends (default: never).
+    /// Stop after this many events other than `caught_up` (default: never).
     #[arg(long)]
     pub count: Option<u64>,
     /// Stop once caught up (after the `caught_up` line): print what happened after `--after`
@@ -124,6 +154,7 @@ pub fn list_request(args: &ListArgs) -> v1::ListAlarmsRequest {
         state: state as i32,
         page_size: 0,
         page_token: String::new(),
+        severity: args.severity.to_proto() as i32,
     }
 }
 
@@ -153,8 +184,20 @@ async fn run_list(server: &ServerArgs, args: ListArgs) -> Result<()> {
     }
     print_table(
         &[
-            "id", "vehicle", "model", "onset", "end", "onset_s", "end_s", "peak", "samples",
-            "state", "why", "offset",
+            "id",
+            "vehicle",
+            "model",
+            "severity",
+            "onset",
+            "end",
+            "onset_s",
+            "escalated_s",
+            "end_s",
+            "peak",
+            "samples",
+            "state",
+            "why",
+            "offset",
         ],
         &alarms,
         |a| {
@@ -162,9 +205,11 @@ async fn run_list(server: &ServerArgs, args: ListArgs) -> Result<()> {
                 a.id.to_string(),
                 a.vehicle_id.clone(),
                 a.model.clone(),
+                severity_name(a.severity).unwrap_or("-").to_string(),
                 time(a.onset_time.as_ref()),
                 time(a.end_time.as_ref()),
                 format!("{:.1}", a.onset_timestamp_s),
+                opt(a.escalated_timestamp_s, 1),
                 opt(a.end_timestamp_s, 1),
                 format!("{:.3}", a.peak_probability),
                 a.samples.to_string(),
@@ -184,6 +229,7 @@ async fn run_watch(server: &ServerArgs, args: WatchArgs) -> Result<()> {
     let connection = server.connect().await?;
     let options = WatchOptions {
         vehicle_id: args.vehicle.clone().unwrap_or_default(),
+        min_severity: args.severity.to_proto(),
         after_cursor: args.after,
         reconnect_for: Duration::from_secs_f64(args.reconnect_for),
     };
@@ -251,6 +297,9 @@ pub fn alarm_json(alarm: &v1::Alarm) -> Value {
         "id": alarm.id,
         "vehicle_id": alarm.vehicle_id,
         "model": alarm.model,
+        "severity": severity_name(alarm.severity),
+        "escalated_timestamp_s": alarm.escalated_timestamp_s,
+        "escalated_time": time(alarm.escalated_time.as_ref()),
         "onset_timestamp_s": alarm.onset_timestamp_s,
         "end_timestamp_s": alarm.end_timestamp_s,
         "onset_time": time(alarm.onset_time.as_ref()),
@@ -272,11 +321,12 @@ pub fn alarm_json(alarm: &v1::Alarm) -> Value {
     })
 }
 
-/// A watch event as one JSON object: `cursor`, `kind` (`onset`, `end`, `caught_up`) and, except
-/// for `caught_up`, the `alarm`.
+/// A watch event as one JSON object: `cursor`, `kind` (`onset`, `escalated`, `end`, `caught_up`)
+/// and, except for `caught_up`, the `alarm`.
 pub fn event_json(event: &v1::AlarmEvent) -> Value {
     let kind = match v1::AlarmEventKind::try_from(event.kind) {
         Ok(v1::AlarmEventKind::Onset) => "onset",
+        Ok(v1::AlarmEventKind::Escalated) => "escalated",
         Ok(v1::AlarmEventKind::End) => "end",
         Ok(v1::AlarmEventKind::CaughtUp) => "caught_up",
         _ => "unknown",

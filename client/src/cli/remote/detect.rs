@@ -48,12 +48,14 @@ pub struct Args {
     pub model: Option<String>,
     /// Write every detection as CSV (vehicle_id, line, timestamp_s, probability, positive, alarm,
     /// alarm_onset, valid, why, offset_m, offset_bearing_deg, drift_mps, drift_bearing_deg,
-    /// model); timestamp_s is the recorded one, `why` the dominant evidence (empty from a server
-    /// that does not explain), bearings in degrees clockwise from north, `model` the one that made
-    /// the detection (`models/{id}`).
+    /// model, severity); timestamp_s is the recorded one, `why` the dominant evidence (empty from
+    /// a server that does not explain), bearings in degrees clockwise from north, `model` the one
+    /// that made the detection (`models/{id}`), `severity` the open alarm's (`warning`,
+    /// `critical`; empty while no alarm is on).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Print only alarm onsets and ends, and the per-vehicle and fleet summaries.
+    /// Print only alarm onsets, escalations to critical and ends, and the per-vehicle and fleet
+    /// summaries.
     #[arg(long)]
     pub quiet: bool,
     /// Reconnect every vehicle after about this many seconds of recorded time (0: never), as when
@@ -141,7 +143,7 @@ pub fn parse_batch(text: &str) -> Result<usize, String> {
 }
 
 /// The CSV columns of `--out`.
-const CSV_HEADER: [&str; 14] = [
+const CSV_HEADER: [&str; 15] = [
     "vehicle_id",
     "line",
     "timestamp_s",
@@ -156,6 +158,7 @@ const CSV_HEADER: [&str; 14] = [
     "drift_mps",
     "drift_bearing_deg",
     "model",
+    "severity",
 ];
 
 fn flag(b: bool) -> &'static str {
@@ -177,6 +180,16 @@ pub fn why_name(why: Option<&v1::Explanation>) -> Option<&'static str> {
     })
 }
 
+/// The lowercase name of a severity on the wire (`warning`, `critical`); `None` for UNSPECIFIED
+/// (no alarm open) or a number this build does not know.
+pub fn severity_name(severity: i32) -> Option<&'static str> {
+    match v1::AlarmSeverity::try_from(severity).ok()? {
+        v1::AlarmSeverity::Unspecified => None,
+        v1::AlarmSeverity::Warning => Some("warning"),
+        v1::AlarmSeverity::Critical => Some("critical"),
+    }
+}
+
 /// `jump: offset 482.0 m toward 45°, drift 0.30 m/s toward 120°`, or `None` when nothing stands
 /// out (or the detection carries no explanation).
 pub fn why_text(why: Option<&v1::Explanation>) -> Option<String> {
@@ -189,7 +202,7 @@ pub fn why_text(why: Option<&v1::Explanation>) -> Option<String> {
 }
 
 /// One detection as a CSV row.
-pub fn csv_row(d: &ReplayedDetection) -> [String; 14] {
+pub fn csv_row(d: &ReplayedDetection) -> [String; 15] {
     let det = &d.detection;
     let valid = det.evidence.as_ref().is_some_and(|e| e.valid);
     let why = det.why.as_ref();
@@ -211,15 +224,21 @@ pub fn csv_row(d: &ReplayedDetection) -> [String; 14] {
         number(|w| w.drift_mps),
         number(|w| w.drift_bearing_deg),
         d.model.to_string(),
+        severity_name(det.severity).unwrap_or_default().to_string(),
     ]
 }
 
 /// One detection as a console line: `vehicle  t  p=0.123  ALARM onset  jump: offset 482.0 m
-/// toward 45°, drift 0.30 m/s toward 120°` (the why only when something stands out).
+/// toward 45°, drift 0.30 m/s toward 120°` (the why only when something stands out); an alarm
+/// that opens critical is `CRITICAL onset`, one that turns critical later `CRITICAL`.
 pub fn console_line(d: &ReplayedDetection) -> String {
     let det = &d.detection;
-    let marker = if det.alarm_onset {
+    let marker = if det.alarm_onset && det.alarm_escalated {
+        "CRITICAL onset"
+    } else if det.alarm_onset {
         "ALARM onset"
+    } else if det.alarm_escalated {
+        "CRITICAL"
     } else if det.alarm {
         "ALARM"
     } else if det.alarm_end {
@@ -251,19 +270,26 @@ pub fn summary_line(s: &ReplaySummary) -> String {
         n => format!(", {n} failovers"),
     };
     format!(
-        "{}: {} samples, {} detections, {} alarms, {} rejected batches{reconnects}{failovers}, mean batch latency {latency}",
-        s.vehicle_id, s.samples_sent, s.detections, s.alarm_onsets, s.rejected_batches
+        "{}: {} samples, {} detections, {} alarms ({} turned critical), {} rejected batches{reconnects}{failovers}, mean batch latency {latency}",
+        s.vehicle_id,
+        s.samples_sent,
+        s.detections,
+        s.alarm_onsets,
+        s.critical_alarms,
+        s.rejected_batches
     )
 }
 
 /// `n (s at session starts, g after gaps, e elsewhere)`.
 fn onset_breakdown(counts: &OnsetCounts) -> String {
+    format!("{} {}", counts.total(), places(counts))
+}
+
+/// `(s within 30 s of a session start, g within 30 s after a gap, e elsewhere)`.
+fn places(counts: &OnsetCounts) -> String {
     format!(
-        "{} ({} within 30 s of a session start, {} within 30 s after a gap, {} elsewhere)",
-        counts.total(),
-        counts.session_start,
-        counts.after_gap,
-        counts.elsewhere
+        "({} within 30 s of a session start, {} within 30 s after a gap, {} elsewhere)",
+        counts.session_start, counts.after_gap, counts.elsewhere
     )
 }
 
@@ -298,9 +324,9 @@ fn worst_vehicle_line(v: &WorstVehicle) -> String {
 
 /// The fleet summary as console lines.
 pub fn fleet_lines(s: &FleetSummary) -> Vec<String> {
-    let rate = s
-        .false_alarms_per_attack_free_hour
-        .map_or_else(|| "-".to_string(), |r| format!("{r:.2}"));
+    let per_hour = |rate: Option<f64>| rate.map_or_else(|| "-".to_string(), |r| format!("{r:.2}"));
+    let rate = per_hour(s.false_alarms_per_attack_free_hour);
+    let critical_rate = per_hour(s.critical_false_alarms_per_attack_free_hour);
     let mut lines = vec![
         format!(
             "fleet: {} vehicles, {} samples, {:.2} attack-free hours; {} streams ({} reconnects, {} resumed, {} failovers, {} of them onto another model, {} replies lost with failed streams); {} GNSS gaps (> {} s)",
@@ -328,6 +354,12 @@ pub fn fleet_lines(s: &FleetSummary) -> Vec<String> {
         format!(
             "detections (onsets on attacked rows): {}; onsets on unlabelled rows: {}",
             s.detections, s.unlabelled_onsets
+        ),
+        format!(
+            "critical (paging) alarms: {} on attack-free rows {}, {critical_rate} per attack-free hour; {} on attacked rows",
+            s.critical_false_alarms.total(),
+            places(&s.critical_false_alarms),
+            s.critical_detections
         ),
     ];
     if !s.worst_vehicles.is_empty() {
@@ -508,7 +540,7 @@ pub async fn run(args: Args) -> Result<()> {
             }
             ReplayEvent::Detection(detection) => {
                 let det = &detection.detection;
-                if !args.quiet || det.alarm_onset || det.alarm_end {
+                if !args.quiet || det.alarm_onset || det.alarm_escalated || det.alarm_end {
                     println!("{}", console_line(detection));
                 }
             }
@@ -632,7 +664,7 @@ mod tests {
         assert_eq!(row.len(), CSV_HEADER.len());
         assert_eq!(
             &row[8..],
-            ["jump", "500", "36.87", "0.25", "90", "models/m1"]
+            ["jump", "500", "36.87", "0.25", "90", "models/m1", ""]
         );
     }
 
@@ -644,6 +676,13 @@ mod tests {
         };
         assert!(console_line(&detection(Some(none))).ends_with("ALARM onset"));
         assert!(console_line(&detection(None)).ends_with("ALARM onset"));
+        let mut critical = detection(None);
+        critical.detection.alarm_escalated = true;
+        critical.detection.severity = v1::AlarmSeverity::Critical as i32;
+        assert!(console_line(&critical).ends_with("CRITICAL onset"));
+        assert_eq!(csv_row(&critical)[14], "critical");
+        critical.detection.alarm_onset = false;
+        assert!(console_line(&critical).ends_with("CRITICAL"));
         assert_eq!(&csv_row(&detection(Some(none)))[8..10], ["none", "0"]);
         assert_eq!(&csv_row(&detection(None))[8..13], ["", "", "", "", ""]);
     }

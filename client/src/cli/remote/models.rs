@@ -93,6 +93,18 @@ pub fn describe(m: &v1::Model) -> String {
     out
 }
 
+/// The alarm levels a model raises: `warning, critical (...)` with its critical test, or
+/// `warning only (no critical level: nothing it raises pages)`.
+pub fn severities(m: &v1::Model) -> String {
+    match &m.critical {
+        Some(c) => format!(
+            "warning, critical (k = {}, h = {} logit s, gate NIS {} held {} s)",
+            c.reference_logit, c.threshold, c.gate, c.decisive_s
+        ),
+        None => "warning only (no critical level: nothing it raises pages)".to_string(),
+    }
+}
+
 /// A model's details without the metrics table, several lines.
 pub fn describe_without_metrics(m: &v1::Model) -> String {
     let mut out = format!(
@@ -112,6 +124,7 @@ pub fn describe_without_metrics(m: &v1::Model) -> String {
             op.theta, op.persistence
         ));
     }
+    out.push_str(&format!("  severities     {}\n", severities(m)));
     out.push_str(&format!(
         "  architecture   {} ({} parameters)\n  artifact       schema {}, {}, sha256 {}\n  \
          provenance     seed {}, {} epochs, {:.1} s, data: {}\n",
@@ -158,6 +171,7 @@ pub async fn run(args: Args) -> Result<()> {
                 "display",
                 "source",
                 "theta/N_p",
+                "severities",
                 "val. AUROC",
                 "created",
             ];
@@ -168,6 +182,12 @@ pub async fn run(args: Args) -> Result<()> {
                     m.display_name.clone(),
                     m.source.clone(),
                     format!("{:.3}/{}", op.theta, op.persistence),
+                    if m.critical.is_some() {
+                        "warning+critical"
+                    } else {
+                        "warning only"
+                    }
+                    .to_string(),
                     super::opt(m.validation_metrics.as_ref().and_then(|v| v.auroc), 4),
                     time(m.create_time.as_ref()),
                 ]

@@ -1,7 +1,7 @@
 //! Alarm events: batched onsets and ends with server-assigned ids, retries, list, recovery of open
 //! alarms, and the event log's positions (assigned by the database in commit order).
 
-use crate::alarms::event::{ended, opened};
+use crate::alarms::event::{Onset, ended, opened};
 use crate::store::{
     AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent,
     PageRequest, Store, StoreError, StoredWhy,
@@ -19,12 +19,7 @@ pub(super) fn onset(
         kind: AlarmEventKind::Onset,
         alarm: opened(
             id,
-            vehicle_id,
-            "m1",
-            onset_timestamp_s,
-            1_000 + id,
-            probability,
-            None,
+            &Onset::warning(vehicle_id, "m1", onset_timestamp_s, 1_000 + id, probability),
         ),
     }
 }
@@ -41,7 +36,7 @@ pub(super) fn end(
         seq: 1_000 + id,
         kind: AlarmEventKind::End,
         alarm: ended(
-            &opened(id, "unread", "unread", 0.0, 0, 0.5, None),
+            &opened(id, &Onset::warning("unread", "unread", 0.0, 0, 0.5)),
             Some(end_timestamp_s),
             2_000 + id,
             peak_probability,
@@ -436,7 +431,6 @@ on_both_backends!(
 /// rows were inserted in; the next event stored takes the next position.
 mod positions_are_backfilled_in_seq_order {
     use crate::store::Store;
-    use crate::store::test_database::TestDatabase;
 
     /// Three events of two runs (inserted out of seq order) and their alarms, as schema version 4
     /// holds them.
@@ -463,47 +457,11 @@ mod positions_are_backfilled_in_seq_order {
         assert_eq!(next, [4], "b's alarm ended at the next position");
     }
 
-    #[tokio::test]
-    async fn sqlite() {
-        let dir = tempfile::tempdir().expect("temp dir");
-        let path = dir.path().join("v4.db");
-        let url = format!("sqlite://{}?mode=rwc", path.display());
-        let pool = sqlx::SqlitePool::connect(&url).await.expect("connect");
-        sqlx::migrate!("../migrations/sqlite")
-            .run_to(4, &pool)
-            .await
-            .expect("schema version 4");
-        for sql in OLD_LOG {
-            sqlx::query(sql).execute(&pool).await.expect(sql);
-        }
-        pool.close().await;
-        check(Store::open(&path.to_string_lossy()).await.expect("open")).await;
-    }
-
-    #[tokio::test]
-    async fn postgres() {
-        let Some(database) = TestDatabase::create("positions_are_backfilled").await else {
-            return;
-        };
-        let pool = sqlx::PgPool::connect(&database.url).await.expect("connect");
-        sqlx::migrate!("../migrations/postgres")
-            .run_to(4, &pool)
-            .await
-            .expect("schema version 4");
-        for sql in OLD_LOG {
-            sqlx::query(sql).execute(&pool).await.expect(sql);
-        }
-        pool.close().await;
-        let store = Store::open(&database.url).await.expect("open");
-        check(store.clone()).await;
-        store.close().await;
-        database.drop_database().await;
-    }
+    from_schema_version!(4, sqlite: OLD_LOG, postgres: OLD_LOG);
 }
 
 /// Migration 0006 on alarms stored before it: they read back without an explanation.
 mod alarms_before_version_6_have_no_why {
-    use crate::store::test_database::TestDatabase;
     use crate::store::{AlarmFilter, PageRequest, Store, StoredWhy};
 
     const OLD_ALARM: &str = "INSERT INTO alarm_events (id, vehicle_id, model_id, \
@@ -520,36 +478,5 @@ mod alarms_before_version_6_have_no_why {
         assert_eq!(listed[0].why, StoredWhy::default());
     }
 
-    #[tokio::test]
-    async fn sqlite() {
-        let dir = tempfile::tempdir().expect("temp dir");
-        let path = dir.path().join("v5.db");
-        let url = format!("sqlite://{}?mode=rwc", path.display());
-        let pool = sqlx::SqlitePool::connect(&url).await.expect("connect");
-        sqlx::migrate!("../migrations/sqlite")
-            .run_to(5, &pool)
-            .await
-            .expect("schema version 5");
-        sqlx::query(OLD_ALARM).execute(&pool).await.expect("insert");
-        pool.close().await;
-        check(Store::open(&path.to_string_lossy()).await.expect("open")).await;
-    }
-
-    #[tokio::test]
-    async fn postgres() {
-        let Some(database) = TestDatabase::create("alarms_before_version_6").await else {
-            return;
-        };
-        let pool = sqlx::PgPool::connect(&database.url).await.expect("connect");
-        sqlx::migrate!("../migrations/postgres")
-            .run_to(5, &pool)
-            .await
-            .expect("schema version 5");
-        sqlx::query(OLD_ALARM).execute(&pool).await.expect("insert");
-        pool.close().await;
-        let store = Store::open(&database.url).await.expect("open");
-        check(store.clone()).await;
-        store.close().await;
-        database.drop_database().await;
-    }
+    from_schema_version!(5, sqlite: [OLD_ALARM], postgres: [OLD_ALARM]);
 }

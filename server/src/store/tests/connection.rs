@@ -3,7 +3,7 @@
 use serde_json::json;
 
 use super::{count_rows, db_path, new_dataset, new_job, new_model, temp_store};
-use crate::alarms::event::opened;
+use crate::alarms::event::{Onset, opened};
 use crate::store::{
     AlarmEvent, AlarmEventKind, EpochRow, FaultKind, JobKind, JobOutcome, JobState, PageRequest,
     Store, StoreError, StoreOptions,
@@ -202,7 +202,7 @@ fn alarm_onset(id: i64) -> AlarmEvent {
     AlarmEvent {
         seq: id,
         kind: AlarmEventKind::Onset,
-        alarm: opened(id, "v1", "m1", 10.0, 1_000, 0.9, None),
+        alarm: opened(id, &Onset::warning("v1", "m1", 10.0, 1_000, 0.9)),
     }
 }
 
@@ -295,7 +295,10 @@ fn onset(id: i64, vehicle_id: &str, onset_timestamp_s: f64) -> AlarmEvent {
     AlarmEvent {
         seq: id,
         kind: AlarmEventKind::Onset,
-        alarm: opened(id, vehicle_id, "m2", onset_timestamp_s, 1, 0.9, None),
+        alarm: opened(
+            id,
+            &Onset::warning(vehicle_id, "m2", onset_timestamp_s, 1, 0.9),
+        ),
     }
 }
 

@@ -121,7 +121,6 @@ on_both_backends!(
 /// Migration 0007 on a dataset stored before it: its content reads back whole, as its one piece.
 mod datasets_before_version_7_are_one_piece {
     use crate::store::Store;
-    use crate::store::test_database::TestDatabase;
 
     const OLD_DATASET: &str = "INSERT INTO datasets (id, display_name, source, format, rows, \
          vehicles, labelled_rows, spoofed_rows, size_bytes, sha256, created_at) \
@@ -139,40 +138,9 @@ mod datasets_before_version_7_are_one_piece {
         assert_eq!(store.dataset_content("old").await.unwrap(), None);
     }
 
-    #[tokio::test]
-    async fn sqlite() {
-        let dir = tempfile::tempdir().expect("temp dir");
-        let path = dir.path().join("v6.db");
-        let url = format!("sqlite://{}?mode=rwc", path.display());
-        let pool = sqlx::SqlitePool::connect(&url).await.expect("connect");
-        sqlx::migrate!("../migrations/sqlite")
-            .run_to(6, &pool)
-            .await
-            .expect("schema version 6");
-        for statement in [OLD_DATASET, OLD_CONTENT_SQLITE] {
-            sqlx::query(statement).execute(&pool).await.expect("insert");
-        }
-        pool.close().await;
-        check(Store::open(&path.to_string_lossy()).await.expect("open")).await;
-    }
-
-    #[tokio::test]
-    async fn postgres() {
-        let Some(database) = TestDatabase::create("datasets_before_version_7").await else {
-            return;
-        };
-        let pool = sqlx::PgPool::connect(&database.url).await.expect("connect");
-        sqlx::migrate!("../migrations/postgres")
-            .run_to(6, &pool)
-            .await
-            .expect("schema version 6");
-        for statement in [OLD_DATASET, OLD_CONTENT_POSTGRES] {
-            sqlx::query(statement).execute(&pool).await.expect("insert");
-        }
-        pool.close().await;
-        let store = Store::open(&database.url).await.expect("open");
-        check(store.clone()).await;
-        store.close().await;
-        database.drop_database().await;
-    }
+    from_schema_version!(
+        6,
+        sqlite: [OLD_DATASET, OLD_CONTENT_SQLITE],
+        postgres: [OLD_DATASET, OLD_CONTENT_POSTGRES],
+    );
 }

@@ -3,7 +3,7 @@
 
 use serde_json::json;
 
-use crate::alarms::event::opened;
+use crate::alarms::event::{Onset, opened};
 use crate::store::{
     AlarmEvent, AlarmEventKind, CorrelationStep, CorrelatorPlace, IncidentEventKind, IncidentState,
     IncidentWrite, PageRequest, Store, StoredPlace,
@@ -195,7 +195,7 @@ async fn a_step_stores_incidents_their_events_and_the_place_together(store: Stor
 }
 
 async fn an_onset_keeps_where_it_started(store: Store) {
-    let mut row = opened(5, "car-5", "m", 10.0, 1_000, 0.9, None);
+    let mut row = opened(5, &Onset::warning("car-5", "m", 10.0, 1_000, 0.9));
     row.place = StoredPlace {
         onset_latitude_deg: Some(32.25),
         onset_longitude_deg: Some(-110.5),

@@ -33,6 +33,33 @@ macro_rules! on_both_backends {
     };
 }
 
+/// In a module with `async fn check(store: Store)`: its two tests, `sqlite` and `postgres` (skipped
+/// as in [`on_both_backends!`]), each on a database migrated to schema version `$version` only,
+/// given the rows the statements insert (what a server of that version stored), then opened by
+/// this build (which migrates it on) and handed to `check`.
+macro_rules! from_schema_version {
+    ($version:expr, sqlite: $sqlite:expr, postgres: $postgres:expr $(,)?) => {
+        #[tokio::test]
+        async fn sqlite() {
+            let (_dir, store) = $crate::store::tests::sqlite_from_version($version, &$sqlite).await;
+            check(store).await;
+        }
+
+        #[tokio::test]
+        async fn postgres() {
+            let Some((database, store)) =
+                $crate::store::tests::postgres_from_version(module_path!(), $version, &$postgres)
+                    .await
+            else {
+                return;
+            };
+            check(store.clone()).await;
+            store.close().await;
+            database.drop_database().await;
+        }
+    };
+}
+
 mod alarms;
 mod connection;
 mod datasets;
@@ -40,11 +67,13 @@ mod incidents;
 mod jobs;
 mod models;
 mod postgres;
+mod severities;
 mod snapshots;
 
 use serde_json::json;
 use tempfile::TempDir;
 
+use super::test_database::TestDatabase;
 use super::{JobKind, ModelSource, NewDataset, NewJob, NewModel, Store};
 
 /// A fresh, migrated database file in its own temporary directory (kept alive by the returned guard).
@@ -52,6 +81,52 @@ pub(super) async fn temp_store() -> (TempDir, Store) {
     let dir = tempfile::tempdir().expect("create temp dir");
     let store = Store::open(&db_path(&dir)).await.expect("open store");
     (dir, store)
+}
+
+/// A SQLite store on a database migrated to schema `version`, given the rows `old` inserts, then
+/// opened by this build (see `from_schema_version!`).
+pub(super) async fn sqlite_from_version(version: i64, old: &[&str]) -> (TempDir, Store) {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let path = db_path(&dir);
+    let url = format!("sqlite://{path}?mode=rwc");
+    let pool = sqlx::SqlitePool::connect(&url).await.expect("connect");
+    sqlx::migrate!("../migrations/sqlite")
+        .run_to(version, &pool)
+        .await
+        .unwrap_or_else(|error| panic!("schema version {version}: {error}"));
+    for statement in old {
+        sqlx::query(sqlx::AssertSqlSafe(*statement))
+            .execute(&pool)
+            .await
+            .unwrap_or_else(|error| panic!("{statement}: {error}"));
+    }
+    pool.close().await;
+    let store = Store::open(&path).await.expect("open");
+    (dir, store)
+}
+
+/// [`sqlite_from_version`] on a fresh PostgreSQL database for the test `test`; `None` without a
+/// server (see `TestDatabase::create`).
+pub(super) async fn postgres_from_version(
+    test: &str,
+    version: i64,
+    old: &[&str],
+) -> Option<(TestDatabase, Store)> {
+    let database = TestDatabase::create(test).await?;
+    let pool = sqlx::PgPool::connect(&database.url).await.expect("connect");
+    sqlx::migrate!("../migrations/postgres")
+        .run_to(version, &pool)
+        .await
+        .unwrap_or_else(|error| panic!("schema version {version}: {error}"));
+    for statement in old {
+        sqlx::query(sqlx::AssertSqlSafe(*statement))
+            .execute(&pool)
+            .await
+            .unwrap_or_else(|error| panic!("{statement}: {error}"));
+    }
+    pool.close().await;
+    let store = Store::open(&database.url).await.expect("open");
+    Some((database, store))
 }
 
 /// The database file path inside `dir`.
