@@ -334,6 +334,14 @@ pub(super) enum Distribution {
 }
 
 impl Distribution {
+    /// Its constructor's name (`DriveDistribution::realistic()`, `::fleet()`).
+    fn name(self) -> &'static str {
+        match self {
+            Self::Realistic => "realistic",
+            Self::Fleet => "fleet",
+        }
+    }
+
     fn drives(self) -> DriveDistribution {
         match self {
             Self::Realistic => DriveDistribution::realistic(),
@@ -859,11 +867,13 @@ pub fn run(args: Args) -> Result<()> {
             }),
             Some(format!(
                 "{} randomised simulated drives each for training and validation \
-                 (DriveDistribution::realistic(); half attacked: jumps 5 m–50 km, hops, frozen \
+                 (DriveDistribution::{}(); half attacked: jumps 5 m–50 km, hops, frozen \
                  fixes, ramps, accelerating and toggling drifts, a third starting 10–60 s in, \
                  their drifts at 1 m/s or more), and {} attack-free {CLEAN_DRIVE_S} s \
                  validation drives at each of 1, 5 and 10 Hz",
-                args.drives, args.validation_clean_drives
+                args.drives,
+                args.distribution.name(),
+                args.validation_clean_drives
             )),
         ]
         .into_iter()
