@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Retrains the bundled default model (models/default.json) from this checkout, bit for bit.
+# Retrains the candidate default model on drives of the fleet distribution from this checkout, bit for bit.
 #
 #   1. `spoofwatch-lab experiment offsets`: trains the HO-LLN v3 detector (seed 42) on drives of the fleet
 #      distribution (every error source of a fleet in service: GNSS bias, multipath, outages with an offset
@@ -11,8 +11,10 @@
 #      severities on clean test fleets, and writes the model with its critical test.
 #
 # Usage: scripts/retrain-default.sh [OUT_DIR]   (default out/retrain-default; about an hour on 2 cores)
+# It writes OUT_DIR/default.json; `spoofwatch models import` serves it. It replaces models/default.json once
+# its critical level is checked through the server (docs/experiments.md, fleet-alarms).
 # The artifact records no training wall time, the one field that differs between runs, so a second run
-# writes the same bytes: `cmp models/default.json OUT_DIR/default.json` after running it twice.
+# writes the same bytes: `cmp` the two runs' OUT_DIR/default.json.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 out=${1:-out/retrain-default}
@@ -24,5 +26,4 @@ lab=target/release/spoofwatch-lab
   --distribution fleet --seed 42
 "$lab" experiment fleet-alarms --model "$out/offsets/model-v3.json" --out "$out/fleet-alarms" \
   --seed 42 --write-model "$out/default.json"
-cp "$out/default.json" models/default.json
-echo "models/default.json retrained; reports in $out/offsets and $out/fleet-alarms"
+echo "$out/default.json written; reports in $out/offsets and $out/fleet-alarms"
