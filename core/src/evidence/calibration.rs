@@ -42,6 +42,9 @@ pub const HEADING_WANDER_RAD2_PER_S: f64 = 7.615e-7;
 /// (0): ±15 % speed scale, ±15° heading bias, ±3 s lag. A spoofer who teaches the calibrator
 /// cannot move it further, and no vehicle in service is off by more.
 pub const THETA_BOUND_PRIORS: f64 = 3.0;
+/// With information-driven trust: a row teaches the calibration only if its squared Mahalanobis
+/// innovation is at most this (χ²₂ at a 10⁻⁴ false-rejection rate).
+pub const CALIBRATION_GATE: f64 = 18.420_680_743_952_364;
 /// With information-driven trust: a calibration whose remaining uncertainty is at most this share
 /// of the prior's counts as known where the fits need calibrated rows only.
 pub const FIT_TRUST: f64 = 0.75;
@@ -147,19 +150,10 @@ pub(super) fn least_squares_step(
     noise_variance: f64,
     trust: CalibrationTrust,
 ) -> Option<([f64; 3], [[f64; 3]; 3])> {
-    let forgetting = (-delta_t / CALIBRATION_MEMORY_S).exp();
-    let mut p: [[f64; 3]; 3] = covariance.map(|row| row.map(|x| x / forgetting));
-    if trust == CalibrationTrust::Information {
-        p[1][1] += HEADING_WANDER_RAD2_PER_S * delta_t;
-    }
+    let p = predicted_covariance(covariance, delta_t, trust);
     // With A = −H: S = H P Hᵀ + σ²I, K = −P Hᵀ S⁻¹, innovation = r^c + H θ.
-    let ph: [[f64; 2]; 3] =
-        std::array::from_fn(|i| std::array::from_fn(|a| (0..3).map(|j| p[i][j] * h[j][a]).sum()));
-    let mut s: Mat2 =
-        std::array::from_fn(|a| std::array::from_fn(|b| (0..3).map(|i| h[i][a] * ph[i][b]).sum()));
-    s[0][0] += noise_variance;
-    s[1][1] += noise_variance;
-    let s_inv = inverse(&s)?;
+    let ph = p_h_transposed(&p, h);
+    let s_inv = inverse(&innovation_covariance(&ph, h, noise_variance))?;
     let innovation = add(clipped, apply(h, theta));
     // G = P Hᵀ S⁻¹ (3×2); θ −= G·innovation; P −= G H P.
     let gain: [[f64; 2]; 3] = std::array::from_fn(|i| {
@@ -184,6 +178,58 @@ pub(super) fn least_squares_step(
         }
     }
     Some((next, cap_covariance(symmetrised(updated))))
+}
+
+/// P before a block's update: forgotten over `delta_t`, and with information-driven trust the
+/// heading bias's wander added.
+fn predicted_covariance(
+    covariance: &[[f64; 3]; 3],
+    delta_t: f64,
+    trust: CalibrationTrust,
+) -> [[f64; 3]; 3] {
+    let forgetting = (-delta_t / CALIBRATION_MEMORY_S).exp();
+    let mut p: [[f64; 3]; 3] = covariance.map(|row| row.map(|x| x / forgetting));
+    if trust == CalibrationTrust::Information {
+        p[1][1] += HEADING_WANDER_RAD2_PER_S * delta_t;
+    }
+    p
+}
+
+/// P Hᵀ (3×2).
+fn p_h_transposed(p: &[[f64; 3]; 3], h: &[[f64; 2]; 3]) -> [[f64; 2]; 3] {
+    std::array::from_fn(|i| std::array::from_fn(|a| (0..3).map(|j| p[i][j] * h[j][a]).sum()))
+}
+
+/// S = H P Hᵀ + σ²I, from P Hᵀ.
+fn innovation_covariance(ph: &[[f64; 2]; 3], h: &[[f64; 2]; 3], noise_variance: f64) -> Mat2 {
+    let mut s: Mat2 =
+        std::array::from_fn(|a| std::array::from_fn(|b| (0..3).map(|i| h[i][a] * ph[i][b]).sum()));
+    s[0][0] += noise_variance;
+    s[1][1] += noise_variance;
+    s
+}
+
+/// Whether a row may teach the calibration under information-driven trust: its unclipped residual
+/// `residual`, cleaned with the current θ, lies within [`CALIBRATION_GATE`] of what the
+/// calibration's uncertainty (H P Hᵀ) and the GNSS noise explain. A displaced fix, a fix held
+/// while the vehicle drives away, or one multipath row is a disagreement no onboard calibration
+/// makes; learning it would move θ, widen every test by the error that move implies, and so hide
+/// the very attack it came from.
+pub(super) fn residual_is_consistent(
+    theta: &[f64; 3],
+    covariance: &[[f64; 3]; 3],
+    h: &[[f64; 2]; 3],
+    residual: [f64; 2],
+    noise_variance: f64,
+) -> bool {
+    let ph = p_h_transposed(covariance, h);
+    let Some(s_inv) = inverse(&innovation_covariance(&ph, h, noise_variance)) else {
+        return false;
+    };
+    let v = add(residual, apply(h, theta));
+    let d2 = v[0] * (s_inv[0][0] * v[0] + s_inv[0][1] * v[1])
+        + v[1] * (s_inv[1][0] * v[0] + s_inv[1][1] * v[1]);
+    d2 <= CALIBRATION_GATE
 }
 
 /// The mean squared error of the calibration in use for speed scale and heading bias, as
@@ -310,6 +356,25 @@ mod tests {
                 .abs()
                 < 1e-20
         );
+    }
+
+    #[test]
+    fn a_row_is_consistent_within_the_gate_of_what_noise_and_calibration_explain() {
+        // A known calibration (P = 0, θ = 0) and σ² = 1: d² = ‖r‖², gate 18.42.
+        let known = [[0.0; 3]; 3];
+        let h = regressors([10.0, 0.0], [0.0; 2]);
+        assert!(residual_is_consistent(&[0.0; 3], &known, &h, [3.0, 3.0], 1.0)); // 18
+        assert!(!residual_is_consistent(&[0.0; 3], &known, &h, [3.0, 3.1], 1.0)); // 18.61
+        // θ cleans the residual first: a 2 % speed scale over 10 m east explains 0.2 m of it
+        // (r^c = −H θ), so r = (−0.2 + 4.29, 0) is cleaned to 4.29 (d² = 18.40).
+        assert!(residual_is_consistent(&[0.02, 0.0, 0.0], &known, &h, [4.09, 0.0], 1.0));
+        assert!(!residual_is_consistent(&[0.0; 3], &known, &h, [4.3, 0.0], 1.0));
+        // The calibration's own uncertainty widens the gate along the motion: P_εε = 0.01 over
+        // 10 m adds 1 m² east, so S = diag(2, 1) and (6, 0) gives d² = 18.
+        let mut scale_unknown = [[0.0; 3]; 3];
+        scale_unknown[0][0] = 0.01;
+        assert!(residual_is_consistent(&[0.0; 3], &scale_unknown, &h, [6.0, 0.0], 1.0));
+        assert!(!residual_is_consistent(&[0.0; 3], &scale_unknown, &h, [0.0, 6.0], 1.0));
     }
 
     #[test]

@@ -20,8 +20,8 @@ use serde::{Deserialize, Serialize};
 use super::EvidenceError;
 use super::calibration::{
     CALIBRATION_BLOCK_S, CALIBRATION_DELAY_S, CalibrationTrust, WARM_UP_S, add, apply,
-    calibration_covariance, in_use_error, information_trust, least_squares_step, prior_covariance,
-    regressors,
+    calibration_covariance, in_use_error, information_trust,
+    least_squares_step, prior_covariance, regressors, residual_is_consistent,
 };
 use super::linalg::{
     IDENTITY, Mat2, add_diagonal, inverse_sqrt_positive_definite, inverse_sqrt_symmetric,
@@ -445,9 +445,7 @@ impl DriftTracker {
     /// onboard errors are the vehicle's and are kept.
     pub fn start_trajectory(&mut self) {
         self.trajectory_s = 0.0;
-        self.block_residual = [0.0; 2];
-        self.block_regressors = [[0.0; 2]; 3];
-        self.block_s = 0.0;
+        self.clear_block();
         self.raw_rate = [[0.0; 2]; SCALE_COUNT];
         self.calibrated_rate = [[0.0; 2]; SCALE_COUNT];
         self.last = DriftEvidence {
@@ -511,16 +509,18 @@ impl DriftTracker {
 
     /// The channels of a valid row (ν = 1, finite inputs, 0 < δ ≤ 5 s).
     pub fn push(&mut self, input: &DriftInput) -> DriftEvidence {
-        let clipped = clip(input.residual, self.constants.clip_m);
         let regressors = regressors(input.motion, input.velocity_change);
+        let input = &DriftInput {
+            learn: input.learn && self.may_teach(input, &regressors),
+            ..*input
+        };
+        let clipped = clip(input.residual, self.constants.clip_m);
         let cleaned = add(clipped, apply(&regressors, &self.theta_in_use));
         if input.learn {
             self.add_to_block(&regressors, clipped, input.delta_t);
         } else {
             // A block never mixes rows that may teach with rows that may not.
-            self.block_residual = [0.0; 2];
-            self.block_regressors = [[0.0; 2]; 3];
-            self.block_s = 0.0;
+            self.clear_block();
         }
         self.update_rates(clipped, cleaned, input.delta_t);
 
@@ -645,6 +645,33 @@ impl DriftTracker {
         }
     }
 
+    /// With information-driven trust, whether a row may teach the calibration and the levels: not
+    /// while its fix repeats and the onboard motion says the vehicle moves (no measurement of the
+    /// vehicle's motion), nor when its residual is one no calibration within its uncertainty
+    /// explains ([`residual_is_consistent`]). With timers every row may.
+    fn may_teach(&self, input: &DriftInput, h: &[[f64; 2]; 3]) -> bool {
+        if self.constants.trust == CalibrationTrust::Timers {
+            return true;
+        }
+        let stale_while_moving = input.fix_repeated
+            && input.motion[0].hypot(input.motion[1]) >= MOVING_MPS * input.delta_t;
+        !stale_while_moving
+            && residual_is_consistent(
+                &self.theta,
+                &self.covariance,
+                h,
+                input.residual,
+                self.constants.noise_variance,
+            )
+    }
+
+    /// Empties the block being summed.
+    fn clear_block(&mut self) {
+        self.block_residual = [0.0; 2];
+        self.block_regressors = [[0.0; 2]; 3];
+        self.block_s = 0.0;
+    }
+
     /// Sums the row into the current block; a complete block updates the calibration.
     fn add_to_block(&mut self, h: &[[f64; 2]; 3], clipped: [f64; 2], delta_t: f64) {
         for axis in 0..2 {
@@ -656,9 +683,7 @@ impl DriftTracker {
         self.block_s += delta_t;
         if self.block_s >= CALIBRATION_BLOCK_S {
             let (h, residual, block_s) = (self.block_regressors, self.block_residual, self.block_s);
-            self.block_residual = [0.0; 2];
-            self.block_regressors = [[0.0; 2]; 3];
-            self.block_s = 0.0;
+            self.clear_block();
             self.update_calibration(&h, residual, block_s);
         }
     }

@@ -162,3 +162,104 @@ fn trust_and_the_stale_rule_are_written_only_when_they_differ_from_older_artifac
     let back: DriftParams = serde_json::from_value(new).expect("reads back");
     assert_eq!(back.trust, CalibrationTrust::Information);
 }
+
+/// A vehicle that turns at `speed` m/s with a 3° compass bias, for `seconds`, then `twin` rows:
+/// returns the tracker that saw the rows as they came (`learn: true`) and its twin that was told
+/// not to learn from them. Equal trust afterwards means the rows taught the calibration nothing.
+fn with_and_without_learning(
+    params: &DriftParams,
+    speed: f64,
+    seconds: usize,
+    rows: &[DriftInput],
+) -> (DriftTracker, DriftTracker) {
+    let mut rng = Rng::seed_from_u64(5);
+    let mut seen = DriftTracker::new(params);
+    for t in 1..=seconds {
+        let (motion, dv) = row(t, speed, true);
+        let noise = [0.05 * rng.normal(), 0.05 * rng.normal()];
+        seen.push(&input(motion, dv, 3.0, noise, 0.0));
+    }
+    let mut told = seen.clone();
+    for row in rows {
+        seen.push(row);
+        told.push(&DriftInput {
+            learn: false,
+            ..*row
+        });
+    }
+    (seen, told)
+}
+
+/// ω and the calibration in use after one more ordinary row (both change only when the
+/// calibration learns).
+fn calibration_of(tracker: &mut DriftTracker) -> (u64, [u64; 3]) {
+    let (motion, dv) = row(1000, 10.0, true);
+    let e = tracker.push(&DriftInput {
+        learn: false,
+        ..input(motion, dv, 3.0, [0.0; 2], 0.0)
+    });
+    (e.warm_up.to_bits(), e.calibration.map(f64::to_bits))
+}
+
+#[test]
+fn a_fix_that_freezes_while_the_vehicle_drives_teaches_the_calibration_nothing() {
+    // 1.5 m/s under a noise σ of 1 m: each frozen row is within the consistency gate, so only
+    // the stale rule keeps it out.
+    let noisy = DriftParams {
+        residual_sigma_m: 1.0,
+        clip_m: 4.0,
+        ..params(CalibrationTrust::Information)
+    };
+    let frozen: Vec<DriftInput> = (0..40)
+        .map(|_| DriftInput {
+            residual: [-1.5, 0.0],
+            motion: [1.5, 0.0],
+            velocity_change: [0.0; 2],
+            delta_t: 1.0,
+            fix_repeated: true,
+            learn: true,
+        })
+        .collect();
+    let (mut seen, mut told) = with_and_without_learning(&noisy, 10.0, 200, &frozen);
+    assert_eq!(calibration_of(&mut seen), calibration_of(&mut told));
+    // The same rows from a fix that moves (a slow vehicle's honest residual) do teach.
+    let moving: Vec<DriftInput> = frozen
+        .iter()
+        .map(|row| DriftInput {
+            fix_repeated: false,
+            ..*row
+        })
+        .collect();
+    let (mut seen, mut told) = with_and_without_learning(&noisy, 10.0, 200, &moving);
+    assert_ne!(calibration_of(&mut seen), calibration_of(&mut told));
+}
+
+#[test]
+fn a_displaced_fix_teaches_the_calibration_nothing_and_the_vehicle_keeps_its_trust() {
+    let params = params(CalibrationTrust::Information);
+    let (motion, dv) = row(201, 10.0, true);
+    // One row 30 m away from where the vehicle drove: no calibration within its bound makes it.
+    let jump = input(motion, dv, 3.0, [30.0, 0.0], 0.0);
+    let (mut seen, mut told) = with_and_without_learning(&params, 10.0, 200, &[jump]);
+    assert_eq!(calibration_of(&mut seen), calibration_of(&mut told));
+    // A fix held for 40 s while the vehicle drives at 10 m/s: without the gate the calibration
+    // would chase it to its bound and the error that move implies would cost the vehicle its trust.
+    let held: Vec<DriftInput> = (201..241)
+        .map(|t| {
+            let (motion, dv) = row(t, 10.0, true);
+            DriftInput {
+                residual: [-motion[0], -motion[1]],
+                fix_repeated: false,
+                ..input(motion, dv, 3.0, [0.0; 2], 0.0)
+            }
+        })
+        .collect();
+    let (mut seen, mut told) = with_and_without_learning(&params, 10.0, 200, &held);
+    let (trust, _) = calibration_of(&mut seen);
+    assert_eq!(calibration_of(&mut seen), calibration_of(&mut told));
+    assert!(f64::from_bits(trust) > 0.9, "trust {}", f64::from_bits(trust));
+    // An ordinary row does teach.
+    let honest = input(motion, dv, 3.0, [0.05, -0.05], 0.0);
+    let (mut seen, mut told) = with_and_without_learning(&params, 10.0, 200, &[honest]);
+    assert_ne!(calibration_of(&mut seen), calibration_of(&mut told));
+}
