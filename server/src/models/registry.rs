@@ -228,7 +228,7 @@ impl Registry {
         let registered = self
             .register(
                 BUNDLED_MODEL_ID,
-                "bundled default (subtle experiment, v2 evidence)",
+                "bundled default (realistic drives, v3 evidence)",
                 ModelSource::Bundled,
                 None,
                 &artifact,
