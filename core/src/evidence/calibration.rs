@@ -363,18 +363,54 @@ mod tests {
         // A known calibration (P = 0, θ = 0) and σ² = 1: d² = ‖r‖², gate 18.42.
         let known = [[0.0; 3]; 3];
         let h = regressors([10.0, 0.0], [0.0; 2]);
-        assert!(residual_is_consistent(&[0.0; 3], &known, &h, [3.0, 3.0], 1.0)); // 18
-        assert!(!residual_is_consistent(&[0.0; 3], &known, &h, [3.0, 3.1], 1.0)); // 18.61
+        assert!(residual_is_consistent(
+            &[0.0; 3],
+            &known,
+            &h,
+            [3.0, 3.0],
+            1.0
+        )); // 18
+        assert!(!residual_is_consistent(
+            &[0.0; 3],
+            &known,
+            &h,
+            [3.0, 3.1],
+            1.0
+        )); // 18.61
         // θ cleans the residual first: a 2 % speed scale over 10 m east explains 0.2 m of it
         // (r^c = −H θ), so r = (−0.2 + 4.29, 0) is cleaned to 4.29 (d² = 18.40).
-        assert!(residual_is_consistent(&[0.02, 0.0, 0.0], &known, &h, [4.09, 0.0], 1.0));
-        assert!(!residual_is_consistent(&[0.0; 3], &known, &h, [4.3, 0.0], 1.0));
+        assert!(residual_is_consistent(
+            &[0.02, 0.0, 0.0],
+            &known,
+            &h,
+            [4.09, 0.0],
+            1.0
+        ));
+        assert!(!residual_is_consistent(
+            &[0.0; 3],
+            &known,
+            &h,
+            [4.3, 0.0],
+            1.0
+        ));
         // The calibration's own uncertainty widens the gate along the motion: P_εε = 0.01 over
         // 10 m adds 1 m² east, so S = diag(2, 1) and (6, 0) gives d² = 18.
         let mut scale_unknown = [[0.0; 3]; 3];
         scale_unknown[0][0] = 0.01;
-        assert!(residual_is_consistent(&[0.0; 3], &scale_unknown, &h, [6.0, 0.0], 1.0));
-        assert!(!residual_is_consistent(&[0.0; 3], &scale_unknown, &h, [0.0, 6.0], 1.0));
+        assert!(residual_is_consistent(
+            &[0.0; 3],
+            &scale_unknown,
+            &h,
+            [6.0, 0.0],
+            1.0
+        ));
+        assert!(!residual_is_consistent(
+            &[0.0; 3],
+            &scale_unknown,
+            &h,
+            [0.0, 6.0],
+            1.0
+        ));
     }
 
     #[test]

@@ -20,14 +20,14 @@ use serde::{Deserialize, Serialize};
 use super::EvidenceError;
 use super::calibration::{
     CALIBRATION_BLOCK_S, CALIBRATION_DELAY_S, CalibrationTrust, WARM_UP_S, add, apply,
-    calibration_covariance, in_use_error, information_trust,
-    least_squares_step, prior_covariance, regressors, residual_is_consistent,
+    calibration_covariance, in_use_error, information_trust, least_squares_step, prior_covariance,
+    regressors, residual_is_consistent,
 };
 use super::linalg::{
     IDENTITY, Mat2, add_diagonal, inverse_sqrt_positive_definite, inverse_sqrt_symmetric,
     is_symmetric_positive_definite, mul_vec,
 };
-use super::stats::{covariance, median, quantile_sorted};
+use super::stats::{covariance, quantile_sorted};
 use crate::sample::readable;
 
 /// Number of drift-rate time scales.
@@ -55,8 +55,6 @@ const SNAPSHOT_PERIOD_S: f64 = 30.0;
 const SNAPSHOTS: usize = (CALIBRATION_DELAY_S / SNAPSHOT_PERIOD_S) as usize + 2;
 /// Quantile of χ² on normal rows that normalises each scale in the drift statistic.
 const THRESHOLD_QUANTILE: f64 = 0.999;
-/// σ̂ = this × MAD for a normal distribution.
-const MAD_TO_SIGMA: f64 = 1.4826;
 /// ε added to the drift-rate covariances before whitening (m²/s²).
 const RATE_EPSILON: f64 = 1e-9;
 /// A row is settled for scale τ_k this many τ_k into its trajectory.
@@ -281,6 +279,11 @@ impl DriftEvidence {
 fn scaled(z: [f64; 2], level: f64) -> [f64; 2] {
     let factor = 1.0 / level.clamp(LEVEL_RANGE.0, LEVEL_RANGE.1).sqrt();
     [z[0] * factor, z[1] * factor]
+}
+
+/// The onboard motion says the vehicle moves (at [`MOVING_MPS`] or faster).
+fn moving(input: &DriftInput) -> bool {
+    input.motion[0].hypot(input.motion[1]) / input.delta_t >= MOVING_MPS
 }
 
 fn norm_squared(z: [f64; 2]) -> f64 {
@@ -607,8 +610,7 @@ impl DriftTracker {
         if !input.fix_repeated {
             return 0.0;
         }
-        let speed = input.motion[0].hypot(input.motion[1]) / input.delta_t;
-        if self.constants.stale_fix_while_moving && speed < MOVING_MPS {
+        if self.constants.stale_fix_while_moving && !moving(input) {
             self.last.stale_fix_s
         } else {
             self.last.stale_fix_s + input.delta_t
@@ -645,24 +647,14 @@ impl DriftTracker {
         }
     }
 
-    /// With information-driven trust, whether a row may teach the calibration and the levels: not
-    /// while its fix repeats and the onboard motion says the vehicle moves (no measurement of the
-    /// vehicle's motion), nor when its residual is one no calibration within its uncertainty
-    /// explains ([`residual_is_consistent`]). With timers every row may.
+    /// Whether a row may teach the calibration and the levels: with timers every row; with
+    /// information-driven trust not a repeated fix on a moving vehicle (it measures no motion), nor
+    /// a residual no calibration within its uncertainty explains ([`residual_is_consistent`]).
     fn may_teach(&self, input: &DriftInput, h: &[[f64; 2]; 3]) -> bool {
-        if self.constants.trust == CalibrationTrust::Timers {
-            return true;
-        }
-        let stale_while_moving = input.fix_repeated
-            && input.motion[0].hypot(input.motion[1]) >= MOVING_MPS * input.delta_t;
-        !stale_while_moving
-            && residual_is_consistent(
-                &self.theta,
-                &self.covariance,
-                h,
-                input.residual,
-                self.constants.noise_variance,
-            )
+        let (theta, p, noise) = (&self.theta, &self.covariance, self.constants.noise_variance);
+        self.constants.trust == CalibrationTrust::Timers
+            || (!(input.fix_repeated && moving(input))
+                && residual_is_consistent(theta, p, h, input.residual, noise))
     }
 
     /// Empties the block being summed.
@@ -780,29 +772,6 @@ fn normalised_max(z: &[[f64; 2]; SCALE_COUNT], thresholds: &[f64; SCALE_COUNT]) 
         .fold(0.0, f64::max)
 }
 
-/// The robust residual σ̂_r (m): RMS over the axes of 1.4826·MAD of r on normal valid rows.
-pub fn robust_residual_sigma(residuals: &[[f64; 2]]) -> Result<f64, EvidenceError> {
-    let mut axis_variance = 0.0;
-    for axis in 0..2 {
-        let mut values: Vec<f64> = residuals.iter().map(|r| r[axis]).collect();
-        let center = median(&mut values).ok_or(EvidenceError::NoRows)?;
-        let mut deviations: Vec<f64> = values.iter().map(|x| (x - center).abs()).collect();
-        let mad = median(&mut deviations).ok_or(EvidenceError::NoRows)?;
-        axis_variance += 0.5 * (MAD_TO_SIGMA * mad).powi(2);
-    }
-    let sigma = axis_variance.sqrt();
-    if sigma.is_finite() && sigma > 0.0 {
-        Ok(sigma)
-    } else {
-        Err(EvidenceError::InvalidParams {
-            field: "drift.residual_sigma_m",
-            reason: format!(
-                "the normal residuals have no spread (robust sigma {sigma}); cannot set the clip"
-            ),
-        })
-    }
-}
-
 /// One normal row's drift channels as the fit sees them (computed with [`DriftParams::unwhitened`], so
 /// the z's are the raw drift rates).
 #[derive(Clone, Copy, Debug)]
@@ -908,6 +877,7 @@ pub fn thresholds_from_rates(
 
 #[cfg(test)]
 mod tests {
+    use super::super::fit::robust_residual_sigma;
     use super::*;
     use crate::rng::Rng;
 

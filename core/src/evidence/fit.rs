@@ -10,9 +10,7 @@ use serde::{Deserialize, Serialize};
 
 use super::builder::build_track;
 use super::calibration::{CalibrationTrust, FIT_TRUST};
-use super::drift::{
-    DriftParams, SettledRates, covariances_from_rates, robust_residual_sigma, thresholds_from_rates,
-};
+use super::drift::{DriftParams, SettledRates, covariances_from_rates, thresholds_from_rates};
 use super::linalg::{Mat2, inverse_sqrt_symmetric, mul_vec};
 use super::offset::{
     ANCHOR_COUNT, CHI2_2_AT_FIT_QUANTILE, FIT_QUANTILE, FOLLOW_S, OffsetParams, OffsetPoint,
@@ -25,6 +23,8 @@ use super::{EvidenceError, FeatureSchema};
 use crate::geo::Projection;
 use crate::sample::Track;
 
+/// σ̂ = this × MAD for a normal distribution.
+const MAD_TO_SIGMA: f64 = 1.4826;
 /// Fewest normal ν = 1 rows accepted for Σ̂ and μ_e. A 2×2 covariance and a median from fewer rows are
 /// too noisy to normalise residuals with; the reference demands 100, we allow smaller test sets
 /// (e.g. a few injected-attack trajectories) but not tiny ones.
@@ -332,6 +332,29 @@ pub fn fit_evidence_with(
         params,
         normal_rows: stats.rows,
     })
+}
+
+/// The robust residual σ̂_r (m): RMS over the axes of 1.4826·MAD of r on normal valid rows.
+pub fn robust_residual_sigma(residuals: &[[f64; 2]]) -> Result<f64, EvidenceError> {
+    let mut axis_variance = 0.0;
+    for axis in 0..2 {
+        let mut values: Vec<f64> = residuals.iter().map(|r| r[axis]).collect();
+        let center = median(&mut values).ok_or(EvidenceError::NoRows)?;
+        let mut deviations: Vec<f64> = values.iter().map(|x| (x - center).abs()).collect();
+        let mad = median(&mut deviations).ok_or(EvidenceError::NoRows)?;
+        axis_variance += 0.5 * (MAD_TO_SIGMA * mad).powi(2);
+    }
+    let sigma = axis_variance.sqrt();
+    if sigma.is_finite() && sigma > 0.0 {
+        Ok(sigma)
+    } else {
+        Err(EvidenceError::InvalidParams {
+            field: "drift.residual_sigma_m",
+            reason: format!(
+                "the normal residuals have no spread (robust sigma {sigma}); cannot set the clip"
+            ),
+        })
+    }
 }
 
 #[cfg(test)]

@@ -257,7 +257,11 @@ fn a_displaced_fix_teaches_the_calibration_nothing_and_the_vehicle_keeps_its_tru
     let (mut seen, mut told) = with_and_without_learning(&params, 10.0, 200, &held);
     let (trust, _) = calibration_of(&mut seen);
     assert_eq!(calibration_of(&mut seen), calibration_of(&mut told));
-    assert!(f64::from_bits(trust) > 0.9, "trust {}", f64::from_bits(trust));
+    assert!(
+        f64::from_bits(trust) > 0.9,
+        "trust {}",
+        f64::from_bits(trust)
+    );
     // An ordinary row does teach.
     let honest = input(motion, dv, 3.0, [0.05, -0.05], 0.0);
     let (mut seen, mut told) = with_and_without_learning(&params, 10.0, 200, &[honest]);
