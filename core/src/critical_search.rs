@@ -23,6 +23,10 @@ pub const THRESHOLD_GRID: [f64; 7] = [10.0, 20.0, 40.0, 80.0, 160.0, 320.0, 640.
 pub const GATE_GRID: [f64; 4] = [25.0, 100.0, 400.0, 1600.0];
 /// Grid of the seconds the NIS must stay beyond the gate: within the 10 s a jump must be paged in.
 pub const CRITICAL_DECISIVE_S_GRID: [f64; 5] = [1.0, 2.0, 3.0, 5.0, 8.0];
+/// Grid of the seconds a frozen fix on a moving vehicle must be held (after the 2 s that make it
+/// frozen) to be critical at once, tried on the test chosen from the other grids: 2–10 s of a
+/// repeated fix, within the 10 s a frozen fix must be paged in.
+pub const FROZEN_FIX_S_GRID: [f64; 4] = [0.0, 2.0, 4.0, 8.0];
 
 /// The chosen test and what it achieves on the validation rows.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -67,11 +71,12 @@ fn fill_critical_rows(
 }
 
 /// Chooses the critical test from [`REFERENCE_LOGIT_GRID`] × [`THRESHOLD_GRID`] × [`GATE_GRID`] ×
-/// [`CRITICAL_DECISIVE_S_GRID`] for the warning's θ and `lifecycle`: at most `per_hour` critical
+/// [`CRITICAL_DECISIVE_S_GRID`], then its frozen-fix path from [`FROZEN_FIX_S_GRID`] (or none), for
+/// the warning's θ and `lifecycle`: at most `per_hour` critical
 /// onsets per attack-free hour, pooled and at each sample rate with room for one; then the most
 /// attack events escalated, the shortest mean delay to escalation, the best F1 of the critical rows,
-/// the lowest FPR; ties go to the larger k, the larger h, the higher gate and the longer hold (the
-/// quieter test).
+/// the lowest FPR; ties go to the larger k, the larger h, the higher gate, the longer hold and the
+/// longer frozen-fix hold or none (the quieter test).
 pub fn choose_critical(
     rows: &[ScoredRow],
     offset: &[OffsetSignal],
@@ -88,7 +93,7 @@ pub fn choose_critical(
         .collect();
     let mut best: Option<(CriticalTest, Metrics)> = None;
     let mut critical = Vec::with_capacity(rows.len());
-    for test in grid() {
+    let mut consider = |test: CriticalTest, best: &mut Option<(CriticalTest, Metrics)>| {
         fill_critical_rows(rows, offset, (theta, lifecycle, &test), &mut critical);
         let candidate = metrics::alarm_metrics(rows, &critical, rules);
         let within_budget = candidate.false_alarm_onsets as f64 <= per_hour * normal_hours
@@ -99,7 +104,20 @@ pub fn choose_critical(
             compare((&test, &candidate), (b_test, b_metrics)) == Ordering::Greater
         });
         if within_budget && improves {
-            best = Some((test, candidate));
+            *best = Some((test, candidate));
+        }
+    };
+    for test in grid() {
+        consider(test, &mut best);
+    }
+    // The frozen-fix path on the chosen test: it may only add escalations within the budget.
+    if let Some((chosen, _)) = best {
+        for hold in FROZEN_FIX_S_GRID {
+            let test = CriticalTest {
+                frozen_fix_s: Some(hold),
+                ..chosen
+            };
+            consider(test, &mut best);
         }
     }
     let Some((test, _)) = best else {
@@ -139,6 +157,7 @@ fn grid() -> impl Iterator<Item = CriticalTest> {
                             threshold,
                             gate,
                             decisive_s,
+                            frozen_fix_s: None,
                         })
                 })
             })
@@ -161,6 +180,12 @@ fn compare(a: (&CriticalTest, &Metrics), b: (&CriticalTest, &Metrics)) -> Orderi
         .then(a_test.threshold.total_cmp(&b_test.threshold))
         .then(a_test.gate.total_cmp(&b_test.gate))
         .then(a_test.decisive_s.total_cmp(&b_test.decisive_s))
+        .then(frozen_fix_hold(a_test).total_cmp(&frozen_fix_hold(b_test)))
+}
+
+/// The frozen-fix path's hold, infinite without the path (the quietest).
+fn frozen_fix_hold(test: &CriticalTest) -> f64 {
+    test.frozen_fix_s.unwrap_or(f64::INFINITY)
 }
 
 #[cfg(test)]
@@ -257,6 +282,75 @@ mod tests {
             .map(|&(rate, onsets, _)| (rate, onsets))
             .collect();
         assert_eq!(by_rate, vec![(1, 0)]);
+    }
+
+    #[test]
+    fn a_frozen_fix_path_is_added_when_it_escalates_more_within_the_budget() {
+        // Attacks: a fix frozen from 100 s on a moving vehicle while p̂ stays weak (logit 2.5) and the
+        // NIS below every gate;
+        // clean hours: blips at logit 3 for 20 s every ten minutes, so no k that escalates the
+        // attacks on p̂ keeps the clean hours quiet.
+        let mut rows = Vec::new();
+        let mut offset = Vec::new();
+        let frozen_from = 100.0;
+        for key in 0..10 {
+            let attack = trajectory(
+                key,
+                300,
+                |t| if t >= frozen_from { 2.5 } else { -6.0 },
+                |t| t >= frozen_from,
+            );
+            offset.extend(attack.iter().map(|row| {
+                let held = (row.time_s >= frozen_from).then(|| row.time_s - frozen_from);
+                OffsetSignal {
+                    held_s: held,
+                    displaced: held.is_some(),
+                    anchored: true,
+                    nis: if held.is_some() { 20.0 } else { 0.0 },
+                    frozen_fix_s: held,
+                }
+            }));
+            rows.extend(attack);
+        }
+        for key in 100..103 {
+            let clean = trajectory(
+                key,
+                3600,
+                |t| {
+                    if t % 600.0 >= 300.0 && t % 600.0 < 320.0 {
+                        3.0
+                    } else {
+                        -6.0
+                    }
+                },
+                |_| false,
+            );
+            offset.extend(clean.iter().map(|_| OffsetSignal {
+                anchored: true,
+                ..OffsetSignal::default()
+            }));
+            rows.extend(clean);
+        }
+        let chosen = choose_critical(&rows, &offset, 0.8, &LIFECYCLE, 0.01, EventRules::Spec)
+            .expect("a test");
+        assert_eq!(chosen.metrics.detected_events, 10, "{chosen:?}");
+        assert_eq!(chosen.metrics.false_alarm_onsets, 0, "{chosen:?}");
+        assert!(
+            chosen.test.frozen_fix_s.is_some_and(|hold| hold <= 2.0),
+            "{:?}",
+            chosen.test
+        );
+        // Without frozen fixes in the data the path adds nothing, and the quieter test (none) wins.
+        let plain: Vec<OffsetSignal> = offset
+            .iter()
+            .map(|o| OffsetSignal {
+                frozen_fix_s: None,
+                ..*o
+            })
+            .collect();
+        let without = choose_critical(&rows, &plain, 0.8, &LIFECYCLE, 0.01, EventRules::Spec)
+            .expect("a test");
+        assert_eq!(without.test.frozen_fix_s, None, "{:?}", without.test);
     }
 
     #[test]

@@ -186,6 +186,7 @@ pub fn offset_signal(evidence: &Evidence) -> OffsetSignal {
             displaced: o.displaced(),
             anchored: true,
             nis: o.max_nis(),
+            frozen_fix_s: frozen_fix,
         }
     })
 }

@@ -82,6 +82,11 @@ pub struct OffsetSignal {
     /// The larger anchor NIS (§4.2), for the critical test's gate; 0 without offset evidence.
     #[serde(default)]
     pub nis: f64,
+    /// Seconds a fix frozen on a moving vehicle and displaced beyond the follow gate has been held
+    /// beyond [`FROZEN_FIX_S`](crate::explain::FROZEN_FIX_S); `None` without one. For the
+    /// critical test's frozen-fix path.
+    #[serde(default)]
+    pub frozen_fix_s: Option<f64>,
 }
 
 /// One sample's inputs to the lifecycle.
@@ -180,6 +185,7 @@ impl AlarmLifecycle {
                     probability: input.probability,
                     probability_counts: !settling || input.offset.displaced,
                     nis: input.offset.nis,
+                    frozen_fix_s: input.offset.frozen_fix_s,
                 },
             )
         });
@@ -271,6 +277,7 @@ mod tests {
                         displaced: displaced(time_s),
                         anchored: stream.anchored,
                         nis: 0.0,
+                        frozen_fix_s: None,
                     },
                     flag: FlagSignal::default(),
                 },
@@ -401,6 +408,7 @@ mod tests {
                 displaced: false,
                 anchored: true,
                 nis: 0.0,
+                frozen_fix_s: None,
             },
             flag: FlagSignal::default(),
         };
@@ -424,6 +432,7 @@ mod tests {
                 displaced,
                 anchored: true,
                 nis: 0.0,
+                frozen_fix_s: None,
             },
             flag: FlagSignal {
                 counts: true,
@@ -465,6 +474,7 @@ mod tests {
                             displaced: false,
                             anchored: true,
                             nis: 0.0,
+                            frozen_fix_s: None,
                         },
                         flag: FlagSignal {
                             counts: t >= flag_from_s,
@@ -532,6 +542,7 @@ mod tests {
         threshold: 20.0,
         gate: 100.0,
         decisive_s: 3.0,
+        frozen_fix_s: None,
     };
 
     /// Feeds samples every second from 0 to `end_s` with p̂ = `probability(t)` (positive at
@@ -564,6 +575,7 @@ mod tests {
                             displaced: held_s.is_some() || flag(t),
                             anchored: false,
                             nis: if held_s.is_some() { 400.0 } else { 0.0 },
+                            frozen_fix_s: None,
                         },
                         flag: FlagSignal {
                             counts: flag(t),

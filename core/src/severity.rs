@@ -7,8 +7,10 @@
 //! - at once on decisive evidence: the fix displaced from the dead-reckoning anchors with a NIS of
 //!   at least [`CriticalTest::gate`], held for [`CriticalTest::decisive_s`] (a jump or a hop far
 //!   beyond the vehicle's own noise, or a fix frozen on a moving vehicle, whose offset grows with
-//!   every metre driven). Their likelihood ratios are enormous, so the stricter budget costs them
-//!   little;
+//!   every metre driven), or a fix frozen on a moving vehicle and displaced beyond the follow gate,
+//!   held for [`CriticalTest::frozen_fix_s`] (a receiver's fix jitters; a slow vehicle takes long
+//!   to carry a frozen fix to a large NIS). Their likelihood ratios are enormous, so the stricter
+//!   budget costs them little;
 //! - when a sequential test on p̂ crosses its threshold: S ← max(0, S + δ·(x − k)), x the logit of
 //!   p̂ capped at ±[`LOGIT_CAP`] (at most 0 while a trajectory settles and nothing vouches for p̂,
 //!   as for the warning), critical once S ≥ h. A CUSUM in seconds: the same drive at 1 Hz and at
@@ -85,6 +87,11 @@ pub struct CriticalTest {
     pub gate: f64,
     /// Seconds the NIS must stay at or beyond the gate to be critical at once.
     pub decisive_s: f64,
+    /// Seconds a frozen fix on a moving vehicle must be held beyond its onset (the lifecycle's
+    /// frozen-fix reading, `docs/detector.md` §7.1) to be critical at once; `None`: a frozen fix
+    /// escalates only through the gate or the accumulated evidence (artifacts before this path).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frozen_fix_s: Option<f64>,
 }
 
 impl CriticalTest {
@@ -120,6 +127,17 @@ impl CriticalTest {
                 ),
             ));
         }
+        if let Some(hold) = self.frozen_fix_s
+            && !(0.0..=MAX_HOLD_S).contains(&hold)
+        {
+            return Err((
+                "frozen_fix_s",
+                format!(
+                    "must be finite and in [0, {MAX_HOLD_S}] s, got {}",
+                    readable(hold)
+                ),
+            ));
+        }
         if !(0.0..=MAX_HOLD_S).contains(&self.decisive_s) {
             return Err((
                 "decisive_s",
@@ -143,6 +161,8 @@ pub struct CriticalInput {
     pub probability_counts: bool,
     /// The larger anchor NIS of the sample (0 without offset evidence).
     pub nis: f64,
+    /// Seconds a frozen fix on a moving vehicle has been held (`None`: no frozen fix).
+    pub frozen_fix_s: Option<f64>,
 }
 
 /// The test's per-vehicle state: the accumulated evidence S, the time it was last fed, and since
@@ -181,7 +201,11 @@ impl CriticalEvidence {
         let decisive = self
             .beyond_gate_since
             .is_some_and(|since| input.time_s - since + TIME_SLACK_S >= test.decisive_s);
-        decisive || self.accumulated >= test.threshold
+        let frozen = matches!(
+            (test.frozen_fix_s, input.frozen_fix_s),
+            (Some(hold), Some(held)) if held + TIME_SLACK_S >= hold
+        );
+        decisive || frozen || self.accumulated >= test.threshold
     }
 
     /// Forgets the evidence (an episode ended); the clock goes on.
@@ -256,6 +280,7 @@ mod tests {
         threshold: 20.0,
         gate: 100.0,
         decisive_s: 3.0,
+        frozen_fix_s: None,
     };
 
     fn input(time_s: f64, probability: f64) -> CriticalInput {
@@ -264,6 +289,7 @@ mod tests {
             probability,
             probability_counts: true,
             nis: 0.0,
+            frozen_fix_s: None,
         }
     }
 
@@ -413,7 +439,44 @@ mod tests {
             "decisive_s"
         );
         assert_eq!(bad(CriticalTest { gate: 4.0, ..TEST }), "gate");
+        assert_eq!(
+            bad(CriticalTest {
+                frozen_fix_s: Some(f64::NAN),
+                ..TEST
+            }),
+            "frozen_fix_s"
+        );
         assert!(TEST.validate().is_ok());
+    }
+
+    #[test]
+    fn a_frozen_fix_held_long_enough_is_critical_at_once_where_the_test_has_the_path() {
+        // p̂ weak, NIS below the gate: only the frozen fix's hold can make the sample critical.
+        let frozen = |held: f64| CriticalInput {
+            nis: 30.0,
+            frozen_fix_s: Some(held),
+            ..input(0.0, 0.5)
+        };
+        let with_path = CriticalTest {
+            frozen_fix_s: Some(2.0),
+            ..TEST
+        };
+        let mut evidence = CriticalEvidence::default();
+        assert!(!evidence.update(&with_path, &frozen(1.9)));
+        assert!(evidence.update(&with_path, &frozen(2.0)));
+        assert!(
+            !evidence.update(&with_path, &input(0.0, 0.5)),
+            "no frozen fix"
+        );
+        // Without the path (artifacts before it) the same hold escalates nothing.
+        assert!(!CriticalEvidence::default().update(&TEST, &frozen(600.0)));
+        // The path is written only when the test has it.
+        let json = serde_json::to_value(TEST).expect("serialises");
+        assert!(json.get("frozen_fix_s").is_none());
+        assert_eq!(
+            serde_json::to_value(with_path).expect("serialises")["frozen_fix_s"],
+            2.0
+        );
     }
 
     #[test]

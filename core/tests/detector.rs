@@ -88,6 +88,7 @@ fn artifact_of(
             threshold: 5.0,
             gate: 100.0,
             decisive_s: 3.0,
+            frozen_fix_s: None,
         }),
         provenance: Provenance::default(),
     })

@@ -109,8 +109,11 @@ impl Offline {
         println!("operating point: theta = {:.2}, N_p = {}", op.theta, op.n_p);
         match &self.artifact.critical {
             Some(test) => println!(
-                "critical test: k = {}, h = {} logit·s, decisive hold {} s",
-                test.reference_logit, test.threshold, test.decisive_s
+                "critical test: k = {}, h = {} logit·s, decisive hold {} s{}",
+                test.reference_logit,
+                test.threshold,
+                test.decisive_s,
+                frozen_fix_path(test.frozen_fix_s)
             ),
             None => println!("critical test: none (the model raises warnings only)"),
         }
@@ -181,4 +184,11 @@ fn write_rows(path: &PathBuf, evaluation: &Evaluation) -> Result<()> {
     }
     out.flush()?;
     Ok(())
+}
+
+/// The critical test's frozen-fix path as printed after its other parameters: empty without one.
+pub fn frozen_fix_path(hold_s: Option<f64>) -> String {
+    hold_s.map_or_else(String::new, |hold| {
+        format!(", a frozen fix held {hold} s beyond its first 2 s")
+    })
 }

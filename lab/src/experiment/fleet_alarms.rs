@@ -556,7 +556,7 @@ fn render_markdown(report: &Report) -> String {
     let _ = writeln!(
         md,
         "# fleet-alarms\n\nModel `{}`, seed {}, clean drives of the fleet distribution{}. Critical \
-         test: k = {} (p̂ {:.4}), h = {} logit·s, NIS gate {} held {} s.\n",
+         test: k = {} (p̂ {:.4}), h = {} logit·s, NIS gate {} held {} s{}.\n",
         report.model,
         report.seed,
         if report.without.is_empty() {
@@ -568,7 +568,8 @@ fn render_markdown(report: &Report) -> String {
         1.0 / (1.0 + (-c.reference_logit).exp()),
         c.threshold,
         c.gate,
-        c.decisive_s
+        c.decisive_s,
+        spoofwatch_client::cli::evaluate::frozen_fix_path(c.frozen_fix_s)
     );
     if let Some(selection) = &report.selection {
         let _ = writeln!(

@@ -243,6 +243,7 @@ pub fn critical_test_to_proto(test: &CriticalTest) -> v1::CriticalTest {
         threshold: test.threshold,
         gate: test.gate,
         decisive_s: test.decisive_s,
+        frozen_fix_s: test.frozen_fix_s,
     }
 }
 

@@ -98,8 +98,12 @@ pub fn describe(m: &v1::Model) -> String {
 pub fn severities(m: &v1::Model) -> String {
     match &m.critical {
         Some(c) => format!(
-            "warning, critical (k = {}, h = {} logit s, gate NIS {} held {} s)",
-            c.reference_logit, c.threshold, c.gate, c.decisive_s
+            "warning, critical (k = {}, h = {} logit s, gate NIS {} held {} s{})",
+            c.reference_logit,
+            c.threshold,
+            c.gate,
+            c.decisive_s,
+            crate::cli::evaluate::frozen_fix_path(c.frozen_fix_s)
         ),
         None => "warning only (no critical level: nothing it raises pages)".to_string(),
     }
