@@ -425,6 +425,7 @@ pub const TEST_CRITICAL: CriticalTest = CriticalTest {
     threshold: 10.0,
     gate: 400.0,
     decisive_s: 1.0,
+    frozen_fix_s: None,
 };
 
 /// The bundled default model's artifact with a critical level, [`TEST_CRITICAL`] (the bundled
