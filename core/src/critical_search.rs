@@ -301,7 +301,7 @@ mod tests {
                 |t| t >= frozen_from,
             );
             offset.extend(attack.iter().map(|row| {
-                let held = (row.time_s >= frozen_from).then(|| row.time_s - frozen_from);
+                let held = (row.time_s >= frozen_from).then_some(row.time_s - frozen_from);
                 OffsetSignal {
                     held_s: held,
                     displaced: held.is_some(),
