@@ -119,8 +119,17 @@ fn fill_confirmed_alarms(rows: &[ScoredRow], op: OperatingPoint, alarms: &mut Ve
     }
 }
 
+/// The lifecycle search's θ grid: [`theta_grid`] and a tail towards 1. Under a false-alarm budget
+/// per vehicle-hour a model confident on a few clean stretches needs a threshold above 0.95; the
+/// tail lets the search find it instead of reporting no operating point.
+pub fn lifecycle_theta_grid() -> Vec<f64> {
+    let mut grid = theta_grid();
+    grid.extend([0.97, 0.98, 0.99]);
+    grid
+}
+
 /// T_on grid of the lifecycle search (s).
-pub const ON_S_GRID: [f64; 5] = [0.0, 1.0, 2.0, 4.0, 8.0];
+pub const ON_S_GRID: [f64; 7] = [0.0, 1.0, 2.0, 4.0, 8.0, 12.0, 16.0];
 /// T_off grid (s).
 pub const OFF_S_GRID: [f64; 3] = [2.0, 5.0, 10.0];
 /// Grid of the seconds an offset must be held beyond the decisive gate (s).
@@ -786,7 +795,7 @@ mod tests {
     fn the_budget_holds_at_every_sample_rate_not_only_pooled() {
         // Trajectory 0 at 1 Hz: two attack-free hours, then a 60 s attack scored 0.85.
         // Trajectory 1 at 10 Hz: just over an attack-free hour (a rate with room for one false
-        // alarm) with two 10 s bursts scored 0.9. Pooled, two
+        // alarm) with two 20 s bursts scored 0.9 (longer than any T_on). Pooled, two
         // false alarms in three hours would be within 1/h and buy the detection (θ ≤ 0.85); at
         // 10 Hz they are two in one hour, so only a θ above the bursts is within the budget.
         let row = |trajectory, time_s, label, score| ScoredRow {
@@ -804,7 +813,7 @@ mod tests {
             .collect();
         rows.extend((0..36_100).map(|i| {
             let t = f64::from(i) / 10.0;
-            let burst = (1000.0..1010.0).contains(&t) || (2000.0..2010.0).contains(&t);
+            let burst = (1000.0..1020.0).contains(&t) || (2000.0..2020.0).contains(&t);
             row(1, t, false, if burst { 0.9 } else { 0.0 })
         }));
         let groups = metrics::rate_groups(&rows);
@@ -825,6 +834,45 @@ mod tests {
         assert!(chosen.point.theta > 0.9, "{chosen:?}");
         assert_eq!(chosen.metrics.false_alarm_onsets, 0);
         assert_eq!(chosen.metrics.detected_events, 0);
+    }
+
+    #[test]
+    fn the_lifecycle_search_finds_a_point_above_0_95_when_the_budget_needs_one() {
+        // An attack-free hour at 1 Hz with a 30 s stretch scored 0.96 (longer than any T_on), then
+        // a 60 s attack scored 0.995: only θ = 0.97, 0.98 or 0.99 keeps the hour quiet and catches
+        // the attack, and none of them is in the k/20 grid.
+        let row = |time_s: f64, label, score| ScoredRow {
+            trajectory: 0,
+            time_s,
+            valid: true,
+            label,
+            score,
+        };
+        let rows: Vec<ScoredRow> = (0..3660)
+            .map(|i| {
+                let t = f64::from(i);
+                let (label, score) = match i {
+                    1000..1030 => (false, 0.96),
+                    3600.. => (true, 0.995),
+                    _ => (false, 0.0),
+                };
+                row(t, label, score)
+            })
+            .collect();
+        let offset = vec![OffsetSignal::default(); rows.len()];
+        let budget = OperatingPointRule::WithinFalseAlarmBudget { per_hour: 0.5 };
+        assert!(choose_lifecycle(&rows, &offset, &theta_grid(), EventRules::Spec, budget).is_err());
+        let chosen = choose_lifecycle(
+            &rows,
+            &offset,
+            &lifecycle_theta_grid(),
+            EventRules::Spec,
+            budget,
+        )
+        .expect("a point in the tail");
+        assert!(chosen.point.theta > 0.96, "{chosen:?}");
+        assert_eq!(chosen.metrics.false_alarm_onsets, 0);
+        assert_eq!(chosen.metrics.detected_events, 1);
     }
 
     #[test]

@@ -453,6 +453,7 @@ impl EvidenceBuilder {
             delta_t,
             calibrated: in_use.is_some(),
             calibration_error: in_use.map_or([0.0; 3], |(_, error)| error),
+            reports_placements: drift.is_some_and(DriftTracker::trusts_information),
         }))
     }
 

@@ -481,6 +481,11 @@ impl DriftTracker {
         }
     }
 
+    /// The calibration is trusted from its own information, not by the clock.
+    pub fn trusts_information(&self) -> bool {
+        self.constants.trust == CalibrationTrust::Information
+    }
+
     /// [`in_use_error`] of this vehicle's calibration now.
     fn in_use_error(&self) -> [f64; 3] {
         in_use_error(&self.covariance, &self.theta, &self.theta_in_use)

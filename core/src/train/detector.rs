@@ -13,7 +13,7 @@ use std::time::Instant;
 
 use crate::alarm::{
     AlarmError, N_P_GRID, OperatingPoint, Selection, choose_lifecycle, choose_operating_point,
-    theta_grid,
+    lifecycle_theta_grid, theta_grid,
 };
 use crate::evaluation::score_tracks;
 use crate::evidence::calibration::CalibrationTrust;
@@ -209,7 +209,7 @@ fn train_candidate(
         let selection = choose_lifecycle(
             &scored.rows,
             &scored.offset,
-            &theta_grid(),
+            &lifecycle_theta_grid(),
             spec.rules,
             spec.operating_point,
         )

@@ -17,7 +17,8 @@ use spoofwatch_client::cli::train::train_with_progress;
 use spoofwatch_client::cli::training_flags::feature_groups;
 use spoofwatch_client::report::mean_std_cell;
 use spoofwatch_core::alarm::{
-    N_P_GRID, OperatingPointRule, choose_lifecycle, choose_operating_point, theta_grid,
+    N_P_GRID, OperatingPointRule, choose_lifecycle, choose_operating_point, lifecycle_theta_grid,
+    theta_grid,
 };
 use spoofwatch_core::cusum::fit_cusum_comparator;
 use spoofwatch_core::evaluation::{Scored, score_tracks};
@@ -569,7 +570,7 @@ pub(super) fn within_budget(
         choose_lifecycle(
             rows,
             &scored.offset,
-            &theta_grid(),
+            &lifecycle_theta_grid(),
             EventRules::Spec,
             BUDGET,
         )

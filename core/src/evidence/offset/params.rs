@@ -127,6 +127,9 @@ pub struct OffsetStep {
     /// (`calibration::in_use_error`); 0 when the calibration is trusted by the clock. With it,
     /// every offset is tested against what that error makes of the distance it carries.
     pub calibration_error: [f64; 3],
+    /// A row that places the anchors again reports what it found (the calibration is trusted from
+    /// its information); otherwise it reports the fresh anchors' empty channels.
+    pub reports_placements: bool,
 }
 
 /// The offset channels of one sample.

@@ -23,6 +23,7 @@ fn step(residual: [f64; 2], delta_t: f64) -> OffsetStep {
         delta_t,
         calibrated: false,
         calibration_error: [0.0; 3],
+        reports_placements: false,
     }
 }
 
@@ -248,6 +249,49 @@ fn until_the_fix_and_the_motion_agree_a_disagreement_places_the_anchors_again() 
 }
 
 #[test]
+fn under_trust_from_information_a_row_that_places_the_anchors_again_reports_its_disagreement() {
+    // A fix that moves 6 m a second unlike the vehicle from its first row never earns the
+    // anchors' trust: every row disagrees and places them again. Reporting what each row found,
+    // the rows show the disagreement (displaced, counted in the shares) while the anchors still
+    // start again from each of them; the clock's trust reports empty channels instead.
+    let informed = |residual| OffsetStep {
+        reports_placements: true,
+        ..step(residual, 1.0)
+    };
+    let (mut reporting, mut silent) = (
+        OffsetTracker::new(&unit_params()),
+        OffsetTracker::new(&unit_params()),
+    );
+    reporting.push(&informed([0.0; 2]));
+    silent.push(&step([0.0; 2], 1.0));
+    for row in 0..10 {
+        let found = reporting.push(&informed([6.0, 0.0]));
+        let empty = silent.push(&step([6.0, 0.0], 1.0));
+        // One row of 6 m against unit noise (an outlier stops both anchors first): NIS 36.
+        assert_eq!(
+            (found.nis, found.offset_m),
+            ([36.0; 2], [6.0, 0.0]),
+            "{row}"
+        );
+        assert!(found.displaced(), "{row}: {found:?}");
+        assert_eq!((empty.max_nis(), empty.share), (0.0, [0.0; 2]), "{row}");
+        // The anchors were placed again: nothing is held, and the next row starts from here.
+        assert!(!reporting.frozen() && found.held_s == 0.0);
+        let expected = 1.0 - (-(f64::from(row) + 1.0) / SHARE_S[0]).exp();
+        assert!(
+            (found.share[0] - expected).abs() < 1e-12,
+            "{row}: {found:?}"
+        );
+    }
+    // Both trackers hold the same anchors: reporting changes what the rows say, not the anchors.
+    let (a, b) = (
+        reporting.push(&informed([0.0; 2])),
+        silent.push(&step([0.0; 2], 1.0)),
+    );
+    assert_eq!((a.offset_m, a.nis), (b.offset_m, b.nis));
+}
+
+#[test]
 fn the_uncertainty_grows_with_the_distance_carried() {
     // R = 4 m², c² = 0.01: after carrying 100 m north with no offset, a 10 m offset is
     // NIS = 100·keep² / (4 + 0.01·‖U‖²) with U the carried distance (decayed like o).
@@ -266,6 +310,7 @@ fn the_uncertainty_grows_with_the_distance_carried() {
         delta_t: 1.0,
         calibrated: false,
         calibration_error: [0.0; 3],
+        reports_placements: false,
     });
     for k in 0..ANCHOR_COUNT {
         let a = keep(1.0, k);
@@ -282,6 +327,7 @@ fn the_uncertainty_grows_with_the_distance_carried() {
         delta_t: 1.0,
         calibrated: true,
         calibration_error: [0.0; 3],
+        reports_placements: false,
     });
     for k in 0..ANCHOR_COUNT {
         let a = keep(1.0, k);

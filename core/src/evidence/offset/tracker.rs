@@ -142,9 +142,10 @@ impl OffsetTracker {
         self.age_s += step.delta_t;
 
         let max_nis = test.nis[0].max(test.nis[1]);
-        if self.placed_again(row.outlier || max_nis >= FOLLOW_GATE, step.delta_t) {
-            return self.last;
+        if self.agreed_s < TRUST_S && (row.outlier || max_nis >= FOLLOW_GATE) {
+            return self.place_again(step, &test, max_nis);
         }
+        self.agreed_s = (self.agreed_s + step.delta_t).min(TRUST_S);
         self.hold_decisive(step, max_nis, row.dead_reckoning_carries);
         self.count_share(max_nis, step.delta_t);
         self.last = self.evidence(step, &test);
@@ -319,22 +320,26 @@ impl OffsetTracker {
         }
     }
 
-    /// Until the anchors are trusted: whether a disagreement placed them again here (the row then
-    /// tests nothing); otherwise the agreement counts towards [`TRUST_S`].
-    fn placed_again(&mut self, disagrees: bool, delta_t: f64) -> bool {
-        if self.agreed_s >= TRUST_S {
-            return false;
-        }
-        if disagrees {
-            // The fix and the onboard motion have not yet agreed since the anchors were placed
-            // (a session's first fix or first onboard readings may be off): place them again
-            // here rather than hold the disagreement as an offset.
-            self.re_anchor_keeping_levels();
-            self.agreed_s = 0.0;
-            return true;
-        }
-        self.agreed_s = (self.agreed_s + delta_t).min(TRUST_S);
-        false
+    /// Before the anchors are trusted, a disagreement places them again here rather than hold it
+    /// as an offset: a session's first fix, or the first after an outage, may be off (a
+    /// reflection, a receiver still reacquiring). The row then reports either nothing (under
+    /// calibration trust by the clock, as before) or, under trust from information, what it
+    /// found: a fix that keeps moving unlike the vehicle (a drift from the moment of
+    /// reacquisition) never earns the anchors' trust, and its rows must still show the
+    /// disagreement, each counted beyond the follow gate in the shares.
+    fn place_again(
+        &mut self,
+        step: &OffsetStep,
+        test: &AnchorTest,
+        max_nis: f64,
+    ) -> OffsetEvidence {
+        let found = step.reports_placements.then(|| {
+            self.count_share(max_nis.max(FOLLOW_GATE), step.delta_t);
+            self.evidence(step, test)
+        });
+        self.re_anchor_keeping_levels();
+        self.agreed_s = 0.0;
+        found.unwrap_or(self.last)
     }
 
     /// Counts the time beyond the decisive gate, and holds a jump that arrived in one step.
