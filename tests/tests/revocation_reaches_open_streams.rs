@@ -152,13 +152,15 @@ async fn watching_incidents(connection: &Connection) -> Streaming<v1::IncidentEv
 
 /// Reads `replies` until the call ends, which must be within [`END_WITHIN`]: what it still sent,
 /// and the status it ended with.
-async fn read_to_end<T>(replies: &mut Streaming<T>) -> (Vec<T>, Status) {
+async fn read_to_end<T: std::fmt::Debug>(replies: &mut Streaming<T>) -> (Vec<T>, Status) {
     let deadline = Instant::now() + END_WITHIN;
     let mut sent = Vec::new();
     loop {
-        let next = tokio::time::timeout_at(deadline, replies.message())
-            .await
-            .expect("the call ends within 10 s of the change being in force");
+        let Ok(next) = tokio::time::timeout_at(deadline, replies.message()).await else {
+            panic!(
+                "the call did not end within 10 s of the change being in force; it sent {sent:?}"
+            )
+        };
         match next {
             Ok(Some(message)) => sent.push(message),
             Ok(None) => return (sent, Status::ok("")),
