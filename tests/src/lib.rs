@@ -244,6 +244,51 @@ pub fn token_sha256(token: &str) -> String {
         .collect()
 }
 
+/// The single admin token of the servers [`start_with_roles`] starts without TLS.
+pub const ADMIN_TOKEN: &str = "s3cret";
+
+/// A server whose roles file (`<dir>/roles.toml`, rewritten by tests to change who may do what)
+/// holds `roles`, with its metrics served. Without `tls` its admin is [`ADMIN_TOKEN`]; with it,
+/// the server requires client certificates of the CA and is reached as the certificate given.
+pub async fn start_with_roles(
+    dir: &Path,
+    roles: &str,
+    tls: Option<(&pki::TestCa, &pki::CertFiles)>,
+) -> TestServer {
+    let roles_file = dir.join("roles.toml");
+    std::fs::write(&roles_file, roles).expect("roles file written");
+    let mut config = test_config(dir);
+    config.roles_file = Some(roles_file);
+    config.metrics_listen = Some(SocketAddr::from(([127, 0, 0, 1], 0)));
+    match tls {
+        None => {
+            config.auth_token = Some(ADMIN_TOKEN.into());
+            TestServer::start_for(
+                config,
+                &ConnectOptions::with_token(Some(ADMIN_TOKEN.into())),
+            )
+            .await
+        }
+        Some((ca, admin_files)) => {
+            let server_files = ca.server(dir);
+            config.tls_cert = Some(server_files.cert);
+            config.tls_key = Some(server_files.key);
+            config.tls_client_ca = Some(ca.cert.clone());
+            TestServer::start_for(config, &with_certificate(ca, admin_files)).await
+        }
+    }
+}
+
+/// Connects trusting `ca` and presenting the client certificate `files`.
+pub fn with_certificate(ca: &pki::TestCa, files: &pki::CertFiles) -> ConnectOptions {
+    ConnectOptions {
+        ca_cert: Some(ca.cert.clone()),
+        client_cert: Some(files.cert.clone()),
+        client_key: Some(files.key.clone()),
+        ..ConnectOptions::default()
+    }
+}
+
 /// The wire samples of a track.
 pub fn track_samples(track: &Track) -> Vec<v1::Sample> {
     track

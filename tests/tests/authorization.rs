@@ -4,14 +4,14 @@
 //! CN names unless the roles file says otherwise, a revoked one is refused, and a changed roles
 //! file applies without a restart. Refusals are counted in the metrics.
 
-use std::path::Path;
 use std::time::Duration;
 
 use spoofwatch_proto::longrunning;
 use spoofwatch_proto::v1;
 use spoofwatch_tests::pki::{CertFiles, TestCa};
 use spoofwatch_tests::{
-    ConnectOptions, Connection, TestServer, normal_drive, test_config, token_sha256, track_samples,
+    ConnectOptions, Connection, TestServer, normal_drive, start_with_roles, token_sha256,
+    track_samples, with_certificate,
 };
 use tokio_stream::StreamExt;
 use tonic::Code;
@@ -318,40 +318,6 @@ fn check(role: &str, rpc: &str, allowed: bool, answer: Code) {
         );
     } else {
         assert_eq!(answer, Code::PermissionDenied, "{role} must not call {rpc}");
-    }
-}
-
-async fn start_with_roles(
-    dir: &Path,
-    roles: &str,
-    tls: Option<(&TestCa, &CertFiles)>,
-) -> TestServer {
-    let roles_file = dir.join("roles.toml");
-    std::fs::write(&roles_file, roles).expect("roles file written");
-    let mut config = test_config(dir);
-    config.roles_file = Some(roles_file);
-    config.metrics_listen = Some(std::net::SocketAddr::from(([127, 0, 0, 1], 0)));
-    match tls {
-        None => {
-            config.auth_token = Some("s3cret".into());
-            TestServer::start_for(config, &ConnectOptions::with_token(Some("s3cret".into()))).await
-        }
-        Some((ca, admin_files)) => {
-            let server_files = ca.server(dir);
-            config.tls_cert = Some(server_files.cert);
-            config.tls_key = Some(server_files.key);
-            config.tls_client_ca = Some(ca.cert.clone());
-            TestServer::start_for(config, &with_certificate(ca, admin_files)).await
-        }
-    }
-}
-
-fn with_certificate(ca: &TestCa, files: &CertFiles) -> ConnectOptions {
-    ConnectOptions {
-        ca_cert: Some(ca.cert.clone()),
-        client_cert: Some(files.cert.clone()),
-        client_key: Some(files.key.clone()),
-        ..ConnectOptions::default()
     }
 }
 

@@ -33,6 +33,7 @@ mod readme_grpcurl;
 mod replay_fails_over;
 mod replicas_share_one_database;
 mod restart_keeps_stored_state;
+mod revocation_reaches_open_streams;
 mod sequence_numbers;
 mod server_lifecycle;
 mod session_handoff;

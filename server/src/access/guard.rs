@@ -1,7 +1,8 @@
 //! The guard in front of every API service: identifies each call's caller, refuses the call when
 //! its role may not make it, and hands the [`Caller`] to the service in the request's extensions.
-//! It owns identification (bearer tokens in constant time, client certificates by name and
-//! fingerprint) and nothing else.
+//! It owns identification (bearer tokens by digest in constant time, client certificates by name
+//! and fingerprint) and nothing else: the [`Caller`] keeps what was presented, and
+//! `super::standing` identifies it again with [`identify`] when the identities change.
 //!
 //! Health and reflection stay unguarded on purpose: health is for load balancers and orchestrators
 //! that hold no credential, and reflection serves only the public schema, no data. Whoever must
@@ -53,14 +54,12 @@ where
     }
 
     fn call(&mut self, mut request: http::Request<B>) -> Self::Future {
-        let (method, need) = need_of(request.uri().path());
-        let identities = self.access.current();
         let certificate = request
             .extensions()
             .get::<TlsConnectInfo<TcpConnectInfo>>()
             .and_then(TlsConnectInfo::peer_certs);
-        let identified = identify(
-            &identities,
+        let admitted = self.access.admit(
+            request.uri().path(),
             request
                 .headers()
                 .get("authorization")
@@ -70,20 +69,9 @@ where
                 .and_then(|chain| chain.first())
                 .map(|c| c.as_ref()),
         );
-        let outcome = identified.and_then(|grant| {
-            if need.allows(grant.role) {
-                Ok(grant)
-            } else {
-                Err(denied(
-                    &grant,
-                    method,
-                    &format!("{method} (it needs {need:?})"),
-                ))
-            }
-        });
-        match outcome {
-            Ok(grant) => {
-                request.extensions_mut().insert(Caller { grant, method });
+        match admitted {
+            Ok(caller) => {
+                request.extensions_mut().insert(caller);
                 Either::Left(self.inner.call(request))
             }
             Err(status) => Either::Right(std::future::ready(Ok(status.into_http()))),
@@ -91,22 +79,94 @@ where
     }
 }
 
-/// The grant of a call with the `authorization` header value on a connection whose client presented `certificate` (its
-/// leaf, DER), or why it is not identified (UNAUTHENTICATED, counted).
-fn identify(
+impl Access {
+    /// The caller of a call to `path` with the `authorization` header value on a connection whose
+    /// client presented `certificate` (its leaf, DER), under the identities in force; or why it
+    /// is refused (UNAUTHENTICATED, or PERMISSION_DENIED when its role may not make the call;
+    /// counted).
+    pub fn admit(
+        &self,
+        path: &str,
+        authorization: Option<&str>,
+        certificate: Option<&[u8]>,
+    ) -> Result<Caller, Status> {
+        let (method, need) = need_of(path);
+        // Subscribed first and marked seen at the set the caller is identified by: a change after
+        // this one is a change for the open call.
+        let mut identities = self.current.subscribe();
+        let current = Arc::clone(&identities.borrow_and_update());
+        let presented = if current.open() {
+            Presented::default()
+        } else {
+            Presented::of(authorization, certificate)
+        };
+        let grant = identify(&current, &presented)?;
+        if !need.allows(grant.role) {
+            return Err(denied(
+                &grant,
+                method,
+                &format!("{method} (it needs {need:?})"),
+            ));
+        }
+        Ok(Caller {
+            grant,
+            method,
+            need,
+            presented,
+            identities,
+        })
+    }
+}
+
+/// What a call presented, kept by its [`Caller`] to be identified again when the identities
+/// change: the bearer token's digest (never the token) and the client certificate's name and
+/// digest.
+#[derive(Clone, Debug, Default)]
+pub(super) struct Presented {
+    /// The SHA-256 (lower-case hex) of the `Bearer` token.
+    token_sha256: Option<String>,
+    certificate: Option<PresentedCertificate>,
+}
+
+#[derive(Clone, Debug)]
+struct PresentedCertificate {
+    /// Its subject's first CN, else its first DNS SAN (`None`: it names neither).
+    name: Option<String>,
+    /// The SHA-256 (lower-case hex) of its DER.
+    sha256: String,
+}
+
+impl Presented {
+    /// What the `authorization` header value and the client certificate (its leaf, DER) present.
+    fn of(authorization: Option<&str>, certificate: Option<&[u8]>) -> Presented {
+        Presented {
+            token_sha256: authorization
+                .and_then(bearer_token)
+                .map(|token| sha256_hex(token.as_bytes())),
+            certificate: certificate.map(|der| PresentedCertificate {
+                name: certificate_name(der),
+                sha256: sha256_hex(der),
+            }),
+        }
+    }
+}
+
+/// The grant of what a call `presented` under `identities`, or why it is not identified
+/// (UNAUTHENTICATED, counted).
+pub(super) fn identify(
     identities: &Identities,
-    authorization: Option<&str>,
-    certificate: Option<&[u8]>,
+    presented: &Presented,
 ) -> Result<Arc<Grant>, Status> {
     if identities.open() {
         return Ok(Arc::new(Grant::admin("anonymous")));
     }
-    let by_certificate = certificate
-        .map(|der| certificate_grant(identities, der))
+    let by_certificate = presented
+        .certificate
+        .as_ref()
+        .map(|certificate| certificate_grant(identities, certificate))
         .transpose()?;
-    let token = authorization.and_then(bearer_token);
-    match (token, by_certificate) {
-        (Some(token), _) => token_grant(identities, token),
+    match (&presented.token_sha256, by_certificate) {
+        (Some(digest), _) => token_grant(identities, digest),
         (None, Some(grant)) => Ok(grant),
         (None, None) => Err(unauthenticated(
             "missing bearer token or client certificate",
@@ -114,47 +174,52 @@ fn identify(
     }
 }
 
-/// The grant of a bearer token: the single admin token, or one the roles file lists.
-fn token_grant(identities: &Identities, token: &str) -> Result<Arc<Grant>, Status> {
-    let digest = sha256_hex(token.as_bytes());
+/// The grant of a bearer token by its `digest`: the single admin token, or one the roles file
+/// lists.
+fn token_grant(identities: &Identities, digest: &str) -> Result<Arc<Grant>, Status> {
     let roles = identities.roles.as_ref();
-    if roles.is_some_and(|r| r.denied_token_sha256.contains(&digest)) {
+    if roles.is_some_and(|r| r.denied_token_sha256.contains(digest)) {
         return Err(unauthenticated("the bearer token is revoked"));
     }
-    if let Some(admin) = &identities.admin_token
-        && tokens_match(token, admin)
+    if let Some(admin) = &identities.admin_token_sha256
+        && digests_match(digest, admin)
     {
         return Ok(Arc::new(Grant::admin("admin-token")));
     }
     roles
-        .and_then(|r| r.tokens.get(&digest))
+        .and_then(|r| r.tokens.get(digest))
         .map(|grant| Arc::new(grant.clone()))
         .ok_or_else(|| unauthenticated("missing or wrong bearer token"))
 }
 
 /// The grant of a client certificate: as the roles file lists it, else the vehicle it names.
-fn certificate_grant(identities: &Identities, der: &[u8]) -> Result<Arc<Grant>, Status> {
-    let name = certificate_name(der).ok_or_else(|| {
+fn certificate_grant(
+    identities: &Identities,
+    certificate: &PresentedCertificate,
+) -> Result<Arc<Grant>, Status> {
+    let name = certificate.name.as_deref().ok_or_else(|| {
         unauthenticated("the client certificate names no subject CN and no DNS SAN")
     })?;
     if let Some(roles) = &identities.roles {
-        if roles.denied_certificate_names.contains(&name)
-            || roles.denied_certificate_sha256.contains(&sha256_hex(der))
+        if roles.denied_certificate_names.contains(name)
+            || roles
+                .denied_certificate_sha256
+                .contains(&certificate.sha256)
         {
             return Err(unauthenticated(&format!(
                 "the client certificate {name:?} is revoked"
             )));
         }
-        if let Some(grant) = roles.certificates.get(&name) {
+        if let Some(grant) = roles.certificates.get(name) {
             return Ok(Arc::new(grant.clone()));
         }
     }
-    spoofwatch_proto::wire::VehicleId::parse(&name).map_err(|e| {
+    spoofwatch_proto::wire::VehicleId::parse(name).map_err(|e| {
         unauthenticated(&format!(
             "the client certificate {name:?} is not in the roles file and names no vehicle: {e}"
         ))
     })?;
-    Ok(Arc::new(Grant::vehicle(&name)))
+    Ok(Arc::new(Grant::vehicle(name)))
 }
 
 /// A certificate's name: its subject's first CN, else its first DNS subject alternative name.
@@ -192,8 +257,8 @@ fn bearer_token(value: &str) -> Option<&str> {
     (scheme.eq_ignore_ascii_case("bearer") && !token.is_empty()).then_some(token)
 }
 
-/// Compares in time independent of where the tokens differ (their length is not secret).
-fn tokens_match(presented: &str, expected: &str) -> bool {
+/// Compares in time independent of where the digests differ (their length is not secret).
+fn digests_match(presented: &str, expected: &str) -> bool {
     use subtle::ConstantTimeEq;
     bool::from(presented.as_bytes().ct_eq(expected.as_bytes()))
 }
@@ -211,14 +276,14 @@ mod tests {
         assert_eq!(bearer_token("Bearer "), None);
         assert_eq!(bearer_token("Bearer"), None);
         assert_eq!(bearer_token("Basic abc"), None);
-        assert!(tokens_match("abc", "abc"));
-        assert!(!tokens_match("abd", "abc"));
-        assert!(!tokens_match("", "abc"));
-        assert!(!tokens_match("abcd", "abc"));
+        assert!(digests_match("abc", "abc"));
+        assert!(!digests_match("abd", "abc"));
+        assert!(!digests_match("", "abc"));
+        assert!(!digests_match("abcd", "abc"));
     }
 
-    fn with_token(token: &str) -> Option<String> {
-        Some(format!("Bearer {token}"))
+    fn with_token(token: &str) -> Presented {
+        Presented::of(Some(&format!("Bearer {token}")), None)
     }
 
     #[test]
@@ -231,21 +296,23 @@ mod tests {
         ))
         .expect("valid");
         let identities = Identities {
-            admin_token: Some("admin-secret".into()),
+            admin_token_sha256: Some(sha256_hex(b"admin-secret")),
             roles: Some(roles),
             mutual_tls: false,
         };
-        let admin =
-            identify(&identities, with_token("admin-secret").as_deref(), None).expect("admin");
+        let admin = identify(&identities, &with_token("admin-secret")).expect("admin");
         assert_eq!(admin.role, Role::Admin);
-        let gateway =
-            identify(&identities, with_token("gw-token").as_deref(), None).expect("gateway");
+        let gateway = identify(&identities, &with_token("gw-token")).expect("gateway");
         assert_eq!((&*gateway.name, gateway.role), ("gw", Role::Gateway));
-        for refused in [with_token("nope"), with_token("old-admin"), None] {
-            let status = identify(&identities, refused.as_deref(), None).expect_err("refused");
+        for refused in [
+            with_token("nope"),
+            with_token("old-admin"),
+            Presented::default(),
+        ] {
+            let status = identify(&identities, &refused).expect_err("refused");
             assert_eq!(status.code(), Code::Unauthenticated);
         }
-        let open = identify(&Identities::default(), None, None).expect("open");
+        let open = identify(&Identities::default(), &Presented::default()).expect("open");
         assert_eq!(open.scope, VehicleScope::All);
     }
 }

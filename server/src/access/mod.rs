@@ -1,27 +1,35 @@
 //! Who may do what: every API call's caller is identified (a bearer token, or the client
 //! certificate of a mutual-TLS connection), given a role and a set of vehicles, and refused with
-//! PERMISSION_DENIED (logged and counted) when the call is outside them.
+//! PERMISSION_DENIED (logged and counted) when the call is outside them. A call that stays open
+//! (a stream, a watch) keeps what its caller presented and is judged again at every change of the
+//! identity files ([`Caller::until_revoked`]).
 //!
 //! - `roles`: the roles file, parsed and checked;
 //! - `policy`: which role may make which call;
 //! - `guard`: the service wrapper that identifies each call's caller and applies the policy;
+//! - `standing`: an open call's caller judged again against each new set of identities;
 //! - `reload`: the roles file and the token file, read at start and re-read when they change.
 //!
 //! It owns identities and their checks, nothing else: which services are guarded is the router's
-//! choice, and the vehicle a detection call names is checked by the detection service with
-//! [`Caller::check_vehicle`].
+//! choice, the vehicle a detection call names is checked by the detection service with
+//! [`Caller::check_vehicle`], and each streaming service ends its own calls with the status
+//! [`Caller::until_revoked`] gives it.
 
 mod guard;
 mod policy;
 mod reload;
 mod roles;
+mod standing;
 
 use std::path::PathBuf;
-use std::sync::{Arc, PoisonError, RwLock};
+use std::sync::Arc;
 
 pub use guard::Guarded;
+use guard::Presented;
+use policy::Need;
 pub use reload::keep_current;
 use roles::{Grant, Roles};
+use tokio::sync::watch;
 use tonic::Status;
 
 use crate::telemetry;
@@ -29,9 +37,17 @@ use crate::telemetry;
 /// The caller of a guarded call, in its request's extensions.
 #[derive(Clone, Debug)]
 pub struct Caller {
+    /// What the identities in force grant it (as of the last change [`Caller::until_revoked`] or
+    /// [`Caller::check_standing`] looked at).
     pub grant: Arc<Grant>,
     /// The method's gRPC path (for logs and metrics).
     pub method: &'static str,
+    /// What the method needs of its caller.
+    need: Need,
+    /// What the caller presented (digests only), to identify it again when the identities change.
+    presented: Presented,
+    /// The identities in force; marked seen up to the set `grant` was given by.
+    identities: watch::Receiver<Arc<Identities>>,
 }
 
 impl Caller {
@@ -92,8 +108,9 @@ pub struct Sources {
 /// What the guard checks callers against, as last read.
 #[derive(Clone, Debug, Default)]
 pub struct Identities {
-    /// The single admin token.
-    pub admin_token: Option<String>,
+    /// The SHA-256 (lower-case hex) of the single admin token: a presented token is compared by
+    /// its digest, so an open call keeps no token to be judged again by.
+    pub admin_token_sha256: Option<String>,
     /// The roles file (`None`: there is none).
     pub roles: Option<Roles>,
     pub mutual_tls: bool,
@@ -103,14 +120,15 @@ impl Identities {
     /// Nothing is configured that identifies a caller: every caller is an admin (a development
     /// server on its own machine).
     pub fn open(&self) -> bool {
-        self.admin_token.is_none() && self.roles.is_none() && !self.mutual_tls
+        self.admin_token_sha256.is_none() && self.roles.is_none() && !self.mutual_tls
     }
 }
 
-/// The identities in force, swapped whole when a file changes.
+/// The identities in force, swapped whole when a file changes; every open call's [`Caller`] is
+/// told of each swap through the channel.
 #[derive(Debug)]
 pub struct Access {
-    current: RwLock<Arc<Identities>>,
+    current: watch::Sender<Arc<Identities>>,
     pub sources: Sources,
 }
 
@@ -119,17 +137,18 @@ impl Access {
     pub fn load(sources: Sources) -> Result<Access, String> {
         let identities = reload::read(&sources)?;
         Ok(Access {
-            current: RwLock::new(Arc::new(identities)),
+            current: watch::Sender::new(Arc::new(identities)),
             sources,
         })
     }
 
     pub fn current(&self) -> Arc<Identities> {
-        Arc::clone(&self.current.read().unwrap_or_else(PoisonError::into_inner))
+        Arc::clone(&self.current.borrow())
     }
 
+    /// Puts `identities` in force, for new calls and for every open one.
     fn replace(&self, identities: Identities) {
-        *self.current.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(identities);
+        self.current.send_replace(Arc::new(identities));
     }
 
     /// How callers are identified, for the startup log.
@@ -139,7 +158,7 @@ impl Access {
             return "none: every caller is an admin".to_string();
         }
         let mut parts = Vec::new();
-        if current.admin_token.is_some() {
+        if current.admin_token_sha256.is_some() {
             parts.push("admin bearer token".to_string());
         }
         if let Some(roles) = &current.roles {

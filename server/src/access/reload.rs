@@ -1,7 +1,9 @@
 //! The identity files, read at start and re-read when they change: the roles file and the file of
 //! the single admin token. A change is picked up within [`POLL`] without a restart (a Kubernetes
-//! Secret or ConfigMap update included); a changed file that cannot be read or parsed is logged
-//! and counted, and the identities in force stay. It owns the reading, not the checks.
+//! Secret or ConfigMap update included), for new calls and for the calls already open (each is
+//! told through [`Access`]'s channel and judged again by `super::standing`); a changed file that
+//! cannot be read or parsed is logged and counted, and the identities in force stay. It owns the
+//! reading, not the checks.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -10,6 +12,7 @@ use std::time::Duration;
 use tokio_util::sync::CancellationToken;
 
 use super::{Access, Identities, Roles, Sources};
+use crate::identity::sha256_hex;
 use crate::telemetry;
 
 /// How often the files are looked at.
@@ -32,7 +35,7 @@ pub fn read(sources: &Sources) -> Result<Identities, String> {
     };
     let roles = sources.roles_file.as_deref().map(read_roles).transpose()?;
     Ok(Identities {
-        admin_token,
+        admin_token_sha256: admin_token.map(|token| sha256_hex(token.as_bytes())),
         roles,
         mutual_tls: sources.mutual_tls,
     })
@@ -134,8 +137,8 @@ mod tests {
             ..Sources::default()
         };
         assert_eq!(
-            read(&sources).expect("readable").admin_token.as_deref(),
-            Some("s3cret")
+            read(&sources).expect("readable").admin_token_sha256,
+            Some(sha256_hex(b"s3cret"))
         );
         let both = Sources {
             token: Some("x".into()),

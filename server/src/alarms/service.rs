@@ -1,7 +1,8 @@
 //! The AlarmService RPCs: ListAlarms reads the store; WatchAlarms follows the alarm event log
 //! (`crate::event_log::watch`: replay from a cursor, CAUGHT_UP, then live events, with one cursor
-//! semantics on every replica). ListIncidents, GetIncident and WatchIncidents are served by
-//! `crate::incidents::service` on the same service.
+//! semantics on every replica), for as long as the identities in force admit its caller.
+//! ListIncidents, GetIncident and WatchIncidents are served by `crate::incidents::service` on the
+//! same service.
 
 use std::sync::Arc;
 
@@ -15,6 +16,7 @@ use tonic::{Request, Response, Status};
 
 use super::feed::{AlarmFeed, AlarmLog, AlarmWatchFilter};
 use super::wire::alarm_to_proto;
+use crate::access::Caller;
 use crate::edge::{optional_model_name, optional_vehicle_id, page_request};
 use crate::event_log::watch::{self, WatchContext, WatchRequest, WatchStream};
 use crate::idle::StreamIdle;
@@ -144,6 +146,7 @@ impl AlarmService for AlarmApi {
         &self,
         request: Request<v1::WatchAlarmsRequest>,
     ) -> Result<Response<Self::WatchAlarmsStream>, Status> {
+        let caller = Caller::of(&request)?;
         let r = request.into_inner();
         let stream = watch::start(
             WatchContext {
@@ -151,6 +154,7 @@ impl AlarmService for AlarmApi {
                 feed: &self.feed,
                 shutdown: &self.shutdown,
                 idle: self.stream_idle,
+                caller,
             },
             WatchRequest {
                 filter: watch_filter(&r)?,
@@ -184,6 +188,7 @@ impl AlarmService for AlarmApi {
         &self,
         request: Request<v1::WatchIncidentsRequest>,
     ) -> Result<Response<Self::WatchIncidentsStream>, Status> {
+        let caller = Caller::of(&request)?;
         let r = request.into_inner();
         let stream = watch::start(
             WatchContext {
@@ -191,6 +196,7 @@ impl AlarmService for AlarmApi {
                 feed: &self.incident_feed,
                 shutdown: &self.shutdown,
                 idle: self.stream_idle,
+                caller,
             },
             WatchRequest {
                 filter: None,
@@ -212,8 +218,20 @@ mod tests {
     use tonic::Code;
 
     use super::*;
+    use crate::access::{Access, Sources};
     use crate::alarms::event::Onset;
     use crate::outbox::SessionOutbox;
+
+    /// A WatchAlarms request as the guard of a server without identities passes it on.
+    fn watch_request(message: v1::WatchAlarmsRequest) -> Request<v1::WatchAlarmsRequest> {
+        let access = Access::load(Sources::default()).expect("no identity files");
+        let caller = access
+            .admit("/spoofwatch.v1.AlarmService/WatchAlarms", None, None)
+            .expect("every caller is an admin");
+        let mut request = Request::new(message);
+        request.extensions_mut().insert(caller);
+        request
+    }
 
     async fn watch(api: &AlarmApi, after_cursor: Option<i64>) -> Vec<(i32, i64)> {
         let request = v1::WatchAlarmsRequest {
@@ -222,7 +240,7 @@ mod tests {
             ..Default::default()
         };
         let stream = api
-            .watch_alarms(Request::new(request))
+            .watch_alarms(watch_request(request))
             .await
             .expect("WatchAlarms")
             .into_inner();
@@ -271,7 +289,7 @@ mod tests {
         assert_eq!(watch(&api, Some(1)).await, [(end, 2), (caught_up, 2)]);
         assert_eq!(watch(&api, None).await, [(caught_up, 0)]);
         let beyond = api
-            .watch_alarms(Request::new(v1::WatchAlarmsRequest {
+            .watch_alarms(watch_request(v1::WatchAlarmsRequest {
                 after_cursor: Some(3),
                 ..Default::default()
             }))

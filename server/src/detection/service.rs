@@ -3,7 +3,9 @@
 //! detections, and maps [`super::SessionError`] once (through `crate::error`); it must not hold
 //! session state. Per-vehicle calls may carry the `x-vehicle-id` routing header
 //! ([`crate::edge::routed_vehicle_ids`]); it must name the message's vehicle. Every vehicle a call
-//! names must be one its caller may stream for ([`Caller::check_vehicle`]). Each StreamDetect and
+//! names must be one its caller may stream for ([`Caller::check_vehicle`]), and an open stream
+//! ends as soon as a change of the identity files no longer admits its caller
+//! ([`Caller::until_revoked`]: UNAUTHENTICATED or PERMISSION_DENIED). Each StreamDetect and
 //! StreamDetectFleet call runs in its own task that reads the inbound stream and writes replies into a small bounded channel: a slow client fills only its own
 //! channel, which pauses only its own task. Each batch, scored or refused, is counted here for the
 //! metrics (`crate::telemetry`), once per batch.
@@ -161,7 +163,7 @@ async fn start_stream(
     inbound: &mut Streaming<v1::StreamDetectRequest>,
     idle: &StreamIdle,
     routed: &[String],
-    caller: &Caller,
+    caller: &mut Caller,
 ) -> Result<Option<Attachment>, Status> {
     let first = tokio::select! {
         _ = shutdown.cancelled() => Err(shutting_down()),
@@ -187,6 +189,8 @@ async fn start_stream(
     };
     let attached = async {
         let vehicle = vehicle_id("start.vehicle_id", &start.vehicle_id)?;
+        // The identities may have changed while the stream waited for its start.
+        caller.check_standing(Some(vehicle.as_str()))?;
         caller.check_vehicle("start.vehicle_id", vehicle.as_str())?;
         check_routed_vehicle(routed, "start.vehicle_id", vehicle.as_str())?;
         let model = optional_model_name("start.model", &start.model)?;
@@ -201,13 +205,19 @@ async fn start_stream(
     })
 }
 
-/// Why an attached stream must end before its client closes it: the server drains, a newer
-/// stream took the session over, or the session's model was deleted. Made once per stream and
-/// polled beside every read.
-async fn forced_end(shutdown: &CancellationToken, attachment: &Attachment) -> Status {
+/// Why an attached stream must end before its client closes it: the server drains, its caller is
+/// no longer admitted for its vehicle, a newer stream took the session over, or the session's
+/// model was deleted. Made once per stream and polled beside every read.
+async fn forced_end(
+    shutdown: &CancellationToken,
+    attachment: &Attachment,
+    mut caller: Caller,
+) -> Status {
+    let vehicle = attachment.accepted.vehicle_id.as_str();
     tokio::select! {
         biased;
         _ = shutdown.cancelled() => shutting_down(),
+        status = caller.until_revoked(Some(vehicle)) => status,
         _ = attachment.evicted.cancelled() => Status::aborted(
             "another stream for this vehicle took the session over",
         ),
@@ -288,9 +298,16 @@ async fn run_stream(
     mut inbound: Streaming<v1::StreamDetectRequest>,
     tx: mpsc::Sender<Reply>,
     idle: StreamIdle,
-    (routed, caller): (Vec<String>, Caller),
+    (routed, mut caller): (Vec<String>, Caller),
 ) {
-    let started = start_stream(&sessions, &shutdown, &mut inbound, &idle, &routed, &caller);
+    let started = start_stream(
+        &sessions,
+        &shutdown,
+        &mut inbound,
+        &idle,
+        &routed,
+        &mut caller,
+    );
     let attachment = match started.await {
         Ok(Some(attachment)) => attachment,
         Ok(None) => return,
@@ -305,7 +322,7 @@ async fn run_stream(
     // The call's final status (None: OK), sent only after the session's snapshot is stored, so a
     // client that reconnects elsewhere at once finds it.
     let mut end = None;
-    let forced = forced_end(&shutdown, &attachment);
+    let forced = forced_end(&shutdown, &attachment, caller);
     tokio::pin!(forced);
     let mut clock = idle.clock();
     if idle
@@ -463,14 +480,15 @@ async fn detect_vehicle(
     }
 }
 
-/// Drives one StreamDetectFleet call of `caller` to its end: one reply per message, in order.
+/// Drives one StreamDetectFleet call of `caller` to its end: one reply per message, in order,
+/// each vehicle checked against the caller's grant as the identities in force give it.
 async fn run_fleet_stream(
     sessions: Arc<SessionManager>,
     shutdown: CancellationToken,
     mut inbound: Streaming<v1::FleetBatch>,
     tx: mpsc::Sender<FleetReply>,
     idle: StreamIdle,
-    caller: Caller,
+    mut caller: Caller,
 ) {
     let max_samples = sessions.limits().max_batch_samples;
     loop {
@@ -478,6 +496,10 @@ async fn run_fleet_stream(
             biased;
             _ = shutdown.cancelled() => {
                 idle.send(&tx, Err(shutting_down())).await;
+                break;
+            }
+            status = caller.until_revoked(None) => {
+                idle.send(&tx, Err(status)).await;
                 break;
             }
             message = idle.next(&mut inbound) => message,

@@ -15,6 +15,11 @@
 //! the stream ends with UNAVAILABLE naming the cursor to resume from. Each call runs in its own
 //! task writing into a small bounded channel (as DetectionService streams do), and a watcher that
 //! leaves an event unread for the stream idle limit is let go.
+//!
+//! A watch ends as soon as a change of the identity files no longer admits its caller
+//! ([`Caller::until_revoked`]: UNAUTHENTICATED, or PERMISSION_DENIED for a caller that may no
+//! longer read), and nothing is queued for it once that change is in force: every event is sent
+//! only after the caller's standing is checked ([`Caller::check_standing`]).
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -29,6 +34,7 @@ use tonic_types::{ErrorDetails, StatusExt};
 
 use super::EventLog;
 use super::feed::{Feed, FeedSubscription};
+use crate::access::Caller;
 use crate::idle::StreamIdle;
 use crate::status::{invalid_field, shutting_down};
 use crate::store::Store;
@@ -49,6 +55,8 @@ pub struct WatchContext<'a, L: EventLog> {
     pub shutdown: &'a CancellationToken,
     /// How long a watcher may leave a pending event unread.
     pub idle: StreamIdle,
+    /// Who watches: the watch ends when the identities in force no longer admit it.
+    pub caller: Caller,
 }
 
 /// What the caller asked for.
@@ -105,6 +113,7 @@ pub async fn start<L: EventLog>(
         stop_when_caught_up: request.stop_when_caught_up,
         tx: tx.clone(),
         idle: context.idle,
+        caller: context.caller,
         position,
     };
     let idle = context.idle;
@@ -152,6 +161,8 @@ struct Watch<L: EventLog> {
     tx: mpsc::Sender<Result<L::Message, Status>>,
     /// A watcher that reads no event for this long is let go (it resumes with its cursor).
     idle: StreamIdle,
+    /// Who watches: judged again at every change of the identities.
+    caller: Caller,
     /// Every event up to this log position has been sent or filtered out.
     position: i64,
 }
@@ -178,7 +189,9 @@ impl<L: EventLog> Watch<L> {
         Ok(())
     }
 
-    async fn send(&self, message: L::Message) -> Result<(), Stop> {
+    /// Sends `message` if the identities in force still admit the caller.
+    async fn send(&mut self, message: L::Message) -> Result<(), Stop> {
+        self.caller.check_standing(None).map_err(Stop::Fail)?;
         if self.idle.send(&self.tx, Ok(message)).await {
             Ok(())
         } else {
@@ -244,6 +257,7 @@ impl<L: EventLog> Watch<L> {
                     biased;
                     _ = self.shutdown.cancelled() => return Err(Stop::Fail(draining(self.position))),
                     _ = self.tx.closed() => return Err(Stop::Gone),
+                    status = self.caller.until_revoked(None) => return Err(Stop::Fail(status)),
                     received = subscription.live.recv() => received,
                 };
                 match received {
