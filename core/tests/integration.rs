@@ -3,6 +3,7 @@
 
 mod artifact_validation;
 mod avgps_data;
+mod bundled_default;
 mod detector;
 mod ekf_comparator;
 mod evidence_parity;

@@ -88,9 +88,9 @@ fn median(values: &[f64]) -> f64 {
 
 /// The flag raised by an SBAS switch while the fix drifts away at 5 m/s (the PX4 report: the
 /// autopilot reacted after 34 s and 230 m). The default model alarms on the drift alone within
-/// seconds on most vehicles, but where the drift starts as a trajectory settles (just after an
-/// outage) the anchors are never trusted and p̂ must wait out the settling seconds; the flag lets
-/// p̂ count there, and elsewhere corroborates the displacement a little before the decisive hold.
+/// seconds on every vehicle, also where the drift starts as a trajectory settles (just after an
+/// outage: the untrusted anchors' rows still report the disagreement); the flag never delays the
+/// alarm and corroborates the displacement a little before the decisive hold on most vehicles.
 #[test]
 fn a_false_flag_with_a_five_mps_drift_alarms_well_before_the_autopilot_and_sooner() {
     const ONSET_S: f64 = 600.0;
@@ -135,14 +135,10 @@ fn a_false_flag_with_a_five_mps_drift_alarms_well_before_the_autopilot_and_soone
         worst(&with),
         without.iter().zip(&with).filter(|(a, b)| b < a).count()
     );
-    // Well before 34 s / 230 m on every vehicle, where the drift alone takes as long as the
-    // autopilot on one.
+    // Well before 34 s / 230 m on every vehicle, with the flag or without it.
     assert!(worst(&with) <= 15.0, "{with:?}");
-    assert!(worst(&without) >= 30.0, "{without:?}");
-    assert!(
-        mean(&with) + 1.0 <= mean(&without),
-        "{with:?} against {without:?}"
-    );
+    assert!(worst(&without) <= 15.0, "{without:?}");
+    assert!(mean(&with) < mean(&without), "{with:?} against {without:?}");
     assert!(without.iter().zip(&with).filter(|(a, b)| b < a).count() >= 10);
 }
 

@@ -461,10 +461,11 @@ pub fn field_violations(status: &tonic_types::Status) -> Vec<(String, String)> {
         .collect()
 }
 
-/// The critical test the black-box tests give the bundled model (`docs/detector.md` §7.4): an
-/// alarm turns critical once the anchor NIS stays at or beyond 400 for 1 s (a large jump), or once
-/// the logit of p̂ above 5, summed over seconds, reaches 10. Made up for the tests (not chosen on
-/// validation hours): what is under test is the severity's path through the server.
+/// A critical test the black-box tests give the bundled model in place of its own (`docs/detector.md`
+/// §7.4): an alarm turns critical once the anchor NIS stays at or beyond 400 for 1 s (a large jump),
+/// or once the logit of p̂ above 5, summed over seconds, reaches 10. Made up for the tests (not
+/// chosen on validation hours) and quicker to escalate than the bundled one: what is under test is
+/// the severity's path through the server.
 pub const TEST_CRITICAL: CriticalTest = CriticalTest {
     reference_logit: 5.0,
     threshold: 10.0,
@@ -473,14 +474,23 @@ pub const TEST_CRITICAL: CriticalTest = CriticalTest {
     frozen_fix_s: None,
 };
 
-/// The bundled default model's artifact with a critical level, [`TEST_CRITICAL`] (the bundled
-/// model itself has none: it raises warnings only).
+/// The bundled default model's artifact with [`TEST_CRITICAL`] in place of its own critical level.
 pub fn artifact_with_critical_level() -> Vec<u8> {
     let mut artifact = ModelArtifact::from_slice(BUNDLED_MODEL).expect("the bundled model");
     artifact.critical = Some(TEST_CRITICAL);
     artifact
         .to_vec()
         .expect("the artifact with a critical level is valid")
+}
+
+/// The bundled default model's artifact without a critical level, as every model made before
+/// severities existed: it raises warnings only.
+pub fn artifact_without_critical_level() -> Vec<u8> {
+    let mut artifact = ModelArtifact::from_slice(BUNDLED_MODEL).expect("the bundled model");
+    artifact.critical = None;
+    artifact
+        .to_vec()
+        .expect("the artifact without a critical level is valid")
 }
 
 /// Drains a server-streaming model export into the artifact's bytes.

@@ -4,20 +4,22 @@
 //! critical;
 //! ListAlarms and WatchAlarms filtered by CRITICAL return it, and an unknown severity filter is
 //! INVALID_ARGUMENT naming `severity`. An alarm held over a session hand-off keeps its severity
-//! and escalation. A model without a critical level raises warnings only, and says so
-//! (Model.critical is absent).
+//! and escalation. A model without a critical level (the bundled model without its own, as every
+//! model made before severities existed) raises warnings only, and says so (Model.critical is
+//! absent).
 //!
-//! The critical level is the bundled model's with a made-up critical test
-//! ([`spoofwatch_tests::TEST_CRITICAL`]): the server's path is under test, not the test's choice.
+//! The critical level under test is the bundled model with a made-up critical test in place of its
+//! own ([`spoofwatch_tests::TEST_CRITICAL`]): the server's path is under test, not the test's
+//! choice.
 
 use std::time::Duration;
 
 use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::v1;
 use spoofwatch_tests::{
-    Clients, TEST_CRITICAL, TestServer, artifact_with_critical_level, attacked_drive, import_model,
-    listed_alarms, replayed_alarm_events, start_server, start_stream, stream_batches, test_config,
-    track_samples,
+    Clients, TEST_CRITICAL, TestServer, artifact_with_critical_level,
+    artifact_without_critical_level, attacked_drive, import_model, listed_alarms,
+    replayed_alarm_events, start_server, start_stream, stream_batches, test_config, track_samples,
 };
 use tonic::Code;
 use tonic_types::StatusExt;
@@ -321,13 +323,15 @@ async fn a_model_without_a_critical_level_raises_warnings_only() {
         .await
         .expect("GetModel")
         .into_inner();
-    assert_eq!(
-        default.critical, None,
-        "the bundled model has no critical level"
+    assert!(
+        default.critical.is_some(),
+        "the bundled model has a critical level"
     );
+    let older = import_model(&mut clients, artifact_without_critical_level(), "older").await;
+    assert_eq!(older.critical, None, "imported without a critical level");
 
     let jump = AttackKind::Jump { offset_m: 500.0 };
-    let detections = stream_attack(&clients, "warned", "models/default", jump).await;
+    let detections = stream_attack(&clients, "warned", &older.name, jump).await;
     let episodes = episodes(&detections);
     assert!(!episodes.is_empty(), "the jump raises an alarm");
     assert!(episodes.iter().all(|(_, escalated)| escalated.is_none()));

@@ -228,7 +228,7 @@ impl Registry {
         let registered = self
             .register(
                 BUNDLED_MODEL_ID,
-                "bundled default (realistic drives, v3 evidence)",
+                "bundled default (fleet drives, v3 evidence)",
                 ModelSource::Bundled,
                 None,
                 &artifact,
