@@ -20,7 +20,7 @@ const END_WITHIN_S: f64 = 20.0;
 /// The drive of `seed` at `rate_hz`: every third one the simulator's default drive (clean onboard
 /// sensors), the others drawn from the fleet distribution (every error source of a fleet in service).
 fn drive_spec(seed: u64, rate_hz: f64) -> DriveSpec {
-    let base = if seed % 3 == 0 {
+    let base = if seed.is_multiple_of(3) {
         DriveSpec {
             seed,
             ..DriveSpec::default()
