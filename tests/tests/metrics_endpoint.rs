@@ -200,7 +200,11 @@ async fn a_scrape_after_a_replay_counts_what_was_sent() {
         alarming += detections.iter().filter(|d| d.alarm).count();
         transitions.add(&detections);
     }
-    assert!(transitions.onsets[0] >= 1, "the frozen fix raises an alarm");
+    // The bundled model pages a fix frozen on a moving vehicle at once: the alarm may open critical.
+    assert!(
+        transitions.onsets.iter().sum::<usize>() >= 1,
+        "the frozen fix raises an alarm"
+    );
     let mut streamed = samples.len();
 
     // Refused on the same stream: a NaN latitude (5 samples), then an empty batch.
