@@ -96,6 +96,9 @@ pub struct Grant {
     pub name: Arc<str>,
     pub role: Role,
     pub scope: VehicleScope,
+    /// A gateway that forwards independent receivers: each of its vehicles is its own source of
+    /// evidence for area incidents (otherwise all of them are one).
+    pub independent_receivers: bool,
 }
 
 impl Grant {
@@ -112,6 +115,7 @@ impl Grant {
             name: Arc::from(name),
             role,
             scope,
+            independent_receivers: false,
         }
     }
 
