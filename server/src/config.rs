@@ -50,6 +50,7 @@ pub mod defaults {
     pub const INCIDENT_RADIUS_KM: f64 = 10.0;
     pub const INCIDENT_WINDOW_SECS: u64 = 300;
     pub const INCIDENT_MIN_VEHICLES: u32 = 3;
+    pub const INCIDENT_MIN_SOURCES: u32 = 2;
     pub const INCIDENT_QUIET_SECS: u64 = 600;
     pub const INCIDENT_TIMELINE: super::IncidentTimeline = super::IncidentTimeline::Wall;
     pub const INCIDENT_PRIOR: bool = true;
@@ -203,6 +204,14 @@ pub struct Config {
     #[arg(long, env = "SPOOFWATCH_INCIDENT_MIN_VEHICLES", default_value_t = defaults::INCIDENT_MIN_VEHICLES,
           value_parser = clap::value_parser!(u32).range(2..=1_000))]
     pub incident_min_vehicles: u32,
+    /// Independent sources the agreeing vehicles' alarms must come from before an incident opens
+    /// (1 to --incident-min-vehicles): a source is a credential (a vehicle's, a gateway's, a
+    /// token's), or each vehicle of a gateway the roles file says forwards independent receivers,
+    /// or each vehicle of a server without identities. Whoever holds one credential cannot open an
+    /// incident alone, however many vehicle ids it streams for.
+    #[arg(long, env = "SPOOFWATCH_INCIDENT_MIN_SOURCES", default_value_t = defaults::INCIDENT_MIN_SOURCES,
+          value_parser = clap::value_parser!(u32).range(1..=1_000))]
+    pub incident_min_sources: u32,
     /// An incident ends once none of its vehicles has had an open alarm for this many seconds.
     #[arg(long, env = "SPOOFWATCH_INCIDENT_QUIET_SECS", default_value_t = defaults::INCIDENT_QUIET_SECS,
           value_parser = clap::value_parser!(u64).range(0..=86_400))]
@@ -266,6 +275,7 @@ impl Default for Config {
             incident_radius_km: defaults::INCIDENT_RADIUS_KM,
             incident_window_secs: defaults::INCIDENT_WINDOW_SECS,
             incident_min_vehicles: defaults::INCIDENT_MIN_VEHICLES,
+            incident_min_sources: defaults::INCIDENT_MIN_SOURCES,
             incident_quiet_secs: defaults::INCIDENT_QUIET_SECS,
             incident_timeline: defaults::INCIDENT_TIMELINE,
             incident_prior: defaults::INCIDENT_PRIOR,
@@ -330,6 +340,7 @@ impl Config {
             radius_m: self.incident_radius_km * 1_000.0,
             window_s: self.incident_window_secs as f64,
             min_vehicles: self.incident_min_vehicles,
+            min_sources: self.incident_min_sources,
             quiet_s: self.incident_quiet_secs as f64,
             ..spoofwatch_core::incident::AreaConfig::default()
         };
@@ -337,6 +348,7 @@ impl Config {
             let flag = match field {
                 "window_s" => "--incident-window-secs",
                 "min_vehicles" => "--incident-min-vehicles",
+                "min_sources" => "--incident-min-sources",
                 "quiet_s" => "--incident-quiet-secs",
                 other => other,
             };
