@@ -56,6 +56,11 @@ pub struct AreaConfig {
     /// incident alone.
     #[serde(default = "default_min_sources")]
     pub min_sources: u32,
+    /// Open incidents one source may take part in at once: beyond it, its onsets join no other
+    /// incident and open none (its alarms still alarm), so that one credential cannot spread
+    /// incidents, and their area prior, over the fleet.
+    #[serde(default = "default_max_incidents_per_source")]
+    pub max_incidents_per_source: u32,
     /// An incident ends once none of its vehicles has shown evidence (an open alarm) for this long
     /// (s).
     pub quiet_s: f64,
@@ -70,6 +75,7 @@ impl Default for AreaConfig {
             window_s: 300.0,
             min_vehicles: 3,
             min_sources: default_min_sources(),
+            max_incidents_per_source: default_max_incidents_per_source(),
             quiet_s: 600.0,
             margin_m: 1_000.0,
         }
@@ -78,6 +84,10 @@ impl Default for AreaConfig {
 
 fn default_min_sources() -> u32 {
     2
+}
+
+fn default_max_incidents_per_source() -> u32 {
+    3
 }
 
 impl AreaConfig {
@@ -104,6 +114,15 @@ impl AreaConfig {
             return Err((
                 "min_vehicles",
                 format!("must be in [2, 1000], got {}", self.min_vehicles),
+            ));
+        }
+        if !(1..=1_000).contains(&self.max_incidents_per_source) {
+            return Err((
+                "max_incidents_per_source",
+                format!(
+                    "must be in [1, 1000], got {}",
+                    self.max_incidents_per_source
+                ),
             ));
         }
         if !(1..=self.min_vehicles).contains(&self.min_sources) {
@@ -446,7 +465,8 @@ impl AreaCorrelator {
     }
 
     /// A vehicle's alarm opened: it joins an open incident it agrees with, or opens one with the
-    /// recent onsets it agrees with, or waits for others.
+    /// recent onsets it agrees with, or waits for others. An onset whose source takes part in
+    /// [`AreaConfig::max_incidents_per_source`] open incidents joins only those.
     pub fn onset(&mut self, onset: AlarmOnset) -> Vec<IncidentChange> {
         self.state.now_s = self.state.now_s.max(onset.time_s);
         if let Some(change) = self.join(&onset) {
@@ -525,10 +545,12 @@ impl AreaCorrelator {
                     .iter()
                     .any(|v| v.vehicle_id == onset.vehicle_id)
         });
+        let at_bound = self.at_bound(onset.source_key());
         let agreeing = || {
             self.state.open.iter().position(|incident| {
                 let hypothesis = Hypothesis::of(&incident.spoofing);
                 near(incident)
+                    && (!at_bound || has_source(incident, onset.source_key()))
                     && hypothesis
                         .joining_vector(onset, incident.centre)
                         .is_some_and(|v| hypothesis.misfit(estimate_vector(incident), v) <= 1.0)
@@ -561,9 +583,24 @@ impl AreaCorrelator {
         })
     }
 
-    /// Opens an incident of `onset` and the pending onsets that agree with it, if there are enough.
+    /// Whether `source` takes part in [`AreaConfig::max_incidents_per_source`] open incidents.
+    fn at_bound(&self, source: &str) -> bool {
+        let taking_part = self
+            .state
+            .open
+            .iter()
+            .filter(|incident| has_source(incident, source))
+            .count();
+        taking_part >= self.config.max_incidents_per_source as usize
+    }
+
+    /// Opens an incident of `onset` and the pending onsets that agree with it, if there are enough
+    /// (none of a source at its bound of open incidents).
     fn form(&mut self, onset: &AlarmOnset) -> Option<IncidentChange> {
         let config = self.config;
+        if self.at_bound(onset.source_key()) {
+            return None;
+        }
         let anchor = onset.anchor();
         let reference = onset.fix;
         let nearby: Vec<&AlarmOnset> = self
@@ -573,6 +610,7 @@ impl AreaCorrelator {
             .filter(|p| {
                 (p.time_s - onset.time_s).abs() <= config.window_s
                     && distance_m(p.anchor(), anchor) <= config.radius_m
+                    && !self.at_bound(p.source_key())
             })
             .collect();
         let needed = config.min_vehicles as usize;
@@ -661,6 +699,11 @@ fn source_key<'a>(source: &'a str, vehicle_id: &'a str) -> &'a str {
     } else {
         source
     }
+}
+
+/// Whether a member of `incident` counts as `source`.
+fn has_source(incident: &Incident, source: &str) -> bool {
+    incident.vehicles.iter().any(|v| v.source_key() == source)
 }
 
 /// How many distinct values `keys` holds.

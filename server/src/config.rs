@@ -51,6 +51,7 @@ pub mod defaults {
     pub const INCIDENT_WINDOW_SECS: u64 = 300;
     pub const INCIDENT_MIN_VEHICLES: u32 = 3;
     pub const INCIDENT_MIN_SOURCES: u32 = 2;
+    pub const INCIDENT_MAX_PER_SOURCE: u32 = 3;
     pub const INCIDENT_QUIET_SECS: u64 = 600;
     pub const INCIDENT_TIMELINE: super::IncidentTimeline = super::IncidentTimeline::Wall;
     pub const INCIDENT_PRIOR: bool = true;
@@ -212,6 +213,11 @@ pub struct Config {
     #[arg(long, env = "SPOOFWATCH_INCIDENT_MIN_SOURCES", default_value_t = defaults::INCIDENT_MIN_SOURCES,
           value_parser = clap::value_parser!(u32).range(1..=1_000))]
     pub incident_min_sources: u32,
+    /// Open incidents one source (see --incident-min-sources) may take part in at once: beyond it
+    /// its alarms still alarm, but join no other incident and open none.
+    #[arg(long, env = "SPOOFWATCH_INCIDENT_MAX_PER_SOURCE", default_value_t = defaults::INCIDENT_MAX_PER_SOURCE,
+          value_parser = clap::value_parser!(u32).range(1..=1_000))]
+    pub incident_max_per_source: u32,
     /// An incident ends once none of its vehicles has had an open alarm for this many seconds.
     #[arg(long, env = "SPOOFWATCH_INCIDENT_QUIET_SECS", default_value_t = defaults::INCIDENT_QUIET_SECS,
           value_parser = clap::value_parser!(u64).range(0..=86_400))]
@@ -276,6 +282,7 @@ impl Default for Config {
             incident_window_secs: defaults::INCIDENT_WINDOW_SECS,
             incident_min_vehicles: defaults::INCIDENT_MIN_VEHICLES,
             incident_min_sources: defaults::INCIDENT_MIN_SOURCES,
+            incident_max_per_source: defaults::INCIDENT_MAX_PER_SOURCE,
             incident_quiet_secs: defaults::INCIDENT_QUIET_SECS,
             incident_timeline: defaults::INCIDENT_TIMELINE,
             incident_prior: defaults::INCIDENT_PRIOR,
@@ -341,6 +348,7 @@ impl Config {
             window_s: self.incident_window_secs as f64,
             min_vehicles: self.incident_min_vehicles,
             min_sources: self.incident_min_sources,
+            max_incidents_per_source: self.incident_max_per_source,
             quiet_s: self.incident_quiet_secs as f64,
             ..spoofwatch_core::incident::AreaConfig::default()
         };
@@ -349,6 +357,7 @@ impl Config {
                 "window_s" => "--incident-window-secs",
                 "min_vehicles" => "--incident-min-vehicles",
                 "min_sources" => "--incident-min-sources",
+                "max_incidents_per_source" => "--incident-max-per-source",
                 "quiet_s" => "--incident-quiet-secs",
                 other => other,
             };

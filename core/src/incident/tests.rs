@@ -483,3 +483,74 @@ fn joins_cannot_move_an_incident_beyond_its_radius() {
     assert_eq!(feed(&mut c, vec![sent_by("far", beyond)]), []);
     assert_eq!(c.open_incidents()[0].vehicles.len(), 13);
 }
+
+/// A source that takes part in its bound of open incidents joins and opens no other: its onsets
+/// wait, and an incident elsewhere opens, and grows, on the other sources' vehicles alone.
+#[test]
+fn a_source_takes_part_in_a_bounded_number_of_incidents() {
+    let mut c = AreaCorrelator::new(AreaConfig {
+        max_incidents_per_source: 1,
+        ..AreaConfig::default()
+    });
+    let here = |east: f64| at(east, 0.0);
+    let there = |east: f64| at(east, 50_000.0);
+    let first = feed(
+        &mut c,
+        vec![
+            sent_by("gw", onset("gw-1", 0.0, here(0.0), [200.0, 0.0])),
+            sent_by("gw", onset("gw-2", 1.0, here(2_000.0), [200.0, 0.0])),
+            sent_by("b", onset("b-1", 2.0, here(4_000.0), [200.0, 0.0])),
+        ],
+    );
+    assert_eq!(first.len(), 1, "the gateway's first incident");
+    let elsewhere = feed(
+        &mut c,
+        vec![
+            sent_by("gw", onset("gw-3", 3.0, there(0.0), [200.0, 0.0])),
+            sent_by("c", onset("c-1", 4.0, there(2_000.0), [200.0, 0.0])),
+            sent_by("d", onset("d-1", 5.0, there(4_000.0), [200.0, 0.0])),
+        ],
+    );
+    assert_eq!(
+        elsewhere,
+        [],
+        "without the gateway's onset two vehicles are too few"
+    );
+    let opened = feed(
+        &mut c,
+        vec![sent_by(
+            "e",
+            onset("e-1", 6.0, there(3_000.0), [200.0, 0.0]),
+        )],
+    );
+    assert_eq!(opened.len(), 1);
+    let members: Vec<&str> = opened[0]
+        .incident
+        .vehicles
+        .iter()
+        .map(|v| v.vehicle_id.as_str())
+        .collect();
+    assert_eq!(
+        members,
+        ["e-1", "c-1", "d-1"],
+        "the gateway's onset takes no part"
+    );
+    let joined = feed(
+        &mut c,
+        vec![sent_by(
+            "gw",
+            onset("gw-4", 7.0, there(1_000.0), [200.0, 0.0]),
+        )],
+    );
+    assert_eq!(joined, [], "nor does its next one join it");
+    // Within its incident, the gateway's vehicles still join.
+    let within = feed(
+        &mut c,
+        vec![sent_by(
+            "gw",
+            onset("gw-5", 8.0, here(1_000.0), [200.0, 0.0]),
+        )],
+    );
+    assert_eq!(within.len(), 1);
+    assert_eq!(within[0].kind, ChangeKind::Joined);
+}
