@@ -62,35 +62,6 @@ pub struct OpenAlarm {
     pub credential_per_vehicle: bool,
 }
 
-/// An [`OpenAlarm`] as snapshots of version 7 keep it: without its credential.
-#[derive(Deserialize)]
-#[cfg_attr(test, derive(Serialize))]
-struct OpenAlarmWithoutCredential {
-    id: i64,
-    onset_timestamp_s: f64,
-    onset_at_ms: i64,
-    peak: f64,
-    samples: u32,
-    last_timestamp_s: f64,
-    escalated: Option<Escalated>,
-}
-
-impl From<OpenAlarmWithoutCredential> for OpenAlarm {
-    fn from(old: OpenAlarmWithoutCredential) -> Self {
-        Self {
-            id: old.id,
-            onset_timestamp_s: old.onset_timestamp_s,
-            onset_at_ms: old.onset_at_ms,
-            peak: old.peak,
-            samples: old.samples,
-            last_timestamp_s: old.last_timestamp_s,
-            escalated: old.escalated,
-            credential: None,
-            credential_per_vehicle: false,
-        }
-    }
-}
-
 /// When an open alarm turned critical: sample time and server wall time (unix ms).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Escalated {
@@ -108,6 +79,24 @@ struct OpenWarning {
     peak: f64,
     samples: u32,
     last_timestamp_s: f64,
+}
+
+/// An [`OpenAlarm`] as snapshots of version 7 keep it: without its credential. (Postcard
+/// concatenates a nested struct's fields, so these are the bytes of the seven fields in order.)
+#[derive(Deserialize)]
+#[cfg_attr(test, derive(Serialize))]
+struct OpenAlarmWithoutCredential {
+    warning: OpenWarning,
+    escalated: Option<Escalated>,
+}
+
+impl From<OpenAlarmWithoutCredential> for OpenAlarm {
+    fn from(old: OpenAlarmWithoutCredential) -> Self {
+        Self {
+            escalated: old.escalated,
+            ..old.warning.into()
+        }
+    }
 }
 
 impl From<OpenWarning> for OpenAlarm {
@@ -324,11 +313,22 @@ mod tests {
     /// Bytes of an empty receiver-flag memory before it: two absent times.
     const NO_FLAGS: [u8; 2] = [0; 2];
 
+    /// `open` as snapshots of version 6 and older keep it.
+    fn warning_of(open: &OpenAlarm) -> OpenWarning {
+        OpenWarning {
+            id: open.id,
+            onset_timestamp_s: open.onset_timestamp_s,
+            onset_at_ms: open.onset_at_ms,
+            peak: open.peak,
+            samples: open.samples,
+            last_timestamp_s: open.last_timestamp_s,
+        }
+    }
+
     /// `snapshot` as a server of schema version 6 stored it (its open alarm a warning), cut short
     /// by `cut` bytes and labelled `version`: 6 uncut, 5 without the escalation, 4 without the
     /// flags too.
     fn as_version(snapshot: &SessionSnapshot, version: u16, cut: usize) -> Vec<u8> {
-        let open = snapshot.open_alarm.clone().expect("an open alarm");
         let old = SessionSnapshotOfWarnings {
             model_id: snapshot.model_id.clone(),
             samples: snapshot.samples,
@@ -337,14 +337,7 @@ mod tests {
             last_timestamp_s: snapshot.last_timestamp_s,
             alarm_active: snapshot.alarm_active,
             alarms_raised: snapshot.alarms_raised,
-            open_alarm: Some(OpenWarning {
-                id: open.id,
-                onset_timestamp_s: open.onset_timestamp_s,
-                onset_at_ms: open.onset_at_ms,
-                peak: open.peak,
-                samples: open.samples,
-                last_timestamp_s: open.last_timestamp_s,
-            }),
+            open_alarm: snapshot.open_alarm.as_ref().map(warning_of),
             detector: snapshot.detector.clone(),
         };
         let payload = postcard::to_allocvec(&old).expect("encodes");
@@ -403,16 +396,25 @@ mod tests {
             alarm_active: original.alarm_active,
             alarms_raised: original.alarms_raised,
             open_alarm: Some(OpenAlarmWithoutCredential {
-                id: open.id,
-                onset_timestamp_s: open.onset_timestamp_s,
-                onset_at_ms: open.onset_at_ms,
-                peak: open.peak,
-                samples: open.samples,
-                last_timestamp_s: open.last_timestamp_s,
+                warning: warning_of(&open),
                 escalated: open.escalated,
             }),
             detector: original.detector.clone(),
         };
+        // The nested struct is the bytes of version 7's seven fields in order.
+        let flat = (
+            open.id,
+            open.onset_timestamp_s,
+            open.onset_at_ms,
+            open.peak,
+            open.samples,
+            open.last_timestamp_s,
+            open.escalated,
+        );
+        assert_eq!(
+            postcard::to_allocvec(old.open_alarm.as_ref().expect("open")).expect("encodes"),
+            postcard::to_allocvec(&flat).expect("encodes")
+        );
         let mut bytes = b"SWSS".to_vec();
         bytes.extend_from_slice(&7u16.to_le_bytes());
         bytes.extend(postcard::to_allocvec(&old).expect("encodes"));
