@@ -51,6 +51,16 @@ pub struct AreaConfig {
     pub window_s: f64,
     /// Vehicles whose onsets must agree before an incident opens.
     pub min_vehicles: u32,
+    /// Independent sources (credentials, see [`AlarmOnset::source`]) those vehicles' alarms must
+    /// come from: whoever can raise alarms for many vehicle ids under one credential cannot open an
+    /// incident alone.
+    #[serde(default = "default_min_sources")]
+    pub min_sources: u32,
+    /// Open incidents one source may take part in at once: beyond it, its onsets join no other
+    /// incident and open none (its alarms still alarm), so that one credential cannot spread
+    /// incidents, and their area prior, over the fleet.
+    #[serde(default = "default_max_incidents_per_source")]
+    pub max_incidents_per_source: u32,
     /// An incident ends once none of its vehicles has shown evidence (an open alarm) for this long
     /// (s).
     pub quiet_s: f64,
@@ -64,10 +74,20 @@ impl Default for AreaConfig {
             radius_m: 10_000.0,
             window_s: 300.0,
             min_vehicles: 3,
+            min_sources: default_min_sources(),
+            max_incidents_per_source: default_max_incidents_per_source(),
             quiet_s: 600.0,
             margin_m: 1_000.0,
         }
     }
+}
+
+fn default_min_sources() -> u32 {
+    2
+}
+
+fn default_max_incidents_per_source() -> u32 {
+    3
 }
 
 impl AreaConfig {
@@ -96,6 +116,24 @@ impl AreaConfig {
                 format!("must be in [2, 1000], got {}", self.min_vehicles),
             ));
         }
+        if !(1..=1_000).contains(&self.max_incidents_per_source) {
+            return Err((
+                "max_incidents_per_source",
+                format!(
+                    "must be in [1, 1000], got {}",
+                    self.max_incidents_per_source
+                ),
+            ));
+        }
+        if !(1..=self.min_vehicles).contains(&self.min_sources) {
+            return Err((
+                "min_sources",
+                format!(
+                    "must be in [1, min_vehicles = {}], got {}",
+                    self.min_vehicles, self.min_sources
+                ),
+            ));
+        }
         Ok(())
     }
 }
@@ -113,9 +151,22 @@ pub struct AlarmOnset {
     pub offset_m: [f64; 2],
     /// The drift rate GNSS shows against the onboard motion, east/north (m/s).
     pub drift_mps: [f64; 2],
+    /// The credential whose call sent the samples that raised the alarm, as the operator sees it;
+    /// `None` when it is not known.
+    #[serde(default)]
+    pub credential: Option<String>,
+    /// The independent source the onset counts as: all onsets of one source are one piece of
+    /// evidence, however many vehicle ids they carry. Empty: the vehicle is its own source.
+    #[serde(default)]
+    pub source: String,
 }
 
 impl AlarmOnset {
+    /// The independent source it counts as ([`Self::source`], else its vehicle).
+    pub fn source_key(&self) -> &str {
+        source_key(&self.source, &self.vehicle_id)
+    }
+
     /// Where the vehicle's own motion puts it: the fix moved back by the offset.
     pub fn anchor(&self) -> LatLon {
         let (lat, lon) = displace_fix(
@@ -176,12 +227,23 @@ pub struct IncidentVehicle {
     pub alarm_open: bool,
     /// When it last showed evidence: its latest onset or, once that alarm ended, its end.
     pub last_evidence_s: f64,
+    /// The credential of the alarm it joined with ([`AlarmOnset::credential`]).
+    #[serde(default)]
+    pub credential: Option<String>,
+    /// The independent source it counts as ([`AlarmOnset::source`]).
+    #[serde(default)]
+    pub source: String,
 }
 
 impl IncidentVehicle {
     /// Its true position at the onset it joined with.
     pub fn anchor(&self) -> LatLon {
         self.onset().anchor()
+    }
+
+    /// The independent source it counts as ([`Self::source`], else its vehicle).
+    pub fn source_key(&self) -> &str {
+        source_key(&self.source, &self.vehicle_id)
     }
 
     fn onset(&self) -> AlarmOnset {
@@ -192,6 +254,8 @@ impl IncidentVehicle {
             fix: self.fix,
             offset_m: self.offset_m,
             drift_mps: self.drift_mps,
+            credential: self.credential.clone(),
+            source: self.source.clone(),
         }
     }
 }
@@ -203,9 +267,12 @@ pub struct Incident {
     pub id: u64,
     /// The estimate: the members' median.
     pub spoofing: Spoofing,
-    /// The mean of the vehicles' true positions.
+    /// The mean of the true positions of the vehicles that opened it: fixed from then on, so that
+    /// joins cannot walk the incident across a region (a vehicle joins only within
+    /// [`AreaConfig::radius_m`] of it).
     pub centre: LatLon,
-    /// The farthest vehicle's distance from the centre plus the margin (m).
+    /// The farthest vehicle's distance from the centre plus the margin (m): at most
+    /// [`AreaConfig::radius_m`] plus [`AreaConfig::margin_m`].
     pub radius_m: f64,
     /// The earliest member onset (s).
     pub onset_s: f64,
@@ -230,6 +297,23 @@ impl Incident {
 
     pub fn is_open(&self) -> bool {
         self.ended_s.is_none()
+    }
+
+    /// The distinct credentials behind its members, in joining order (members whose credential is
+    /// not known are left out).
+    pub fn credentials(&self) -> Vec<&str> {
+        let mut credentials: Vec<&str> = Vec::new();
+        for credential in self.vehicles.iter().filter_map(|v| v.credential.as_deref()) {
+            if !credentials.contains(&credential) {
+                credentials.push(credential);
+            }
+        }
+        credentials
+    }
+
+    /// How many independent sources its members come from.
+    pub fn source_count(&self) -> usize {
+        distinct(self.vehicles.iter().map(IncidentVehicle::source_key))
     }
 }
 
@@ -381,7 +465,8 @@ impl AreaCorrelator {
     }
 
     /// A vehicle's alarm opened: it joins an open incident it agrees with, or opens one with the
-    /// recent onsets it agrees with, or waits for others.
+    /// recent onsets it agrees with, or waits for others. An onset whose source takes part in
+    /// [`AreaConfig::max_incidents_per_source`] open incidents joins only those.
     pub fn onset(&mut self, onset: AlarmOnset) -> Vec<IncidentChange> {
         self.state.now_s = self.state.now_s.max(onset.time_s);
         if let Some(change) = self.join(&onset) {
@@ -460,10 +545,12 @@ impl AreaCorrelator {
                     .iter()
                     .any(|v| v.vehicle_id == onset.vehicle_id)
         });
+        let at_bound = self.at_bound(onset.source_key());
         let agreeing = || {
             self.state.open.iter().position(|incident| {
                 let hypothesis = Hypothesis::of(&incident.spoofing);
                 near(incident)
+                    && (!at_bound || has_source(incident, onset.source_key()))
                     && hypothesis
                         .joining_vector(onset, incident.centre)
                         .is_some_and(|v| hypothesis.misfit(estimate_vector(incident), v) <= 1.0)
@@ -489,16 +576,31 @@ impl AreaCorrelator {
         };
         incident.last_evidence_s = incident.last_evidence_s.max(onset.time_s);
         incident.onset_s = incident.onset_s.min(onset.time_s);
-        refit(incident, margin);
+        refit(incident, margin, Centre::Kept);
         Some(IncidentChange {
             kind,
             incident: incident.clone(),
         })
     }
 
-    /// Opens an incident of `onset` and the pending onsets that agree with it, if there are enough.
+    /// Whether `source` takes part in [`AreaConfig::max_incidents_per_source`] open incidents.
+    fn at_bound(&self, source: &str) -> bool {
+        let taking_part = self
+            .state
+            .open
+            .iter()
+            .filter(|incident| has_source(incident, source))
+            .count();
+        taking_part >= self.config.max_incidents_per_source as usize
+    }
+
+    /// Opens an incident of `onset` and the pending onsets that agree with it, if there are enough
+    /// (none of a source at its bound of open incidents).
     fn form(&mut self, onset: &AlarmOnset) -> Option<IncidentChange> {
         let config = self.config;
+        if self.at_bound(onset.source_key()) {
+            return None;
+        }
         let anchor = onset.anchor();
         let reference = onset.fix;
         let nearby: Vec<&AlarmOnset> = self
@@ -508,6 +610,7 @@ impl AreaCorrelator {
             .filter(|p| {
                 (p.time_s - onset.time_s).abs() <= config.window_s
                     && distance_m(p.anchor(), anchor) <= config.radius_m
+                    && !self.at_bound(p.source_key())
             })
             .collect();
         let needed = config.min_vehicles as usize;
@@ -532,7 +635,10 @@ impl AreaCorrelator {
                 .filter(|(_, v)| hypothesis.misfit(estimate, *v) <= 1.0)
                 .map(|(p, _)| *p)
                 .collect();
-            if members.len() < needed || !std::ptr::eq(members[0], onset) {
+            if members.len() < needed
+                || !std::ptr::eq(members[0], onset)
+                || distinct(members.iter().map(|m| m.source_key())) < config.min_sources as usize
+            {
                 continue;
             }
             let vehicles: Vec<IncidentVehicle> = members.iter().map(|m| member_of(m)).collect();
@@ -555,7 +661,7 @@ impl AreaCorrelator {
                 confidence: 0.0,
                 vehicles,
             };
-            refit(&mut incident, config.margin_m);
+            refit(&mut incident, config.margin_m, Centre::OfMembers);
             self.state.next_id += 1;
             self.state
                 .pending
@@ -580,7 +686,44 @@ fn member_of(onset: &AlarmOnset) -> IncidentVehicle {
         drift_mps: onset.drift_mps,
         alarm_open: true,
         last_evidence_s: onset.time_s,
+        credential: onset.credential.clone(),
+        source: onset.source.clone(),
     }
+}
+
+/// `source`, or `vehicle_id` when it is empty (an onset stored before sources were kept, or one
+/// whose vehicle is its own source).
+fn source_key<'a>(source: &'a str, vehicle_id: &'a str) -> &'a str {
+    if source.is_empty() {
+        vehicle_id
+    } else {
+        source
+    }
+}
+
+/// Whether a member of `incident` counts as `source`.
+fn has_source(incident: &Incident, source: &str) -> bool {
+    incident.vehicles.iter().any(|v| v.source_key() == source)
+}
+
+/// How many distinct values `keys` holds.
+fn distinct<'a>(keys: impl Iterator<Item = &'a str>) -> usize {
+    let mut seen: Vec<&str> = Vec::new();
+    for key in keys {
+        if !seen.contains(&key) {
+            seen.push(key);
+        }
+    }
+    seen.len()
+}
+
+/// Where [`refit`] puts an incident's centre.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Centre {
+    /// The mean of its members' true positions: as it opens.
+    OfMembers,
+    /// Where it is: once open, the centre stays where its first members were captured.
+    Kept,
 }
 
 /// The incident's estimate as a vector (a false position relative to the centre).
@@ -592,23 +735,14 @@ fn estimate_vector(incident: &Incident) -> [f64; 2] {
     }
 }
 
-/// Recomputes the estimate (the members' median), the centre and radius (their true positions)
-/// and the confidence, after the members changed.
-fn refit(incident: &mut Incident, margin_m: f64) {
+/// Recomputes the estimate (the members' median), the centre (as `centre` says) and the radius
+/// (the farthest member from it) and the confidence, after the members changed.
+fn refit(incident: &mut Incident, margin_m: f64, centre: Centre) {
     let hypothesis = Hypothesis::of(&incident.spoofing);
-    let origin = incident.vehicles[0].anchor();
-    let anchors: Vec<[f64; 2]> = incident
-        .vehicles
-        .iter()
-        .map(|v| wgs84_local_displacement(origin, v.anchor()))
-        .collect();
-    let count = anchors.len() as f64;
-    let mean = [
-        anchors.iter().map(|a| a[0]).sum::<f64>() / count,
-        anchors.iter().map(|a| a[1]).sum::<f64>() / count,
-    ];
-    let (lat, lon) = displace_fix(origin.lat_deg, origin.lon_deg, mean[0], mean[1]);
-    let centre = LatLon::new(lat, lon);
+    let centre = match centre {
+        Centre::OfMembers => mean_anchor(&incident.vehicles),
+        Centre::Kept => incident.centre,
+    };
     let reference = incident.centre;
     let vectors: Vec<[f64; 2]> = incident
         .vehicles
@@ -630,6 +764,22 @@ fn refit(incident: &mut Incident, margin_m: f64) {
         .sum::<f64>()
         / vectors.len().max(1) as f64;
     incident.confidence = confidence(incident.vehicles.len(), misfit);
+}
+
+/// The mean of the members' true positions.
+fn mean_anchor(vehicles: &[IncidentVehicle]) -> LatLon {
+    let origin = vehicles[0].anchor();
+    let anchors: Vec<[f64; 2]> = vehicles
+        .iter()
+        .map(|v| wgs84_local_displacement(origin, v.anchor()))
+        .collect();
+    let count = anchors.len() as f64;
+    let mean = [
+        anchors.iter().map(|a| a[0]).sum::<f64>() / count,
+        anchors.iter().map(|a| a[1]).sum::<f64>() / count,
+    ];
+    let (lat, lon) = displace_fix(origin.lat_deg, origin.lon_deg, mean[0], mean[1]);
+    LatLon::new(lat, lon)
 }
 
 /// 1 − 2^(−(n − 1)(1 − m̄)): three vehicles in exact agreement 0.75, ten 0.998; a mean misfit m̄

@@ -50,6 +50,8 @@ pub mod defaults {
     pub const INCIDENT_RADIUS_KM: f64 = 10.0;
     pub const INCIDENT_WINDOW_SECS: u64 = 300;
     pub const INCIDENT_MIN_VEHICLES: u32 = 3;
+    pub const INCIDENT_MIN_SOURCES: u32 = 2;
+    pub const INCIDENT_MAX_PER_SOURCE: u32 = 3;
     pub const INCIDENT_QUIET_SECS: u64 = 600;
     pub const INCIDENT_TIMELINE: super::IncidentTimeline = super::IncidentTimeline::Wall;
     pub const INCIDENT_PRIOR: bool = true;
@@ -203,6 +205,19 @@ pub struct Config {
     #[arg(long, env = "SPOOFWATCH_INCIDENT_MIN_VEHICLES", default_value_t = defaults::INCIDENT_MIN_VEHICLES,
           value_parser = clap::value_parser!(u32).range(2..=1_000))]
     pub incident_min_vehicles: u32,
+    /// Independent sources the agreeing vehicles' alarms must come from before an incident opens
+    /// (1 to --incident-min-vehicles): a source is a credential (a vehicle's, a gateway's, a
+    /// token's), or each vehicle of a gateway the roles file says forwards independent receivers,
+    /// or each vehicle of a server without identities. Whoever holds one credential cannot open an
+    /// incident alone, however many vehicle ids it streams for.
+    #[arg(long, env = "SPOOFWATCH_INCIDENT_MIN_SOURCES", default_value_t = defaults::INCIDENT_MIN_SOURCES,
+          value_parser = clap::value_parser!(u32).range(1..=1_000))]
+    pub incident_min_sources: u32,
+    /// Open incidents one source (see --incident-min-sources) may take part in at once: beyond it
+    /// its alarms still alarm, but join no other incident and open none.
+    #[arg(long, env = "SPOOFWATCH_INCIDENT_MAX_PER_SOURCE", default_value_t = defaults::INCIDENT_MAX_PER_SOURCE,
+          value_parser = clap::value_parser!(u32).range(1..=1_000))]
+    pub incident_max_per_source: u32,
     /// An incident ends once none of its vehicles has had an open alarm for this many seconds.
     #[arg(long, env = "SPOOFWATCH_INCIDENT_QUIET_SECS", default_value_t = defaults::INCIDENT_QUIET_SECS,
           value_parser = clap::value_parser!(u64).range(0..=86_400))]
@@ -266,6 +281,8 @@ impl Default for Config {
             incident_radius_km: defaults::INCIDENT_RADIUS_KM,
             incident_window_secs: defaults::INCIDENT_WINDOW_SECS,
             incident_min_vehicles: defaults::INCIDENT_MIN_VEHICLES,
+            incident_min_sources: defaults::INCIDENT_MIN_SOURCES,
+            incident_max_per_source: defaults::INCIDENT_MAX_PER_SOURCE,
             incident_quiet_secs: defaults::INCIDENT_QUIET_SECS,
             incident_timeline: defaults::INCIDENT_TIMELINE,
             incident_prior: defaults::INCIDENT_PRIOR,
@@ -330,6 +347,8 @@ impl Config {
             radius_m: self.incident_radius_km * 1_000.0,
             window_s: self.incident_window_secs as f64,
             min_vehicles: self.incident_min_vehicles,
+            min_sources: self.incident_min_sources,
+            max_incidents_per_source: self.incident_max_per_source,
             quiet_s: self.incident_quiet_secs as f64,
             ..spoofwatch_core::incident::AreaConfig::default()
         };
@@ -337,6 +356,8 @@ impl Config {
             let flag = match field {
                 "window_s" => "--incident-window-secs",
                 "min_vehicles" => "--incident-min-vehicles",
+                "min_sources" => "--incident-min-sources",
+                "max_incidents_per_source" => "--incident-max-per-source",
                 "quiet_s" => "--incident-quiet-secs",
                 other => other,
             };

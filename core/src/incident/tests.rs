@@ -16,6 +16,8 @@ fn onset(vehicle: &str, time_s: f64, anchor: LatLon, offset_m: [f64; 2]) -> Alar
         fix: LatLon::new(lat, lon),
         offset_m,
         drift_mps: [0.0, 0.0],
+        credential: None,
+        source: String::new(),
     }
 }
 
@@ -371,4 +373,184 @@ fn a_member_let_go_by_the_spoofer_stays_in_its_incident() {
         },
         "the estimate keeps the evidence the members joined with"
     );
+}
+
+/// `onset` sent under the credential `credential`, all of whose vehicles are one source.
+fn sent_by(credential: &str, onset: AlarmOnset) -> AlarmOnset {
+    AlarmOnset {
+        credential: Some(credential.to_string()),
+        source: credential.to_string(),
+        ..onset
+    }
+}
+
+/// One credential inventing three vehicle ids, each displaced alike (a gateway's vehicles, or
+/// three made-up ids of one token), opens nothing: they are one source. The same onsets from two
+/// credentials open the incident, which lists both.
+#[test]
+fn an_incident_needs_alarms_from_independent_sources() {
+    let onsets = || {
+        vec![
+            onset("a", 100.0, at(0.0, 0.0), [200.0, 0.0]),
+            onset("b", 101.0, at(9_900.0, 0.0), [200.0, 0.0]),
+            onset("c", 102.0, at(4_950.0, 8_570.0), [200.0, 0.0]),
+        ]
+    };
+    let mut one = correlator();
+    let alone: Vec<_> = onsets()
+        .into_iter()
+        .map(|o| sent_by("token gw sha256:aa", o))
+        .collect();
+    assert_eq!(
+        feed(&mut one, alone),
+        [],
+        "one source is one piece of evidence"
+    );
+    assert_eq!(one.state().pending.len(), 3, "they wait for another source");
+
+    let mut two = correlator();
+    let credentials = [
+        "token gw sha256:aa",
+        "token gw sha256:aa",
+        "certificate c sha256:bb",
+    ];
+    let mixed: Vec<_> = onsets()
+        .into_iter()
+        .zip(credentials)
+        .map(|(o, credential)| sent_by(credential, o))
+        .collect();
+    let changes = feed(&mut two, mixed);
+    assert_eq!(changes.len(), 1);
+    let incident = &changes[0].incident;
+    assert_eq!(changes[0].kind, ChangeKind::Opened);
+    assert_eq!(
+        incident.credentials(),
+        ["certificate c sha256:bb", "token gw sha256:aa"]
+    );
+    assert_eq!(incident.source_count(), 2);
+
+    // A setting may ask for more sources than two.
+    let mut strict = AreaCorrelator::new(AreaConfig {
+        min_sources: 3,
+        ..AreaConfig::default()
+    });
+    let mixed: Vec<_> = onsets()
+        .into_iter()
+        .zip(credentials)
+        .map(|(o, credential)| sent_by(credential, o))
+        .collect();
+    assert_eq!(feed(&mut strict, mixed), []);
+}
+
+/// Ten made-up vehicles, each placed 9.5 km east of where the incident's centre is by then (as an
+/// attacker who sees the incident would), cannot walk it across the region: it keeps the centre of
+/// the vehicles that opened it, so its area stays within the radius (plus the margin) of that
+/// centre; a vehicle beyond the radius of it does not join.
+#[test]
+fn joins_cannot_move_an_incident_beyond_its_radius() {
+    let config = AreaConfig::default();
+    let mut c = AreaCorrelator::new(config);
+    let opened = feed(
+        &mut c,
+        vec![
+            sent_by("a", onset("v0", 0.0, at(0.0, 0.0), [200.0, 0.0])),
+            sent_by("b", onset("v1", 1.0, at(0.0, 2_000.0), [200.0, 0.0])),
+            sent_by("c", onset("v2", 2.0, at(0.0, -2_000.0), [200.0, 0.0])),
+        ],
+    );
+    assert_eq!(opened.len(), 1);
+    let centre = opened[0].incident.centre;
+    for k in 1..=10 {
+        let now = wgs84_local_displacement(at(0.0, 0.0), c.open_incidents()[0].centre);
+        let vehicle = format!("made-up-{k}");
+        let time_s = 10.0 + f64::from(k);
+        let placed = onset(&vehicle, time_s, at(now[0] + 9_500.0, now[1]), [200.0, 0.0]);
+        let changes = feed(
+            &mut c,
+            vec![sent_by(&format!("made-up-source-{k}"), placed)],
+        );
+        assert_eq!(changes.len(), 1, "made-up-{k} joins within the radius");
+    }
+    let first = &c.open_incidents()[0];
+    assert_eq!(first.centre, centre, "the centre stays where it opened");
+    assert!(
+        first.radius_m <= config.radius_m + config.margin_m,
+        "{} m",
+        first.radius_m
+    );
+    // Beyond the radius of the fixed centre, a vehicle does not join.
+    let beyond = onset("far", 30.0, at(10_500.0, 0.0), [200.0, 0.0]);
+    assert_eq!(feed(&mut c, vec![sent_by("far", beyond)]), []);
+    assert_eq!(c.open_incidents()[0].vehicles.len(), 13);
+}
+
+/// A source that takes part in its bound of open incidents joins and opens no other: its onsets
+/// wait, and an incident elsewhere opens, and grows, on the other sources' vehicles alone.
+#[test]
+fn a_source_takes_part_in_a_bounded_number_of_incidents() {
+    let mut c = AreaCorrelator::new(AreaConfig {
+        max_incidents_per_source: 1,
+        ..AreaConfig::default()
+    });
+    let here = |east: f64| at(east, 0.0);
+    let there = |east: f64| at(east, 50_000.0);
+    let first = feed(
+        &mut c,
+        vec![
+            sent_by("gw", onset("gw-1", 0.0, here(0.0), [200.0, 0.0])),
+            sent_by("gw", onset("gw-2", 1.0, here(2_000.0), [200.0, 0.0])),
+            sent_by("b", onset("b-1", 2.0, here(4_000.0), [200.0, 0.0])),
+        ],
+    );
+    assert_eq!(first.len(), 1, "the gateway's first incident");
+    let elsewhere = feed(
+        &mut c,
+        vec![
+            sent_by("gw", onset("gw-3", 3.0, there(0.0), [200.0, 0.0])),
+            sent_by("c", onset("c-1", 4.0, there(2_000.0), [200.0, 0.0])),
+            sent_by("d", onset("d-1", 5.0, there(4_000.0), [200.0, 0.0])),
+        ],
+    );
+    assert_eq!(
+        elsewhere,
+        [],
+        "without the gateway's onset two vehicles are too few"
+    );
+    let opened = feed(
+        &mut c,
+        vec![sent_by(
+            "e",
+            onset("e-1", 6.0, there(3_000.0), [200.0, 0.0]),
+        )],
+    );
+    assert_eq!(opened.len(), 1);
+    let members: Vec<&str> = opened[0]
+        .incident
+        .vehicles
+        .iter()
+        .map(|v| v.vehicle_id.as_str())
+        .collect();
+    assert_eq!(
+        members,
+        ["e-1", "c-1", "d-1"],
+        "the gateway's onset takes no part"
+    );
+    let joined = feed(
+        &mut c,
+        vec![sent_by(
+            "gw",
+            onset("gw-4", 7.0, there(1_000.0), [200.0, 0.0]),
+        )],
+    );
+    assert_eq!(joined, [], "nor does its next one join it");
+    // Within its incident, the gateway's vehicles still join.
+    let within = feed(
+        &mut c,
+        vec![sent_by(
+            "gw",
+            onset("gw-5", 8.0, here(1_000.0), [200.0, 0.0]),
+        )],
+    );
+    assert_eq!(within.len(), 1);
+    assert_eq!(within[0].kind, ChangeKind::Joined);
 }

@@ -20,7 +20,7 @@ use tonic::{Code, Status};
 use tower_service::Service;
 
 use super::policy::need_of;
-use super::{Access, Caller, Grant, Identities, denied};
+use super::{Access, Caller, Credential, Grant, Identities, denied};
 use crate::identity::sha256_hex;
 use crate::telemetry;
 
@@ -108,7 +108,9 @@ impl Access {
                 &format!("{method} (it needs {need:?})"),
             ));
         }
+        let credential = presented.credential(&current, &grant);
         Ok(Caller {
+            credential,
             grant,
             method,
             need,
@@ -147,6 +149,42 @@ impl Presented {
                 name: certificate_name(der),
                 sha256: sha256_hex(der),
             }),
+        }
+    }
+}
+
+/// How many hex digits of a credential's digest its label shows (64 bits: enough to tell apart
+/// any two credentials of one fleet).
+const LABEL_DIGEST_HEX: usize = 16;
+
+impl Presented {
+    /// The credential that identified this caller as `grant` under `identities` (the token when
+    /// both a token and a certificate were presented, as [`identify`] decides).
+    fn credential(&self, identities: &Identities, grant: &Grant) -> Credential {
+        if identities.open() {
+            return Credential::unauthenticated();
+        }
+        let short = |digest: &str| digest.chars().take(LABEL_DIGEST_HEX).collect::<String>();
+        let label = match (&self.token_sha256, &self.certificate) {
+            (Some(digest), _)
+                if identities
+                    .admin_token_sha256
+                    .as_deref()
+                    .is_some_and(|admin| digests_match(digest, admin)) =>
+            {
+                "admin token".to_string()
+            }
+            (Some(digest), _) => format!("token {} sha256:{}", grant.name, short(digest)),
+            (None, Some(certificate)) => format!(
+                "certificate {} sha256:{}",
+                certificate.name.as_deref().unwrap_or(&grant.name),
+                short(&certificate.sha256)
+            ),
+            (None, None) => return Credential::unauthenticated(),
+        };
+        Credential {
+            label: Arc::from(label),
+            per_vehicle: grant.independent_receivers,
         }
     }
 }
@@ -314,5 +352,62 @@ mod tests {
         }
         let open = identify(&Identities::default(), &Presented::default()).expect("open");
         assert_eq!(open.scope, VehicleScope::All);
+    }
+
+    /// The credential an alarm records names what identified the caller, never the secret: the
+    /// roles file's token name and digest prefix, the admin token, a certificate's name and
+    /// digest prefix, or `unauthenticated` on a server without identities.
+    #[test]
+    fn the_credential_names_what_identified_the_caller_and_never_its_secret() {
+        let digest = sha256_hex(b"gw-token");
+        let roles = Roles::parse(&format!(
+            "[tokens]\n\"{digest}\" = {{ name = \"gw\", role = \"gateway\", vehicle_prefixes = [\"eu-\"] }}\n\
+             [certificates]\n\"truck-7\" = {{ role = \"vehicle\" }}\n"
+        ))
+        .expect("valid");
+        let identities = Identities {
+            admin_token_sha256: Some(sha256_hex(b"admin-secret")),
+            roles: Some(roles),
+            mutual_tls: true,
+        };
+        let label = |presented: &Presented| {
+            let grant = identify(&identities, presented).expect("identified");
+            let credential = presented.credential(&identities, &grant);
+            (credential.label.to_string(), credential.per_vehicle)
+        };
+        assert_eq!(
+            label(&with_token("gw-token")),
+            (format!("token gw sha256:{}", &digest[..16]), false)
+        );
+        assert_eq!(
+            label(&with_token("admin-secret")),
+            ("admin token".to_string(), false)
+        );
+        let certificate = Presented {
+            token_sha256: None,
+            certificate: Some(PresentedCertificate {
+                name: Some("truck-7".to_string()),
+                sha256: "ab".repeat(32),
+            }),
+        };
+        assert_eq!(
+            label(&certificate),
+            (
+                "certificate truck-7 sha256:abababababababab".to_string(),
+                false
+            )
+        );
+        for (text, _) in [label(&with_token("gw-token")), label(&certificate)] {
+            assert!(
+                !text.contains("gw-token") && !text.contains(&digest),
+                "{text}"
+            );
+        }
+        let open = Identities::default();
+        let grant = identify(&open, &with_token("anything")).expect("open");
+        assert_eq!(
+            with_token("anything").credential(&open, &grant),
+            Credential::unauthenticated()
+        );
     }
 }

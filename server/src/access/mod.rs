@@ -42,6 +42,8 @@ pub struct Caller {
     pub grant: Arc<Grant>,
     /// The method's gRPC path (for logs and metrics).
     pub method: &'static str,
+    /// The credential the call was made with, as its alarms record it (set when it was admitted).
+    pub credential: Credential,
     /// What the method needs of its caller.
     need: Need,
     /// What the caller presented (digests only), to identify it again when the identities change.
@@ -72,6 +74,32 @@ impl Caller {
             self.method,
             &format!("{field}: {vehicle_id:?} is not a vehicle this caller may stream for"),
         ))
+    }
+}
+
+/// The credential a call was made with, as the alarms it raises record it: what it is, never its
+/// secret. An operator sees it beside each alarm and each incident's members, and the incident
+/// correlator counts independent sources by it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Credential {
+    /// `certificate <name> sha256:<prefix>` (its subject's CN or first DNS SAN and the first 16 hex
+    /// digits of its DER's SHA-256), `token <name> sha256:<prefix>` (the roles file's name and
+    /// digest), `admin token` (the single configured one), or `unauthenticated` (a server without
+    /// identities).
+    pub label: Arc<str>,
+    /// Each vehicle it streams for is its own source of evidence: a gateway whose roles-file entry
+    /// says it forwards independent receivers, or any caller of a server without identities (which
+    /// cannot tell its callers apart). Otherwise all its vehicles are one source.
+    pub per_vehicle: bool,
+}
+
+impl Credential {
+    /// The credential of every call to a server without identities.
+    pub fn unauthenticated() -> Self {
+        Credential {
+            label: Arc::from("unauthenticated"),
+            per_vehicle: true,
+        }
     }
 }
 

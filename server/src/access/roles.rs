@@ -7,6 +7,7 @@
 //! [certificates]            # by the subject's CN (or first DNS SAN)
 //! "gateway-eu-1" = { role = "gateway", vehicle_prefixes = ["eu-"] }
 //! "ops-dashboard" = { role = "operator" }
+//! "relay-1" = { role = "gateway", vehicle_prefixes = ["fleet-"], independent_receivers = true }
 //!
 //! [tokens]                  # by the token's SHA-256 (hex): the file holds no secret
 //! "9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08" = { name = "backend-1", role = "admin" }
@@ -96,6 +97,9 @@ pub struct Grant {
     pub name: Arc<str>,
     pub role: Role,
     pub scope: VehicleScope,
+    /// A gateway that forwards independent receivers: each of its vehicles is its own source of
+    /// evidence for area incidents (otherwise all of them are one).
+    pub independent_receivers: bool,
 }
 
 impl Grant {
@@ -112,6 +116,7 @@ impl Grant {
             name: Arc::from(name),
             role,
             scope,
+            independent_receivers: false,
         }
     }
 
@@ -179,6 +184,11 @@ struct Entry {
     /// A gateway for every vehicle of the fleet.
     #[serde(default)]
     all_vehicles: bool,
+    /// A gateway that forwards independent receivers (each vehicle its own GNSS receiver and
+    /// connection, the gateway only relaying): each of its vehicles counts as its own source of
+    /// evidence for area incidents. Without it, all of a gateway's vehicles are one source.
+    #[serde(default)]
+    independent_receivers: bool,
 }
 
 #[derive(Default, Deserialize)]
@@ -218,7 +228,7 @@ impl Roles {
                 VehicleId::parse(&name)
                     .map_err(|e| entry_error(&at, format!("not a vehicle id: {e}")))?;
             }
-            let grant = Grant::new(&name, entry.role, scope_of(&at, &entry)?);
+            let grant = grant_of(&at, &name, &entry)?;
             roles.certificates.insert(name, grant);
         }
         // Each digest as written, by its lower-case form.
@@ -238,7 +248,7 @@ impl Roles {
                     )
                 })?;
             }
-            let grant = Grant::new(&name, entry.role, scope_of(&at, &entry)?);
+            let grant = grant_of(&at, &name, &entry)?;
             let key = digest.to_ascii_lowercase();
             if let Some(other) = seen_digests.get(&key) {
                 return Err(entry_error(
@@ -298,6 +308,25 @@ fn line_of(text: &str, key: &str) -> usize {
     text.lines()
         .position(|line| line.trim_start().starts_with(&quoted))
         .map_or(0, |index| index + 1)
+}
+
+/// The grant of the entry at `at` for `name`: its role, its scope, and whether it forwards
+/// independent receivers (a gateway's choice only).
+fn grant_of(at: &str, name: &str, entry: &Entry) -> Result<Grant, RolesError> {
+    if entry.independent_receivers && entry.role != Role::Gateway {
+        return Err(entry_error(
+            at,
+            format!(
+                "independent_receivers: only a gateway forwards receivers (this entry's role is {}: \
+                 one source)",
+                entry.role.as_str()
+            ),
+        ));
+    }
+    Ok(Grant {
+        independent_receivers: entry.independent_receivers,
+        ..Grant::new(name, entry.role, scope_of(at, entry)?)
+    })
 }
 
 /// A gateway's vehicles; the other roles must not list any (their scope follows from the role).
@@ -484,6 +513,37 @@ mod tests {
         let example = crate::identity::sha256_hex(b"example-token");
         assert_eq!(&*roles.tokens[&example].name, "backend-1");
         assert!(roles.denied_certificate_names.contains("truck-13"));
+    }
+
+    #[test]
+    fn only_a_gateway_may_say_it_forwards_independent_receivers() {
+        let roles = Roles::parse(
+            "[certificates]\n\"relay\" = { role = \"gateway\", all_vehicles = true, \
+             independent_receivers = true }\n\"gw\" = { role = \"gateway\", all_vehicles = true }\n",
+        )
+        .expect("valid");
+        assert!(roles.certificates["relay"].independent_receivers);
+        assert!(!roles.certificates["gw"].independent_receivers);
+        let cases = [
+            (
+                "[certificates]\n\"car-1\" = { role = \"vehicle\", independent_receivers = true }",
+                "certificates.\"car-1\": independent_receivers: only a gateway",
+            ),
+            (
+                &format!(
+                    "[tokens]\n\"{DIGEST}\" = {{ name = \"a\", role = \"admin\", independent_receivers = true }}"
+                ),
+                "independent_receivers: only a gateway forwards receivers (this entry's role is admin",
+            ),
+            (
+                "[certificates]\n\"gw\" = { role = \"gateway\", all_vehicles = true, independent_receiver = true }",
+                "not a valid roles file",
+            ),
+        ];
+        for (text, expected) in cases {
+            let error = Roles::parse(text).expect_err(text).to_string();
+            assert!(error.contains(expected), "{text:?}: {error}");
+        }
     }
 
     #[test]

@@ -18,7 +18,8 @@ use spoofwatch_core::severity::Severity;
 use spoofwatch_proto::wire::convert::timestamp_from_ms;
 
 use crate::store::{
-    AlarmEvent, AlarmEventKind, AlarmEventRow, StoredPlace, StoredSeverity, StoredWhy,
+    AlarmEvent, AlarmEventKind, AlarmEventRow, StoredCredential, StoredPlace, StoredSeverity,
+    StoredWhy,
 };
 use crate::telemetry;
 
@@ -29,9 +30,16 @@ pub struct OnsetWhy<'a> {
     pub fix: LatLon,
 }
 
+/// No credential recorded (an alarm stored before alarms kept theirs).
+#[cfg(test)]
+pub static NO_CREDENTIAL: StoredCredential = StoredCredential {
+    credential: None,
+    credential_per_vehicle: false,
+};
+
 /// An alarm's first sample: whose, which model raised it, when (sample time and server wall
-/// time), its probability, its severity then, and why and where it started (when the onset has an
-/// explanation).
+/// time), its probability, its severity then, why and where it started (when the onset has an
+/// explanation), and the credential whose call sent it.
 #[derive(Clone, Copy, Debug)]
 pub struct Onset<'a> {
     pub vehicle_id: &'a str,
@@ -43,6 +51,7 @@ pub struct Onset<'a> {
     /// escalated at its onset.
     pub severity: Severity,
     pub why: Option<OnsetWhy<'a>>,
+    pub credential: &'a StoredCredential,
 }
 
 #[cfg(test)]
@@ -63,6 +72,7 @@ impl<'a> Onset<'a> {
             probability,
             severity: Severity::Warning,
             why: None,
+            credential: &NO_CREDENTIAL,
         }
     }
 }
@@ -86,6 +96,7 @@ pub fn opened(id: i64, onset: &Onset<'_>) -> AlarmEventRow {
         severity: StoredSeverity(onset.severity),
         escalated_timestamp_s: critical.then_some(onset.timestamp_s),
         escalated_at_ms: critical.then_some(onset.at_ms),
+        credential: onset.credential.clone(),
     }
 }
 
@@ -212,6 +223,7 @@ fn log(event: &AlarmEvent) {
                 offset_bearing_deg = offset.map(|o| o.1),
                 drift_mps = drift.map(|d| d.0),
                 drift_bearing_deg = drift.map(|d| d.1),
+                credential = alarm.credential.credential.as_deref(),
                 "alarm onset"
             )
         }

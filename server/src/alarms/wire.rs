@@ -31,6 +31,7 @@ pub fn alarm_to_proto(alarm: &AlarmEventRow) -> v1::Alarm {
         severity: severity_to_proto(Some(alarm.severity.0)) as i32,
         escalated_timestamp_s: alarm.escalated_timestamp_s,
         escalated_time: alarm.escalated_at_ms.map(timestamp_from_ms),
+        credential: alarm.credential.credential.clone(),
     }
 }
 

@@ -11,7 +11,7 @@ use spoofwatch_core::severity::Severity;
 
 use super::handoff::{Escalated, OpenAlarm};
 use crate::alarms::event::{self as alarm, Onset};
-use crate::store::AlarmEventRow;
+use crate::store::{AlarmEventRow, StoredCredential};
 
 /// What one decision says about the confirmed alarm.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -98,15 +98,15 @@ impl AlarmTrack {
     }
 
     /// Opens the episode an [`EpisodeChange::Onset`] announced, under the id its onset was
-    /// recorded with (`onset_at_ms`: the wall time recorded with it); one that opens critical
-    /// escalated at its onset.
+    /// recorded with (`onset_at_ms`: the wall time recorded with it, `credential` the one the onset
+    /// recorded); one that opens critical escalated at its onset.
     pub fn open(
         &mut self,
         id: i64,
-        timestamp_s: f64,
-        onset_at_ms: i64,
+        (timestamp_s, onset_at_ms): (f64, i64),
         probability: f64,
         severity: Severity,
+        credential: &StoredCredential,
     ) {
         self.open = Some(OpenAlarm {
             id,
@@ -119,6 +119,8 @@ impl AlarmTrack {
                 timestamp_s,
                 at_ms: onset_at_ms,
             }),
+            credential: credential.credential.clone(),
+            credential_per_vehicle: credential.credential_per_vehicle,
         });
     }
 
@@ -167,6 +169,10 @@ impl OpenAlarm {
 
     /// The episode as the stored alarm row the outbox knows it by.
     pub fn row(&self, vehicle_id: &str, model_id: &str) -> AlarmEventRow {
+        let credential = StoredCredential {
+            credential: self.credential.clone(),
+            credential_per_vehicle: self.credential_per_vehicle,
+        };
         AlarmEventRow {
             peak_probability: self.peak,
             samples: i64::from(self.samples),
@@ -182,6 +188,7 @@ impl OpenAlarm {
                     probability: self.peak,
                     severity: self.severity(),
                     why: None,
+                    credential: &credential,
                 },
             )
         }
@@ -241,6 +248,8 @@ mod tests {
             samples: 2,
             last_timestamp_s: 11.0,
             escalated: None,
+            credential: None,
+            credential_per_vehicle: false,
         }
     }
 
@@ -265,7 +274,11 @@ mod tests {
             track.open, None,
             "opened only under the recorded onset's id"
         );
-        track.open(7, 10.0, 1_000, 0.8, Severity::Warning);
+        let credential = StoredCredential {
+            credential: Some("token bridge sha256:0123456789abcdef".to_string()),
+            credential_per_vehicle: false,
+        };
+        track.open(7, (10.0, 1_000), 0.8, Severity::Warning, &credential);
         assert_eq!(
             track.open,
             Some(OpenAlarm {
@@ -276,8 +289,13 @@ mod tests {
                 samples: 1,
                 last_timestamp_s: 10.0,
                 escalated: None,
+                credential: credential.credential.clone(),
+                credential_per_vehicle: false,
             })
         );
+        // The row a continued session's outbox adopts keeps the credential the onset recorded.
+        let row = track.open_row("car-1", "m").expect("open");
+        assert_eq!(row.credential, credential);
     }
 
     #[test]
@@ -287,7 +305,13 @@ mod tests {
             track.step(AlarmSignal::Onset, 10.0, 0.99, true),
             Some(EpisodeChange::Onset(Severity::Critical))
         );
-        track.open(7, 10.0, 1_000, 0.99, Severity::Critical);
+        track.open(
+            7,
+            (10.0, 1_000),
+            0.99,
+            Severity::Critical,
+            &alarm::NO_CREDENTIAL,
+        );
         let open = track.open.clone().expect("open");
         assert_eq!(open.severity(), Severity::Critical);
         assert_eq!(

@@ -7,6 +7,8 @@
 //! refused with a [`SnapshotRefused`] naming why; the session then starts afresh.
 //!
 //! Older versions still read:
+//! - version 7 is version 8 without the open alarm's credential ([`OpenAlarm::credential`]): its
+//!   open alarm continues with none in memory (the stored alarm row keeps the one it opened with);
 //! - version 6 is version 7 without the open alarm's escalation times ([`OpenAlarm::escalated`]):
 //!   its open alarm continues as a warning (a server of version 6 stored no critical alarm);
 //! - version 5 is version 6 without the detector's escalation (the last field of the detector's
@@ -22,7 +24,9 @@ use spoofwatch_core::severity::Escalation;
 /// The encoding this server writes. Bump it when [`SessionSnapshot`] or anything inside
 /// [`DetectorState`] changes shape: older snapshots are then refused (fresh sessions), never
 /// misread, unless [`SessionSnapshot::decode`] is taught to read them.
-pub const SNAPSHOT_SCHEMA: u16 = 7;
+pub const SNAPSHOT_SCHEMA: u16 = 8;
+/// The version before the open alarm kept its credential, still read.
+const SNAPSHOT_SCHEMA_WITHOUT_CREDENTIAL: u16 = 7;
 /// The version before the open alarm kept its escalation, still read.
 const SNAPSHOT_SCHEMA_WITHOUT_ESCALATED_ALARM: u16 = 6;
 /// The version before alarm severities, still read.
@@ -51,6 +55,11 @@ pub struct OpenAlarm {
     pub last_timestamp_s: f64,
     /// When it turned critical (the onset's times when it opened critical); `None`: a warning.
     pub escalated: Option<Escalated>,
+    /// The credential of the stream that raised it (`alarm_events.credential`), kept by a session
+    /// that another stream continues; `None` when a snapshot of version 7 or older held it.
+    pub credential: Option<String>,
+    /// Each vehicle of that credential is its own source (`alarm_events.credential_per_vehicle`).
+    pub credential_per_vehicle: bool,
 }
 
 /// When an open alarm turned critical: sample time and server wall time (unix ms).
@@ -72,6 +81,24 @@ struct OpenWarning {
     last_timestamp_s: f64,
 }
 
+/// An [`OpenAlarm`] as snapshots of version 7 keep it: without its credential. (Postcard
+/// concatenates a nested struct's fields, so these are the bytes of the seven fields in order.)
+#[derive(Deserialize)]
+#[cfg_attr(test, derive(Serialize))]
+struct OpenAlarmWithoutCredential {
+    warning: OpenWarning,
+    escalated: Option<Escalated>,
+}
+
+impl From<OpenAlarmWithoutCredential> for OpenAlarm {
+    fn from(old: OpenAlarmWithoutCredential) -> Self {
+        Self {
+            escalated: old.escalated,
+            ..old.warning.into()
+        }
+    }
+}
+
 impl From<OpenWarning> for OpenAlarm {
     fn from(old: OpenWarning) -> Self {
         Self {
@@ -82,6 +109,8 @@ impl From<OpenWarning> for OpenAlarm {
             samples: old.samples,
             last_timestamp_s: old.last_timestamp_s,
             escalated: None,
+            credential: None,
+            credential_per_vehicle: false,
         }
     }
 }
@@ -121,11 +150,11 @@ pub enum SnapshotRefused {
     Unreadable { why: String, retry: bool },
 }
 
-/// A [`SessionSnapshot`] of schema versions 4 to 6: the same fields, the open alarm a warning,
-/// the detector's state `D` as that version kept it.
+/// A [`SessionSnapshot`] of schema versions 4 to 7: the same fields, the open alarm `A` and the
+/// detector's state `D` as that version kept them.
 #[derive(Deserialize)]
 #[cfg_attr(test, derive(Serialize))]
-struct SessionSnapshotOfWarnings<D> {
+struct OlderSessionSnapshot<A, D> {
     model_id: String,
     samples: u64,
     trajectories: u32,
@@ -133,12 +162,17 @@ struct SessionSnapshotOfWarnings<D> {
     last_timestamp_s: Option<f64>,
     alarm_active: bool,
     alarms_raised: u64,
-    open_alarm: Option<OpenWarning>,
+    open_alarm: Option<A>,
     detector: D,
 }
 
-impl<D: Into<DetectorState>> From<SessionSnapshotOfWarnings<D>> for SessionSnapshot {
-    fn from(old: SessionSnapshotOfWarnings<D>) -> Self {
+/// A snapshot of versions 4 to 6: the open alarm a warning.
+type SessionSnapshotOfWarnings<D> = OlderSessionSnapshot<OpenWarning, D>;
+
+impl<A: Into<OpenAlarm>, D: Into<DetectorState>> From<OlderSessionSnapshot<A, D>>
+    for SessionSnapshot
+{
+    fn from(old: OlderSessionSnapshot<A, D>) -> Self {
         Self {
             model_id: old.model_id,
             samples: old.samples,
@@ -147,7 +181,7 @@ impl<D: Into<DetectorState>> From<SessionSnapshotOfWarnings<D>> for SessionSnaps
             last_timestamp_s: old.last_timestamp_s,
             alarm_active: old.alarm_active,
             alarms_raised: old.alarms_raised,
-            open_alarm: old.open_alarm.map(OpenAlarm::from),
+            open_alarm: old.open_alarm.map(Into::into),
             detector: old.detector.into(),
         }
     }
@@ -206,6 +240,11 @@ impl SessionSnapshot {
                     .map(Self::from)
                     .map_err(undecodable)
             }
+            SNAPSHOT_SCHEMA_WITHOUT_CREDENTIAL => postcard::from_bytes::<
+                OlderSessionSnapshot<OpenAlarmWithoutCredential, DetectorState>,
+            >(payload)
+            .map(Self::from)
+            .map_err(undecodable),
             _ => postcard::from_bytes(payload).map_err(undecodable),
         }
     }
@@ -244,6 +283,8 @@ mod tests {
                     timestamp_s: 1_700_000_000.25,
                     at_ms: 1_700_000_000_400,
                 }),
+                credential: Some("token bridge sha256:0123456789abcdef".to_string()),
+                credential_per_vehicle: true,
             }),
             detector: Detector::new(artifact).save(),
         }
@@ -272,11 +313,22 @@ mod tests {
     /// Bytes of an empty receiver-flag memory before it: two absent times.
     const NO_FLAGS: [u8; 2] = [0; 2];
 
+    /// `open` as snapshots of version 6 and older keep it.
+    fn warning_of(open: &OpenAlarm) -> OpenWarning {
+        OpenWarning {
+            id: open.id,
+            onset_timestamp_s: open.onset_timestamp_s,
+            onset_at_ms: open.onset_at_ms,
+            peak: open.peak,
+            samples: open.samples,
+            last_timestamp_s: open.last_timestamp_s,
+        }
+    }
+
     /// `snapshot` as a server of schema version 6 stored it (its open alarm a warning), cut short
     /// by `cut` bytes and labelled `version`: 6 uncut, 5 without the escalation, 4 without the
     /// flags too.
     fn as_version(snapshot: &SessionSnapshot, version: u16, cut: usize) -> Vec<u8> {
-        let open = snapshot.open_alarm.clone().expect("an open alarm");
         let old = SessionSnapshotOfWarnings {
             model_id: snapshot.model_id.clone(),
             samples: snapshot.samples,
@@ -285,14 +337,7 @@ mod tests {
             last_timestamp_s: snapshot.last_timestamp_s,
             alarm_active: snapshot.alarm_active,
             alarms_raised: snapshot.alarms_raised,
-            open_alarm: Some(OpenWarning {
-                id: open.id,
-                onset_timestamp_s: open.onset_timestamp_s,
-                onset_at_ms: open.onset_at_ms,
-                peak: open.peak,
-                samples: open.samples,
-                last_timestamp_s: open.last_timestamp_s,
-            }),
+            open_alarm: snapshot.open_alarm.as_ref().map(warning_of),
             detector: snapshot.detector.clone(),
         };
         let payload = postcard::to_allocvec(&old).expect("encodes");
@@ -319,6 +364,8 @@ mod tests {
         let as_warning = SessionSnapshot {
             open_alarm: original.open_alarm.clone().map(|open| OpenAlarm {
                 escalated: None,
+                credential: None,
+                credential_per_vehicle: false,
                 ..open
             }),
             ..original.clone()
@@ -330,8 +377,61 @@ mod tests {
             assert_eq!(decoded.encode(), as_warning.encode(), "version {version}");
             assert_eq!(decoded.open_alarm, as_warning.open_alarm);
         }
-        assert!((4..=7).all(reads_schema));
-        assert!(!reads_schema(3) && !reads_schema(8));
+        assert!((4..=8).all(reads_schema));
+        assert!(!reads_schema(3) && !reads_schema(9));
+    }
+
+    /// A session handed off by a server of version 7 continues its open alarm, critical as it was,
+    /// without a credential in memory.
+    #[test]
+    fn a_version_7_snapshot_continues_its_alarm_without_a_credential() {
+        let original = snapshot();
+        let open = original.open_alarm.clone().expect("an open alarm");
+        let old = OlderSessionSnapshot {
+            model_id: original.model_id.clone(),
+            samples: original.samples,
+            trajectories: original.trajectories,
+            last_seq: original.last_seq,
+            last_timestamp_s: original.last_timestamp_s,
+            alarm_active: original.alarm_active,
+            alarms_raised: original.alarms_raised,
+            open_alarm: Some(OpenAlarmWithoutCredential {
+                warning: warning_of(&open),
+                escalated: open.escalated,
+            }),
+            detector: original.detector.clone(),
+        };
+        // The nested struct is the bytes of version 7's seven fields in order.
+        let flat = (
+            open.id,
+            open.onset_timestamp_s,
+            open.onset_at_ms,
+            open.peak,
+            open.samples,
+            open.last_timestamp_s,
+            open.escalated,
+        );
+        assert_eq!(
+            postcard::to_allocvec(old.open_alarm.as_ref().expect("open")).expect("encodes"),
+            postcard::to_allocvec(&flat).expect("encodes")
+        );
+        let mut bytes = b"SWSS".to_vec();
+        bytes.extend_from_slice(&7u16.to_le_bytes());
+        bytes.extend(postcard::to_allocvec(&old).expect("encodes"));
+        let checksum = Sha256::digest(&bytes);
+        bytes.extend_from_slice(&checksum[..CHECKSUM]);
+        let decoded = SessionSnapshot::decode(&bytes).expect("version 7 reads");
+        let expected = OpenAlarm {
+            credential: None,
+            credential_per_vehicle: false,
+            ..open
+        };
+        assert_eq!(decoded.open_alarm, Some(expected.clone()));
+        let continued = SessionSnapshot {
+            open_alarm: Some(expected),
+            ..original
+        };
+        assert_eq!(decoded.encode(), continued.encode(), "the rest as it was");
     }
 
     #[test]
@@ -364,7 +464,7 @@ mod tests {
         assert_eq!(
             refusal(&older).as_deref(),
             Some(
-                "the stored session snapshot has schema version 1; this server reads versions 4 to 7"
+                "the stored session snapshot has schema version 1; this server reads versions 4 to 8"
             )
         );
 

@@ -23,10 +23,11 @@ use super::handoff::{OpenAlarm, SNAPSHOT_SCHEMA, SessionSnapshot, SnapshotRefuse
 use super::resume::Progress;
 use super::snapshot_reads::{SnapshotReads, Unread, UnreadSince};
 use super::state::SessionState;
+use crate::access::Credential;
 use crate::alarms::event::{Onset, OnsetWhy};
 use crate::models::LoadedModel;
 use crate::outbox::SessionOutbox;
-use crate::store::{SnapshotRow, Store, now_unix_ms};
+use crate::store::{SnapshotRow, Store, StoredCredential, now_unix_ms};
 
 /// When sessions are snapshotted besides their stream's end, eviction, shutdown and alarm changes.
 #[derive(Clone, Copy, Debug)]
@@ -228,9 +229,14 @@ impl SessionKeeper {
         sample: &Sample,
         (p, severity): (f64, Severity),
         why: &Explanation,
+        credential: &Credential,
     ) {
         let onset_at_ms = now_unix_ms();
         let timestamp_s = sample.timestamp_s;
+        let credential = StoredCredential {
+            credential: Some(credential.label.to_string()),
+            credential_per_vehicle: credential.per_vehicle,
+        };
         let id = self.outbox.onset(&Onset {
             vehicle_id: vehicle.as_str(),
             model_id: state.model.name.id(),
@@ -242,8 +248,11 @@ impl SessionKeeper {
                 explanation: why,
                 fix: LatLon::new(sample.latitude_deg, sample.longitude_deg),
             }),
+            credential: &credential,
         });
-        state.alarm.open(id, timestamp_s, onset_at_ms, p, severity);
+        state
+            .alarm
+            .open(id, (timestamp_s, onset_at_ms), p, severity, &credential);
     }
 
     /// Makes the session's open episode critical from the sample at `timestamp_s` and queues the

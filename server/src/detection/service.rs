@@ -196,7 +196,15 @@ async fn start_stream(
         let model = optional_model_name("start.model", &start.model)?;
         Ok::<_, Status>(
             sessions
-                .attach(&vehicle, model.as_ref(), start.reset, &caller.grant.name)
+                .attach(
+                    ForVehicle {
+                        vehicle_id: &vehicle,
+                        identity: &caller.grant.name,
+                        credential: &caller.credential,
+                    },
+                    model.as_ref(),
+                    start.reset,
+                )
                 .await?,
         )
     };
@@ -254,7 +262,7 @@ async fn batch_reply(
     let started = Instant::now();
     let outcome = match samples_from_proto(&batch.samples, "batch.samples") {
         Ok(samples) => sessions
-            .process(&attachment.slot, batch.seq, &samples, "batch.samples")
+            .process(attachment, batch.seq, &samples, "batch.samples")
             .await
             .map(|decisions| (samples, decisions)),
         Err(refused) => Err(refused),
@@ -430,6 +438,7 @@ async fn detect_vehicle(
                 ForVehicle {
                     vehicle_id: &vehicle_id,
                     identity: &caller.grant.name,
+                    credential: &caller.credential,
                 },
                 model.as_ref(),
                 vehicle.reset,
@@ -617,6 +626,7 @@ impl DetectionApi {
                         ForVehicle {
                             vehicle_id: vehicle,
                             identity: &caller.grant.name,
+                            credential: &caller.credential,
                         },
                         model.as_ref(),
                         false,

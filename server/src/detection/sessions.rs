@@ -38,6 +38,7 @@ use super::sequence::SeqCheck;
 use super::state::SessionState;
 use super::table::{Admitted, SessionLimits, SessionSlot, SessionTable};
 use super::validate::validate_batch;
+use crate::access::Credential;
 use crate::incidents::areas::IncidentAreas;
 use crate::models::{LoadedModel, Registry};
 use crate::outbox::SessionOutbox;
@@ -46,11 +47,23 @@ use crate::telemetry;
 use crate::work::HeavyWork;
 
 /// A vehicle, and the identity of the caller that sends its batch (whose session quota a new
-/// session counts against).
+/// session counts against) and the credential it was sent with (recorded with the alarms it
+/// raises).
 #[derive(Clone, Copy, Debug)]
 pub struct ForVehicle<'a> {
     pub vehicle_id: &'a VehicleId,
     pub identity: &'a Arc<str>,
+    pub credential: &'a Credential,
+}
+
+/// One batch of samples for a session: its seq (0: not sequenced), the samples, the field that
+/// names them in violations, and the credential that sent them.
+#[derive(Clone, Copy, Debug)]
+struct Batch<'a> {
+    seq: u64,
+    samples: &'a [Sample],
+    field: &'a str,
+    credential: &'a Credential,
 }
 
 /// What a stream learns when it attaches.
@@ -97,6 +110,8 @@ pub struct SessionSummary {
 #[derive(Debug)]
 pub struct Attachment {
     pub slot: Arc<SessionSlot>,
+    /// The credential of the stream's caller: the alarms its batches raise record it.
+    pub credential: Credential,
     pub stream_id: u64,
     /// Cancelled when a newer stream takes the session over.
     pub evicted: CancellationToken,
@@ -187,11 +202,15 @@ impl SessionManager {
     /// starts afresh.
     pub async fn attach(
         &self,
-        vehicle_id: &VehicleId,
+        vehicle: ForVehicle<'_>,
         model: Option<&ModelName>,
         reset: bool,
-        identity: &Arc<str>,
     ) -> Result<Attachment, SessionError> {
+        let ForVehicle {
+            vehicle_id,
+            identity,
+            credential,
+        } = vehicle;
         let _gate = self.model_gate.read().await;
         let model = self.registry.resolve(model).await?;
         // Read before any lock is taken: it may wait for the database.
@@ -263,6 +282,7 @@ impl SessionManager {
         drop(state);
         Ok(Attachment {
             slot,
+            credential: credential.clone(),
             stream_id,
             evicted,
             accepted,
@@ -304,14 +324,21 @@ impl SessionManager {
     /// and one before the last applied seq that never was is refused ([`super::sequence`]).
     pub async fn process(
         &self,
-        slot: &SessionSlot,
+        attachment: &Attachment,
         seq: u64,
         samples: &[Sample],
         field: &str,
     ) -> Result<Decisions, SessionError> {
+        let slot = &attachment.slot;
         let mut state = slot.state.lock().await;
+        let batch = Batch {
+            seq,
+            samples,
+            field,
+            credential: &attachment.credential,
+        };
         self.score(&mut state, samples.len(), |state| {
-            self.process_locked(slot, state, seq, samples, field)
+            self.process_locked(slot, state, batch)
         })
         .await
     }
@@ -335,10 +362,14 @@ impl SessionManager {
         &self,
         slot: &SessionSlot,
         state: &mut SessionState,
-        seq: u64,
-        samples: &[Sample],
-        field: &str,
+        batch: Batch<'_>,
     ) -> Result<Decisions, SessionError> {
+        let Batch {
+            seq,
+            samples,
+            field,
+            credential,
+        } = batch;
         if slot.model_deleted.is_cancelled() {
             return Err(SessionError::ModelDeleted(state.model.name.clone()));
         }
@@ -397,6 +428,7 @@ impl SessionManager {
                     sample,
                     (decision.probability, severity),
                     &decision.explanation,
+                    credential,
                 ),
                 Some(EpisodeChange::Escalated) => {
                     self.keeper.record_escalation(state, sample.timestamp_s)
@@ -464,17 +496,23 @@ impl SessionManager {
         let ForVehicle {
             vehicle_id,
             identity,
+            credential,
         } = vehicle;
+        let batch = |seq: Option<u64>| Batch {
+            seq: seq.unwrap_or(0),
+            samples,
+            field,
+            credential,
+        };
         if !reset
             && let Some(slot) = self.table.lookup(vehicle_id)
             && !slot.model_deleted.is_cancelled()
         {
             let mut state = slot.state.lock().await;
             if self.runs(&state, model) {
-                let seq = seq.unwrap_or(0);
                 return self
                     .score(&mut state, samples.len(), |state| {
-                        self.process_locked(&slot, state, seq, samples, field)
+                        self.process_locked(&slot, state, batch(seq))
                     })
                     .await;
             }
@@ -497,9 +535,8 @@ impl SessionManager {
             self.keeper
                 .replace_state(vehicle_id, &mut state, SessionState::new(model));
         }
-        let seq = seq.unwrap_or(0);
         self.score(&mut state, samples.len(), |state| {
-            self.process_locked(&slot, state, seq, samples, field)
+            self.process_locked(&slot, state, batch(seq))
         })
         .await
     }

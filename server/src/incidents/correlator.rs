@@ -27,8 +27,8 @@ use tokio_util::sync::CancellationToken;
 use super::areas::IncidentAreas;
 use super::settings::{IncidentSettings, IncidentTimeline as Timeline};
 use crate::store::{
-    AlarmEventKind, CorrelationStep, CorrelatorPlace, IncidentEventKind, IncidentWrite,
-    LoggedAlarmEvent, Store, StoreError, now_unix_ms,
+    AlarmEventKind, AlarmEventRow, CorrelationStep, CorrelatorPlace, IncidentEventKind,
+    IncidentWrite, LoggedAlarmEvent, Store, StoreError, StoredCredential, now_unix_ms,
 };
 use crate::telemetry;
 
@@ -272,6 +272,8 @@ impl IncidentCorrelator {
                     fix: LatLon::new(place.onset_latitude_deg?, place.onset_longitude_deg?),
                     offset_m: [why.why_offset_east_m?, why.why_offset_north_m?],
                     drift_mps: [why.why_drift_east_mps?, why.why_drift_north_mps?],
+                    credential: alarm.credential.credential.clone(),
+                    source: source_of(alarm),
                 }))
             }
             AlarmEventKind::End => Some(Input::End(AlarmEnd {
@@ -303,6 +305,26 @@ fn write_of(change: &IncidentChange) -> Result<IncidentWrite, StoreError> {
     })
 }
 
+/// The independent source an alarm counts as: its credential, or its vehicle under that
+/// credential when each of the credential's vehicles is its own source (a gateway forwarding
+/// independent receivers, a server without identities); its vehicle alone when it was stored
+/// without a credential.
+fn source_of(alarm: &AlarmEventRow) -> String {
+    match &alarm.credential {
+        StoredCredential {
+            credential: Some(credential),
+            credential_per_vehicle: false,
+        } => credential.clone(),
+        StoredCredential {
+            credential: Some(credential),
+            credential_per_vehicle: true,
+        } => format!("{credential} / vehicle {}", alarm.vehicle_id),
+        StoredCredential {
+            credential: None, ..
+        } => format!("vehicle {}", alarm.vehicle_id),
+    }
+}
+
 /// The log line and metrics of a stored change.
 fn report(change: &IncidentChange) {
     let incident = &change.incident;
@@ -315,6 +337,8 @@ fn report(change: &IncidentChange) {
                 incident = incident.id,
                 spoofing = incident.spoofing.name(),
                 vehicles,
+                sources = incident.source_count(),
+                credentials = ?incident.credentials(),
                 centre_lat = incident.centre.lat_deg,
                 centre_lon = incident.centre.lon_deg,
                 radius_m = incident.radius_m.round(),

@@ -161,6 +161,12 @@ fn incident_body_to_proto(incident: &Incident) -> v1::Incident {
         open: incident.is_open(),
         confidence: incident.confidence,
         vehicles: incident.vehicles.iter().map(vehicle_to_proto).collect(),
+        credentials: incident
+            .credentials()
+            .into_iter()
+            .map(str::to_string)
+            .collect(),
+        sources: u32::try_from(incident.source_count()).unwrap_or(u32::MAX),
         ..v1::Incident::default()
     };
     match incident.spoofing {
@@ -194,5 +200,6 @@ fn vehicle_to_proto(vehicle: &IncidentVehicle) -> v1::IncidentVehicle {
         drift_east_mps: vehicle.drift_mps[0],
         drift_north_mps: vehicle.drift_mps[1],
         alarm_open: vehicle.alarm_open,
+        credential: vehicle.credential.clone(),
     }
 }

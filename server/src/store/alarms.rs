@@ -51,6 +51,22 @@ pub struct AlarmEventRow {
     /// When it turned critical, wall-clock unix ms; `None` while it is a warning.
     #[sqlx(rename = "escalated_at")]
     pub escalated_at_ms: Option<i64>,
+    /// The credential whose call sent the samples that raised it; `None` on rows stored before
+    /// schema version 11.
+    #[sqlx(flatten)]
+    pub credential: StoredCredential,
+}
+
+/// The credential behind an alarm as the alarm row stores it. Written with the onset, never changed
+/// by its escalation or end (a session continued by another stream keeps its alarm's credential).
+#[derive(Debug, Clone, Default, PartialEq, Eq, sqlx::FromRow)]
+pub struct StoredCredential {
+    /// What the credential is, never its secret: `certificate <name> sha256:<prefix>`,
+    /// `token <name> sha256:<prefix>`, `admin token`, or `unauthenticated`.
+    pub credential: Option<String>,
+    /// Each vehicle of this credential is its own source of evidence (a gateway forwarding
+    /// independent receivers, or a server without identities), rather than all of them one.
+    pub credential_per_vehicle: bool,
 }
 
 /// An alarm's severity as the store keeps it: its name (`warning`, `critical`).
@@ -282,7 +298,8 @@ macro_rules! select_alarms {
             "SELECT id, vehicle_id, model_id, onset_timestamp_s, end_timestamp_s, onset_at, \
              ended_at, peak_probability, samples, why_kind, why_offset_east_m, \
              why_offset_north_m, why_drift_east_mps, why_drift_north_mps, onset_latitude_deg, \
-             onset_longitude_deg, severity, escalated_timestamp_s, escalated_at FROM alarm_events ",
+             onset_longitude_deg, severity, escalated_timestamp_s, escalated_at, credential, \
+             credential_per_vehicle FROM alarm_events ",
             $rest
         )
     };
@@ -346,9 +363,9 @@ macro_rules! apply_event {
                      onset_timestamp_s, onset_at, peak_probability, samples, why_kind, \
                      why_offset_east_m, why_offset_north_m, why_drift_east_mps, \
                      why_drift_north_mps, onset_latitude_deg, onset_longitude_deg, severity, \
-                     escalated_timestamp_s, escalated_at) \
+                     escalated_timestamp_s, escalated_at, credential, credential_per_vehicle) \
                      VALUES ($1, $2, $3, $4, $5, $6, 1, $7, $8, $9, $10, $11, $12, $13, $14, \
-                     $15, $16) ON CONFLICT DO NOTHING",
+                     $15, $16, $17, $18) ON CONFLICT DO NOTHING",
                 )
                 .bind(alarm.id)
                 .bind(&alarm.vehicle_id)
@@ -366,6 +383,8 @@ macro_rules! apply_event {
                 .bind(alarm.severity)
                 .bind(alarm.escalated_timestamp_s)
                 .bind(alarm.escalated_at_ms)
+                .bind(alarm.credential.credential.as_deref())
+                .bind(alarm.credential.credential_per_vehicle)
                 .execute(&mut *$tx)
                 .await?
                 .rows_affected();
@@ -552,7 +571,8 @@ impl Store {
                  l.peak_probability, l.samples, a.why_kind, a.why_offset_east_m, \
                  a.why_offset_north_m, a.why_drift_east_mps, a.why_drift_north_mps, \
                  a.onset_latitude_deg, a.onset_longitude_deg, l.severity, \
-                 l.escalated_timestamp_s, l.escalated_at \
+                 l.escalated_timestamp_s, l.escalated_at, a.credential, \
+                 a.credential_per_vehicle \
                  FROM alarm_event_log l JOIN alarm_events a ON a.id = l.alarm_id \
                  WHERE l.position > $1 AND l.position <= $2 \
                  AND ($3 IS NULL OR a.vehicle_id = $3) \

@@ -130,7 +130,7 @@ use sqlx::PgPool;
 
 pub use alarms::{
     AlarmEvent, AlarmEventKind, AlarmEventRow, AlarmFilter, AlarmState, LoggedAlarmEvent,
-    StoredPlace, StoredSeverity, StoredWhy, first_seq_of_run,
+    StoredCredential, StoredPlace, StoredSeverity, StoredWhy, first_seq_of_run,
 };
 pub use datasets::{DatasetRow, NewDataset};
 pub use error::{FaultKind, MigrationError, StoreError, StoreFault};

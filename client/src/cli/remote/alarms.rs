@@ -198,6 +198,7 @@ async fn run_list(server: &ServerArgs, args: ListArgs) -> Result<()> {
             "state",
             "why",
             "offset",
+            "credential",
         ],
         &alarms,
         |a| {
@@ -219,6 +220,7 @@ async fn run_list(server: &ServerArgs, args: ListArgs) -> Result<()> {
                     || "-".to_string(),
                     |w| format!("{:.0} m @ {:.0}°", w.offset_m, w.offset_bearing_deg),
                 ),
+                a.credential.clone().unwrap_or_else(|| "-".to_string()),
             ]
         },
     );
@@ -307,6 +309,7 @@ pub fn alarm_json(alarm: &v1::Alarm) -> Value {
         "peak_probability": alarm.peak_probability,
         "samples": alarm.samples,
         "open": alarm.open,
+        "credential": alarm.credential,
         "why": alarm.why.as_ref().map(|why| json!({
             "dominant": why_name(Some(why)),
             "offset_east_m": why.offset_east_m,

@@ -128,6 +128,8 @@ async fn run_list(server: &ServerArgs, args: ListArgs) -> Result<()> {
             "radius_km",
             "estimate",
             "confidence",
+            "sources",
+            "credentials",
         ],
         &incidents,
         |i| {
@@ -142,6 +144,12 @@ async fn run_list(server: &ServerArgs, args: ListArgs) -> Result<()> {
                 opt(Some(i.radius_m / 1_000.0), 1),
                 estimate(i),
                 format!("{:.2}", i.confidence),
+                i.sources.to_string(),
+                if i.credentials.is_empty() {
+                    "-".to_string()
+                } else {
+                    i.credentials.join("; ")
+                },
             ]
         },
     );
@@ -245,6 +253,8 @@ pub fn incident_json(i: &v1::Incident) -> Value {
         "confidence": i.confidence,
         "opened_time": time(i.opened_time.as_ref()),
         "ended_time": time(i.ended_time.as_ref()),
+        "sources": i.sources,
+        "credentials": i.credentials,
         "vehicles": i.vehicles.iter().map(|v| json!({
             "vehicle_id": v.vehicle_id,
             "alarm_id": v.alarm_id,
@@ -256,6 +266,7 @@ pub fn incident_json(i: &v1::Incident) -> Value {
             "drift_east_mps": v.drift_east_mps,
             "drift_north_mps": v.drift_north_mps,
             "alarm_open": v.alarm_open,
+            "credential": v.credential,
         })).collect::<Vec<_>>(),
     })
 }

@@ -62,6 +62,7 @@ macro_rules! from_schema_version {
 
 mod alarms;
 mod connection;
+mod credentials;
 mod datasets;
 mod incidents;
 mod jobs;

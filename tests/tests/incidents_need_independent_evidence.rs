@@ -1,0 +1,268 @@
+//! Area incidents rest on independent evidence, black-box: a server with a roles file, whose callers
+//! send vehicles whose every fix jumps 200 m east (a consistent spoofing), as the attacks on
+//! incidents did.
+//!
+//! - One gateway token inventing three vehicle ids 9 km apart raises three alarms (each recording
+//!   the gateway's token) and opens no incident: its vehicles are one source.
+//! - Two credentials (the gateway's two vehicles and a vehicle token's own) open one, listing both
+//!   credentials; a gateway the roles file says forwards independent receivers opens one alone.
+//! - Ten made-up vehicles, each placed 9 km east of where the incident's centre is by then, join
+//!   it but cannot walk it: its centre stays where its first members were captured and its area
+//!   within the configured radius plus the margin.
+
+use std::time::{Duration, Instant};
+
+use spoofwatch_core::geo::{LatLon, displace_fix, wgs84_local_displacement};
+use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
+use spoofwatch_proto::v1;
+use spoofwatch_tests::{
+    Connection, TestServer, start_with_roles, stream_samples, token_sha256, track_samples,
+};
+
+/// The correlator's 1 s ticks, the alarm writer's batching, on shared cores.
+const INCIDENT_BOUND: Duration = Duration::from_secs(40);
+/// Every captured fix jumps this far east (m).
+const JUMP_EAST_M: f64 = 200.0;
+/// The server's default incident radius and margin (m).
+const RADIUS_M: f64 = 10_000.0;
+const MARGIN_M: f64 = 1_000.0;
+
+/// A bridge gateway (its vehicles one source), a vehicle token, and a relay gateway forwarding
+/// independent receivers.
+fn roles() -> String {
+    format!(
+        "[tokens]\n\
+         \"{}\" = {{ name = \"bridge\", role = \"gateway\", vehicle_prefixes = [\"gw-\"] }}\n\
+         \"{}\" = {{ name = \"car-b\", role = \"vehicle\" }}\n\
+         \"{}\" = {{ name = \"relay\", role = \"gateway\", vehicle_prefixes = [\"rl-\"], \
+         independent_receivers = true }}\n\
+         \"{}\" = {{ name = \"dashboard\", role = \"operator\" }}\n",
+        token_sha256("bridge-token"),
+        token_sha256("car-b-token"),
+        token_sha256("relay-token"),
+        token_sha256("dashboard-token"),
+    )
+}
+
+/// The credential an alarm of `name`'s token records.
+fn token_credential(name: &str, token: &str) -> String {
+    format!("token {name} sha256:{}", &token_sha256(token)[..16])
+}
+
+/// `east_m`/`north_m` from `centre`.
+fn place(centre: LatLon, east_m: f64, north_m: f64) -> LatLon {
+    let (lat, lon) = displace_fix(centre.lat_deg, centre.lon_deg, east_m, north_m);
+    LatLon::new(lat, lon)
+}
+
+/// A vehicle starting at `start`, driving 90 s at 1 Hz, whose fix jumps 200 m east from 40 s on.
+fn captured(id: &str, start: LatLon, seed: u64) -> Vec<v1::Sample> {
+    let spec = DriveSpec {
+        duration_s: 90.0,
+        seed,
+        start_lat_deg: start.lat_deg,
+        start_lon_deg: start.lon_deg,
+        ..DriveSpec::default()
+    };
+    let drive = simulate_drive(&spec, id).expect("a valid drive");
+    let attack = AttackSpec {
+        kind: AttackKind::Jump {
+            offset_m: JUMP_EAST_M,
+        },
+        direction_deg: 90.0,
+        onset_s: 40.0,
+        duration_s: 50.0,
+        seed: None,
+    };
+    track_samples(&inject(&drive, &attack).expect("a valid attack").track)
+}
+
+async fn stream_captured(connection: &Connection, id: &str, start: LatLon, seed: u64) {
+    stream_samples(connection, id, true, 1, &captured(id, start, seed)).await;
+}
+
+async fn incidents(reader: &Connection) -> Vec<v1::Incident> {
+    reader
+        .alarms()
+        .list_incidents(v1::ListIncidentsRequest::default())
+        .await
+        .expect("ListIncidents")
+        .into_inner()
+        .incidents
+}
+
+/// Waits until the stored incidents satisfy `done`; returns them.
+async fn wait_for_incidents(
+    reader: &Connection,
+    what: &str,
+    done: impl Fn(&[v1::Incident]) -> bool,
+) -> Vec<v1::Incident> {
+    let deadline = Instant::now() + INCIDENT_BOUND;
+    loop {
+        let stored = incidents(reader).await;
+        if done(&stored) {
+            return stored;
+        }
+        assert!(Instant::now() < deadline, "{what}: {stored:?}");
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+}
+
+fn vehicles(incident: &v1::Incident) -> Vec<&str> {
+    let mut ids: Vec<&str> = incident
+        .vehicles
+        .iter()
+        .map(|v| v.vehicle_id.as_str())
+        .collect();
+    ids.sort_unstable();
+    ids
+}
+
+fn centre(incident: &v1::Incident) -> LatLon {
+    LatLon::new(incident.centre_latitude_deg, incident.centre_longitude_deg)
+}
+
+async fn start(dir: &std::path::Path) -> (TestServer, Connection) {
+    let server = start_with_roles(dir, &roles(), None).await;
+    let reader = server.connection(Some("dashboard-token")).await;
+    (server, reader)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_credential_opens_no_incident_and_independent_ones_do() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let (server, reader) = start(dir.path()).await;
+    let bridge = server.connection(Some("bridge-token")).await;
+    let car_b = server.connection(Some("car-b-token")).await;
+    let relay = server.connection(Some("relay-token")).await;
+    // Three areas 100 km apart, each of three vehicles 9 km from each other.
+    let area = |k: f64| LatLon::new(32.0 + k * 0.9, -110.9);
+    let triangle = [(0.0, 0.0), (9_000.0, 0.0), (4_500.0, 7_794.0)];
+
+    // Area A: one gateway token, three vehicle ids.
+    for (k, (east, north)) in triangle.iter().enumerate() {
+        let id = format!("gw-a{k}");
+        stream_captured(&bridge, &id, place(area(0.0), *east, *north), 10 + k as u64).await;
+    }
+    // Area B: two of the gateway's vehicles and one vehicle with its own token.
+    for (k, (east, north)) in triangle.iter().enumerate() {
+        let (connection, id) = match k {
+            2 => (&car_b, "car-b".to_string()),
+            _ => (&bridge, format!("gw-b{k}")),
+        };
+        stream_captured(
+            connection,
+            &id,
+            place(area(1.0), *east, *north),
+            20 + k as u64,
+        )
+        .await;
+    }
+    // Area C: a gateway forwarding independent receivers, alone.
+    for (k, (east, north)) in triangle.iter().enumerate() {
+        let id = format!("rl-c{k}");
+        stream_captured(&relay, &id, place(area(2.0), *east, *north), 30 + k as u64).await;
+    }
+
+    // The correlator reads the alarms in the order they were stored: once B's and C's incidents
+    // are open, A's alarms were read too.
+    wait_for_incidents(&reader, "the incidents of areas B and C", |stored| {
+        stored.len() >= 2 && stored.iter().all(|i| i.vehicles.len() == 3)
+    })
+    .await;
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let stored = incidents(&reader).await;
+    assert_eq!(
+        stored.len(),
+        2,
+        "no incident of the gateway alone: {stored:?}"
+    );
+    assert_eq!(vehicles(&stored[0]), ["car-b", "gw-b0", "gw-b1"]);
+    assert_eq!(stored[0].sources, 2);
+    let mut credentials = stored[0].credentials.clone();
+    credentials.sort();
+    assert_eq!(
+        credentials,
+        [
+            token_credential("bridge", "bridge-token"),
+            token_credential("car-b", "car-b-token"),
+        ]
+    );
+    assert_eq!(vehicles(&stored[1]), ["rl-c0", "rl-c1", "rl-c2"]);
+    assert_eq!(stored[1].sources, 3, "each receiver its own source");
+    assert_eq!(
+        stored[1].credentials,
+        [token_credential("relay", "relay-token")]
+    );
+
+    // The gateway's vehicles of area A did alarm, each alarm recording the gateway's token.
+    let alarms = reader
+        .alarms()
+        .list_alarms(v1::ListAlarmsRequest::default())
+        .await
+        .expect("ListAlarms")
+        .into_inner()
+        .alarms;
+    let area_a: Vec<_> = alarms
+        .iter()
+        .filter(|a| a.vehicle_id.starts_with("gw-a"))
+        .map(|a| (a.vehicle_id.as_str(), a.credential.clone()))
+        .collect();
+    let bridge_credential = Some(token_credential("bridge", "bridge-token"));
+    assert_eq!(
+        area_a,
+        [
+            ("gw-a0", bridge_credential.clone()),
+            ("gw-a1", bridge_credential.clone()),
+            ("gw-a2", bridge_credential),
+        ],
+        "{alarms:?}"
+    );
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn chained_joins_cannot_walk_an_incident_beyond_its_radius() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let (server, reader) = start(dir.path()).await;
+    let relay = server.connection(Some("relay-token")).await;
+    let origin = LatLon::new(33.5, -111.5);
+    for (k, (east, north)) in [(0.0, 0.0), (0.0, 2_000.0), (0.0, -2_000.0)]
+        .into_iter()
+        .enumerate()
+    {
+        let id = format!("rl-d{k}");
+        stream_captured(&relay, &id, place(origin, east, north), 40 + k as u64).await;
+    }
+    let opened = wait_for_incidents(&reader, "the incident of three receivers", |stored| {
+        stored.len() == 1 && stored[0].vehicles.len() == 3
+    })
+    .await;
+    let first_centre = centre(&opened[0]);
+
+    // Each made-up vehicle 9 km east of the centre as it is by then, after the previous one joined.
+    for k in 1..=10 {
+        let now = centre(&incidents(&reader).await[0]);
+        let id = format!("rl-made-up-{k}");
+        stream_captured(&relay, &id, place(now, 9_000.0, 0.0), 100 + k).await;
+        wait_for_incidents(&reader, &format!("{id} joins"), |stored| {
+            stored[0].vehicles.iter().any(|v| v.vehicle_id == id)
+        })
+        .await;
+    }
+    let stored = incidents(&reader).await;
+    assert_eq!(stored.len(), 1, "{stored:?}");
+    let incident = &stored[0];
+    assert_eq!(incident.vehicles.len(), 13);
+    let moved = wgs84_local_displacement(first_centre, centre(incident));
+    assert!(
+        moved[0].hypot(moved[1]) < 1.0,
+        "the centre stays where the incident opened (moved {moved:?})"
+    );
+    assert!(
+        incident.radius_m <= RADIUS_M + MARGIN_M,
+        "the area stays within the radius: {} m",
+        incident.radius_m
+    );
+    server.stop().await;
+}
