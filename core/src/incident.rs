@@ -299,6 +299,12 @@ impl Incident {
         self.ended_s.is_none()
     }
 
+    /// Ends it by hand at `time_s` (never before its latest evidence): an admin said the threat is
+    /// over or was never real. The correlator then [forgets](AreaCorrelator::forget) it.
+    pub fn end_by_hand(&mut self, time_s: f64) {
+        self.ended_s = Some(time_s.max(self.last_evidence_s));
+    }
+
     /// The distinct credentials behind its members, in joining order (members whose credential is
     /// not known are left out).
     pub fn credentials(&self) -> Vec<&str> {
@@ -527,6 +533,19 @@ impl AreaCorrelator {
             !quiet_long_enough
         });
         changes
+    }
+
+    /// The open incidents `ids` were ended by hand ([`Incident::end_by_hand`], stored outside the
+    /// correlator): they leave its state with no change of their own, and are returned. Their
+    /// vehicles' alarms are spent (each alarm is evidence once: an onset that formed or joined an
+    /// incident never waits again), so only alarms that open afterwards, new evidence, can form
+    /// or join an incident, as any other onset.
+    pub fn forget(&mut self, ids: &[u64]) -> Vec<Incident> {
+        let (forgotten, open) = std::mem::take(&mut self.state.open)
+            .into_iter()
+            .partition(|incident| ids.contains(&incident.id));
+        self.state.open = open;
+        forgotten
     }
 
     /// Adds `onset` to the open incident it lies in and agrees with. A vehicle already in an open

@@ -554,3 +554,53 @@ fn a_source_takes_part_in_a_bounded_number_of_incidents() {
     assert_eq!(within.len(), 1);
     assert_eq!(within[0].kind, ChangeKind::Joined);
 }
+
+/// An incident ended by hand leaves the correlator's state: its members' alarms still open are
+/// spent (their ends change nothing, and they form no new incident), and the source bound is free
+/// again; the same vehicles' new alarms are new evidence and open a new incident.
+#[test]
+fn an_incident_ended_by_hand_is_forgotten_and_only_new_alarms_reopen_one() {
+    let config = AreaConfig {
+        max_incidents_per_source: 1,
+        ..AreaConfig::default()
+    };
+    let mut c = AreaCorrelator::new(config);
+    let members = |time_s: f64| {
+        vec![
+            sent_by("x", onset("a", time_s, at(0.0, 0.0), [150.0, 0.0])),
+            sent_by("y", onset("b", time_s + 1.0, at(500.0, 0.0), [150.0, 0.0])),
+            sent_by("x", onset("c", time_s + 2.0, at(0.0, 500.0), [150.0, 0.0])),
+        ]
+    };
+    let opened = feed(&mut c, members(100.0));
+    assert_eq!(opened.len(), 1);
+    let mut ended = opened[0].incident.clone();
+    ended.end_by_hand(50.0);
+    assert_eq!(
+        ended.ended_s,
+        Some(102.0),
+        "never before its latest evidence"
+    );
+
+    assert_eq!(c.forget(&[7]), [], "not an open incident");
+    let forgotten = c.forget(&[1]);
+    assert_eq!(forgotten.len(), 1);
+    assert!(c.open_incidents().is_empty());
+    assert!(
+        c.state().pending.is_empty(),
+        "the members' onsets are spent"
+    );
+    let end = AlarmEnd {
+        vehicle_id: "a".into(),
+        alarm_id: 100,
+        time_s: 130.0,
+    };
+    assert!(c.end(&end).is_empty(), "no incident holds that alarm");
+    assert!(c.advance(5_000.0).is_empty());
+
+    // New alarms of the same vehicles (new evidence): a new incident, the bound free again.
+    let reopened = feed(&mut c, members(5_100.0));
+    assert_eq!(reopened.len(), 1);
+    assert_eq!(reopened[0].kind, ChangeKind::Opened);
+    assert_eq!(reopened[0].incident.id, 2);
+}
