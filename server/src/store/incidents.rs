@@ -8,6 +8,10 @@
 //! state commit together or not at all, so a holder killed at any point leaves a state the next
 //! one continues exactly.
 //!
+//! An admin may end an open incident by hand ([`Store::close_incident`]): the row records how,
+//! why and by whom (schema version 12), and from then on no correlation step writes to it (the
+//! correlator drops it from its state on its next step, [`Store::closed_incidents_among`]).
+//!
 //! The store does not interpret the incident and state JSON (the correlator's own types, written by
 //! `crate::incidents`). It owns these tables and their reads; it must not know alarms (it reads
 //! none of their tables).
@@ -31,6 +35,77 @@ pub struct IncidentRow {
     /// The incident as its latest change left it.
     #[sqlx(json, rename = "body_json")]
     pub body: serde_json::Value,
+    /// How an admin ended it; `None` while open and when it ended on its own.
+    #[sqlx(flatten)]
+    pub closure: StoredClosure,
+}
+
+/// How an admin ended an incident by hand.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ClosureKind {
+    /// The threat is over.
+    Ended,
+    /// It was never real.
+    Dismissed,
+}
+
+impl ClosureKind {
+    /// The lowercase name stored in the database.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ClosureKind::Ended => "ended",
+            ClosureKind::Dismissed => "dismissed",
+        }
+    }
+
+    fn from_str_opt(name: &str) -> Option<Self> {
+        match name {
+            "ended" => Some(ClosureKind::Ended),
+            "dismissed" => Some(ClosureKind::Dismissed),
+            _ => None,
+        }
+    }
+}
+
+text_enum!(ClosureKind);
+
+/// The closure columns of an incident row: all `None` unless an admin ended it.
+#[derive(Debug, Clone, Default, PartialEq, Eq, sqlx::FromRow)]
+pub struct StoredClosure {
+    pub closed_as: Option<ClosureKind>,
+    pub closed_reason: Option<String>,
+    /// The credential label of the call (never a secret).
+    pub closed_by: Option<String>,
+}
+
+/// An admin's closure of an incident, as [`Store::close_incident`] records it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Closure {
+    pub kind: ClosureKind,
+    pub reason: String,
+    pub by: String,
+}
+
+impl StoredClosure {
+    /// The closure, when one is recorded.
+    pub fn get(&self) -> Option<Closure> {
+        Some(Closure {
+            kind: self.closed_as?,
+            reason: self.closed_reason.clone().unwrap_or_default(),
+            by: self.closed_by.clone().unwrap_or_default(),
+        })
+    }
+}
+
+/// What [`Store::close_incident`] found.
+#[derive(Debug, Clone, PartialEq)]
+pub enum CloseOutcome {
+    /// It was open and is now ended, as the row shows.
+    Closed(IncidentRow),
+    /// There is no incident with that id.
+    NotFound,
+    /// It had already ended (on its own or by hand); nothing changed.
+    AlreadyEnded(IncidentRow),
 }
 
 /// What an incident event did.
@@ -78,6 +153,16 @@ pub struct LoggedIncidentEvent {
     /// The incident as this event left it.
     #[sqlx(json, rename = "body_json")]
     pub body: serde_json::Value,
+    /// The incident's closure by hand, if any (an ENDED event of such an incident is the closure's).
+    #[sqlx(flatten)]
+    pub closure: StoredClosure,
+}
+
+/// The columns of an incident row, in [`IncidentRow`]'s order.
+macro_rules! incident_columns {
+    () => {
+        "id, opened_at, ended_at, body_json, closed_as, closed_reason, closed_by"
+    };
 }
 
 /// The correlator's place, as the lease holder continues from it.
@@ -187,17 +272,24 @@ impl Store {
                 return Ok(false);
             }
             for write in &step.incidents {
-                sqlx::query(
+                // An incident an admin ended is never written again: the correlator's state still
+                // held it open, and drops it on its next step.
+                let written = sqlx::query(
                     "INSERT INTO incidents (id, opened_at, ended_at, body_json) \
                      VALUES ($1, $2, $3, $4) ON CONFLICT (id) DO UPDATE \
-                     SET ended_at = excluded.ended_at, body_json = excluded.body_json",
+                     SET ended_at = excluded.ended_at, body_json = excluded.body_json \
+                     WHERE incidents.closed_as IS NULL",
                 )
                 .bind(write.id)
                 .bind(now_ms)
                 .bind(write.ended.then_some(now_ms))
                 .bind(Json(&write.body))
                 .execute(&mut *tx)
-                .await?;
+                .await?
+                .rows_affected();
+                if written == 0 {
+                    continue;
+                }
                 if let Some(kind) = write.event {
                     sqlx::query(
                         "INSERT INTO incident_event_log (position, incident_id, kind, stored_at, \
@@ -234,11 +326,12 @@ impl Store {
         let plan = PagePlan::new(LISTING, page)?;
         // Incidents page by id alone, as alarms do: the token's time slot carries the last id.
         let rows = on_pool!(self, |pool| {
-            sqlx::query_as::<_, IncidentRow>(
-                "SELECT id, opened_at, ended_at, body_json FROM incidents \
-                 WHERE ($1 = 'any' OR ($1 = 'open') = (ended_at IS NULL)) \
-                 AND ($2 IS NULL OR id > $2) ORDER BY id LIMIT $3",
-            )
+            sqlx::query_as::<_, IncidentRow>(concat!(
+                "SELECT ",
+                incident_columns!(),
+                " FROM incidents WHERE ($1 = 'any' OR ($1 = 'open') = (ended_at IS NULL)) \
+                 AND ($2 IS NULL OR id > $2) ORDER BY id LIMIT $3"
+            ))
             .bind(state)
             .bind(plan.after_created_at())
             .bind(plan.fetch_limit())
@@ -251,9 +344,11 @@ impl Store {
     /// One incident.
     pub async fn get_incident(&self, id: i64) -> Result<Option<IncidentRow>, StoreError> {
         Ok(on_pool!(self, |pool| {
-            sqlx::query_as::<_, IncidentRow>(
-                "SELECT id, opened_at, ended_at, body_json FROM incidents WHERE id = $1",
-            )
+            sqlx::query_as::<_, IncidentRow>(concat!(
+                "SELECT ",
+                incident_columns!(),
+                " FROM incidents WHERE id = $1"
+            ))
             .bind(id)
             .fetch_optional(pool)
             .await?
@@ -263,10 +358,11 @@ impl Store {
     /// The open incidents, in id order.
     pub async fn open_incidents(&self) -> Result<Vec<IncidentRow>, StoreError> {
         Ok(on_pool!(self, |pool| {
-            sqlx::query_as::<_, IncidentRow>(
-                "SELECT id, opened_at, ended_at, body_json FROM incidents \
-                 WHERE ended_at IS NULL ORDER BY id",
-            )
+            sqlx::query_as::<_, IncidentRow>(concat!(
+                "SELECT ",
+                incident_columns!(),
+                " FROM incidents WHERE ended_at IS NULL ORDER BY id"
+            ))
             .fetch_all(pool)
             .await?
         }))
@@ -282,13 +378,94 @@ impl Store {
     ) -> Result<Vec<LoggedIncidentEvent>, StoreError> {
         Ok(on_pool!(self, |pool| {
             sqlx::query_as::<_, LoggedIncidentEvent>(
-                "SELECT l.position, l.incident_id, l.kind, l.stored_at, i.opened_at, l.body_json \
-                 FROM incident_event_log l JOIN incidents i ON i.id = l.incident_id \
+                "SELECT l.position, l.incident_id, l.kind, l.stored_at, i.opened_at, l.body_json, \
+                 i.closed_as, i.closed_reason, i.closed_by FROM incident_event_log l JOIN incidents i ON i.id = l.incident_id \
                  WHERE l.position > $1 AND l.position <= $2 ORDER BY l.position LIMIT $3",
             )
             .bind(after)
             .bind(through)
             .bind(i64::from(limit))
+            .fetch_all(pool)
+            .await?
+        }))
+    }
+
+    /// Ends the open incident `id` by hand, at `now_ms`: records `closure` with it, stores the
+    /// body `edit` makes of its current one (the caller's incident JSON, as it ended) and logs its
+    /// ENDED event, in one write transaction. An incident that is not there, or has already ended,
+    /// is left as it is.
+    pub async fn close_incident(
+        &self,
+        id: i64,
+        closure: &Closure,
+        now_ms: i64,
+        edit: impl FnOnce(serde_json::Value) -> Result<serde_json::Value, StoreError>,
+    ) -> Result<CloseOutcome, StoreError> {
+        in_write_tx!(self, |tx| {
+            let row = sqlx::query_as::<_, IncidentRow>(concat!(
+                "SELECT ",
+                incident_columns!(),
+                " FROM incidents WHERE id = $1"
+            ))
+            .bind(id)
+            .fetch_optional(&mut *tx)
+            .await?;
+            let Some(mut row) = row else {
+                return Ok(CloseOutcome::NotFound);
+            };
+            if row.ended_at_ms.is_some() {
+                return Ok(CloseOutcome::AlreadyEnded(row));
+            }
+            row.body = edit(row.body)?;
+            row.ended_at_ms = Some(now_ms);
+            row.closure = StoredClosure {
+                closed_as: Some(closure.kind),
+                closed_reason: Some(closure.reason.clone()),
+                closed_by: Some(closure.by.clone()),
+            };
+            sqlx::query(
+                "UPDATE incidents SET ended_at = $2, body_json = $3, closed_as = $4, \
+                 closed_reason = $5, closed_by = $6 WHERE id = $1",
+            )
+            .bind(id)
+            .bind(now_ms)
+            .bind(Json(&row.body))
+            .bind(closure.kind)
+            .bind(&closure.reason)
+            .bind(&closure.by)
+            .execute(&mut *tx)
+            .await?;
+            sqlx::query(
+                "INSERT INTO incident_event_log (position, incident_id, kind, stored_at, \
+                 body_json) VALUES \
+                 ((SELECT COALESCE(MAX(position), 0) + 1 FROM incident_event_log), \
+                 $1, $2, $3, $4)",
+            )
+            .bind(id)
+            .bind(IncidentEventKind::Ended)
+            .bind(now_ms)
+            .bind(Json(&row.body))
+            .execute(&mut *tx)
+            .await?;
+            tx.commit().await?;
+            Ok(CloseOutcome::Closed(row))
+        })
+    }
+
+    /// Of the incidents with ids in `from..=through`, those an admin ended by hand, in id order
+    /// (the correlator drops them from the incidents its state holds open).
+    pub async fn closed_incidents_among(
+        &self,
+        from: i64,
+        through: i64,
+    ) -> Result<Vec<i64>, StoreError> {
+        Ok(on_pool!(self, |pool| {
+            sqlx::query_scalar::<_, i64>(
+                "SELECT id FROM incidents WHERE closed_as IS NOT NULL AND id >= $1 AND id <= $2 \
+                 ORDER BY id",
+            )
+            .bind(from)
+            .bind(through)
             .fetch_all(pool)
             .await?
         }))

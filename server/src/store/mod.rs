@@ -135,8 +135,8 @@ pub use alarms::{
 pub use datasets::{DatasetRow, NewDataset};
 pub use error::{FaultKind, MigrationError, StoreError, StoreFault};
 pub use incidents::{
-    CorrelationStep, CorrelatorPlace, IncidentEventKind, IncidentRow, IncidentState, IncidentWrite,
-    LoggedIncidentEvent,
+    CloseOutcome, Closure, ClosureKind, CorrelationStep, CorrelatorPlace, IncidentEventKind,
+    IncidentRow, IncidentState, IncidentWrite, LoggedIncidentEvent, StoredClosure,
 };
 pub use jobs::{EpochRow, JobEndError, JobFilter, JobKind, JobOutcome, JobRow, JobState, NewJob};
 pub use models::{ModelRow, ModelSource, NewModel};

@@ -1,12 +1,14 @@
 //! Area incidents: the correlator's lease, one step's writes together (fenced on the lease), the
-//! incident listing and the event log; and the onset place the correlator reads from alarms.
+//! incident listing and the event log; the onset place the correlator reads from alarms; and an
+//! admin's end of an incident, recorded once and never overwritten by the correlator.
 
 use serde_json::json;
 
 use crate::alarms::event::{Onset, opened};
 use crate::store::{
-    AlarmEvent, AlarmEventKind, CorrelationStep, CorrelatorPlace, IncidentEventKind, IncidentState,
-    IncidentWrite, PageRequest, Store, StoredPlace,
+    AlarmEvent, AlarmEventKind, CloseOutcome, Closure, ClosureKind, CorrelationStep,
+    CorrelatorPlace, IncidentEventKind, IncidentState, IncidentWrite, PageRequest, Store,
+    StoredPlace,
 };
 
 const LEASE_MS: i64 = 10_000;
@@ -217,8 +219,134 @@ async fn an_onset_keeps_where_it_started(store: Store) {
     );
 }
 
+/// An admin dismisses an open incident: the row records how, why and by whom with its end, one
+/// ENDED event carries it, and the correlator (whose state still held it open) writes nothing more
+/// to it. A second closure, of it or of one that ended on its own, changes nothing; an unknown id
+/// is not found.
+async fn an_incident_ended_by_hand_keeps_its_closure(store: Store) {
+    store
+        .claim_incident_correlator("a", 1_000, LEASE_MS)
+        .await
+        .unwrap();
+    let opened = step(
+        3,
+        vec![
+            write(1, Some(IncidentEventKind::Opened), false, 3),
+            write(2, Some(IncidentEventKind::Opened), false, 3),
+        ],
+    );
+    assert!(
+        store
+            .write_correlation_step("a", 2_000, &opened)
+            .await
+            .unwrap()
+    );
+    let closure = Closure {
+        kind: ClosureKind::Dismissed,
+        reason: "fabricated by two test tokens".into(),
+        by: "token ops sha256:0123456789abcdef".into(),
+    };
+    let ended_body = json!({ "id": 1, "vehicles": 3, "ended": true });
+    let outcome = store
+        .close_incident(1, &closure, 5_000, |mut body| {
+            body["ended"] = json!(true);
+            Ok(body)
+        })
+        .await
+        .unwrap();
+    let CloseOutcome::Closed(row) = outcome else {
+        panic!("the open incident is closed: {outcome:?}");
+    };
+    assert_eq!((row.ended_at_ms, &row.body), (Some(5_000), &ended_body));
+    assert_eq!(row.closure.get(), Some(closure.clone()));
+    assert_eq!(store.get_incident(1).await.unwrap(), Some(row.clone()));
+
+    // The correlator's state still held it open: its later changes to it are not written.
+    let late = step(
+        5,
+        vec![
+            write(1, Some(IncidentEventKind::Joined), false, 4),
+            write(2, Some(IncidentEventKind::Ended), true, 3),
+        ],
+    );
+    assert!(
+        store
+            .write_correlation_step("a", 6_000, &late)
+            .await
+            .unwrap()
+    );
+    assert_eq!(store.get_incident(1).await.unwrap(), Some(row.clone()));
+    assert_eq!(store.closed_incidents_among(1, 2).await.unwrap(), [1]);
+    assert_eq!(store.closed_incidents_among(2, 9).await.unwrap(), [0i64; 0]);
+
+    let again = Closure {
+        kind: ClosureKind::Ended,
+        reason: "over".into(),
+        by: "admin token".into(),
+    };
+    let unchanged = |_: serde_json::Value| -> Result<serde_json::Value, crate::store::StoreError> {
+        panic!("an ended incident's body is not edited")
+    };
+    assert_eq!(
+        store
+            .close_incident(1, &again, 7_000, unchanged)
+            .await
+            .unwrap(),
+        CloseOutcome::AlreadyEnded(row.clone())
+    );
+    let CloseOutcome::AlreadyEnded(on_its_own) = store
+        .close_incident(2, &again, 7_000, unchanged)
+        .await
+        .unwrap()
+    else {
+        panic!("incident 2 ended on its own");
+    };
+    assert_eq!(
+        (on_its_own.ended_at_ms, on_its_own.closure.get()),
+        (Some(6_000), None)
+    );
+    assert_eq!(
+        store
+            .close_incident(9, &again, 7_000, unchanged)
+            .await
+            .unwrap(),
+        CloseOutcome::NotFound
+    );
+
+    let events = store.incident_events_after(0, i64::MAX, 10).await.unwrap();
+    let summary: Vec<_> = events
+        .iter()
+        .map(|e| (e.incident_id, e.kind, e.stored_at_ms, e.closure.get()))
+        .collect();
+    assert_eq!(
+        summary,
+        [
+            (1, IncidentEventKind::Opened, 2_000, Some(closure.clone())),
+            (2, IncidentEventKind::Opened, 2_000, None),
+            (1, IncidentEventKind::Ended, 5_000, Some(closure.clone())),
+            (2, IncidentEventKind::Ended, 6_000, None),
+        ],
+        "the events read the incident's closure (the wire shows it on ENDED only)"
+    );
+    assert_eq!(events[2].body, ended_body);
+    let open: Vec<i64> = store
+        .open_incidents()
+        .await
+        .unwrap()
+        .iter()
+        .map(|r| r.id)
+        .collect();
+    assert!(open.is_empty(), "{open:?}");
+    let ended = store
+        .list_incidents(IncidentState::Ended, &PageRequest::first(10))
+        .await
+        .unwrap();
+    assert_eq!(ended.items[0].closure.get(), Some(closure));
+}
+
 on_both_backends!(
     the_lease_has_one_holder_until_it_expires,
     a_step_stores_incidents_their_events_and_the_place_together,
     an_onset_keeps_where_it_started,
+    an_incident_ended_by_hand_keeps_its_closure,
 );
