@@ -12,7 +12,7 @@
 //!   `detection` (sessions + DetectionService), `models` (registry + ModelService), `datasets`
 //!   (catalog + DatasetService), `jobs` (service → manager → runner), `alarms` (ListAlarms and
 //!   WatchAlarms), `incidents` (the area-incident correlator, by lease, and ListIncidents,
-//!   GetIncident, WatchIncidents);
+//!   GetIncident, WatchIncidents, EndIncident);
 //! - below them: `event_log` (the live feed and resumable watch of a stored event log, for alarms
 //!   and incidents), `outbox` (the session outbox: alarm events and session snapshots on their way
 //!   to the store), `storage_health` (database file and outbox health, reported through gRPC

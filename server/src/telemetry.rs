@@ -194,7 +194,7 @@ pub const METRICS: &[(&str, Kind, &str)] = &[
     (
         INCIDENTS_ENDED,
         Kind::Counter,
-        "Area incidents ended by this server's correlator.",
+        "Area incidents ended: by this server's correlator, or by hand through this server (EndIncident).",
     ),
     (
         INCIDENT_CORRELATOR,

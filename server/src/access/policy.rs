@@ -56,6 +56,8 @@ pub const METHODS: &[(&str, Need)] = &[
     ("/spoofwatch.v1.AlarmService/ListIncidents", Need::Read),
     ("/spoofwatch.v1.AlarmService/GetIncident", Need::Read),
     ("/spoofwatch.v1.AlarmService/WatchIncidents", Need::Read),
+    // Ending an incident by hand changes how the fleet is scored (its area prior stops).
+    ("/spoofwatch.v1.AlarmService/EndIncident", Need::Admin),
     (
         "/spoofwatch.v1.TrainingService/CreateTrainingJob",
         Need::Admin,

@@ -1,8 +1,8 @@
 //! The AlarmService RPCs: ListAlarms reads the store; WatchAlarms follows the alarm event log
 //! (`crate::event_log::watch`: replay from a cursor, CAUGHT_UP, then live events, with one cursor
 //! semantics on every replica), for as long as the identities in force admit its caller.
-//! ListIncidents, GetIncident and WatchIncidents are served by `crate::incidents::service` on the
-//! same service.
+//! ListIncidents, GetIncident, WatchIncidents and EndIncident are served by
+//! `crate::incidents::service` on the same service.
 
 use std::sync::Arc;
 
@@ -11,6 +11,7 @@ use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::alarm_service_server::AlarmService;
 use spoofwatch_proto::wire::VehicleId;
 use spoofwatch_proto::wire::convert::severity_from_proto;
+use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status};
 
@@ -20,7 +21,9 @@ use crate::access::Caller;
 use crate::edge::{optional_model_name, optional_vehicle_id, page_request};
 use crate::event_log::watch::{self, WatchContext, WatchRequest, WatchStream};
 use crate::idle::StreamIdle;
-use crate::incidents::service::{self as incidents, IncidentFeed, IncidentLog};
+use crate::incidents::areas::IncidentAreas;
+use crate::incidents::service::{self as incidents, Ender, IncidentFeed, IncidentLog};
+use crate::incidents::settings::IncidentTimeline;
 use crate::status::invalid_field;
 use crate::store::{AlarmFilter, AlarmState, Store};
 
@@ -30,6 +33,12 @@ pub struct AlarmApi {
     pub store: Store,
     pub feed: Arc<AlarmFeed>,
     pub incident_feed: Arc<IncidentFeed>,
+    /// Told when EndIncident stored an ENDED event (as the correlator tells it).
+    pub incidents_stored: Arc<Notify>,
+    /// This server's area prior (EndIncident drops the ended incident's area at once).
+    pub incident_areas: Arc<IncidentAreas>,
+    /// The timeline incidents are placed on.
+    pub incident_timeline: IncidentTimeline,
     /// Cancelled when the server starts draining.
     pub shutdown: CancellationToken,
     /// How long a watcher may leave a pending event unread.
@@ -207,6 +216,22 @@ impl AlarmService for AlarmApi {
         .await?;
         Ok(Response::new(stream))
     }
+
+    async fn end_incident(
+        &self,
+        request: Request<v1::EndIncidentRequest>,
+    ) -> Result<Response<v1::Incident>, Status> {
+        let caller = Caller::of(&request)?;
+        let ender = Ender {
+            by: &caller.credential.label,
+            timeline: self.incident_timeline,
+            areas: &self.incident_areas,
+            stored: &self.incidents_stored,
+        };
+        Ok(Response::new(
+            incidents::end(&self.store, request.get_ref(), &ender).await?,
+        ))
+    }
 }
 
 #[cfg(test)]
@@ -271,6 +296,9 @@ mod tests {
             .await;
         let api = AlarmApi {
             incident_feed: Arc::new(IncidentFeed::new(&store).await.expect("feed")),
+            incidents_stored: Arc::new(Notify::new()),
+            incident_areas: Arc::new(IncidentAreas::new(true)),
+            incident_timeline: IncidentTimeline::Wall,
             store,
             feed,
             shutdown: CancellationToken::new(),

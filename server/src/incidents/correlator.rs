@@ -9,6 +9,10 @@
 //! end by default, or the vehicles' own sample times for replays of recordings on one common clock.
 //! Alarms stored before onsets kept their place (schema version 8) take no part.
 //!
+//! An incident an admin ended by hand (`super::service::end`, stored outside the lease) leaves the
+//! correlator's state at the start of its next step ([`AreaCorrelator::forget`]); the store never
+//! lets a step write to it again, so a step computed before the end cannot reopen it.
+//!
 //! It owns the lease loop and the mapping from stored alarm events to the correlator's input. It
 //! must not serve the API (`super::service`) nor decide what makes an incident (the core does).
 
@@ -128,19 +132,30 @@ impl IncidentCorrelator {
 
     /// Reads the open incidents into the areas the sessions score with.
     async fn refresh_areas(&self) -> Result<(), StoreError> {
-        let open = self.store.open_incidents().await?;
-        let incidents = open
+        refresh_areas(&self.store, &self.areas).await
+    }
+
+    /// Drops from `correlator` the open incidents an admin ended by hand since its state was
+    /// stored (`super::service::end`): the store already holds their end.
+    async fn forget_closed(&self, correlator: &mut AreaCorrelator) -> Result<(), StoreError> {
+        let open = correlator.open_incidents();
+        let (Some(first), Some(last)) = (open.first(), open.last()) else {
+            return Ok(());
+        };
+        let id = |incident: &Incident| i64::try_from(incident.id).unwrap_or(i64::MAX);
+        let closed: Vec<u64> = self
+            .store
+            .closed_incidents_among(id(first), id(last))
+            .await?
             .into_iter()
-            .map(|row| {
-                serde_json::from_value::<Incident>(row.body).map_err(|error| {
-                    StoreError::InvalidValue {
-                        field: "incidents.body_json",
-                        reason: error.to_string(),
-                    }
-                })
-            })
-            .collect::<Result<Vec<_>, _>>()?;
-        self.areas.replace(&incidents);
+            .filter_map(|id| u64::try_from(id).ok())
+            .collect();
+        for incident in correlator.forget(&closed) {
+            tracing::debug!(
+                incident = incident.id,
+                "the correlator let go of an incident ended by hand"
+            );
+        }
         Ok(())
     }
 
@@ -167,6 +182,7 @@ impl IncidentCorrelator {
             None => AreaCorrelator::new(self.settings.area).state().clone(),
         };
         let mut correlator = AreaCorrelator::resume(self.settings.area, state);
+        self.forget_closed(&mut correlator).await?;
         if self.latest.is_none() {
             tracing::info!(
                 owner = %self.owner,
@@ -284,6 +300,23 @@ impl IncidentCorrelator {
             AlarmEventKind::Escalated => None,
         }
     }
+}
+
+/// Reads the store's open incidents into `areas` (the area prior every session scores with): each
+/// server's correlator loop once a tick, and the server that ended an incident by hand at once.
+pub async fn refresh_areas(store: &Store, areas: &IncidentAreas) -> Result<(), StoreError> {
+    let open = store.open_incidents().await?;
+    let incidents = open
+        .into_iter()
+        .map(|row| {
+            serde_json::from_value::<Incident>(row.body).map_err(|error| StoreError::InvalidValue {
+                field: "incidents.body_json",
+                reason: error.to_string(),
+            })
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    areas.replace(&incidents);
+    Ok(())
 }
 
 /// A change as the store writes it.
@@ -482,5 +515,79 @@ mod tests {
             kinds,
             [IncidentEventKind::Opened, IncidentEventKind::Joined]
         );
+    }
+
+    /// An admin ends the open incident through another server: its area leaves that server's
+    /// prior before the call returns; the holder's next step forgets it and writes nothing more
+    /// to it; the same vehicles' new alarms (new evidence) open a new incident.
+    #[tokio::test]
+    async fn an_incident_ended_by_hand_is_forgotten_and_new_alarms_open_another() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let store = Store::open(&dir.path().join("e.db").to_string_lossy())
+            .await
+            .expect("open");
+        let translation = v1::IncidentKind::Translation as i32;
+        let mut holder = correlator(&store, "holder");
+        let other = correlator(&store, "other");
+        let vehicles = [("car-1", 0.0), ("car-2", 2_000.0), ("car-3", 4_000.0)];
+        for (vehicle, east_m) in vehicles {
+            displaced_onset(&store, vehicle, east_m).await;
+        }
+        holder.step().await.expect("step");
+        assert_eq!(incidents(&store).await, [(1, translation, 3)]);
+        other.refresh_areas().await.expect("areas");
+        assert!(other.areas.contains(32.2, -110.9));
+
+        let ender = service::Ender {
+            by: "token ops sha256:0123456789abcdef",
+            timeline: Timeline::Wall,
+            areas: &other.areas,
+            stored: &Notify::new(),
+        };
+        let request = v1::EndIncidentRequest {
+            id: 1,
+            reason: "  the jammer was switched off ".into(),
+            dismiss: false,
+        };
+        let ended = service::end(&store, &request, &ender).await.expect("ended");
+        assert!(!ended.open && ended.ended_s.is_some(), "{ended:?}");
+        let closure = ended.closure.clone().expect("a closure");
+        assert_eq!(
+            (
+                closure.kind(),
+                closure.reason.as_str(),
+                closure.closed_by.as_str()
+            ),
+            (
+                v1::IncidentClosureKind::Ended,
+                "the jammer was switched off",
+                "token ops sha256:0123456789abcdef"
+            )
+        );
+        assert!(
+            !other.areas.contains(32.2, -110.9),
+            "the prior stops at once"
+        );
+        let refused = service::end(&store, &request, &ender)
+            .await
+            .expect_err("already ended");
+        assert_eq!(refused.code(), tonic::Code::FailedPrecondition);
+
+        holder.step().await.expect("step");
+        let get = async |id| {
+            service::get(&store, &v1::GetIncidentRequest { id })
+                .await
+                .expect("stored")
+        };
+        assert_eq!(get(1).await, ended, "nothing more is written");
+        for (vehicle, east_m) in vehicles {
+            displaced_onset(&store, vehicle, east_m).await;
+        }
+        holder.step().await.expect("step");
+        assert_eq!(
+            incidents(&store).await,
+            [(1, translation, 3), (2, translation, 3)]
+        );
+        assert!(get(2).await.open);
     }
 }

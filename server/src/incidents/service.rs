@@ -1,22 +1,34 @@
-//! ListIncidents, GetIncident and WatchIncidents (on the AlarmService): stored incidents and the
-//! incident event log on the wire. WatchIncidents is the shared watch of `crate::event_log`, with
-//! WatchAlarms' cursor and resume semantics.
+//! ListIncidents, GetIncident, WatchIncidents and EndIncident (on the AlarmService): stored
+//! incidents and the incident event log on the wire, and an admin's end of an incident.
+//! WatchIncidents is the shared watch of `crate::event_log`, with WatchAlarms' cursor and resume
+//! semantics.
 //!
-//! It only reads: incidents are written by the correlator (`super::correlator`).
+//! Incidents are written by the correlator (`super::correlator`); the one write here is
+//! EndIncident's closure ([`end`]), which the correlator then honours. It must not touch alarms:
+//! an incident's end leaves its vehicles' alarms as they are.
 
 use spoofwatch_core::geo::LatLon;
 use spoofwatch_core::incident::{Incident, IncidentVehicle, Spoofing};
 use spoofwatch_proto::v1;
 use spoofwatch_proto::wire::convert::timestamp_from_ms;
+use tokio::sync::Notify;
 use tonic::Status;
 
+use super::areas::IncidentAreas;
+use super::correlator::refresh_areas;
+use super::settings::IncidentTimeline;
 use crate::edge::page_request;
 use crate::event_log::EventLog;
 use crate::event_log::feed::Feed;
-use crate::status::{invalid_field, not_found};
+use crate::status::{failed_precondition, invalid_argument, invalid_field, not_found};
 use crate::store::{
-    IncidentEventKind, IncidentRow, IncidentState, LoggedIncidentEvent, Store, StoreError,
+    CloseOutcome, Closure, ClosureKind, IncidentEventKind, IncidentRow, IncidentState,
+    LoggedIncidentEvent, Store, StoreError, StoredClosure, now_unix_ms,
 };
+use crate::telemetry;
+
+/// The longest EndIncident reason (characters): a sentence or two for the audit record.
+pub const MAX_REASON_CHARS: usize = 500;
 
 /// The incident event log (no filter: every incident).
 #[derive(Debug)]
@@ -60,7 +72,8 @@ impl EventLog for IncidentLog {
             IncidentEventKind::Joined => v1::IncidentEventKind::Joined,
             IncidentEventKind::Ended => v1::IncidentEventKind::Ended,
         };
-        let ended_at_ms = (logged.kind == IncidentEventKind::Ended).then_some(logged.stored_at_ms);
+        let ended = logged.kind == IncidentEventKind::Ended;
+        let no_closure = StoredClosure::default();
         v1::IncidentEvent {
             cursor: logged.position,
             kind: kind as i32,
@@ -68,7 +81,9 @@ impl EventLog for IncidentLog {
                 logged.incident_id,
                 &logged.body,
                 logged.opened_at_ms,
-                ended_at_ms,
+                ended.then_some(logged.stored_at_ms),
+                // Only the ENDED event of an incident ended by hand is the closure's.
+                if ended { &logged.closure } else { &no_closure },
             )),
         }
     }
@@ -124,8 +139,150 @@ pub async fn get(store: &Store, request: &v1::GetIncidentRequest) -> Result<v1::
     }
 }
 
+/// Who ends an incident through EndIncident, and what the server that serves the call updates at
+/// once.
+pub struct Ender<'a> {
+    /// The caller's credential label (never a secret).
+    pub by: &'a str,
+    /// The timeline incidents are placed on (the end's `ended_s`).
+    pub timeline: IncidentTimeline,
+    /// This server's area prior: the ended incident's area leaves it before the call returns.
+    pub areas: &'a IncidentAreas,
+    /// Told once the ENDED event is stored (this server's live feed reads it at once; the other
+    /// replicas' feeds within their poll).
+    pub stored: &'a Notify,
+}
+
+/// EndIncident: ends (or dismisses) an open incident by hand, records the closure with it and logs
+/// its ENDED event in one transaction; this server's area prior drops it at once, every other
+/// server's within its correlator tick, and the correlator lets go of it on its next step.
+pub async fn end(
+    store: &Store,
+    request: &v1::EndIncidentRequest,
+    ender: &Ender<'_>,
+) -> Result<v1::Incident, Status> {
+    let reason = checked_reason(request)?;
+    let closure = Closure {
+        kind: if request.dismiss {
+            ClosureKind::Dismissed
+        } else {
+            ClosureKind::Ended
+        },
+        reason,
+        by: ender.by.to_string(),
+    };
+    let now_ms = now_unix_ms();
+    let timeline = ender.timeline;
+    let outcome = store
+        .close_incident(request.id, &closure, now_ms, |body| {
+            let mut incident =
+                serde_json::from_value::<Incident>(body).map_err(|error| invalid_body(&error))?;
+            // On the samples timeline the server's clock is not the vehicles': the end is placed
+            // at the latest evidence.
+            let at_s = match timeline {
+                IncidentTimeline::Wall => now_ms as f64 / 1000.0,
+                IncidentTimeline::Samples => incident.last_evidence_s,
+            };
+            incident.end_by_hand(at_s);
+            serde_json::to_value(&incident).map_err(|error| invalid_body(&error))
+        })
+        .await?;
+    let row = match outcome {
+        CloseOutcome::Closed(row) => row,
+        CloseOutcome::NotFound => return Err(not_found("incident", &request.id.to_string())),
+        CloseOutcome::AlreadyEnded(row) => return Err(already_ended(&row)),
+    };
+    let wire = row_to_proto(&row);
+    tracing::warn!(
+        incident = row.id,
+        closure = closure.kind.as_str(),
+        reason = %closure.reason,
+        by = %closure.by,
+        vehicles = wire.vehicles.len(),
+        credentials = ?wire.credentials,
+        "area incident ended by hand: its area no longer lowers vehicles' thresholds"
+    );
+    telemetry::incident_ended();
+    ender.stored.notify_one();
+    if let Err(error) = refresh_areas(store, ender.areas).await {
+        tracing::warn!(%error, "could not refresh the incident areas; the next tick retries");
+    }
+    Ok(wire)
+}
+
+/// The request's reason, trimmed, once the id and the reason are valid (every violation named).
+fn checked_reason(request: &v1::EndIncidentRequest) -> Result<String, Status> {
+    let mut violations = Vec::new();
+    if request.id <= 0 {
+        violations.push((
+            "id".to_string(),
+            format!("must be a positive incident id, got {}", request.id),
+        ));
+    }
+    let reason = request.reason.trim();
+    let chars = reason.chars().count();
+    let problem = if reason.is_empty() {
+        Some("is required: say why the incident ends, for the audit record".to_string())
+    } else if chars > MAX_REASON_CHARS {
+        Some(format!(
+            "must be at most {MAX_REASON_CHARS} characters, got {chars}"
+        ))
+    } else if reason.chars().any(char::is_control) {
+        Some("must be one line of text: no control characters".to_string())
+    } else {
+        None
+    };
+    if let Some(problem) = problem {
+        violations.push(("reason".to_string(), problem));
+    }
+    if violations.is_empty() {
+        Ok(reason.to_string())
+    } else {
+        Err(invalid_argument(violations))
+    }
+}
+
+fn invalid_body(error: &serde_json::Error) -> StoreError {
+    StoreError::InvalidValue {
+        field: "incidents.body_json",
+        reason: error.to_string(),
+    }
+}
+
+/// FAILED_PRECONDITION for an incident that has already ended: a closure is recorded once.
+fn already_ended(row: &IncidentRow) -> Status {
+    let how = match row.closure.get() {
+        Some(closure) => format!(
+            "was {} by hand by {}",
+            match closure.kind {
+                ClosureKind::Ended => "ended",
+                ClosureKind::Dismissed => "dismissed",
+            },
+            closure.by
+        ),
+        None => "ended on its own (no vehicle of it alarmed for the quiet time)".to_string(),
+    };
+    let when = row
+        .ended_at_ms
+        .map(|ms| format!(" at {}", timestamp_from_ms(ms)))
+        .unwrap_or_default();
+    failed_precondition(
+        "INCIDENT_ALREADY_ENDED",
+        format!(
+            "incident {} {how}{when}; an ended incident's closure is never rewritten",
+            row.id
+        ),
+    )
+}
+
 fn row_to_proto(row: &IncidentRow) -> v1::Incident {
-    incident_to_proto(row.id, &row.body, row.opened_at_ms, row.ended_at_ms)
+    incident_to_proto(
+        row.id,
+        &row.body,
+        row.opened_at_ms,
+        row.ended_at_ms,
+        &row.closure,
+    )
 }
 
 /// A stored incident on the wire. A body this build cannot read (written by a newer server) is
@@ -135,6 +292,7 @@ fn incident_to_proto(
     body: &serde_json::Value,
     opened_at_ms: i64,
     ended_at_ms: Option<i64>,
+    closure: &StoredClosure,
 ) -> v1::Incident {
     let mut wire = match serde_json::from_value::<Incident>(body.clone()) {
         Ok(incident) => incident_body_to_proto(&incident),
@@ -146,6 +304,16 @@ fn incident_to_proto(
     wire.id = id;
     wire.opened_time = Some(timestamp_from_ms(opened_at_ms));
     wire.ended_time = ended_at_ms.map(timestamp_from_ms);
+    wire.open = wire.open && ended_at_ms.is_none();
+    wire.closure = closure.get().map(|closure| v1::IncidentClosure {
+        kind: match closure.kind {
+            ClosureKind::Ended => v1::IncidentClosureKind::Ended,
+            ClosureKind::Dismissed => v1::IncidentClosureKind::Dismissed,
+        } as i32,
+        reason: closure.reason,
+        closed_by: closure.by,
+        closed_time: ended_at_ms.map(timestamp_from_ms),
+    });
     wire
 }
 
