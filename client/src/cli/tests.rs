@@ -1,5 +1,5 @@
 //! Argument parsing: the remote commands, `train`'s offline form, `scenario simulate --rate/--realistic`,
-//! `scenario fleet`'s defaults and attacks.
+//! `scenario fleet`'s defaults and attacks; `incidents end|dismiss` and the closure they print.
 
 use crate::connection::DEFAULT_SERVER_ADDRESS;
 use clap::Parser;
@@ -456,4 +456,58 @@ fn alarms_refuse_bad_times_cursors_and_states() {
     ] {
         assert!(parse(bad).is_err(), "{bad:?} must be refused");
     }
+}
+
+#[test]
+fn incidents_end_and_dismiss_need_a_reason_and_print_the_closure() {
+    for (verb, dismissing) in [("end", false), ("dismiss", true)] {
+        let Ok(Command::Incidents(args)) = parse(&[
+            "incidents",
+            verb,
+            "3",
+            "--reason",
+            "the jammer was switched off",
+        ]) else {
+            panic!("incidents {verb} must parse");
+        };
+        let (remote::incidents::Command::End(end) | remote::incidents::Command::Dismiss(end)) =
+            &args.command
+        else {
+            panic!("an end or dismiss command");
+        };
+        assert_eq!(
+            (end.id, end.reason.as_str()),
+            (3, "the jammer was switched off")
+        );
+        assert_eq!(
+            matches!(args.command, remote::incidents::Command::Dismiss(_)),
+            dismissing
+        );
+        assert!(
+            parse(&["incidents", verb, "3"]).is_err(),
+            "incidents {verb} without a reason must be refused"
+        );
+    }
+
+    use spoofwatch_proto::v1;
+    let incident = v1::Incident {
+        id: 3,
+        closure: Some(v1::IncidentClosure {
+            kind: v1::IncidentClosureKind::Dismissed as i32,
+            reason: "fabricated".into(),
+            closed_by: "admin token".into(),
+            closed_time: Some(prost_types::Timestamp {
+                seconds: 1_748_736_000,
+                nanos: 0,
+            }),
+        }),
+        ..v1::Incident::default()
+    };
+    let json = remote::incidents::incident_json(&incident);
+    assert_eq!(json["closure"]["kind"], "dismissed");
+    assert_eq!(json["closure"]["reason"], "fabricated");
+    assert_eq!(json["closure"]["closed_by"], "admin token");
+    assert_eq!(json["closure"]["closed_time"], "2025-06-01T00:00:00Z");
+    let open = remote::incidents::incident_json(&v1::Incident::default());
+    assert!(open["closure"].is_null());
 }

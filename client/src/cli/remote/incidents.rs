@@ -1,6 +1,6 @@
 //! `spoofwatch incidents`: area incidents (vehicles nearby spoofed alike): `list` the stored ones
 //! as a table or JSON lines, `get` one, `watch` them open, gain vehicles and end as JSON lines,
-//! resuming after reconnects.
+//! resuming after reconnects, and `end` or `dismiss` one by hand (an admin, with a reason).
 //!
 //! It owns the command line and the JSON shape of an incident; the resumable feed is the library's
 //! [`IncidentWatch`], tables come from `remote`.
@@ -31,6 +31,12 @@ pub enum Command {
     /// line, each with its cursor; reconnects and resumes after the last cursor when the server
     /// is unavailable.
     Watch(WatchArgs),
+    /// End an open incident by hand: the threat is over. Its area stops lowering vehicles'
+    /// thresholds at once; its vehicles' alarms stay as they are. Needs an admin credential.
+    End(EndArgs),
+    /// Dismiss an open incident: it was never real (fabricated or mistaken). As `end`, recorded
+    /// as dismissed. Needs an admin credential.
+    Dismiss(EndArgs),
 }
 
 /// Which incidents `list` shows.
@@ -63,6 +69,15 @@ pub struct GetArgs {
 }
 
 #[derive(Debug, clap::Args)]
+pub struct EndArgs {
+    /// The incident's id.
+    pub id: i64,
+    /// Why, for the audit record stored with the incident (1 to 500 characters, one line).
+    #[arg(long)]
+    pub reason: String,
+}
+
+#[derive(Debug, clap::Args)]
 pub struct WatchArgs {
     /// First replay every event after this cursor (0: every stored event); default: only new
     /// events. Each printed line carries its cursor; pass the last one to resume.
@@ -84,7 +99,29 @@ pub async fn run(args: Args) -> Result<()> {
         Command::List(list) => run_list(&args.server, list).await,
         Command::Get(get) => run_get(&args.server, get).await,
         Command::Watch(watch) => run_watch(&args.server, watch).await,
+        Command::End(end) => run_end(&args.server, end, false).await,
+        Command::Dismiss(end) => run_end(&args.server, end, true).await,
     }
+}
+
+async fn run_end(server: &ServerArgs, args: EndArgs, dismiss: bool) -> Result<()> {
+    let connection = server.connect().await?;
+    let request = v1::EndIncidentRequest {
+        id: args.id,
+        reason: args.reason,
+        dismiss,
+    };
+    let what = if dismiss {
+        "dismissing the incident"
+    } else {
+        "ending the incident"
+    };
+    let incident = reply(what, connection.alarms().end_incident(request)).await?;
+    println!(
+        "{}",
+        serde_json::to_string_pretty(&incident_json(&incident))?
+    );
+    Ok(())
 }
 
 async fn run_list(server: &ServerArgs, args: ListArgs) -> Result<()> {
@@ -121,6 +158,7 @@ async fn run_list(server: &ServerArgs, args: ListArgs) -> Result<()> {
             "id",
             "kind",
             "state",
+            "closed_by",
             "vehicles",
             "opened",
             "ended",
@@ -136,7 +174,10 @@ async fn run_list(server: &ServerArgs, args: ListArgs) -> Result<()> {
             vec![
                 i.id.to_string(),
                 kind_name(i.kind).to_string(),
-                if i.open { "open" } else { "ended" }.to_string(),
+                state_name(i).to_string(),
+                i.closure
+                    .as_ref()
+                    .map_or_else(|| "-".to_string(), |c| c.closed_by.clone()),
                 i.vehicles.len().to_string(),
                 time(i.opened_time.as_ref()),
                 time(i.ended_time.as_ref()),
@@ -189,6 +230,33 @@ async fn run_watch(server: &ServerArgs, args: WatchArgs) -> Result<()> {
         event_json,
     )
     .await
+}
+
+/// `open`, `ended` (on its own or by hand) or `dismissed`.
+fn state_name(i: &v1::Incident) -> &'static str {
+    match i.closure.as_ref().map(|c| c.kind()) {
+        _ if i.open => "open",
+        Some(v1::IncidentClosureKind::Dismissed) => "dismissed",
+        _ => "ended",
+    }
+}
+
+/// An admin's closure as JSON (`null` for an incident open or ended on its own).
+fn closure_json(closure: Option<&v1::IncidentClosure>) -> Value {
+    let Some(c) = closure else {
+        return Value::Null;
+    };
+    let kind = match c.kind() {
+        v1::IncidentClosureKind::Ended => "ended",
+        v1::IncidentClosureKind::Dismissed => "dismissed",
+        v1::IncidentClosureKind::Unspecified => "unknown",
+    };
+    json!({
+        "kind": kind,
+        "reason": c.reason,
+        "closed_by": c.closed_by,
+        "closed_time": c.closed_time.as_ref().map(ToString::to_string),
+    })
 }
 
 fn kind_name(kind: i32) -> &'static str {
@@ -255,6 +323,7 @@ pub fn incident_json(i: &v1::Incident) -> Value {
         "ended_time": time(i.ended_time.as_ref()),
         "sources": i.sources,
         "credentials": i.credentials,
+        "closure": closure_json(i.closure.as_ref()),
         "vehicles": i.vehicles.iter().map(|v| json!({
             "vehicle_id": v.vehicle_id,
             "alarm_id": v.alarm_id,
