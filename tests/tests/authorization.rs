@@ -221,6 +221,15 @@ async fn call(rpc: &str, connection: &Connection, vehicle: &str) -> Code {
                 .watch_incidents(v1::WatchIncidentsRequest::default())
                 .await,
         ),
+        "EndIncident" => code(
+            alarms
+                .end_incident(v1::EndIncidentRequest {
+                    id: 1,
+                    reason: "a drill".into(),
+                    dismiss: true,
+                })
+                .await,
+        ),
         "CreateTrainingJob" => code(
             training
                 .create_training_job(v1::CreateTrainingJobRequest::default())
@@ -300,6 +309,7 @@ const MATRIX: &[(&str, [bool; 4])] = &[
     ("ListIncidents", [false, false, true, true]),
     ("GetIncident", [false, false, true, true]),
     ("WatchIncidents", [false, false, true, true]),
+    ("EndIncident", [false, false, false, true]),
     ("CreateTrainingJob", [false, false, false, true]),
     ("CreateEvaluationJob", [false, false, false, true]),
     ("WatchJob", [false, false, true, true]),
@@ -353,7 +363,7 @@ async fn every_rpc_by_every_token_role_follows_the_table() {
         }
     }
     // The table covers every RPC the server serves: one per path of the schema.
-    assert_eq!(MATRIX.len(), 30);
+    assert_eq!(MATRIX.len(), 31);
     assert!(denied_count(&server, "operator").await >= 3.0);
     assert!(denied_count(&server, "vehicle").await >= 20.0);
 

@@ -22,6 +22,7 @@ mod evaluation_jobs;
 mod examples_run_against_a_server;
 mod haproxy_routes_vehicles;
 mod incidents_across_replicas;
+mod incidents_end;
 mod incidents_need_independent_evidence;
 mod invalid_input_is_refused;
 mod malformed_protobuf_is_invalid_argument;
