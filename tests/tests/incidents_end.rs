@@ -10,6 +10,9 @@
 //!   its reason and the admin's credential; a second one is refused; the members' alarms stay as
 //!   they were and open no new incident; and the area prior stops at once: a probe vehicle driving
 //!   through the area alarms as it did before the incident opened, not as it did while it was open.
+//! - Across two replicas on one PostgreSQL database: a dismissal through one replica ends the
+//!   incident on the other too (its prior within a refresh, its watcher, its reads), and the
+//!   correlator, wherever its lease is, forgets it: the same vehicles' new alarms open a new one.
 
 use std::path::Path;
 use std::time::{Duration, Instant};
@@ -18,6 +21,7 @@ use spoofwatch_core::geo::{LatLon, displace_fix};
 use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
 use spoofwatch_proto::v1;
 use spoofwatch_server::config::Config;
+use spoofwatch_server::store::test_database::TestDatabase;
 use spoofwatch_tests::{
     ADMIN_TOKEN, ConnectOptions, Connection, DetectStream, TestServer, stream_samples, test_config,
     token_sha256, track_samples,
@@ -43,12 +47,17 @@ fn roles() -> String {
 /// A server with [`roles`] and the single admin token [`ADMIN_TOKEN`], its configuration adjusted
 /// by `configure`.
 async fn start(dir: &Path, configure: impl FnOnce(&mut Config)) -> TestServer {
+    let mut config = test_config(dir);
+    configure(&mut config);
+    start_with_roles(dir, config).await
+}
+
+/// Starts `config` with [`roles`] (written into `dir`) and the admin token [`ADMIN_TOKEN`].
+async fn start_with_roles(dir: &Path, mut config: Config) -> TestServer {
     let roles_file = dir.join("roles.toml");
     std::fs::write(&roles_file, roles()).expect("roles file written");
-    let mut config = test_config(dir);
     config.roles_file = Some(roles_file);
     config.auth_token = Some(ADMIN_TOKEN.into());
-    configure(&mut config);
     TestServer::start_for(
         config,
         &ConnectOptions::with_token(Some(ADMIN_TOKEN.into())),
@@ -87,23 +96,26 @@ fn drive(id: &str, start: LatLon, seed: u64, attack: (AttackKind, f64, f64)) -> 
 async fn spoof_three(server: &TestServer, centre: LatLon, prefix: &str) {
     let bridge = server.connection(Some("bridge-token")).await;
     let car_b = server.connection(Some("car-b-token")).await;
-    let jump = AttackKind::Jump { offset_m: 200.0 };
-    for (k, (east, north)) in [(0.0, 0.0), (9_000.0, 0.0), (4_500.0, 7_794.0)]
-        .into_iter()
-        .enumerate()
-    {
+    for k in 0..3 {
         let (connection, id) = match k {
             2 => (&car_b, "car-b".to_string()),
             _ => (&bridge, format!("gw-{prefix}{k}")),
         };
-        let samples = drive(
-            &id,
-            place(centre, east, north),
-            60 + k as u64,
-            (jump, 90.0, 40.0),
-        );
-        stream_samples(connection, &id, true, 1, &samples).await;
+        stream_samples(connection, &id, true, 1, &spoofed(&id, centre, k)).await;
     }
+}
+
+/// The `k`th (0 to 2) vehicle of a triangle 9 km on a side from `centre`, its fix jumping 200 m
+/// east from 40 s on.
+fn spoofed(id: &str, centre: LatLon, k: usize) -> Vec<v1::Sample> {
+    let (east, north) = [(0.0, 0.0), (9_000.0, 0.0), (4_500.0, 7_794.0)][k];
+    let jump = AttackKind::Jump { offset_m: 200.0 };
+    drive(
+        id,
+        place(centre, east, north),
+        60 + k as u64,
+        (jump, 90.0, 40.0),
+    )
 }
 
 async fn incidents(reader: &Connection) -> Vec<v1::Incident> {
@@ -375,4 +387,79 @@ async fn an_admin_dismisses_an_incident_and_its_area_prior_stops() {
     }
     drop((reader, admin, car_b, watch));
     server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_dismissal_through_one_replica_ends_the_incident_on_both() {
+    let Some(database) = TestDatabase::create("incidents_end_across_replicas").await else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("temp dir");
+    let replica = async |instance: &str| {
+        let mut config = Config::with_database(&database.url);
+        config.shutdown_grace_secs = 2;
+        config.instance_id = Some(instance.to_string());
+        start_with_roles(dir.path(), config).await
+    };
+    let a = replica("replica-a").await;
+    let b = replica("replica-b").await;
+    let (admin_a, admin_b) = (
+        a.connection(Some(ADMIN_TOKEN)).await,
+        b.connection(Some(ADMIN_TOKEN)).await,
+    );
+    let centre = LatLon::new(31.7, -110.2);
+    let inside = place(centre, 4_500.0, 2_598.0);
+    let before = probe(&admin_a, "probe-a-before", inside).await;
+    spoof_three(&a, centre, "r").await;
+    let opened = wait_for_incidents(&admin_b, "the incident opens", |stored| {
+        stored.len() == 1 && stored[0].vehicles.len() == 3
+    })
+    .await;
+    let id = opened[0].id;
+    assert_ne!(probe(&admin_a, "probe-a-during", inside).await, before);
+    let mut watch_a = admin_a
+        .alarms()
+        .watch_incidents(v1::WatchIncidentsRequest::default())
+        .await
+        .expect("WatchIncidents")
+        .into_inner();
+    watch_a
+        .message()
+        .await
+        .expect("an event")
+        .expect("caught up");
+
+    let dismissed = end(&admin_b, id, "a drill of two replicas")
+        .await
+        .expect("dismissed through replica B");
+    let closure = dismissed.closure.clone().expect("a closure");
+    let event = tokio::time::timeout(BOUND, watch_a.message())
+        .await
+        .expect("replica A's watcher hears of the end in time")
+        .expect("an event")
+        .expect("the watch goes on");
+    assert_eq!(event.kind, v1::IncidentEventKind::Ended as i32);
+    assert_eq!(event.incident.expect("the incident").closure, Some(closure));
+    // Replica A reads the open incidents' areas once a second.
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    assert_eq!(
+        probe(&admin_a, "probe-a-after", inside).await,
+        before,
+        "replica A no longer scores with the dismissed incident's area"
+    );
+    assert_eq!(incidents(&admin_a).await, [dismissed]);
+
+    // The same vehicles spoofed again (fresh sessions): new alarms, a new incident.
+    spoof_three(&a, centre, "r").await;
+    let stored =
+        wait_for_incidents(&admin_b, "a new incident opens", |stored| stored.len() == 2).await;
+    assert!(
+        stored[1].open && stored[1].vehicles.len() == 3,
+        "{stored:?}"
+    );
+    assert!(!stored[0].open && stored[0].closure.is_some(), "{stored:?}");
+    drop((admin_a, admin_b, watch_a));
+    a.stop().await;
+    b.stop().await;
+    database.drop_database().await;
 }
