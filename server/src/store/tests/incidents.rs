@@ -350,3 +350,34 @@ on_both_backends!(
     an_onset_keeps_where_it_started,
     an_incident_ended_by_hand_keeps_its_closure,
 );
+
+/// An incident stored before schema version 12 reads without a closure, and an admin can still
+/// end it.
+mod from_version_11 {
+    use super::*;
+
+    const OLD: [&str; 1] = [
+        "INSERT INTO incidents (id, opened_at, ended_at, body_json) \
+         VALUES (1, 1000, NULL, '{\"id\": 1}')",
+    ];
+
+    async fn check(store: Store) {
+        let row = store.get_incident(1).await.unwrap().expect("stored");
+        assert_eq!((row.ended_at_ms, row.closure.get()), (None, None));
+        let closure = Closure {
+            kind: ClosureKind::Ended,
+            reason: "over".into(),
+            by: "admin token".into(),
+        };
+        let outcome = store.close_incident(1, &closure, 2_000, Ok).await.unwrap();
+        let CloseOutcome::Closed(row) = outcome else {
+            panic!("closed: {outcome:?}");
+        };
+        assert_eq!(
+            (row.ended_at_ms, row.closure.get()),
+            (Some(2_000), Some(closure))
+        );
+    }
+
+    from_schema_version!(11, sqlite: OLD, postgres: OLD);
+}
