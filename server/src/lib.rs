@@ -44,6 +44,7 @@ mod error;
 mod error_chain;
 mod event_log;
 mod fault;
+mod fault_log;
 mod identity;
 mod idle;
 mod incidents;
