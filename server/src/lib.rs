@@ -55,6 +55,7 @@ mod metrics_endpoint;
 pub mod models;
 mod outbox;
 pub mod process;
+mod replies;
 mod router;
 mod server_error;
 mod status;
