@@ -35,8 +35,8 @@ impl<T: Send> Outbound<T> for Sender<T> {
         self.try_send(reply)
     }
 
-    fn put(&self, reply: T) -> impl Future<Output = bool> + Send {
-        async move { self.send(reply).await.is_ok() }
+    async fn put(&self, reply: T) -> bool {
+        self.send(reply).await.is_ok()
     }
 }
 
@@ -45,8 +45,8 @@ impl<T: ReplyBytes + Send> Outbound<T> for ReplySender<T> {
         self.try_send(reply)
     }
 
-    fn put(&self, reply: T) -> impl Future<Output = bool> + Send {
-        async move { self.send(reply).await.is_ok() }
+    async fn put(&self, reply: T) -> bool {
+        self.send(reply).await.is_ok()
     }
 }
 

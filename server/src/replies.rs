@@ -152,15 +152,15 @@ mod tests {
     use super::*;
 
     /// A reply of a given encoded size.
-    struct Sized(usize);
+    struct Weighing(usize);
 
-    impl ReplyBytes for Sized {
+    impl ReplyBytes for Weighing {
         fn reply_bytes(&self) -> usize {
             self.0
         }
     }
 
-    fn next(stream: &mut ReplyStream<Sized>) -> Option<usize> {
+    fn next(stream: &mut ReplyStream<Weighing>) -> Option<usize> {
         let waker = std::task::Waker::noop();
         match Pin::new(stream).poll_next(&mut Context::from_waker(waker)) {
             Poll::Ready(reply) => reply.map(|r| r.0),
@@ -173,25 +173,25 @@ mod tests {
         let (tx, mut rx) = channel();
         let large = OUTBOUND_BYTES as usize / 4;
         for _ in 0..4 {
-            assert!(tx.try_send(Sized(large)).is_ok());
+            assert!(tx.try_send(Weighing(large)).is_ok());
         }
         assert!(
-            matches!(tx.try_send(Sized(1)), Err(TrySendError::Full(_))),
+            matches!(tx.try_send(Weighing(1)), Err(TrySendError::Full(_))),
             "the bytes are taken"
         );
         assert_eq!(next(&mut rx), Some(large), "the client's side takes one");
         assert!(
-            tx.try_send(Sized(large)).is_ok(),
+            tx.try_send(Weighing(large)).is_ok(),
             "its bytes are free again"
         );
         for _ in 0..4 {
             assert_eq!(next(&mut rx), Some(large));
         }
         for _ in 0..OUTBOUND_REPLIES {
-            assert!(tx.try_send(Sized(10)).is_ok());
+            assert!(tx.try_send(Weighing(10)).is_ok());
         }
         assert!(
-            matches!(tx.try_send(Sized(10)), Err(TrySendError::Full(_))),
+            matches!(tx.try_send(Weighing(10)), Err(TrySendError::Full(_))),
             "so is the count"
         );
     }
@@ -200,12 +200,12 @@ mod tests {
     async fn a_reply_larger_than_the_budget_waits_for_an_empty_buffer() {
         let (tx, mut rx) = channel();
         let huge = OUTBOUND_BYTES as usize * 3;
-        assert!(tx.try_send(Sized(10)).is_ok());
+        assert!(tx.try_send(Weighing(10)).is_ok());
         assert!(matches!(
-            tx.try_send(Sized(huge)),
+            tx.try_send(Weighing(huge)),
             Err(TrySendError::Full(_))
         ));
-        let mut send = std::pin::pin!(tx.send(Sized(huge)));
+        let mut send = std::pin::pin!(tx.send(Weighing(huge)));
         assert!(
             poll_fn(|cx| Poll::Ready(send.as_mut().poll(cx).is_pending())).await,
             "it waits while another reply is held"
@@ -214,6 +214,6 @@ mod tests {
         assert!(send.await.is_ok(), "then it is taken alone");
         assert_eq!(next(&mut rx), Some(huge));
         drop(rx);
-        assert!(tx.send(Sized(1)).await.is_err(), "the stream is gone");
+        assert!(tx.send(Weighing(1)).await.is_err(), "the stream is gone");
     }
 }

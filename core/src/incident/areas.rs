@@ -7,8 +7,9 @@
 //! by at most `radius / M` in latitude and `radius / (N cos φ)` in longitude (M and N the WGS-84
 //! radii at the centre's latitude φ), which gives each area a box in degrees. Every area is entered in
 //! the grid cells its box (padded against rounding) overlaps, taken modulo 360° in longitude so that an
-//! area across the antimeridian is found from both sides; a lookup reads the one cell of the point and
-//! tests its candidates with [`distance_m`] itself, so the answer is the linear scan's, exactly.
+//! area across the antimeridian is found from both sides; a lookup reads the one cell of the point,
+//! skips the candidates whose box does not hold it and tests the others with [`distance_m`] itself,
+//! so the answer is the linear scan's, exactly.
 //! Areas the grid cannot hold cheaply are tested for every point, as the linear scan would: those
 //! whose box spans more than [`MAX_CELLS_PER_AREA`] cells (a centre within a few tenths of a degree of
 //! a pole, where the longitude extent reaches all the way round, or a radius far beyond the
@@ -70,8 +71,8 @@ pub struct AreaIndex {
     columns: i64,
     /// Each cell's run in `entries`: (start, length).
     cells: HashMap<u64, (u32, u32), BuildHasherDefault<CellHasher>>,
-    /// Indices into `areas`, grouped by cell.
-    entries: Vec<u32>,
+    /// The areas of each cell with their boxes, grouped by cell.
+    entries: Vec<Entry>,
     /// Areas tested for every point (see the module's documentation).
     everywhere: Vec<u32>,
 }
@@ -105,7 +106,9 @@ impl AreaIndex {
         for (key, area) in keyed {
             let run = cells.entry(key).or_insert((entries.len() as u32, 0));
             run.1 += 1;
-            entries.push(area);
+            if let Some(area_box) = boxes[area as usize] {
+                entries.push(Entry { area_box, area });
+            }
         }
         Self {
             areas,
@@ -147,9 +150,10 @@ impl AreaIndex {
         let row = (point.lat_deg / self.cell_deg).floor() as i64;
         let column = column_of(point.lon_deg, self.cell_deg, self.columns);
         match self.cells.get(&cell_key(row, column)) {
+            // The box first (a few comparisons): only a point inside it can be inside the area.
             Some(&(start, length)) => self.entries[start as usize..(start + length) as usize]
                 .iter()
-                .any(test),
+                .any(|entry| entry.area_box.may_hold(point) && test(&entry.area)),
             None => false,
         }
     }
@@ -163,6 +167,13 @@ impl AreaIndex {
     pub fn unindexed(&self) -> usize {
         self.everywhere.len()
     }
+}
+
+/// An area entered in a cell, with its box.
+#[derive(Clone, Copy, Debug)]
+struct Entry {
+    area_box: AreaBox,
+    area: u32,
 }
 
 /// An area's box in degrees: latitude bounds (not clipped at the poles), the longitude centre and
@@ -211,6 +222,21 @@ impl AreaBox {
             lon_centre: centre.lon_deg,
             lon_half,
         })
+    }
+
+    /// Whether `point` (valid) lies in the box, the longitude difference wrapped as
+    /// [`distance_m`] wraps it: a point outside is outside the area.
+    fn may_hold(&self, point: LatLon) -> bool {
+        if point.lat_deg < self.lat.0 || point.lat_deg > self.lat.1 {
+            return false;
+        }
+        let mut difference = point.lon_deg - self.lon_centre;
+        if difference > 180.0 {
+            difference -= 360.0;
+        } else if difference < -180.0 {
+            difference += 360.0;
+        }
+        difference.abs() <= self.lon_half
     }
 
     /// The cells it overlaps, or `None` when they are more than [`MAX_CELLS_PER_AREA`].
