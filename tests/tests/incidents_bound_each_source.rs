@@ -13,9 +13,7 @@ use std::time::{Duration, Instant};
 use spoofwatch_core::geo::{LatLon, displace_fix};
 use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
 use spoofwatch_proto::v1;
-use spoofwatch_tests::{
-    Connection, start_with_roles, stream_samples, token_sha256, track_samples,
-};
+use spoofwatch_tests::{Connection, start_with_roles, stream_samples, token_sha256, track_samples};
 
 /// The correlator's 1 s ticks, the alarm writer's batching, on shared cores.
 const INCIDENT_BOUND: Duration = Duration::from_secs(40);

@@ -108,7 +108,10 @@ async fn a_client_that_does_not_read_holds_a_bounded_reply_buffer() {
         if queued >= OUTBOUND_BYTES / 2.0 {
             break (queued, scored);
         }
-        assert!(Instant::now() < deadline, "queued {queued} B, scored {scored}");
+        assert!(
+            Instant::now() < deadline,
+            "queued {queued} B, scored {scored}"
+        );
         tokio::time::sleep(Duration::from_millis(100)).await;
     };
     assert!(queued <= OUTBOUND_BYTES, "{queued} B queued");
@@ -130,7 +133,11 @@ async fn a_client_that_does_not_read_holds_a_bounded_reply_buffer() {
             other => panic!("unexpected reply {other:?}"),
         }
     }
-    assert_eq!(seqs, (1..=BATCHES as u64).collect::<Vec<_>>(), "every reply, in order");
+    assert_eq!(
+        seqs,
+        (1..=BATCHES as u64).collect::<Vec<_>>(),
+        "every reply, in order"
+    );
     let smallest = sizes.iter().copied().min().expect("replies") as f64;
     assert!(
         smallest * 4.0 > f64::from(WINDOW),
