@@ -125,6 +125,9 @@ ROWS = [
     dict(id="model-step", group="model", kind="criterion", bench="model",
          title="model step, one vehicle; 1,000 vehicles one step; one training epoch",
          goal="step + evidence ≤ 5 µs", heavy=False),
+    dict(id="incident-areas", group="model", kind="criterion", bench="incident_areas",
+         title="a vehicle's step with the area prior's lookup, 0, 10 and 10,000 open incidents",
+         goal="10,000 open incidents cost within 10 % of none", heavy=False),
     bench_row("stream-100-rate-60k", "grpc", "100 streams, 60,000 samples/s offered, batches of 10",
               STREAM_60K, goal="≥ 50,000 samples/s, p99 ≤ 5 ms"),
     bench_row("saturation-100-batch-1", "grpc", "saturation, 100 streams, batches of 1",
@@ -494,6 +497,17 @@ CRITERION_NAMES = {
     "step_one_vehicle": "model step, one vehicle, µs",
     "step/1000_vehicles": "1,000 vehicles one step each, µs per vehicle",
     "train/epoch_5000_rows": "training epoch, µs per row",
+    "incident_areas_step/0": "step and lookup, no open incident, µs per sample",
+    "incident_areas_step/10": "step and lookup, 10 open incidents, µs per sample",
+    "incident_areas_step/10000": "step and lookup, 10,000 open incidents, µs per sample",
+    "incident_areas_lookup/10": "lookup alone, 10 open incidents, µs",
+    "incident_areas_lookup/10000": "lookup alone, 10,000 open incidents, µs",
+    "incident_areas_lookup/10000_linear": "lookup alone testing every area (no index), 10,000 open incidents, µs",
+}
+# Ratios of two criterion values a row reports besides them: (name, numerator, denominator).
+CRITERION_RATIOS = {
+    "incident_areas": [("10,000 open incidents over none, per sample",
+                        "incident_areas_step/10000", "incident_areas_step/0")],
 }
 
 
@@ -505,8 +519,9 @@ def run_criterion(env: Env, row: dict) -> dict:
     values = {}
     for bench, name in CRITERION_NAMES.items():
         new = target / bench / "new"
-        if not (new / "estimates.json").exists() or not bench.startswith(
-                {"evidence": ("evidence_builder/",), "model": ("step", "train/")}[row["bench"]]):
+        prefixes = {"evidence": ("evidence_builder/",), "model": ("step", "train/"),
+                    "incident_areas": ("incident_areas_",)}[row["bench"]]
+        if not (new / "estimates.json").exists() or not bench.startswith(prefixes):
             continue
         ns = json.loads((new / "estimates.json").read_text())["median"]["point_estimate"]
         throughput = json.loads((new / "benchmark.json").read_text()).get("throughput") or {}
@@ -514,6 +529,9 @@ def run_criterion(env: Env, row: dict) -> dict:
         values[name] = round(ns / elements / 1000, 4)
     if not values:
         raise RuntimeError(f"no criterion estimates under {target}")
+    for name, numerator, denominator in CRITERION_RATIOS.get(row["bench"], []):
+        ratio = values[CRITERION_NAMES[numerator]] / values[CRITERION_NAMES[denominator]]
+        values[name] = round(ratio, 3)
     return values
 
 

@@ -20,6 +20,8 @@ use serde::{Deserialize, Serialize};
 use crate::geo::{LatLon, displace_fix, wgs84_local_displacement};
 use crate::sample::readable;
 
+pub mod areas;
+
 /// Offsets shorter than this (m) say nothing about a false position or a translation: the dead
 /// reckoning alone is off by a few metres after a minute, and a false alarm's offset is that small.
 pub const MIN_OFFSET_M: f64 = 30.0;

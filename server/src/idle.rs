@@ -4,7 +4,7 @@
 //! hold a session's stream (and a task) forever.
 //!
 //! The same limit ends a stream whose client stops reading: a reply that cannot be handed on
-//! within it (the client grants no HTTP/2 window, so the call's small reply buffer stays full)
+//! within it (the client grants no HTTP/2 window, so the call's reply buffer stays full)
 //! ends the stream, which would otherwise hold its task, session and buffers for as long as the
 //! client keeps the connection open. A WatchAlarms watcher that leaves an event unread that long
 //! is let go too (it resumes with its cursor).
@@ -18,6 +18,37 @@ use std::time::Duration;
 use tokio::sync::mpsc::{Sender, error::TrySendError};
 use tokio::time::{Instant, Sleep};
 use tonic::{Status, Streaming};
+
+use crate::replies::{ReplyBytes, ReplySender};
+
+/// A call's reply buffer, as [`StreamIdle::send`] hands replies to it: a channel, or a detection
+/// stream's buffer bounded in bytes too ([`ReplySender`]).
+pub trait Outbound<T> {
+    /// Buffers `reply` if there is room now.
+    fn try_put(&self, reply: T) -> Result<(), TrySendError<T>>;
+    /// Buffers `reply` once there is room; `false` when the receiving side is gone.
+    fn put(&self, reply: T) -> impl Future<Output = bool> + Send;
+}
+
+impl<T: Send> Outbound<T> for Sender<T> {
+    fn try_put(&self, reply: T) -> Result<(), TrySendError<T>> {
+        self.try_send(reply)
+    }
+
+    async fn put(&self, reply: T) -> bool {
+        self.send(reply).await.is_ok()
+    }
+}
+
+impl<T: ReplyBytes + Send> Outbound<T> for ReplySender<T> {
+    fn try_put(&self, reply: T) -> Result<(), TrySendError<T>> {
+        self.try_send(reply)
+    }
+
+    async fn put(&self, reply: T) -> bool {
+        self.send(reply).await.is_ok()
+    }
+}
 
 /// The longest a client stream may stay silent.
 #[derive(Clone, Copy, Debug)]
@@ -45,14 +76,14 @@ impl StreamIdle {
     /// Hands `reply` to the call's reply buffer; `false` when the client went away or did not
     /// read for the whole limit (the stream must end). A buffer with room takes it at once,
     /// without arming a timer.
-    pub async fn send<T>(&self, tx: &Sender<T>, reply: T) -> bool {
-        let reply = match tx.try_send(reply) {
+    pub async fn send<T>(&self, tx: &impl Outbound<T>, reply: T) -> bool {
+        let reply = match tx.try_put(reply) {
             Ok(()) => return true,
             Err(TrySendError::Closed(_)) => return false,
             Err(TrySendError::Full(reply)) => reply,
         };
-        match tokio::time::timeout(self.0, tx.send(reply)).await {
-            Ok(sent) => sent.is_ok(),
+        match tokio::time::timeout(self.0, tx.put(reply)).await {
+            Ok(sent) => sent,
             Err(_) => {
                 tracing::info!(
                     limit_s = self.0.as_secs(),

@@ -24,7 +24,7 @@
 //! nor know how a session decides when an alarm starts or ends (`crate::detection`).
 
 use std::collections::{HashMap, VecDeque};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -37,6 +37,7 @@ use spoofwatch_core::severity::Severity;
 
 use crate::alarms::event::{self as alarm, Onset};
 use crate::error_chain::error_chain;
+use crate::fault_log::FaultLog;
 use crate::store::{
     AlarmEvent, AlarmEventKind, AlarmEventRow, SnapshotRow, Store, StoreError, first_seq_of_run,
     now_unix_ms,
@@ -53,8 +54,6 @@ const SNAPSHOT_BATCH: usize = 256;
 const MAX_LOGGED_UNSTORED: usize = 10_000;
 /// Retry delays after a failed batch: doubling from the first to the last.
 const BACKOFF: (Duration, Duration) = (Duration::from_millis(50), Duration::from_secs(5));
-/// While batches keep failing, the failure is logged again this often (never a silent loop).
-const FAILING_REMINDER: Duration = Duration::from_secs(60);
 
 /// Counters of the outbox, for logs, tests and metrics.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -121,7 +120,7 @@ pub struct SessionOutbox {
     dropped_onsets: AtomicU64,
     invalid: AtomicU64,
     failed_batches: AtomicU64,
-    failing: AtomicBool,
+    failing: FaultLog,
     /// Why the last batch was refused, while batches are refused (for the storage health's log).
     failure: Mutex<Option<String>>,
     snapshots_written: AtomicU64,
@@ -157,7 +156,7 @@ impl SessionOutbox {
             dropped_onsets: AtomicU64::new(0),
             invalid: AtomicU64::new(0),
             failed_batches: AtomicU64::new(0),
-            failing: AtomicBool::new(false),
+            failing: FaultLog::default(),
             failure: Mutex::new(None),
             snapshots_written: AtomicU64::new(0),
             run,
@@ -392,7 +391,7 @@ impl SessionOutbox {
             dropped_onsets: self.dropped_onsets.load(Ordering::Relaxed),
             invalid: self.invalid.load(Ordering::Relaxed),
             failed_batches: self.failed_batches.load(Ordering::Relaxed),
-            failing: self.failing.load(Ordering::Relaxed),
+            failing: self.failing.is_failing(),
             snapshot_backlog,
             snapshots_written: self.snapshots_written.load(Ordering::Relaxed),
             snapshot_lag: oldest_snapshot.map_or(Duration::ZERO, |since| since.elapsed()),
@@ -505,7 +504,6 @@ impl SessionOutbox {
     pub async fn run(&self, store: Store, stop: CancellationToken, grace: Duration) {
         let mut backoff = BACKOFF.0;
         let mut deadline = None;
-        let mut last_logged = None;
         loop {
             let (batch, snapshots, generations) = self.next_write();
             if batch.is_empty() && snapshots.is_empty() {
@@ -528,7 +526,7 @@ impl SessionOutbox {
                     if !batch.is_empty() {
                         self.stored.notify_one();
                     }
-                    if self.failing.swap(false, Ordering::Relaxed) {
+                    if self.failing.succeeded() {
                         self.set_failure(None);
                         tracing::info!(
                             failed_batches = self.failed_batches.load(Ordering::Relaxed),
@@ -541,11 +539,9 @@ impl SessionOutbox {
                     let failed = self.failed_batches.fetch_add(1, Ordering::Relaxed) + 1;
                     let reason = error_chain(&error);
                     self.set_failure(Some(reason.clone()));
-                    let started = !self.failing.swap(true, Ordering::Relaxed);
-                    let remind =
-                        last_logged.is_none_or(|at: Instant| at.elapsed() >= FAILING_REMINDER);
-                    if started || remind {
-                        last_logged = Some(Instant::now());
+                    // Once when the refusals start (the recovery is logged above): the backlog
+                    // and the failed batches go on in the metrics and storage health.
+                    if self.failing.failed() {
                         tracing::error!(
                             reason,
                             detail = ?error,

@@ -19,8 +19,8 @@ use std::sync::{Mutex, OnceLock, PoisonError};
 use std::time::Instant;
 
 use metrics::{
-    Counter, Histogram, counter, describe_counter, describe_gauge, describe_histogram, gauge,
-    histogram,
+    Counter, Gauge, Histogram, counter, describe_counter, describe_gauge, describe_histogram,
+    gauge, histogram,
 };
 use metrics_exporter_prometheus::{BuildError, Matcher, PrometheusBuilder, PrometheusHandle};
 use spoofwatch_core::severity::Severity;
@@ -58,6 +58,7 @@ pub const SNAPSHOT_STORED: &str = "spoofwatch_session_snapshots_stored_total";
 pub const SNAPSHOT_UNREAD: &str = "spoofwatch_session_snapshots_unread_total";
 pub const SESSIONS_OPEN: &str = "spoofwatch_sessions_open";
 pub const SESSIONS_CONNECTED: &str = "spoofwatch_sessions_connected";
+pub const REPLY_BYTES_QUEUED: &str = "spoofwatch_stream_reply_bytes_queued";
 pub const SESSIONS_EVICTED: &str = "spoofwatch_sessions_evicted_total";
 pub const SESSIONS_REFUSED: &str = "spoofwatch_sessions_refused_total";
 pub const JOBS: &str = "spoofwatch_jobs";
@@ -227,6 +228,11 @@ pub const METRICS: &[(&str, Kind, &str)] = &[
         "Vehicle sessions with a live StreamDetect stream.",
     ),
     (
+        REPLY_BYTES_QUEUED,
+        Kind::Gauge,
+        "Bytes of encoded replies the detection streams hold for their clients to read.",
+    ),
+    (
         SESSIONS_EVICTED,
         Kind::Counter,
         "Sessions evicted after being idle without a stream.",
@@ -354,6 +360,8 @@ struct BatchHandles {
 }
 
 static HOT: OnceLock<[BatchHandles; 3]> = OnceLock::new();
+/// [`REPLY_BYTES_QUEUED`]'s handle (set once the recorder is installed): it changes twice a reply.
+static REPLY_BYTES: OnceLock<Gauge> = OnceLock::new();
 
 /// Installs the Prometheus recorder (once per process; later calls return the same handle),
 /// describes every metric and sets the labelled counters to zero so that they are scraped before
@@ -419,6 +427,8 @@ pub fn install(
         counter!(name).increment(0);
     }
     gauge!(INCIDENT_CORRELATOR).increment(0.0);
+    let _ = REPLY_BYTES.set(gauge!(REPLY_BYTES_QUEUED));
+    gauge!(REPLY_BYTES_QUEUED).increment(0.0);
     for result in ["applied", "refused"] {
         counter!(IDENTITY_RELOADS, "result" => result).increment(0);
     }
@@ -456,6 +466,13 @@ pub fn batch_rejected(rpc: Rpc, status: &Status, samples: usize) {
 pub fn stream_failed(rpc: Rpc, status: &Status) {
     if status.code() == Code::OutOfRange {
         batch_rejected(rpc, status, 0);
+    }
+}
+
+/// The detection streams' reply buffers took (`bytes` > 0) or gave back (< 0) encoded bytes.
+pub fn reply_bytes_queued(bytes: f64) {
+    if let Some(gauge) = REPLY_BYTES.get() {
+        gauge.increment(bytes);
     }
 }
 

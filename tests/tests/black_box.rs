@@ -1,7 +1,8 @@
 //! The black-box tests, one module per behaviour (`tests/tests/<behaviour>.rs`), linked into one
 //! test binary: each binary links the whole server and client, so one link instead of one per
 //! file is most of the suite's build time. `metrics_endpoint` is its own binary: it checks exact
-//! counts, and the metrics recorder is per process, so servers of other tests would add to them.
+//! counts, and the metrics recorder is per process, so servers of other tests would add to them;
+//! so is `stream_replies_are_bounded`, which reads the gauge of every stream's queued replies.
 //!
 //! Run one behaviour with `cargo test -p spoofwatch-tests --test black_box <module>::`.
 
@@ -22,6 +23,7 @@ mod evaluation_jobs;
 mod examples_run_against_a_server;
 mod haproxy_routes_vehicles;
 mod incidents_across_replicas;
+mod incidents_bound_each_source;
 mod incidents_end;
 mod incidents_need_independent_evidence;
 mod invalid_input_is_refused;

@@ -346,8 +346,14 @@ async fn oversized_messages_are_refused_and_the_server_keeps_serving() {
         })
         .await
         .expect_err("a message above max_message_bytes is refused");
-    // tonic reports a decode-limit violation as OUT_OF_RANGE ("decoded message length too large").
+    // tonic reports a decode-limit violation as OUT_OF_RANGE, naming the size and the limit (what
+    // every client sees, and what the API guide documents: not RESOURCE_EXHAUSTED, which clients
+    // retry, as the same message would be refused again).
     assert_eq!(status.code(), Code::OutOfRange, "{status:?}");
+    assert!(
+        status.message().contains("the limit is: 2048 bytes"),
+        "{status:?}"
+    );
 
     let (mut stream, _) = start_stream(&clients, "oversized", "").await;
     stream

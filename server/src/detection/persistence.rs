@@ -25,6 +25,7 @@ use super::snapshot_reads::{SnapshotReads, Unread, UnreadSince};
 use super::state::SessionState;
 use crate::access::Credential;
 use crate::alarms::event::{Onset, OnsetWhy};
+use crate::fault_log::FaultLog;
 use crate::models::LoadedModel;
 use crate::outbox::SessionOutbox;
 use crate::store::{SnapshotRow, Store, StoredCredential, now_unix_ms};
@@ -80,6 +81,8 @@ pub(super) struct SessionKeeper {
     /// Stored snapshot versions (vehicle, written at) past the TTL, and when this process first
     /// saw each: they expire once seen unchanged long enough ([`Self::expire_snapshots`]).
     stale_seen: Mutex<HashMap<(String, i64), Instant>>,
+    /// Whether expiring snapshots meets a store fault (logged when it starts and when it clears).
+    expiry_fault: FaultLog,
 }
 
 impl SessionKeeper {
@@ -101,6 +104,7 @@ impl SessionKeeper {
             // limit, keeps its last copy).
             confirmation: idle + policy.every,
             stale_seen: Mutex::new(HashMap::new()),
+            expiry_fault: FaultLog::default(),
         }
     }
 
@@ -325,7 +329,9 @@ impl SessionKeeper {
         {
             Ok(stale) => stale,
             Err(error) => {
-                tracing::warn!(%error, "could not read old session snapshots; retrying later");
+                if self.expiry_fault.failed() {
+                    tracing::warn!(%error, "could not read old session snapshots; retrying later");
+                }
                 return 0;
             }
         };
@@ -336,8 +342,10 @@ impl SessionKeeper {
             let expired = match self.store.expire_snapshots(batch).await {
                 Ok(expired) => expired,
                 Err(error) => {
-                    tracing::warn!(%error, "could not expire old session snapshots; retrying later");
-                    break;
+                    if self.expiry_fault.failed() {
+                        tracing::warn!(%error, "could not expire old session snapshots; retrying later");
+                    }
+                    return ended;
                 }
             };
             let mut seen = self.stale_seen();
@@ -364,6 +372,9 @@ impl SessionKeeper {
                     .map(|open| (open.last_timestamp_s, open.peak, i64::from(open.samples)));
                 self.outbox.end_abandoned(alarm, last);
             }
+        }
+        if self.expiry_fault.succeeded() {
+            tracing::info!("session snapshots expire again: the store reads and writes them");
         }
         ended
     }

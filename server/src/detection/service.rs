@@ -6,8 +6,9 @@
 //! names must be one its caller may stream for ([`Caller::check_vehicle`]), and an open stream
 //! ends as soon as a change of the identity files no longer admits its caller
 //! ([`Caller::until_revoked`]: UNAUTHENTICATED or PERMISSION_DENIED). Each StreamDetect and
-//! StreamDetectFleet call runs in its own task that reads the inbound stream and writes replies into a small bounded channel: a slow client fills only its own
-//! channel, which pauses only its own task. Each batch, scored or refused, is counted here for the
+//! StreamDetectFleet call runs in its own task that reads the inbound stream and writes replies into
+//! a buffer bounded in replies and bytes (`crate::replies`): a slow client fills only its own
+//! buffer, which pauses only its own task. Each batch, scored or refused, is counted here for the
 //! metrics (`crate::telemetry`), once per batch.
 
 use std::pin::Pin;
@@ -23,8 +24,6 @@ use spoofwatch_proto::wire::ModelName;
 use spoofwatch_proto::wire::VehicleId;
 use spoofwatch_proto::wire::convert::{detection_to_proto, sample_from_proto, timestamp_from_ms};
 use spoofwatch_proto::wire::limits::{DEFAULT_SESSION_PAGE_SIZE, MAX_SESSION_PAGE_SIZE};
-use tokio::sync::mpsc;
-use tokio_stream::wrappers::ReceiverStream;
 use tokio_util::sync::CancellationToken;
 use tonic::{Request, Response, Status, Streaming};
 
@@ -40,11 +39,9 @@ use crate::edge::{
 };
 use crate::idle::{IdleClock, StreamIdle};
 use crate::models::service::ModelDeletion;
+use crate::replies::{self, ReplySender, ReplyStream};
 use crate::status::{invalid_field, shutting_down, to_rpc_status};
 use crate::telemetry::{self, Rpc};
-
-/// Replies buffered per stream before the stream's reader waits for the client.
-const OUTBOUND_BUFFER: usize = 16;
 
 type Reply = Result<v1::StreamDetectResponse, Status>;
 
@@ -304,7 +301,7 @@ async fn run_stream(
     sessions: Arc<SessionManager>,
     shutdown: CancellationToken,
     mut inbound: Streaming<v1::StreamDetectRequest>,
-    tx: mpsc::Sender<Reply>,
+    tx: ReplySender<Reply>,
     idle: StreamIdle,
     (routed, mut caller): (Vec<String>, Caller),
 ) {
@@ -495,7 +492,7 @@ async fn run_fleet_stream(
     sessions: Arc<SessionManager>,
     shutdown: CancellationToken,
     mut inbound: Streaming<v1::FleetBatch>,
-    tx: mpsc::Sender<FleetReply>,
+    tx: ReplySender<FleetReply>,
     idle: StreamIdle,
     mut caller: Caller,
 ) {
@@ -572,18 +569,18 @@ impl DetectionApi {
             Arc<SessionManager>,
             CancellationToken,
             Streaming<In>,
-            mpsc::Sender<Result<Out, Status>>,
+            ReplySender<Result<Out, Status>>,
             StreamIdle,
             Context,
         ) -> Fut,
-    ) -> Result<Response<ReceiverStream<Result<Out, Status>>>, Status>
+    ) -> Result<Response<ReplyStream<Result<Out, Status>>>, Status>
     where
         Fut: Future<Output = ()> + Send + 'static,
     {
         if self.shutdown.is_cancelled() {
             return Err(shutting_down());
         }
-        let (tx, rx) = mpsc::channel(OUTBOUND_BUFFER);
+        let (tx, rx) = replies::channel();
         tokio::spawn(run(
             Arc::clone(&self.sessions),
             self.shutdown.clone(),
@@ -592,7 +589,7 @@ impl DetectionApi {
             self.stream_idle,
             context,
         ));
-        Ok(Response::new(ReceiverStream::new(rx)))
+        Ok(Response::new(rx))
     }
 
     /// One Detect call: the request's samples and their decisions, or its refusal.
@@ -648,8 +645,8 @@ impl DetectionApi {
 
 #[tonic::async_trait]
 impl DetectionService for DetectionApi {
-    type StreamDetectStream = ReceiverStream<Reply>;
-    type StreamDetectFleetStream = ReceiverStream<FleetReply>;
+    type StreamDetectStream = ReplyStream<Reply>;
+    type StreamDetectFleetStream = ReplyStream<FleetReply>;
 
     async fn stream_detect_fleet(
         &self,

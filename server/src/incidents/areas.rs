@@ -1,32 +1,29 @@
 //! The open area incidents' areas as this server sees them, for the detector's prior (§11 of the
 //! detector specification): a sample inside one is scored as if its receiver had flagged spoofing.
 //! Every server refreshes them from the store once a second (the correlator's tick), whichever server
-//! holds the correlator's lease, and every session step reads them.
+//! holds the correlator's lease, and every session step reads them. The areas are held in the core's
+//! grid index ([`AreaIndex`]), built once per refresh that changes them, so a sample's lookup costs
+//! the same with ten thousand open incidents as with one.
 //!
-//! It owns the shared list and the point-in-area test. It must not decide what an incident is (the
-//! core's correlator) nor how the prior acts on a detection (the core's detector).
+//! It owns the shared index and its refresh. It must not decide what an incident is (the core's
+//! correlator), how the point-in-area test is answered (the core's index) nor how the prior acts on
+//! a detection (the core's detector).
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, RwLock};
 
 use spoofwatch_core::geo::LatLon;
-use spoofwatch_core::incident::{Incident, distance_m};
-
-/// One open incident's circle.
-#[derive(Clone, Copy, Debug, PartialEq)]
-struct Area {
-    centre: LatLon,
-    radius_m: f64,
-}
+use spoofwatch_core::incident::Incident;
+use spoofwatch_core::incident::areas::{Area, AreaIndex};
 
 /// The open incidents' areas, shared by the correlator loop (writer) and the sessions (readers).
 /// Disabled (`--incident-prior false`), it is always empty.
 #[derive(Debug, Default)]
 pub struct IncidentAreas {
     enabled: bool,
-    /// Whether `areas` is non-empty: the common case (no open incident) costs one atomic load.
+    /// Whether `index` is non-empty: the common case (no open incident) costs one atomic load.
     any: AtomicBool,
-    areas: RwLock<Arc<[Area]>>,
+    index: RwLock<Arc<AreaIndex>>,
 }
 
 impl IncidentAreas {
@@ -34,7 +31,7 @@ impl IncidentAreas {
         Self {
             enabled,
             any: AtomicBool::new(false),
-            areas: RwLock::new(Arc::from([])),
+            index: RwLock::new(Arc::new(AreaIndex::default())),
         }
     }
 
@@ -47,18 +44,16 @@ impl IncidentAreas {
             lat_deg: latitude_deg,
             lon_deg: longitude_deg,
         };
-        let areas = Arc::clone(&self.areas.read().unwrap_or_else(|p| p.into_inner()));
-        areas
-            .iter()
-            .any(|area| distance_m(area.centre, point) <= area.radius_m)
+        self.current().contains(point)
     }
 
-    /// Replaces the areas with those of `open` (the store's open incidents).
+    /// Replaces the areas with those of `open` (the store's open incidents). The index is rebuilt
+    /// only when they changed, and outside the lock: readers wait for a pointer swap at most.
     pub fn replace<'a>(&self, open: impl IntoIterator<Item = &'a Incident>) {
         if !self.enabled {
             return;
         }
-        let areas: Arc<[Area]> = open
+        let areas: Vec<Area> = open
             .into_iter()
             .filter(|incident| incident.is_open())
             .map(|incident| Area {
@@ -66,14 +61,22 @@ impl IncidentAreas {
                 radius_m: incident.radius_m,
             })
             .collect();
+        if self.current().areas() == areas.as_slice() {
+            return;
+        }
         let any = !areas.is_empty();
-        *self.areas.write().unwrap_or_else(|p| p.into_inner()) = areas;
+        let index = Arc::new(AreaIndex::new(areas));
+        *self.index.write().unwrap_or_else(|p| p.into_inner()) = index;
         self.any.store(any, Ordering::Release);
+    }
+
+    fn current(&self) -> Arc<AreaIndex> {
+        Arc::clone(&self.index.read().unwrap_or_else(|p| p.into_inner()))
     }
 
     #[cfg(test)]
     fn len(&self) -> usize {
-        self.areas.read().unwrap_or_else(|p| p.into_inner()).len()
+        self.current().len()
     }
 }
 

@@ -21,6 +21,7 @@ use super::records::{EvaluationRequest, JobRequest, Progress, to_json};
 use super::runner::{JobFailure, LiveJob, Runner};
 use crate::datasets::{Catalog, DatasetError};
 use crate::fault::Fault;
+use crate::fault_log::FaultLog;
 use crate::identity::new_id;
 use crate::models::{Registry, RegistryError};
 use crate::store::{
@@ -315,6 +316,8 @@ impl JobManager {
     pub async fn keep_leases(self: Arc<Self>, stop: CancellationToken) {
         let mut tick = tokio::time::interval(LEASE_RENEWAL);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        // Each store fault is logged once when it starts and once when it clears.
+        let (renewing, looking) = (FaultLog::default(), FaultLog::default());
         loop {
             tokio::select! {
                 _ = stop.cancelled() => return,
@@ -322,23 +325,43 @@ impl JobManager {
             }
             let store = &self.store;
             match store.renew_job_leases(&self.instance, now_unix_ms()).await {
-                Ok(owned) => self.apply_stored_state(&owned),
+                Ok(owned) => {
+                    if renewing.succeeded() {
+                        tracing::info!("the leases of this server's jobs are renewed again");
+                    }
+                    self.apply_stored_state(&owned);
+                }
                 Err(error) => {
-                    tracing::warn!(%error, "could not renew the leases of this server's jobs");
+                    if renewing.failed() {
+                        tracing::warn!(
+                            %error,
+                            "could not renew the leases of this server's jobs; retrying every second"
+                        );
+                    }
                     continue; // never judge others' leases while ours may be lapsing
                 }
             }
             let cutoff = now_unix_ms() - JOB_LEASE.as_millis() as i64;
-            match store
+            let found = store
                 .fail_abandoned_jobs(&abandoned(), &self.instance, false, cutoff)
-                .await
-            {
-                Ok(0) => {}
-                Ok(failed) => tracing::warn!(
-                    failed,
-                    "failed jobs whose server stopped renewing their lease"
-                ),
-                Err(error) => tracing::warn!(%error, "could not look for abandoned jobs"),
+                .await;
+            match found {
+                Ok(failed) => {
+                    if looking.succeeded() {
+                        tracing::info!("looking for abandoned jobs works again");
+                    }
+                    if failed > 0 {
+                        tracing::warn!(
+                            failed,
+                            "failed jobs whose server stopped renewing their lease"
+                        );
+                    }
+                }
+                Err(error) => {
+                    if looking.failed() {
+                        tracing::warn!(%error, "could not look for abandoned jobs; retrying every second");
+                    }
+                }
             }
         }
     }

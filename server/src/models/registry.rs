@@ -17,6 +17,7 @@ use tokio_util::sync::CancellationToken;
 
 use super::cache::ModelCache;
 use crate::fault::Fault;
+use crate::fault_log::FaultLog;
 use crate::identity::{new_id, sha256_hex};
 use crate::store::{ModelRow, ModelSource, NewModel, Page, PageRequest, Store, StoreError};
 use crate::work::HeavyWork;
@@ -405,12 +406,21 @@ impl Registry {
     pub async fn keep_following_active_model(&self, period: Duration, stop: CancellationToken) {
         let mut tick = tokio::time::interval(period);
         tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        let reading = FaultLog::default();
         loop {
             tokio::select! {
                 () = stop.cancelled() => break,
                 _ = tick.tick() => match self.follow_active_model().await {
-                    Ok(_) => {}
-                    Err(error) => tracing::debug!(%error, "could not read the active model; keeping this one"),
+                    Ok(_) => {
+                        if reading.succeeded() {
+                            tracing::info!("the active model can be read again");
+                        }
+                    }
+                    Err(error) => {
+                        if reading.failed() {
+                            tracing::warn!(%error, "could not read the active model; keeping this one until it can");
+                        }
+                    }
                 },
             }
         }
