@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Retrains the candidate default model on drives of the fleet distribution from this checkout, bit for bit.
+# Retrains the bundled default model (models/default.json) on drives of the fleet distribution from this
+# checkout, bit for bit.
 #
 #   1. `spoofwatch-lab experiment offsets`: trains the HO-LLN v3 detector (seed 42) on drives of the fleet
 #      distribution (every error source of a fleet in service: GNSS bias, multipath, outages with an offset
@@ -10,9 +11,9 @@
 #      validation hours of the fleet distribution and the suite's attacked validation drives, measures both
 #      severities on clean test fleets, and writes the model with its critical test.
 #
-# Usage: scripts/retrain-default.sh [OUT_DIR]   (default out/retrain-default; about an hour on 2 cores)
-# It writes OUT_DIR/default.json; `spoofwatch models import` serves it. It replaces models/default.json once
-# its critical level is checked through the server (docs/experiments.md, fleet-alarms).
+# Usage: scripts/retrain-default.sh [OUT_DIR]   (default out/retrain-default; about 25 minutes on 2 cores)
+# It writes OUT_DIR/default.json, which is models/default.json byte for byte when run from the commit
+# that bundled it (`cmp` them); `spoofwatch models import` serves it.
 # The artifact records no training wall time, the one field that differs between runs, so a second run
 # writes the same bytes: `cmp` the two runs' OUT_DIR/default.json.
 set -euo pipefail

@@ -13,7 +13,7 @@ use serde::{Deserialize, Serialize};
 use crate::alarm::{AlarmError, compare_mean_delay, lifecycle_input};
 use crate::lifecycle::{AlarmLifecycle, Lifecycle, OffsetSignal};
 use crate::metrics::{self, EventRules, Metrics, RateGroup, ScoredRow};
-use crate::severity::{CriticalTest, Escalation, Severity};
+use crate::severity::{CriticalTest, Escalation, HeldOffsetTest, Severity};
 
 /// Grid of k, the logit of p̂ above which evidence accumulates: p̂ from 0.5 to 0.9975.
 pub const REFERENCE_LOGIT_GRID: [f64; 6] = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0];
@@ -27,6 +27,16 @@ pub const CRITICAL_DECISIVE_S_GRID: [f64; 5] = [1.0, 2.0, 3.0, 5.0, 8.0];
 /// frozen) to be critical at once, tried on the test chosen from the other grids: 2–10 s of a
 /// repeated fix, within the 10 s a frozen fix must be paged in.
 pub const FROZEN_FIX_S_GRID: [f64; 4] = [0.0, 2.0, 4.0, 8.0];
+/// Grid of the held-jump path's gate, tried on the test chosen with its frozen-fix path: from the
+/// decisive gate of §4.2 (5σ) to the decisive path's lowest alternative (20σ).
+pub const HELD_JUMP_GATE_GRID: [f64; 5] = [25.0, 49.0, 100.0, 225.0, 400.0];
+/// Grid of the seconds a jump must have been held: within the 10 s a jump must be paged in.
+pub const HELD_JUMP_S_GRID: [f64; 4] = [1.0, 2.0, 4.0, 8.0];
+/// Grid of the held-offset path's gate, tried last: from the decisive gate of §4.2 to 20σ.
+pub const HELD_OFFSET_GATE_GRID: [f64; 5] = [25.0, 49.0, 100.0, 225.0, 400.0];
+/// Grid of the seconds an offset must have been held beyond the decisive gate: a drift's, within
+/// the 45 s a 1 m/s ramp must be paged in and the 90 s of a 0.5 m/s one.
+pub const HELD_OFFSET_S_GRID: [f64; 4] = [10.0, 20.0, 30.0, 60.0];
 
 /// The chosen test and what it achieves on the validation rows.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -71,12 +81,15 @@ fn fill_critical_rows(
 }
 
 /// Chooses the critical test from [`REFERENCE_LOGIT_GRID`] × [`THRESHOLD_GRID`] × [`GATE_GRID`] ×
-/// [`CRITICAL_DECISIVE_S_GRID`], then its frozen-fix path from [`FROZEN_FIX_S_GRID`] (or none), for
-/// the warning's θ and `lifecycle`: at most `per_hour` critical
+/// [`CRITICAL_DECISIVE_S_GRID`], then its frozen-fix path from [`FROZEN_FIX_S_GRID`] (or none), then
+/// its held-jump path from [`HELD_JUMP_GATE_GRID`] × [`HELD_JUMP_S_GRID`] (or none), then its
+/// held-offset path from [`HELD_OFFSET_GATE_GRID`] × [`HELD_OFFSET_S_GRID`] (or none), for the
+/// warning's θ and `lifecycle`: at most `per_hour` critical
 /// onsets per attack-free hour, pooled and at each sample rate with room for one; then the most
 /// attack events escalated, the shortest mean delay to escalation, the best F1 of the critical rows,
 /// the lowest FPR; ties go to the larger k, the larger h, the higher gate, the longer hold and the
-/// longer frozen-fix hold or none (the quieter test).
+/// longer frozen-fix hold or none, then each held path's higher gate, longer hold or none (the
+/// quieter test).
 pub fn choose_critical(
     rows: &[ScoredRow],
     offset: &[OffsetSignal],
@@ -120,6 +133,30 @@ pub fn choose_critical(
             consider(test, &mut best);
         }
     }
+    // The held-jump path on the test chosen so far: likewise.
+    if let Some((chosen, _)) = best {
+        for gate in HELD_JUMP_GATE_GRID {
+            for hold_s in HELD_JUMP_S_GRID {
+                let test = CriticalTest {
+                    held_jump: Some(HeldOffsetTest { gate, hold_s }),
+                    ..chosen
+                };
+                consider(test, &mut best);
+            }
+        }
+    }
+    // The held-offset path on the test chosen so far: likewise.
+    if let Some((chosen, _)) = best {
+        for gate in HELD_OFFSET_GATE_GRID {
+            for hold_s in HELD_OFFSET_S_GRID {
+                let test = CriticalTest {
+                    held_offset: Some(HeldOffsetTest { gate, hold_s }),
+                    ..chosen
+                };
+                consider(test, &mut best);
+            }
+        }
+    }
     let Some((test, _)) = best else {
         return Err(AlarmError::OverBudget {
             per_hour,
@@ -158,6 +195,8 @@ fn grid() -> impl Iterator<Item = CriticalTest> {
                             gate,
                             decisive_s,
                             frozen_fix_s: None,
+                            held_jump: None,
+                            held_offset: None,
                         })
                 })
             })
@@ -181,11 +220,22 @@ fn compare(a: (&CriticalTest, &Metrics), b: (&CriticalTest, &Metrics)) -> Orderi
         .then(a_test.gate.total_cmp(&b_test.gate))
         .then(a_test.decisive_s.total_cmp(&b_test.decisive_s))
         .then(frozen_fix_hold(a_test).total_cmp(&frozen_fix_hold(b_test)))
+        .then(compare_quietness(a_test.held_jump, b_test.held_jump))
+        .then(compare_quietness(a_test.held_offset, b_test.held_offset))
 }
 
 /// The frozen-fix path's hold, infinite without the path (the quietest).
 fn frozen_fix_hold(test: &CriticalTest) -> f64 {
     test.frozen_fix_s.unwrap_or(f64::INFINITY)
+}
+
+/// A held path's quietness: a higher gate is quieter, then a longer hold; no path is the quietest.
+fn compare_quietness(a: Option<HeldOffsetTest>, b: Option<HeldOffsetTest>) -> Ordering {
+    let order = |path: Option<HeldOffsetTest>| {
+        path.map_or((f64::INFINITY, f64::INFINITY), |p| (p.gate, p.hold_s))
+    };
+    let (a, b) = (order(a), order(b));
+    a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1))
 }
 
 #[cfg(test)]
@@ -308,6 +358,8 @@ mod tests {
                     anchored: true,
                     nis: if held.is_some() { 20.0 } else { 0.0 },
                     frozen_fix_s: held,
+                    held_jump_s: None,
+                    reacquiring: false,
                 }
             }));
             rows.extend(attack);
@@ -351,6 +403,80 @@ mod tests {
         let without = choose_critical(&rows, &plain, 0.8, &LIFECYCLE, 0.01, EventRules::Spec)
             .expect("a test");
         assert_eq!(without.test.frozen_fix_s, None, "{:?}", without.test);
+    }
+
+    #[test]
+    fn a_held_jump_path_is_added_when_it_escalates_more_within_the_budget() {
+        // Attacks: a jump at 100 s, held with a NIS of 60 while p̂ stays weak (logit 2.5). Clean
+        // hours: every ten minutes an offset that builds up to the same NIS for 20 s (dead
+        // reckoning), so no plain gate that escalates the jumps keeps the clean hours quiet.
+        let mut rows = Vec::new();
+        let mut offset = Vec::new();
+        let jump_at = 100.0;
+        for key in 0..10 {
+            let attack = trajectory(
+                key,
+                300,
+                |t| if t >= jump_at { 2.5 } else { -6.0 },
+                |t| t >= jump_at,
+            );
+            offset.extend(attack.iter().map(|row| {
+                let held = (row.time_s >= jump_at).then_some(row.time_s - jump_at);
+                OffsetSignal {
+                    held_s: held,
+                    displaced: held.is_some(),
+                    anchored: true,
+                    nis: if held.is_some() { 60.0 } else { 0.0 },
+                    frozen_fix_s: None,
+                    held_jump_s: held,
+                    reacquiring: false,
+                }
+            }));
+            rows.extend(attack);
+        }
+        let built_up =
+            |t: f64| (t % 600.0 >= 300.0 && t % 600.0 < 320.0).then_some(t % 600.0 - 300.0);
+        for key in 100..103 {
+            let clean = trajectory(
+                key,
+                3600,
+                |t| if built_up(t).is_some() { 3.0 } else { -6.0 },
+                |_| false,
+            );
+            offset.extend(clean.iter().map(|row| {
+                let held = built_up(row.time_s);
+                OffsetSignal {
+                    held_s: held,
+                    displaced: held.is_some(),
+                    anchored: true,
+                    nis: if held.is_some() { 60.0 } else { 0.0 },
+                    frozen_fix_s: None,
+                    held_jump_s: None,
+                    reacquiring: false,
+                }
+            }));
+            rows.extend(clean);
+        }
+        let chosen = choose_critical(&rows, &offset, 0.8, &LIFECYCLE, 0.01, EventRules::Spec)
+            .expect("a test");
+        assert_eq!(chosen.metrics.detected_events, 10, "{chosen:?}");
+        assert_eq!(chosen.metrics.false_alarm_onsets, 0, "{chosen:?}");
+        let jump = chosen.test.held_jump.expect("a held-jump path");
+        assert!(jump.gate <= 60.0 && jump.hold_s <= 8.0, "{jump:?}");
+        // Of the paths that catch every jump as soon, the quietest: the highest gate below 60.
+        assert_eq!(jump.gate, 49.0, "{jump:?}");
+        // Without held jumps in the data the path adds nothing, and no path (the quietest) wins.
+        let plain: Vec<OffsetSignal> = offset
+            .iter()
+            .map(|o| OffsetSignal {
+                held_jump_s: None,
+                reacquiring: false,
+                ..*o
+            })
+            .collect();
+        let without = choose_critical(&rows, &plain, 0.8, &LIFECYCLE, 0.01, EventRules::Spec)
+            .expect("a test");
+        assert_eq!(without.test.held_jump, None, "{:?}", without.test);
     }
 
     #[test]

@@ -167,6 +167,12 @@ impl Detector {
     }
 }
 
+/// Seconds after an outage (a new trajectory) during which an offset that begins to be held cannot
+/// page on its hold, however long it lasts: a receiver reacquiring converges over seconds, by steps
+/// of metres that the young anchors, with little dead reckoning behind them, test as held jumps.
+/// Warnings are unaffected, and the decisive gate and the frozen-fix path still page.
+pub const REACQUISITION_S: f64 = 30.0;
+
 /// The lifecycle's reading of the offset evidence (nothing without offset channels). A fix that
 /// has repeated exactly for [`FROZEN_FIX_S`] while the vehicle's own motion carried it beyond the
 /// follow gate counts as an offset held from then on: a frozen feed on a moving vehicle is as
@@ -187,6 +193,11 @@ pub fn offset_signal(evidence: &Evidence) -> OffsetSignal {
             anchored: true,
             nis: o.max_nis(),
             frozen_fix_s: frozen_fix,
+            held_jump_s: (o.arrived_by_step && o.held_step_m.is_some())
+                .then_some(beyond_gate)
+                .flatten(),
+            // When the offset now held began: the anchors' age less its hold.
+            reacquiring: evidence.trajectory > 0 && o.anchor_age_s - o.held_s < REACQUISITION_S,
         }
     })
 }
@@ -374,6 +385,46 @@ mod tests {
     }
 
     #[test]
+    fn only_an_offset_that_arrived_in_one_step_and_is_held_counts_as_a_held_jump() {
+        let with = |arrived_by_step: bool, held_step_m: Option<[f64; 2]>, nis: f64| {
+            let mut e = evidence(0.0, nis, 4.0);
+            if let Some(offset) = e.offset.as_mut() {
+                offset.arrived_by_step = arrived_by_step;
+                offset.held_step_m = held_step_m;
+            }
+            offset_signal(&e)
+        };
+        let jump = with(true, Some([20.0, 0.0]), 64.0);
+        assert_eq!((jump.held_jump_s, jump.held_s), (Some(4.0), Some(4.0)));
+        // Built up, not a jump: held as an offset only.
+        let built_up = with(false, None, 64.0);
+        assert_eq!((built_up.held_jump_s, built_up.held_s), (None, Some(4.0)));
+        // Arrived in one step on a vehicle whose dead reckoning cannot carry a held jump.
+        assert_eq!(with(true, None, 64.0).held_jump_s, None);
+        // Back below the decisive gate.
+        assert_eq!(with(true, Some([20.0, 0.0]), 20.0).held_jump_s, None);
+    }
+
+    #[test]
+    fn an_offset_that_began_while_the_receiver_reacquired_cannot_page_on_its_hold() {
+        let at = |trajectory: u32, anchor_age_s: f64, held_s: f64| {
+            let mut e = evidence(0.0, 64.0, held_s);
+            e.trajectory = trajectory;
+            if let Some(offset) = e.offset.as_mut() {
+                offset.anchor_age_s = anchor_age_s;
+            }
+            offset_signal(&e).reacquiring
+        };
+        // The session's first anchors: a jump 15 s into the session pages on its hold.
+        assert!(!at(0, 20.0, 5.0));
+        // After an outage: the offset began 15 s after the anchors were placed there, and it still
+        // cannot page 40 s later; one that began 30 s after them can.
+        assert!(at(1, 20.0, 5.0));
+        assert!(at(1, 55.0, 40.0));
+        assert!(!at(1, 50.0, 20.0));
+    }
+
+    #[test]
     fn a_held_jump_keeps_the_fix_displaced_and_explains_itself_with_its_own_offset() {
         let mut e = evidence(0.0, 1.0, 0.0);
         if let Some(offset) = e.offset.as_mut() {
@@ -381,6 +432,8 @@ mod tests {
             offset.held_step_m = Some([20.0, -1.0]);
         }
         assert!(offset_signal(&e).displaced);
+        // Below the decisive gate the held jump keeps the fix displaced but has no hold to page on.
+        assert_eq!(offset_signal(&e).held_jump_s, None);
         let why = Explanation::of(&e, false);
         assert_eq!(why.dominant, crate::explain::EvidenceKind::HeldOffset);
         assert_eq!(why.offset_m, [20.0, -1.0]);

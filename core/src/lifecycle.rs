@@ -87,6 +87,16 @@ pub struct OffsetSignal {
     /// critical test's frozen-fix path.
     #[serde(default)]
     pub frozen_fix_s: Option<f64>,
+    /// Seconds since a jump that arrived in one step, while it is held beyond the decisive gate
+    /// and the vehicle's dead reckoning can carry it (§4.2's held jump); `None` without one. For
+    /// the critical test's held-jump path.
+    #[serde(default)]
+    pub held_jump_s: Option<f64>,
+    /// The offset held now began less than [`REACQUISITION_S`](crate::detector::REACQUISITION_S)
+    /// after the anchors were placed after an outage, while the receiver's fixes may still have
+    /// been converging: the critical test's held paths do not count it.
+    #[serde(default)]
+    pub reacquiring: bool,
 }
 
 /// One sample's inputs to the lifecycle.
@@ -186,6 +196,11 @@ impl AlarmLifecycle {
                     probability_counts: !settling || input.offset.displaced,
                     nis: input.offset.nis,
                     frozen_fix_s: input.offset.frozen_fix_s,
+                    held_jump_s: input
+                        .offset
+                        .held_jump_s
+                        .filter(|_| !input.offset.reacquiring),
+                    held_offset_s: input.offset.held_s.filter(|_| !input.offset.reacquiring),
                 },
             )
         });
@@ -278,6 +293,8 @@ mod tests {
                         anchored: stream.anchored,
                         nis: 0.0,
                         frozen_fix_s: None,
+                        held_jump_s: None,
+                        reacquiring: false,
                     },
                     flag: FlagSignal::default(),
                 },
@@ -409,6 +426,8 @@ mod tests {
                 anchored: true,
                 nis: 0.0,
                 frozen_fix_s: None,
+                held_jump_s: None,
+                reacquiring: false,
             },
             flag: FlagSignal::default(),
         };
@@ -433,6 +452,8 @@ mod tests {
                 anchored: true,
                 nis: 0.0,
                 frozen_fix_s: None,
+                held_jump_s: None,
+                reacquiring: false,
             },
             flag: FlagSignal {
                 counts: true,
@@ -475,6 +496,8 @@ mod tests {
                             anchored: true,
                             nis: 0.0,
                             frozen_fix_s: None,
+                            held_jump_s: None,
+                            reacquiring: false,
                         },
                         flag: FlagSignal {
                             counts: t >= flag_from_s,
@@ -543,6 +566,8 @@ mod tests {
         gate: 100.0,
         decisive_s: 3.0,
         frozen_fix_s: None,
+        held_jump: None,
+        held_offset: None,
     };
 
     /// Feeds samples every second from 0 to `end_s` with p̂ = `probability(t)` (positive at
@@ -576,6 +601,8 @@ mod tests {
                             anchored: false,
                             nis: if held_s.is_some() { 400.0 } else { 0.0 },
                             frozen_fix_s: None,
+                            held_jump_s: None,
+                            reacquiring: false,
                         },
                         flag: FlagSignal {
                             counts: flag(t),
@@ -638,5 +665,52 @@ mod tests {
         let run = graded(120, |_| 0.01, None, |t| t >= 50.0);
         assert_eq!(run[50], (true, Some(Warning)));
         assert!(run[50..].iter().all(|&step| step == (true, Some(Warning))));
+    }
+
+    #[test]
+    fn a_held_jump_pages_unless_it_began_while_the_receiver_reacquired() {
+        use crate::severity::{HeldOffsetTest, Severity::Critical};
+        // A jump held from 10 s with a NIS of 64, far below the decisive gate of 100, and p̂ weak:
+        // only the held-jump path (gate 49, 2 s) can page it.
+        let test = CriticalTest {
+            held_jump: Some(HeldOffsetTest {
+                gate: 49.0,
+                hold_s: 2.0,
+            }),
+            ..CRITICAL
+        };
+        let first_critical = |reacquiring: bool| {
+            let mut alarm = AlarmLifecycle::default();
+            let mut escalation = Escalation::default();
+            (0..=30).map(f64::from).find(|&t| {
+                let held = (t >= 10.0).then_some(t - 10.0);
+                let open = alarm.update_graded(
+                    &LIFECYCLE,
+                    Some(&test),
+                    &mut escalation,
+                    &LifecycleInput {
+                        time_s: t,
+                        valid: true,
+                        trajectory_start: t == 0.0,
+                        positive: false,
+                        probability: 0.5,
+                        offset: OffsetSignal {
+                            held_s: held,
+                            displaced: held.is_some(),
+                            anchored: true,
+                            nis: if held.is_some() { 64.0 } else { 0.0 },
+                            frozen_fix_s: None,
+                            held_jump_s: held,
+                            reacquiring,
+                        },
+                        flag: FlagSignal::default(),
+                    },
+                );
+                escalation.severity(open) == Some(Critical)
+            })
+        };
+        assert_eq!(first_critical(false), Some(12.0));
+        // Begun while the receiver reacquired: the warning (decisive after 2 s) but no page.
+        assert_eq!(first_critical(true), None);
     }
 }

@@ -9,8 +9,12 @@
 //!   beyond the vehicle's own noise, or a fix frozen on a moving vehicle, whose offset grows with
 //!   every metre driven), or a fix frozen on a moving vehicle and displaced beyond the follow gate,
 //!   held for [`CriticalTest::frozen_fix_s`] (a receiver's fix jitters; a slow vehicle takes long
-//!   to carry a frozen fix to a large NIS). Their likelihood ratios are enormous, so the stricter
-//!   budget costs them little;
+//!   to carry a frozen fix to a large NIS), or a jump that arrived in one step and has been held
+//!   ([`CriticalTest::held_jump`]: a dead-reckoning error builds up, it does not step). Their
+//!   likelihood ratios are enormous, so the stricter budget costs them little;
+//! - when an offset, however it arrived, has been held beyond the decisive gate for tens of
+//!   seconds with a NIS still at a gate ([`CriticalTest::held_offset`]): a drift that has grown
+//!   past the dead-reckoning error it is tested against;
 //! - when a sequential test on p̂ crosses its threshold: S ← max(0, S + δ·(x − k)), x the logit of
 //!   p̂ capped at ±[`LOGIT_CAP`] (at most 0 while a trajectory settles and nothing vouches for p̂,
 //!   as for the warning), critical once S ≥ h. A CUSUM in seconds: the same drive at 1 Hz and at
@@ -92,6 +96,65 @@ pub struct CriticalTest {
     /// escalates only through the gate or the accumulated evidence (artifacts before this path).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub frozen_fix_s: Option<f64>,
+    /// A jump that arrived in one step (the offset went from within the follow gate to beyond the
+    /// decisive gate in one row, `docs/detector.md` §4.2) and has been held since: critical at once
+    /// when it has been held this long and its NIS is still at or beyond this gate. `None`: jumps
+    /// escalate only through [`CriticalTest::gate`] or the accumulated evidence (artifacts before
+    /// this path).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub held_jump: Option<HeldOffsetTest>,
+    /// An offset held beyond the decisive gate however it arrived (a drift's, once it has grown
+    /// past the dead-reckoning error): critical at once when held this long with its NIS still at or
+    /// beyond this gate. Its holds are a drift's, tens of seconds, where [`CriticalTest::gate`]'s
+    /// are a jump's. `None`: no such path (artifacts before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub held_offset: Option<HeldOffsetTest>,
+}
+
+/// A held-offset path of the critical test: the offset has stayed beyond the decisive gate for
+/// `hold_s` and its NIS is still at or beyond `gate`. On the held-jump path the gate may sit far
+/// below [`CriticalTest::gate`]: the NIS of an honest vehicle grows past it only by building up,
+/// as dead-reckoning error does, and a receiver's reflection steps back within seconds.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HeldOffsetTest {
+    /// The NIS (the larger anchor's) the held offset must still have.
+    pub gate: f64,
+    /// Seconds the offset must have stayed beyond the decisive gate (for a jump: since it arrived).
+    pub hold_s: f64,
+}
+
+impl HeldOffsetTest {
+    /// The gate within [`GATE_RANGE`], the hold within [0, an hour]; the error names `fields`
+    /// (the gate's, the hold's).
+    fn validate(&self, fields: [&'static str; 2]) -> Result<(), (&'static str, String)> {
+        if !(GATE_RANGE.0..=GATE_RANGE.1).contains(&self.gate) {
+            return Err((
+                fields[0],
+                format!(
+                    "must be in [{}, {}] (a NIS), got {}",
+                    GATE_RANGE.0,
+                    GATE_RANGE.1,
+                    readable(self.gate)
+                ),
+            ));
+        }
+        if !(0.0..=MAX_HOLD_S).contains(&self.hold_s) {
+            return Err((
+                fields[1],
+                format!(
+                    "must be finite and in [0, {MAX_HOLD_S}] s, got {}",
+                    readable(self.hold_s)
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Whether an offset held `held_s` (`None`: none held) with NIS `nis` passes this path.
+    fn passes(&self, held_s: Option<f64>, nis: f64) -> bool {
+        held_s.is_some_and(|held| held + TIME_SLACK_S >= self.hold_s) && nis >= self.gate
+    }
 }
 
 impl CriticalTest {
@@ -138,6 +201,14 @@ impl CriticalTest {
                 ),
             ));
         }
+        for (path, field) in [
+            (self.held_jump, ["held_jump.gate", "held_jump.hold_s"]),
+            (self.held_offset, ["held_offset.gate", "held_offset.hold_s"]),
+        ] {
+            if let Some(path) = path {
+                path.validate(field)?;
+            }
+        }
         if !(0.0..=MAX_HOLD_S).contains(&self.decisive_s) {
             return Err((
                 "decisive_s",
@@ -163,6 +234,12 @@ pub struct CriticalInput {
     pub nis: f64,
     /// Seconds a frozen fix on a moving vehicle has been held (`None`: no frozen fix).
     pub frozen_fix_s: Option<f64>,
+    /// Seconds since a jump that arrived in one step, while it is held beyond the decisive gate
+    /// (`None`: no such jump).
+    pub held_jump_s: Option<f64>,
+    /// Seconds the offset has stayed beyond the decisive gate, however it arrived (`None`: below
+    /// it).
+    pub held_offset_s: Option<f64>,
 }
 
 /// The test's per-vehicle state: the accumulated evidence S, the time it was last fed, and since
@@ -205,7 +282,13 @@ impl CriticalEvidence {
             (test.frozen_fix_s, input.frozen_fix_s),
             (Some(hold), Some(held)) if held + TIME_SLACK_S >= hold
         );
-        decisive || frozen || self.accumulated >= test.threshold
+        let jump = test
+            .held_jump
+            .is_some_and(|path| path.passes(input.held_jump_s, input.nis));
+        let held = test
+            .held_offset
+            .is_some_and(|path| path.passes(input.held_offset_s, input.nis));
+        decisive || frozen || jump || held || self.accumulated >= test.threshold
     }
 
     /// Forgets the evidence (an episode ended); the clock goes on.
@@ -281,6 +364,8 @@ mod tests {
         gate: 100.0,
         decisive_s: 3.0,
         frozen_fix_s: None,
+        held_jump: None,
+        held_offset: None,
     };
 
     fn input(time_s: f64, probability: f64) -> CriticalInput {
@@ -290,6 +375,8 @@ mod tests {
             probability_counts: true,
             nis: 0.0,
             frozen_fix_s: None,
+            held_jump_s: None,
+            held_offset_s: None,
         }
     }
 
@@ -446,7 +533,56 @@ mod tests {
             }),
             "frozen_fix_s"
         );
+        let jump = |gate, hold_s| CriticalTest {
+            held_jump: Some(HeldOffsetTest { gate, hold_s }),
+            ..TEST
+        };
+        assert_eq!(bad(jump(4.0, 2.0)), "held_jump.gate");
+        assert_eq!(bad(jump(100.0, f64::INFINITY)), "held_jump.hold_s");
+        assert!(jump(100.0, 2.0).validate().is_ok());
+        let held = CriticalTest {
+            held_offset: Some(HeldOffsetTest {
+                gate: 100.0,
+                hold_s: -1.0,
+            }),
+            ..TEST
+        };
+        assert_eq!(bad(held), "held_offset.hold_s");
         assert!(TEST.validate().is_ok());
+    }
+
+    #[test]
+    fn a_held_jump_is_critical_once_held_long_enough_beyond_its_gate() {
+        // p̂ weak and the NIS far below the decisive path's gate: only the held jump can escalate.
+        let test = CriticalTest {
+            gate: 1600.0,
+            held_jump: Some(HeldOffsetTest {
+                gate: 49.0,
+                hold_s: 2.0,
+            }),
+            ..TEST
+        };
+        let jump = |held: Option<f64>, nis: f64| CriticalInput {
+            nis,
+            held_jump_s: held,
+            ..input(0.0, 0.5)
+        };
+        let critical = |input| CriticalEvidence::default().update(&test, &input);
+        assert!(!critical(jump(Some(1.9), 64.0)), "not held long enough");
+        assert!(critical(jump(Some(2.0), 64.0)));
+        assert!(critical(jump(Some(2.0), 49.0)));
+        assert!(
+            !critical(jump(Some(30.0), 48.9)),
+            "no longer beyond its gate"
+        );
+        assert!(!critical(jump(None, 64.0)), "built up, not a jump");
+        // Without the path (artifacts before it) the same jump escalates nothing.
+        assert!(!CriticalEvidence::default().update(&TEST, &jump(Some(600.0), 99.0)));
+        let json = serde_json::to_value(TEST).expect("serialises");
+        assert!(json.get("held_jump").is_none());
+        let json = serde_json::to_value(test).expect("serialises");
+        assert_eq!(json["held_jump"]["gate"], 49.0);
+        assert_eq!(json["held_jump"]["hold_s"], 2.0);
     }
 
     #[test]
@@ -477,6 +613,37 @@ mod tests {
             serde_json::to_value(with_path).expect("serialises")["frozen_fix_s"],
             2.0
         );
+    }
+
+    #[test]
+    fn an_offset_held_long_enough_is_critical_however_it_arrived() {
+        let test = CriticalTest {
+            gate: 1600.0,
+            held_offset: Some(HeldOffsetTest {
+                gate: 100.0,
+                hold_s: 30.0,
+            }),
+            ..TEST
+        };
+        let held = |held: Option<f64>, nis: f64| CriticalInput {
+            nis,
+            held_offset_s: held,
+            ..input(0.0, 0.5)
+        };
+        let critical = |input| CriticalEvidence::default().update(&test, &input);
+        assert!(!critical(held(Some(29.0), 400.0)), "not held long enough");
+        assert!(critical(held(Some(30.0), 100.0)));
+        assert!(!critical(held(Some(60.0), 99.0)), "below its gate now");
+        assert!(
+            !critical(held(None, 400.0)),
+            "not held beyond the decisive gate"
+        );
+        // The held-jump path does not count a built-up offset, nor this path a jump's own hold.
+        assert!(!critical(CriticalInput {
+            held_jump_s: Some(60.0),
+            ..held(None, 400.0)
+        }));
+        assert!(!CriticalEvidence::default().update(&TEST, &held(Some(600.0), 99.0)));
     }
 
     #[test]

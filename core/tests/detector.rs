@@ -89,6 +89,8 @@ fn artifact_of(
             gate: 100.0,
             decisive_s: 3.0,
             frozen_fix_s: None,
+            held_jump: None,
+            held_offset: None,
         }),
         provenance: Provenance::default(),
     })

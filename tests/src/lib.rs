@@ -472,6 +472,8 @@ pub const TEST_CRITICAL: CriticalTest = CriticalTest {
     gate: 400.0,
     decisive_s: 1.0,
     frozen_fix_s: None,
+    held_jump: None,
+    held_offset: None,
 };
 
 /// The bundled default model's artifact with [`TEST_CRITICAL`] in place of its own critical level.

@@ -113,7 +113,11 @@ impl Offline {
                 test.reference_logit,
                 test.threshold,
                 test.decisive_s,
-                frozen_fix_path(test.frozen_fix_s)
+                critical_paths(
+                    test.frozen_fix_s,
+                    test.held_jump.map(|j| (j.gate, j.hold_s)),
+                    test.held_offset.map(|h| (h.gate, h.hold_s))
+                )
             ),
             None => println!("critical test: none (the model raises warnings only)"),
         }
@@ -186,9 +190,25 @@ fn write_rows(path: &PathBuf, evaluation: &Evaluation) -> Result<()> {
     Ok(())
 }
 
-/// The critical test's frozen-fix path as printed after its other parameters: empty without one.
-pub fn frozen_fix_path(hold_s: Option<f64>) -> String {
-    hold_s.map_or_else(String::new, |hold| {
-        format!(", a frozen fix held {hold} s beyond its first 2 s")
-    })
+/// The critical test's extra paths as printed after its other parameters: a frozen fix's hold
+/// (seconds beyond its first 2 s), a held jump's and a held offset's (gate NIS, hold in seconds);
+/// empty without any.
+pub fn critical_paths(
+    frozen_fix_s: Option<f64>,
+    held_jump: Option<(f64, f64)>,
+    held_offset: Option<(f64, f64)>,
+) -> String {
+    let mut paths = String::new();
+    if let Some(hold) = frozen_fix_s {
+        paths.push_str(&format!(
+            ", a frozen fix held {hold} s beyond its first 2 s"
+        ));
+    }
+    if let Some((gate, hold)) = held_jump {
+        paths.push_str(&format!(", a jump held {hold} s at NIS {gate} or more"));
+    }
+    if let Some((gate, hold)) = held_offset {
+        paths.push_str(&format!(", an offset held {hold} s at NIS {gate} or more"));
+    }
+    paths
 }

@@ -569,7 +569,11 @@ fn render_markdown(report: &Report) -> String {
         c.threshold,
         c.gate,
         c.decisive_s,
-        spoofwatch_client::cli::evaluate::frozen_fix_path(c.frozen_fix_s)
+        spoofwatch_client::cli::evaluate::critical_paths(
+            c.frozen_fix_s,
+            c.held_jump.map(|j| (j.gate, j.hold_s)),
+            c.held_offset.map(|h| (h.gate, h.hold_s))
+        )
     );
     if let Some(selection) = &report.selection {
         let _ = writeln!(

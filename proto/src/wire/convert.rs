@@ -11,7 +11,7 @@ use spoofwatch_core::evidence::offset::OffsetEvidence;
 use spoofwatch_core::explain::{EvidenceKind, Explanation};
 use spoofwatch_core::metrics::Metrics;
 use spoofwatch_core::sample::{FieldViolation, JammingState, ReceiverState, Sample, SpoofingState};
-use spoofwatch_core::severity::{CriticalTest, Severity};
+use spoofwatch_core::severity::{CriticalTest, HeldOffsetTest, Severity};
 
 use crate::v1;
 
@@ -244,6 +244,16 @@ pub fn critical_test_to_proto(test: &CriticalTest) -> v1::CriticalTest {
         gate: test.gate,
         decisive_s: test.decisive_s,
         frozen_fix_s: test.frozen_fix_s,
+        held_jump: test.held_jump.map(held_offset_to_proto),
+        held_offset: test.held_offset.map(held_offset_to_proto),
+    }
+}
+
+/// A held-offset path of a critical test on the wire.
+fn held_offset_to_proto(path: HeldOffsetTest) -> v1::HeldOffsetTest {
+    v1::HeldOffsetTest {
+        gate: path.gate,
+        hold_s: path.hold_s,
     }
 }
 

@@ -103,7 +103,11 @@ pub fn severities(m: &v1::Model) -> String {
             c.threshold,
             c.gate,
             c.decisive_s,
-            crate::cli::evaluate::frozen_fix_path(c.frozen_fix_s)
+            crate::cli::evaluate::critical_paths(
+                c.frozen_fix_s,
+                c.held_jump.map(|j| (j.gate, j.hold_s)),
+                c.held_offset.map(|h| (h.gate, h.hold_s))
+            )
         ),
         None => "warning only (no critical level: nothing it raises pages)".to_string(),
     }
