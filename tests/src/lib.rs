@@ -11,6 +11,7 @@
 //! the certificates of the TLS tests.
 
 pub mod balancer;
+pub mod incidents;
 pub mod pki;
 
 use std::net::SocketAddr;

@@ -8,11 +8,12 @@
 //! receiver alarms yet, open nothing with it, and the incident that opens there once two more
 //! receivers alarm holds the receivers alone.
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use spoofwatch_core::geo::{LatLon, displace_fix};
 use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
 use spoofwatch_proto::v1;
+use spoofwatch_tests::incidents::{incident_vehicles, wait_for_incidents};
 use spoofwatch_tests::{Connection, start_with_roles, stream_samples, token_sha256, track_samples};
 
 /// The correlator's 1 s ticks, the alarm writer's batching, on shared cores.
@@ -69,43 +70,6 @@ async fn stream_captured(connection: &Connection, id: &str, start: LatLon, seed:
     stream_samples(connection, id, true, 1, &samples).await;
 }
 
-async fn incidents(reader: &Connection) -> Vec<v1::Incident> {
-    reader
-        .alarms()
-        .list_incidents(v1::ListIncidentsRequest::default())
-        .await
-        .expect("ListIncidents")
-        .into_inner()
-        .incidents
-}
-
-/// Waits until the stored incidents satisfy `done`; returns them.
-async fn wait_for_incidents(
-    reader: &Connection,
-    what: &str,
-    done: impl Fn(&[v1::Incident]) -> bool,
-) -> Vec<v1::Incident> {
-    let deadline = Instant::now() + INCIDENT_BOUND;
-    loop {
-        let stored = incidents(reader).await;
-        if done(&stored) {
-            return stored;
-        }
-        assert!(Instant::now() < deadline, "{what}: {stored:?}");
-        tokio::time::sleep(Duration::from_millis(250)).await;
-    }
-}
-
-fn vehicles(incident: &v1::Incident) -> Vec<&str> {
-    let mut ids: Vec<&str> = incident
-        .vehicles
-        .iter()
-        .map(|v| v.vehicle_id.as_str())
-        .collect();
-    ids.sort_unstable();
-    ids
-}
-
 fn has_vehicle(incident: &v1::Incident, id: &str) -> bool {
     incident.vehicles.iter().any(|v| v.vehicle_id == id)
 }
@@ -126,13 +90,16 @@ async fn a_source_takes_part_in_at_most_its_bound_of_open_incidents() {
         stream_captured(&relay, &format!("rl-{k}a"), place(k, e1, n1), seed + 1).await;
         stream_captured(&relay, &format!("rl-{k}b"), place(k, e2, n2), seed + 2).await;
     }
-    let stored = wait_for_incidents(&reader, "the bridge's three incidents", |stored| {
-        stored.len() == BOUND && stored.iter().all(|i| i.vehicles.len() == 3)
-    })
+    let stored = wait_for_incidents(
+        &reader,
+        "the bridge's three incidents",
+        INCIDENT_BOUND,
+        |stored| stored.len() == BOUND && stored.iter().all(|i| i.vehicles.len() == 3),
+    )
     .await;
     for (k, incident) in stored.iter().enumerate() {
         assert_eq!(
-            vehicles(incident),
+            incident_vehicles(incident),
             [format!("gw-{k}"), format!("rl-{k}a"), format!("rl-{k}b")],
             "{stored:?}"
         );
@@ -145,18 +112,21 @@ async fn a_source_takes_part_in_at_most_its_bound_of_open_incidents() {
         let id = format!("rl-{k}{}", ['a', 'b', 'c'][j]);
         stream_captured(&relay, &id, place(k, *east, *north), 40 + j as u64).await;
     }
-    wait_for_incidents(&reader, "the receivers' incident of area 3", |stored| {
-        stored.len() == BOUND + 1 && stored[BOUND].vehicles.len() == 3
-    })
+    wait_for_incidents(
+        &reader,
+        "the receivers' incident of area 3",
+        INCIDENT_BOUND,
+        |stored| stored.len() == BOUND + 1 && stored[BOUND].vehicles.len() == 3,
+    )
     .await;
     stream_captured(&bridge, "gw-3", place(k, 4_500.0, -2_000.0), 50).await;
     stream_captured(&relay, "rl-3d", place(k, 4_500.0, 5_000.0), 51).await;
-    let stored = wait_for_incidents(&reader, "rl-3d joins", |stored| {
+    let stored = wait_for_incidents(&reader, "rl-3d joins", INCIDENT_BOUND, |stored| {
         stored.len() == BOUND + 1 && has_vehicle(&stored[BOUND], "rl-3d")
     })
     .await;
     assert_eq!(
-        vehicles(&stored[BOUND]),
+        incident_vehicles(&stored[BOUND]),
         ["rl-3a", "rl-3b", "rl-3c", "rl-3d"],
         "the bridge at its bound joins no fourth incident"
     );
@@ -169,12 +139,15 @@ async fn a_source_takes_part_in_at_most_its_bound_of_open_incidents() {
     stream_captured(&relay, "rl-4a", place(k, 4_500.0, 7_794.0), 62).await;
     stream_captured(&relay, "rl-4b", place(k, 4_500.0, 2_000.0), 63).await;
     stream_captured(&relay, "rl-4c", place(k, 2_000.0, 4_000.0), 64).await;
-    let stored = wait_for_incidents(&reader, "the receivers' incident of area 4", |stored| {
-        stored.len() == BOUND + 2 && stored[BOUND + 1].vehicles.len() == 3
-    })
+    let stored = wait_for_incidents(
+        &reader,
+        "the receivers' incident of area 4",
+        INCIDENT_BOUND,
+        |stored| stored.len() == BOUND + 2 && stored[BOUND + 1].vehicles.len() == 3,
+    )
     .await;
     assert_eq!(
-        vehicles(&stored[BOUND + 1]),
+        incident_vehicles(&stored[BOUND + 1]),
         ["rl-4a", "rl-4b", "rl-4c"],
         "the bridge at its bound opens none"
     );

@@ -15,13 +15,14 @@
 //!   correlator, wherever its lease is, forgets it: the same vehicles' new alarms open a new one.
 
 use std::path::Path;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use spoofwatch_core::geo::{LatLon, displace_fix};
 use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
 use spoofwatch_proto::v1;
 use spoofwatch_server::config::Config;
 use spoofwatch_server::store::test_database::TestDatabase;
+use spoofwatch_tests::incidents::{list_incidents, wait_for_incidents};
 use spoofwatch_tests::{
     ADMIN_TOKEN, ConnectOptions, Connection, DetectStream, TestServer, stream_samples, test_config,
     token_sha256, track_samples,
@@ -118,32 +119,6 @@ fn spoofed(id: &str, centre: LatLon, k: usize) -> Vec<v1::Sample> {
     )
 }
 
-async fn incidents(reader: &Connection) -> Vec<v1::Incident> {
-    reader
-        .alarms()
-        .list_incidents(v1::ListIncidentsRequest::default())
-        .await
-        .expect("ListIncidents")
-        .into_inner()
-        .incidents
-}
-
-async fn wait_for_incidents(
-    reader: &Connection,
-    what: &str,
-    done: impl Fn(&[v1::Incident]) -> bool,
-) -> Vec<v1::Incident> {
-    let deadline = Instant::now() + BOUND;
-    loop {
-        let stored = incidents(reader).await;
-        if done(&stored) {
-            return stored;
-        }
-        assert!(Instant::now() < deadline, "{what}: {stored:?}");
-        tokio::time::sleep(Duration::from_millis(250)).await;
-    }
-}
-
 /// Every stored incident event, as (kind, incident).
 async fn replayed(reader: &Connection) -> Vec<(i32, v1::Incident)> {
     let mut stream = reader
@@ -189,7 +164,7 @@ async fn an_incident_ends_once_its_disconnected_vehicles_alarms_expire() {
     let reader = server.connection(Some("dashboard-token")).await;
     spoof_three(&server, LatLon::new(32.3, -110.8), "a").await;
 
-    let ended = wait_for_incidents(&reader, "the incident ends on its own", |stored| {
+    let ended = wait_for_incidents(&reader, "the incident ends on its own", BOUND, |stored| {
         stored.len() == 1 && !stored[0].open
     })
     .await;
@@ -286,7 +261,7 @@ async fn an_admin_dismisses_an_incident_and_its_area_prior_stops() {
     let before = probe(&admin, "probe-before", inside).await;
 
     spoof_three(&server, centre, "b").await;
-    let opened = wait_for_incidents(&reader, "the incident opens", |stored| {
+    let opened = wait_for_incidents(&reader, "the incident opens", BOUND, |stored| {
         stored.len() == 1 && stored[0].vehicles.len() == 3
     })
     .await;
@@ -330,7 +305,10 @@ async fn an_admin_dismisses_an_incident_and_its_area_prior_stops() {
     );
     let unknown = end(&admin, id + 41, "no such").await.expect_err("unknown");
     assert_eq!(unknown.code(), Code::NotFound);
-    assert!(incidents(&reader).await[0].open, "nothing refused ended it");
+    assert!(
+        list_incidents(&reader).await[0].open,
+        "nothing refused ended it"
+    );
 
     let reason = "fabricated: two test credentials replayed one recording";
     let dismissed = end(&admin, id, reason)
@@ -376,7 +354,7 @@ async fn an_admin_dismisses_an_incident_and_its_area_prior_stops() {
         .expect("GetIncident")
         .into_inner();
     assert_eq!(stored, dismissed);
-    assert_eq!(incidents(&reader).await.len(), 1, "no new incident");
+    assert_eq!(list_incidents(&reader).await.len(), 1, "no new incident");
     let listed = alarms(&reader).await;
     for member in &stored.vehicles {
         let alarm = listed
@@ -411,7 +389,7 @@ async fn a_dismissal_through_one_replica_ends_the_incident_on_both() {
     let inside = place(centre, 4_500.0, 2_598.0);
     let before = probe(&admin_a, "probe-a-before", inside).await;
     spoof_three(&a, centre, "r").await;
-    let opened = wait_for_incidents(&admin_b, "the incident opens", |stored| {
+    let opened = wait_for_incidents(&admin_b, "the incident opens", BOUND, |stored| {
         stored.len() == 1 && stored[0].vehicles.len() == 3
     })
     .await;
@@ -447,12 +425,14 @@ async fn a_dismissal_through_one_replica_ends_the_incident_on_both() {
         before,
         "replica A no longer scores with the dismissed incident's area"
     );
-    assert_eq!(incidents(&admin_a).await, [dismissed]);
+    assert_eq!(list_incidents(&admin_a).await, [dismissed]);
 
     // The same vehicles spoofed again (fresh sessions): new alarms, a new incident.
     spoof_three(&a, centre, "r").await;
-    let stored =
-        wait_for_incidents(&admin_b, "a new incident opens", |stored| stored.len() == 2).await;
+    let stored = wait_for_incidents(&admin_b, "a new incident opens", BOUND, |stored| {
+        stored.len() == 2
+    })
+    .await;
     assert!(
         stored[1].open && stored[1].vehicles.len() == 3,
         "{stored:?}"

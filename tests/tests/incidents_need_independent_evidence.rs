@@ -10,11 +10,12 @@
 //!   it but cannot walk it: its centre stays where its first members were captured and its area
 //!   within the configured radius plus the margin.
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use spoofwatch_core::geo::{LatLon, displace_fix, wgs84_local_displacement};
 use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
 use spoofwatch_proto::v1;
+use spoofwatch_tests::incidents::{incident_vehicles, list_incidents, wait_for_incidents};
 use spoofwatch_tests::{
     Connection, TestServer, start_with_roles, stream_samples, token_sha256, track_samples,
 };
@@ -81,43 +82,6 @@ async fn stream_captured(connection: &Connection, id: &str, start: LatLon, seed:
     stream_samples(connection, id, true, 1, &captured(id, start, seed)).await;
 }
 
-async fn incidents(reader: &Connection) -> Vec<v1::Incident> {
-    reader
-        .alarms()
-        .list_incidents(v1::ListIncidentsRequest::default())
-        .await
-        .expect("ListIncidents")
-        .into_inner()
-        .incidents
-}
-
-/// Waits until the stored incidents satisfy `done`; returns them.
-async fn wait_for_incidents(
-    reader: &Connection,
-    what: &str,
-    done: impl Fn(&[v1::Incident]) -> bool,
-) -> Vec<v1::Incident> {
-    let deadline = Instant::now() + INCIDENT_BOUND;
-    loop {
-        let stored = incidents(reader).await;
-        if done(&stored) {
-            return stored;
-        }
-        assert!(Instant::now() < deadline, "{what}: {stored:?}");
-        tokio::time::sleep(Duration::from_millis(250)).await;
-    }
-}
-
-fn vehicles(incident: &v1::Incident) -> Vec<&str> {
-    let mut ids: Vec<&str> = incident
-        .vehicles
-        .iter()
-        .map(|v| v.vehicle_id.as_str())
-        .collect();
-    ids.sort_unstable();
-    ids
-}
-
 fn centre(incident: &v1::Incident) -> LatLon {
     LatLon::new(incident.centre_latitude_deg, incident.centre_longitude_deg)
 }
@@ -166,18 +130,21 @@ async fn one_credential_opens_no_incident_and_independent_ones_do() {
 
     // The correlator reads the alarms in the order they were stored: once B's and C's incidents
     // are open, A's alarms were read too.
-    wait_for_incidents(&reader, "the incidents of areas B and C", |stored| {
-        stored.len() >= 2 && stored.iter().all(|i| i.vehicles.len() == 3)
-    })
+    wait_for_incidents(
+        &reader,
+        "the incidents of areas B and C",
+        INCIDENT_BOUND,
+        |stored| stored.len() >= 2 && stored.iter().all(|i| i.vehicles.len() == 3),
+    )
     .await;
     tokio::time::sleep(Duration::from_secs(2)).await;
-    let stored = incidents(&reader).await;
+    let stored = list_incidents(&reader).await;
     assert_eq!(
         stored.len(),
         2,
         "no incident of the gateway alone: {stored:?}"
     );
-    assert_eq!(vehicles(&stored[0]), ["car-b", "gw-b0", "gw-b1"]);
+    assert_eq!(incident_vehicles(&stored[0]), ["car-b", "gw-b0", "gw-b1"]);
     assert_eq!(stored[0].sources, 2);
     let mut credentials = stored[0].credentials.clone();
     credentials.sort();
@@ -188,7 +155,7 @@ async fn one_credential_opens_no_incident_and_independent_ones_do() {
             token_credential("car-b", "car-b-token"),
         ]
     );
-    assert_eq!(vehicles(&stored[1]), ["rl-c0", "rl-c1", "rl-c2"]);
+    assert_eq!(incident_vehicles(&stored[1]), ["rl-c0", "rl-c1", "rl-c2"]);
     assert_eq!(stored[1].sources, 3, "each receiver its own source");
     assert_eq!(
         stored[1].credentials,
@@ -234,23 +201,26 @@ async fn chained_joins_cannot_walk_an_incident_beyond_its_radius() {
         let id = format!("rl-d{k}");
         stream_captured(&relay, &id, place(origin, east, north), 40 + k as u64).await;
     }
-    let opened = wait_for_incidents(&reader, "the incident of three receivers", |stored| {
-        stored.len() == 1 && stored[0].vehicles.len() == 3
-    })
+    let opened = wait_for_incidents(
+        &reader,
+        "the incident of three receivers",
+        INCIDENT_BOUND,
+        |stored| stored.len() == 1 && stored[0].vehicles.len() == 3,
+    )
     .await;
     let first_centre = centre(&opened[0]);
 
     // Each made-up vehicle 9 km east of the centre as it is by then, after the previous one joined.
     for k in 1..=10 {
-        let now = centre(&incidents(&reader).await[0]);
+        let now = centre(&list_incidents(&reader).await[0]);
         let id = format!("rl-made-up-{k}");
         stream_captured(&relay, &id, place(now, 9_000.0, 0.0), 100 + k).await;
-        wait_for_incidents(&reader, &format!("{id} joins"), |stored| {
+        wait_for_incidents(&reader, &format!("{id} joins"), INCIDENT_BOUND, |stored| {
             stored[0].vehicles.iter().any(|v| v.vehicle_id == id)
         })
         .await;
     }
-    let stored = incidents(&reader).await;
+    let stored = list_incidents(&reader).await;
     assert_eq!(stored.len(), 1, "{stored:?}");
     let incident = &stored[0];
     assert_eq!(incident.vehicles.len(), 13);
