@@ -11,10 +11,10 @@
 use std::time::Duration;
 
 use spoofwatch_core::geo::{LatLon, displace_fix};
-use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
+use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::v1;
-use spoofwatch_tests::incidents::{incident_vehicles, wait_for_incidents};
-use spoofwatch_tests::{Connection, start_with_roles, stream_samples, token_sha256, track_samples};
+use spoofwatch_tests::incidents::{attacked_drive, incident_vehicles, wait_for_incidents};
+use spoofwatch_tests::{Connection, start_with_roles, stream_samples, token_sha256};
 
 /// The correlator's 1 s ticks, the alarm writer's batching, on shared cores.
 const INCIDENT_BOUND: Duration = Duration::from_secs(40);
@@ -51,22 +51,8 @@ const TRIANGLE: [(f64, f64); 3] = [(0.0, 0.0), (9_000.0, 0.0), (4_500.0, 7_794.0
 
 /// A vehicle starting at `start`, driving 90 s at 1 Hz, whose fix jumps 200 m east from 40 s on.
 async fn stream_captured(connection: &Connection, id: &str, start: LatLon, seed: u64) {
-    let spec = DriveSpec {
-        duration_s: 90.0,
-        seed,
-        start_lat_deg: start.lat_deg,
-        start_lon_deg: start.lon_deg,
-        ..DriveSpec::default()
-    };
-    let drive = simulate_drive(&spec, id).expect("a valid drive");
-    let attack = AttackSpec {
-        kind: AttackKind::Jump { offset_m: 200.0 },
-        direction_deg: 90.0,
-        onset_s: 40.0,
-        duration_s: 50.0,
-        seed: None,
-    };
-    let samples = track_samples(&inject(&drive, &attack).expect("a valid attack").track);
+    let jump = AttackKind::Jump { offset_m: 200.0 };
+    let samples = attacked_drive(id, start, seed, (jump, 90.0, 40.0));
     stream_samples(connection, id, true, 1, &samples).await;
 }
 

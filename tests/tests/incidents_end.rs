@@ -18,14 +18,14 @@ use std::path::Path;
 use std::time::Duration;
 
 use spoofwatch_core::geo::{LatLon, displace_fix};
-use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
+use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::v1;
 use spoofwatch_server::config::Config;
 use spoofwatch_server::store::test_database::TestDatabase;
-use spoofwatch_tests::incidents::{list_incidents, wait_for_incidents};
+use spoofwatch_tests::incidents::{attacked_drive, list_incidents, wait_for_incidents};
 use spoofwatch_tests::{
     ADMIN_TOKEN, ConnectOptions, Connection, DetectStream, TestServer, stream_samples, test_config,
-    token_sha256, track_samples,
+    token_sha256,
 };
 use tonic::Code;
 use tonic_types::StatusExt;
@@ -71,27 +71,6 @@ fn place(centre: LatLon, east_m: f64, north_m: f64) -> LatLon {
     LatLon::new(lat, lon)
 }
 
-/// A 90 s drive at 1 Hz from `start` under `attack` (its kind, direction and onset) to the end.
-fn drive(id: &str, start: LatLon, seed: u64, attack: (AttackKind, f64, f64)) -> Vec<v1::Sample> {
-    let (kind, direction_deg, onset_s) = attack;
-    let spec = DriveSpec {
-        duration_s: 90.0,
-        seed,
-        start_lat_deg: start.lat_deg,
-        start_lon_deg: start.lon_deg,
-        ..DriveSpec::default()
-    };
-    let drive = simulate_drive(&spec, id).expect("a valid drive");
-    let attack = AttackSpec {
-        kind,
-        direction_deg,
-        onset_s,
-        duration_s: 90.0 - onset_s,
-        seed: None,
-    };
-    track_samples(&inject(&drive, &attack).expect("a valid attack").track)
-}
-
 /// Three vehicles 9 km apart around `centre` (two of the gateway's, one with its own token), every
 /// fix jumping 200 m east from 40 s on: their alarms are open when their streams end.
 async fn spoof_three(server: &TestServer, centre: LatLon, prefix: &str) {
@@ -111,7 +90,7 @@ async fn spoof_three(server: &TestServer, centre: LatLon, prefix: &str) {
 fn spoofed(id: &str, centre: LatLon, k: usize) -> Vec<v1::Sample> {
     let (east, north) = [(0.0, 0.0), (9_000.0, 0.0), (4_500.0, 7_794.0)][k];
     let jump = AttackKind::Jump { offset_m: 200.0 };
-    drive(
+    attacked_drive(
         id,
         place(centre, east, north),
         60 + k as u64,
@@ -207,7 +186,7 @@ async fn an_incident_ends_once_its_disconnected_vehicles_alarms_expire() {
 /// as on a receiver's spoofing flag: the area prior brings its alarm forward.
 async fn probe(admin: &Connection, id: &str, start: LatLon) -> Vec<bool> {
     let drift = AttackKind::RampDrift { velocity_mps: 2.0 };
-    let samples = drive(id, start, 7, (drift, 0.0, 8.0));
+    let samples = attacked_drive(id, start, 7, (drift, 0.0, 8.0));
     let (stream, _) = DetectStream::start(admin, id, "", true)
         .await
         .expect("the probe's stream opens");

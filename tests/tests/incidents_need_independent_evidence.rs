@@ -13,12 +13,12 @@
 use std::time::Duration;
 
 use spoofwatch_core::geo::{LatLon, displace_fix, wgs84_local_displacement};
-use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simulate_drive};
+use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::v1;
-use spoofwatch_tests::incidents::{incident_vehicles, list_incidents, wait_for_incidents};
-use spoofwatch_tests::{
-    Connection, TestServer, start_with_roles, stream_samples, token_sha256, track_samples,
+use spoofwatch_tests::incidents::{
+    attacked_drive, incident_vehicles, list_incidents, wait_for_incidents,
 };
+use spoofwatch_tests::{Connection, TestServer, start_with_roles, stream_samples, token_sha256};
 
 /// The correlator's 1 s ticks, the alarm writer's batching, on shared cores.
 const INCIDENT_BOUND: Duration = Duration::from_secs(40);
@@ -58,24 +58,10 @@ fn place(centre: LatLon, east_m: f64, north_m: f64) -> LatLon {
 
 /// A vehicle starting at `start`, driving 90 s at 1 Hz, whose fix jumps 200 m east from 40 s on.
 fn captured(id: &str, start: LatLon, seed: u64) -> Vec<v1::Sample> {
-    let spec = DriveSpec {
-        duration_s: 90.0,
-        seed,
-        start_lat_deg: start.lat_deg,
-        start_lon_deg: start.lon_deg,
-        ..DriveSpec::default()
+    let jump = AttackKind::Jump {
+        offset_m: JUMP_EAST_M,
     };
-    let drive = simulate_drive(&spec, id).expect("a valid drive");
-    let attack = AttackSpec {
-        kind: AttackKind::Jump {
-            offset_m: JUMP_EAST_M,
-        },
-        direction_deg: 90.0,
-        onset_s: 40.0,
-        duration_s: 50.0,
-        seed: None,
-    };
-    track_samples(&inject(&drive, &attack).expect("a valid attack").track)
+    attacked_drive(id, start, seed, (jump, 90.0, 40.0))
 }
 
 async fn stream_captured(connection: &Connection, id: &str, start: LatLon, seed: u64) {
