@@ -5,6 +5,7 @@
 //! must not hold any logic, and nothing in the crate imports it (the services reach it through `?`
 //! and `From`), so it may depend on every subsystem.
 
+use spoofwatch_core::fleet_fit::FleetFitError;
 use spoofwatch_core::model::artifact::ArtifactError;
 use spoofwatch_core::train::TrainError;
 use spoofwatch_core::train::detector::TrainDetectorError;
@@ -154,6 +155,17 @@ impl From<JobFailure> for Status {
             JobFailure::Model(error) => error.into(),
             JobFailure::Store(error) => error.into(),
             JobFailure::Training(error) => training_status(error),
+            JobFailure::Fit(FleetFitError::Data(error)) => {
+                invalid_field(error.field(), error.to_string())
+            }
+            JobFailure::Fit(FleetFitError::Train(error)) => training_status(error),
+            JobFailure::Fit(FleetFitError::StartingModel) => {
+                invalid_field("fleet_fit.starting_model", failure.to_string())
+            }
+            JobFailure::Fit(FleetFitError::Scenario(_)) => {
+                internal("injecting attacks into a fleet's drives", &failure)
+            }
+            JobFailure::FitRequest { field, reason } => invalid_field(field, reason),
             JobFailure::Worker(Fault { context, .. }) => internal(context, &failure),
             JobFailure::Abandoned => with_code(Code::Aborted, failure.to_string()),
         }
@@ -181,6 +193,9 @@ fn training_status(error: TrainDetectorError) -> Status {
             failed_precondition("TRAINING_DIVERGED", error.to_string())
         }
         TrainDetectorError::Train(TrainError::Model(_)) => internal("training a model", &error),
+        TrainDetectorError::StartingModel => {
+            invalid_field("fleet_fit.starting_model", error.to_string())
+        }
         TrainDetectorError::Data(_) | TrainDetectorError::Train(_) => {
             invalid_field("datasets", error.to_string())
         }

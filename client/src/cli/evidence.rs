@@ -34,7 +34,7 @@ pub struct Args {
     /// the offset channels to those.
     #[arg(
         long,
-        default_value = FeatureSchema::default().name(),
+        default_value = FeatureSchema::V2.name(),
         value_parser = PossibleValuesParser::new(FeatureSchema::NAMED.map(|(name, _)| name))
             .map(|name| FeatureSchema::from_name(&name).unwrap_or_default()),
     )]

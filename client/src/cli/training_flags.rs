@@ -51,8 +51,9 @@ pub struct TrainingFlags {
     /// Ablation: evidence groups given to the model.
     #[arg(long, default_value = FeatureGroups::All.name(), value_parser = feature_groups())]
     pub features: FeatureGroups,
-    /// Evidence channels: `v2` (the paper's ξ plus directional drift channels), `v3` (v2 plus the
-    /// offsets from dead-reckoning anchors) or `paper`.
+    /// Evidence channels: `v3` (the bundled default's: the paper's ξ, directional drift channels and
+    /// the offsets from dead-reckoning anchors), `v2` (without the offsets: never alarms on a jump)
+    /// or `paper`.
     #[arg(
         long,
         default_value = FeatureSchema::default().name(),

@@ -27,8 +27,15 @@ pub const CALIBRATION_MEMORY_S: f64 = 600.0;
 pub const CALIBRATION_DELAY_S: f64 = 120.0;
 /// With timers: seconds of valid data before the calibrated channels switch on (ω_t reaches 1).
 pub const WARM_UP_S: f64 = 240.0;
-/// Prior (and cap) of the calibration's standard deviations: speed scale 5 %, heading bias 5°, timing 1 s.
+/// Prior (and cap) of the calibration's standard deviations when the model carries no fleet prior:
+/// speed scale 5 %, heading bias 5°, timing 1 s.
 pub const CALIBRATION_PRIOR_STD: [f64; 3] = [0.05, 5.0 * std::f64::consts::PI / 180.0, 1.0];
+/// The widest prior a fleet may fit: speed scale 20 %, heading bias 30°, timing 3 s. Beyond it the
+/// first-order model of the onboard errors (r = −H θ) no longer holds.
+pub const CALIBRATION_PRIOR_STD_MAX: [f64; 3] = [0.2, 30.0 * std::f64::consts::PI / 180.0, 3.0];
+/// The narrowest: 0.2 % speed scale, 0.2°, 0.05 s. A tighter prior would refuse to learn the
+/// vehicle's own errors at all.
+pub const CALIBRATION_PRIOR_STD_MIN: [f64; 3] = [0.002, 0.2 * std::f64::consts::PI / 180.0, 0.05];
 /// The calibration learns from blocks of consecutive valid rows at least this long (s): GNSS white
 /// noise telescopes in a block's summed residual while the onboard errors add up, so every block
 /// carries the same information at 1 Hz and at 10 Hz (row by row, a 10 Hz stream would calibrate
@@ -48,6 +55,63 @@ pub const CALIBRATION_GATE: f64 = 18.420_680_743_952_364;
 /// With information-driven trust: a calibration whose remaining uncertainty is at most this share
 /// of the prior's counts as known where the fits need calibrated rows only.
 pub const FIT_TRUST: f64 = 0.75;
+
+/// The fleet's prior on a vehicle's onboard calibration θ = (speed scale error, heading bias [rad],
+/// lag [s]): where a new vehicle's calibration starts (`mean`) and how uncertain it is (`std`, the
+/// prior covariance P₀ = diag(std²), also the cap on P). With information-driven trust θ stays
+/// within [`THETA_BOUND_PRIORS`] standard deviations of the mean. A model without one uses
+/// [`CalibrationPrior::default`], a mean of 0 and [`CALIBRATION_PRIOR_STD`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrationPrior {
+    pub mean: [f64; 3],
+    pub std: [f64; 3],
+}
+
+impl Default for CalibrationPrior {
+    fn default() -> Self {
+        Self {
+            mean: [0.0; 3],
+            std: CALIBRATION_PRIOR_STD,
+        }
+    }
+}
+
+impl CalibrationPrior {
+    /// Why the prior cannot be used, naming the component: every std within
+    /// [`CALIBRATION_PRIOR_STD_MIN`]..=[`CALIBRATION_PRIOR_STD_MAX`], every mean finite and within
+    /// the widest bound (three of the widest std).
+    pub fn problem(&self) -> Option<(&'static str, String)> {
+        const NAMES: [&str; 3] = ["speed_scale", "heading_bias", "lag"];
+        for i in 0..3 {
+            let (std, mean) = (self.std[i], self.mean[i]);
+            let (low, high) = (CALIBRATION_PRIOR_STD_MIN[i], CALIBRATION_PRIOR_STD_MAX[i]);
+            if !(std.is_finite() && (low..=high).contains(&std)) {
+                return Some((
+                    NAMES[i],
+                    format!("std must be within {low} to {high}, got {std}"),
+                ));
+            }
+            let bound = THETA_BOUND_PRIORS * high;
+            if !(mean.is_finite() && mean.abs() <= bound) {
+                return Some((
+                    NAMES[i],
+                    format!("mean must be within ±{bound}, got {mean}"),
+                ));
+            }
+        }
+        None
+    }
+
+    /// P₀ = diag(std²).
+    pub(super) fn covariance(&self) -> [[f64; 3]; 3] {
+        let mut p = [[0.0; 3]; 3];
+        for (i, std) in self.std.iter().enumerate() {
+            p[i][i] = std * std;
+        }
+        p
+    }
+}
 
 /// How the detector decides how far to trust the vehicle's onboard calibration.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -111,25 +175,17 @@ fn inverse(m: &Mat2) -> Option<Mat2> {
     })
 }
 
-pub(super) fn prior_covariance() -> [[f64; 3]; 3] {
-    let mut p = [[0.0; 3]; 3];
-    for (i, std) in CALIBRATION_PRIOR_STD.iter().enumerate() {
-        p[i][i] = std * std;
-    }
-    p
-}
-
 fn symmetrised(p: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
     std::array::from_fn(|i| std::array::from_fn(|j| 0.5 * (p[i][j] + p[j][i])))
 }
 
 /// D P D with D_ii = min(1, prior_i/√P_ii): no variance exceeds the prior, so directions the drive
 /// does not excite (a straight road) cannot wind the gain up; the congruence keeps P positive definite.
-fn cap_covariance(p: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
+fn cap_covariance(p: [[f64; 3]; 3], prior: &CalibrationPrior) -> [[f64; 3]; 3] {
     let d: [f64; 3] = std::array::from_fn(|i| {
         let std = p[i][i].max(0.0).sqrt();
-        if std > CALIBRATION_PRIOR_STD[i] {
-            CALIBRATION_PRIOR_STD[i] / std
+        if std > prior.std[i] {
+            prior.std[i] / std
         } else {
             1.0
         }
@@ -137,19 +193,32 @@ fn cap_covariance(p: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
     std::array::from_fn(|i| std::array::from_fn(|j| d[i] * p[i][j] * d[j]))
 }
 
+/// How a vehicle's calibration learns: the GNSS noise variance per axis, the trust and the fleet's
+/// prior.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub(super) struct Learning {
+    pub noise_variance: f64,
+    pub trust: CalibrationTrust,
+    pub prior: CalibrationPrior,
+}
+
 /// One recursive-least-squares step with exponential forgetting on the model r^c = −H θ + noise
-/// (`noise_variance` per axis) over `delta_t` seconds. With information-driven trust the heading
-/// bias may also have wandered since the last step, and θ stays within its bound. `None` when the
-/// step would not be finite (θ and P are then kept).
+/// (`learning.noise_variance` per axis) over `delta_t` seconds. With information-driven trust the
+/// heading bias may also have wandered since the last step, and θ stays within its bound around the
+/// prior's mean. `None` when the step would not be finite (θ and P are then kept).
 pub(super) fn least_squares_step(
     theta: &[f64; 3],
     covariance: &[[f64; 3]; 3],
     h: &[[f64; 2]; 3],
     clipped: [f64; 2],
     delta_t: f64,
-    noise_variance: f64,
-    trust: CalibrationTrust,
+    learning: &Learning,
 ) -> Option<([f64; 3], [[f64; 3]; 3])> {
+    let Learning {
+        noise_variance,
+        trust,
+        prior,
+    } = *learning;
     let p = predicted_covariance(covariance, delta_t, trust);
     // With A = −H: S = H P Hᵀ + σ²I, K = −P Hᵀ S⁻¹, innovation = r^c + H θ.
     let ph = p_h_transposed(&p, h);
@@ -173,11 +242,14 @@ pub(super) fn least_squares_step(
         return None;
     }
     if trust == CalibrationTrust::Information {
-        for (value, std) in next.iter_mut().zip(CALIBRATION_PRIOR_STD) {
-            *value = value.clamp(-THETA_BOUND_PRIORS * std, THETA_BOUND_PRIORS * std);
+        for ((value, std), mean) in next.iter_mut().zip(prior.std).zip(prior.mean) {
+            *value = value.clamp(
+                mean - THETA_BOUND_PRIORS * std,
+                mean + THETA_BOUND_PRIORS * std,
+            );
         }
     }
-    Some((next, cap_covariance(symmetrised(updated))))
+    Some((next, cap_covariance(symmetrised(updated), &prior)))
 }
 
 /// P before a block's update: forgotten over `delta_t`, and with information-driven trust the
@@ -264,11 +336,8 @@ pub fn calibration_covariance(u: [f64; 2], error: &[f64; 3]) -> Mat2 {
 /// ω: how well the calibration in use is known, 1 − (its root mean squared error as a share of the
 /// prior's, speed scale and heading bias together), within [0, 1]. 0 at the prior; 1 when known
 /// exactly.
-pub(super) fn information_trust(error: &[f64; 3]) -> f64 {
-    let [p_ss, p_hh] = [
-        CALIBRATION_PRIOR_STD[0] * CALIBRATION_PRIOR_STD[0],
-        CALIBRATION_PRIOR_STD[1] * CALIBRATION_PRIOR_STD[1],
-    ];
+pub(super) fn information_trust(error: &[f64; 3], prior: &CalibrationPrior) -> f64 {
+    let [p_ss, p_hh] = [prior.std[0] * prior.std[0], prior.std[1] * prior.std[1]];
     let share = (0.5 * (error[0] / p_ss + error[2] / p_hh)).sqrt();
     (1.0 - share).clamp(0.0, 1.0)
 }
@@ -282,9 +351,13 @@ mod tests {
         let error = in_use_error(&[[0.0; 3]; 3], &[0.01, 0.02, 0.1], &[0.01, 0.02, 0.3]);
         assert_eq!(error, [0.0; 3], "the lag does not enter");
         assert_eq!(calibration_covariance([10.0, 0.0], &error), [[0.0; 2]; 2]);
-        assert_eq!(information_trust(&error), 1.0);
+        let prior = CalibrationPrior::default();
+        assert_eq!(information_trust(&error, &prior), 1.0);
         assert_eq!(
-            information_trust(&in_use_error(&prior_covariance(), &[0.0; 3], &[0.0; 3])),
+            information_trust(
+                &in_use_error(&prior.covariance(), &[0.0; 3], &[0.0; 3]),
+                &prior
+            ),
             0.0
         );
     }
@@ -312,7 +385,9 @@ mod tests {
         }
         // Trust: 1 − √(½(2e-4/0.0025 + 8e-4/(5°)²)).
         let share = (0.5 * (2e-4 / 0.0025 + 8e-4 / 5f64.to_radians().powi(2))).sqrt();
-        assert!((information_trust(&error) - (1.0 - share)).abs() < 1e-12);
+        assert!(
+            (information_trust(&error, &CalibrationPrior::default()) - (1.0 - share)).abs() < 1e-12
+        );
     }
 
     #[test]
@@ -320,18 +395,28 @@ mod tests {
         // A residual that would teach a 40° heading bias in one step stops at 15°.
         let h = regressors([10.0, 0.0], [0.0, 0.0]);
         let huge = [0.0, 10.0 * 40f64.to_radians()];
-        let p = prior_covariance();
-        let (timers, _) =
-            least_squares_step(&[0.0; 3], &p, &h, huge, 1.0, 1e-6, CalibrationTrust::Timers)
-                .expect("finite");
+        let p = CalibrationPrior::default().covariance();
+        let learning = |noise_variance, trust| Learning {
+            noise_variance,
+            trust,
+            prior: CalibrationPrior::default(),
+        };
+        let (timers, _) = least_squares_step(
+            &[0.0; 3],
+            &p,
+            &h,
+            huge,
+            1.0,
+            &learning(1e-6, CalibrationTrust::Timers),
+        )
+        .expect("finite");
         let (information, _) = least_squares_step(
             &[0.0; 3],
             &p,
             &h,
             huge,
             1.0,
-            1e-6,
-            CalibrationTrust::Information,
+            &learning(1e-6, CalibrationTrust::Information),
         )
         .expect("finite");
         assert!(timers[1].to_degrees().abs() > 30.0, "{timers:?}");
@@ -344,9 +429,16 @@ mod tests {
         let tiny = [[1e-8, 0.0, 0.0], [0.0, 1e-8, 0.0], [0.0, 0.0, 1e-8]];
         let still = regressors([0.0, 0.0], [0.0, 0.0]);
         let step = |trust| {
-            least_squares_step(&[0.0; 3], &tiny, &still, [0.0; 2], 1.0, 1.0, trust)
-                .expect("finite")
-                .1
+            least_squares_step(
+                &[0.0; 3],
+                &tiny,
+                &still,
+                [0.0; 2],
+                1.0,
+                &learning(1.0, trust),
+            )
+            .expect("finite")
+            .1
         };
         let forgetting = (-1.0f64 / CALIBRATION_MEMORY_S).exp();
         assert!((step(CalibrationTrust::Timers)[1][1] - 1e-8 / forgetting).abs() < 1e-20);

@@ -19,15 +19,14 @@ use serde::{Deserialize, Serialize};
 
 use super::EvidenceError;
 use super::calibration::{
-    CALIBRATION_BLOCK_S, CALIBRATION_DELAY_S, CalibrationTrust, WARM_UP_S, add, apply,
-    calibration_covariance, in_use_error, information_trust, least_squares_step, prior_covariance,
-    regressors, residual_is_consistent,
+    CALIBRATION_BLOCK_S, CALIBRATION_DELAY_S, CalibrationPrior, CalibrationTrust, Learning,
+    WARM_UP_S, add, apply, calibration_covariance, in_use_error, information_trust,
+    least_squares_step, regressors, residual_is_consistent,
 };
 use super::linalg::{
     IDENTITY, Mat2, add_diagonal, inverse_sqrt_positive_definite, inverse_sqrt_symmetric,
     is_symmetric_positive_definite, mul_vec,
 };
-use super::stats::{covariance, quantile_sorted};
 use crate::sample::readable;
 
 /// Number of drift-rate time scales.
@@ -54,11 +53,11 @@ const SNAPSHOT_PERIOD_S: f64 = 30.0;
 /// Snapshots kept: enough to always hold one that is `CALIBRATION_DELAY_S` old.
 const SNAPSHOTS: usize = (CALIBRATION_DELAY_S / SNAPSHOT_PERIOD_S) as usize + 2;
 /// Quantile of χ² on normal rows that normalises each scale in the drift statistic.
-const THRESHOLD_QUANTILE: f64 = 0.999;
+pub(super) const THRESHOLD_QUANTILE: f64 = 0.999;
 /// ε added to the drift-rate covariances before whitening (m²/s²).
 const RATE_EPSILON: f64 = 1e-9;
 /// A row is settled for scale τ_k this many τ_k into its trajectory.
-const SETTLE_SCALES: f64 = 2.0;
+pub(super) const SETTLE_SCALES: f64 = 2.0;
 /// The onboard speed (m/s) at and above which a vehicle moves, for the stale-fix channel: a
 /// receiver's static hold pins the fix below walking pace.
 pub const MOVING_MPS: f64 = 1.0;
@@ -93,6 +92,10 @@ pub struct DriftParams {
     /// receiver that holds its fix at standstill is where the vehicle is.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub stale_fix_while_moving: bool,
+    /// The fleet's prior on the onboard calibration, fitted on its attack-free recordings; `None`:
+    /// the default prior ([`CalibrationPrior::default`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration_prior: Option<CalibrationPrior>,
 }
 
 /// The serialised form, checked by `TryFrom` (or by [`super::EvidenceParams::validate`] when it is
@@ -111,6 +114,8 @@ pub(crate) struct UncheckedDriftParams {
     trust: CalibrationTrust,
     #[serde(default)]
     stale_fix_while_moving: bool,
+    #[serde(default)]
+    calibration_prior: Option<CalibrationPrior>,
 }
 
 impl TryFrom<UncheckedDriftParams> for DriftParams {
@@ -136,6 +141,7 @@ impl DriftParams {
             vehicle_levels: raw.vehicle_levels,
             trust: raw.trust,
             stale_fix_while_moving: raw.stale_fix_while_moving,
+            calibration_prior: raw.calibration_prior,
         }
     }
 
@@ -152,6 +158,7 @@ impl DriftParams {
             vehicle_levels: false,
             trust: CalibrationTrust::Timers,
             stale_fix_while_moving: false,
+            calibration_prior: None,
         }
     }
 
@@ -203,6 +210,12 @@ impl DriftParams {
                     ),
                 ));
             }
+        }
+        if let Some((component, reason)) = self.calibration_prior.and_then(|p| p.problem()) {
+            return Err(invalid(
+                "drift.calibration_prior",
+                format!("{component}: {reason}"),
+            ));
         }
         Ok(())
     }
@@ -286,7 +299,7 @@ fn moving(input: &DriftInput) -> bool {
     input.motion[0].hypot(input.motion[1]) / input.delta_t >= MOVING_MPS
 }
 
-fn norm_squared(z: [f64; 2]) -> f64 {
+pub(super) fn norm_squared(z: [f64; 2]) -> f64 {
     z[0] * z[0] + z[1] * z[1]
 }
 
@@ -385,6 +398,7 @@ struct TrackerConstants {
     vehicle_levels: bool,
     trust: CalibrationTrust,
     stale_fix_while_moving: bool,
+    prior: CalibrationPrior,
 }
 
 impl DriftTracker {
@@ -403,6 +417,7 @@ impl DriftTracker {
             vehicle_levels: params.vehicle_levels,
             trust: params.trust,
             stale_fix_while_moving: params.stale_fix_while_moving,
+            prior: params.calibration_prior.unwrap_or_default(),
         })
     }
 
@@ -426,12 +441,12 @@ impl DriftTracker {
             block_residual: [0.0; 2],
             block_regressors: [[0.0; 2]; 3],
             block_s: 0.0,
-            theta: [0.0; 3],
-            covariance: prior_covariance(),
+            theta: constants.prior.mean,
+            covariance: constants.prior.covariance(),
             clock_s: 0.0,
             snapshots: [Snapshot::default(); SNAPSHOTS],
             snapshot_count: 0,
-            theta_in_use: [0.0; 3],
+            theta_in_use: constants.prior.mean,
             levels: Levels::default(),
             levels_in_use: Levels::default(),
             level_clock_s: 0.0,
@@ -500,7 +515,11 @@ impl DriftTracker {
             }
             CalibrationTrust::Information => {
                 let error = self.in_use_error();
-                (information_trust(&error), true, error)
+                (
+                    information_trust(&error, &self.constants.prior),
+                    true,
+                    error,
+                )
             }
         }
     }
@@ -694,8 +713,11 @@ impl DriftTracker {
             h,
             clipped,
             delta_t,
-            self.constants.noise_variance,
-            self.constants.trust,
+            &Learning {
+                noise_variance: self.constants.noise_variance,
+                trust: self.constants.trust,
+                prior: self.constants.prior,
+            },
         ) else {
             return;
         };
@@ -775,109 +797,6 @@ fn normalised_max(z: &[[f64; 2]; SCALE_COUNT], thresholds: &[f64; SCALE_COUNT]) 
         .zip(thresholds)
         .map(|(&z, &h)| norm_squared(z) / h)
         .fold(0.0, f64::max)
-}
-
-/// One normal row's drift channels as the fit sees them (computed with [`DriftParams::unwhitened`], so
-/// the z's are the raw drift rates).
-#[derive(Clone, Copy, Debug)]
-pub struct SettledRates {
-    /// Valid seconds since the trajectory started.
-    pub elapsed_s: f64,
-    pub drift: DriftEvidence,
-}
-
-/// Scale k's z-vectors of the rows at least 2τ_k into their trajectory (a zero-started EWMA then has
-/// 98 % of its stationary variance); for the calibrated channel only warm rows, unless the
-/// calibration is trusted by its information (`trust`), when the channel is always on.
-fn settled_z(
-    rows: &[SettledRates],
-    k: usize,
-    calibrated: bool,
-    trust: CalibrationTrust,
-) -> Vec<[f64; 2]> {
-    let every_row = trust == CalibrationTrust::Information;
-    rows.iter()
-        .filter(|r| r.elapsed_s >= SETTLE_SCALES * DRIFT_SCALES_S[k])
-        .filter(|r| !calibrated || every_row || r.drift.is_warm())
-        .map(|r| {
-            if calibrated {
-                r.drift.calibrated_z[k]
-            } else {
-                r.drift.raw_z[k]
-            }
-        })
-        .collect()
-}
-
-fn too_few_settled(k: usize, calibrated: bool, rows: usize) -> EvidenceError {
-    EvidenceError::TooFewSettledRows {
-        scale_s: DRIFT_SCALES_S[k],
-        settle_s: SETTLE_SCALES * DRIFT_SCALES_S[k],
-        warm: if calibrated {
-            " with a warm calibration"
-        } else {
-            ""
-        },
-        rows,
-        minimum: MIN_SETTLED_ROWS,
-    }
-}
-
-/// First pass of the fit: covariances from rows computed with [`DriftParams::unwhitened`] (their z's
-/// are the raw drift rates). Returns parameters that whiten with them and normalise by vehicle
-/// levels, with unit thresholds: the second pass ([`thresholds_from_rates`]) sets those.
-pub fn covariances_from_rates(
-    residual_sigma_m: f64,
-    rows: &[SettledRates],
-) -> Result<DriftParams, EvidenceError> {
-    let mut params = DriftParams::unwhitened(residual_sigma_m);
-    params.vehicle_levels = true;
-    for k in 0..SCALE_COUNT {
-        for calibrated in [false, true] {
-            let rates = settled_z(rows, k, calibrated, CalibrationTrust::Timers);
-            if rates.len() < MIN_SETTLED_ROWS {
-                return Err(too_few_settled(k, calibrated, rates.len()));
-            }
-            let target = if calibrated {
-                &mut params.calibrated_covariance[k]
-            } else {
-                &mut params.raw_covariance[k]
-            };
-            *target = covariance(&rates);
-        }
-    }
-    params.validate()?;
-    Ok(params)
-}
-
-/// Second pass: each scale's threshold h_k is the 99.9 % quantile of its (whitened, level-normalised)
-/// χ² on settled normal rows computed with `params` (unit thresholds).
-pub fn thresholds_from_rates(
-    mut params: DriftParams,
-    rows: &[SettledRates],
-) -> Result<DriftParams, EvidenceError> {
-    for k in 0..SCALE_COUNT {
-        for calibrated in [false, true] {
-            let mut chi2: Vec<f64> = settled_z(rows, k, calibrated, params.trust)
-                .into_iter()
-                .map(norm_squared)
-                .collect();
-            if chi2.len() < MIN_SETTLED_ROWS {
-                return Err(too_few_settled(k, calibrated, chi2.len()));
-            }
-            chi2.sort_unstable_by(f64::total_cmp);
-            let threshold = quantile_sorted(&chi2, THRESHOLD_QUANTILE)
-                .filter(|h| h.is_finite() && *h > 0.0)
-                .unwrap_or(1.0);
-            if calibrated {
-                params.calibrated_threshold[k] = threshold;
-            } else {
-                params.raw_threshold[k] = threshold;
-            }
-        }
-    }
-    params.validate()?;
-    Ok(params)
 }
 
 #[cfg(test)]

@@ -9,8 +9,9 @@
 use serde::{Deserialize, Serialize};
 
 use super::builder::build_track;
-use super::calibration::{CalibrationTrust, FIT_TRUST};
-use super::drift::{DriftParams, SettledRates, covariances_from_rates, thresholds_from_rates};
+use super::calibration::{CalibrationPrior, CalibrationTrust, FIT_TRUST};
+use super::drift::DriftParams;
+use super::drift_fit::{SettledRates, covariances_from_rates, thresholds_from_rates};
 use super::linalg::{Mat2, inverse_sqrt_symmetric, mul_vec};
 use super::offset::{
     ANCHOR_COUNT, CHI2_2_AT_FIT_QUANTILE, FIT_QUANTILE, FOLLOW_S, OffsetParams, OffsetPoint,
@@ -83,12 +84,17 @@ pub fn fit_drift_params(
     tracks: &[Track],
     projection: Projection,
     trust: CalibrationTrust,
+    calibration_prior: Option<CalibrationPrior>,
 ) -> Result<DriftParams, EvidenceError> {
     let residual_sigma = robust_residual_sigma(&normal_residuals(tracks, projection))?;
-    let unwhitened = DriftParams::unwhitened(residual_sigma);
+    let unwhitened = DriftParams {
+        calibration_prior,
+        ..DriftParams::unwhitened(residual_sigma)
+    };
     let whitened = DriftParams {
         trust,
         stale_fix_while_moving: true,
+        calibration_prior,
         ..covariances_from_rates(
             residual_sigma,
             &settled_rates(tracks, projection, unwhitened),
@@ -267,7 +273,7 @@ pub fn fit_evidence(
 }
 
 /// The choices a retrained ablation makes in the evidence fit.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct EvidenceOptions {
     /// The per-vehicle levels of the drift and offset channels (off: the ablation
     /// [`Ablation::no_vehicle_levels`](crate::model::Ablation)).
@@ -275,6 +281,8 @@ pub struct EvidenceOptions {
     /// How far the onboard calibration is trusted (timers: the ablation
     /// [`Ablation::timer_trust`](crate::model::Ablation)).
     pub trust: CalibrationTrust,
+    /// The fleet's prior on the onboard calibration (`None`: the default prior).
+    pub calibration_prior: Option<CalibrationPrior>,
 }
 
 impl Default for EvidenceOptions {
@@ -282,6 +290,7 @@ impl Default for EvidenceOptions {
         Self {
             vehicle_levels: true,
             trust: CalibrationTrust::Information,
+            calibration_prior: None,
         }
     }
 }
@@ -300,7 +309,7 @@ pub fn fit_evidence_with(
     let stats = fit_normal_stats(train, projection)?;
     let drift = schema
         .has_drift()
-        .then(|| fit_drift_params(train, projection, options.trust))
+        .then(|| fit_drift_params(train, projection, options.trust, options.calibration_prior))
         .transpose()?;
     let offset = match drift {
         Some(drift) if schema.has_offset() => Some(fit_offset_params(train, projection, drift)?),

@@ -4,12 +4,13 @@
 //! alarms or training.
 //!
 //! Inside, each file uses only those listed before it: `linalg` and `stats` (pure numerics),
-//! `calibration` (the onboard calibration's numerics and trust), `drift` (the v2 channels), `offset` (the v3 anchors), `params`, `builder` (the streaming builder), `scaler`, then `fit` (the fits from
+//! `calibration` (the onboard calibration's numerics and trust), `drift` (the v2 channels), `drift_fit` (their normalisation fit), `offset` (the v3 anchors), `params`, `builder` (the streaming builder), `scaler`, then `fit` (the fits from
 //! training tracks, which run the builder).
 
 mod builder;
 pub mod calibration;
 pub mod drift;
+pub mod drift_fit;
 mod fit;
 pub mod linalg;
 pub mod offset;
@@ -30,7 +31,7 @@ pub use builder::{
 pub use fit::{
     EvidenceFit, EvidenceFitError, EvidenceOptions, MIN_NORMAL_ROWS, NormalStats, fit_drift_params,
     fit_evidence, fit_evidence_with, fit_normal_stats, fit_offset_params, normal_residuals,
-    stats_from_residuals,
+    robust_residual_sigma, stats_from_residuals,
 };
 pub(crate) use params::UncheckedParams;
 pub use params::{
@@ -89,10 +90,11 @@ pub type Features = [f64; FEATURE_CAPACITY];
 pub enum FeatureSchema {
     /// The paper's 9-channel ξ_t, for the faithful reproduction and the paper's tables.
     Paper,
-    /// The paper's ξ_t plus the directional drift channels (the default).
-    #[default]
+    /// The paper's ξ_t plus the directional drift channels.
     V2,
-    /// v2 plus the offset channels of the dead-reckoning anchors.
+    /// v2 plus the offset channels of the dead-reckoning anchors: the bundled default's, and the
+    /// default of every training path (without offsets a model never alarms on a jump).
+    #[default]
     V3,
 }
 

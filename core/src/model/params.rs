@@ -347,18 +347,21 @@ mod tests {
     fn default_parameter_count_is_hand_computed() {
         // Encoders (32·3+32)+(32·4+32)+(32·14+32) = 768 (v2: P = [ã, ν, 10 drift and 2 integrity
         // channels]); conductance 64+1; fusion 64·128+64 = 8256; cell 3·(64·64+64) = 12480; head 128+1.
-        let params = Params::zeros(&ModelConfig::default());
-        assert_eq!(params.scalar_count(), 768 + 65 + 8256 + 12480 + 129);
-        // v3 adds 5 offset channels to P: 5·32 more encoder weights.
-        let v3 = ModelConfig {
-            schema: FeatureSchema::V3,
+        let v2 = ModelConfig {
+            schema: FeatureSchema::V2,
             ..ModelConfig::default()
         };
         assert_eq!(
-            Params::zeros(&v3).scalar_count(),
+            Params::zeros(&v2).scalar_count(),
+            768 + 65 + 8256 + 12480 + 129
+        );
+        // v3 (the default) adds 5 offset channels to P: 5·32 more encoder weights.
+        assert_eq!(ModelConfig::default().schema, FeatureSchema::V3);
+        assert_eq!(
+            Params::zeros(&ModelConfig::default()).scalar_count(),
             768 + 160 + 65 + 8256 + 12480 + 129
         );
-        assert_eq!(params.tensors().len(), 18);
+        assert_eq!(Params::zeros(&v2).tensors().len(), 18);
         // The paper's P = [ã, ν]: encoders 384.
         let paper = ModelConfig {
             schema: FeatureSchema::Paper,

@@ -23,7 +23,7 @@ use crate::model::artifact::{ARTIFACT_SCHEMA_VERSION, ModelArtifact, Provenance}
 use crate::sample::Track;
 use crate::train::data::{sequences, split_chronologically};
 use crate::train::spec::TrainingSpec;
-use crate::train::{EpochProgress, TrainError, train};
+use crate::train::{EpochProgress, TrainError, train, train_from};
 
 /// The labelled tracks of a training job and how validation data is obtained.
 #[derive(Clone, Debug, PartialEq)]
@@ -82,6 +82,10 @@ pub enum TrainDetectorError {
     Data(#[from] EvidenceFitError),
     #[error("training: {0}")]
     Train(#[from] TrainError),
+    #[error(
+        "the starting model's configuration (widths, schema, ablation) differs from the one to train"
+    )]
+    StartingModel,
     #[error("no operating point: the validation data needs both normal and spoofed valid rows")]
     NoOperatingPoint,
     #[error("no operating point within the false-alarm budget: {0}")]
@@ -159,20 +163,36 @@ fn train_candidate(
             } else {
                 CalibrationTrust::Information
             },
+            calibration_prior: spec.calibration_prior,
         },
     )?;
     let mask_exits = !spec.model.ablation.no_exit_mask;
     let train_seqs = sequences(&fit, train_tracks, mask_exits);
     let val_seqs = sequences(&fit, validation, mask_exits);
     let train_config = spec.recipe.apply(&spec.train, &train_seqs);
-    let outcome = train(
-        &train_seqs,
-        &val_seqs,
-        spec.model.clone(),
-        &train_config,
-        on_epoch,
-        cancel,
-    )?;
+    let outcome = match &spec.initial_model {
+        Some(initial) => {
+            if initial.config() != &spec.model {
+                return Err(TrainDetectorError::StartingModel);
+            }
+            train_from(
+                &train_seqs,
+                &val_seqs,
+                initial.clone(),
+                &train_config,
+                on_epoch,
+                cancel,
+            )?
+        }
+        None => train(
+            &train_seqs,
+            &val_seqs,
+            spec.model.clone(),
+            &train_config,
+            on_epoch,
+            cancel,
+        )?,
+    };
     let mut artifact = ModelArtifact {
         schema_version: ARTIFACT_SCHEMA_VERSION,
         feature_names: ModelArtifact::feature_names_of(spec.model.schema),

@@ -509,8 +509,22 @@ pub fn train(
     on_epoch: &mut dyn FnMut(&EpochProgress),
     cancel: &AtomicBool,
 ) -> Result<TrainOutcome, TrainError> {
+    let initial = Model::init(model_config, config.seed)?;
+    train_from(train, val, initial, config, on_epoch, cancel)
+}
+
+/// [`train`] starting from `initial`'s weights instead of a seeded initialisation (fitting a
+/// trained model to a fleet's data). The seed still orders the windows.
+pub fn train_from(
+    train: &[Sequence],
+    val: &[Sequence],
+    initial: Model,
+    config: &TrainConfig,
+    on_epoch: &mut dyn FnMut(&EpochProgress),
+    cancel: &AtomicBool,
+) -> Result<TrainOutcome, TrainError> {
     config.validate()?;
-    model_config.validate()?;
+    initial.config().validate()?;
     if train.is_empty() {
         return Err(TrainError::EmptySplit { split: "training" });
     }
@@ -529,7 +543,7 @@ pub fn train(
             .any(|s| s.labels.iter().zip(&s.valid).any(|(&l, &v)| l && v));
         return Err(TrainError::SingleClass { spoofed });
     };
-    Trainer::new(train, val, model_config, config, class_weights)?.run(on_epoch, cancel)
+    Trainer::new(train, val, initial, config, class_weights).run(on_epoch, cancel)
 }
 
 /// The state of one training run.
@@ -558,11 +572,10 @@ impl<'a> Trainer<'a> {
     fn new(
         train: &'a [Sequence],
         val: &'a [Sequence],
-        model_config: ModelConfig,
+        model: Model,
         config: &'a TrainConfig,
         class_weights: ClassWeights,
-    ) -> Result<Self, TrainError> {
-        let model = Model::init(model_config, config.seed)?;
+    ) -> Self {
         let optimizer = AdamW::new(
             model.params(),
             config.beta1,
@@ -577,7 +590,7 @@ impl<'a> Trainer<'a> {
         let scratches = (0..config.threads)
             .map(|_| StepScratch::new(model.config()))
             .collect();
-        Ok(Self {
+        Self {
             train,
             val,
             config,
@@ -589,7 +602,7 @@ impl<'a> Trainer<'a> {
             shuffle: Rng::seed_from_u64(config.seed ^ SHUFFLE_STREAM),
             tapes: (0..config.threads).map(|_| Tape::default()).collect(),
             scratches,
-        })
+        }
     }
 
     fn run(

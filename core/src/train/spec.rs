@@ -6,10 +6,11 @@
 //! [`super::detector`] executes a spec.
 
 use crate::alarm::OperatingPointRule;
+use crate::evidence::calibration::CalibrationPrior;
 use crate::evidence::{DEFAULT_KAPPA, DEFAULT_RHO, FeatureSchema};
 use crate::geo::Projection;
 use crate::metrics::EventRules;
-use crate::model::{Ablation, ModelConfig};
+use crate::model::{Ablation, Model, ModelConfig};
 use crate::train::{Sequence, TrainConfig};
 
 /// (κ, ρ) of the evidence accumulator when they are not selected on validation (SPEC §4).
@@ -149,6 +150,12 @@ pub struct TrainingSpec {
     pub rules: EventRules,
     /// Free-form description of the training data for the artifact's provenance.
     pub data_description: Vec<String>,
+    /// The fleet's prior on the onboard calibration, fitted on its attack-free recordings
+    /// (`None`: the default prior).
+    pub calibration_prior: Option<CalibrationPrior>,
+    /// Weights to start training from (a model of the same configuration, e.g. the bundled
+    /// default); `None`: seeded initialisation.
+    pub initial_model: Option<Model>,
 }
 
 impl Default for TrainingSpec {
@@ -163,6 +170,8 @@ impl Default for TrainingSpec {
             operating_point: OperatingPointRule::BestValidationF1,
             rules: EventRules::Spec,
             data_description: Vec::new(),
+            calibration_prior: None,
+            initial_model: None,
         }
     }
 }

@@ -17,6 +17,7 @@ use spoofwatch_proto::longrunning::operations_server::Operations;
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::training_service_server::TrainingService;
 use spoofwatch_proto::wire::convert::{metrics_to_proto, timestamp_from_ms};
+use spoofwatch_proto::wire::fit::fit_report_to_proto;
 use spoofwatch_proto::wire::limits::{MAX_OPERATION_WAIT, MAX_TRAINING_EPOCHS};
 use spoofwatch_proto::wire::{ModelName, OperationName};
 use tokio::sync::mpsc;
@@ -25,7 +26,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
 
 use super::manager::JobManager;
-use super::records::{JobRequest, JobResult, Progress, TrainingRequest};
+use super::records::{FleetFitRequest, JobRequest, JobResult, Progress, TrainingRequest};
 use crate::edge::{dataset_names, display_name, operation_name, optional_model_name, page_request};
 use crate::models::wire::model_to_proto;
 use crate::models::{Registry, RegistryError};
@@ -107,6 +108,33 @@ fn training_request(request: v1::CreateTrainingJobRequest) -> Result<TrainingReq
         select_kappa_rho: spec.select_kappa_rho,
         display_name: display_name("display_name", &request.display_name)?.to_string(),
         activate: request.activate,
+        fleet_fit: None,
+    })
+}
+
+/// Most a fleet fit's claimed sample rate may be (Hz).
+const MAX_SAMPLE_RATE_HZ: f64 = 100.0;
+
+/// A fleet fit's parameters, the starting model fixed now (the active one when none is named).
+async fn fleet_fit_request(
+    fit: &v1::FleetFit,
+    named_schema: Option<FeatureSchema>,
+    manager: &JobManager,
+) -> Result<FleetFitRequest, Status> {
+    let rate = fit.sample_rate_hz;
+    if !(rate.is_finite() && (0.0..=MAX_SAMPLE_RATE_HZ).contains(&rate)) {
+        return Err(invalid_field(
+            "fleet_fit.sample_rate_hz",
+            format!("must be 0 (any) or a rate up to {MAX_SAMPLE_RATE_HZ} Hz, got {rate}"),
+        ));
+    }
+    let requested = optional_model_name("fleet_fit.starting_model", &fit.starting_model)?;
+    let starting_model = manager.fixed_model(requested.as_ref()).await?;
+    Ok(FleetFitRequest {
+        starting_model,
+        from_scratch: fit.from_scratch,
+        sample_rate_hz: (rate > 0.0).then_some(rate),
+        schema: named_schema,
     })
 }
 
@@ -199,6 +227,7 @@ impl Jobs {
                         model_id,
                         validation,
                         test,
+                        fleet_fit,
                     }) => {
                         let model = self.trained_model(&model_id).await?;
                         Some(OpResult::Response(pack(
@@ -207,6 +236,7 @@ impl Jobs {
                                 model,
                                 validation: Some(metrics_to_proto(&validation)),
                                 test: test.as_ref().map(metrics_to_proto),
+                                fleet_fit: fleet_fit.as_deref().map(fit_report_to_proto),
                             },
                         )))
                     }
@@ -264,7 +294,14 @@ impl TrainingService for TrainingApi {
         &self,
         request: Request<v1::CreateTrainingJobRequest>,
     ) -> Result<Response<longrunning::Operation>, Status> {
-        let training = training_request(request.into_inner())?;
+        let request = request.into_inner();
+        let fit = request.fleet_fit.clone();
+        let spec = request.spec.clone().unwrap_or_default();
+        let mut training = training_request(request)?;
+        if let Some(fit) = fit {
+            let named = (!spec.feature_schema.is_empty()).then_some(training.schema);
+            training.fleet_fit = Some(fleet_fit_request(&fit, named, &self.jobs.manager).await?);
+        }
         let row = self
             .jobs
             .manager
@@ -432,6 +469,17 @@ impl Operations for OperationsApi {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_training_request_without_a_schema_trains_the_bundled_default_s() {
+        let request = v1::CreateTrainingJobRequest {
+            datasets: vec!["datasets/d".to_string()],
+            ..v1::CreateTrainingJobRequest::default()
+        };
+        let training = training_request(request).expect("valid");
+        assert_eq!(training.schema, FeatureSchema::V3);
+        assert!(training.fleet_fit.is_none());
+    }
 
     #[test]
     fn filters_parse_and_bad_terms_are_named() {
