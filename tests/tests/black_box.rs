@@ -21,6 +21,7 @@ mod dashboard_metrics;
 mod error_statuses_are_bounded;
 mod evaluation_jobs;
 mod examples_run_against_a_server;
+mod fleet_fit_jobs;
 mod haproxy_routes_vehicles;
 mod incidents_across_replicas;
 mod incidents_bound_each_source;

@@ -10,6 +10,8 @@
 pub mod evaluate;
 pub mod evidence;
 pub mod exit;
+pub mod fit;
+pub mod fit_report;
 pub mod flags;
 pub mod json;
 pub mod remote;
@@ -40,6 +42,8 @@ enum Command {
     Scenario(scenario::Command),
     /// Train an HO-LLN detector and write its model artifact.
     Train(train::Args),
+    /// Fit the detector to a fleet from its attack-free recordings (offline or on a server).
+    Fit(fit::Args),
     /// Score a model artifact on labelled data (or a stored model on a server's datasets).
     Evaluate(evaluate::Args),
     /// Check that a server is serving (grpc.health.v1; exit status 0 when SERVING).
@@ -70,6 +74,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Evidence(args) => evidence::run(args),
         Command::Scenario(cmd) => scenario::run(cmd),
         Command::Train(args) => train::run(args),
+        Command::Fit(args) => fit::run(args),
         Command::Evaluate(args) => evaluate::run(args),
         Command::Health(args) => remote::block_on(remote::health::run(args)),
         Command::Detect(args) => remote::block_on(remote::detect::run(args)),

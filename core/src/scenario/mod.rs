@@ -15,6 +15,8 @@ mod attack;
 mod drive;
 mod fleet;
 mod impairments;
+mod mix;
+mod pieces;
 mod plan;
 mod randomise;
 mod receiver_flags;
@@ -29,6 +31,8 @@ pub use fleet::{
 pub use impairments::{
     GnssOutage, HeadingBiasWander, Multipath, OnboardErrors, Outages, Reacquisition, StaticHold,
 };
+pub use mix::{log_uniform, training_attack};
+pub use pieces::{Piece, pieces, with_warmup};
 pub use plan::{AttackDuration, RAMP_SWEEP_VELOCITIES_MPS, ScenarioPlan, generate};
 pub use randomise::{ClippedNormal, DriveDistribution, Range, UrbanToRural};
 pub use receiver_flags::{FlagWindow, raise_flags};

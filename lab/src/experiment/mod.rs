@@ -6,6 +6,7 @@
 mod avgps;
 mod common;
 mod fleet_alarms;
+mod fleet_fit;
 mod incidents;
 mod offsets;
 mod parallel;
@@ -31,6 +32,10 @@ pub enum Command {
     /// Both alarm severities as a fleet counts them: the critical test chosen on attack-free
     /// validation hours, clean fleets of 1,000 vehicle-hours per rate, detection at both levels.
     FleetAlarms(fleet_alarms::Args),
+    /// The detector fitted to a fleet from its attack-free recordings (Dataset-2's rover, or a
+    /// simulated fleet with compasses and speed sensors beyond the bundled model's range), scored
+    /// beside the bundled default.
+    FleetFit(fleet_fit::Args),
     /// Regional spoofing replayed through the server: captured vehicles alarmed, their delay, the
     /// time to the area incident; clean fleets with independent attacks make no incident.
     Incidents(incidents::Args),
@@ -44,5 +49,6 @@ pub fn run(cmd: Command) -> Result<()> {
         Command::Offsets(args) => offsets::run(args),
         Command::Incidents(args) => incidents::run(args),
         Command::FleetAlarms(args) => fleet_alarms::run(args),
+        Command::FleetFit(args) => fleet_fit::run(args),
     }
 }

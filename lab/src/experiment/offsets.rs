@@ -29,6 +29,7 @@ use spoofwatch_core::rng::Rng;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{
     AttackKind, AttackSpec, DriveDistribution, InjectedTrack, Outages, inject, simulate_drive,
+    training_attack,
 };
 use spoofwatch_core::train::TrainConfig;
 use spoofwatch_core::train::detector::TrainingData;
@@ -263,44 +264,6 @@ fn test_kinds() -> Vec<TestKind> {
         30.0,
     ));
     kinds
-}
-
-/// A log-uniform draw in [low, high].
-fn log_uniform(rng: &mut Rng, low: f64, high: f64) -> f64 {
-    (low.ln() + rng.uniform() * (high.ln() - low.ln())).exp()
-}
-
-/// One random attack of the training mix: jumps of 5 m–50 km, hops, frozen fixes, ramps,
-/// accelerating and toggling drifts. An `early` one (in a session's first minute) drifts at 1 m/s or
-/// more: before the onboard calibration is warm, a vehicle's own speed-scale and heading errors drift
-/// its dead reckoning by up to a few tenths of a metre per second, so a slower drift from the first
-/// seconds is not an attack the model can be taught (the slow channels join after the warm-up,
-/// `docs/detector.md` §4.2).
-fn training_attack(rng: &mut Rng, early: bool) -> AttackKind {
-    let drift_mps = |rng: &mut Rng, low: f64| log_uniform(rng, if early { 1.0 } else { low }, 2.0);
-    match rng.below(7) {
-        0 => AttackKind::Jump {
-            offset_m: log_uniform(rng, 5.0, 50_000.0),
-        },
-        1 => AttackKind::Hopping {
-            offset_m: log_uniform(rng, 50.0, 50_000.0),
-            hold_s: rng.uniform_range(1.0, 30.0).round(),
-        },
-        2 => AttackKind::FrozenPosition,
-        3 | 4 => AttackKind::RampDrift {
-            velocity_mps: drift_mps(rng, 0.2),
-        },
-        5 if early => AttackKind::RampDrift {
-            velocity_mps: drift_mps(rng, 0.2),
-        },
-        5 => AttackKind::AcceleratingDrift {
-            acceleration_mps2: log_uniform(rng, 0.01, 0.3),
-        },
-        _ => AttackKind::TogglingDrift {
-            velocity_mps: drift_mps(rng, 0.3),
-            period_s: rng.uniform_range(5.0, 30.0).round(),
-        },
-    }
 }
 
 /// Seeds of the drive populations (kept apart so no drive appears in two of them).

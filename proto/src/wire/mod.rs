@@ -2,6 +2,7 @@
 //! code base, in one place.
 //!
 //! - [`convert`]: core types (samples, decisions, metrics, operating points) to and from messages.
+//! - [`fit`]: a fleet fit's report as its message.
 //! - [`names`]: resource names (`models/{id}`, `datasets/{id}`, `operations/{id}`) as newtypes.
 //! - [`limits`]: the bounds both the server's validation and well-behaved clients respect.
 //! - [`routing`]: the `x-vehicle-id` metadata a load balancer hashes on.
@@ -11,6 +12,7 @@
 //! name and vehicle-id rules, and it must not depend on the server or the client (both depend on it).
 
 pub mod convert;
+pub mod fit;
 pub mod limits;
 pub mod names;
 pub mod routing;

@@ -147,6 +147,11 @@ impl JobManager {
         self.create(request).await
     }
 
+    /// The model a job starts from, fixed when it is created: `requested`, or the active model.
+    pub async fn fixed_model(&self, requested: Option<&ModelName>) -> Result<ModelName, JobError> {
+        Ok(self.registry.resolve(requested).await?.name)
+    }
+
     /// Checks that every dataset of `request` exists and that together they fit the input budget,
     /// then queues it.
     pub async fn create(self: &Arc<Self>, request: JobRequest) -> Result<JobRow, JobError> {

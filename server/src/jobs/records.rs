@@ -6,6 +6,7 @@ use std::fmt::Display;
 
 use serde::{Deserialize, Serialize, Serializer};
 use spoofwatch_core::evidence::FeatureSchema;
+use spoofwatch_core::fleet_fit::FleetFitReport;
 use spoofwatch_core::metrics::Metrics;
 use spoofwatch_core::model::Ablation;
 use spoofwatch_proto::wire::{DatasetName, ModelName};
@@ -25,6 +26,20 @@ pub struct TrainingRequest {
     pub select_kappa_rho: bool,
     pub display_name: String,
     pub activate: bool,
+    /// Set: a fleet fit of the datasets (attack-free recordings) instead of training on labels.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fleet_fit: Option<FleetFitRequest>,
+}
+
+/// A fleet fit's parameters (the starting model fixed when the job is created).
+#[derive(Clone, Debug, Serialize)]
+pub struct FleetFitRequest {
+    #[serde(serialize_with = "name")]
+    pub starting_model: ModelName,
+    pub from_scratch: bool,
+    pub sample_rate_hz: Option<f64>,
+    /// The feature schema the request named, if it named one: it must be the starting model's.
+    pub schema: Option<FeatureSchema>,
 }
 
 /// An evaluation job's parameters (the model is fixed when the job is created).
@@ -91,6 +106,9 @@ pub enum JobResult {
         model_id: String,
         validation: Metrics,
         test: Option<Metrics>,
+        /// A fleet fit's report.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        fleet_fit: Option<Box<FleetFitReport>>,
     },
     Evaluation {
         model: String,

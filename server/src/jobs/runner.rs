@@ -9,10 +9,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use spoofwatch_core::evaluation::evaluate_tracks;
+use spoofwatch_core::fleet_fit::{FleetFitError, FleetFitSpec, fit_fleet};
 use spoofwatch_core::metrics::EventRules;
-use spoofwatch_core::train::detector::{
-    TrainDetectorError, TrainedDetector, TrainingData, train_detector,
-};
+use spoofwatch_core::model::artifact::ModelArtifact;
+use spoofwatch_core::train::detector::{TrainDetectorError, TrainingData, train_detector};
 use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
 use spoofwatch_core::train::{EpochProgress, TrainError};
 use spoofwatch_proto::wire::OperationName;
@@ -48,6 +48,12 @@ pub enum JobFailure {
     /// Training refused the data or found no operating point.
     #[error("training: {0}")]
     Training(TrainDetectorError),
+    /// A fleet fit refused the recordings (naming the field) or could not inject its attacks.
+    #[error("fleet fit: {0}")]
+    Fit(FleetFitError),
+    /// A fleet fit's request contradicts its starting model.
+    #[error("{field}: {reason}")]
+    FitRequest { field: &'static str, reason: String },
     /// A worker thread panicked or was aborted, or the job queue closed.
     #[error(transparent)]
     Worker(#[from] Fault),
@@ -76,6 +82,15 @@ impl LiveJob {
     /// Tells watchers the job changed.
     pub fn notify(&self) {
         self.changes.send_modify(|n| *n += 1);
+    }
+}
+
+/// A training failure as the job's: cancelled before the first epoch completed is still a
+/// cancellation, not a failure.
+fn training_failure(error: TrainDetectorError) -> JobFailure {
+    match error {
+        TrainDetectorError::Train(TrainError::Cancelled) => JobFailure::Cancelled,
+        other => JobFailure::Training(other),
     }
 }
 
@@ -129,6 +144,9 @@ impl Runner {
         request: TrainingRequest,
         live: &LiveJob,
     ) -> Result<JobResult, JobFailure> {
+        if request.fleet_fit.is_some() {
+            return self.fit_to_fleet(id, request, live).await;
+        }
         let TrainingRequest {
             datasets,
             validation_datasets,
@@ -139,6 +157,7 @@ impl Runner {
             select_kappa_rho,
             display_name,
             activate,
+            fleet_fit: _,
         } = request;
         let data = TrainingData::split_unless_validation(
             self.catalog.load_tracks(&datasets).await?,
@@ -154,7 +173,13 @@ impl Runner {
                 KappaRho::selected_if(select_kappa_rho),
             )
         };
-        let trained = Arc::new(self.train(id, live, spec, data, max_epochs).await?);
+        let trained = self
+            .with_epochs(id, live, max_epochs, move |on_epoch, cancel| {
+                train_detector(&spec, data, on_epoch, cancel)
+            })
+            .await?
+            .map_err(training_failure)?;
+        let trained = Arc::new(trained);
         if trained.cancelled {
             return Err(JobFailure::Cancelled);
         }
@@ -166,11 +191,94 @@ impl Runner {
             .await
             .map_err(|e| Fault::new("evaluating the test split", e))?
         };
+        let model_id = self
+            .register_trained(id, &display_name, &trained.artifact, activate)
+            .await?;
+        Ok(JobResult::Training {
+            model_id,
+            validation: trained.validation.clone(),
+            test: test_metrics,
+            fleet_fit: None,
+        })
+    }
+
+    /// Fits the starting model to the fleet of the request's datasets (attack-free recordings)
+    /// and registers the fitted model with its report.
+    async fn fit_to_fleet(
+        &self,
+        id: &OperationName,
+        request: TrainingRequest,
+        live: &LiveJob,
+    ) -> Result<JobResult, JobFailure> {
+        let Some(fit) = request.fleet_fit else {
+            unreachable!("fit_to_fleet is only called for fleet-fit requests")
+        };
+        let starting = self.registry.resolve(Some(&fit.starting_model)).await?;
+        let starting_schema = starting.artifact.model.config().schema;
+        if let Some(named) = fit.schema.filter(|s| *s != starting_schema) {
+            return Err(JobFailure::FitRequest {
+                field: "spec.feature_schema",
+                reason: format!(
+                    "a fleet fit keeps its starting model's schema ({}), not {}",
+                    starting_schema.name(),
+                    named.name()
+                ),
+            });
+        }
+        let recordings = self.catalog.load_tracks(&request.datasets).await?;
+        let validation = self
+            .catalog
+            .load_tracks(&request.validation_datasets)
+            .await?;
+        let spec = FleetFitSpec {
+            seed: request.seed,
+            max_epochs: request.max_epochs,
+            from_scratch: fit.from_scratch,
+            sample_rate_hz: fit.sample_rate_hz,
+            data_description: request.datasets.iter().map(ToString::to_string).collect(),
+        };
+        let artifact = Arc::clone(&starting.artifact);
+        let fitted = self
+            .with_epochs(id, live, request.max_epochs, move |on_epoch, cancel| {
+                fit_fleet(&spec, &recordings, &validation, &artifact, on_epoch, cancel)
+            })
+            .await?
+            .map_err(|error| match error {
+                FleetFitError::Train(error) => training_failure(error),
+                other => JobFailure::Fit(other),
+            })?;
+        if fitted.cancelled {
+            return Err(JobFailure::Cancelled);
+        }
+        let name = if request.display_name.is_empty() {
+            format!("fitted to a fleet by {id}")
+        } else {
+            request.display_name
+        };
+        let model_id = self
+            .register_trained(id, &name, &fitted.artifact, request.activate)
+            .await?;
+        Ok(JobResult::Training {
+            model_id,
+            validation: fitted.validation,
+            test: None,
+            fleet_fit: Some(Box::new(fitted.report)),
+        })
+    }
+
+    /// Registers a model the job made, named `display_name` (or after the job).
+    async fn register_trained(
+        &self,
+        id: &OperationName,
+        display_name: &str,
+        artifact: &ModelArtifact,
+        activate: bool,
+    ) -> Result<String, JobFailure> {
         let model_id = new_id();
         let name = if display_name.is_empty() {
             format!("trained by {id}")
         } else {
-            display_name
+            display_name.to_string()
         };
         self.registry
             .register(
@@ -178,15 +286,11 @@ impl Runner {
                 &name,
                 ModelSource::Training,
                 Some(id),
-                &trained.artifact,
+                artifact,
                 activate,
             )
             .await?;
-        Ok(JobResult::Training {
-            model_id,
-            validation: trained.validation.clone(),
-            test: test_metrics,
-        })
+        Ok(model_id)
     }
 
     /// Evaluates the request's model on its datasets.
@@ -206,23 +310,21 @@ impl Runner {
         })
     }
 
-    /// Runs training on a blocking thread at low priority; epochs stream back to be persisted and announced.
-    async fn train(
+    /// Runs `work` (training of some kind) on a blocking thread at low priority; its epochs stream
+    /// back to be persisted and announced, and a cancellation of the job sets its flag.
+    async fn with_epochs<T: Send + 'static>(
         &self,
         id: &OperationName,
         live: &LiveJob,
-        spec: TrainingSpec,
-        data: TrainingData,
         max_epochs: u32,
-    ) -> Result<TrainedDetector, JobFailure> {
+        work: impl FnOnce(&mut dyn FnMut(&EpochProgress), &AtomicBool) -> T + Send + 'static,
+    ) -> Result<T, JobFailure> {
         let cancel_flag = Arc::new(AtomicBool::new(false));
         let (epochs_tx, mut epochs_rx) = mpsc::unbounded_channel::<EpochProgress>();
         let flag = Arc::clone(&cancel_flag);
         let worker = tokio::task::spawn_blocking(move || {
             at_low_priority(|| {
-                train_detector(
-                    &spec,
-                    data,
+                work(
                     &mut |p| {
                         // The receiver lives until the worker ends; a send can only fail after
                         // that.
@@ -257,12 +359,7 @@ impl Runner {
                 }
             }
         }
-        let trained = worker.await.map_err(|e| Fault::new("training", e))?;
-        trained.map_err(|e| match e {
-            // Cancelled before the first epoch completed: still a cancellation, not a failure.
-            TrainDetectorError::Train(TrainError::Cancelled) => JobFailure::Cancelled,
-            other => JobFailure::Training(other),
-        })
+        Ok(worker.await.map_err(|e| Fault::new("training", e))?)
     }
 
     /// Persists one epoch's history row and the job's live progress. Best effort: progress is

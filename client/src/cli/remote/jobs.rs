@@ -138,6 +138,9 @@ pub fn describe_training_result(result: &v1::TrainingJobResult) -> String {
     if !rows.is_empty() {
         out.push_str(&metrics_table(&rows));
     }
+    if let Some(report) = &result.fleet_fit {
+        out.push_str(&crate::cli::fit_report::render(report));
+    }
     out
 }
 
@@ -350,6 +353,7 @@ mod tests {
                 ..Default::default()
             }),
             test: None,
+            fleet_fit: None,
         };
         let operation = longrunning::Operation {
             name: "operations/x".into(),

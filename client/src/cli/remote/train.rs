@@ -60,12 +60,23 @@ pub fn job_request(
         }),
         display_name: remote.name.clone().unwrap_or_default(),
         activate: remote.activate,
+        fleet_fit: None,
     })
 }
 
 /// Creates the job, follows it to the end and prints the registered model and its metrics.
 pub async fn run(remote: RemoteTrainingFlags, flags: TrainingFlags) -> Result<()> {
     let request = job_request(&remote, &flags)?;
+    run_job(&remote, request, flags.epochs).await
+}
+
+/// Creates the training (or fleet-fit) job `request`, follows it to the end and prints the
+/// registered model, its metrics and a fit's report.
+pub async fn run_job(
+    remote: &RemoteTrainingFlags,
+    request: v1::CreateTrainingJobRequest,
+    max_epochs: u32,
+) -> Result<()> {
     let Some(server) = remote.server.clone() else {
         bail!("remote training needs --server");
     };
@@ -81,7 +92,7 @@ pub async fn run(remote: RemoteTrainingFlags, flags: TrainingFlags) -> Result<()
     .await?;
     let name = operation.name.clone();
     println!("created training job {name}");
-    match follow(&connection, &name, flags.epochs).await? {
+    match follow(&connection, &name, max_epochs).await? {
         Followed::Finished => {}
         Followed::LeftRunning => {
             println!(
