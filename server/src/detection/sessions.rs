@@ -106,12 +106,11 @@ pub struct SessionSummary {
     pub last_activity_ms: i64,
 }
 
-/// A stream's hold on a session.
+/// A stream's hold on a session. The credential its batches are sent with is given with each
+/// batch ([`SessionManager::process`]): a changed roles file may change it while the stream is open.
 #[derive(Debug)]
 pub struct Attachment {
     pub slot: Arc<SessionSlot>,
-    /// The credential of the stream's caller: the alarms its batches raise record it.
-    pub credential: Credential,
     pub stream_id: u64,
     /// Cancelled when a newer stream takes the session over.
     pub evicted: CancellationToken,
@@ -200,17 +199,14 @@ impl SessionManager {
     /// Attaches a stream to a vehicle's session (creating or resuming it); an older stream on the same
     /// session is told to end. `model` `None` is the active model. A session on another model
     /// starts afresh.
+    /// `identity`: the caller's, whose session quota a new session counts against.
     pub async fn attach(
         &self,
-        vehicle: ForVehicle<'_>,
+        vehicle_id: &VehicleId,
+        identity: &Arc<str>,
         model: Option<&ModelName>,
         reset: bool,
     ) -> Result<Attachment, SessionError> {
-        let ForVehicle {
-            vehicle_id,
-            identity,
-            credential,
-        } = vehicle;
         let _gate = self.model_gate.read().await;
         let model = self.registry.resolve(model).await?;
         // Read before any lock is taken: it may wait for the database.
@@ -282,7 +278,6 @@ impl SessionManager {
         drop(state);
         Ok(Attachment {
             slot,
-            credential: credential.clone(),
             stream_id,
             evicted,
             accepted,
@@ -319,12 +314,15 @@ impl SessionManager {
         Some(self.keeper.save(&slot.vehicle_id, &mut state))
     }
 
-    /// Validates and runs one batch on a session. A rejected batch changes nothing. `seq` 0 is not
-    /// sequenced; a seq already applied is acknowledged (`duplicate`) without being scored again,
-    /// and one before the last applied seq that never was is refused ([`super::sequence`]).
+    /// Validates and runs one batch on a session, sent with `credential` (as the identities in
+    /// force judge the stream's caller now: the alarms it raises record it). A rejected batch
+    /// changes nothing. `seq` 0 is not sequenced; a seq already applied is acknowledged
+    /// (`duplicate`) without being scored again, and one before the last applied seq that never
+    /// was is refused ([`super::sequence`]).
     pub async fn process(
         &self,
         attachment: &Attachment,
+        credential: &Credential,
         seq: u64,
         samples: &[Sample],
         field: &str,
@@ -335,7 +333,7 @@ impl SessionManager {
             seq,
             samples,
             field,
-            credential: &attachment.credential,
+            credential,
         };
         self.score(&mut state, samples.len(), |state| {
             self.process_locked(slot, state, batch)
