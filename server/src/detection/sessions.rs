@@ -117,6 +117,23 @@ pub struct Attachment {
     pub accepted: Accepted,
 }
 
+/// A session reset in the store, as GetSession would describe it were it held: no stream, no
+/// samples, no alarm, under the model it ran.
+fn fresh_summary(vehicle_id: &VehicleId, model_id: &str) -> SessionSummary {
+    SessionSummary {
+        vehicle_id: vehicle_id.clone(),
+        model: ModelName::from_id(model_id),
+        connected: false,
+        samples: 0,
+        trajectories: 0,
+        alarm_active: false,
+        alarms_raised: 0,
+        last_seq: 0,
+        last_timestamp_s: None,
+        last_activity_ms: crate::store::now_unix_ms(),
+    }
+}
+
 /// The seq field beside a batch's samples field (`batch.samples` → `batch.seq`).
 fn seq_field(samples_field: &str) -> String {
     let prefix = samples_field.strip_suffix("samples").unwrap_or("");
@@ -616,12 +633,29 @@ impl SessionManager {
         Ok(self.describe(&slot).await)
     }
 
-    /// Forgets a session's history but keeps its model.
+    /// Forgets a session's history but keeps its model; its open alarm ends. A vehicle this
+    /// process no longer holds in memory (its session evicted, or not resumed since a restart) is
+    /// reset in the store: its snapshot is deleted and the alarm it held open ends at its last
+    /// alarming sample, as when the snapshot expires; its next stream starts afresh. Not found
+    /// only when neither memory nor the store knows the vehicle.
     pub async fn reset(&self, vehicle_id: &VehicleId) -> Result<SessionSummary, SessionError> {
-        let slot = self
-            .table
-            .lookup(vehicle_id)
-            .ok_or_else(|| SessionError::NotFound(vehicle_id.to_string()))?;
+        let slot = match self.table.lookup(vehicle_id) {
+            Some(slot) => slot,
+            None => {
+                let model_id = self
+                    .keeper
+                    .reset_stored(vehicle_id)
+                    .await?
+                    .ok_or_else(|| SessionError::NotFound(vehicle_id.to_string()))?;
+                // A stream that started meanwhile may have continued the snapshot before it went:
+                // its session is reset too, in memory.
+                let Some(slot) = self.table.lookup(vehicle_id) else {
+                    tracing::info!(vehicle = %vehicle_id, "reset a vehicle's stored session: its snapshot is deleted and its open alarm ended");
+                    return Ok(fresh_summary(vehicle_id, &model_id));
+                };
+                slot
+            }
+        };
         {
             let mut state = slot.state.lock().await;
             let model = state.model.clone();
