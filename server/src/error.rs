@@ -14,7 +14,7 @@ use std::time::Duration;
 use tonic::{Code, Status};
 
 use crate::datasets::DatasetError;
-use crate::detection::SessionError;
+use crate::detection::{SessionError, StoredReset};
 use crate::fault::Fault;
 use crate::jobs::{JobError, JobFailure};
 use crate::models::RegistryError;
@@ -116,6 +116,13 @@ impl From<SessionError> for Status {
             // Retried soon: a burst of failovers or a short outage clears within seconds.
             SessionError::SnapshotUnreadable(_) => {
                 unavailable(error.to_string(), Duration::from_secs(1))
+            }
+            SessionError::Stored(StoredReset::NotStoredYet) => {
+                unavailable(error.to_string(), Duration::from_secs(1))
+            }
+            SessionError::Stored(StoredReset::Store(store)) => store.into(),
+            SessionError::Stored(StoredReset::Unreadable(_) | StoredReset::Rewritten) => {
+                with_code(Code::FailedPrecondition, error.to_string())
             }
         }
     }

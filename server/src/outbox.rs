@@ -368,6 +368,15 @@ impl SessionOutbox {
             .map(|queued| queued.row.clone())
     }
 
+    /// Told once the vehicle's queued snapshot (or a newer one) is stored; `None` when none waits.
+    pub fn snapshot_stored(&self, vehicle_id: &str) -> Option<oneshot::Receiver<()>> {
+        let mut pending = self.pending();
+        let queued = pending.snapshots.get_mut(vehicle_id)?;
+        let (told, receipt) = oneshot::channel();
+        queued.waiters.push(told);
+        Some(receipt)
+    }
+
     /// Whether the store will take `event`'s values; a refusal is counted and logged.
     fn acceptable(&self, event: &AlarmEvent) -> bool {
         let Err(error) = event.validate() else {

@@ -37,6 +37,7 @@ mod protobuf_fuzzing;
 mod readme_grpcurl;
 mod replay_fails_over;
 mod replicas_share_one_database;
+mod reset_after_eviction;
 mod restart_keeps_stored_state;
 mod revocation_reaches_open_streams;
 mod sequence_numbers;

@@ -6,6 +6,8 @@
 //!   the gateway's token) and opens no incident: its vehicles are one source.
 //! - Two credentials (the gateway's two vehicles and a vehicle token's own) open one, listing both
 //!   credentials; a gateway the roles file says forwards independent receivers opens one alone.
+//! - A gateway's streams opened before the roles file marks it as forwarding independent receivers
+//!   raise their later alarms under the new grant: its three vehicles then open an incident.
 //! - Ten made-up vehicles, each placed 9 km east of where the incident's centre is by then, join
 //!   it but cannot walk it: its centre stays where its first members were captured and its area
 //!   within the configured radius plus the margin.
@@ -18,7 +20,10 @@ use spoofwatch_proto::v1;
 use spoofwatch_tests::incidents::{
     attacked_drive, incident_vehicles, list_incidents, wait_for_incidents,
 };
-use spoofwatch_tests::{Connection, TestServer, start_with_roles, stream_samples, token_sha256};
+use spoofwatch_tests::{
+    Connection, DetectStream, REPLY_TIMEOUT, TestServer, start_with_roles, stream_samples,
+    token_sha256,
+};
 
 /// The correlator's 1 s ticks, the alarm writer's batching, on shared cores.
 const INCIDENT_BOUND: Duration = Duration::from_secs(40);
@@ -221,4 +226,84 @@ async fn chained_joins_cannot_walk_an_incident_beyond_its_radius() {
         incident.radius_m
     );
     server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_gateway_marked_independent_while_its_streams_are_open_counts_each_vehicle_on_them() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let (server, reader) = start(dir.path()).await;
+    let bridge = server.connection(Some("bridge-token")).await;
+    let origin = LatLon::new(34.5, -112.0);
+    let triangle = [(0.0, 0.0), (9_000.0, 0.0), (4_500.0, 7_794.0)];
+    // The bridge's three streams open, and score their vehicles' drives up to the capture at 40 s,
+    // while the roles file still counts its vehicles as one source.
+    let mut streams = Vec::new();
+    for (k, (east, north)) in triangle.iter().enumerate() {
+        let id = format!("gw-e{k}");
+        let samples = captured(&id, place(origin, *east, *north), 50 + k as u64);
+        let (stream, _) = DetectStream::start(&bridge, &id, "", true)
+            .await
+            .unwrap_or_else(|e| panic!("{id}: the stream opens: {e}"));
+        let mut stream = stream.with_reply_timeout(REPLY_TIMEOUT);
+        stream
+            .detect(1, samples[..30].to_vec())
+            .await
+            .unwrap_or_else(|e| panic!("{id}: detections: {e}"));
+        streams.push((stream, samples));
+    }
+
+    // The roles file now marks the bridge as forwarding independent receivers (and admits a probe
+    // token, by which the change is seen to be in force).
+    let changed = roles().replacen(
+        "vehicle_prefixes = [\"gw-\"] }",
+        "vehicle_prefixes = [\"gw-\"], independent_receivers = true }",
+        1,
+    ) + &format!(
+        "\"{}\" = {{ name = \"probe\", role = \"operator\" }}\n",
+        token_sha256("probe-token")
+    );
+    std::fs::write(dir.path().join("roles.toml"), changed).expect("roles file rewritten");
+    let probe = server.connection(Some("probe-token")).await;
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
+    while list_incidents_answer(&probe).await != tonic::Code::Ok {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the changed roles file was not in force within 20 s"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+
+    // The captures arrive on the streams opened before the change: each vehicle is its own source.
+    for (stream, samples) in &mut streams {
+        stream
+            .detect(2, samples[30..].to_vec())
+            .await
+            .expect("the stream goes on under the new grant");
+    }
+    for (stream, _) in streams {
+        stream.finish().await.expect("it ends with OK");
+    }
+    let stored = wait_for_incidents(
+        &reader,
+        "the incident of the bridge's three receivers",
+        INCIDENT_BOUND,
+        |stored| stored.len() == 1 && stored[0].vehicles.len() == 3,
+    )
+    .await;
+    assert_eq!(incident_vehicles(&stored[0]), ["gw-e0", "gw-e1", "gw-e2"]);
+    assert_eq!(stored[0].sources, 3, "each receiver its own source");
+    assert_eq!(
+        stored[0].credentials,
+        [token_credential("bridge", "bridge-token")]
+    );
+    server.stop().await;
+}
+
+/// What a new ListIncidents call through `connection` is answered with.
+async fn list_incidents_answer(connection: &Connection) -> tonic::Code {
+    connection
+        .alarms()
+        .list_incidents(v1::ListIncidentsRequest::default())
+        .await
+        .map_or_else(|status| status.code(), |_| tonic::Code::Ok)
 }

@@ -6,16 +6,19 @@
 //! alarm raised after the revocation; the old admin token's calls once the token file holds a new
 //! one; a demoted operator's watch, and a gateway's stream for a vehicle it no longer serves, with
 //! PERMISSION_DENIED. Callers the change leaves admitted keep their calls, and a gateway's open
-//! fleet stream is served under its new vehicles.
+//! fleet stream is served under its new vehicles. The other calls that stay open end the same
+//! way: a revoked operator's WatchJob (without the job's next change) and WaitOperation, and a
+//! revoked admin's UploadDataset (nothing stored).
 
 use std::time::Duration;
 
+use spoofwatch_proto::longrunning;
 use spoofwatch_proto::v1;
 use spoofwatch_tests::pki::TestCa;
 use spoofwatch_tests::{
     ADMIN_TOKEN, Clients, ConnectOptions, Connection, DetectStream, REPLY_TIMEOUT, TestServer,
-    normal_drive, start_with_roles, stream_frozen_fix_drive, test_config, token_sha256,
-    track_samples, with_certificate,
+    normal_drive, start_with_roles, stream_frozen_fix_drive, telemetry_csv, test_config,
+    token_sha256, track_samples, training_fleet, training_request, upload_tracks, with_certificate,
 };
 use tokio::sync::mpsc;
 use tokio::time::Instant;
@@ -426,5 +429,186 @@ async fn a_demoted_callers_open_calls_end_with_permission_denied_and_a_gateway_s
     assert!(sent.is_empty() && status.code() == Code::Ok, "{status:?}");
 
     drop((stream, gateway, operator));
+    server.stop().await;
+}
+
+/// [`token_roles`] with an admin token `console-token` besides the single admin token.
+fn token_roles_with_console(deny: &[&str]) -> String {
+    token_roles(deny).replacen(
+        "[deny]",
+        &format!(
+            "\"{}\" = {{ name = \"console\", role = \"admin\" }}\n[deny]",
+            token_sha256("console-token")
+        ),
+        1,
+    )
+}
+
+fn job_state(metadata: &v1::JobMetadata) -> v1::JobState {
+    v1::JobState::try_from(metadata.state).expect("a known job state")
+}
+
+async fn watching_job(connection: &Connection, name: &str) -> Streaming<v1::JobMetadata> {
+    let mut updates = connection
+        .training()
+        .watch_job(v1::WatchJobRequest {
+            name: name.to_string(),
+        })
+        .await
+        .expect("WatchJob is accepted")
+        .into_inner();
+    let first = next_reply(&mut updates).await;
+    assert!(
+        matches!(
+            job_state(&first),
+            v1::JobState::Queued | v1::JobState::Running
+        ),
+        "{first:?}"
+    );
+    updates
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_revoked_callers_job_watch_wait_and_upload_end_before_the_jobs_next_change() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let roles_file = dir.path().join("roles.toml");
+    std::fs::write(&roles_file, token_roles_with_console(&[])).expect("roles file written");
+    let mut config = test_config(dir.path());
+    config.roles_file = Some(roles_file.clone());
+    config.auth_token = Some(ADMIN_TOKEN.into());
+    // One job runs at a time: the second stays queued until it is cancelled.
+    config.max_running_jobs = 1;
+    let server = TestServer::start_for(
+        config,
+        &ConnectOptions::with_token(Some(ADMIN_TOKEN.into())),
+    )
+    .await;
+    let mut admin = Clients::new(with_token(&server, ADMIN_TOKEN).await);
+    // Twenty copies of the training fleet (40,000 rows): each job trains for seconds at least
+    // (early stopping waits 12 epochs), so the second is still queued or running when it is
+    // cancelled below.
+    let fleet: Vec<_> = (0..20)
+        .flat_map(|copy| {
+            training_fleet().into_iter().map(move |mut track| {
+                track.vehicle_id = format!("{}-{copy}", track.vehicle_id);
+                track
+            })
+        })
+        .collect();
+    let dataset = upload_tracks(&mut admin, "fleet", &fleet).await;
+    let mut jobs = Vec::new();
+    for epochs in [200, 200] {
+        let job = admin
+            .training
+            .create_training_job(training_request(&dataset.name, epochs, false))
+            .await
+            .expect("the job is queued")
+            .into_inner();
+        jobs.push(job.name);
+    }
+    // Queued behind the first (one job runs at a time), or running once the first stopped early.
+    let queued = jobs[1].clone();
+
+    let operator = with_token(&server, "operator-token").await;
+    let other_operator = with_token(&server, "other-operator-token").await;
+    let mut revoked_watch = watching_job(&operator, &queued).await;
+    let mut kept_watch = watching_job(&other_operator, &queued).await;
+    let mut operations = operator.operations();
+    let wait_for = queued.clone();
+    let revoked_wait = tokio::spawn(async move {
+        operations
+            .wait_operation(longrunning::WaitOperationRequest {
+                name: wait_for,
+                timeout: Some(prost_types::Duration {
+                    seconds: 120,
+                    nanos: 0,
+                }),
+            })
+            .await
+    });
+    // The console admin's upload: its header and a first chunk sent, the rest to come.
+    let console = with_token(&server, "console-token").await;
+    let (upload_tx, upload_rx) = mpsc::channel(4);
+    let csv = telemetry_csv(&training_fleet());
+    for kind in [
+        v1::upload_dataset_request::Kind::Header(v1::UploadDatasetHeader {
+            display_name: "half an upload".into(),
+        }),
+        v1::upload_dataset_request::Kind::CsvChunk(csv[..csv.len() / 2].to_vec()),
+    ] {
+        upload_tx
+            .send(v1::UploadDatasetRequest { kind: Some(kind) })
+            .await
+            .expect("queued");
+    }
+    let mut datasets = console.datasets();
+    let upload = tokio::spawn(async move {
+        datasets
+            .upload_dataset(ReceiverStream::new(upload_rx))
+            .await
+    });
+
+    std::fs::write(
+        &roles_file,
+        token_roles_with_console(&["operator-token", "console-token"]),
+    )
+    .expect("roles file rewritten");
+    until_answered(async || list_models(&operator).await, Code::Unauthenticated).await;
+
+    // The job's next change, once the revocation is in force, reaches the watcher still admitted
+    // and not the revoked one.
+    admin
+        .operations
+        .cancel_operation(longrunning::CancelOperationRequest {
+            name: queued.clone(),
+        })
+        .await
+        .expect("the queued job is cancelled");
+    loop {
+        let update = next_reply(&mut kept_watch).await;
+        if job_state(&update) == v1::JobState::Cancelled {
+            break;
+        }
+    }
+    // (It may have sent the job's start or epochs before the change: not its cancellation.)
+    let (sent, status) = read_to_end(&mut revoked_watch).await;
+    assert!(
+        sent.iter()
+            .all(|update| job_state(update) != v1::JobState::Cancelled),
+        "WatchJob sent after the revocation: {sent:?}"
+    );
+    assert_revoked(&status, "WatchJob");
+    let waited = tokio::time::timeout(END_WITHIN, revoked_wait)
+        .await
+        .expect("the wait ends")
+        .expect("the task ran");
+    assert_revoked(&waited.expect_err("the wait is ended"), "WaitOperation");
+    let uploaded = tokio::time::timeout(END_WITHIN, upload)
+        .await
+        .expect("the upload ends")
+        .expect("the task ran");
+    assert_revoked(&uploaded.expect_err("the upload is ended"), "UploadDataset");
+    drop(upload_tx);
+    let stored = admin
+        .datasets
+        .list_datasets(v1::ListDatasetsRequest::default())
+        .await
+        .expect("ListDatasets")
+        .into_inner()
+        .datasets;
+    assert_eq!(
+        stored.len(),
+        1,
+        "nothing of the ended upload is stored: {stored:?}"
+    );
+
+    // The first job stops here, if it has not stopped early.
+    let _ = admin
+        .operations
+        .cancel_operation(longrunning::CancelOperationRequest {
+            name: jobs[0].clone(),
+        })
+        .await;
+    drop((admin, operator, other_operator, console));
     server.stop().await;
 }

@@ -14,7 +14,9 @@
 //!   alarm is one vehicle's own. Reported: vehicle-hours, alarm onsets, and incidents (there must be
 //!   none), one fleet per seed.
 //! - **The prior's cost.** Attack-free hour-long drives at 1, 5 and 10 Hz scored by the bundled
-//!   model as if inside an open incident's area throughout, against their own evidence alone.
+//!   model as if inside an open incident's area throughout, against their own evidence alone, at
+//!   both levels: the alarm onsets (every episode opens as a warning at least) and the escalations
+//!   to critical. The prior may speed the warning; it must never make an alarm critical.
 //!
 //! It owns the scenes' setup, the replay and the tallies; the correlation is the server's.
 
@@ -75,6 +77,13 @@ pub struct Args {
     /// prior costs: each is scored as if it spent the whole hour inside an open incident's area.
     #[arg(long, default_value_t = 30)]
     prior_drives: u64,
+    /// The distribution those drives are drawn from: `realistic`, or `fleet` (the one the bundled
+    /// model's critical test was chosen and measured on).
+    #[arg(long, default_value = "realistic", value_parser = ["realistic", "fleet"])]
+    prior_distribution: String,
+    /// Measure only the prior's cost (no spoofed scenes, no clean fleets).
+    #[arg(long)]
+    prior_only: bool,
 }
 
 /// One spoofed scene's result.
@@ -122,8 +131,14 @@ struct CleanRow {
 struct PriorCostRow {
     rate_hz: f64,
     hours: f64,
+    /// Alarm onsets (the warning level: every episode opens as one) outside and inside the area.
     onsets_without: usize,
     onsets_with: usize,
+    /// Escalations to critical outside and inside the area.
+    critical_without: usize,
+    critical_with: usize,
+    /// Drives that escalated more often inside the area than outside.
+    drives_more_critical_with: usize,
 }
 
 #[derive(Debug, Serialize)]
@@ -143,12 +158,13 @@ pub fn run(args: Args) -> Result<()> {
     let mut report = Report {
         scenes: Vec::new(),
         clean: Vec::new(),
-        prior_cost: prior_cost(args.prior_drives)?,
+        prior_cost: prior_cost(args.prior_drives, &args.prior_distribution)?,
     };
     for row in &report.prior_cost {
         println!("{row:?}");
     }
-    for &seed in &args.seeds {
+    let seeds: &[u64] = if args.prior_only { &[] } else { &args.seeds };
+    for &seed in seeds {
         for (name, attack) in attacks() {
             let spec = spoofed_spec(&args, seed, attack);
             let scene = generate_fleet(&spec).context("generating the scene")?;
@@ -160,7 +176,7 @@ pub fn run(args: Args) -> Result<()> {
         }
     }
     if args.clean_vehicles > 0 {
-        for &seed in &args.seeds {
+        for &seed in seeds {
             let row = runtime.block_on(clean_fleet(&args, seed))?;
             println!("{row:?}");
             report.clean.push(row);
@@ -443,14 +459,18 @@ const PRIOR_RATES_HZ: [f64; 3] = [1.0, 5.0, 10.0];
 /// Length of a drive that measures the prior's cost (s).
 const PRIOR_DRIVE_S: f64 = 3_600.0;
 
-/// The bundled model's alarm onsets on `drives` attack-free hour-long realistic drives per rate,
-/// scored on their own evidence and as if inside an open incident's area throughout (the worst
-/// case: a vehicle that never leaves the area).
-fn prior_cost(drives: u64) -> Result<Vec<PriorCostRow>> {
+/// The bundled model's alarm onsets and escalations to critical on `drives` attack-free hour-long
+/// drives of `distribution` per rate, scored on their own evidence and as if inside an open
+/// incident's area throughout (the worst case: a vehicle that never leaves the area).
+fn prior_cost(drives: u64, distribution: &str) -> Result<Vec<PriorCostRow>> {
     let model = Arc::new(
         ModelArtifact::from_slice(include_bytes!("../../../models/default.json"))
             .context("the bundled model")?,
     );
+    let distribution = match distribution {
+        "fleet" => DriveDistribution::fleet(),
+        _ => DriveDistribution::realistic(),
+    };
     let seeds: Vec<u64> = (0..drives).collect();
     PRIOR_RATES_HZ
         .iter()
@@ -459,32 +479,59 @@ fn prior_cost(drives: u64) -> Result<Vec<PriorCostRow>> {
                 let spec = DriveSpec {
                     duration_s: PRIOR_DRIVE_S,
                     rate_hz,
-                    ..DriveDistribution::realistic().draw(0x9121_0000 + seed)
+                    ..distribution.draw(0x9121_0000 + seed)
                 };
                 let track = simulate_drive(&spec, &format!("prior-{rate_hz}hz-{seed}"))?;
-                let onsets = |in_area: bool| {
+                // (alarm onsets, escalations to critical)
+                let levels = |in_area: bool| {
                     let mut detector = Detector::new(Arc::clone(&model));
-                    track
-                        .records
-                        .iter()
-                        .filter(|r| {
-                            detector
-                                .step_with_prior(&r.sample, r.trajectory_break, in_area)
-                                .alarm_onset
-                        })
-                        .count()
+                    track.records.iter().fold((0, 0), |(onsets, critical), r| {
+                        let decision =
+                            detector.step_with_prior(&r.sample, r.trajectory_break, in_area);
+                        (
+                            onsets + usize::from(decision.alarm_onset),
+                            critical + usize::from(decision.escalation),
+                        )
+                    })
                 };
-                Ok::<_, anyhow::Error>((onsets(false), onsets(true)))
+                Ok::<_, anyhow::Error>((levels(false), levels(true)))
             });
             let counts = counts.into_iter().collect::<Result<Vec<_>>>()?;
             Ok(PriorCostRow {
                 rate_hz,
                 hours: drives as f64 * PRIOR_DRIVE_S / 3_600.0,
-                onsets_without: counts.iter().map(|c| c.0).sum(),
-                onsets_with: counts.iter().map(|c| c.1).sum(),
+                onsets_without: counts.iter().map(|c| c.0.0).sum(),
+                onsets_with: counts.iter().map(|c| c.1.0).sum(),
+                critical_without: counts.iter().map(|c| c.0.1).sum(),
+                critical_with: counts.iter().map(|c| c.1.1).sum(),
+                drives_more_critical_with: counts.iter().filter(|c| c.1.1 > c.0.1).count(),
             })
         })
         .collect()
+}
+
+/// The one-sided 95 % upper confidence bound of a Poisson mean after `events` events: the mean
+/// under which `events` or fewer occur with probability 0.05 (3.0 for none, the rule of three).
+fn poisson_upper_95(events: usize) -> f64 {
+    let at_most = |mean: f64| {
+        let mut term = (-mean).exp();
+        let mut sum = term;
+        for k in 1..=events {
+            term *= mean / k as f64;
+            sum += term;
+        }
+        sum
+    };
+    let (mut low, mut high) = (0.0, 10.0 + 4.0 * events as f64);
+    for _ in 0..100 {
+        let middle = 0.5 * (low + high);
+        if at_most(middle) > 0.05 {
+            low = middle;
+        } else {
+            high = middle;
+        }
+    }
+    high
 }
 
 fn median(values: &mut [f64]) -> Option<f64> {
@@ -504,7 +551,8 @@ fn markdown(args: &Args, report: &Report) -> String {
     let opt = |v: Option<f64>| v.map_or_else(|| "–".to_string(), |v| format!("{v:.0}"));
     let mut out = format!(
         "# Incidents\n\n`spoofwatch-lab experiment incidents --seeds {} --vehicles {} --pass-through {} \
-         --duration-s {} --clean-vehicles {} --clean-hours {} --pace-hz {} --prior-drives {}`\n\n\
+         --duration-s {} --clean-vehicles {} --clean-hours {} --pace-hz {} --prior-drives {} \
+         --prior-distribution {}{}`\n\n\
          | attack | seed | prior | captured | alarmed | median delay (s) | captured after the incident | their median delay (s) | time to incident (s) | incidents | in incident | not captured |\n\
          |---|---|---|---|---|---|---|---|---|---|---|---|\n",
         args.seeds
@@ -519,6 +567,8 @@ fn markdown(args: &Args, report: &Report) -> String {
         args.clean_hours,
         args.pace_hz,
         args.prior_drives,
+        args.prior_distribution,
+        if args.prior_only { " --prior-only" } else { "" },
     );
     for r in &report.scenes {
         out.push_str(&format!(
@@ -552,19 +602,65 @@ fn markdown(args: &Args, report: &Report) -> String {
         ));
     }
     out.push_str(
-        "\nThe area prior's cost: attack-free hour-long drives scored as if inside an open incident's area throughout.\n\n\
-         | rate | hours | false alarms per hour without the prior | with it |\n|---|---|---|---|\n",
+        "\nThe area prior's cost: attack-free hour-long drives scored as if inside an open incident's \
+         area throughout, and on their own evidence alone (outside); per vehicle-hour (events), with the \
+         one-sided 95 % upper bound of the critical rate.\n\n\
+         | rate | hours | warning outside | warning inside | critical outside | critical inside | drives more critical inside |\n\
+         |---|---|---|---|---|---|---|\n",
     );
-    for r in &report.prior_cost {
+    let level = |events: usize, hours: f64| format!("{:.2} ({events})", events as f64 / hours);
+    let critical = |events: usize, hours: f64| {
+        format!(
+            "{:.4} ({events}; ≤ {:.4})",
+            events as f64 / hours,
+            poisson_upper_95(events) / hours
+        )
+    };
+    let pooled = PriorCostRow {
+        rate_hz: 0.0,
+        hours: report.prior_cost.iter().map(|r| r.hours).sum(),
+        onsets_without: report.prior_cost.iter().map(|r| r.onsets_without).sum(),
+        onsets_with: report.prior_cost.iter().map(|r| r.onsets_with).sum(),
+        critical_without: report.prior_cost.iter().map(|r| r.critical_without).sum(),
+        critical_with: report.prior_cost.iter().map(|r| r.critical_with).sum(),
+        drives_more_critical_with: report
+            .prior_cost
+            .iter()
+            .map(|r| r.drives_more_critical_with)
+            .sum(),
+    };
+    for r in report.prior_cost.iter().chain([&pooled]) {
+        let rate = if r.rate_hz > 0.0 {
+            format!("{} Hz", r.rate_hz)
+        } else {
+            "all".to_string()
+        };
         out.push_str(&format!(
-            "| {} Hz | {:.0} | {:.2} ({}) | {:.2} ({}) |\n",
-            r.rate_hz,
+            "| {rate} | {:.0} | {} | {} | {} | {} | {} |\n",
             r.hours,
-            r.onsets_without as f64 / r.hours,
-            r.onsets_without,
-            r.onsets_with as f64 / r.hours,
-            r.onsets_with,
+            level(r.onsets_without, r.hours),
+            level(r.onsets_with, r.hours),
+            critical(r.critical_without, r.hours),
+            critical(r.critical_with, r.hours),
+            r.drives_more_critical_with,
         ));
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_poisson_bound_is_the_tabulated_one() {
+        // Garwood's one-sided 95 % upper limits for 0, 1, 2 and 10 events.
+        for (events, bound) in [(0, 2.996), (1, 4.744), (2, 6.296), (10, 16.962)] {
+            assert!(
+                (poisson_upper_95(events) - bound).abs() < 0.01,
+                "{events}: {}",
+                poisson_upper_95(events)
+            );
+        }
+    }
 }

@@ -160,7 +160,7 @@ const LABEL_DIGEST_HEX: usize = 16;
 impl Presented {
     /// The credential that identified this caller as `grant` under `identities` (the token when
     /// both a token and a certificate were presented, as [`identify`] decides).
-    fn credential(&self, identities: &Identities, grant: &Grant) -> Credential {
+    pub(super) fn credential(&self, identities: &Identities, grant: &Grant) -> Credential {
         if identities.open() {
             return Credential::unauthenticated();
         }

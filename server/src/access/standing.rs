@@ -8,13 +8,17 @@
 //! - identified, but its role no longer permits the call, or its scope no longer holds the
 //!   vehicle its stream is for: the call ends with PERMISSION_DENIED, as a new call would be
 //!   refused;
-//! - otherwise the call goes on under its new grant (a gateway's changed vehicles apply to its
-//!   next messages).
+//! - otherwise the call goes on under its new grant and credential: a gateway's changed vehicles
+//!   apply to its next messages, and so does a changed `independent_receivers` (the alarms they
+//!   raise record the credential as the identities in force give it, and the incident correlator
+//!   counts their sources by it).
 //!
 //! Both endings are logged and counted like the guard's refusals. It owns the judgement and its
-//! status; it reads no file, and ends no call itself: each streaming service selects on
-//! [`Caller::until_revoked`] (or asks [`Caller::check_standing`] before it sends) and ends its own
-//! call with the status.
+//! status; it reads no file, and ends no call itself: each streaming or waiting service selects on
+//! [`Caller::until_revoked`] (or runs each step through [`Caller::unless_revoked`], or asks
+//! [`Caller::check_standing`] before it sends or stores) and ends its own call with the status.
+//! The calls that stay open so: StreamDetect, StreamDetectFleet, WatchAlarms, WatchIncidents,
+//! WatchJob, WaitOperation, ExportModel, UploadDataset and ImportModel.
 
 use std::sync::Arc;
 
@@ -37,6 +41,20 @@ impl Caller {
             if let Err(status) = self.judge_again(vehicle) {
                 return status;
             }
+        }
+    }
+
+    /// `work` (a step of a long call: the next message of an upload, a wait), unless a change of
+    /// the identities no longer admits this caller first: then the status that ends the call.
+    pub async fn unless_revoked<T>(
+        &mut self,
+        vehicle: Option<&str>,
+        work: impl Future<Output = Result<T, Status>>,
+    ) -> Result<T, Status> {
+        tokio::select! {
+            biased;
+            status = self.until_revoked(vehicle) => Err(status),
+            done = work => done,
         }
     }
 
@@ -84,6 +102,9 @@ impl Caller {
                 &format!("stream for {vehicle:?}"),
             ));
         }
+        // The credential follows the grant: a gateway newly marked as forwarding independent
+        // receivers (or no longer marked) has its next alarms counted as such.
+        self.credential = self.presented.credential(&identities, &grant);
         self.grant = grant;
         Ok(())
     }

@@ -19,6 +19,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use super::catalog::Catalog;
 use super::content::Content;
+use crate::access::Caller;
 use crate::edge::{dataset_name, display_name, page_request};
 use crate::idle::StreamIdle;
 use crate::status::{
@@ -132,8 +133,12 @@ impl DatasetService for DatasetApi {
         &self,
         request: Request<Streaming<v1::UploadDatasetRequest>>,
     ) -> Result<Response<v1::Dataset>, Status> {
+        // An upload may take minutes: a change of the identity files that no longer admits the
+        // caller ends it, and nothing is stored.
+        let mut caller = Caller::of(&request)?;
         let mut stream = request.into_inner();
-        let header = match self.stream_idle.next(&mut stream).await? {
+        let idle = self.stream_idle;
+        let header = match caller.unless_revoked(None, idle.next(&mut stream)).await? {
             Some(v1::UploadDatasetRequest {
                 kind: Some(Kind::Header(h)),
             }) => h,
@@ -145,7 +150,7 @@ impl DatasetService for DatasetApi {
             budget: Arc::clone(&self.upload_budget),
             held: None,
         };
-        while let Some(message) = self.stream_idle.next(&mut stream).await? {
+        while let Some(message) = caller.unless_revoked(None, idle.next(&mut stream)).await? {
             hold.grow(message.encoded_len())?;
             match message.kind {
                 Some(Kind::CsvChunk(chunk)) if structured.is_empty() => {
@@ -176,6 +181,7 @@ impl DatasetService for DatasetApi {
             }
         }
         let name = display_name("header.display_name", &header.display_name)?;
+        caller.check_standing(None)?;
         let row = if structured.is_empty() {
             self.catalog.upload(name, csv.finish(), "csv_chunk").await?
         } else {

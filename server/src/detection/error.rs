@@ -5,6 +5,7 @@
 
 use spoofwatch_proto::wire::ModelName;
 
+use super::persistence::StoredReset;
 use super::snapshot_reads::UNREAD_GRACE;
 use crate::models::RegistryError;
 
@@ -34,6 +35,9 @@ pub enum SessionError {
         grace = UNREAD_GRACE.as_secs()
     )]
     SnapshotUnreadable(String),
+    /// The stored session of a vehicle this process does not hold could not be reset.
+    #[error("the session could not be reset: {0}")]
+    Stored(#[from] StoredReset),
     /// The session's model was deleted: the session ended.
     #[error(
         "{0} was deleted, which ended this session; start a new one (an empty model follows the active model)"

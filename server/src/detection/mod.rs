@@ -21,7 +21,7 @@ mod table;
 mod validate;
 
 pub use error::SessionError;
-pub use persistence::SnapshotPolicy;
+pub use persistence::{SnapshotPolicy, StoredReset};
 pub use service::DetectionApi;
 pub use sessions::SessionManager;
 pub use table::SessionLimits;

@@ -28,7 +28,7 @@ use crate::alarms::event::{Onset, OnsetWhy};
 use crate::fault_log::FaultLog;
 use crate::models::LoadedModel;
 use crate::outbox::SessionOutbox;
-use crate::store::{SnapshotRow, Store, StoredCredential, now_unix_ms};
+use crate::store::{AlarmEventRow, SnapshotRow, Store, StoredCredential, now_unix_ms};
 
 /// When sessions are snapshotted besides their stream's end, eviction, shutdown and alarm changes.
 #[derive(Clone, Copy, Debug)]
@@ -47,6 +47,25 @@ pub const SNAPSHOT_WAIT: Duration = Duration::from_secs(2);
 
 /// Snapshot versions expired per database transaction.
 const EXPIRY_BATCH: usize = 500;
+
+/// How often a stored reset reads a snapshot that was rewritten while it was deleted.
+const RESET_ATTEMPTS: usize = 3;
+
+/// Why the stored session of a vehicle this process does not hold could not be reset.
+#[derive(Debug, thiserror::Error)]
+pub enum StoredReset {
+    #[error("the vehicle's last snapshot is still waiting to be stored; retry")]
+    NotStoredYet,
+    #[error("the vehicle's stored session cannot be read: {0}")]
+    Unreadable(String),
+    #[error(
+        "the vehicle's stored session was rewritten while it was reset: another server process \
+         streams it; reset it there (route the call with the x-vehicle-id header)"
+    )]
+    Rewritten,
+    #[error(transparent)]
+    Store(#[from] crate::store::StoreError),
+}
 
 /// A stored snapshot with how far its session got (read from its encoding, so that which copy is
 /// newer never depends on the servers' clocks); one that cannot be read is refused.
@@ -365,18 +384,66 @@ impl SessionKeeper {
             }
             ended += expired.abandoned.len();
             for (alarm, snapshot) in expired.abandoned {
-                let last = SessionSnapshot::decode(&snapshot)
-                    .ok()
-                    .and_then(|s| s.open_alarm)
-                    .filter(|open| open.id == alarm.id)
-                    .map(|open| (open.last_timestamp_s, open.peak, i64::from(open.samples)));
-                self.outbox.end_abandoned(alarm, last);
+                self.end_abandoned(alarm, &snapshot);
             }
         }
         if self.expiry_fault.succeeded() {
             tracing::info!("session snapshots expire again: the store reads and writes them");
         }
         ended
+    }
+
+    /// Ends an alarm whose stored session will not continue it, at the last alarming sample its
+    /// `snapshot` holds (as stored at its onset when the snapshot cannot be read).
+    fn end_abandoned(&self, alarm: AlarmEventRow, snapshot: &[u8]) {
+        let last = SessionSnapshot::decode(snapshot)
+            .ok()
+            .and_then(|s| s.open_alarm)
+            .filter(|open| open.id == alarm.id)
+            .map(|open| (open.last_timestamp_s, open.peak, i64::from(open.samples)));
+        self.outbox.end_abandoned(alarm, last);
+    }
+
+    /// Resets the stored session of a vehicle this process does not hold (its session evicted, or
+    /// held by no process since a restart): its snapshot is deleted and the alarm it held open
+    /// ends at its last alarming sample, as when the snapshot expires. Returns the model id the
+    /// session ran, or `None` when no snapshot of the vehicle is stored.
+    ///
+    /// A snapshot still queued here is stored first (waiting at most [`SNAPSHOT_WAIT`]); a version
+    /// rewritten meanwhile (the vehicle streaming on another process) is read again, a few times.
+    pub(super) async fn reset_stored(
+        &self,
+        vehicle_id: &VehicleId,
+    ) -> Result<Option<String>, StoredReset> {
+        if let Some(stored) = self.outbox.snapshot_stored(vehicle_id.as_str())
+            && !matches!(
+                tokio::time::timeout(SNAPSHOT_WAIT, stored).await,
+                Ok(Ok(()))
+            )
+        {
+            return Err(StoredReset::NotStoredYet);
+        }
+        for _ in 0..RESET_ATTEMPTS {
+            let Some(row) = self.store.load_snapshot(vehicle_id.as_str()).await? else {
+                return Ok(None);
+            };
+            let version = (row.vehicle_id.clone(), row.updated_at_ms);
+            let expired = self
+                .store
+                .expire_snapshots(std::slice::from_ref(&version))
+                .await?;
+            if let Some((_, reason)) = expired.unreadable.into_iter().next() {
+                return Err(StoredReset::Unreadable(reason));
+            }
+            for (alarm, snapshot) in expired.abandoned {
+                self.end_abandoned(alarm, &snapshot);
+            }
+            match self.store.load_snapshot(vehicle_id.as_str()).await? {
+                Some(newer) if newer.updated_at_ms != version.1 || newer.writer != row.writer => {}
+                _ => return Ok(Some(row.model_id)),
+            }
+        }
+        Err(StoredReset::Rewritten)
     }
 
     /// Of the `stale` versions of vehicles this process does not hold, those seen unchanged for

@@ -193,15 +193,7 @@ async fn start_stream(
         let model = optional_model_name("start.model", &start.model)?;
         Ok::<_, Status>(
             sessions
-                .attach(
-                    ForVehicle {
-                        vehicle_id: &vehicle,
-                        identity: &caller.grant.name,
-                        credential: &caller.credential,
-                    },
-                    model.as_ref(),
-                    start.reset,
-                )
+                .attach(&vehicle, &caller.grant.name, model.as_ref(), start.reset)
                 .await?,
         )
     };
@@ -210,19 +202,13 @@ async fn start_stream(
     })
 }
 
-/// Why an attached stream must end before its client closes it: the server drains, its caller is
-/// no longer admitted for its vehicle, a newer stream took the session over, or the session's
-/// model was deleted. Made once per stream and polled beside every read.
-async fn forced_end(
-    shutdown: &CancellationToken,
-    attachment: &Attachment,
-    mut caller: Caller,
-) -> Status {
-    let vehicle = attachment.accepted.vehicle_id.as_str();
+/// Why an attached stream must end before its client closes it: the server drains, a newer stream
+/// took the session over, or the session's model was deleted. Made once per stream and polled
+/// beside every read (with its caller's standing, [`next_request`]).
+async fn forced_end(shutdown: &CancellationToken, attachment: &Attachment) -> Status {
     tokio::select! {
         biased;
         _ = shutdown.cancelled() => shutting_down(),
-        status = caller.until_revoked(Some(vehicle)) => status,
         _ = attachment.evicted.cancelled() => Status::aborted(
             "another stream for this vehicle took the session over",
         ),
@@ -232,17 +218,21 @@ async fn forced_end(
     }
 }
 
-/// The next message of an attached stream. `Ok(None)`: the client closed its side (the call ends
-/// with OK). `Err`: the call ends with that status ([`forced_end`] first, or the inbound stream
-/// failed).
+/// The next message of an attached stream for `vehicle`. `Ok(None)`: the client closed its side
+/// (the call ends with OK). `Err`: the call ends with that status ([`forced_end`] first, then a
+/// change of the identity files that no longer admits `caller` for the vehicle, or the inbound
+/// stream failed). A change that still admits it is judged before the message is read: the
+/// message is then scored under the caller's new grant and credential.
 async fn next_request(
     forced: Pin<&mut impl Future<Output = Status>>,
+    (caller, vehicle): (&mut Caller, &str),
     clock: &mut IdleClock,
     inbound: &mut Streaming<v1::StreamDetectRequest>,
 ) -> Result<Option<v1::StreamDetectRequest>, Status> {
     tokio::select! {
         biased;
         status = forced => Err(status),
+        status = caller.until_revoked(Some(vehicle)) => Err(status),
         // e.g. an oversized message or the idle timeout: the call's status.
         message = clock.next(inbound) => message.inspect_err(|status| {
             telemetry::stream_failed(Rpc::StreamDetect, status);
@@ -253,13 +243,19 @@ async fn next_request(
 /// One batch of an attached stream, run on its session: its detections or its item error.
 async fn batch_reply(
     sessions: &SessionManager,
-    attachment: &Attachment,
+    (attachment, caller): (&Attachment, &Caller),
     batch: v1::SampleBatch,
 ) -> Reply {
     let started = Instant::now();
     let outcome = match samples_from_proto(&batch.samples, "batch.samples") {
         Ok(samples) => sessions
-            .process(attachment, batch.seq, &samples, "batch.samples")
+            .process(
+                attachment,
+                &caller.credential,
+                batch.seq,
+                &samples,
+                "batch.samples",
+            )
             .await
             .map(|decisions| (samples, decisions)),
         Err(refused) => Err(refused),
@@ -327,7 +323,7 @@ async fn run_stream(
     // The call's final status (None: OK), sent only after the session's snapshot is stored, so a
     // client that reconnects elsewhere at once finds it.
     let mut end = None;
-    let forced = forced_end(&shutdown, &attachment, caller);
+    let forced = forced_end(&shutdown, &attachment);
     tokio::pin!(forced);
     let mut clock = idle.clock();
     if idle
@@ -335,7 +331,9 @@ async fn run_stream(
         .await
     {
         loop {
-            let kind = match next_request(forced.as_mut(), &mut clock, &mut inbound).await {
+            let standing = (&mut caller, vehicle.as_str());
+            let kind = match next_request(forced.as_mut(), standing, &mut clock, &mut inbound).await
+            {
                 Ok(Some(message)) => message.kind,
                 Ok(None) => break,
                 Err(status) => {
@@ -344,7 +342,9 @@ async fn run_stream(
                 }
             };
             let outcome = match kind {
-                Some(RequestKind::Batch(batch)) => batch_reply(&sessions, &attachment, batch).await,
+                Some(RequestKind::Batch(batch)) => {
+                    batch_reply(&sessions, (&attachment, &caller), batch).await
+                }
                 Some(RequestKind::Start(_)) => stream_misuse(invalid_field(
                     "start",
                     "the session has already started on this stream",

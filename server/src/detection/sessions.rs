@@ -106,16 +106,32 @@ pub struct SessionSummary {
     pub last_activity_ms: i64,
 }
 
-/// A stream's hold on a session.
+/// A stream's hold on a session. The credential its batches are sent with is given with each
+/// batch ([`SessionManager::process`]): a changed roles file may change it while the stream is open.
 #[derive(Debug)]
 pub struct Attachment {
     pub slot: Arc<SessionSlot>,
-    /// The credential of the stream's caller: the alarms its batches raise record it.
-    pub credential: Credential,
     pub stream_id: u64,
     /// Cancelled when a newer stream takes the session over.
     pub evicted: CancellationToken,
     pub accepted: Accepted,
+}
+
+/// A session reset in the store, as GetSession would describe it were it held: no stream, no
+/// samples, no alarm, under the model it ran.
+fn fresh_summary(vehicle_id: &VehicleId, model_id: &str) -> SessionSummary {
+    SessionSummary {
+        vehicle_id: vehicle_id.clone(),
+        model: ModelName::from_id(model_id),
+        connected: false,
+        samples: 0,
+        trajectories: 0,
+        alarm_active: false,
+        alarms_raised: 0,
+        last_seq: 0,
+        last_timestamp_s: None,
+        last_activity_ms: crate::store::now_unix_ms(),
+    }
 }
 
 /// The seq field beside a batch's samples field (`batch.samples` → `batch.seq`).
@@ -200,17 +216,14 @@ impl SessionManager {
     /// Attaches a stream to a vehicle's session (creating or resuming it); an older stream on the same
     /// session is told to end. `model` `None` is the active model. A session on another model
     /// starts afresh.
+    /// `identity`: the caller's, whose session quota a new session counts against.
     pub async fn attach(
         &self,
-        vehicle: ForVehicle<'_>,
+        vehicle_id: &VehicleId,
+        identity: &Arc<str>,
         model: Option<&ModelName>,
         reset: bool,
     ) -> Result<Attachment, SessionError> {
-        let ForVehicle {
-            vehicle_id,
-            identity,
-            credential,
-        } = vehicle;
         let _gate = self.model_gate.read().await;
         let model = self.registry.resolve(model).await?;
         // Read before any lock is taken: it may wait for the database.
@@ -282,7 +295,6 @@ impl SessionManager {
         drop(state);
         Ok(Attachment {
             slot,
-            credential: credential.clone(),
             stream_id,
             evicted,
             accepted,
@@ -319,12 +331,15 @@ impl SessionManager {
         Some(self.keeper.save(&slot.vehicle_id, &mut state))
     }
 
-    /// Validates and runs one batch on a session. A rejected batch changes nothing. `seq` 0 is not
-    /// sequenced; a seq already applied is acknowledged (`duplicate`) without being scored again,
-    /// and one before the last applied seq that never was is refused ([`super::sequence`]).
+    /// Validates and runs one batch on a session, sent with `credential` (as the identities in
+    /// force judge the stream's caller now: the alarms it raises record it). A rejected batch
+    /// changes nothing. `seq` 0 is not sequenced; a seq already applied is acknowledged
+    /// (`duplicate`) without being scored again, and one before the last applied seq that never
+    /// was is refused ([`super::sequence`]).
     pub async fn process(
         &self,
         attachment: &Attachment,
+        credential: &Credential,
         seq: u64,
         samples: &[Sample],
         field: &str,
@@ -335,7 +350,7 @@ impl SessionManager {
             seq,
             samples,
             field,
-            credential: &attachment.credential,
+            credential,
         };
         self.score(&mut state, samples.len(), |state| {
             self.process_locked(slot, state, batch)
@@ -618,12 +633,29 @@ impl SessionManager {
         Ok(self.describe(&slot).await)
     }
 
-    /// Forgets a session's history but keeps its model.
+    /// Forgets a session's history but keeps its model; its open alarm ends. A vehicle this
+    /// process no longer holds in memory (its session evicted, or not resumed since a restart) is
+    /// reset in the store: its snapshot is deleted and the alarm it held open ends at its last
+    /// alarming sample, as when the snapshot expires; its next stream starts afresh. Not found
+    /// only when neither memory nor the store knows the vehicle.
     pub async fn reset(&self, vehicle_id: &VehicleId) -> Result<SessionSummary, SessionError> {
-        let slot = self
-            .table
-            .lookup(vehicle_id)
-            .ok_or_else(|| SessionError::NotFound(vehicle_id.to_string()))?;
+        let slot = match self.table.lookup(vehicle_id) {
+            Some(slot) => slot,
+            None => {
+                let model_id = self
+                    .keeper
+                    .reset_stored(vehicle_id)
+                    .await?
+                    .ok_or_else(|| SessionError::NotFound(vehicle_id.to_string()))?;
+                // A stream that started meanwhile may have continued the snapshot before it went:
+                // its session is reset too, in memory.
+                let Some(slot) = self.table.lookup(vehicle_id) else {
+                    tracing::info!(vehicle = %vehicle_id, "reset a vehicle's stored session: its snapshot is deleted and its open alarm ended");
+                    return Ok(fresh_summary(vehicle_id, &model_id));
+                };
+                slot
+            }
+        };
         {
             let mut state = slot.state.lock().await;
             let model = state.model.clone();

@@ -27,6 +27,7 @@ use tonic::{Request, Response, Status};
 
 use super::manager::JobManager;
 use super::records::{FleetFitRequest, JobRequest, JobResult, Progress, TrainingRequest};
+use crate::access::Caller;
 use crate::edge::{dataset_names, display_name, operation_name, optional_model_name, page_request};
 use crate::models::wire::model_to_proto;
 use crate::models::{Registry, RegistryError};
@@ -338,38 +339,62 @@ impl TrainingService for TrainingApi {
         &self,
         request: Request<v1::WatchJobRequest>,
     ) -> Result<Response<Self::WatchJobStream>, Status> {
+        let caller = Caller::of(&request)?;
         let name = operation_name("name", &request.into_inner().name)?;
         let first = self.jobs.manager.get(&name).await?;
-        let jobs = self.jobs.clone();
         let (tx, rx) = mpsc::channel(8);
-        tokio::spawn(async move {
-            let mut changes = jobs.manager.subscribe(&name);
-            let mut row = first;
-            loop {
-                let metadata = jobs.metadata(&row).await;
-                let done = row.state.is_finished();
-                if tx.send(metadata).await.is_err() || done {
-                    break;
-                }
-                match changes.as_mut() {
-                    Some(rx) => {
-                        if rx.changed().await.is_err() {
-                            changes = None;
-                        }
-                    }
-                    None => tokio::time::sleep(Duration::from_millis(200)).await,
-                }
-                match jobs.manager.get(&name).await {
-                    Ok(r) => row = r,
-                    Err(error) => {
-                        // The stream ends here either way; a gone client just misses the error.
-                        let _ = tx.send(Err(error.into())).await;
-                        break;
-                    }
-                }
-            }
-        });
+        tokio::spawn(watch(self.jobs.clone(), name, first, caller, tx));
         Ok(Response::new(Box::pin(ReceiverStream::new(rx))))
+    }
+}
+
+/// Sends `first` and then each change of job `name` to a WatchJob client until the job finishes,
+/// the client goes away, or the identity files no longer admit `caller`: the watch then ends with
+/// the status [`Caller::until_revoked`] gives, and sends nothing after the change.
+async fn watch(
+    jobs: Jobs,
+    name: OperationName,
+    first: JobRow,
+    mut caller: Caller,
+    tx: mpsc::Sender<Result<v1::JobMetadata, Status>>,
+) {
+    let mut changes = jobs.manager.subscribe(&name);
+    let mut row = first;
+    loop {
+        let metadata = jobs.metadata(&row).await;
+        let done = row.state.is_finished();
+        // Judged again just before sending: a change in force is never followed by an update.
+        let update = caller.check_standing(None).and(metadata);
+        let failed = update.is_err();
+        if tx.send(update).await.is_err() || done || failed {
+            return;
+        }
+        let changed = async {
+            match changes.as_mut() {
+                Some(rx) => {
+                    if rx.changed().await.is_err() {
+                        changes = None;
+                    }
+                }
+                None => tokio::time::sleep(Duration::from_millis(200)).await,
+            }
+        };
+        tokio::select! {
+            biased;
+            status = caller.until_revoked(None) => {
+                let _ = tx.send(Err(status)).await;
+                return;
+            }
+            () = changed => {}
+        }
+        match jobs.manager.get(&name).await {
+            Ok(r) => row = r,
+            Err(error) => {
+                // The stream ends here either way; a gone client just misses the error.
+                let _ = tx.send(Err(error.into())).await;
+                return;
+            }
+        }
     }
 }
 
@@ -452,6 +477,7 @@ impl Operations for OperationsApi {
         &self,
         request: Request<longrunning::WaitOperationRequest>,
     ) -> Result<Response<longrunning::Operation>, Status> {
+        let mut caller = Caller::of(&request)?;
         let r = request.into_inner();
         let name = operation_name("name", &r.name)?;
         let timeout = match r.timeout {
@@ -461,7 +487,14 @@ impl Operations for OperationsApi {
             Some(d) => Duration::new(d.seconds as u64, d.nanos as u32).min(MAX_OPERATION_WAIT),
             None => MAX_OPERATION_WAIT,
         };
-        let row = self.jobs.manager.wait(&name, timeout).await?;
+        // A wait lasts up to minutes: a change of the identity files that no longer admits the
+        // caller ends it, as it ends a watch.
+        let row = caller
+            .unless_revoked(None, async {
+                Ok(self.jobs.manager.wait(&name, timeout).await?)
+            })
+            .await?;
+        caller.check_standing(None)?;
         Ok(Response::new(self.jobs.operation(&row).await?))
     }
 }

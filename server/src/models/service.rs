@@ -10,9 +10,10 @@ use std::sync::Arc;
 use spoofwatch_proto::v1;
 use spoofwatch_proto::v1::model_service_server::ModelService;
 use spoofwatch_proto::wire::limits::{EXPORT_CHUNK_BYTES, MAX_ARTIFACT_BYTES};
-use tokio_stream::Stream;
+use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 
+use crate::access::Caller;
 use crate::edge::{display_name, model_name, page_request};
 use crate::idle::StreamIdle;
 use spoofwatch_proto::wire::ModelName;
@@ -92,13 +93,25 @@ impl ModelService for ModelApi {
         &self,
         request: Request<v1::ExportModelRequest>,
     ) -> Result<Response<Self::ExportModelStream>, Status> {
+        let caller = Caller::of(&request)?;
         let name = model_name("name", &request.into_inner().name)?;
         let bytes = self.registry.artifact_bytes(&name).await?;
-        let chunks: Vec<Result<v1::ModelChunk, Status>> = bytes
+        let chunks: Vec<v1::ModelChunk> = bytes
             .chunks(EXPORT_CHUNK_BYTES)
-            .map(|c| Ok(v1::ModelChunk { data: c.to_vec() }))
+            .map(|c| v1::ModelChunk { data: c.to_vec() })
             .collect();
-        Ok(Response::new(Box::pin(tokio_stream::iter(chunks))))
+        // A client that reads slowly keeps the export open: each chunk is sent only while the
+        // identities in force still admit the caller, and a change that does not ends the export.
+        let (mut caller, mut ended) = (caller, false);
+        let sent = tokio_stream::iter(chunks).map_while(move |chunk| {
+            if ended {
+                return None;
+            }
+            let chunk = caller.check_standing(None).map(|()| chunk);
+            ended = chunk.is_err();
+            Some(chunk)
+        });
+        Ok(Response::new(Box::pin(sent)))
     }
 
     async fn import_model(
@@ -106,15 +119,19 @@ impl ModelService for ModelApi {
         request: Request<Streaming<v1::ImportModelRequest>>,
     ) -> Result<Response<v1::Model>, Status> {
         use v1::import_model_request::Kind;
+        // As an upload: a change of the identity files that no longer admits the caller ends the
+        // import, and nothing is stored.
+        let mut caller = Caller::of(&request)?;
         let mut stream = request.into_inner();
-        let header = match self.stream_idle.next(&mut stream).await? {
+        let idle = self.stream_idle;
+        let header = match caller.unless_revoked(None, idle.next(&mut stream)).await? {
             Some(v1::ImportModelRequest {
                 kind: Some(Kind::Header(h)),
             }) => h,
             _ => return Err(crate::status::header_first()),
         };
         let mut bytes = Vec::new();
-        while let Some(message) = self.stream_idle.next(&mut stream).await? {
+        while let Some(message) = caller.unless_revoked(None, idle.next(&mut stream)).await? {
             match message.kind {
                 Some(Kind::Chunk(chunk)) => {
                     // Refused before the chunk is buffered: memory per import stays bounded.
@@ -133,6 +150,7 @@ impl ModelService for ModelApi {
             }
         }
         let name = display_name("header.display_name", &header.display_name)?;
+        caller.check_standing(None)?;
         let row = self.registry.import(&bytes, name, header.activate).await?;
         Ok(Response::new(model_to_proto(&row)))
     }
