@@ -192,7 +192,7 @@ mod tests {
         Job {
             shadow_id: 1,
             vehicle_id: vehicle.to_string(),
-            samples: vec![Sample::default(); samples],
+            samples: vec![Sample::new(0.0, 32.0, -110.0, 1.0, 0.0); samples],
             live: vec![LiveSignal::default(); samples],
             after_gap: false,
         }

@@ -54,6 +54,15 @@ pub enum Write {
     },
 }
 
+/// Whether `job` starts before the last sample its vehicle's state scored: the live session's time
+/// line went back (a reset), so the state cannot continue.
+fn went_back(job: &Job, state: &VehicleShadow) -> bool {
+    match (job.samples.first(), state.last_timestamp_s) {
+        (Some(first), Some(last)) => first.timestamp_s < last,
+        _ => false,
+    }
+}
+
 /// What the worker needs.
 pub struct Worker {
     pub queue: Arc<ShadowQueue>,
@@ -140,9 +149,7 @@ impl Worker {
         let restart = match vehicles.states.get(&job.vehicle_id) {
             None => Some(("first", None)),
             Some(_) if job.after_gap => Some(("shed", Some("shed"))),
-            Some(state) if job.samples.first().map(|s| s.timestamp_s) < state.last_timestamp_s => {
-                Some(("reset", Some("reset")))
-            }
+            Some(state) if went_back(&job, state) => Some(("reset", Some("reset"))),
             Some(_) => None,
         };
         if let Some((reason, ended_as)) = restart {
