@@ -14,7 +14,7 @@ use crate::access::{self, Access};
 use crate::alarms::feed::AlarmFeed;
 use crate::config::Config;
 use crate::datasets::Catalog;
-use crate::detection::{SessionLimits, SessionManager};
+use crate::detection::{Beside, SessionLimits, SessionManager};
 use crate::incidents::areas::IncidentAreas;
 use crate::incidents::service::IncidentFeed;
 use crate::incidents::settings::IncidentSettings;
@@ -128,8 +128,10 @@ impl App {
             },
             snapshot_policy,
             heavy.clone(),
-            Arc::clone(&incident_areas),
-            Arc::clone(&shadows),
+            Beside {
+                areas: Arc::clone(&incident_areas),
+                shadows: Arc::clone(&shadows),
+            },
         ));
         let jobs = JobManager::new(
             Runner {

@@ -156,6 +156,14 @@ pub struct SessionManager {
     shadows: Arc<Shadows>,
 }
 
+/// What scoring consults beside the model: the open incidents' areas (a sample inside one is
+/// scored with the area prior) and the shadow (offered a copy of every scored batch).
+#[derive(Clone, Debug)]
+pub struct Beside {
+    pub areas: Arc<IncidentAreas>,
+    pub shadows: Arc<Shadows>,
+}
+
 /// A batch costing at least this many model parameters × samples is scored on the bounded pool of
 /// heavy work, off the runtime's threads (with the bundled model's 21,883 parameters: 92 samples,
 /// about 0.45 ms); smaller ones, a fleet's one-sample messages among them, are scored in place.
@@ -169,9 +177,9 @@ impl SessionManager {
         limits: SessionLimits,
         snapshots: SnapshotPolicy,
         heavy: HeavyWork,
-        areas: Arc<IncidentAreas>,
-        shadows: Arc<Shadows>,
+        beside: Beside,
     ) -> Self {
+        let Beside { areas, shadows } = beside;
         Self {
             heavy,
             areas,

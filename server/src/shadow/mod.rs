@@ -339,3 +339,10 @@ impl Shadows {
         self.tally.shadow_id()
     }
 }
+
+impl Drop for Shadows {
+    /// The worker ends with the server even when the follower did not get to close its queue.
+    fn drop(&mut self) {
+        self.queue.close();
+    }
+}

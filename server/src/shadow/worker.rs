@@ -100,12 +100,13 @@ impl Worker {
                     let hours = self.tally.add_scoring_time(spent);
                     crate::telemetry::shadow_batch(spent, self.queue.samples(), hours);
                 }
-                Some(Work::Stop { shadow_id }) => {
-                    // The stop ended the open would-be alarms in the store.
-                    if vehicles.as_ref().is_some_and(|v| v.shadow.id == shadow_id) {
-                        vehicles = None;
-                    }
+                // The stop ended the open would-be alarms in the store.
+                Some(Work::Stop { shadow_id })
+                    if vehicles.as_ref().is_some_and(|v| v.shadow.id == shadow_id) =>
+                {
+                    vehicles = None;
                 }
+                Some(Work::Stop { .. }) => {}
                 None if self.queue.is_closed() => return,
                 None => {}
             }
