@@ -398,7 +398,7 @@ async fn every_rpc_by_every_token_role_follows_the_table() {
         }
     }
     // The table covers every RPC the server serves: one per path of the schema.
-    assert_eq!(MATRIX.len(), 31);
+    assert_eq!(MATRIX.len(), 35);
     assert!(denied_count(&server, "operator").await >= 3.0);
     assert!(denied_count(&server, "vehicle").await >= 20.0);
 
