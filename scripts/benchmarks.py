@@ -140,6 +140,9 @@ ROWS = [
               ["--streams", "1000", "--batch", "10", "--seconds", "10"]),
     bench_row("fleet-10000", "fleet", "fleet, 10,000 vehicles, one sample per message", FLEET_10K,
               goal="p99 ≤ 10 ms, 100 % delivered"),
+    bench_row("fleet-10000-shadow", "fleet",
+              "fleet, 10,000 vehicles, one sample per message, a shadow model on every vehicle",
+              [*FLEET_10K, "--shadow", "models/default"], goal="p99 ≤ 10 ms, 100 % delivered"),
     bench_row("fleet-20000", "fleet", "fleet, 20,000 vehicles, one sample per message", FLEET_20K,
               goal="p99 ≤ 10 ms, 100 % delivered", heavy=True),
     bench_row("fleet-20000-500-per-connection", "fleet",
@@ -442,7 +445,20 @@ def run_bench(env: Env, row: dict) -> dict:
     values["errors"] = float(c[12])
     if "--admin-load" in args:
         values.update(admin_values(out))
+    if "--shadow" in args:
+        values.update(shadow_values(out))
     return values
+
+
+def shadow_values(out: str) -> dict:
+    """The shadow table's samples scored and shed and the candidate's scoring time per sample."""
+    cells = parse_table(out, r"shadow")
+    cells = [c for c in cells if c[1] != "scored"]
+    if len(cells) != 1:
+        raise RuntimeError(f"no shadow table in:\n{out}")
+    c = cells[0]
+    return {"shadow_scored": number(c[1]), "shadow_shed": number(c[2]),
+            "shadow_shed_pct": number(c[3]), "shadow_us_per_sample": number(c[4])}
 
 
 ADMIN_WORK = {"health check": "health", "dataset upload": "uploads", "model import": "imports",
@@ -672,7 +688,10 @@ LABELS = [("samples_per_s", "", "/s"), ("p50_ms", "p50 ", " ms"), ("p99_ms", "**
           ("peak_over_upload", "**peak ", " × the upload**"),
           ("health_p50_ms", "health p50 ", " ms"), ("health_p99_ms", "**health p99** ", " ms"),
           ("health_max_ms", "health max ", " ms"), ("uploads_done", "uploads done ", ""),
-          ("imports_done", "imports done ", ""), ("heavy_detects_done", "heavy Detect calls done ", "")]
+          ("imports_done", "imports done ", ""), ("heavy_detects_done", "heavy Detect calls done ", ""),
+          ("shadow_scored", "shadow scored ", " samples"), ("shadow_shed", "**shed** ", " samples"),
+          ("shadow_shed_pct", "", " % shed"),
+          ("shadow_us_per_sample", "candidate's scoring ", " µs/sample")]
 
 
 def handoff_text(summary: dict) -> str:

@@ -1,6 +1,6 @@
 //! App assembly: opens the store and builds every subsystem of one server from its configuration,
 //! in dependency order (model registry, dataset catalog, session outbox, alarm and incident feeds,
-//! sessions, jobs), and recovers what a previous run left behind (open alarms, abandoned jobs).
+//! sessions, shadows, jobs), and recovers what a previous run left behind (open alarms, abandoned jobs).
 //!
 //! It owns construction only: what is served is `crate::router`, the tasks that run beside the
 //! server `crate::background`, and the shutdown `crate::drain`.
@@ -14,7 +14,7 @@ use crate::access::{self, Access};
 use crate::alarms::feed::AlarmFeed;
 use crate::config::Config;
 use crate::datasets::Catalog;
-use crate::detection::{SessionLimits, SessionManager};
+use crate::detection::{Beside, SessionLimits, SessionManager};
 use crate::incidents::areas::IncidentAreas;
 use crate::incidents::service::IncidentFeed;
 use crate::incidents::settings::IncidentSettings;
@@ -22,6 +22,7 @@ use crate::jobs::{JobManager, JobSettings, Runner};
 use crate::models::Registry;
 use crate::outbox::{OUTBOX_CAPACITY, SessionOutbox};
 use crate::server_error::ServerError;
+use crate::shadow::Shadows;
 use crate::store::{Store, StoreOptions};
 use crate::tls;
 use crate::work::HeavyWork;
@@ -45,6 +46,8 @@ pub struct App {
     /// This server's instance id (job ownership, the incident correlator's lease).
     pub instance: String,
     pub sessions: Arc<SessionManager>,
+    /// Shadow evaluation of a candidate model beside the live one.
+    pub shadows: Arc<Shadows>,
     pub jobs: Arc<JobManager>,
     /// Cancelled when the drain starts: streams end and the background loops stop.
     pub draining: CancellationToken,
@@ -99,6 +102,20 @@ impl App {
         let alarm_feed = Arc::new(AlarmFeed::new(&store).await?);
         let incident_feed = Arc::new(IncidentFeed::new(&store).await?);
         let incident_areas = Arc::new(IncidentAreas::new(incident_settings.prior));
+        let shadows = Arc::new(
+            Shadows::new(
+                store.clone(),
+                Arc::clone(&registry),
+                &instance,
+                config.session_idle(),
+            )
+            .map_err(ServerError::ShadowWorker)?,
+        );
+        // A shadow stored as running (started before a restart, or through another replica)
+        // runs here too; a shadow that cannot be read is retried by the follower.
+        if let Err(error) = shadows.follow().await {
+            tracing::warn!(%error, "the stored shadow was not read; retried");
+        }
         let sessions = Arc::new(SessionManager::new(
             Arc::clone(&registry),
             Arc::clone(&outbox),
@@ -111,7 +128,10 @@ impl App {
             },
             snapshot_policy,
             heavy.clone(),
-            Arc::clone(&incident_areas),
+            Beside {
+                areas: Arc::clone(&incident_areas),
+                shadows: Arc::clone(&shadows),
+            },
         ));
         let jobs = JobManager::new(
             Runner {
@@ -146,6 +166,7 @@ impl App {
             incident_areas,
             instance,
             sessions,
+            shadows,
             jobs,
             draining: CancellationToken::new(),
         })

@@ -1,5 +1,5 @@
 //! The tasks that run beside the server: the session outbox's writer, the alarm and incident
-//! feeds' followers, the incident correlator, the storage watch, job leases, idle-session eviction,
+//! feeds' followers, the incident correlator, the storage watch, the shadow's follower, job leases, idle-session eviction,
 //! following the active model, the identity files' reload and the metrics endpoint. They start once
 //! the server is assembled and stop, in order, after it has drained.
 //!
@@ -43,6 +43,8 @@ pub struct Background {
     job_leases: JoinHandle<()>,
     evictor: JoinHandle<()>,
     active_model: JoinHandle<()>,
+    /// Follows the stored shadow and stores its counts; finishes the shadow's work at the drain.
+    shadows: JoinHandle<()>,
     identity_files: JoinHandle<()>,
     metrics: Option<JoinHandle<()>>,
     stop_metrics: CancellationToken,
@@ -121,6 +123,11 @@ impl Background {
                     .await
             }
         });
+        let shadows = tokio::spawn({
+            let shadows = Arc::clone(&app.shadows);
+            let stop = app.draining.clone();
+            async move { shadows.keep_following(stop).await }
+        });
         let identity_files = tokio::spawn(access::keep_current(
             Arc::clone(&app.access),
             app.draining.clone(),
@@ -155,6 +162,7 @@ impl Background {
             job_leases,
             evictor,
             active_model,
+            shadows,
             identity_files,
             metrics,
             stop_metrics,
@@ -182,6 +190,15 @@ impl Background {
             correlator.abort();
         }
         self.job_leases.abort();
+        // Bounded like the correlator: the shadow's queue is short, its writes are not waited for
+        // beyond this.
+        let mut shadows = self.shadows;
+        if tokio::time::timeout(Duration::from_secs(2), &mut shadows)
+            .await
+            .is_err()
+        {
+            shadows.abort();
+        }
         self.stop_outbox_writer.cancel();
         if let Err(error) = self.outbox_writer.await {
             tracing::error!(%error, "the alarm writer failed");

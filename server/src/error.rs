@@ -18,6 +18,7 @@ use crate::detection::{SessionError, StoredReset};
 use crate::fault::Fault;
 use crate::jobs::{JobError, JobFailure};
 use crate::models::RegistryError;
+use crate::shadow::ShadowError;
 use crate::status::{
     dependency_failed, failed_precondition, internal, invalid_argument, invalid_field, not_found,
     resource_exhausted, unavailable, with_code,
@@ -61,6 +62,21 @@ fn store_fault(fault: &StoreFault) -> Status {
     };
     let exhausted = fault.kind == FaultKind::Full;
     dependency_failed(exhausted, fault.kind.describe(), &fault.cause, retry_after)
+}
+
+impl From<ShadowError> for Status {
+    fn from(error: ShadowError) -> Self {
+        match error {
+            ShadowError::NotFound(ref name) => not_found("shadow", name),
+            ShadowError::NoneStarted => not_found("shadow", "newest (none was started)"),
+            ShadowError::AlreadyRunning(_) => {
+                failed_precondition("SHADOW_RUNNING", error.to_string())
+            }
+            ShadowError::Scope(scope) => invalid_field(scope.field, scope.reason),
+            ShadowError::Model(model) => model.into(),
+            ShadowError::Store(store) => store.into(),
+        }
+    }
 }
 
 impl From<RegistryError> for Status {

@@ -58,6 +58,7 @@ pub mod process;
 mod replies;
 mod router;
 mod server_error;
+mod shadow;
 mod status;
 mod storage_health;
 pub mod store;

@@ -103,6 +103,7 @@ pub async fn build(server: Server, app: &App, config: &Config) -> Result<Routes,
         registry: Arc::clone(&app.registry),
         deletion: Arc::clone(&app.sessions) as _,
         stream_idle,
+        shadows: Arc::clone(&app.shadows),
     }))
     .max_decoding_message_size(limit);
     let datasets = gzip!(DatasetServiceServer::new(DatasetApi {

@@ -28,4 +28,6 @@ pub enum ServerError {
     Metrics(#[from] metrics_exporter_prometheus::BuildError),
     #[error("configuration: {0}")]
     Config(String),
+    #[error("starting the shadow worker thread: {0}")]
+    ShadowWorker(std::io::Error),
 }

@@ -65,6 +65,15 @@ pub const JOBS: &str = "spoofwatch_jobs";
 pub const JOBS_FINISHED: &str = "spoofwatch_jobs_finished_total";
 pub const STORE_FAULTS: &str = "spoofwatch_store_faults_total";
 pub const DB_SECONDS: &str = "spoofwatch_db_operation_duration_seconds";
+pub const SHADOW_RUNNING: &str = "spoofwatch_shadow_running";
+pub const SHADOW_SAMPLES: &str = "spoofwatch_shadow_samples_total";
+pub const SHADOW_QUEUE: &str = "spoofwatch_shadow_queue_samples";
+pub const SHADOW_ONSETS: &str = "spoofwatch_shadow_onsets_total";
+pub const SHADOW_AGREEMENT: &str = "spoofwatch_shadow_agreement_samples_total";
+pub const SHADOW_UNMATCHED: &str = "spoofwatch_shadow_unmatched_episodes_total";
+pub const SHADOW_STARTS: &str = "spoofwatch_shadow_vehicle_starts_total";
+pub const SHADOW_VEHICLE_HOURS: &str = "spoofwatch_shadow_vehicle_hours";
+pub const SHADOW_BATCH_SECONDS: &str = "spoofwatch_shadow_batch_scoring_seconds";
 
 /// What kind of Prometheus metric a name is.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -268,6 +277,51 @@ pub const METRICS: &[(&str, Kind, &str)] = &[
         Kind::Histogram,
         "Time of selected database writes, by `op` (alarm_batch_write, job_create, job_start, job_progress, job_finish).",
     ),
+    (
+        SHADOW_RUNNING,
+        Kind::Gauge,
+        "1 while a shadow runs (its candidate labelled `model`), else 0.",
+    ),
+    (
+        SHADOW_SAMPLES,
+        Kind::Counter,
+        "Samples of shadowed vehicles, by `outcome`: `scored` by the candidate, or `shed` (the queue was full or the shadow's CPU budget spent; the live reply never waits).",
+    ),
+    (
+        SHADOW_QUEUE,
+        Kind::Gauge,
+        "Samples waiting for the shadow's worker (bounded; beyond it work is shed).",
+    ),
+    (
+        SHADOW_ONSETS,
+        Kind::Counter,
+        "Alarm episodes begun on shadowed vehicles while both models scored, by `model` (`live` or `shadow`) and `level` (`warning`: every episode; `critical`: those that were or turned critical). The shadow's are would-be alarms, never paged.",
+    ),
+    (
+        SHADOW_AGREEMENT,
+        Kind::Counter,
+        "Samples both models scored, by what each said: `live` and `shadow`, each `alarm` or `quiet`.",
+    ),
+    (
+        SHADOW_UNMATCHED,
+        Kind::Counter,
+        "Ended alarm episodes of one `model` (`live` or `shadow`) during which the other never alarmed.",
+    ),
+    (
+        SHADOW_STARTS,
+        Kind::Counter,
+        "Vehicle shadow states started, by `reason`: `first` (first sample on this process: also after a restart or hand-off), `shed`, `idle` (let go after sitting idle) or `reset` (the live session restarted its time line).",
+    ),
+    (
+        SHADOW_VEHICLE_HOURS,
+        Kind::Gauge,
+        "Vehicle-hours the running shadow covered on this process (the denominator of onsets per vehicle-hour).",
+    ),
+    (
+        SHADOW_BATCH_SECONDS,
+        Kind::Histogram,
+        "The candidate's scoring time per batch, off the request path (its CPU cost).",
+    ),
 ];
 
 /// The detection RPCs, the values of the `rpc` label.
@@ -379,6 +433,7 @@ pub fn install(
             &BATCH_BUCKETS,
         )?
         .set_buckets_for_metric(Matcher::Full(DB_SECONDS.into()), &DB_BUCKETS)?
+        .set_buckets_for_metric(Matcher::Full(SHADOW_BATCH_SECONDS.into()), &BATCH_BUCKETS)?
         .install_recorder()?;
     for &(name, kind, help) in METRICS {
         match kind {
@@ -438,6 +493,7 @@ pub fn install(
     for state in ["succeeded", "failed", "cancelled"] {
         counter!(JOBS_FINISHED, "state" => state).increment(0);
     }
+    register_shadow_metrics();
     *installed = Some(handle.clone());
     Ok(handle)
 }
@@ -560,6 +616,78 @@ pub fn job_finished(state: &'static str) {
 /// A database fault of `kind` (a `FaultKind` label) was seen.
 pub fn store_fault(kind: &'static str) {
     counter!(STORE_FAULTS, "kind" => kind).increment(1);
+}
+
+/// The shadow's labelled counters at zero, so that they are scraped before their first event.
+fn register_shadow_metrics() {
+    for outcome in ["scored", "shed"] {
+        counter!(SHADOW_SAMPLES, "outcome" => outcome).increment(0);
+    }
+    for model in ["live", "shadow"] {
+        for level in ["warning", "critical"] {
+            counter!(SHADOW_ONSETS, "model" => model, "level" => level).increment(0);
+        }
+        counter!(SHADOW_UNMATCHED, "model" => model).increment(0);
+    }
+    for live in ["alarm", "quiet"] {
+        for shadow in ["alarm", "quiet"] {
+            counter!(SHADOW_AGREEMENT, "live" => live, "shadow" => shadow).increment(0);
+        }
+    }
+    for reason in ["first", "shed", "idle", "reset"] {
+        counter!(SHADOW_STARTS, "reason" => reason).increment(0);
+    }
+    gauge!(SHADOW_QUEUE).set(0.0);
+    gauge!(SHADOW_VEHICLE_HOURS).set(0.0);
+}
+
+/// `n` samples of shadowed vehicles were `scored` or `shed`.
+pub fn shadow_samples(outcome: &'static str, n: u64) {
+    counter!(SHADOW_SAMPLES, "outcome" => outcome).increment(n);
+}
+
+/// `n` episodes of `model` began at `level`.
+pub fn shadow_onsets(model: &'static str, level: &'static str, n: u64) {
+    if n > 0 {
+        counter!(SHADOW_ONSETS, "model" => model, "level" => level).increment(n);
+    }
+}
+
+/// `n` samples on which the live model said `live` and the candidate `shadow`.
+pub fn shadow_agreement(live: &'static str, shadow: &'static str, n: u64) {
+    if n > 0 {
+        counter!(SHADOW_AGREEMENT, "live" => live, "shadow" => shadow).increment(n);
+    }
+}
+
+/// `n` ended episodes of `model` during which the other model never alarmed.
+pub fn shadow_unmatched(model: &'static str, n: u64) {
+    if n > 0 {
+        counter!(SHADOW_UNMATCHED, "model" => model).increment(n);
+    }
+}
+
+/// `n` vehicle shadow states started for `reason`.
+pub fn shadow_vehicle_starts(reason: &'static str, n: u64) {
+    if n > 0 {
+        counter!(SHADOW_STARTS, "reason" => reason).increment(n);
+    }
+}
+
+/// The candidate scored one batch in `elapsed`; `queued` samples wait, and the running shadow
+/// covered `vehicle_hours` on this process.
+pub fn shadow_batch(elapsed: std::time::Duration, queued: usize, vehicle_hours: f64) {
+    histogram!(SHADOW_BATCH_SECONDS).record(elapsed);
+    gauge!(SHADOW_QUEUE).set(queued as f64);
+    gauge!(SHADOW_VEHICLE_HOURS).set(vehicle_hours);
+}
+
+/// A shadow of `model` started (`running`) or stopped on this process.
+pub fn shadow_running(model: &str, running: bool) {
+    gauge!(SHADOW_RUNNING, "model" => model.to_string()).set(if running { 1.0 } else { 0.0 });
+    if !running {
+        gauge!(SHADOW_VEHICLE_HOURS).set(0.0);
+    }
 }
 
 /// Runs the database operation `op` and records how long it took (also when it failed).

@@ -179,6 +179,37 @@ async fn call(rpc: &str, connection: &Connection, vehicle: &str) -> Code {
                 .import_model(tokio_stream::iter(Vec::<v1::ImportModelRequest>::new()))
                 .await,
         ),
+        // No scope: refused after the role check, so that no shadow starts.
+        "StartShadow" => code(
+            models
+                .start_shadow(v1::StartShadowRequest {
+                    model: none("models"),
+                    scope: None,
+                })
+                .await,
+        ),
+        "GetShadow" => code(
+            models
+                .get_shadow(v1::GetShadowRequest {
+                    name: "shadows/999999".into(),
+                })
+                .await,
+        ),
+        "StopShadow" => code(
+            models
+                .stop_shadow(v1::StopShadowRequest {
+                    name: "shadows/999999".into(),
+                })
+                .await,
+        ),
+        "ListShadowAlarms" => code(
+            models
+                .list_shadow_alarms(v1::ListShadowAlarmsRequest {
+                    shadow: "shadows/999999".into(),
+                    ..Default::default()
+                })
+                .await,
+        ),
         "UploadDataset" => code(
             datasets
                 .upload_dataset(tokio_stream::iter(Vec::<v1::UploadDatasetRequest>::new()))
@@ -299,6 +330,10 @@ const MATRIX: &[(&str, [bool; 4])] = &[
     ("SetActiveModel", [false, false, false, true]),
     ("DeleteModel", [false, false, false, true]),
     ("ImportModel", [false, false, false, true]),
+    ("StartShadow", [false, false, false, true]),
+    ("GetShadow", [false, false, true, true]),
+    ("StopShadow", [false, false, false, true]),
+    ("ListShadowAlarms", [false, false, true, true]),
     ("UploadDataset", [false, false, false, true]),
     ("ImportDataset", [false, false, false, true]),
     ("ListDatasets", [false, false, true, true]),
@@ -363,7 +398,7 @@ async fn every_rpc_by_every_token_role_follows_the_table() {
         }
     }
     // The table covers every RPC the server serves: one per path of the schema.
-    assert_eq!(MATRIX.len(), 31);
+    assert_eq!(MATRIX.len(), 35);
     assert!(denied_count(&server, "operator").await >= 3.0);
     assert!(denied_count(&server, "vehicle").await >= 20.0);
 

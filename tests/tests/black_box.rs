@@ -45,6 +45,7 @@ mod server_lifecycle;
 mod session_handoff;
 mod session_lifecycle;
 mod sessions_under_pressure;
+mod shadow_evaluation;
 mod storage_faults;
 mod streaming_matches_the_offline_pass;
 mod training_jobs;

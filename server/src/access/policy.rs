@@ -46,6 +46,11 @@ pub const METHODS: &[(&str, Need)] = &[
     ("/spoofwatch.v1.ModelService/SetActiveModel", Need::Admin),
     ("/spoofwatch.v1.ModelService/DeleteModel", Need::Admin),
     ("/spoofwatch.v1.ModelService/ImportModel", Need::Admin),
+    // A shadow costs CPU on every replica and its alarms are read beside the real ones.
+    ("/spoofwatch.v1.ModelService/StartShadow", Need::Admin),
+    ("/spoofwatch.v1.ModelService/StopShadow", Need::Admin),
+    ("/spoofwatch.v1.ModelService/GetShadow", Need::Read),
+    ("/spoofwatch.v1.ModelService/ListShadowAlarms", Need::Read),
     ("/spoofwatch.v1.DatasetService/UploadDataset", Need::Admin),
     ("/spoofwatch.v1.DatasetService/ImportDataset", Need::Admin),
     ("/spoofwatch.v1.DatasetService/ListDatasets", Need::Read),

@@ -23,5 +23,5 @@ mod validate;
 pub use error::SessionError;
 pub use persistence::{SnapshotPolicy, StoredReset};
 pub use service::DetectionApi;
-pub use sessions::SessionManager;
+pub use sessions::{Beside, SessionManager};
 pub use table::SessionLimits;

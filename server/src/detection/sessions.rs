@@ -13,6 +13,9 @@
 //! Alarm episodes are followed by [`super::episodes`]; the keeper records what they report. A
 //! sample inside an open area incident ([`IncidentAreas`]) is scored with the area prior.
 //!
+//! Shadow: every scored batch is offered to [`Shadows`], which copies it for a candidate model
+//! when a shadow runs for the vehicle; the offer never waits and changes nothing here.
+//!
 //! Roll-out: a session started or resumed without a model follows the active model (a fresh
 //! detector when it changed); deleting a model ends the sessions that use it.
 //!
@@ -42,6 +45,7 @@ use crate::access::Credential;
 use crate::incidents::areas::IncidentAreas;
 use crate::models::{LoadedModel, Registry};
 use crate::outbox::SessionOutbox;
+use crate::shadow::Shadows;
 use crate::store::Store;
 use crate::telemetry;
 use crate::work::HeavyWork;
@@ -164,6 +168,16 @@ pub struct SessionManager {
     heavy: HeavyWork,
     /// The open incidents' areas: a sample inside one is scored with the area prior.
     areas: Arc<IncidentAreas>,
+    /// Offered a copy of every scored batch (a candidate scores it off the request path).
+    shadows: Arc<Shadows>,
+}
+
+/// What scoring consults beside the model: the open incidents' areas (a sample inside one is
+/// scored with the area prior) and the shadow (offered a copy of every scored batch).
+#[derive(Clone, Debug)]
+pub struct Beside {
+    pub areas: Arc<IncidentAreas>,
+    pub shadows: Arc<Shadows>,
 }
 
 /// A batch costing at least this many model parameters × samples is scored on the bounded pool of
@@ -179,11 +193,13 @@ impl SessionManager {
         limits: SessionLimits,
         snapshots: SnapshotPolicy,
         heavy: HeavyWork,
-        areas: Arc<IncidentAreas>,
+        beside: Beside,
     ) -> Self {
+        let Beside { areas, shadows } = beside;
         Self {
             heavy,
             areas,
+            shadows,
             keeper: SessionKeeper::new(outbox, store, snapshots, limits.idle),
             table: SessionTable::new(limits),
             registry,
@@ -416,10 +432,12 @@ impl SessionManager {
         )
         .map_err(SessionError::InvalidBatch)?;
         let mut decisions = Vec::with_capacity(samples.len());
+        let mut in_area = Vec::with_capacity(samples.len());
         for sample in samples {
             let in_incident_area = self
                 .areas
                 .contains(sample.latitude_deg, sample.longitude_deg);
+            in_area.push(in_incident_area);
             let decision = state
                 .detector
                 .step_with_prior(sample, false, in_incident_area);
@@ -455,6 +473,9 @@ impl SessionManager {
         }
         state.seqs.apply(seq);
         state.since_snapshot += samples.len() as u64;
+        // A copy for the shadow, if one runs for this vehicle: never waited for.
+        self.shadows
+            .offer(&slot.vehicle_id, samples, &decisions, &in_area);
         // An alarm onset, escalation or end is stored together with a snapshot that includes it,
         // so that a session continued elsewhere neither repeats nor loses it.
         let alarm_changed = decisions

@@ -2,7 +2,8 @@
 //! validates requests, calls the registry and maps its errors once (through `crate::error`); it
 //! must not hold registry logic or touch the store directly. Deleting a model ends the sessions
 //! that run it: DeleteModel goes through a [`ModelDeletion`], which the detection sessions provide,
-//! so that models need not know them.
+//! so that models need not know them. The shadow calls are carried out by `crate::shadow`; a
+//! model under shadow is not deleted.
 
 use std::pin::Pin;
 use std::sync::Arc;
@@ -20,7 +21,10 @@ use spoofwatch_proto::wire::ModelName;
 
 use super::Registry;
 use super::wire::{model_summary_to_proto, model_to_proto};
-use crate::status::invalid_field;
+use crate::access::Caller;
+use crate::shadow::Shadows;
+use crate::shadow::service::{decode_start, shadow_id};
+use crate::status::{failed_precondition, invalid_field};
 
 /// Deletes a model (not the active one) and ends the sessions that use it, so that none starts on
 /// it meanwhile; returns how many ended.
@@ -37,6 +41,8 @@ pub struct ModelApi {
     pub deletion: Arc<dyn ModelDeletion>,
     /// How long an import may send nothing.
     pub stream_idle: StreamIdle,
+    /// Shadow evaluation of candidate models.
+    pub shadows: Arc<Shadows>,
 }
 
 type ChunkStream = Pin<Box<dyn Stream<Item = Result<v1::ModelChunk, Status>> + Send>>;
@@ -83,6 +89,12 @@ impl ModelService for ModelApi {
         request: Request<v1::DeleteModelRequest>,
     ) -> Result<Response<()>, Status> {
         let name = model_name("name", &request.into_inner().name)?;
+        if self.shadows.candidate().as_ref() == Some(&name) {
+            return Err(failed_precondition(
+                "MODEL_SHADOWED",
+                format!("{name} is the running shadow's candidate: stop the shadow first"),
+            ));
+        }
         self.deletion.delete_and_end_sessions(&name).await?;
         Ok(Response::new(()))
     }
@@ -153,5 +165,38 @@ impl ModelService for ModelApi {
         caller.check_standing(None)?;
         let row = self.registry.import(&bytes, name, header.activate).await?;
         Ok(Response::new(model_to_proto(&row)))
+    }
+
+    async fn start_shadow(
+        &self,
+        request: Request<v1::StartShadowRequest>,
+    ) -> Result<Response<v1::Shadow>, Status> {
+        let by = Caller::of(&request)?.credential.label;
+        let (model, scope) = decode_start(request.get_ref())?;
+        Ok(Response::new(self.shadows.start(&model, scope, &by).await?))
+    }
+
+    async fn get_shadow(
+        &self,
+        request: Request<v1::GetShadowRequest>,
+    ) -> Result<Response<v1::Shadow>, Status> {
+        let id = shadow_id("name", &request.into_inner().name)?;
+        Ok(Response::new(self.shadows.get(id).await?))
+    }
+
+    async fn stop_shadow(
+        &self,
+        request: Request<v1::StopShadowRequest>,
+    ) -> Result<Response<v1::Shadow>, Status> {
+        let by = Caller::of(&request)?.credential.label;
+        let id = shadow_id("name", &request.get_ref().name)?;
+        Ok(Response::new(self.shadows.stop(id, &by).await?))
+    }
+
+    async fn list_shadow_alarms(
+        &self,
+        request: Request<v1::ListShadowAlarmsRequest>,
+    ) -> Result<Response<v1::ListShadowAlarmsResponse>, Status> {
+        Ok(Response::new(self.shadows.alarms(request.get_ref()).await?))
     }
 }

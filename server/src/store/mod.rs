@@ -5,7 +5,8 @@
 //!
 //! One [`Store`] wraps a connection pool. Tables: models (+ artifact blobs in their own table so list
 //! queries never read blobs), datasets (+ content blobs), jobs (+ per-epoch history), alarm events
-//! (+ the event log behind WatchAlarms) and session snapshots (the hand-off of detection state).
+//! (+ the event log behind WatchAlarms), session snapshots (the hand-off of detection state) and
+//! shadows (a candidate model's configuration, counts and would-be alarms, apart from the real ones).
 //! The schema lives in `migrations/sqlite/` and `migrations/postgres/` at the workspace root (the same
 //! versions, each in its dialect) and is applied by [`Store::open`].
 //!
@@ -117,6 +118,7 @@ mod models;
 mod outbox;
 mod paging;
 mod postgres;
+mod shadows;
 mod snapshots;
 mod sqlite;
 pub mod test_database;
@@ -142,6 +144,7 @@ pub use jobs::{EpochRow, JobEndError, JobFilter, JobKind, JobOutcome, JobRow, Jo
 pub use models::{ModelRow, ModelSource, NewModel};
 pub use paging::{DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE, Page, PageRequest};
 pub use postgres::{POOL_ACQUIRE_TIMEOUT, POOL_MAX_CONNECTIONS, STATEMENT_TIMEOUT};
+pub use shadows::{ShadowAlarmEnd, ShadowAlarmRow, ShadowRow, ShadowStart};
 pub use snapshots::{ExpiredSnapshots, SnapshotRow};
 
 /// The service's database: a cheap-to-clone handle over a connection pool.

@@ -13,6 +13,7 @@
 //!
 //! Hand-off phase (`--handoff N`, instead of the others): see [`handoff`].
 //! Administrative load beside the throughput phases (`--admin-load`): see [`admin_load`].
+//! A shadow model beside them (`--shadow`): see [`shadow`].
 //!
 //! Streams are driven through the client's `DetectStream` and `FleetDetectStream`; this module owns
 //! only the load shape and the measurements. Without `--server` it names `spoofwatch-lab bench`, which
@@ -38,8 +39,10 @@ use crate::cli::server_flags::OptionalServerArgs;
 mod admin_load;
 mod h2_streams;
 mod handoff;
+mod shadow;
 
 use admin_load::AdminLoad;
+use shadow::BenchShadow;
 
 /// Sessions opened at once in the memory phase.
 const MEMORY_PHASE_CONCURRENCY: usize = 64;
@@ -99,6 +102,10 @@ pub struct Args {
     /// every 50 ms. Their timings follow the results table. Needs the admin role.
     #[arg(long, conflicts_with = "handoff")]
     pub admin_load: bool,
+    /// Runs a shadow of this model (`models/{id}`) on every vehicle beside the throughput phases;
+    /// what it scored and shed follows the results table. Needs the admin role.
+    #[arg(long, conflicts_with = "handoff")]
+    pub shadow: Option<String>,
     /// Runs only the hand-off phase, with this many vehicles: they stream to --server, then start
     /// on --handoff-to (a replica on the same database), timed to their first detection, beside as
     /// many fresh starts. Without --server, `spoofwatch-lab bench` runs two in-process servers on one
@@ -292,6 +299,10 @@ pub async fn load(args: &Args, url: &str, options: ConnectOptions, pid: Option<u
          message per stream, {load}",
         args.seconds, args.batch
     );
+    let shadow = match &args.shadow {
+        Some(model) => Some(BenchShadow::start(url, &options, model).await?),
+        None => None,
+    };
     let mut results = Vec::new();
     let mut admin_tables = Vec::new();
     for &streams in &args.streams {
@@ -327,6 +338,9 @@ pub async fn load(args: &Args, url: &str, options: ConnectOptions, pid: Option<u
     print!("{}", results_table(&results, args.batch));
     for table in admin_tables {
         print!("\n{table}");
+    }
+    if let Some(shadow) = shadow {
+        print!("\n{}", shadow.finish().await?);
     }
 
     if args.sessions > 0 {

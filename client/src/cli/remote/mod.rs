@@ -16,6 +16,7 @@ pub mod incidents;
 pub mod jobs;
 pub mod models;
 pub mod sessions;
+pub mod shadow;
 pub mod train;
 
 use std::future::Future;

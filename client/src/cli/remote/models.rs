@@ -59,6 +59,9 @@ pub enum Command {
         #[arg(long)]
         activate: bool,
     },
+    /// Try a candidate beside the live model before it pages anyone (start, status, stop, alarms).
+    #[command(subcommand)]
+    Shadow(super::shadow::Command),
 }
 
 /// The import messages: the header, then the artifact in chunks of at most 1 MiB.
@@ -276,6 +279,7 @@ pub async fn run(args: Args) -> Result<()> {
             let model = reply(format!("importing {}", file.display()), import).await?;
             print!("imported {}", describe(&model));
         }
+        Command::Shadow(command) => super::shadow::run(client, command).await?,
     }
     Ok(())
 }

@@ -69,6 +69,7 @@ mod jobs;
 mod models;
 mod postgres;
 mod severities;
+mod shadows;
 mod snapshots;
 
 use serde_json::json;
