@@ -21,7 +21,6 @@ use spoofwatch_proto::wire::ModelName;
 
 use super::Registry;
 use super::wire::{model_summary_to_proto, model_to_proto};
-use crate::access::Caller;
 use crate::shadow::Shadows;
 use crate::shadow::service::{decode_start, shadow_id};
 use crate::status::{failed_precondition, invalid_field};
