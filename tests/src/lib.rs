@@ -586,10 +586,9 @@ pub fn training_fleet() -> Vec<Track> {
     ]
 }
 
-/// A training job on `dataset` with seed 7 and `max_epochs` epochs, of the `v2` evidence: the job
-/// tests' tiny fleet ([`training_fleet`]) is short, gently turning drives that never teach the onboard
-/// calibration the default (`v3`) schema's offset anchors are fitted after, and v2 trains on them in
-/// seconds. The fleet-fit tests train `v3` through the server.
+/// A training job on `dataset` with seed 7 and `max_epochs` epochs, of the `v2` evidence, which trains
+/// the job tests' tiny fleet ([`training_fleet`]) in seconds. The fleet-fit tests train the default
+/// (`v3`) through the server.
 pub fn training_request(
     dataset: &str,
     max_epochs: u32,

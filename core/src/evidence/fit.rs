@@ -144,7 +144,8 @@ fn settled_rates(
 /// each anchor's offsets, one row per second of driving, give its noise and growth
 /// ([`offset_params_from_points`]); one row's residual, matched at the same quantile, gives the
 /// step test's noise. Only normal rows before a track's first attacked row count: an attack leaves
-/// an offset in an anchor that follows it.
+/// an offset in an anchor that follows it. Under information-driven trust only rows whose
+/// calibration is known count, unless too few are: then every normal row does.
 pub fn fit_offset_params(
     tracks: &[Track],
     projection: Projection,
@@ -155,6 +156,27 @@ pub fn fit_offset_params(
         offset: Some(OffsetParams::unnormalised()),
         ..EvidenceParams::unnormalised(projection)
     };
+    let known = drift.trust == CalibrationTrust::Information;
+    let step_noise_m2 = step_noise_m2(tracks, projection)?;
+    match offset_params_from_points(&offset_points(tracks, &params, known), step_noise_m2) {
+        // A fleet whose vehicles never teach their calibration within a drive (slow rovers, straight
+        // roads) still gets anchors: fitted on every normal row, the growth already holds the
+        // calibration's error, which the test then adds again, so its gates are wider, never
+        // narrower.
+        Err(EvidenceError::TooFewOffsetRows { .. }) if known => {
+            offset_params_from_points(&offset_points(tracks, &params, false), step_noise_m2)
+        }
+        fitted => fitted,
+    }
+}
+
+/// The settled anchors' offsets of the normal rows of `tracks`, one per second; with
+/// `known_calibration`, only rows whose calibration is known (information-driven trust).
+fn offset_points(
+    tracks: &[Track],
+    params: &EvidenceParams,
+    known_calibration: bool,
+) -> [Vec<OffsetPoint>; ANCHOR_COUNT] {
     let mut points: [Vec<OffsetPoint>; ANCHOR_COUNT] = Default::default();
     for track in tracks {
         let mut clock_s = 0.0;
@@ -163,7 +185,7 @@ pub fn fit_offset_params(
         for (record, e) in track
             .records
             .iter()
-            .zip(build_track(&params, &track.records))
+            .zip(build_track(params, &track.records))
         {
             let time = record.sample.timestamp_s;
             let delta = last_time.map_or(0.0, |last| (time - last).clamp(0.0, 60.0));
@@ -173,7 +195,7 @@ pub fn fit_offset_params(
             // Under information-driven trust, offsets enter the fit once the calibration is
             // known: the test adds what is still unknown about it on top of this growth.
             let unknown = e.drift.is_some_and(|d| d.warm_up < FIT_TRUST);
-            if drift.trust == CalibrationTrust::Information && unknown {
+            if known_calibration && unknown {
                 continue;
             }
             let new_second = (clock_s + delta).floor() > clock_s;
@@ -194,14 +216,20 @@ pub fn fit_offset_params(
             }
         }
     }
+    points
+}
+
+/// The GNSS step noise of the anchors: the fit quantile of the normal rows' squared residuals.
+fn step_noise_m2(tracks: &[Track], projection: Projection) -> Result<f64, EvidenceError> {
     let mut residuals: Vec<f64> = normal_residuals(tracks, projection)
         .iter()
         .map(|r| r[0] * r[0] + r[1] * r[1])
         .collect();
     residuals.sort_by(f64::total_cmp);
-    let step_noise_m2 = quantile_sorted(&residuals, FIT_QUANTILE).ok_or(EvidenceError::NoRows)?
-        / CHI2_2_AT_FIT_QUANTILE;
-    offset_params_from_points(&points, step_noise_m2)
+    Ok(
+        quantile_sorted(&residuals, FIT_QUANTILE).ok_or(EvidenceError::NoRows)?
+            / CHI2_2_AT_FIT_QUANTILE,
+    )
 }
 
 /// An anchor's offsets enter the fit this many follow times after it was placed.

@@ -412,3 +412,29 @@ fn the_calibration_recovers_a_simulated_drives_onboard_errors() {
     assert!((timing_s - 0.3).abs() < 0.1, "timing {timing_s}");
     assert!(last.is_warm());
 }
+
+#[test]
+fn anchors_fit_on_vehicles_that_never_teach_their_calibration() {
+    // Gently turning 400 s drives never make the calibration known (ω < 0.75): under
+    // information-driven trust the anchors are fitted on every normal row instead of refusing.
+    let tracks: Vec<crate::sample::Track> = (0..2)
+        .map(|seed| {
+            let spec = crate::scenario::DriveSpec {
+                duration_s: 400.0,
+                seed,
+                ..crate::scenario::DriveSpec::default()
+            };
+            crate::scenario::simulate_drive(&spec, "slow").expect("drive")
+        })
+        .collect();
+    let projection = Projection::default();
+    let drift = fit_drift_params(
+        &tracks,
+        projection,
+        calibration::CalibrationTrust::Information,
+        None,
+    )
+    .expect("drift parameters");
+    let offset = fit_offset_params(&tracks, projection, drift).expect("anchors fitted");
+    assert!(offset.validate().is_ok(), "{offset:?}");
+}
