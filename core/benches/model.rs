@@ -12,7 +12,7 @@ use spoofwatch_core::rng::Rng;
 use spoofwatch_core::train::{Sequence, TrainConfig, train};
 
 fn random_features(rng: &mut Rng, count: usize) -> Vec<Features> {
-    spoofwatch_core::testdata::random_features(rng, count, 1.0, FeatureSchema::default())
+    spoofwatch_core::testdata::random_features(rng, count, 1.0, FeatureSchema::V2)
 }
 
 /// Trajectories with one attack interval each (large η and q inside it).
@@ -38,8 +38,17 @@ fn synthetic_sequences(rng: &mut Rng, count: usize, length: usize) -> Vec<Sequen
         .collect()
 }
 
+/// The configuration the committed kernel figures were measured on: the default widths with the v2
+/// evidence's inputs.
+fn bench_config() -> ModelConfig {
+    ModelConfig {
+        schema: FeatureSchema::V2,
+        ..ModelConfig::default()
+    }
+}
+
 fn bench_step(c: &mut Criterion) {
-    let config = ModelConfig::default();
+    let config = bench_config();
     let model = Model::init(config.clone(), 1).expect("default config is valid");
     let inputs = random_features(&mut Rng::seed_from_u64(2), 1024);
 
@@ -84,7 +93,7 @@ fn bench_training_epoch(c: &mut Criterion) {
             let outcome = train(
                 &train_set,
                 &val_set,
-                ModelConfig::default(),
+                bench_config(),
                 &config,
                 &mut |_| {},
                 &AtomicBool::new(false),

@@ -472,10 +472,13 @@ fn a_small_training_job_learns_a_frozen_position_attack_and_calibrates_an_operat
     let train: Vec<Track> = (20..24).map(frozen).collect();
     let validation: Vec<Track> = (30..32).map(frozen).collect();
     let spec = TrainingSpec {
+        // The v2 evidence and its persistence N_p: these 400 s drives are attacked too early for the
+        // offset anchors of the default schema.
         model: ModelConfig {
             d_s: 8,
             d_zeta: 8,
             d_h: 8,
+            schema: FeatureSchema::V2,
             ..ModelConfig::default()
         },
         train: TrainConfig {
@@ -506,7 +509,7 @@ fn a_small_training_job_learns_a_frozen_position_attack_and_calibrates_an_operat
         Projection::Wgs84Local,
         0.0,
         0.98,
-        FeatureSchema::default(),
+        FeatureSchema::V2,
     )
     .expect("fits");
     assert_eq!(sequences(&fit, &train, true).len(), train.len());
