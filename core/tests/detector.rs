@@ -504,14 +504,8 @@ fn a_small_training_job_learns_a_frozen_position_attack_and_calibrates_an_operat
     let again =
         train_detector(&spec, data(), &mut |_| {}, &AtomicBool::new(false)).expect("trains");
     assert_eq!(again.artifact.model, trained.artifact.model);
-    let fit = fit_evidence(
-        &train,
-        Projection::Wgs84Local,
-        0.0,
-        0.98,
-        FeatureSchema::V2,
-    )
-    .expect("fits");
+    let fit =
+        fit_evidence(&train, Projection::Wgs84Local, 0.0, 0.98, FeatureSchema::V2).expect("fits");
     assert_eq!(sequences(&fit, &train, true).len(), train.len());
 }
 

@@ -22,6 +22,7 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use serde::Serialize;
 use spoofwatch_client::cli::evaluate::load_artifact;
+use spoofwatch_client::cli::fit_report::render as render_fit;
 use spoofwatch_core::fleet_fit::attacks::detection_grid;
 use spoofwatch_core::fleet_fit::data::drives;
 use spoofwatch_core::fleet_fit::score::{ModelScore, score};
@@ -30,6 +31,7 @@ use spoofwatch_core::rng::Rng;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{DriveDistribution, simulate_drive};
 use spoofwatch_core::train::data::trajectory_ranges;
+use spoofwatch_proto::wire::fit::fit_report_to_proto;
 
 use super::common::{load_avgps, write_report};
 use super::parallel::{default_threads, map_parallel};
@@ -254,64 +256,15 @@ fn merge(scores: Vec<(ModelScore, ModelScore)>) -> (ModelScore, ModelScore) {
 }
 
 fn render(report: &Report) -> String {
-    let fit = &report.fit;
     let mut md = format!(
-        "# Fleet fit: {}\n\nStarting model `{}`, seed {}, {} epochs{}; {:.0} s.\n\n",
+        "# Fleet fit: {}\n\nStarting model `{}`, seed {}, {} epochs; {:.0} s.\n\n```text\n{}```\n\n",
         report.fleet,
         report.model,
         report.seed,
         report.epochs,
-        if fit.from_scratch {
-            " from scratch"
-        } else {
-            " from its weights"
-        },
-        report.wall_time_s
+        report.wall_time_s,
+        render_fit(&fit_report_to_proto(&report.fit))
     );
-    let _ = writeln!(
-        md,
-        "| part | drives | vehicles | hours |\n|---|---|---|---|\n| fit | {} | {} | {:.2} |\n| \
-         validation | {} | {} | {:.2} |\n| test | {} | {} | {:.2} |\n",
-        fit.fit.drives,
-        fit.fit.vehicles,
-        fit.fit.hours,
-        fit.validation.drives,
-        fit.validation.vehicles,
-        fit.validation.hours,
-        fit.test.drives,
-        fit.test.vehicles,
-        fit.test.hours
-    );
-    let prior = &fit.calibration_prior;
-    let _ = writeln!(
-        md,
-        "Calibration prior: mean speed scale {:+.3}, heading {:+.2}°, lag {:+.2} s; std {:.3}, \
-         {:.2}°, {:.2} s ({} of {} fit drives taught a known calibration{}).\n\nGNSS σ per axis: \
-         {:.2} / {:.2} m (starting model {:.2} / {:.2} m). Warning θ {:.3}; critical test {}: \
-         {}.\n",
-        prior.prior.mean[0],
-        prior.prior.mean[1].to_degrees(),
-        prior.prior.mean[2],
-        prior.prior.std[0],
-        prior.prior.std[1].to_degrees(),
-        prior.prior.std[2],
-        prior.known_drives,
-        prior.drives,
-        prior
-            .kept_default
-            .as_ref()
-            .map(|r| format!("; default kept: {r}"))
-            .unwrap_or_default(),
-        fit.gnss_sigma_m[0],
-        fit.gnss_sigma_m[1],
-        fit.starting_gnss_sigma_m[0],
-        fit.starting_gnss_sigma_m[1],
-        fit.warning_theta,
-        fit.critical.how,
-        fit.critical.reason
-    );
-    md.push_str("## False alarms on the test part\n\n");
-    clean_table(&mut md, &fit.fitted, &fit.starting);
     if let Some((fitted, starting)) = &report.independent_clean {
         let _ = writeln!(
             md,
@@ -319,28 +272,6 @@ fn render(report: &Report) -> String {
             report.independent_clean_hours
         );
         clean_table(&mut md, fitted, starting);
-    }
-    md.push_str(
-        "## Attacks injected into the test part\n\n| attack | injected | warning within | fitted | \
-         bundled | critical within | fitted | bundled | coverage fitted | coverage bundled \
-         |\n|---|---|---|---|---|---|---|---|---|---|\n",
-    );
-    for (f, s) in fit.fitted.detection.iter().zip(&fit.starting.detection) {
-        let share = |n: u64| n as f64 / f.injected.max(1) as f64;
-        let _ = writeln!(
-            md,
-            "| {} | {} | {} s | {:.2} | {:.2} | {} s | {:.2} | {:.2} | {:.2} | {:.2} |",
-            f.attack,
-            f.injected,
-            f.warning_within_s,
-            share(f.warned),
-            share(s.warned),
-            f.critical_within_s,
-            share(f.critical),
-            share(s.critical),
-            f.warning_coverage,
-            s.warning_coverage
-        );
     }
     md
 }
