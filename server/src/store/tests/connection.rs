@@ -100,7 +100,7 @@ async fn a_closed_store_fails_with_a_closed_fault(store: Store) {
 async fn a_full_database_refuses_writes_and_takes_them_again_once_space_is_freed() {
     let dir = tempfile::tempdir().unwrap();
     let options = StoreOptions {
-        max_bytes: Some(256 * 1024),
+        max_bytes: Some(512 * 1024),
     };
     let store = Store::open_with(&db_path(&dir), options).await.unwrap();
     let mut blob = new_dataset("ballast-0");
