@@ -376,7 +376,7 @@ async fn random_messages_to_every_rpc_get_no_internal_error_and_no_hang() {
     .await;
     let channel = server.channel().await;
     let (rpcs, messages) = rpcs_and_messages();
-    assert_eq!(rpcs.len(), 31, "every RPC of the six services");
+    assert_eq!(rpcs.len(), 35, "every RPC of the six services");
     let started = Instant::now();
     let mut rng = Rng(0x5eed_f00d);
     for rpc in &rpcs {
