@@ -72,7 +72,8 @@ pub const SHADOW_ONSETS: &str = "spoofwatch_shadow_onsets_total";
 pub const SHADOW_AGREEMENT: &str = "spoofwatch_shadow_agreement_samples_total";
 pub const SHADOW_UNMATCHED: &str = "spoofwatch_shadow_unmatched_episodes_total";
 pub const SHADOW_STARTS: &str = "spoofwatch_shadow_vehicle_starts_total";
-pub const SHADOW_VEHICLE_HOURS: &str = "spoofwatch_shadow_vehicle_hours";
+/// In seconds, Prometheus's base unit of time.
+pub const SHADOW_VEHICLE_SECONDS: &str = "spoofwatch_shadow_vehicle_seconds";
 pub const SHADOW_BATCH_SECONDS: &str = "spoofwatch_shadow_batch_scoring_seconds";
 
 /// What kind of Prometheus metric a name is.
@@ -313,7 +314,7 @@ pub const METRICS: &[(&str, Kind, &str)] = &[
         "Vehicle shadow states started, by `reason`: `first` (first sample on this process: also after a restart or hand-off), `shed`, `idle` (let go after sitting idle) or `reset` (the live session restarted its time line).",
     ),
     (
-        SHADOW_VEHICLE_HOURS,
+        SHADOW_VEHICLE_SECONDS,
         Kind::Gauge,
         "Vehicle-hours the running shadow covered on this process (the denominator of onsets per vehicle-hour).",
     ),
@@ -638,7 +639,7 @@ fn register_shadow_metrics() {
         counter!(SHADOW_STARTS, "reason" => reason).increment(0);
     }
     gauge!(SHADOW_QUEUE).set(0.0);
-    gauge!(SHADOW_VEHICLE_HOURS).set(0.0);
+    gauge!(SHADOW_VEHICLE_SECONDS).set(0.0);
 }
 
 /// `n` samples of shadowed vehicles were `scored` or `shed`.
@@ -679,14 +680,14 @@ pub fn shadow_vehicle_starts(reason: &'static str, n: u64) {
 pub fn shadow_batch(elapsed: std::time::Duration, queued: usize, vehicle_hours: f64) {
     histogram!(SHADOW_BATCH_SECONDS).record(elapsed);
     gauge!(SHADOW_QUEUE).set(queued as f64);
-    gauge!(SHADOW_VEHICLE_HOURS).set(vehicle_hours);
+    gauge!(SHADOW_VEHICLE_SECONDS).set(vehicle_hours * 3_600.0);
 }
 
 /// A shadow of `model` started (`running`) or stopped on this process.
 pub fn shadow_running(model: &str, running: bool) {
     gauge!(SHADOW_RUNNING, "model" => model.to_string()).set(if running { 1.0 } else { 0.0 });
     if !running {
-        gauge!(SHADOW_VEHICLE_HOURS).set(0.0);
+        gauge!(SHADOW_VEHICLE_SECONDS).set(0.0);
     }
 }
 
