@@ -173,6 +173,10 @@ impl Detector {
 /// Warnings are unaffected, and the decisive gate and the frozen-fix path still page.
 pub const REACQUISITION_S: f64 = 30.0;
 
+/// Seconds the anchors must have stood before a jump for its hold to page: twice the agreement
+/// that makes a first fix trusted ([`TRUST_S`](crate::evidence::offset::TRUST_S)).
+pub const JUMP_SETTLED_S: f64 = 10.0;
+
 /// The lifecycle's reading of the offset evidence (nothing without offset channels). A fix that
 /// has repeated exactly for [`FROZEN_FIX_S`] while the vehicle's own motion carried it beyond the
 /// follow gate counts as an offset held from then on: a frozen feed on a moving vehicle is as
@@ -193,8 +197,14 @@ pub fn offset_signal(evidence: &Evidence) -> OffsetSignal {
             anchored: true,
             nis: o.max_nis(),
             frozen_fix_s: frozen_fix,
-            held_jump_s: (o.arrived_by_step && o.held_step_m.is_some())
-                .then_some(beyond_gate)
+            // A held jump pages only from anchors that had stood for a while before it (a fix
+            // placed on a reflection makes the next true fix look like a jump), and counts only
+            // the seconds the vehicle moved with it (a receiver that latches a reflected fix as
+            // the vehicle stops holds it for the whole stop).
+            held_jump_s: (o.arrived_by_step
+                && o.held_step_m.is_some()
+                && o.anchor_age_s - o.held_s >= JUMP_SETTLED_S)
+                .then_some(beyond_gate.map(|held| held.min(o.held_step_moved_s)))
                 .flatten(),
             // When the offset now held began: the anchors' age less its hold.
             reacquiring: evidence.trajectory > 0 && o.anchor_age_s - o.held_s < REACQUISITION_S,
@@ -391,6 +401,8 @@ mod tests {
             if let Some(offset) = e.offset.as_mut() {
                 offset.arrived_by_step = arrived_by_step;
                 offset.held_step_m = held_step_m;
+                offset.held_step_moved_s = 4.0;
+                offset.anchor_age_s = 60.0;
             }
             offset_signal(&e)
         };
@@ -403,6 +415,29 @@ mod tests {
         assert_eq!(with(true, None, 64.0).held_jump_s, None);
         // Back below the decisive gate.
         assert_eq!(with(true, Some([20.0, 0.0]), 20.0).held_jump_s, None);
+    }
+
+    #[test]
+    fn a_held_jump_counts_the_seconds_moved_from_anchors_that_had_stood() {
+        let jump = |anchor_age_s: f64, moved_s: f64| {
+            let mut e = evidence(0.0, 400.0, 6.0);
+            if let Some(offset) = e.offset.as_mut() {
+                offset.arrived_by_step = true;
+                offset.held_step_m = Some([20.0, 0.0]);
+                offset.held_step_moved_s = moved_s;
+                offset.anchor_age_s = anchor_age_s;
+            }
+            offset_signal(&e)
+        };
+        // Held 6 s, the vehicle moving for 5 of them, from anchors placed 14 s before the jump.
+        assert_eq!(jump(20.0, 5.0).held_jump_s, Some(5.0));
+        // The jump arrived 10 s after the anchors were placed: it counts; 9 s: it does not (the
+        // anchors may stand on a reflected fix). The offset's own hold counts either way.
+        assert_eq!(jump(16.0, 6.0).held_jump_s, Some(6.0));
+        assert_eq!(jump(15.0, 6.0).held_jump_s, None);
+        assert_eq!(jump(15.0, 6.0).held_s, Some(6.0));
+        // A vehicle standing since the jump: held, but never for a page.
+        assert_eq!(jump(60.0, 0.0).held_jump_s, Some(0.0));
     }
 
     #[test]

@@ -6,6 +6,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::params::norm_squared;
+use crate::evidence::drift::MOVING_MPS;
 
 /// A held offset that one step brings back to within this share of itself ends: the spoofer let
 /// go and the fix is back where the onboard motion puts the vehicle (a toggling spoofer's next
@@ -32,6 +33,11 @@ pub(super) struct StepHold {
     pub(super) offset: [f64; 2],
     /// Seconds since the jump.
     pub(super) held_s: f64,
+    /// Of them, the seconds the vehicle moved (dead-reckoned at [`MOVING_MPS`] or faster): a
+    /// stationary vehicle's fix confirms nothing new, and a receiver that latches a reflected fix
+    /// as the vehicle stops holds it for as long as the stop lasts.
+    #[serde(default)]
+    pub(super) moved_s: f64,
 }
 
 impl StepHold {
@@ -46,12 +52,38 @@ impl StepHold {
         self.nearer_track([self.offset[0] + residual[0], self.offset[1] + residual[1]])
     }
 
-    /// Adds one step's residual; returns whether the jump still holds.
-    pub(super) fn advance(&mut self, residual: [f64; 2], delta_t: f64) -> bool {
+    /// Adds one step's residual and dead-reckoned motion; returns whether the jump still holds.
+    pub(super) fn advance(&mut self, residual: [f64; 2], motion: [f64; 2], delta_t: f64) -> bool {
         for (offset, change) in self.offset.iter_mut().zip(residual) {
             *offset += change;
         }
         self.held_s += delta_t;
+        if norm_squared(motion).sqrt() >= MOVING_MPS * delta_t {
+            self.moved_s += delta_t;
+        }
         self.held_s <= MAX_STEP_HOLD_S && !self.nearer_track(self.offset)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_held_jump_counts_the_seconds_the_vehicle_moved() {
+        let mut hold = StepHold {
+            arrival: [20.0, 0.0],
+            offset: [20.0, 0.0],
+            held_s: 0.0,
+            moved_s: 0.0,
+        };
+        // 2 m in 1 s (moving), 0.3 m in 0.5 s (below 1 m/s), then standing for 3 s.
+        assert!(hold.advance([0.0, 0.0], [0.0, 2.0], 1.0));
+        assert!(hold.advance([0.0, 0.0], [0.3, 0.0], 0.5));
+        assert!(hold.advance([0.0, 0.0], [0.0, 0.0], 3.0));
+        assert_eq!((hold.held_s, hold.moved_s), (4.5, 1.0));
+        // Exactly 1 m/s counts as moving.
+        assert!(hold.advance([0.0, 0.0], [0.6, 0.8], 1.0));
+        assert_eq!(hold.moved_s, 2.0);
     }
 }

@@ -167,6 +167,9 @@ pub struct OffsetEvidence {
     /// fix before it, east/north (m).
     #[serde(default)]
     pub held_step_m: Option<[f64; 2]>,
+    /// While a jump is held: the seconds since it arrived that the vehicle moved (0 without one).
+    #[serde(default)]
+    pub held_step_moved_s: f64,
 }
 
 impl OffsetEvidence {
@@ -185,6 +188,7 @@ impl OffsetEvidence {
         calibrated: false,
         anchor_age_s: 0.0,
         held_step_m: None,
+        held_step_moved_s: 0.0,
     };
 
     /// The larger of the anchors' NIS.

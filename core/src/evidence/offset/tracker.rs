@@ -217,7 +217,8 @@ impl OffsetTracker {
     /// Carries a held jump by this row's residual, and ends it where it no longer holds.
     fn advance_step_hold(&mut self, step: &OffsetStep, row: &Row) {
         if let Some(hold) = &mut self.step_hold
-            && (!row.dead_reckoning_carries || !hold.advance(step.residual, step.delta_t))
+            && (!row.dead_reckoning_carries
+                || !hold.advance(step.residual, step.motion, step.delta_t))
         {
             self.step_hold = None;
         }
@@ -363,6 +364,7 @@ impl OffsetTracker {
                 arrival: step.residual,
                 offset: step.residual,
                 held_s: 0.0,
+                moved_s: 0.0,
             });
         }
     }
@@ -397,6 +399,7 @@ impl OffsetTracker {
             calibrated: step.calibrated,
             anchor_age_s: self.age_s,
             held_step_m: self.step_hold.map(|hold| hold.offset),
+            held_step_moved_s: self.step_hold.map_or(0.0, |hold| hold.moved_s),
         }
     }
 
