@@ -24,7 +24,7 @@ pub mod prior;
 pub mod score;
 
 use std::sync::Arc;
-use std::sync::atomic::AtomicBool;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use serde::{Deserialize, Serialize};
 
@@ -187,17 +187,38 @@ pub fn fit_fleet(
         cancel,
     )?;
     let mut artifact = trained.artifact;
-    let critical = choose_critical_level(
-        &artifact,
-        starting,
-        &[validation_tracks, injected_validation.clone()].concat(),
-    );
+    let rates = data::rates(&[&split.fit[..], &split.validation, &split.test].concat());
+    // A cancelled fit registers nothing: it stops here rather than choose and score for minutes.
+    let cancelled = trained.cancelled || cancel.load(Ordering::Relaxed);
+    let critical = if cancelled {
+        CriticalChoice {
+            test: starting.critical,
+            how: "kept".to_string(),
+            reason: "the fit was cancelled".to_string(),
+        }
+    } else {
+        choose_critical_level(
+            &artifact,
+            starting,
+            &[validation_tracks, injected_validation.clone()].concat(),
+        )
+    };
     artifact.critical = critical.test;
 
-    let rates = data::rates(&[&split.fit[..], &split.validation, &split.test].concat());
     let grid = attacks::detection_grid();
-    let test_attacks = attacks::test_injections(&tracks(&split.test), spec.seed ^ TEST_STREAM)?;
+    let test_attacks = if cancelled {
+        Vec::new()
+    } else {
+        attacks::test_injections(&tracks(&split.test), spec.seed ^ TEST_STREAM)?
+    };
     let fitted = Arc::new(artifact.clone());
+    let score = |model: &Arc<ModelArtifact>| {
+        if cancelled {
+            score::ModelScore::default()
+        } else {
+            score::score(model, &split.test, &rates, &test_attacks, &grid)
+        }
+    };
     let report = FleetFitReport {
         fit: summary(&split.fit),
         validation: summary(&split.validation),
@@ -211,15 +232,15 @@ pub fn fit_fleet(
         injected_validation_pieces: injected_validation.len(),
         warning_theta: artifact.operating_point.theta,
         critical,
-        fitted: score::score(&fitted, &split.test, &rates, &test_attacks, &grid),
-        starting: score::score(starting, &split.test, &rates, &test_attacks, &grid),
+        fitted: score(&fitted),
+        starting: score(starting),
     };
     Ok(FleetFit {
         artifact,
         report,
         validation: trained.validation,
         history: trained.history,
-        cancelled: trained.cancelled,
+        cancelled,
     })
 }
 
