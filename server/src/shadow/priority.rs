@@ -30,12 +30,13 @@ pub fn lower_this_thread() -> Priority {
             tracing::debug!("the shadow's worker runs at idle CPU priority (SCHED_IDLE)");
         }
         Priority::Fallback(reason) => {
-            let nice =
-                rustix::process::setpriority_process(Some(rustix::thread::gettid()), HEAVY_NICE);
+            let niced =
+                rustix::process::setpriority_process(Some(rustix::thread::gettid()), HEAVY_NICE)
+                    .is_ok();
             tracing::warn!(
                 reason = %reason,
-                nice = if nice.is_ok() { HEAVY_NICE } else { 0 },
-                "the shadow's worker could not be given idle CPU priority (SCHED_IDLE); it runs at the lowest nice value instead, so on a busy server it competes a little with the live replies before it sheds"
+                niced,
+                "the shadow's worker could not be given idle CPU priority (SCHED_IDLE); it runs at the lowest nice value instead (at the process's if `niced` is false), so on a busy server it competes a little with the live replies before it sheds"
             );
         }
     }
