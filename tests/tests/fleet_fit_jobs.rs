@@ -399,7 +399,7 @@ async fn cancel_a_running_fit(clients: &mut Clients) {
         .into_iter()
         .map(|o| o.name)
         .collect();
-    assert_eq!(done, [job.name.clone()]);
+    assert_eq!(done, std::slice::from_ref(&job.name));
     clients
         .operations
         .delete_operation(longrunning::DeleteOperationRequest {
