@@ -7,8 +7,10 @@
 # - HAProxy: `haproxy -c` on deploy/haproxy/spoofwatch.cfg when haproxy is installed (its behaviour
 #   is tested for real in tests/tests/haproxy_routes_vehicles.rs);
 # - Prometheus: `promtool check rules` and the rules' unit tests (`promtool test rules`) when promtool
-#   is installed (.ci/run installs it); the Grafana dashboard must parse as JSON. That both name only
-#   exported metrics is tested against a real scrape in tests/tests/dashboard_metrics.rs.
+#   is installed (.ci/run installs it); the Grafana dashboard must parse as JSON, with unique panel ids,
+#   a query with an expression in every panel and no panels overlapping (scripts/validate_dashboard.py).
+#   That both name only exported metrics is tested against a real scrape in
+#   tests/tests/dashboard_metrics.rs.
 # The Python tools go into a venv under target/ci-tools (SPOOFWATCH_CI_TOOLS to put it elsewhere).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -43,8 +45,5 @@ else
   echo "no promtool installed: skipped (.ci/run installs it)"
 fi
 
-echo "== Grafana dashboard (JSON)"
-for dashboard in deploy/grafana/*.json; do
-  python3 -c 'import json, sys; d = json.load(open(sys.argv[1])); assert d["panels"], "no panels"' "$dashboard"
-  echo "$dashboard: valid"
-done
+echo "== Grafana dashboard (scripts/validate_dashboard.py)"
+python3 scripts/validate_dashboard.py deploy/grafana/*.json

@@ -75,6 +75,7 @@ pub const SHADOW_STARTS: &str = "spoofwatch_shadow_vehicle_starts_total";
 /// In seconds, Prometheus's base unit of time.
 pub const SHADOW_VEHICLE_SECONDS: &str = "spoofwatch_shadow_vehicle_seconds";
 pub const SHADOW_BATCH_SECONDS: &str = "spoofwatch_shadow_batch_scoring_seconds";
+pub const SHADOW_IDLE_PRIORITY: &str = "spoofwatch_shadow_worker_idle_priority";
 
 /// What kind of Prometheus metric a name is.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -322,6 +323,11 @@ pub const METRICS: &[(&str, Kind, &str)] = &[
         SHADOW_BATCH_SECONDS,
         Kind::Histogram,
         "The candidate's scoring time per batch, off the request path (its CPU cost).",
+    ),
+    (
+        SHADOW_IDLE_PRIORITY,
+        Kind::Gauge,
+        "1 when the shadow's worker thread runs at idle CPU priority (Linux SCHED_IDLE: it gets a core only when nothing else wants it), 0 when that could not be set and it runs at the lowest nice value instead.",
     ),
 ];
 
@@ -681,6 +687,11 @@ pub fn shadow_batch(elapsed: std::time::Duration, queued: usize, vehicle_hours: 
     histogram!(SHADOW_BATCH_SECONDS).record(elapsed);
     gauge!(SHADOW_QUEUE).set(queued as f64);
     gauge!(SHADOW_VEHICLE_SECONDS).set(vehicle_hours * 3_600.0);
+}
+
+/// The shadow's worker thread runs at idle CPU priority (`idle`) or at the fallback.
+pub fn shadow_worker_idle_priority(idle: bool) {
+    gauge!(SHADOW_IDLE_PRIORITY).set(if idle { 1.0 } else { 0.0 });
 }
 
 /// A shadow of `model` started (`running`) or stopped on this process.

@@ -1,6 +1,7 @@
 //! What operators plug in names only metrics the server exports: every `spoofwatch_*` metric in the
 //! Grafana dashboard (`deploy/grafana/*.json`) and the Prometheus rules (`deploy/prometheus/*.rules.yml`)
-//! must appear in a real scrape of a server that has scored a drive, raised an alarm and stored it.
+//! must appear in a real scrape of a server that has scored a drive, raised an alarm and stored it,
+//! with a candidate model shadowing the vehicle (the shadow's metrics).
 //! A histogram counts under its `_bucket`, `_sum` and `_count` series as well as its family name.
 //! Every label value they select with `label="value"` (the alarm metrics' `severity`, the store
 //! faults' `kind`) must be one the scrape carries for that metric.
@@ -12,7 +13,11 @@ use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use spoofwatch_tests::{REPLY_TIMEOUT, scrape, start_server, stream_frozen_fix_drive};
+use spoofwatch_proto::v1;
+use spoofwatch_tests::{
+    REPLY_TIMEOUT, artifact_with_critical_level, import_model, scrape, start_server,
+    stream_frozen_fix_drive,
+};
 
 /// The deploy files whose metric names are checked: the dashboards and the rules (not their unit
 /// tests, whose series are made up on purpose).
@@ -144,11 +149,21 @@ async fn every_metric_of_the_dashboard_and_the_rules_is_exported() {
         "Prometheus rules under deploy/prometheus: {files:?}"
     );
 
-    let (_dir, server, clients) = start_server(|config| {
+    let (_dir, server, mut clients) = start_server(|config| {
         config.metrics_listen = Some(SocketAddr::from(([127, 0, 0, 1], 0)));
     })
     .await;
     let metrics = server.metrics_addr().expect("a metrics listener");
+    // A candidate shadows every vehicle: its worker scores the drive beside the live model.
+    let candidate = import_model(&mut clients, artifact_with_critical_level(), "candidate").await;
+    clients
+        .models
+        .start_shadow(v1::StartShadowRequest {
+            model: candidate.name,
+            scope: Some(v1::start_shadow_request::Scope::AllVehicles(true)),
+        })
+        .await
+        .expect("StartShadow");
     // A frozen fix raises an alarm; its events and the session's snapshots are stored in the
     // background, which records the database write histogram.
     let episodes = stream_frozen_fix_drive(&clients, "dash-1").await;
@@ -157,12 +172,14 @@ async fn every_metric_of_the_dashboard_and_the_rules_is_exported() {
     let (exported, exposition) = loop {
         let exposition = scrape(metrics).await;
         let exported = exported_names(&exposition);
-        if exported.contains("spoofwatch_db_operation_duration_seconds") {
+        if exported.contains("spoofwatch_db_operation_duration_seconds")
+            && exported.contains("spoofwatch_shadow_batch_scoring_seconds")
+        {
             break (exported, exposition);
         }
         assert!(
             Instant::now() < deadline,
-            "the alarm write is recorded: {exported:?}"
+            "the alarm write and the shadow's scoring are recorded: {exported:?}"
         );
         tokio::time::sleep(Duration::from_millis(200)).await;
     };

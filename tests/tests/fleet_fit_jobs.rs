@@ -1,13 +1,28 @@
-//! Fleet-fit jobs through the server: a fleet's attack-free recordings uploaded, the detector fitted
-//! to them as a training job (progress watched, the fitted model registered with the fit's report),
-//! and recordings that cannot support a fit refused with the field at fault.
+//! Fleet-fit jobs through the server, on SQLite and on PostgreSQL: a fleet's attack-free recordings
+//! uploaded, the detector fitted to them as a training job (progress watched, the fitted model
+//! registered with the fit's report), the fitted model activated and scoring new sessions; a fit
+//! cancelled while it runs ends CANCELLED and registers nothing; a fit running when its server
+//! stops ends as every training job does (CANCELLED by a clean stop, ABORTED by the restart after
+//! a kill); and recordings that cannot support a fit refused with the field at fault. The
+//! PostgreSQL variants need `SPOOFWATCH_TEST_POSTGRES_URL` (skipped without it, failed without it
+//! under `SPOOFWATCH_REQUIRE_POSTGRES=1`).
+
+use std::io::{BufRead, BufReader};
+use std::net::SocketAddr;
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
 
 use prost::Message;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{DriveDistribution, Outages, simulate_drive};
-use spoofwatch_proto::longrunning::operation;
+use spoofwatch_proto::longrunning::{self, operation};
 use spoofwatch_proto::v1;
-use spoofwatch_tests::{start_server, trained_model, upload_tracks, wait_done};
+use spoofwatch_server::store::test_database::TestDatabase;
+use spoofwatch_tests::{
+    Clients, Connection, TestServer, metadata_of, start_server, stream_batches, test_config,
+    track_samples, trained_model, upload_tracks, wait_done,
+};
 use tonic::Code;
 
 /// `vehicles` attack-free drives of `duration_s` at 1 Hz of the realistic distribution (they turn and
@@ -58,10 +73,58 @@ fn failure(operation: &spoofwatch_proto::longrunning::Operation) -> (i32, String
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_fleet_fit_registers_a_fitted_model_with_its_report() {
+async fn a_fleet_fit_registers_a_fitted_model_with_its_report_and_serves_once_active() {
     let (_dir, _server, mut clients) = start_server(|_| {}).await;
+    fit_report_and_activate(&mut clients).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fleet_fit_on_postgresql_registers_its_model_and_serves_once_active() {
+    let Some(database) = TestDatabase::create("fleet_fit_jobs").await else {
+        return;
+    };
+    let server = TestServer::start(on_postgresql(&database.url)).await;
+    let mut clients = Clients::of(&server).await;
+    fit_report_and_activate(&mut clients).await;
+    drop(clients);
+    server.stop().await;
+    database.drop_database().await;
+}
+
+/// A server on the PostgreSQL database at `url`.
+fn on_postgresql(url: &str) -> spoofwatch_server::Config {
+    let mut config = spoofwatch_server::Config::with_database(url);
+    config.shutdown_grace_secs = 2;
+    config
+}
+
+/// Reads a WatchJob stream to its end: every state and epoch the job went through.
+async fn watch_to_end(clients: &mut Clients, name: &str) -> Vec<v1::JobMetadata> {
+    let mut stream = clients
+        .training
+        .watch_job(v1::WatchJobRequest {
+            name: name.to_string(),
+        })
+        .await
+        .expect("WatchJob is accepted")
+        .into_inner();
+    let mut updates = Vec::new();
+    loop {
+        let next = tokio::time::timeout(Duration::from_secs(600), stream.message())
+            .await
+            .expect("progress within 10 minutes")
+            .expect("the watch stream ends cleanly");
+        match next {
+            Some(update) => updates.push(update),
+            None => return updates,
+        }
+    }
+}
+
+/// Upload, fit (progress watched), report, activate, and detection on the fitted model.
+async fn fit_report_and_activate(clients: &mut Clients) {
     let fleet = recordings(4, 1_200.0, 31);
-    let dataset = upload_tracks(&mut clients, "four vans", &fleet).await;
+    let dataset = upload_tracks(clients, "four vans", &fleet).await;
     assert_eq!(
         dataset.labelled_rows, 0,
         "a fleet's recordings carry no labels"
@@ -73,6 +136,17 @@ async fn a_fleet_fit_registers_a_fitted_model_with_its_report() {
         .await
         .expect("the fit is accepted")
         .into_inner();
+    // Progress: the job is seen running and finishing its epoch before it succeeds.
+    let updates = watch_to_end(clients, &created.name).await;
+    let states: Vec<v1::JobState> = updates
+        .iter()
+        .map(|u| v1::JobState::try_from(u.state).expect("a known state"))
+        .collect();
+    assert!(states.contains(&v1::JobState::Running), "{states:?}");
+    assert_eq!(states.last(), Some(&v1::JobState::Succeeded), "{states:?}");
+    let last = updates.last().expect("the final update");
+    assert_eq!((last.epoch, last.max_epochs), (1, 1));
+    assert_eq!(last.history.len(), 1, "one epoch recorded");
     let done = wait_done(&mut clients.operations, &created.name).await;
     let model = trained_model(&done);
     let report = fit_result(&done).fleet_fit.expect("a fit reports");
@@ -124,6 +198,35 @@ async fn a_fleet_fit_registers_a_fitted_model_with_its_report() {
         .expect("the fitted model is registered")
         .into_inner();
     assert_eq!(stored.display_name, "fitted to the vans");
+
+    // Activated, it scores the sessions that start without naming a model; the same drive scored
+    // by the starting model reads differently.
+    clients
+        .models
+        .set_active_model(v1::SetActiveModelRequest {
+            name: model.name.clone(),
+        })
+        .await
+        .expect("the fitted model is activated");
+    let drive = track_samples(&recordings(1, 120.0, 77)[0]);
+    let batches: Vec<Vec<v1::Sample>> = drive.chunks(20).map(<[_]>::to_vec).collect();
+    let (accepted, fitted_run) = stream_batches(clients, ("new-van", ""), &batches, 1).await;
+    assert_eq!(
+        accepted.model, model.name,
+        "a new session runs the active model"
+    );
+    assert_eq!(fitted_run.len(), drive.len());
+    assert!(fitted_run.iter().all(|d| d.model == model.name));
+    let (_, starting_run) =
+        stream_batches(clients, ("other-van", "models/default"), &batches, 1).await;
+    assert!(starting_run.iter().all(|d| d.model == "models/default"));
+    let probabilities =
+        |run: &[v1::Detection]| run.iter().map(|d| d.probability).collect::<Vec<_>>();
+    assert_ne!(
+        probabilities(&fitted_run),
+        probabilities(&starting_run),
+        "the fitted model is another detector"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -182,4 +285,320 @@ async fn recordings_that_cannot_support_a_fit_are_refused_naming_the_field() {
     assert_eq!(code, Code::InvalidArgument as i32);
     assert!(message.contains("fleet_fit.sample_rate_hz"), "{message}");
     assert!(message.contains("5 Hz was claimed"), "{message}");
+}
+
+/// Twelve vehicles' 30-minute recordings: a fit on them trains for many epochs (early stopping
+/// waits 12 epochs without progress), so a cancellation or a stop sent once the first epoch is done
+/// reaches the job while it trains.
+fn long_fleet() -> Vec<Track> {
+    recordings(12, 1_800.0, 51)
+}
+
+fn long_fit(dataset: &str) -> v1::CreateTrainingJobRequest {
+    let mut request = fit_request(dataset, v1::FleetFit::default());
+    if let Some(spec) = request.spec.as_mut() {
+        spec.max_epochs = 200;
+    }
+    request
+}
+
+async fn get(clients: &mut Clients, name: &str) -> longrunning::Operation {
+    clients
+        .operations
+        .get_operation(longrunning::GetOperationRequest {
+            name: name.to_string(),
+        })
+        .await
+        .expect("GetOperation works")
+        .into_inner()
+}
+
+fn state_of(operation: &longrunning::Operation) -> v1::JobState {
+    v1::JobState::try_from(metadata_of(operation).state).expect("a known job state")
+}
+
+/// Polls until the job has finished its first epoch (it trains now); panics if it ends first.
+async fn wait_for_first_epoch(clients: &mut Clients, name: &str) {
+    let deadline = Instant::now() + Duration::from_secs(600);
+    loop {
+        let operation = get(clients, name).await;
+        assert!(
+            !operation.done,
+            "the fit ended before it was interrupted: {operation:?}"
+        );
+        if metadata_of(&operation).epoch >= 1 {
+            return;
+        }
+        assert!(Instant::now() < deadline, "{name} never finished an epoch");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// The registered models' names, sorted.
+async fn model_names(clients: &mut Clients) -> Vec<String> {
+    let mut names: Vec<String> = clients
+        .models
+        .list_models(v1::ListModelsRequest::default())
+        .await
+        .expect("ListModels works")
+        .into_inner()
+        .models
+        .into_iter()
+        .map(|m| m.name)
+        .collect();
+    names.sort();
+    names
+}
+
+fn error_of(operation: &longrunning::Operation) -> (i32, String) {
+    let Some(operation::Result::Error(status)) = &operation.result else {
+        panic!("the job ended with an error: {operation:?}");
+    };
+    (status.code, status.message.clone())
+}
+
+/// Cancels a fit while it trains: CANCELLED, no model registered, and the store consistent (the
+/// job listed done, deletable, its slot free for the next fit, which succeeds).
+async fn cancel_a_running_fit(clients: &mut Clients) {
+    let before = model_names(clients).await;
+    let dataset = upload_tracks(clients, "twelve vans", &long_fleet()).await;
+    let job = clients
+        .training
+        .create_training_job(long_fit(&dataset.name))
+        .await
+        .expect("the fit is accepted")
+        .into_inner();
+    wait_for_first_epoch(clients, &job.name).await;
+    clients
+        .operations
+        .cancel_operation(longrunning::CancelOperationRequest {
+            name: job.name.clone(),
+        })
+        .await
+        .expect("CancelOperation works");
+    let cancelled = wait_done(&mut clients.operations, &job.name).await;
+    assert_eq!(error_of(&cancelled).0, Code::Cancelled as i32);
+    assert_eq!(state_of(&cancelled), v1::JobState::Cancelled);
+    let metadata = metadata_of(&cancelled);
+    assert!(
+        metadata.epoch >= 1 && metadata.epoch < 200,
+        "cancelled mid-way: {metadata:?}"
+    );
+    assert_eq!(model_names(clients).await, before, "no model is registered");
+
+    let done: Vec<String> = clients
+        .operations
+        .list_operations(longrunning::ListOperationsRequest {
+            filter: "kind=training AND done=true".to_string(),
+            ..longrunning::ListOperationsRequest::default()
+        })
+        .await
+        .expect("ListOperations works")
+        .into_inner()
+        .operations
+        .into_iter()
+        .map(|o| o.name)
+        .collect();
+    assert_eq!(done, std::slice::from_ref(&job.name));
+    clients
+        .operations
+        .delete_operation(longrunning::DeleteOperationRequest {
+            name: job.name.clone(),
+        })
+        .await
+        .expect("a cancelled job can be deleted");
+
+    // The only job slot is free again: the next fit runs and registers its model.
+    let next = clients
+        .training
+        .create_training_job(fit_request(&dataset.name, v1::FleetFit::default()))
+        .await
+        .expect("the next fit is accepted")
+        .into_inner();
+    let model = trained_model(&wait_done(&mut clients.operations, &next.name).await);
+    assert_eq!(model_names(clients).await.len(), before.len() + 1);
+    assert!(model_names(clients).await.contains(&model.name));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fit_cancelled_while_it_runs_registers_nothing() {
+    let (_dir, _server, mut clients) = start_server(|config| config.max_running_jobs = 1).await;
+    cancel_a_running_fit(&mut clients).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fit_cancelled_while_it_runs_on_postgresql_registers_nothing() {
+    let Some(database) = TestDatabase::create("fleet_fit_jobs_cancel").await else {
+        return;
+    };
+    let mut config = on_postgresql(&database.url);
+    config.max_running_jobs = 1;
+    let server = TestServer::start(config).await;
+    let mut clients = Clients::of(&server).await;
+    cancel_a_running_fit(&mut clients).await;
+    drop(clients);
+    server.stop().await;
+    database.drop_database().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fit_running_when_its_server_stops_cleanly_is_cancelled_and_stays_so() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    // A cancelled fit still chooses its critical level and scores its test drives before it
+    // records the cancellation: the stop's grace (the server's default is 10 s) leaves it the time.
+    let config = || {
+        let mut config = test_config(dir.path());
+        config.shutdown_grace_secs = 30;
+        config
+    };
+    let server = TestServer::start(config()).await;
+    let mut clients = Clients::of(&server).await;
+    let before = model_names(&mut clients).await;
+    let dataset = upload_tracks(&mut clients, "twelve vans", &long_fleet()).await;
+    let job = clients
+        .training
+        .create_training_job(long_fit(&dataset.name))
+        .await
+        .expect("the fit is accepted")
+        .into_inner();
+    wait_for_first_epoch(&mut clients, &job.name).await;
+    drop(clients);
+    // The shutdown cancels the running jobs and waits (within its grace) for them to record it.
+    server
+        .stop_within(Duration::from_secs(60))
+        .await
+        .expect("the server stops cleanly");
+
+    let server = TestServer::start(config()).await;
+    let mut clients = Clients::of(&server).await;
+    let after = get(&mut clients, &job.name).await;
+    assert!(after.done, "{after:?}");
+    assert_eq!(state_of(&after), v1::JobState::Cancelled);
+    assert_eq!(error_of(&after).0, Code::Cancelled as i32);
+    assert_eq!(
+        model_names(&mut clients).await,
+        before,
+        "no model is registered"
+    );
+    drop(clients);
+    server.stop().await;
+}
+
+/// A server process (the `spoofwatch-server` process, built with these tests) on `database`,
+/// killed with SIGKILL when dropped.
+struct Process {
+    child: Child,
+    addr: SocketAddr,
+    _log: mpsc::Receiver<String>,
+}
+
+impl Process {
+    fn start(database: &str) -> Process {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_spoofwatch-test-replica"))
+            .args(["--listen", "127.0.0.1:0", "--database", database])
+            .args(["--instance-id", "fitter"])
+            .env("SPOOFWATCH_LOG", "info")
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("the server process starts");
+        let stderr = child.stderr.take().expect("stderr is piped");
+        let (tx, log) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+                let _ = tx.send(line);
+            }
+        });
+        let deadline = Instant::now() + Duration::from_secs(60);
+        let port = loop {
+            let line = log
+                .recv_timeout(deadline.saturating_duration_since(Instant::now()))
+                .expect("the server logs where it listens");
+            if let Some(port) = listening_port(&line) {
+                break port;
+            }
+        };
+        Process {
+            child,
+            addr: SocketAddr::from(([127, 0, 0, 1], port)),
+            _log: log,
+        }
+    }
+
+    async fn clients(&self) -> Clients {
+        let connection = Connection::connect(format!("http://{}", self.addr), None)
+            .await
+            .expect("connect to the server");
+        Clients::new(connection)
+    }
+}
+
+impl Drop for Process {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// The port of the "listening addr=127.0.0.1:PORT" log line.
+fn listening_port(line: &str) -> Option<u16> {
+    if !line.contains("listening") {
+        return None;
+    }
+    let rest = &line[line.find("127.0.0.1:")? + "127.0.0.1:".len()..];
+    rest.chars()
+        .take_while(char::is_ascii_digit)
+        .collect::<String>()
+        .parse()
+        .ok()
+}
+
+/// Kills the server (SIGKILL) while a fit trains and starts it again on the same database: the
+/// restart fails the job it left, ABORTED, as it does every training job, and nothing is
+/// registered.
+async fn a_fit_killed_mid_way_is_aborted_by_the_restart(database: &str) {
+    let server = Process::start(database);
+    let mut clients = server.clients().await;
+    let before = model_names(&mut clients).await;
+    let dataset = upload_tracks(&mut clients, "twelve vans", &long_fleet()).await;
+    let job = clients
+        .training
+        .create_training_job(long_fit(&dataset.name))
+        .await
+        .expect("the fit is accepted")
+        .into_inner();
+    wait_for_first_epoch(&mut clients, &job.name).await;
+    drop(clients);
+    drop(server);
+
+    let server = Process::start(database);
+    let mut clients = server.clients().await;
+    let after = get(&mut clients, &job.name).await;
+    assert!(after.done, "the restart ends the job it left: {after:?}");
+    assert_eq!(state_of(&after), v1::JobState::Failed);
+    let (code, message) = error_of(&after);
+    assert_eq!(code, Code::Aborted as i32, "{message}");
+    assert!(message.contains("server restarted"), "{message}");
+    assert_eq!(
+        model_names(&mut clients).await,
+        before,
+        "no model is registered"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fit_killed_mid_way_is_aborted_by_the_restart_on_sqlite() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let database = dir.path().join("spoofwatch.db");
+    a_fit_killed_mid_way_is_aborted_by_the_restart(&database.display().to_string()).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fit_killed_mid_way_is_aborted_by_the_restart_on_postgresql() {
+    let Some(database) = TestDatabase::create("fleet_fit_jobs_kill").await else {
+        return;
+    };
+    a_fit_killed_mid_way_is_aborted_by_the_restart(&database.url).await;
+    database.drop_database().await;
 }

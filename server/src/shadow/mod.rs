@@ -5,7 +5,9 @@
 //! - [`scope`]: which vehicles (all, a share by a stable hash, a list).
 //! - [`queue`]: the bound. The request path offers a copy of each scored batch and never waits; a
 //!   batch that does not fit is shed, counted, and its vehicle's shadow state starts afresh.
-//! - [`worker`]: one OS thread that scores within a CPU budget ([`worker::CPU_SHARE`] of a core).
+//! - [`worker`]: one OS thread that scores within a CPU budget ([`worker::CPU_SHARE`] of a core),
+//!   at idle CPU priority ([`priority`]: Linux `SCHED_IDLE`), so a busy server sheds shadow work
+//!   before its live replies wait.
 //! - [`vehicle`] and [`tally`]: one vehicle's would-be alarm and comparison, and the counts.
 //! - [`writer`]: stores the would-be alarms in order and follows the stored shadow (every replica
 //!   runs the running one; a restart resumes it).
@@ -16,6 +18,7 @@
 //! live path only calls [`Shadows::offer`].
 
 mod metrics;
+pub mod priority;
 pub mod queue;
 pub mod scope;
 pub mod service;

@@ -1,5 +1,6 @@
-//! The shadow's worker: one OS thread, off the async runtime, that takes queued batches, scores them
-//! with the candidate within its CPU budget, follows each vehicle's would-be alarm and hands what
+//! The shadow's worker: one OS thread, off the async runtime and at idle CPU priority
+//! (`super::priority`), that takes queued batches, scores them with the candidate within its CPU
+//! budget, follows each vehicle's would-be alarm and hands what
 //! to store to the writer (`super::writer`) in order.
 //!
 //! A vehicle's shadow state starts afresh, and says why, when its work was shed (a gapped sequence
@@ -83,6 +84,7 @@ struct Vehicles {
 impl Worker {
     /// Runs until the queue is closed and empty.
     pub fn run(self) {
+        super::priority::lower_this_thread();
         let mut budget = Budget::new(CPU_SHARE, CPU_BURST, Instant::now());
         let mut vehicles: Option<Vehicles> = None;
         let mut idle_checked = Instant::now();

@@ -218,33 +218,36 @@ impl Store {
         Ok(rows.into_iter().map(|Json(value)| value).collect())
     }
 
-    /// A vehicle's shadow state started (afresh after its first start): counted, and a would-be
-    /// alarm another copy of its state left open (a restart, a hand-off) ends as `restarted`.
-    pub async fn shadow_vehicle_started(
+    /// Vehicles' shadow states started (afresh after their first start), in one transaction: each
+    /// start counted (a vehicle listed twice, twice), and a would-be alarm another copy of a
+    /// vehicle's state left open (a restart, a hand-off) ends as `restarted`.
+    pub async fn shadow_vehicles_started(
         &self,
         shadow_id: i64,
-        vehicle_id: &str,
+        vehicle_ids: &[&str],
     ) -> Result<(), StoreError> {
         let now = now_unix_ms();
         in_write_tx!(self, |tx| {
-            sqlx::query(
-                "INSERT INTO shadow_vehicles (shadow_id, vehicle_id, starts) VALUES ($1, $2, 1) \
-                 ON CONFLICT (shadow_id, vehicle_id) \
-                 DO UPDATE SET starts = shadow_vehicles.starts + 1",
-            )
-            .bind(shadow_id)
-            .bind(vehicle_id)
-            .execute(&mut *tx)
-            .await?;
-            sqlx::query(
-                "UPDATE shadow_alarms SET ended_at = $3, end_reason = 'restarted' \
-                 WHERE shadow_id = $1 AND vehicle_id = $2 AND ended_at IS NULL",
-            )
-            .bind(shadow_id)
-            .bind(vehicle_id)
-            .bind(now)
-            .execute(&mut *tx)
-            .await?;
+            for vehicle_id in vehicle_ids {
+                sqlx::query(
+                    "INSERT INTO shadow_vehicles (shadow_id, vehicle_id, starts) VALUES ($1, $2, 1) \
+                     ON CONFLICT (shadow_id, vehicle_id) \
+                     DO UPDATE SET starts = shadow_vehicles.starts + 1",
+                )
+                .bind(shadow_id)
+                .bind(*vehicle_id)
+                .execute(&mut *tx)
+                .await?;
+                sqlx::query(
+                    "UPDATE shadow_alarms SET ended_at = $3, end_reason = 'restarted' \
+                     WHERE shadow_id = $1 AND vehicle_id = $2 AND ended_at IS NULL",
+                )
+                .bind(shadow_id)
+                .bind(*vehicle_id)
+                .bind(now)
+                .execute(&mut *tx)
+                .await?;
+            }
             tx.commit().await?;
             Ok(())
         })

@@ -101,7 +101,7 @@ async fn counts_vehicles_and_would_be_alarms_are_kept_per_shadow(store: Store) {
 
     // The vehicle's state starts, raises a would-be alarm, and starts again elsewhere: the alarm
     // the lost state held open ends as `restarted`.
-    store.shadow_vehicle_started(id, "car").await.unwrap();
+    store.shadow_vehicles_started(id, &["car"]).await.unwrap();
     store
         .insert_shadow_alarm(&alarm(id, "car", 10.0))
         .await
@@ -114,8 +114,10 @@ async fn counts_vehicles_and_would_be_alarms_are_kept_per_shadow(store: Store) {
         .escalate_shadow_alarm(id, "car", 10.0, 12.0)
         .await
         .unwrap();
-    store.shadow_vehicle_started(id, "car").await.unwrap();
-    store.shadow_vehicle_started(id, "van").await.unwrap();
+    store
+        .shadow_vehicles_started(id, &["car", "van"])
+        .await
+        .unwrap();
     assert_eq!(store.shadow_counts(id).await.unwrap(), (2, 3, 1));
     let row = &store
         .list_shadow_alarms(id, Some("car"), None, 10)
