@@ -444,11 +444,11 @@ async fn a_fit_cancelled_while_it_runs_on_postgresql_registers_nothing() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_fit_running_when_its_server_stops_cleanly_is_cancelled_and_stays_so() {
     let dir = tempfile::tempdir().expect("temp dir");
-    // A cancelled fit still chooses its critical level and scores its test drives before it
-    // records the cancellation: the stop's grace (the server's default is 10 s) leaves it the time.
+    // A cancelled fit stops at its next batch: the server's default grace of 10 s leaves it the
+    // time to record the cancellation.
     let config = || {
         let mut config = test_config(dir.path());
-        config.shutdown_grace_secs = 30;
+        config.shutdown_grace_secs = 10;
         config
     };
     let server = TestServer::start(config()).await;
