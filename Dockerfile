@@ -6,9 +6,8 @@
 #   docker build --build-arg BINARIES=host .        the binaries already built on the host with
 #                                                   `cargo build --profile image --locked --bin spoofwatch-server --bin spoofwatch`
 #                                                   (target/image/; the only files .dockerignore lets in from target/)
-# Both compile with the `image` profile of Cargo.toml; scripts/container-test.sh builds the image the
-# second way from a local Debian base and runs it (CI does, on every change): see docs/getting-started.md,
-# "Containers".
+# Both compile with the `image` profile of Cargo.toml. CI builds the image the second way, from a local
+# Debian base, and runs it in containers (scripts/container-test.sh; docs/containers.md).
 #
 # The base images are parameters too, so that the build needs no registry when they exist locally:
 #   --build-arg BASE_IMAGE=localhost/debian-bookworm   (any Debian 12 root file system)
