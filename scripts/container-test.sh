@@ -18,9 +18,10 @@
 # it: `entrypoint` (the CLI instead of the server), `model` (the model files missing), `volume` (the data
 # directory not writable by the server's user). The test must then fail.
 #
-# Needs root or sudo (podman, and apt-get for what is missing: podman, runc, debootstrap, PostgreSQL,
-# HAProxy). The Debian base image (localhost/debian-bookworm) is made once with debootstrap from the
-# mirror apt uses and kept in podman's storage, outside the clone; it is rebuilt when missing.
+# Needs root or sudo (podman, and apt-get for what is missing: podman, runc, debootstrap, catatonit,
+# python3-yaml, openssl, curl, PostgreSQL, HAProxy). The Debian base image (localhost/debian-bookworm)
+# is made once with debootstrap from the mirror apt uses and kept in podman's storage, outside the
+# clone; it is rebuilt when missing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
