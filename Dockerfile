@@ -1,11 +1,11 @@
 # The Spoofwatch server and the operator's CLI (`spoofwatch`, which links no server, learned baselines
 # or plotting). The research CLI (`spoofwatch-lab`) is not shipped.
 #
-# Two ways to build the same runtime stage (the last one, below), chosen by BINARIES:
-#   docker build .                                  the binaries compiled in the `build` stage (default)
-#   docker build --build-arg BINARIES=host .        the binaries already built on the host with
-#                                                   `cargo build --profile image --locked --bin spoofwatch-server --bin spoofwatch`
-#                                                   (target/image/; the only files .dockerignore lets in from target/)
+# Two images of one runtime stage, which differ only in where the binaries come from:
+#   docker build .                  the binaries compiled in the `build` stage (the default target)
+#   docker build --target host .    the binaries already built on the host with
+#                                   `cargo build --profile image --locked --bin spoofwatch-server --bin spoofwatch`
+#                                   (target/image/; the only files .dockerignore lets in from target/)
 # Both compile with the `image` profile of Cargo.toml. CI builds the image the second way, from a local
 # Debian base, and runs it in containers (scripts/container-test.sh; docs/containers.md).
 #
@@ -19,7 +19,6 @@
 # (the results are bit for bit the same, the model step about 1.5x slower).
 ARG BUILD_IMAGE=docker.io/library/rust:1.95-bookworm
 ARG BASE_IMAGE=docker.io/library/debian:bookworm-slim
-ARG BINARIES=build
 
 FROM ${BUILD_IMAGE} AS build
 ARG TARGET_CPU=x86-64-v3
@@ -29,19 +28,13 @@ RUN RUSTFLAGS="-C target-cpu=${TARGET_CPU}" \
     cargo build --profile image --locked --bin spoofwatch-server --bin spoofwatch \
  && mkdir /binaries && cp target/image/spoofwatch-server target/image/spoofwatch /binaries/
 
-FROM scratch AS host
-COPY target/image/spoofwatch-server target/image/spoofwatch /binaries/
-
-# Whichever of the two the build was asked for; only that one is built.
-FROM ${BINARIES} AS binaries
-
+# Everything but the binaries, shared by the two images below.
 FROM ${BASE_IMAGE} AS runtime
 # The data directory (mount a volume here) is the user's home, without shell dotfiles.
 RUN useradd --system --uid 10001 --home-dir /var/lib/spoofwatch --no-create-home spoofwatch \
  && mkdir /var/lib/spoofwatch && chown spoofwatch:spoofwatch /var/lib/spoofwatch
-COPY --from=binaries /binaries/spoofwatch-server /binaries/spoofwatch /usr/local/bin/
 # The bundled models as files too (the server has the default compiled in): an operator imports the
-# paper-schema model with `spoofwatch models import /usr/share/spoofwatch/models/paper.json`.
+# paper-schema model with `spoofwatch models import --file /usr/share/spoofwatch/models/paper.json`.
 COPY models/default.json models/paper.json /usr/share/spoofwatch/models/
 USER spoofwatch
 WORKDIR /var/lib/spoofwatch
@@ -49,3 +42,11 @@ ENV SPOOFWATCH_LISTEN=0.0.0.0:50051 \
     SPOOFWATCH_DATABASE=/var/lib/spoofwatch/spoofwatch.db
 EXPOSE 50051
 ENTRYPOINT ["/usr/local/bin/spoofwatch-server"]
+
+# `--target host`: the binaries built on the host.
+FROM runtime AS host
+COPY target/image/spoofwatch-server target/image/spoofwatch /usr/local/bin/
+
+# The default: the binaries of the build stage.
+FROM runtime AS image
+COPY --from=build /binaries/spoofwatch-server /binaries/spoofwatch /usr/local/bin/

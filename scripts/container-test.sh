@@ -147,8 +147,8 @@ if [ -n "$given_image" ]; then
   image=$given_image
   step "image $image (given)"
 else
-  step "image $image (Dockerfile, BINARIES=host, BASE_IMAGE=$base_image)"
-  pm build --isolation chroot --build-arg BASE_IMAGE="$base_image" --build-arg BINARIES=host \
+  step "image $image (Dockerfile, --target host, BASE_IMAGE=$base_image)"
+  pm build --isolation chroot --build-arg BASE_IMAGE="$base_image" --target host \
     --label "$label" -t "$image" . >"$work/build.log" 2>&1 || { tail -30 "$work/build.log" >&2; fail "podman build failed"; }
   grep -E '^\[[0-9]/[0-9]\] (STEP|COMMIT)' "$work/build.log" | cut -c1-160 || true
 fi
