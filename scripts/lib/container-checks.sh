@@ -212,7 +212,7 @@ make_certificates() { # dir client-name...
   shift
   mkdir -p "$dir"
   (
-    cd "$dir"
+    cd "$dir" || exit 1
     openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -days 2 \
       -subj "/CN=Spoofwatch test CA" -keyout ca-key.pem -out ca.pem 2>/dev/null
     openssl req -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -subj "/CN=spoofwatch" \
