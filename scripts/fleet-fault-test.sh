@@ -76,13 +76,7 @@ run_with() { # run fault
   wait "$client" || { tail -20 "$work/$run-detect.log" >&2; fail "$run: the client gave up"; }
   # Every failover must have continued the session (from its snapshot: the replica that took the
   # vehicle over never held it), not started it afresh and resent the whole drive.
-  python3 - "$work/$run-summary.json" <<'PY' || fail "$run: a failover did not continue its session"
-import json, sys
-summary = json.load(open(sys.argv[1]))
-failovers, resumed = summary["failovers"], summary["resumed_reconnects"]
-print(f"failovers: {failovers}, of which continued from the session snapshot: {resumed}")
-sys.exit(0 if failovers > 0 and resumed == failovers else 1)
-PY
+  check_failovers_resumed "$work/$run-summary.json" "$run"
   compare "$run"
   stop balancer; stop replica-1; stop replica-2
 }

@@ -26,6 +26,8 @@ use crate::routing::for_vehicle;
 pub const MAX_IN_FLIGHT_BATCHES: usize = 4;
 /// Requests buffered between the caller and the HTTP/2 stream.
 const REQUEST_BUFFER: usize = 16;
+/// How long a call that refused a batch may take to deliver the status it ended with.
+const STATUS_WAIT: Duration = Duration::from_secs(2);
 
 /// The `SessionStart` message that opens a session for `vehicle_id` (`model` empty: the server's
 /// active model; `reset`: start afresh even when the session exists).
@@ -192,13 +194,28 @@ impl DetectStream {
             )));
         }
         let len = samples.len();
-        self.send(batch_request(seq, samples)).await?;
+        if let Err(closed) = self.send(batch_request(seq, samples)).await {
+            return Err(self.why_closed(closed).await);
+        }
         self.in_flight.push_back(SentBatch {
             seq,
             len,
             sent_at: Instant::now(),
         });
         Ok(())
+    }
+
+    /// Why the call refused a batch: it has ended. With no reply owed, what is left to read is the
+    /// status the server ended it with (UNAVAILABLE when it drains, say), which tells the caller more
+    /// than `closed`; replies still owed are left for [`DetectStream::recv`].
+    async fn why_closed(&mut self, closed: ClientError) -> ClientError {
+        if !self.in_flight.is_empty() {
+            return closed;
+        }
+        match tokio::time::timeout(STATUS_WAIT, self.replies.message()).await {
+            Ok(Err(status)) => rpc(self.context.clone())(status),
+            _ => closed,
+        }
     }
 
     /// The next reply as it is: `Ok(None)` when the call ended with OK, `Err` with its status

@@ -108,3 +108,15 @@ for line in sys.stdin:
 for row in sorted(rows):
     print(" ".join(row))'
 }
+
+# Fails unless the replay's summary (spoofwatch detect --summary) shows failovers, each of which
+# continued its vehicle's session (from its snapshot) rather than starting it afresh.
+check_failovers_resumed() { # summary.json what
+  python3 - "$1" <<'PY' || fail "$2: a failover did not continue its session"
+import json, sys
+summary = json.load(open(sys.argv[1]))
+failovers, resumed = summary["failovers"], summary["resumed_reconnects"]
+print(f"failovers: {failovers}, of which continued from the session snapshot: {resumed}")
+sys.exit(0 if failovers > 0 and resumed == failovers else 1)
+PY
+}

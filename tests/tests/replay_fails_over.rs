@@ -3,7 +3,8 @@
 //! finds no session to resume and resends the whole recording on a fresh one; its final rows
 //! (`ReplayLog`) equal an uninterrupted replay's bit for bit, one detection per recorded row. Through
 //! a roll-out (a new model activated before the restart) the replay goes on under the new model with
-//! the rows not yet answered instead of resending the drive.
+//! the rows not yet answered instead of resending the drive. Without failover, a replay whose server
+//! drains reports the status its stream ended with (UNAVAILABLE).
 
 use spoofwatch_client::replay::{ReplayEvent, ReplayOptions, ReplaySummary, replay_tracks};
 use spoofwatch_client::replay_log::ReplayLog;
@@ -11,9 +12,11 @@ use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::v1;
 use spoofwatch_tests::{
-    Clients, Connection, TestServer, attacked_drive, export_model, import_model, test_config,
+    Clients, Connection, TestServer, attacked_drive, code_of, export_model, import_model,
+    test_config,
 };
 use tokio::sync::{mpsc, oneshot};
+use tonic::Code;
 
 /// Replays `track` over `connection`; calls `on_row` with each detection's record index as it
 /// arrives. Returns the final rows and the summary.
@@ -243,4 +246,46 @@ async fn a_replay_through_a_server_restart_matches_an_uninterrupted_one() {
     }
     drop(connection);
     restarted.stop().await;
+}
+
+/// A paced replay without failover, its server draining between two batches: the stream, ended by
+/// the drain while nothing was in flight, is found closed by the next batch; the replay reports the
+/// status the server ended it with (UNAVAILABLE: retry elsewhere), not merely that it closed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_replay_without_failover_reports_the_drains_unavailable() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut server = TestServer::start(test_config(dir.path())).await;
+    let connection = Connection::connect(server.url(), None)
+        .await
+        .expect("connect");
+    let track = ramp_drive("car-10", 32);
+    // One sample a second, one per batch: between two batches nothing is in flight.
+    let paced = ReplayOptions {
+        rate_hz: 1.0,
+        batch_size: 1,
+        failover_s: 0.0,
+        ..ReplayOptions::default()
+    };
+    let (events_tx, mut events) = mpsc::channel(64);
+    let task = tokio::spawn({
+        let (connection, track) = (connection.clone(), track.clone());
+        async move { replay_tracks(&connection, vec![track], &paced, events_tx).await }
+    });
+    loop {
+        match events.recv().await {
+            Some(ReplayEvent::Detection(_)) => break,
+            Some(_) => continue,
+            None => panic!("the replay ended before its first detection"),
+        }
+    }
+    server.trigger_shutdown();
+    while events.recv().await.is_some() {}
+    let error = task
+        .await
+        .expect("the replay task")
+        .remove(0)
+        .expect_err("the drain ends the replay");
+    assert_eq!(code_of(&error), Code::Unavailable, "{error}");
+    drop(connection);
+    server.stop().await;
 }
