@@ -63,9 +63,8 @@ pub struct Args {
     #[arg(long, default_value_t = 42)]
     seed: u64,
     /// Attack-free validation hours per sample rate for choosing the critical test (at least 100,
-    /// so that one false alarm per hundred hours binds at every rate; by default 300, so that a
-    /// path for decisive evidence that fires about once per hundred hours is seen firing).
-    #[arg(long, default_value_t = 300, value_parser = clap::value_parser!(u64).range(100..=100_000))]
+    /// so that one false alarm per hundred hours binds at every rate).
+    #[arg(long, default_value_t = 150, value_parser = clap::value_parser!(u64).range(100..=100_000))]
     validation_hours: u64,
     /// Attack-free test hours per sample rate.
     #[arg(long, default_value_t = 1000, value_parser = clap::value_parser!(u64).range(1..=100_000))]
