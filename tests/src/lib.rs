@@ -13,6 +13,7 @@
 pub mod balancer;
 pub mod incidents;
 pub mod pki;
+pub mod replica_process;
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};

@@ -7,10 +7,6 @@
 //! PostgreSQL variants need `SPOOFWATCH_TEST_POSTGRES_URL` (skipped without it, failed without it
 //! under `SPOOFWATCH_REQUIRE_POSTGRES=1`).
 
-use std::io::{BufRead, BufReader};
-use std::net::SocketAddr;
-use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use prost::Message;
@@ -19,9 +15,10 @@ use spoofwatch_core::scenario::{DriveDistribution, Outages, simulate_drive};
 use spoofwatch_proto::longrunning::{self, operation};
 use spoofwatch_proto::v1;
 use spoofwatch_server::store::test_database::TestDatabase;
+use spoofwatch_tests::replica_process::ReplicaProcess;
 use spoofwatch_tests::{
-    Clients, Connection, TestServer, metadata_of, start_server, stream_batches, test_config,
-    track_samples, trained_model, upload_tracks, wait_done,
+    Clients, TestServer, metadata_of, start_server, stream_batches, test_config, track_samples,
+    trained_model, upload_tracks, wait_done,
 };
 use tonic::Code;
 
@@ -484,81 +481,15 @@ async fn a_fit_running_when_its_server_stops_cleanly_is_cancelled_and_stays_so()
     server.stop().await;
 }
 
-/// A server process (the `spoofwatch-server` process, built with these tests) on `database`,
-/// killed with SIGKILL when dropped.
-struct Process {
-    child: Child,
-    addr: SocketAddr,
-    _log: mpsc::Receiver<String>,
-}
-
-impl Process {
-    fn start(database: &str) -> Process {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_spoofwatch-test-replica"))
-            .args(["--listen", "127.0.0.1:0", "--database", database])
-            .args(["--instance-id", "fitter"])
-            .env("SPOOFWATCH_LOG", "info")
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("the server process starts");
-        let stderr = child.stderr.take().expect("stderr is piped");
-        let (tx, log) = mpsc::channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-                let _ = tx.send(line);
-            }
-        });
-        let deadline = Instant::now() + Duration::from_secs(60);
-        let port = loop {
-            let line = log
-                .recv_timeout(deadline.saturating_duration_since(Instant::now()))
-                .expect("the server logs where it listens");
-            if let Some(port) = listening_port(&line) {
-                break port;
-            }
-        };
-        Process {
-            child,
-            addr: SocketAddr::from(([127, 0, 0, 1], port)),
-            _log: log,
-        }
-    }
-
-    async fn clients(&self) -> Clients {
-        let connection = Connection::connect(format!("http://{}", self.addr), None)
-            .await
-            .expect("connect to the server");
-        Clients::new(connection)
-    }
-}
-
-impl Drop for Process {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-/// The port of the "listening addr=127.0.0.1:PORT" log line.
-fn listening_port(line: &str) -> Option<u16> {
-    if !line.contains("listening") {
-        return None;
-    }
-    let rest = &line[line.find("127.0.0.1:")? + "127.0.0.1:".len()..];
-    rest.chars()
-        .take_while(char::is_ascii_digit)
-        .collect::<String>()
-        .parse()
-        .ok()
-}
-
 /// Kills the server (SIGKILL) while a fit trains and starts it again on the same database: the
 /// restart fails the job it left, ABORTED, as it does every training job, and nothing is
 /// registered.
 async fn a_fit_killed_mid_way_is_aborted_by_the_restart(database: &str) {
-    let server = Process::start(database);
+    let server = ReplicaProcess::start(
+        env!("CARGO_BIN_EXE_spoofwatch-test-replica"),
+        database,
+        "fitter",
+    );
     let mut clients = server.clients().await;
     let before = model_names(&mut clients).await;
     let dataset = upload_tracks(&mut clients, "twelve vans", &long_fleet()).await;
@@ -572,7 +503,11 @@ async fn a_fit_killed_mid_way_is_aborted_by_the_restart(database: &str) {
     drop(clients);
     drop(server);
 
-    let server = Process::start(database);
+    let server = ReplicaProcess::start(
+        env!("CARGO_BIN_EXE_spoofwatch-test-replica"),
+        database,
+        "fitter",
+    );
     let mut clients = server.clients().await;
     let after = get(&mut clients, &job.name).await;
     assert!(after.done, "the restart ends the job it left: {after:?}");

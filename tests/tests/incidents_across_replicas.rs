@@ -8,10 +8,6 @@
 //! Needs PostgreSQL (`SPOOFWATCH_TEST_POSTGRES_URL`) and HAProxy (`SPOOFWATCH_HAPROXY`); skipped
 //! without them unless `SPOOFWATCH_REQUIRE_POSTGRES=1` / `SPOOFWATCH_REQUIRE_HAPROXY=1`.
 
-use std::io::{BufRead, BufReader};
-use std::net::SocketAddr;
-use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use spoofwatch_core::geo::displace_fix;
@@ -19,88 +15,17 @@ use spoofwatch_core::scenario::{AttackKind, AttackSpec, DriveSpec, inject, simul
 use spoofwatch_proto::v1;
 use spoofwatch_server::store::test_database::TestDatabase;
 use spoofwatch_tests::balancer::{Balancer, REPLICAS, haproxy};
+use spoofwatch_tests::replica_process::ReplicaProcess;
 use spoofwatch_tests::{Clients, Connection, sessions_on, stream_samples, track_samples};
 
-/// Generous bounds for debug binaries on shared cores.
-const STARTUP_BOUND: Duration = Duration::from_secs(60);
+/// The server binary built with these tests.
+const REPLICA_BIN: &str = env!("CARGO_BIN_EXE_spoofwatch-test-replica");
 /// The correlator's lease (10 s) plus a few of its 1 s ticks and the alarm writer's batching.
 const INCIDENT_BOUND: Duration = Duration::from_secs(40);
 /// The area's centre.
 const CENTRE: (f64, f64) = (32.23, -110.95);
 /// Every captured fix is moved this far east (m).
 const TRANSLATION_EAST_M: f64 = 150.0;
-
-/// A server process (the `spoofwatch-server` process, built with these tests); killed with
-/// SIGKILL when dropped.
-struct Replica {
-    child: Child,
-    addr: SocketAddr,
-    /// Its log lines, kept drained.
-    _log: mpsc::Receiver<String>,
-}
-
-impl Replica {
-    fn start(database: &str, instance: &str) -> Replica {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_spoofwatch-test-replica"))
-            .args(["--listen", "127.0.0.1:0", "--database", database])
-            .args(["--instance-id", instance])
-            .env("SPOOFWATCH_LOG", "info")
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("the server process starts");
-        let stderr = child.stderr.take().expect("stderr is piped");
-        let (tx, log) = mpsc::channel();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-                let _ = tx.send(line);
-            }
-        });
-        let deadline = Instant::now() + STARTUP_BOUND;
-        let port = loop {
-            let line = log
-                .recv_timeout(deadline.saturating_duration_since(Instant::now()))
-                .expect("the server logs where it listens");
-            if let Some(port) = listening_port(&line) {
-                break port;
-            }
-        };
-        Replica {
-            child,
-            addr: SocketAddr::from(([127, 0, 0, 1], port)),
-            _log: log,
-        }
-    }
-
-    async fn clients(&self) -> Clients {
-        let connection = Connection::connect(format!("http://{}", self.addr), None)
-            .await
-            .expect("connect to the replica");
-        Clients::new(connection)
-    }
-}
-
-impl Drop for Replica {
-    fn drop(&mut self) {
-        // `Child::kill` is SIGKILL: the kill -9 of the test, and the clean-up otherwise.
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-/// The port of the "listening addr=127.0.0.1:PORT" log line (colour codes ignored).
-fn listening_port(line: &str) -> Option<u16> {
-    if !line.contains("listening") {
-        return None;
-    }
-    let rest = &line[line.find("127.0.0.1:")? + "127.0.0.1:".len()..];
-    rest.chars()
-        .take_while(char::is_ascii_digit)
-        .collect::<String>()
-        .parse()
-        .ok()
-}
 
 /// A vehicle `east_m`/`north_m` from the centre, driving 120 s at 1 Hz, whose fix is moved 150 m
 /// east from 40 s on.
@@ -175,8 +100,16 @@ async fn one_incident_forms_across_replicas_and_survives_its_correlator_s_kill()
         return;
     };
     let mut replicas = vec![
-        Some(Replica::start(&database.url, REPLICAS[0])),
-        Some(Replica::start(&database.url, REPLICAS[1])),
+        Some(ReplicaProcess::start(
+            REPLICA_BIN,
+            &database.url,
+            REPLICAS[0],
+        )),
+        Some(ReplicaProcess::start(
+            REPLICA_BIN,
+            &database.url,
+            REPLICAS[1],
+        )),
     ];
     let addrs = [0, 1].map(|k| replicas[k].as_ref().expect("started").addr);
     let lb_dir = tempfile::tempdir().expect("temp dir");
