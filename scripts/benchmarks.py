@@ -128,6 +128,9 @@ ROWS = [
     dict(id="incident-areas", group="model", kind="criterion", bench="incident_areas",
          title="a vehicle's step with the area prior's lookup, 0, 10 and 10,000 open incidents",
          goal="10,000 open incidents cost within 10 % of none", heavy=False),
+    dict(id="vehicle-step", group="model", kind="criterion", bench="vehicle_step",
+         title="a vehicle's whole step with the bundled model (evidence, model, alarm and severity), "
+               "1 and 10 Hz", goal="step + evidence ≤ 5 µs", heavy=False),
     bench_row("stream-100-rate-60k", "grpc", "100 streams, 60,000 samples/s offered, batches of 10",
               STREAM_60K, goal="≥ 50,000 samples/s, p99 ≤ 5 ms"),
     bench_row("saturation-100-batch-1", "grpc", "saturation, 100 streams, batches of 1",
@@ -316,6 +319,8 @@ class Env:
         self.bin = bin_dir
         # The server's build when it is not --bin's (`compare`).
         self.server_bin: Path | None = None
+        # The source checkout a criterion row is built from when it is not this one (`compare`).
+        self.source: Path | None = None
         self.work = Path(tempfile.mkdtemp(prefix="spoofwatch-bench."))
         os.chmod(self.work, 0o755)
         self.pg_url: str | None = None
@@ -519,6 +524,8 @@ CRITERION_NAMES = {
     "incident_areas_lookup/10": "lookup alone, 10 open incidents, µs",
     "incident_areas_lookup/10000": "lookup alone, 10,000 open incidents, µs",
     "incident_areas_lookup/10000_linear": "lookup alone testing every area (no index), 10,000 open incidents, µs",
+    "vehicle_step/1hz": "a vehicle's step at 1 Hz, µs per sample",
+    "vehicle_step/10hz": "a vehicle's step at 10 Hz, µs per sample",
 }
 # Ratios of two criterion values a row reports besides them: (name, numerator, denominator).
 CRITERION_RATIOS = {
@@ -528,15 +535,18 @@ CRITERION_RATIOS = {
 
 
 def run_criterion(env: Env, row: dict) -> dict:
-    target = Path(os.environ.get("CARGO_TARGET_DIR", ROOT / "target")) / "criterion"
+    # `compare` measures an earlier commit's checkout (`env.source`); every other run this one.
+    source = env.source or ROOT
+    target = (Path(os.environ["CARGO_TARGET_DIR"]) if "CARGO_TARGET_DIR" in os.environ and source == ROOT
+              else source / "target") / "criterion"
     subprocess.run(["cargo", "bench", "--locked", "-p", "spoofwatch-core", "--bench", row["bench"], "--",
-                    "--measurement-time", "3"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL,
+                    "--measurement-time", "3"], cwd=source, check=True, stdout=subprocess.DEVNULL,
                    stderr=subprocess.DEVNULL)
     values = {}
     for bench, name in CRITERION_NAMES.items():
         new = target / bench / "new"
         prefixes = {"evidence": ("evidence_builder/",), "model": ("step", "train/"),
-                    "incident_areas": ("incident_areas_",)}[row["bench"]]
+                    "incident_areas": ("incident_areas_",), "vehicle_step": ("vehicle_step/",)}[row["bench"]]
         if not (new / "estimates.json").exists() or not bench.startswith(prefixes):
             continue
         ns = json.loads((new / "estimates.json").read_text())["median"]["point_estimate"]
@@ -791,25 +801,44 @@ def render(results: dict) -> str:
 
 
 def load_comparison() -> dict:
-    return json.loads(COMPARISON.read_text()) if COMPARISON.exists() else {}
+    if not COMPARISON.exists():
+        return {}
+    comparison = json.loads(COMPARISON.read_text())
+    # Files written before each pair carried its own builds named them once for all pairs.
+    for pair in comparison.get("rows", {}).values():
+        pair.setdefault("before_label", comparison.get("before"))
+        pair.setdefault("after_label", comparison.get("after"))
+    comparison.pop("before", None)
+    comparison.pop("after", None)
+    return comparison
+
+
+def comparison_ratio(pair: dict) -> str:
+    """After over before: CPU per sample for a server row, each value for a criterion row."""
+    before, after = pair["before"]["summary"], pair["after"]["summary"]
+    cpu = [m.get("cpu_us_per_sample", {}).get("median") for m in (before, after)]
+    if all(cpu):
+        return f"CPU per sample {cpu[1] / cpu[0]:.2f}"
+    ratios = [f"{name.split(',')[0]} {after[name]['median'] / before[name]['median']:.3f}"
+              for name in after if name in before and before[name].get("median")]
+    return "; ".join(ratios) or "—"
 
 
 def comparison_section(comparison: dict) -> list[str]:
-    """The before-and-after table: each row's runs alternated between the two server builds."""
+    """The before-and-after table: each row's runs alternated between the two builds."""
     out = ["## Before and after", "",
-           f"One server build against another on the same machine, run by run alternately "
-           f"(`scripts/benchmarks.py compare`): *before* is `{comparison['before']}`, *after* is "
-           f"`{comparison['after']}`, with one load generator (the *after* build's). The ratio is "
-           "the after median over the before median.", "",
-           "| row | before | after | CPU per sample, after / before | load | measured |",
+           "One build against another on the same machine, run by run alternately "
+           "(`scripts/benchmarks.py compare`): a server row runs both server builds with one load "
+           "generator (the *after* build's); a criterion row builds its bench in a checkout of each "
+           "commit. The ratio is the after median over the before median.", "",
+           "| row | before | after | after / before | load | measured |",
            "|---|---|---|---|---|---|"]
     for rid, pair in comparison["rows"].items():
         before, after = pair["before"], pair["after"]
-        cpu = [m["summary"].get("cpu_us_per_sample", {}).get("median") for m in (before, after)]
-        ratio = f"{cpu[1] / cpu[0]:.2f}" if all(cpu) else "—"
         loads = [r["load_before"][0] for m in (before, after) for r in m["runs"]]
-        out.append(f"| {pair['title']}<br>`{pair['command']}` | {result_text(before)} | "
-                   f"{result_text(after)} | {ratio} | {min(loads):.2f}–{max(loads):.2f} | "
+        out.append(f"| {pair['title']}<br>`{pair['command']}` | `{pair['before_label']}`: "
+                   f"{result_text(before)} | `{pair['after_label']}`: {result_text(after)} | "
+                   f"{comparison_ratio(pair)} | {min(loads):.2f}–{max(loads):.2f} | "
                    f"{after['date'][:10]}, {after['machine']['cpu']} |")
     out.append("")
     return out
@@ -818,19 +847,21 @@ def comparison_section(comparison: dict) -> list[str]:
 def compare(rows: list[dict], env: Env, before: Path, label: str, runs: int) -> None:
     after = env.bin
     after_label = provenance()["commit"] + (" (modified)" if provenance()["source_modified"] else "")
-    comparison = load_comparison()
-    if (comparison.get("before"), comparison.get("after")) != (label, after_label):
-        comparison = dict(generated_by="scripts/benchmarks.py compare", before=label, after=after_label,
-                          rows={})
+    comparison = load_comparison() or dict(generated_by="scripts/benchmarks.py compare", rows={})
     for row in rows:
         sides: dict[str, list] = {"before": [], "after": []}
         for i in range(runs):
             for side, build in (("before", before), ("after", after)):
-                env.server_bin = build
+                if row["kind"] == "criterion":
+                    # A criterion row builds its bench from source: --before names a checkout.
+                    env.source = build if side == "before" else None
+                else:
+                    env.server_bin = build
                 load = loadavg()
                 print(f"{row['id']} {side} run {i + 1}/{runs}, load {load[0]:.2f}", file=sys.stderr, flush=True)
                 sides[side].append(dict(load_before=load, values=RUNNERS[row["kind"]](env, row)))
-        pair = dict(title=row["title"], command=display_command(row))
+        pair = dict(title=row["title"], command=display_command(row), before_label=label,
+                    after_label=after_label)
         for side, side_runs in sides.items():
             pair[side] = dict(provenance(), machine=machine(), runs=side_runs, summary=summarise(side_runs))
             print(f"{row['id']} {side}: {result_text(pair[side])}", file=sys.stderr, flush=True)
@@ -856,7 +887,7 @@ def main() -> None:
     run.add_argument("--bin", type=Path, default=ROOT / "target/release")
     cmp = sub.add_parser("compare")
     cmp.add_argument("--only", required=True, help="row ids, comma-separated")
-    cmp.add_argument("--before", type=Path, required=True, help="directory of the earlier server build")
+    cmp.add_argument("--before", type=Path, required=True, help="directory of the earlier server build; for a criterion row, a checkout of the earlier commit")
     cmp.add_argument("--before-label", required=True, help="what the earlier build is (its commit)")
     cmp.add_argument("--runs", type=int, default=3)
     cmp.add_argument("--bin", type=Path, default=ROOT / "target/release")
