@@ -214,6 +214,7 @@ pub fn choose_lifecycle(
         .filter(|g| budget.is_some_and(|per_hour| per_hour * g.normal_hours >= 1.0))
         .collect();
     let mut best: Option<(OperatingPoint, Lifecycle, Metrics)> = None;
+    let mut fewest_onsets = u64::MAX;
     let mut alarms = Vec::with_capacity(rows.len());
     for &theta in thetas {
         for on_s in ON_S_GRID {
@@ -227,11 +228,12 @@ pub fn choose_lifecycle(
                     };
                     fill_lifecycle_alarms(rows, offset, theta, &lifecycle, &mut alarms);
                     let candidate = metrics::alarm_metrics(rows, &alarms, rules);
-                    let within_budget = budget.is_none_or(|per_hour| {
-                        candidate.false_alarm_onsets as f64 <= per_hour * normal_hours
+                    fewest_onsets = fewest_onsets.min(candidate.false_alarm_onsets);
+                    let within_budget = budget.is_none_or(|_| {
+                        candidate.false_alarm_onsets as f64 <= rule.allowed_onsets(normal_hours)
                             && rate_groups.iter().all(|g| {
                                 g.false_alarm_onsets(rows, &alarms) as f64
-                                    <= per_hour * g.normal_hours
+                                    <= rule.allowed_onsets(g.normal_hours)
                             })
                     });
                     let improves = best.as_ref().is_none_or(|(b_point, b_life, b_metrics)| {
@@ -249,10 +251,7 @@ pub fn choose_lifecycle(
         }
     }
     let Some((point, lifecycle, _)) = best else {
-        return Err(AlarmError::OverBudget {
-            per_hour: budget.unwrap_or(f64::INFINITY),
-            normal_hours,
-        });
+        return Err(rule.over_budget(normal_hours, fewest_onsets));
     };
     let metrics = metrics::evaluate(
         rows,
@@ -294,13 +293,19 @@ pub enum AlarmError {
     },
     /// Every point of the grid raises more false alarms than the budget allows.
     #[error(
-        "no operating point stays within {per_hour} false alarms per hour ({normal_hours:.2} attack-free hours)"
+        "no operating point stays within {per_hour} false alarms per hour ({normal_hours:.2} \
+         attack-free hours allow at most {allowed_onsets} false-alarm onsets; the quietest point \
+         raised {fewest_onsets})"
     )]
     OverBudget {
         /// The budget, false-alarm events per attack-free hour.
         per_hour: f64,
         /// Attack-free hours of the selection rows.
         normal_hours: f64,
+        /// The most false-alarm onsets the rule allowed on them (pooled).
+        allowed_onsets: u64,
+        /// The fewest false-alarm onsets any point of the grid raised (pooled).
+        fewest_onsets: u64,
     },
     /// A served operating point is out of its range.
     #[error("operating point {field}: {reason}")]
@@ -329,6 +334,13 @@ pub enum OperatingPointRule {
     /// Best F1 among the points raising at most `per_hour` false-alarm events per hour of
     /// attack-free time on the rows ([`metrics::normal_hours`]).
     WithinFalseAlarmBudget { per_hour: f64 },
+    /// As `WithinFalseAlarmBudget`, with a margin for the search's optimism: of hundreds of points,
+    /// the one chosen is the one the validation hours happened to flatter most, so a point whose
+    /// true rate is at the budget passes about half the time. Here its onsets must stay one Poisson
+    /// standard deviation below the budget's count (λ − √λ for λ = `per_hour` × attack-free hours),
+    /// which such a point passes about one time in six. For validation parts of a few hours to a
+    /// few dozen, as a fleet's own recordings give.
+    WithinFalseAlarmBudgetWithMargin { per_hour: f64 },
 }
 
 impl OperatingPointRule {
@@ -336,7 +348,36 @@ impl OperatingPointRule {
     pub fn budget(self) -> Option<f64> {
         match self {
             Self::BestValidationF1 => None,
-            Self::WithinFalseAlarmBudget { per_hour } => Some(per_hour),
+            Self::WithinFalseAlarmBudget { per_hour }
+            | Self::WithinFalseAlarmBudgetWithMargin { per_hour } => Some(per_hour),
+        }
+    }
+
+    /// The most false-alarm onsets a point may raise in `normal_hours` attack-free hours.
+    pub fn allowed_onsets(self, normal_hours: f64) -> f64 {
+        match self {
+            Self::BestValidationF1 => f64::INFINITY,
+            Self::WithinFalseAlarmBudget { per_hour } => per_hour * normal_hours,
+            Self::WithinFalseAlarmBudgetWithMargin { per_hour } => {
+                let expected = per_hour * normal_hours;
+                (expected - expected.sqrt()).max(0.0)
+            }
+        }
+    }
+
+    /// The error when no point of a search with this rule, the quietest raising `fewest_onsets`,
+    /// kept within it on `normal_hours`.
+    pub(crate) fn over_budget(self, normal_hours: f64, fewest_onsets: u64) -> AlarmError {
+        let allowed = self.allowed_onsets(normal_hours);
+        AlarmError::OverBudget {
+            per_hour: self.budget().unwrap_or(f64::INFINITY),
+            normal_hours,
+            allowed_onsets: if allowed.is_finite() {
+                allowed.floor() as u64
+            } else {
+                u64::MAX
+            },
+            fewest_onsets,
         }
     }
 }
@@ -357,14 +398,16 @@ pub fn choose_operating_point(
     check_search(rows, thetas, n_ps.clone().count())?;
     let normal_hours = metrics::normal_hours(rows);
     let mut best: Option<(OperatingPoint, Metrics)> = None;
+    let mut fewest_onsets = u64::MAX;
     let mut alarms = Vec::with_capacity(rows.len());
     for &theta in thetas {
         for n_p in n_ps.clone() {
             let point = OperatingPoint { theta, n_p };
             fill_confirmed_alarms(rows, point, &mut alarms);
             let candidate = metrics::alarm_metrics(rows, &alarms, rules);
-            let within_budget = budget.is_none_or(|per_hour| {
-                candidate.false_alarm_onsets as f64 <= per_hour * normal_hours
+            fewest_onsets = fewest_onsets.min(candidate.false_alarm_onsets);
+            let within_budget = budget.is_none_or(|_| {
+                candidate.false_alarm_onsets as f64 <= rule.allowed_onsets(normal_hours)
             });
             let improves = best.as_ref().is_none_or(|(best_point, best_metrics)| {
                 compare_candidates((&point, &candidate), (best_point, best_metrics))
@@ -376,10 +419,7 @@ pub fn choose_operating_point(
         }
     }
     let Some((point, _)) = best else {
-        return Err(AlarmError::OverBudget {
-            per_hour: budget.unwrap_or(f64::INFINITY),
-            normal_hours,
-        });
+        return Err(rule.over_budget(normal_hours, fewest_onsets));
     };
     // AUROC/AUPRC do not depend on the alarms: computed once, for the winner only.
     let metrics = metrics::evaluate(rows, &confirmed_alarms(rows, point), rules);
@@ -873,6 +913,87 @@ mod tests {
         assert!(chosen.point.theta > 0.96, "{chosen:?}");
         assert_eq!(chosen.metrics.false_alarm_onsets, 0);
         assert_eq!(chosen.metrics.detected_events, 1);
+    }
+
+    #[test]
+    fn the_margin_keeps_one_poisson_deviation_below_the_budgets_count() {
+        let plain = OperatingPointRule::WithinFalseAlarmBudget { per_hour: 1.0 };
+        let margin = OperatingPointRule::WithinFalseAlarmBudgetWithMargin { per_hour: 1.0 };
+        assert_eq!(plain.allowed_onsets(16.0), 16.0);
+        assert_eq!(margin.allowed_onsets(16.0), 12.0, "16 − √16");
+        assert_eq!(margin.allowed_onsets(0.27), 0.0, "never below none");
+        let paging = OperatingPointRule::WithinFalseAlarmBudgetWithMargin { per_hour: 0.01 };
+        assert_eq!(
+            paging.allowed_onsets(100.0),
+            0.0,
+            "1 − √1: silent on 100 hours"
+        );
+        assert!((paging.allowed_onsets(900.0) - 6.0).abs() < 1e-12, "9 − 3");
+        assert_eq!(
+            OperatingPointRule::BestValidationF1.allowed_onsets(1.0),
+            f64::INFINITY
+        );
+        assert_eq!(margin.budget(), Some(1.0));
+    }
+
+    #[test]
+    fn with_the_margin_the_search_takes_a_quieter_point_than_the_budget_alone() {
+        // 11 attack-free hours at 1 Hz with ten 20 s stretches (longer than any T_on): eight scored
+        // 0.8 and two 0.93; then a 600 s attack scored 0.82 and then 0.95. θ ≤ 0.8 catches all of
+        // the attack with 10 false onsets, within 11 but not within 11 − √11 = 7.7; above it, 2 or
+        // none, and half the attack.
+        let stretch = |i: u32| (1_000..1_020).contains(&(i % 3_600)) && i / 3_600 < 10;
+        let rows: Vec<ScoredRow> = (0..40_200)
+            .map(|i| {
+                let (label, score) = match i {
+                    39_600..39_900 => (true, 0.82),
+                    39_900.. => (true, 0.95),
+                    _ if stretch(i) && i / 3_600 < 8 => (false, 0.8),
+                    _ if stretch(i) => (false, 0.93),
+                    _ => (false, 0.0),
+                };
+                ScoredRow {
+                    trajectory: 0,
+                    time_s: f64::from(i),
+                    valid: true,
+                    label,
+                    score,
+                }
+            })
+            .collect();
+        assert!((metrics::normal_hours(&rows) - 11.0).abs() < 0.01);
+        let offset = vec![OffsetSignal::default(); rows.len()];
+        let search = |rule| {
+            choose_lifecycle(
+                &rows,
+                &offset,
+                &lifecycle_theta_grid(),
+                EventRules::Spec,
+                rule,
+            )
+            .expect("a point")
+        };
+        let plain = search(OperatingPointRule::WithinFalseAlarmBudget { per_hour: 1.0 });
+        assert!(plain.point.theta <= 0.8, "{plain:?}");
+        assert_eq!(plain.metrics.false_alarm_onsets, 10);
+        let margin = search(OperatingPointRule::WithinFalseAlarmBudgetWithMargin { per_hour: 1.0 });
+        assert!(margin.point.theta > 0.8, "{margin:?}");
+        assert!(margin.metrics.false_alarm_onsets <= 2, "{margin:?}");
+        assert_eq!(margin.metrics.detected_events, 1);
+        // Where no point keeps the margin, the error says what was allowed and the quietest.
+        let error = choose_lifecycle(
+            &rows,
+            &offset,
+            &theta_grid()[..10],
+            EventRules::Spec,
+            OperatingPointRule::WithinFalseAlarmBudgetWithMargin { per_hour: 1.0 },
+        )
+        .expect_err("θ ≤ 0.5 only");
+        assert_eq!(
+            error.to_string(),
+            "no operating point stays within 1 false alarms per hour (11.00 attack-free hours \
+             allow at most 7 false-alarm onsets; the quietest point raised 10)"
+        );
     }
 
     #[test]

@@ -10,7 +10,7 @@ use std::cmp::Ordering;
 
 use serde::{Deserialize, Serialize};
 
-use crate::alarm::{AlarmError, compare_mean_delay, lifecycle_input};
+use crate::alarm::{AlarmError, OperatingPointRule, compare_mean_delay, lifecycle_input};
 use crate::lifecycle::{AlarmLifecycle, Lifecycle, OffsetSignal};
 use crate::metrics::{self, EventRules, Metrics, RateGroup, ScoredRow};
 use crate::severity::{CriticalTest, Escalation, HeldOffsetTest, Severity};
@@ -98,6 +98,21 @@ pub fn choose_critical(
     per_hour: f64,
     rules: EventRules,
 ) -> Result<CriticalSelection, AlarmError> {
+    let budget = OperatingPointRule::WithinFalseAlarmBudget { per_hour };
+    choose_critical_within(rows, offset, theta, lifecycle, budget, rules)
+}
+
+/// [`choose_critical`] with the budget's rule given, a margin for the search's optimism included
+/// ([`OperatingPointRule::WithinFalseAlarmBudgetWithMargin`]); the rule's budget is `per_hour`.
+pub fn choose_critical_within(
+    rows: &[ScoredRow],
+    offset: &[OffsetSignal],
+    theta: f64,
+    lifecycle: &Lifecycle,
+    budget: OperatingPointRule,
+    rules: EventRules,
+) -> Result<CriticalSelection, AlarmError> {
+    let per_hour = budget.budget().unwrap_or(f64::INFINITY);
     let normal_hours = metrics::normal_hours(rows);
     let rate_groups: Vec<RateGroup> = metrics::rate_groups(rows);
     let binding: Vec<&RateGroup> = rate_groups
@@ -105,6 +120,7 @@ pub fn choose_critical(
         .filter(|g| per_hour * g.normal_hours >= 1.0)
         .collect();
     let mut best: Option<(CriticalTest, Metrics)> = None;
+    let mut fewest_onsets = u64::MAX;
     let mut critical = Vec::with_capacity(rows.len());
     // False onsets of a test, pooled and per binding rate.
     let false_onsets = |test: &CriticalTest, critical: &mut Vec<bool>| {
@@ -121,13 +137,14 @@ pub fn choose_critical(
                         ceiling: Option<&(u64, Vec<u64>)>,
                         best: &mut Option<(CriticalTest, Metrics)>| {
         let (candidate, by_rate) = false_onsets(&test, &mut critical);
+        fewest_onsets = fewest_onsets.min(candidate.false_alarm_onsets);
         let admissible = match ceiling {
             None => {
-                candidate.false_alarm_onsets as f64 <= per_hour * normal_hours
+                candidate.false_alarm_onsets as f64 <= budget.allowed_onsets(normal_hours)
                     && binding
                         .iter()
                         .zip(&by_rate)
-                        .all(|(g, &onsets)| onsets as f64 <= per_hour * g.normal_hours)
+                        .all(|(g, &onsets)| onsets as f64 <= budget.allowed_onsets(g.normal_hours))
             }
             Some((pooled, ceilings)) => {
                 candidate.false_alarm_onsets <= *pooled
@@ -194,10 +211,7 @@ pub fn choose_critical(
         }
     }
     let Some((test, _)) = best else {
-        return Err(AlarmError::OverBudget {
-            per_hour,
-            normal_hours,
-        });
+        return Err(budget.over_budget(normal_hours, fewest_onsets));
     };
     let critical = critical_rows(rows, offset, theta, lifecycle, &test);
     Ok(CriticalSelection {

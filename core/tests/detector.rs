@@ -26,12 +26,12 @@ use spoofwatch_core::scenario::{
     AttackKind, AttackSpec, DriveSpec, OnboardErrors, inject, simulate_drive,
 };
 use spoofwatch_core::severity::{CriticalTest, Escalation};
-use spoofwatch_core::train::TrainConfig;
 use spoofwatch_core::train::data::{
     sequences, split_chronologically, split_with_warmup, trajectory_ranges,
 };
-use spoofwatch_core::train::detector::{TrainingData, train_detector};
+use spoofwatch_core::train::detector::{TrainDetectorError, TrainingData, train_detector};
 use spoofwatch_core::train::spec::{SplitFractions, TrainingSpec};
+use spoofwatch_core::train::{TrainConfig, TrainError};
 
 fn drive(seed: u64, seconds: f64) -> Track {
     let spec = DriveSpec {
@@ -495,7 +495,15 @@ fn a_small_training_job_learns_a_frozen_position_attack_and_calibrates_an_operat
     let trained = train_detector(&spec, data(), &mut |_| epochs += 1, &AtomicBool::new(false))
         .expect("trains");
     assert_eq!(epochs, trained.history.len());
-    assert!(!trained.cancelled);
+    // Cancelled, it ends as a cancellation without searching for an operating point.
+    let cancelled = train_detector(&spec, data(), &mut |_| {}, &AtomicBool::new(true));
+    assert!(
+        matches!(
+            cancelled,
+            Err(TrainDetectorError::Train(TrainError::Cancelled))
+        ),
+        "{cancelled:?}"
+    );
     let auroc = trained.validation.auroc.expect("both classes");
     assert!(auroc > 0.8, "validation AUROC {auroc}");
     let op = trained.artifact.operating_point;

@@ -179,11 +179,13 @@ async fn fit_report_and_activate(clients: &mut Clients) {
             .map(|d| d.injected)
             .collect::<Vec<_>>()
     );
+    // A test part this small carries every kind of the grid on each of its four pieces.
     assert_eq!(
-        injected.iter().sum::<u64>(),
-        4,
+        injected,
+        vec![4; fitted.detection.len()],
         "four pieces of the test drive"
     );
+    assert_eq!(fitted.detection.len(), 8, "the detection grid's kinds");
 
     // The fitted model is stored and carries the fitted GNSS noise.
     let stored = clients
@@ -405,10 +407,12 @@ async fn cancel_a_running_fit(clients: &mut Clients) {
         .await
         .expect("a cancelled job can be deleted");
 
-    // The only job slot is free again: the next fit runs and registers its model.
+    // The only job slot is free again: the next fit runs and registers its model (on the four
+    // vans of the fit test, which hold an operating point).
+    let vans = upload_tracks(clients, "four vans", &recordings(4, 1_200.0, 31)).await;
     let next = clients
         .training
-        .create_training_job(fit_request(&dataset.name, v1::FleetFit::default()))
+        .create_training_job(fit_request(&vans.name, v1::FleetFit::default()))
         .await
         .expect("the next fit is accepted")
         .into_inner();

@@ -25,6 +25,9 @@ pub const EARLY_ONSET_S: f64 = 15.0;
 pub const LATE_ONSET_S: f64 = 60.0;
 /// Length of a test attack (s), within its piece.
 pub const TEST_ATTACK_S: f64 = 120.0;
+/// Most attacks injected into the test part: a small test part carries every kind of the grid on
+/// each of its pieces, a large one a kind per piece (bounds the scoring time of a large fleet's fit).
+pub const MAX_TEST_ATTACKS: usize = 800;
 /// The drive goes on at least this long after a training attack (s).
 const AFTER_ATTACK_S: f64 = 20.0;
 
@@ -119,12 +122,20 @@ pub fn training_injections(
     Ok(out)
 }
 
-/// The detection grid injected into pieces of `drives`: piece k carries grid kind k mod the grid's
-/// size, early on even passes through the grid and late on odd ones, in a random direction.
+/// The detection grid injected into pieces of `drives`, each piece into `c` copies of itself, where
+/// `c` is as many kinds of the grid as [`MAX_TEST_ATTACKS`] leaves room for (at least one, at most
+/// the whole grid): attack j (piece ⌊j / c⌋) carries grid kind j mod the grid's size, early on even
+/// passes through the grid and late on odd ones, in a random direction. A test part of a few
+/// pieces so still tries every kind; with `c` = 1, piece k carries kind k mod the grid's size.
 pub fn test_injections(drives: &[Track], seed: u64) -> Result<Vec<TestAttack>, ScenarioError> {
     let grid = detection_grid();
+    let pieces = pieces(drives, PIECE_S, WARMUP_S);
+    let copies = copies_per_piece(pieces.len(), grid.len());
     let mut out = Vec::new();
-    for (i, piece) in pieces(drives, PIECE_S, WARMUP_S).iter().enumerate() {
+    let attacks = pieces
+        .iter()
+        .flat_map(|piece| std::iter::repeat_n(piece, copies));
+    for (i, piece) in attacks.enumerate() {
         let grid_index = i % grid.len();
         let early = (i / grid.len()).is_multiple_of(2) || piece.warmup.is_empty();
         let onset_s = if early { EARLY_ONSET_S } else { LATE_ONSET_S };
@@ -147,6 +158,11 @@ pub fn test_injections(drives: &[Track], seed: u64) -> Result<Vec<TestAttack>, S
         });
     }
     Ok(out)
+}
+
+/// How many kinds of a grid of `kinds` each of `pieces` test pieces carries.
+fn copies_per_piece(pieces: usize, kinds: usize) -> usize {
+    (MAX_TEST_ATTACKS / pieces.max(1)).clamp(1, kinds.max(1))
 }
 
 fn piece_seconds(piece: &Piece) -> f64 {
@@ -188,16 +204,21 @@ mod tests {
 
     #[test]
     fn test_attacks_cover_the_grid_early_and_late_with_their_rows_labelled() {
-        // 10 pieces of 300 s at 1 Hz: kinds 0..8, then 0..2 again, late (after warm-up rows).
+        // 10 pieces of 300 s at 1 Hz, each carrying every kind of the grid: early on even pieces,
+        // late (after warm-up rows) on odd ones.
         let attacks = test_injections(&[drive(3_001.0, 5)], 9).expect("injected");
-        assert_eq!(attacks.len(), 10);
         let grid = detection_grid().len();
+        assert_eq!(attacks.len(), 10 * grid);
         for (i, attack) in attacks.iter().enumerate() {
             assert_eq!(attack.grid_index, i % grid);
+            let piece = i / grid;
+            assert_eq!(attack.early, piece.is_multiple_of(2), "{i}");
+            // Every copy of a piece is the same driving.
+            let first = &attacks[piece * grid].track.records;
+            assert_eq!(attack.track.records.len(), first.len(), "{i}");
             assert_eq!(
-                attack.early,
-                i < grid || attack.track.records.len() <= 301,
-                "{i}"
+                attack.track.records[0].sample.timestamp_s,
+                first[0].sample.timestamp_s
             );
             let rows = &attack.track.records;
             assert!(
@@ -233,6 +254,20 @@ mod tests {
                 .iter()
                 .any(|a| !a.early && a.track.records[0].warmup)
         );
+    }
+
+    #[test]
+    fn a_large_test_part_carries_fewer_kinds_per_piece_within_the_bound() {
+        assert_eq!(copies_per_piece(0, 8), 8);
+        assert_eq!(copies_per_piece(10, 8), 8);
+        assert_eq!(copies_per_piece(100, 8), 8);
+        assert_eq!(copies_per_piece(101, 8), 7);
+        assert_eq!(copies_per_piece(400, 8), 2);
+        assert_eq!(copies_per_piece(401, 8), 1);
+        assert_eq!(copies_per_piece(5_000, 8), 1, "at least one kind per piece");
+        for pieces in [1, 99, 101, 333, 800] {
+            assert!(pieces * copies_per_piece(pieces, 8) <= MAX_TEST_ATTACKS.max(pieces));
+        }
     }
 
     #[test]

@@ -61,7 +61,6 @@ pub struct TrainedDetector {
     pub validation: Metrics,
     /// The chronological test part (empty with explicit validation data).
     pub held_out: Vec<Track>,
-    pub cancelled: bool,
 }
 
 impl TrainedDetector {
@@ -94,7 +93,8 @@ pub enum TrainDetectorError {
 
 /// Trains the detector `spec` describes on `data` (SPEC §4–7). With several (κ, ρ) candidates, the
 /// one with the best validation F1 (then lower validation loss) wins. `on_epoch` sees every epoch
-/// of every candidate; `cancel` stops training at the next batch (see [`crate::train::train`]).
+/// of every candidate; `cancel` stops training at the next batch (see [`crate::train::train`]), and
+/// the run ends with [`TrainError::Cancelled`].
 pub fn train_detector(
     spec: &TrainingSpec,
     data: TrainingData,
@@ -124,12 +124,8 @@ pub fn train_detector(
                 f1 > b_f1 || (f1 == b_f1 && val_loss < *b_loss)
             }
         };
-        let cancelled = candidate.cancelled;
         if better {
             best = Some((candidate, val_loss));
-        }
-        if cancelled {
-            break;
         }
     }
     // `candidates()` is never empty, so a first candidate always exists.
@@ -193,6 +189,11 @@ fn train_candidate(
             cancel,
         )?,
     };
+    // A cancelled run registers nothing: it stops here rather than search for an operating point
+    // with half-trained weights, which may find none and so end as a failure, not a cancellation.
+    if outcome.cancelled {
+        return Err(TrainError::Cancelled.into());
+    }
     let mut artifact = ModelArtifact {
         schema_version: ARTIFACT_SCHEMA_VERSION,
         feature_names: ModelArtifact::feature_names_of(spec.model.schema),
@@ -258,6 +259,5 @@ fn train_candidate(
         history: outcome.history,
         validation: metrics,
         held_out: Vec::new(),
-        cancelled: outcome.cancelled,
     })
 }

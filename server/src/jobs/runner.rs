@@ -85,8 +85,7 @@ impl LiveJob {
     }
 }
 
-/// A training failure as the job's: cancelled before the first epoch completed is still a
-/// cancellation, not a failure.
+/// A training failure as the job's: a cancelled training is a cancellation, not a failure.
 fn training_failure(error: TrainDetectorError) -> JobFailure {
     match error {
         TrainDetectorError::Train(TrainError::Cancelled) => JobFailure::Cancelled,
@@ -180,9 +179,6 @@ impl Runner {
             .await?
             .map_err(training_failure)?;
         let trained = Arc::new(trained);
-        if trained.cancelled {
-            return Err(JobFailure::Cancelled);
-        }
         let test_metrics = {
             let trained = Arc::clone(&trained);
             tokio::task::spawn_blocking(move || {
