@@ -4,6 +4,7 @@
 mod artifact_validation;
 mod avgps_data;
 mod bundled_default;
+mod clean_sensor_drifts;
 mod detector;
 mod ekf_comparator;
 mod evidence_parity;
