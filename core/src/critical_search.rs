@@ -102,8 +102,13 @@ pub fn choose_critical(
     choose_critical_within(rows, offset, theta, lifecycle, budget, rules)
 }
 
-/// [`choose_critical`] with the budget's rule given, a margin for the search's optimism included
-/// ([`OperatingPointRule::WithinFalseAlarmBudgetWithMargin`]); the rule's budget is `per_hour`.
+/// [`choose_critical`] with the budget's rule given. With a margin
+/// ([`OperatingPointRule::WithinFalseAlarmBudgetWithMargin`]), besides the margin on its count, a
+/// test is taken only if its [`sensitive_twin`] passes the same rule too: a guard band for
+/// validation parts too short to see the budget's rate (a hundred hours bound nothing below about
+/// 0.03 per hour). A sequential test's mean time between false alarms grows about exponentially
+/// with its threshold, so a test whose twin at half the threshold is already quiet sits well
+/// inside the budget rather than at the edge of what the hours can tell.
 pub fn choose_critical_within(
     rows: &[ScoredRow],
     offset: &[OffsetSignal],
@@ -113,6 +118,10 @@ pub fn choose_critical_within(
     rules: EventRules,
 ) -> Result<CriticalSelection, AlarmError> {
     let per_hour = budget.budget().unwrap_or(f64::INFINITY);
+    let guarded = matches!(
+        budget,
+        OperatingPointRule::WithinFalseAlarmBudgetWithMargin { .. }
+    );
     let normal_hours = metrics::normal_hours(rows);
     let rate_groups: Vec<RateGroup> = metrics::rate_groups(rows);
     let binding: Vec<&RateGroup> = rate_groups
@@ -132,32 +141,52 @@ pub fn choose_critical_within(
             .collect();
         (candidate, by_rate)
     };
-    // `ceiling`: the false onsets (pooled, per binding rate) a test may have; `None`, the budget.
+    // Whether onsets (pooled, per binding rate) keep within `ceiling` (the same, for a decisive
+    // path: what the test chosen so far raised), or within the budget without one.
+    let within = |pooled: u64, by_rate: &[u64], ceiling: Option<&Onsets>| match ceiling {
+        None => {
+            pooled as f64 <= budget.allowed_onsets(normal_hours)
+                && binding
+                    .iter()
+                    .zip(by_rate)
+                    .all(|(g, &onsets)| onsets as f64 <= budget.allowed_onsets(g.normal_hours))
+        }
+        Some((most_pooled, most_by_rate)) => {
+            pooled <= *most_pooled
+                && by_rate
+                    .iter()
+                    .zip(most_by_rate)
+                    .all(|(onsets, most)| onsets <= most)
+        }
+    };
+    // `ceilings`: the false onsets a test and its twin may have; `None`, the budget. Guarded, a
+    // test within it counts its twin's onsets towards the quietest the error reports.
     let mut consider = |test: CriticalTest,
-                        ceiling: Option<&(u64, Vec<u64>)>,
+                        ceilings: Option<&Ceilings>,
                         best: &mut Option<(CriticalTest, Metrics)>| {
         let (candidate, by_rate) = false_onsets(&test, &mut critical);
-        fewest_onsets = fewest_onsets.min(candidate.false_alarm_onsets);
-        let admissible = match ceiling {
-            None => {
-                candidate.false_alarm_onsets as f64 <= budget.allowed_onsets(normal_hours)
-                    && binding
-                        .iter()
-                        .zip(&by_rate)
-                        .all(|(g, &onsets)| onsets as f64 <= budget.allowed_onsets(g.normal_hours))
+        let pooled = candidate.false_alarm_onsets;
+        if !within(pooled, &by_rate, ceilings.map(|c| &c.test)) {
+            fewest_onsets = fewest_onsets.min(pooled);
+            return;
+        }
+        if guarded {
+            let (twin, twin_by_rate) = false_onsets(&sensitive_twin(&test), &mut critical);
+            fewest_onsets = fewest_onsets.min(pooled.max(twin.false_alarm_onsets));
+            if !within(
+                twin.false_alarm_onsets,
+                &twin_by_rate,
+                ceilings.map(|c| &c.twin),
+            ) {
+                return;
             }
-            Some((pooled, ceilings)) => {
-                candidate.false_alarm_onsets <= *pooled
-                    && by_rate
-                        .iter()
-                        .zip(ceilings)
-                        .all(|(onsets, most)| onsets <= most)
-            }
-        };
+        } else {
+            fewest_onsets = fewest_onsets.min(pooled);
+        }
         let improves = best.as_ref().is_none_or(|(b_test, b_metrics)| {
             compare((&test, &candidate), (b_test, b_metrics)) == Ordering::Greater
         });
-        if admissible && improves {
+        if improves {
             *best = Some((test, candidate));
         }
     };
@@ -166,34 +195,45 @@ pub fn choose_critical_within(
     }
     // Decisive evidence has an enormous likelihood ratio, so a path for it must be silent on the
     // attack-free validation hours: it may add escalations, never a false onset, to the test
-    // chosen so far. (Within the budget alone, the search would take the lowest gate that a
-    // hundred-odd validation hours happen to leave quiet, at the edge of what they can tell.)
+    // chosen so far (and, guarded, its twin none to the chosen test's twin). (Within the budget
+    // alone, the search would take the lowest gate that a hundred-odd validation hours happen to
+    // leave quiet, at the edge of what they can tell.)
     let mut scratch = Vec::with_capacity(rows.len());
-    let mut silent_ceiling = |chosen: &CriticalTest| {
-        let (metrics, by_rate) = false_onsets(chosen, &mut scratch);
-        (metrics.false_alarm_onsets, by_rate)
+    let mut silent_ceilings = |chosen: &CriticalTest| {
+        let mut onsets = |test: &CriticalTest| {
+            let (metrics, by_rate) = false_onsets(test, &mut scratch);
+            (metrics.false_alarm_onsets, by_rate)
+        };
+        Ceilings {
+            test: onsets(chosen),
+            twin: if guarded {
+                onsets(&sensitive_twin(chosen))
+            } else {
+                (u64::MAX, vec![u64::MAX; binding.len()])
+            },
+        }
     };
     // The frozen-fix path on the chosen test.
     if let Some((chosen, _)) = best {
-        let ceiling = silent_ceiling(&chosen);
+        let ceilings = silent_ceilings(&chosen);
         for hold in FROZEN_FIX_S_GRID {
             let test = CriticalTest {
                 frozen_fix_s: Some(hold),
                 ..chosen
             };
-            consider(test, Some(&ceiling), &mut best);
+            consider(test, Some(&ceilings), &mut best);
         }
     }
     // The held-jump path on the test chosen so far: likewise.
     if let Some((chosen, _)) = best {
-        let ceiling = silent_ceiling(&chosen);
+        let ceilings = silent_ceilings(&chosen);
         for gate in HELD_JUMP_GATE_GRID {
             for hold_s in HELD_JUMP_S_GRID {
                 let test = CriticalTest {
                     held_jump: Some(HeldOffsetTest { gate, hold_s }),
                     ..chosen
                 };
-                consider(test, Some(&ceiling), &mut best);
+                consider(test, Some(&ceilings), &mut best);
             }
         }
     }
@@ -228,6 +268,33 @@ pub fn choose_critical_within(
             })
             .collect(),
     })
+}
+
+/// False onsets pooled and per binding rate.
+type Onsets = (u64, Vec<u64>);
+
+/// The false onsets a decisive path may add nothing to: the chosen test's, and its twin's.
+struct Ceilings {
+    test: Onsets,
+    twin: Onsets,
+}
+
+/// The test twice as sensitive on every path: half the accumulated evidence, half the NIS of each
+/// gate, half of each hold. Its k stays (k is where evidence starts to count, not how much).
+pub fn sensitive_twin(test: &CriticalTest) -> CriticalTest {
+    let half = |path: HeldOffsetTest| HeldOffsetTest {
+        gate: path.gate / 2.0,
+        hold_s: path.hold_s / 2.0,
+    };
+    CriticalTest {
+        reference_logit: test.reference_logit,
+        threshold: test.threshold / 2.0,
+        gate: test.gate / 2.0,
+        decisive_s: test.decisive_s / 2.0,
+        frozen_fix_s: test.frozen_fix_s.map(|hold| hold / 2.0),
+        held_jump: test.held_jump.map(half),
+        held_offset: test.held_offset.map(half),
+    }
 }
 
 /// Every test of the grid.
@@ -595,6 +662,135 @@ mod tests {
         let without = choose_critical(&rows, &plain, 0.8, &LIFECYCLE, 0.01, EventRules::Spec)
             .expect("a test");
         assert_eq!(without.test.held_jump, None, "{:?}", without.test);
+    }
+
+    #[test]
+    fn with_the_margin_a_test_is_taken_only_if_its_twice_as_sensitive_twin_is_quiet_too() {
+        // Attacks: p̂ at logit 6 for 90 s. Clean hours: once an hour, a 15 s blip at logit 6. The
+        // budget alone takes the quickest test the blips leave quiet; with the margin its twin (half
+        // the threshold) must leave them quiet too.
+        let mut rows = Vec::new();
+        for key in 0..10 {
+            let attacked = |t: f64| (100.0..190.0).contains(&t);
+            rows.extend(trajectory(
+                key,
+                300,
+                |t| if attacked(t) { 6.0 } else { -6.0 },
+                attacked,
+            ));
+        }
+        for key in 100..103 {
+            let blip = |t: f64| (1800.0..1815.0).contains(&t);
+            rows.extend(trajectory(
+                key,
+                3600,
+                |t| if blip(t) { 6.0 } else { -6.0 },
+                |_| false,
+            ));
+        }
+        let search = |budget| {
+            choose_critical_within(&rows, &[], 0.8, &LIFECYCLE, budget, EventRules::Spec)
+                .expect("a test")
+        };
+        let plain = search(OperatingPointRule::WithinFalseAlarmBudget { per_hour: 0.01 });
+        let guarded =
+            search(OperatingPointRule::WithinFalseAlarmBudgetWithMargin { per_hour: 0.01 });
+        let clean_start = 10 * 300;
+        let clean_onsets = |test: &CriticalTest| {
+            let critical = critical_rows(&rows, &[], 0.8, &LIFECYCLE, test);
+            critical[clean_start..].iter().filter(|&&c| c).count()
+        };
+        for selection in [&plain, &guarded] {
+            assert_eq!(selection.metrics.detected_events, 10, "{selection:?}");
+            assert_eq!(clean_onsets(&selection.test), 0, "{selection:?}");
+        }
+        assert!(clean_onsets(&sensitive_twin(&plain.test)) > 0, "{plain:?}");
+        assert_eq!(
+            clean_onsets(&sensitive_twin(&guarded.test)),
+            0,
+            "{guarded:?}"
+        );
+        assert!(
+            guarded.metrics.mean_delay_s.expect("detected")
+                > plain.metrics.mean_delay_s.expect("detected"),
+            "the guard band costs delay: {guarded:?} against {plain:?}"
+        );
+    }
+
+    #[test]
+    fn with_the_margin_no_test_whose_twin_fires_is_taken_and_the_error_counts_the_twin() {
+        // A clean hour with a 200 s blip at logit 8: the quietest tests (k = 5, 6 at h = 640) keep
+        // quiet, their twins (h = 320) do not.
+        let mut rows = trajectory(
+            0,
+            3600,
+            |t| {
+                if (1800.0..2000.0).contains(&t) {
+                    8.0
+                } else {
+                    -6.0
+                }
+            },
+            |_| false,
+        );
+        rows.extend(
+            trajectory(1, 300, |_| 8.0, |t| t >= 100.0)
+                .into_iter()
+                .map(|row| ScoredRow {
+                    trajectory: 1,
+                    ..row
+                }),
+        );
+        let search =
+            |budget| choose_critical_within(&rows, &[], 0.8, &LIFECYCLE, budget, EventRules::Spec);
+        let plain = search(OperatingPointRule::WithinFalseAlarmBudget { per_hour: 0.01 })
+            .expect("a test at the edge");
+        assert_eq!(plain.test.threshold, 640.0, "{plain:?}");
+        let error = search(OperatingPointRule::WithinFalseAlarmBudgetWithMargin { per_hour: 0.01 })
+            .expect_err("every quiet test's twin fires");
+        assert!(
+            matches!(
+                error,
+                AlarmError::OverBudget {
+                    allowed_onsets: 0,
+                    fewest_onsets: 1,
+                    ..
+                }
+            ),
+            "{error}"
+        );
+    }
+
+    #[test]
+    fn the_twin_halves_every_threshold_gate_and_hold_and_keeps_k() {
+        let test = CriticalTest {
+            reference_logit: 3.0,
+            threshold: 80.0,
+            gate: 1600.0,
+            decisive_s: 2.0,
+            frozen_fix_s: Some(0.0),
+            held_jump: Some(HeldOffsetTest {
+                gate: 400.0,
+                hold_s: 2.0,
+            }),
+            held_offset: None,
+        };
+        let twin = sensitive_twin(&test);
+        assert_eq!(
+            twin,
+            CriticalTest {
+                reference_logit: 3.0,
+                threshold: 40.0,
+                gate: 800.0,
+                decisive_s: 1.0,
+                frozen_fix_s: Some(0.0),
+                held_jump: Some(HeldOffsetTest {
+                    gate: 200.0,
+                    hold_s: 1.0,
+                }),
+                held_offset: None,
+            }
+        );
     }
 
     #[test]

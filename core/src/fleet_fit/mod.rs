@@ -321,7 +321,10 @@ fn choose_critical_level(
                 metrics::normal_hours(&scored.rows)
             ),
         },
-        Err(error) => kept(format!("no critical test within its budget: {error}")),
+        Err(error) => kept(format!(
+            "no critical test of the grid keeps its twice-as-sensitive twin within the budget too \
+             (a test counts its twin's onsets): {error}"
+        )),
     }
 }
 
