@@ -117,141 +117,61 @@ pub fn choose_critical_within(
     budget: OperatingPointRule,
     rules: EventRules,
 ) -> Result<CriticalSelection, AlarmError> {
-    let per_hour = budget.budget().unwrap_or(f64::INFINITY);
-    let guarded = matches!(
-        budget,
-        OperatingPointRule::WithinFalseAlarmBudgetWithMargin { .. }
-    );
-    let normal_hours = metrics::normal_hours(rows);
     let rate_groups: Vec<RateGroup> = metrics::rate_groups(rows);
-    let binding: Vec<&RateGroup> = rate_groups
-        .iter()
-        .filter(|g| per_hour * g.normal_hours >= 1.0)
-        .collect();
-    let mut best: Option<(CriticalTest, Metrics)> = None;
-    let mut fewest_onsets = u64::MAX;
-    let mut critical = Vec::with_capacity(rows.len());
-    // False onsets of a test, pooled and per binding rate.
-    let false_onsets = |test: &CriticalTest, critical: &mut Vec<bool>| {
-        fill_critical_rows(rows, offset, (theta, lifecycle, test), critical);
-        let candidate = metrics::alarm_metrics(rows, critical, rules);
-        let by_rate: Vec<u64> = binding
-            .iter()
-            .map(|g| g.false_alarm_onsets(rows, critical))
-            .collect();
-        (candidate, by_rate)
-    };
-    // Whether onsets (pooled, per binding rate) keep within `ceiling` (the same, for a decisive
-    // path: what the test chosen so far raised), or within the budget without one.
-    let within = |pooled: u64, by_rate: &[u64], ceiling: Option<&Onsets>| match ceiling {
-        None => {
-            pooled as f64 <= budget.allowed_onsets(normal_hours)
-                && binding
-                    .iter()
-                    .zip(by_rate)
-                    .all(|(g, &onsets)| onsets as f64 <= budget.allowed_onsets(g.normal_hours))
-        }
-        Some((most_pooled, most_by_rate)) => {
-            pooled <= *most_pooled
-                && by_rate
-                    .iter()
-                    .zip(most_by_rate)
-                    .all(|(onsets, most)| onsets <= most)
-        }
-    };
-    // `ceilings`: the false onsets a test and its twin may have; `None`, the budget. Guarded, a
-    // test within it counts its twin's onsets towards the quietest the error reports.
-    let mut consider = |test: CriticalTest,
-                        ceilings: Option<&Ceilings>,
-                        best: &mut Option<(CriticalTest, Metrics)>| {
-        let (candidate, by_rate) = false_onsets(&test, &mut critical);
-        let pooled = candidate.false_alarm_onsets;
-        if !within(pooled, &by_rate, ceilings.map(|c| &c.test)) {
-            fewest_onsets = fewest_onsets.min(pooled);
-            return;
-        }
-        if guarded {
-            let (twin, twin_by_rate) = false_onsets(&sensitive_twin(&test), &mut critical);
-            fewest_onsets = fewest_onsets.min(pooled.max(twin.false_alarm_onsets));
-            if !within(
-                twin.false_alarm_onsets,
-                &twin_by_rate,
-                ceilings.map(|c| &c.twin),
-            ) {
-                return;
-            }
-        } else {
-            fewest_onsets = fewest_onsets.min(pooled);
-        }
-        let improves = best.as_ref().is_none_or(|(b_test, b_metrics)| {
-            compare((&test, &candidate), (b_test, b_metrics)) == Ordering::Greater
-        });
-        if improves {
-            *best = Some((test, candidate));
-        }
-    };
+    let mut search = Search::new(
+        rows,
+        offset,
+        (theta, lifecycle),
+        budget,
+        rules,
+        &rate_groups,
+    );
     for test in grid() {
-        consider(test, None, &mut best);
+        search.consider(test, None);
     }
     // Decisive evidence has an enormous likelihood ratio, so a path for it must be silent on the
     // attack-free validation hours: it may add escalations, never a false onset, to the test
     // chosen so far (and, guarded, its twin none to the chosen test's twin). (Within the budget
     // alone, the search would take the lowest gate that a hundred-odd validation hours happen to
-    // leave quiet, at the edge of what they can tell.)
-    let mut scratch = Vec::with_capacity(rows.len());
-    let mut silent_ceilings = |chosen: &CriticalTest| {
-        let mut onsets = |test: &CriticalTest| {
-            let (metrics, by_rate) = false_onsets(test, &mut scratch);
-            (metrics.false_alarm_onsets, by_rate)
-        };
-        Ceilings {
-            test: onsets(chosen),
-            twin: if guarded {
-                onsets(&sensitive_twin(chosen))
-            } else {
-                (u64::MAX, vec![u64::MAX; binding.len()])
-            },
-        }
-    };
-    // The frozen-fix path on the chosen test.
-    if let Some((chosen, _)) = best {
-        let ceilings = silent_ceilings(&chosen);
+    // leave quiet, at the edge of what they can tell.) First the frozen-fix path on the chosen test.
+    if let Some(chosen) = search.chosen() {
+        let ceilings = search.silent_ceilings(&chosen);
         for hold in FROZEN_FIX_S_GRID {
             let test = CriticalTest {
                 frozen_fix_s: Some(hold),
                 ..chosen
             };
-            consider(test, Some(&ceilings), &mut best);
+            search.consider(test, Some(&ceilings));
         }
     }
     // The held-jump path on the test chosen so far: likewise.
-    if let Some((chosen, _)) = best {
-        let ceilings = silent_ceilings(&chosen);
+    if let Some(chosen) = search.chosen() {
+        let ceilings = search.silent_ceilings(&chosen);
         for gate in HELD_JUMP_GATE_GRID {
             for hold_s in HELD_JUMP_S_GRID {
                 let test = CriticalTest {
                     held_jump: Some(HeldOffsetTest { gate, hold_s }),
                     ..chosen
                 };
-                consider(test, Some(&ceilings), &mut best);
+                search.consider(test, Some(&ceilings));
             }
         }
     }
     // The held-offset path (a drift's, tens of seconds) on the test chosen so far: within the
     // budget.
-    if let Some((chosen, _)) = best {
+    if let Some(chosen) = search.chosen() {
         for gate in HELD_OFFSET_GATE_GRID {
             for hold_s in HELD_OFFSET_S_GRID {
                 let test = CriticalTest {
                     held_offset: Some(HeldOffsetTest { gate, hold_s }),
                     ..chosen
                 };
-                consider(test, None, &mut best);
+                search.consider(test, None);
             }
         }
     }
-    let Some((test, _)) = best else {
-        return Err(budget.over_budget(normal_hours, fewest_onsets));
+    let Some(test) = search.chosen() else {
+        return Err(budget.over_budget(search.normal_hours, search.fewest_onsets));
     };
     let critical = critical_rows(rows, offset, theta, lifecycle, &test);
     Ok(CriticalSelection {
@@ -268,6 +188,149 @@ pub fn choose_critical_within(
             })
             .collect(),
     })
+}
+
+/// One critical search: the validation rows under the warning's θ and lifecycle, the budget, and
+/// the best test found so far.
+struct Search<'a> {
+    rows: &'a [ScoredRow],
+    offset: &'a [OffsetSignal],
+    theta: f64,
+    lifecycle: &'a Lifecycle,
+    budget: OperatingPointRule,
+    rules: EventRules,
+    /// With a margin, a test must keep its [`sensitive_twin`] within the rule too.
+    guarded: bool,
+    normal_hours: f64,
+    /// The rates with attack-free time for at least one onset of the budget.
+    binding: Vec<&'a RateGroup>,
+    /// Scratch: whether each row is critical under the test being scored.
+    critical: Vec<bool>,
+    /// The fewest false onsets any test raised (guarded: the more of a test's and its twin's).
+    fewest_onsets: u64,
+    best: Option<(CriticalTest, Metrics)>,
+}
+
+impl<'a> Search<'a> {
+    fn new(
+        rows: &'a [ScoredRow],
+        offset: &'a [OffsetSignal],
+        (theta, lifecycle): (f64, &'a Lifecycle),
+        budget: OperatingPointRule,
+        rules: EventRules,
+        rate_groups: &'a [RateGroup],
+    ) -> Self {
+        let per_hour = budget.budget().unwrap_or(f64::INFINITY);
+        Self {
+            rows,
+            offset,
+            theta,
+            lifecycle,
+            budget,
+            rules,
+            guarded: matches!(
+                budget,
+                OperatingPointRule::WithinFalseAlarmBudgetWithMargin { .. }
+            ),
+            normal_hours: metrics::normal_hours(rows),
+            binding: rate_groups
+                .iter()
+                .filter(|g| per_hour * g.normal_hours >= 1.0)
+                .collect(),
+            critical: Vec::with_capacity(rows.len()),
+            fewest_onsets: u64::MAX,
+            best: None,
+        }
+    }
+
+    fn chosen(&self) -> Option<CriticalTest> {
+        self.best.as_ref().map(|(test, _)| *test)
+    }
+
+    /// The critical rows' metrics under `test`, and its false onsets per binding rate.
+    fn false_onsets(&mut self, test: &CriticalTest) -> (Metrics, Vec<u64>) {
+        fill_critical_rows(
+            self.rows,
+            self.offset,
+            (self.theta, self.lifecycle, test),
+            &mut self.critical,
+        );
+        let candidate = metrics::alarm_metrics(self.rows, &self.critical, self.rules);
+        let by_rate = self
+            .binding
+            .iter()
+            .map(|g| g.false_alarm_onsets(self.rows, &self.critical))
+            .collect();
+        (candidate, by_rate)
+    }
+
+    /// Whether onsets (pooled, per binding rate) keep within `ceiling` (for a decisive path: what
+    /// the test chosen so far raised), or within the budget without one.
+    fn within(&self, pooled: u64, by_rate: &[u64], ceiling: Option<&Onsets>) -> bool {
+        match ceiling {
+            None => {
+                pooled as f64 <= self.budget.allowed_onsets(self.normal_hours)
+                    && self.binding.iter().zip(by_rate).all(|(g, &onsets)| {
+                        onsets as f64 <= self.budget.allowed_onsets(g.normal_hours)
+                    })
+            }
+            Some((most_pooled, most_by_rate)) => {
+                pooled <= *most_pooled
+                    && by_rate
+                        .iter()
+                        .zip(most_by_rate)
+                        .all(|(onsets, most)| onsets <= most)
+            }
+        }
+    }
+
+    /// Scores `test` and keeps it if it is within `ceilings` (the false onsets a test and its
+    /// twin may have; `None`, the budget) and better than the best so far. Guarded, a test within
+    /// them counts its twin's onsets towards the quietest the error reports.
+    fn consider(&mut self, test: CriticalTest, ceilings: Option<&Ceilings>) {
+        let (candidate, by_rate) = self.false_onsets(&test);
+        let pooled = candidate.false_alarm_onsets;
+        if !self.within(pooled, &by_rate, ceilings.map(|c| &c.test)) {
+            self.fewest_onsets = self.fewest_onsets.min(pooled);
+            return;
+        }
+        if self.guarded {
+            let (twin, twin_by_rate) = self.false_onsets(&sensitive_twin(&test));
+            self.fewest_onsets = self.fewest_onsets.min(pooled.max(twin.false_alarm_onsets));
+            if !self.within(
+                twin.false_alarm_onsets,
+                &twin_by_rate,
+                ceilings.map(|c| &c.twin),
+            ) {
+                return;
+            }
+        } else {
+            self.fewest_onsets = self.fewest_onsets.min(pooled);
+        }
+        let improves = self.best.as_ref().is_none_or(|(b_test, b_metrics)| {
+            compare((&test, &candidate), (b_test, b_metrics)) == Ordering::Greater
+        });
+        if improves {
+            self.best = Some((test, candidate));
+        }
+    }
+
+    /// What a decisive path added to `chosen` may not exceed: its false onsets, and (guarded) its
+    /// twin's.
+    fn silent_ceilings(&mut self, chosen: &CriticalTest) -> Ceilings {
+        let (guarded, binding) = (self.guarded, self.binding.len());
+        let mut onsets = |test: &CriticalTest| {
+            let (metrics, by_rate) = self.false_onsets(test);
+            (metrics.false_alarm_onsets, by_rate)
+        };
+        let test = onsets(chosen);
+        let twin = if guarded {
+            onsets(&sensitive_twin(chosen))
+        } else {
+            (u64::MAX, vec![u64::MAX; binding])
+        };
+        Ceilings { test, twin }
+    }
 }
 
 /// False onsets pooled and per binding rate.
