@@ -300,7 +300,7 @@ impl<'a> Search<'a> {
             if !self.within(
                 twin.false_alarm_onsets,
                 &twin_by_rate,
-                ceilings.map(|c| &c.twin),
+                ceilings.and_then(|c| c.twin.as_ref()),
             ) {
                 return;
             }
@@ -318,17 +318,13 @@ impl<'a> Search<'a> {
     /// What a decisive path added to `chosen` may not exceed: its false onsets, and (guarded) its
     /// twin's.
     fn silent_ceilings(&mut self, chosen: &CriticalTest) -> Ceilings {
-        let (guarded, binding) = (self.guarded, self.binding.len());
+        let guarded = self.guarded;
         let mut onsets = |test: &CriticalTest| {
             let (metrics, by_rate) = self.false_onsets(test);
             (metrics.false_alarm_onsets, by_rate)
         };
         let test = onsets(chosen);
-        let twin = if guarded {
-            onsets(&sensitive_twin(chosen))
-        } else {
-            (u64::MAX, vec![u64::MAX; binding])
-        };
+        let twin = guarded.then(|| onsets(&sensitive_twin(chosen)));
         Ceilings { test, twin }
     }
 }
@@ -336,10 +332,11 @@ impl<'a> Search<'a> {
 /// False onsets pooled and per binding rate.
 type Onsets = (u64, Vec<u64>);
 
-/// The false onsets a decisive path may add nothing to: the chosen test's, and its twin's.
+/// The false onsets a decisive path may add nothing to: the chosen test's, and (guarded only) its
+/// twin's.
 struct Ceilings {
     test: Onsets,
-    twin: Onsets,
+    twin: Option<Onsets>,
 }
 
 /// The test twice as sensitive on every path: half the accumulated evidence, half the NIS of each

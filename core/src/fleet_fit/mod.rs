@@ -322,8 +322,8 @@ fn choose_critical_level(
             ),
         },
         Err(error) => kept(format!(
-            "no critical test of the grid keeps its twice-as-sensitive twin within the budget too \
-             (a test counts its twin's onsets): {error}"
+            "no critical test of the grid keeps itself and its twice-as-sensitive twin within the \
+             budget (a test counts its twin's onsets): {error}"
         )),
     }
 }
