@@ -22,7 +22,8 @@ pub(super) struct Anchor {
     pub(super) carried: [f64; 2],
     /// The same, dead-reckoned before the calibration was warm (m).
     pub(super) carried_raw: [f64; 2],
-    /// Variance a telemetry gap added (m² per axis), forgotten with o².
+    /// Variance a telemetry gap added (m² per axis): the motion it may hide, or the error of the
+    /// fix a receiver reacquired after it that the anchor was placed on. Forgotten with o².
     pub(super) gap_m2: f64,
     pub(super) frozen: bool,
     /// Of `frozen_s`, the seconds of the row that froze it (a step's own row: one row's noise).

@@ -46,6 +46,6 @@ pub use misfit::MISFIT_MAX;
 pub use params::{
     AGREEMENT_S, ANCHOR_COUNT, DECISIVE_GATE, FOLLOW_GATE, FOLLOW_S, GAP_ACCELERATION_MPS2,
     LEVEL_DELAY_S, LEVEL_RANGE, MAX_CARRY_GAP_S, NOISE_RANGE_M2, OffsetEvidence, OffsetParams,
-    OffsetStep, SHARE_S, STEP_GROWTH_S, TRUST_S,
+    OffsetStep, REACQUISITION_M2, SHARE_S, STEP_GROWTH_S, TRUST_S,
 };
 pub use state::{AnchorPoint, OffsetTracker};

@@ -23,6 +23,11 @@ pub const AGREEMENT_S: f64 = 5.0;
 /// Seconds the fix and the onboard motion must agree after the anchors are placed before the
 /// anchors are trusted: until then a disagreement places them again instead of freezing them.
 pub const TRUST_S: f64 = 5.0;
+/// Per-axis variance (m²) of a receiver's first fixes after an outage beyond its usual noise: a
+/// receiver reacquiring starts metres off (1–5 m per axis) and converges over seconds, so anchors
+/// placed on its first fix start this unsure of where they stand (3 m per axis, 1-σ). A jump of
+/// 20 m from them is still beyond the decisive gate; a reconverging receiver is not.
+pub const REACQUISITION_M2: f64 = 9.0;
 /// A telemetry gap up to this long (s) carries the anchors across; a longer one re-anchors.
 pub const MAX_CARRY_GAP_S: f64 = 300.0;
 /// 1-σ of the unknown acceleration during a gap (m/s²): the motion a gap of δ seconds may hide is

@@ -218,12 +218,87 @@ fn the_first_fix_after_an_outage_is_trusted_only_after_agreement() {
     let back = tracker.push(&step([-15.0, 0.0], 1.0));
     assert_eq!((back.nis, back.anchor_age_s), ([0.0, 0.0], 0.0));
     assert!(!back.displaced());
-    // After TRUST_S of agreement the same step is a jump again.
+    // After TRUST_S of agreement a step of 20 m is a jump again (the same 15 m is still within
+    // what a receiver reacquiring may be off by: displaced, not decisive).
     for _ in 0..(TRUST_S as usize) {
         assert!(!tracker.push(&step([0.0; 2], 1.0)).displaced());
     }
-    let jump = tracker.push(&step([-15.0, 0.0], 1.0));
+    let mut probe = tracker.clone();
+    let within = probe.push(&step([-15.0, 0.0], 1.0));
+    assert!(
+        within.displaced() && within.max_nis() < DECISIVE_GATE,
+        "{within:?}"
+    );
+    let jump = tracker.push(&step([-20.0, 0.0], 1.0));
     assert!(jump.max_nis() >= DECISIVE_GATE && jump.arrived_by_step);
+}
+
+/// A trusted tracker through a 10 s outage, whose receiver reappears `first_m` east of the track
+/// and converges back to it as exp(−t/τ) over 1 s rows; returns each row's channels.
+fn reacquiring(first_m: f64, tau_s: f64, rows: usize) -> (OffsetTracker, Vec<OffsetEvidence>) {
+    let mut tracker = trusted(&unit_params());
+    tracker.push(&step([first_m, 0.0], 10.0));
+    let error = |t: f64| first_m * (-t / tau_s).exp();
+    let found = (1..=rows)
+        .map(|t| {
+            let t = t as f64;
+            tracker.push(&step([error(t) - error(t - 1.0), 0.0], 1.0))
+        })
+        .collect();
+    (tracker, found)
+}
+
+#[test]
+fn a_receiver_reconverging_after_an_outage_is_not_held_as_an_offset() {
+    // 8 m off on reappearing, back on the track with τ = 5 s: the slow anchor, placed on the
+    // first fix, ends up holding most of those 8 m (GNSS noise alone, 1 m per axis, would make
+    // that a NIS of about 50, a decisive offset). Its placement's uncertainty (3 m per axis,
+    // forgotten as it follows) keeps it below the follow gate throughout.
+    let (_, rows) = reacquiring(8.0, 5.0, 60);
+    let most_m = rows.iter().map(|r| r.offset_norm_m[1]).fold(0.0, f64::max);
+    assert!(most_m > 5.0, "the slow anchor holds {most_m} m");
+    for (t, row) in rows.iter().enumerate() {
+        assert!(
+            row.max_nis() < FOLLOW_GATE && !row.displaced(),
+            "{t} s: {row:?}"
+        );
+    }
+    // The first row tests what each anchor kept of 8·(1 − e^(−1/5)) m against the GNSS noise and
+    // the receiver's 9 m², which no anchor has begun to forget at the row's start.
+    let moved = 8.0 * (1.0 - (-1.0_f64 / 5.0).exp());
+    for k in 0..ANCHOR_COUNT {
+        let kept = keep(1.0, k);
+        let expected = (kept * moved).powi(2) / (1.0 + REACQUISITION_M2);
+        assert!(
+            (rows[0].nis[k] - expected).abs() < 1e-9,
+            "{k}: {:?}",
+            rows[0]
+        );
+    }
+}
+
+#[test]
+fn a_jump_from_anchors_placed_on_a_reacquired_fix_is_still_decisive() {
+    // 10 s after reappearing 3 m off, a 20 m jump: beyond the decisive gate from anchors whose
+    // placement was 3 m per axis unsure.
+    let (mut tracker, _) = reacquiring(3.0, 2.0, 10);
+    let jump = tracker.push(&step([0.0, 20.0], 1.0));
+    assert!(
+        jump.max_nis() >= DECISIVE_GATE && jump.arrived_by_step,
+        "{jump:?}"
+    );
+    // A session's first anchors carry no such uncertainty: the same 8 m build-up is held there.
+    let mut tracker = trusted(&unit_params());
+    let error = |t: f64| 8.0 * (-t / 5.0).exp();
+    let most_nis = (1..=60)
+        .map(|t| {
+            let t = t as f64;
+            tracker
+                .push(&step([error(t) - error(t - 1.0), 0.0], 1.0))
+                .max_nis()
+        })
+        .fold(0.0, f64::max);
+    assert!(most_nis >= DECISIVE_GATE, "{most_nis}");
 }
 
 #[test]

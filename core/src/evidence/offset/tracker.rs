@@ -10,8 +10,8 @@ use super::held_jump::{RETURN_SHARE, StepHold};
 use super::misfit::POPULATION_LOG_LEVEL;
 use super::params::{
     AGREEMENT_S, ANCHOR_COUNT, DECISIVE_GATE, FOLLOW_GATE, FOLLOW_S, LEVEL_COUNT, LEVEL_RANGE,
-    OffsetEvidence, OffsetParams, OffsetStep, SHARE_S, STEP_GROWTH_S, STEP_LEVEL, TRUST_S, along,
-    nis, norm_squared,
+    OffsetEvidence, OffsetParams, OffsetStep, REACQUISITION_M2, SHARE_S, STEP_GROWTH_S, STEP_LEVEL,
+    TRUST_S, along, nis, norm_squared,
 };
 use super::state::{AnchorPoint, LEVEL_SNAPSHOTS, LevelSnapshot, OffsetTracker};
 use crate::evidence::MAX_GAP_S;
@@ -38,6 +38,10 @@ struct Row {
     outlier: bool,
     /// The vehicle's dead reckoning can carry an anchor (its misfit is within the level's bound).
     dead_reckoning_carries: bool,
+    /// How far a receiver that reacquired may still be off, or step (m² per axis): what the slow
+    /// anchor has not yet forgotten of its placement's uncertainty, up to [`REACQUISITION_M2`].
+    /// Every anchor's test and the change since a freeze allow for it.
+    reacquisition_m2: f64,
 }
 
 /// The anchors' test of one row.
@@ -89,12 +93,14 @@ impl OffsetTracker {
         *self = Self::new(&self.params);
     }
 
-    /// A new anchor at the current fix: the next offsets start from 0 with the GNSS noise as their
-    /// uncertainty. The vehicle's levels are kept (they describe its receiver).
+    /// A new anchor at the current fix after a break in the stream (a long outage, the source's
+    /// new trajectory, time going backwards): the next offsets start from 0, with the GNSS noise
+    /// and a reacquiring receiver's error ([`REACQUISITION_M2`]) as their uncertainty. The
+    /// vehicle's levels are kept (they describe its receiver).
     pub fn re_anchor(&mut self) {
         self.share = [0.0; 2];
         self.agreed_s = 0.0;
-        self.re_anchor_keeping_levels();
+        self.re_anchor_keeping_levels(REACQUISITION_M2);
         self.point = None;
     }
 
@@ -126,8 +132,9 @@ impl OffsetTracker {
             // Back inside what the gap allows: a fresh anchor here (a tunnel is not a jump). Like
             // a session's first fix, the first fix after an outage is one unconfirmed fix (a
             // receiver reacquiring may be off by a reflection): it is trusted after TRUST_S of
-            // agreement, and a disagreement before then places the anchors again.
-            self.re_anchor_keeping_levels();
+            // agreement, and a disagreement before then places the anchors again. Its error, still
+            // converging, stays in the anchors' uncertainty until they have followed it away.
+            self.re_anchor_keeping_levels(REACQUISITION_M2);
             self.agreed_s = 0.0;
             return self.last;
         }
@@ -186,6 +193,9 @@ impl OffsetTracker {
             // reckoning cannot carry an anchor (a misfit beyond the level's bound) it means
             // nothing.
             dead_reckoning_carries: misfits[ANCHOR_COUNT - 1] <= 1.0,
+            // A receiver that held its first, unconverged fix while the vehicle stood releases it
+            // in one step once the vehicle moves: the change since a freeze allows for it.
+            reacquisition_m2: self.reacquisition_m2(),
         }
     }
 
@@ -201,14 +211,14 @@ impl OffsetTracker {
             // false position: the anchors are placed again here.
             self.step_hold = None;
             if !self.anchors[ANCHOR_COUNT - 1].frozen {
-                self.re_anchor_keeping_levels();
+                self.re_anchor_keeping_levels(self.reacquisition_m2());
                 return true;
             }
         }
         if self.returns(step) {
             // The fix stepped back to where the onboard motion says the vehicle is: the spoofer
             // let go. Trust GNSS again from here (the rest of the offset is dead-reckoning error).
-            self.re_anchor_keeping_levels();
+            self.re_anchor_keeping_levels(self.reacquisition_m2());
             return true;
         }
         false
@@ -248,7 +258,10 @@ impl OffsetTracker {
             }
             anchor.gap_since_freeze_m2 += row.gap_m2;
             anchor.frozen_s += delta_t;
-            let variance = anchor.variance(&self.params, k);
+            // The receiver's own unconverged error counts against every anchor, however quickly
+            // this one forgot the fix it was placed on.
+            let variance =
+                anchor.variance(&self.params, k) + (row.reacquisition_m2 - anchor.gap_m2).max(0.0);
             let share = anchor.calibration_share(&row.calibration_error);
             test.population_nis[k] = nis(anchor.offset, variance, &share);
             // While frozen, a misfit vehicle's dead-reckoning error beyond the population's (as its
@@ -338,7 +351,7 @@ impl OffsetTracker {
             self.count_share(max_nis.max(FOLLOW_GATE), step.delta_t);
             self.evidence(step, test)
         });
-        self.re_anchor_keeping_levels();
+        self.re_anchor_keeping_levels(self.reacquisition_m2());
         self.agreed_s = 0.0;
         found.unwrap_or(self.last)
     }
@@ -433,11 +446,26 @@ impl OffsetTracker {
             && norm_squared(after) <= RETURN_SHARE * RETURN_SHARE * norm_squared(slow.offset)
     }
 
+    /// How far a receiver that reacquired after an outage may still be off (m² per axis): what
+    /// the slow anchor has not yet forgotten of the uncertainty it was placed with, up to
+    /// [`REACQUISITION_M2`]; 0 in a trajectory that began with the session. Anchors placed
+    /// again within the trajectory start with it (the receiver is no surer on this fix than on
+    /// the last), and every test allows for it.
+    fn reacquisition_m2(&self) -> f64 {
+        self.anchors[ANCHOR_COUNT - 1].gap_m2.min(REACQUISITION_M2)
+    }
+
     /// A fresh anchor at the current point, keeping the vehicle's levels, the shares and the
-    /// trust (the fix is where the motion allows it to be).
-    fn re_anchor_keeping_levels(&mut self) {
-        self.anchors = [Anchor::default(); ANCHOR_COUNT];
-        self.shadows = [Anchor::default(); ANCHOR_COUNT];
+    /// trust (the fix is where the motion allows it to be). `placement_m2` (per axis) is how far
+    /// the fix it stands on may be from the truth beyond the GNSS noise; like a gap's variance it is
+    /// forgotten as the anchor follows.
+    fn re_anchor_keeping_levels(&mut self, placement_m2: f64) {
+        let placed = Anchor {
+            gap_m2: placement_m2,
+            ..Anchor::default()
+        };
+        self.anchors = [placed; ANCHOR_COUNT];
+        self.shadows = [placed; ANCHOR_COUNT];
         self.held_s = f64::NAN;
         self.arrived_by_step = false;
         self.step_hold = None;
@@ -450,7 +478,7 @@ impl OffsetTracker {
 }
 
 /// A frozen anchor's change since the last trusted fix, against one row's noise growing with the
-/// time and the distance since.
+/// time and the distance since, and what a receiver that reacquired may still step.
 fn change_nis(anchor: &Anchor, k: usize, row: &Row, bias_m2: f64) -> f64 {
     let change = [
         anchor.offset[0] - anchor.origin[0],
@@ -459,7 +487,8 @@ fn change_nis(anchor: &Anchor, k: usize, row: &Row, bias_m2: f64) -> f64 {
     let step_variance = row.step_test_m2 * (1.0 + anchor.frozen_s / STEP_GROWTH_S)
         + row.misfits[k] * row.growth[k] * norm_squared(anchor.carried_since_freeze)
         + bias_m2
-        + anchor.gap_since_freeze_m2;
+        + anchor.gap_since_freeze_m2
+        + row.reacquisition_m2;
     nis(
         change,
         step_variance,
