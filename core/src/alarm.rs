@@ -132,8 +132,10 @@ pub fn lifecycle_theta_grid() -> Vec<f64> {
 pub const ON_S_GRID: [f64; 7] = [0.0, 1.0, 2.0, 4.0, 8.0, 12.0, 16.0];
 /// T_off grid (s).
 pub const OFF_S_GRID: [f64; 3] = [2.0, 5.0, 10.0];
-/// Grid of the seconds an offset must be held beyond the decisive gate (s).
-pub const DECISIVE_S_GRID: [f64; 4] = [1.0, 2.0, 3.0, 5.0];
+/// Grid of the seconds an offset must be held beyond the decisive gate (s). A jump must be alarmed
+/// within 10 s; a hold restarted once by a sample back inside the gate takes twice the hold and a
+/// sample, so no hold is longer than 3 s.
+pub const DECISIVE_S_GRID: [f64; 3] = [1.0, 2.0, 3.0];
 
 /// Confirmed alarms of `rows` under θ and `lifecycle`, with the offset evidence of each row
 /// (`offset` empty: none); a change of trajectory key starts a new trajectory. A NaN score is never

@@ -211,14 +211,14 @@ impl OffsetTracker {
             // false position: the anchors are placed again here.
             self.step_hold = None;
             if !self.anchors[ANCHOR_COUNT - 1].frozen {
-                self.re_anchor_keeping_levels(self.reacquisition_m2());
+                self.re_anchor_keeping_levels(0.0);
                 return true;
             }
         }
         if self.returns(step) {
             // The fix stepped back to where the onboard motion says the vehicle is: the spoofer
             // let go. Trust GNSS again from here (the rest of the offset is dead-reckoning error).
-            self.re_anchor_keeping_levels(self.reacquisition_m2());
+            self.re_anchor_keeping_levels(0.0);
             return true;
         }
         false
@@ -351,7 +351,7 @@ impl OffsetTracker {
             self.count_share(max_nis.max(FOLLOW_GATE), step.delta_t);
             self.evidence(step, test)
         });
-        self.re_anchor_keeping_levels(self.reacquisition_m2());
+        self.re_anchor_keeping_levels(0.0);
         self.agreed_s = 0.0;
         found.unwrap_or(self.last)
     }
@@ -448,9 +448,11 @@ impl OffsetTracker {
 
     /// How far a receiver that reacquired after an outage may still be off (m² per axis): what
     /// the slow anchor has not yet forgotten of the uncertainty it was placed with, up to
-    /// [`REACQUISITION_M2`]; 0 in a trajectory that began with the session. Anchors placed
-    /// again within the trajectory start with it (the receiver is no surer on this fix than on
-    /// the last), and every test allows for it.
+    /// [`REACQUISITION_M2`]; 0 in a trajectory that began with the session. Every test allows
+    /// for it. Anchors placed again within the trajectory start without it: what places them
+    /// again (a NIS of 16 or more against a variance that includes it, so an offset of at least
+    /// twice its 1-σ, 6 m at first) is more than a converging receiver closes, and a drift that
+    /// starts as the receiver reacquires must not keep it.
     fn reacquisition_m2(&self) -> f64 {
         self.anchors[ANCHOR_COUNT - 1].gap_m2.min(REACQUISITION_M2)
     }
