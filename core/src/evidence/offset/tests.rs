@@ -637,3 +637,28 @@ fn an_offset_the_calibration_error_explains_is_not_held() {
     assert!(without >= FOLLOW_GATE, "{without}");
     assert!(with < 4.0, "{with}");
 }
+
+#[test]
+fn a_break_before_any_fix_places_the_anchors_as_a_fresh_session_does() {
+    // A stream that opens with the source's "new trajectory" flag must be tested exactly as one
+    // without it (offline passes honour the flag on a recording's first row, a live session's
+    // first sample may not carry it); after a fix, a break places the anchors with the
+    // reacquisition's allowance, and a second break before the next fix keeps it.
+    let fresh = OffsetTracker::new(&unit_params());
+    let mut broken = fresh.clone();
+    broken.re_anchor();
+    assert_eq!(format!("{broken:?}"), format!("{fresh:?}"));
+    let mut tracker = trusted(&unit_params());
+    tracker.set_point(AnchorPoint {
+        fix: crate::geo::LatLon {
+            lat_deg: 0.0,
+            lon_deg: 0.0,
+        },
+        velocity: [0.0; 2],
+        time_s: 0.0,
+    });
+    tracker.re_anchor();
+    assert_eq!(tracker.anchors[ANCHOR_COUNT - 1].gap_m2, REACQUISITION_M2);
+    tracker.re_anchor();
+    assert_eq!(tracker.anchors[ANCHOR_COUNT - 1].gap_m2, REACQUISITION_M2);
+}

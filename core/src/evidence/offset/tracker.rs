@@ -96,11 +96,18 @@ impl OffsetTracker {
     /// A new anchor at the current fix after a break in the stream (a long outage, the source's
     /// new trajectory, time going backwards): the next offsets start from 0, with the GNSS noise
     /// and a reacquiring receiver's error ([`REACQUISITION_M2`]) as their uncertainty. The
-    /// vehicle's levels are kept (they describe its receiver).
+    /// vehicle's levels are kept (they describe its receiver). Before any usable fix there is
+    /// nothing to break from: the anchors keep what they were placed with (a session's first
+    /// carry none), so a stream that opens with the source's break is tested as one without it.
     pub fn re_anchor(&mut self) {
+        let placement_m2 = if self.point.is_some() {
+            REACQUISITION_M2
+        } else {
+            self.reacquisition_m2()
+        };
         self.share = [0.0; 2];
         self.agreed_s = 0.0;
-        self.re_anchor_keeping_levels(REACQUISITION_M2);
+        self.re_anchor_keeping_levels(placement_m2);
         self.point = None;
     }
 
