@@ -11,7 +11,8 @@
 #      validation hours of the fleet distribution and the suite's attacked validation drives, measures both
 #      severities on clean test fleets, and writes the model with its critical test.
 #
-# Usage: scripts/retrain-default.sh [OUT_DIR]   (default out/retrain-default; about 25 minutes on 2 cores)
+# Usage: scripts/retrain-default.sh [OUT_DIR]   (default out/retrain-default; about 10 minutes on 2 cores
+# after the release build)
 # It writes OUT_DIR/default.json, which is models/default.json byte for byte when run from the commit
 # that bundled it (`cmp` them); `spoofwatch models import` serves it.
 # The artifact records no training wall time, the one field that differs between runs, so a second run
