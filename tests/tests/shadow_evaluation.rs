@@ -48,19 +48,23 @@ async fn get_shadow(clients: &mut Clients, name: &str) -> v1::Shadow {
         .into_inner()
 }
 
-/// Polls GetShadow every 50 ms until the shadow scored `samples` samples and stored the onsets it
-/// counted (it scores and stores off the request path); panics after 30 s.
-async fn scored(clients: &mut Clients, name: &str, samples: u64) -> v1::Shadow {
+/// Polls GetShadow every 50 ms until the shadow scored `samples` samples, stored `starts` vehicle
+/// starts (first states and restarts) and stored the onsets it counted; panics after 30 s. It scores
+/// off the request path, and its writer stores starts and onsets after the worker counted them.
+async fn scored(clients: &mut Clients, name: &str, samples: u64, starts: u64) -> v1::Shadow {
     for _ in 0..600 {
         let shadow = get_shadow(clients, name).await;
         let summary = shadow.summary.expect("a summary");
         let onsets = summary.shadow_onsets.unwrap_or_default().warning;
-        if summary.samples_scored + summary.samples_shed >= samples && summary.alarms == onsets {
+        if summary.samples_scored + summary.samples_shed >= samples
+            && summary.vehicles + summary.vehicle_restarts >= starts
+            && summary.alarms == onsets
+        {
             return get_shadow(clients, name).await;
         }
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
-    panic!("the shadow never scored {samples} samples");
+    panic!("the shadow never scored {samples} samples and stored {starts} vehicle starts");
 }
 
 async fn shadow_alarms(clients: &mut Clients, name: &str) -> Vec<v1::ShadowAlarm> {
@@ -167,7 +171,7 @@ async fn a_shadow_lists_its_would_be_alarms_and_leaves_the_real_ones_unchanged()
         "the real alarms are unchanged, bit for bit"
     );
 
-    let shadow = scored(&mut clients, &shadow.name, total_samples()).await;
+    let shadow = scored(&mut clients, &shadow.name, total_samples(), 2).await;
     let summary = shadow.summary.expect("a summary");
     assert_eq!(summary.samples_scored, total_samples(), "nothing shed");
     assert_eq!(summary.samples_shed, 0);
@@ -240,7 +244,7 @@ async fn a_shadow_survives_a_restart_and_counts_the_vehicle_restart() {
         .await
         .expect("scored");
     stream.finish().await.expect("ends");
-    scored(&mut clients, &shadow.name, 30).await;
+    scored(&mut clients, &shadow.name, 30, 1).await;
     server.stop().await;
 
     let server = TestServer::start(test_config(dir.path())).await;
@@ -254,7 +258,7 @@ async fn a_shadow_survives_a_restart_and_counts_the_vehicle_restart() {
         .await
         .expect("scored");
     stream.finish().await.expect("ends");
-    let summary = scored(&mut clients, &shadow.name, samples.len() as u64)
+    let summary = scored(&mut clients, &shadow.name, samples.len() as u64, 2)
         .await
         .summary
         .expect("a summary");
