@@ -24,7 +24,8 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use serde::Serialize;
 use spoofwatch_client::cli::evaluate::load_artifact;
-use spoofwatch_core::critical_search::{CriticalSelection, choose_critical};
+use spoofwatch_core::alarm::OperatingPointRule;
+use spoofwatch_core::critical_search::{CriticalSelection, choose_critical_within};
 use spoofwatch_core::detector::{Decision, offset_signal, run_records};
 use spoofwatch_core::evaluation::{Scored, score_tracks, trajectory_key};
 use spoofwatch_core::metrics::{EventRules, ScoredRow};
@@ -78,6 +79,11 @@ pub struct Args {
     /// Measure the model's own critical test instead of choosing one.
     #[arg(long)]
     keep_critical: bool,
+    /// Choose the critical test with the fleet fit's guard band: its onsets one Poisson deviation
+    /// below the budget's count, and its twice-as-sensitive twin within that too
+    /// (`docs/detector.md` §12.3).
+    #[arg(long, conflicts_with = "keep_critical")]
+    guard_band: bool,
     /// Write the model with the chosen critical test to this file (without its training wall time,
     /// so that retraining writes the same bytes).
     #[arg(long)]
@@ -144,6 +150,8 @@ struct Report {
     critical_budget_per_hour: f64,
     warning_budget_per_hour: f64,
     validation_hours_per_rate: u64,
+    /// Whether the critical test was chosen with the guard band.
+    guard_band: bool,
     test_hours_per_rate: u64,
     /// Error sources of the fleet distribution left out of the clean drives.
     without: Vec<String>,
@@ -172,15 +180,18 @@ pub fn run(args: Args) -> Result<()> {
     } else {
         eprintln!("choosing the critical test on validation drives");
         let (rows, offset) = validation_rows(&artifact, &args, threads)?;
-        let selection = choose_critical(
-            &rows,
-            &offset,
-            theta,
-            &lifecycle,
-            CRITICAL_BUDGET_PER_HOUR,
-            EventRules::Spec,
-        )
-        .context("choosing the critical test")?;
+        let budget = if args.guard_band {
+            OperatingPointRule::WithinFalseAlarmBudgetWithMargin {
+                per_hour: CRITICAL_BUDGET_PER_HOUR,
+            }
+        } else {
+            OperatingPointRule::WithinFalseAlarmBudget {
+                per_hour: CRITICAL_BUDGET_PER_HOUR,
+            }
+        };
+        let selection =
+            choose_critical_within(&rows, &offset, theta, &lifecycle, budget, EventRules::Spec)
+                .context("choosing the critical test")?;
         artifact.critical = Some(selection.test);
         Some(selection)
     };
@@ -219,6 +230,7 @@ pub fn run(args: Args) -> Result<()> {
         critical_budget_per_hour: CRITICAL_BUDGET_PER_HOUR,
         warning_budget_per_hour: WARNING_BUDGET_PER_HOUR,
         validation_hours_per_rate: args.validation_hours,
+        guard_band: args.guard_band,
         test_hours_per_rate: args.test_hours,
         without: args.without.clone(),
         critical,
@@ -578,8 +590,13 @@ fn render_markdown(report: &Report) -> String {
     if let Some(selection) = &report.selection {
         let _ = writeln!(
             md,
-            "Validation ({} attack-free hours per rate): critical onsets per rate:",
-            report.validation_hours_per_rate
+            "Validation ({} attack-free hours per rate{}): critical onsets per rate:",
+            report.validation_hours_per_rate,
+            if report.guard_band {
+                ", with the guard band"
+            } else {
+                ""
+            }
         );
         for (rate, onsets, hours) in &selection.false_onsets_by_rate {
             let _ = writeln!(md, "- {rate} Hz: {onsets} in {hours:.1} h");
