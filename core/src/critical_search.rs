@@ -30,7 +30,12 @@ pub const FROZEN_FIX_S_GRID: [f64; 4] = [0.0, 2.0, 4.0, 8.0];
 /// Grid of the held-jump path's gate, tried on the test chosen with its frozen-fix path: from the
 /// decisive gate of §4.2 (5σ) to the decisive path's lowest alternative (20σ).
 pub const HELD_JUMP_GATE_GRID: [f64; 5] = [25.0, 49.0, 100.0, 225.0, 400.0];
-/// Grid of the seconds a jump must have been held: within the 10 s a jump must be paged in.
+/// Grid of the held-step path's gate (the arrival step's NIS against the vehicle's one-row noise),
+/// tried on the test chosen with its held-jump path: 7σ to 15σ of one row's noise, so that a 20 m
+/// jump on a receiver like the population's (about 1.4 m per axis and row) passes the lower ones.
+pub const HELD_STEP_GATE_GRID: [f64; 5] = [49.0, 64.0, 100.0, 144.0, 225.0];
+/// Grid of the seconds a jump must have been held, on the held-jump and held-step paths: within
+/// the 10 s a jump must be paged in.
 pub const HELD_JUMP_S_GRID: [f64; 4] = [1.0, 2.0, 4.0, 8.0];
 /// Grid of the held-offset path's gate, tried last: from the decisive gate of §4.2 to 20σ.
 pub const HELD_OFFSET_GATE_GRID: [f64; 5] = [25.0, 49.0, 100.0, 225.0, 400.0];
@@ -151,6 +156,19 @@ pub fn choose_critical_within(
             for hold_s in HELD_JUMP_S_GRID {
                 let test = CriticalTest {
                     held_jump: Some(HeldOffsetTest { gate, hold_s }),
+                    ..chosen
+                };
+                search.consider(test, Some(&ceilings));
+            }
+        }
+    }
+    // The held jump tested by its arrival step: likewise.
+    if let Some(chosen) = search.chosen() {
+        let ceilings = search.silent_ceilings(&chosen);
+        for gate in HELD_STEP_GATE_GRID {
+            for hold_s in HELD_JUMP_S_GRID {
+                let test = CriticalTest {
+                    held_step: Some(HeldOffsetTest { gate, hold_s }),
                     ..chosen
                 };
                 search.consider(test, Some(&ceilings));
@@ -353,6 +371,7 @@ pub fn sensitive_twin(test: &CriticalTest) -> CriticalTest {
         decisive_s: test.decisive_s / 2.0,
         frozen_fix_s: test.frozen_fix_s.map(|hold| hold / 2.0),
         held_jump: test.held_jump.map(half),
+        held_step: test.held_step.map(half),
         held_offset: test.held_offset.map(half),
     }
 }
@@ -373,6 +392,7 @@ fn grid() -> impl Iterator<Item = CriticalTest> {
                             decisive_s,
                             frozen_fix_s: None,
                             held_jump: None,
+                            held_step: None,
                             held_offset: None,
                         })
                 })
@@ -398,6 +418,7 @@ fn compare(a: (&CriticalTest, &Metrics), b: (&CriticalTest, &Metrics)) -> Orderi
         .then(a_test.decisive_s.total_cmp(&b_test.decisive_s))
         .then(frozen_fix_hold(a_test).total_cmp(&frozen_fix_hold(b_test)))
         .then(compare_quietness(a_test.held_jump, b_test.held_jump))
+        .then(compare_quietness(a_test.held_step, b_test.held_step))
         .then(compare_quietness(a_test.held_offset, b_test.held_offset))
 }
 
@@ -536,6 +557,7 @@ mod tests {
                     nis: if held.is_some() { 20.0 } else { 0.0 },
                     frozen_fix_s: held,
                     held_jump_s: None,
+                    held_step_nis: 0.0,
                     reacquiring: false,
                 }
             }));
@@ -595,6 +617,7 @@ mod tests {
             nis: if held.is_some() { 60.0 } else { 0.0 },
             frozen_fix_s: None,
             held_jump_s: held.filter(|_| jump),
+            held_step_nis: 0.0,
             reacquiring: false,
         };
         let mut rows = Vec::new();
@@ -674,6 +697,7 @@ mod tests {
                     nis: if held.is_some() { 60.0 } else { 0.0 },
                     frozen_fix_s: None,
                     held_jump_s: held,
+                    held_step_nis: 0.0,
                     reacquiring: false,
                 }
             }));
@@ -697,6 +721,7 @@ mod tests {
                     nis: if held.is_some() { 60.0 } else { 0.0 },
                     frozen_fix_s: None,
                     held_jump_s: None,
+                    held_step_nis: 0.0,
                     reacquiring: false,
                 }
             }));
@@ -722,6 +747,57 @@ mod tests {
         let without = choose_critical(&rows, &plain, 0.8, &LIFECYCLE, 0.01, EventRules::Spec)
             .expect("a test");
         assert_eq!(without.test.held_jump, None, "{:?}", without.test);
+    }
+
+    #[test]
+    fn a_held_step_path_is_added_at_the_quietest_gate_that_catches_every_jump() {
+        // Attacks: a jump at 100 s that arrived with a step NIS of 150, held while the anchors'
+        // NIS (levels at their bound) stays at 20 and p̂ weak. Clean hours: every ten minutes a
+        // receiver's own step of NIS 60, held 20 s, with the same anchors' NIS.
+        let signal = |held: Option<f64>, arrival: f64| OffsetSignal {
+            held_s: held,
+            displaced: held.is_some(),
+            anchored: true,
+            nis: if held.is_some() { 20.0 } else { 0.0 },
+            frozen_fix_s: None,
+            held_jump_s: held,
+            held_step_nis: if held.is_some() { arrival } else { 0.0 },
+            reacquiring: false,
+        };
+        let mut rows = Vec::new();
+        let mut offset = Vec::new();
+        let jump_at = 100.0;
+        for key in 0..10 {
+            let attack = trajectory(
+                key,
+                300,
+                |t| if t >= jump_at { 2.5 } else { -6.0 },
+                |t| t >= jump_at,
+            );
+            offset.extend(attack.iter().map(|row| {
+                signal(
+                    (row.time_s >= jump_at).then_some(row.time_s - jump_at),
+                    150.0,
+                )
+            }));
+            rows.extend(attack);
+        }
+        let honest =
+            |t: f64| (t % 600.0 >= 300.0 && t % 600.0 < 320.0).then_some(t % 600.0 - 300.0);
+        for key in 100..103 {
+            let clean = trajectory(key, 3600, |_| -6.0, |_| false);
+            offset.extend(clean.iter().map(|row| signal(honest(row.time_s), 60.0)));
+            rows.extend(clean);
+        }
+        let chosen = choose_critical(&rows, &offset, 0.8, &LIFECYCLE, 0.01, EventRules::Spec)
+            .expect("a test");
+        assert_eq!(chosen.metrics.detected_events, 10, "{chosen:?}");
+        assert_eq!(chosen.metrics.false_alarm_onsets, 0, "{chosen:?}");
+        assert_eq!(chosen.test.held_jump, None, "{:?}", chosen.test);
+        let step = chosen.test.held_step.expect("a held-step path");
+        // 49 pages on the receiver's own steps; of the gates that catch every jump as soon, the
+        // highest below 150.
+        assert_eq!((step.gate, step.hold_s), (144.0, 1.0), "{step:?}");
     }
 
     #[test]
@@ -824,6 +900,7 @@ mod tests {
     #[test]
     fn the_twin_halves_every_threshold_gate_and_hold_and_keeps_k() {
         let test = CriticalTest {
+            held_step: None,
             reference_logit: 3.0,
             threshold: 80.0,
             gate: 1600.0,
@@ -839,6 +916,7 @@ mod tests {
         assert_eq!(
             twin,
             CriticalTest {
+                held_step: None,
                 reference_logit: 3.0,
                 threshold: 40.0,
                 gate: 800.0,

@@ -206,6 +206,7 @@ pub fn offset_signal(evidence: &Evidence) -> OffsetSignal {
                 && o.anchor_age_s - o.held_s >= JUMP_SETTLED_S)
                 .then_some(beyond_gate.map(|held| held.min(o.held_step_moved_s)))
                 .flatten(),
+            held_step_nis: o.held_step_nis,
             // When the offset now held began: the anchors' age less its hold.
             reacquiring: evidence.trajectory > 0 && o.anchor_age_s - o.held_s < REACQUISITION_S,
         }
@@ -215,7 +216,8 @@ pub fn offset_signal(evidence: &Evidence) -> OffsetSignal {
 /// Everything a [`Detector`] carries from one sample to the next, without the model: evidence
 /// builder (drift calibration included), liquid state (h, v), persistence run, lifecycle, the
 /// receiver flag's memory and alarm flag. Continuing from it with [`Detector::restore`] gives the
-/// outputs of an uninterrupted detector.
+/// outputs of an uninterrupted detector. Its encoding is positional (a session snapshot's): a new
+/// field anywhere inside it is a new snapshot schema.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct DetectorState {
     evidence: EvidenceBuilder,
@@ -224,41 +226,10 @@ pub struct DetectorState {
     #[serde(default)]
     lifecycle: AlarmLifecycle,
     alarm_on: bool,
-    /// After the lifecycle, so that a state saved without it ([`DetectorStateWithoutFlags`]) is
-    /// this one cut short.
     #[serde(default)]
     flags: FlagCorroboration,
-    /// Last, so that a state saved before severities existed is this one cut short: it continues
-    /// as an episode that has not escalated.
     #[serde(default)]
     escalation: Escalation,
-}
-
-/// A [`DetectorState`] as saved before the detector kept its receiver flag's memory: the same
-/// fields without it. It continues as a state whose receiver has raised no flag in this
-/// trajectory, which is what it was (no flag was read then).
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct DetectorStateWithoutFlags {
-    evidence: EvidenceBuilder,
-    liquid: LiquidState,
-    alarm: PersistenceAlarm,
-    #[serde(default)]
-    lifecycle: AlarmLifecycle,
-    alarm_on: bool,
-}
-
-impl From<DetectorStateWithoutFlags> for DetectorState {
-    fn from(old: DetectorStateWithoutFlags) -> Self {
-        Self {
-            evidence: old.evidence,
-            liquid: old.liquid,
-            alarm: old.alarm,
-            lifecycle: old.lifecycle,
-            alarm_on: old.alarm_on,
-            flags: FlagCorroboration::default(),
-            escalation: Escalation::default(),
-        }
-    }
 }
 
 /// Why a [`DetectorState`] cannot continue under a model.

@@ -92,6 +92,10 @@ pub struct OffsetSignal {
     /// the critical test's held-jump path.
     #[serde(default)]
     pub held_jump_s: Option<f64>,
+    /// That jump's arrival step against the vehicle's one-row noise (§4.2's step test), for the
+    /// critical test's held-step path; 0 without one.
+    #[serde(default)]
+    pub held_step_nis: f64,
     /// The offset held now began less than [`REACQUISITION_S`](crate::detector::REACQUISITION_S)
     /// after the anchors were placed after an outage, while the receiver's fixes may still have
     /// been converging: the critical test's held paths do not count it.
@@ -200,6 +204,7 @@ impl AlarmLifecycle {
                         .offset
                         .held_jump_s
                         .filter(|_| !input.offset.reacquiring),
+                    held_step_nis: input.offset.held_step_nis,
                     held_offset_s: input.offset.held_s.filter(|_| !input.offset.reacquiring),
                 },
             )
@@ -294,6 +299,7 @@ mod tests {
                         nis: 0.0,
                         frozen_fix_s: None,
                         held_jump_s: None,
+                        held_step_nis: 0.0,
                         reacquiring: false,
                     },
                     flag: FlagSignal::default(),
@@ -427,6 +433,7 @@ mod tests {
                 nis: 0.0,
                 frozen_fix_s: None,
                 held_jump_s: None,
+                held_step_nis: 0.0,
                 reacquiring: false,
             },
             flag: FlagSignal::default(),
@@ -453,6 +460,7 @@ mod tests {
                 nis: 0.0,
                 frozen_fix_s: None,
                 held_jump_s: None,
+                held_step_nis: 0.0,
                 reacquiring: false,
             },
             flag: FlagSignal {
@@ -497,6 +505,7 @@ mod tests {
                             nis: 0.0,
                             frozen_fix_s: None,
                             held_jump_s: None,
+                            held_step_nis: 0.0,
                             reacquiring: false,
                         },
                         flag: FlagSignal {
@@ -567,6 +576,7 @@ mod tests {
         decisive_s: 3.0,
         frozen_fix_s: None,
         held_jump: None,
+        held_step: None,
         held_offset: None,
     };
 
@@ -602,6 +612,7 @@ mod tests {
                             nis: if held_s.is_some() { 400.0 } else { 0.0 },
                             frozen_fix_s: None,
                             held_jump_s: None,
+                            held_step_nis: 0.0,
                             reacquiring: false,
                         },
                         flag: FlagSignal {
@@ -701,6 +712,7 @@ mod tests {
                             nis: if held.is_some() { 64.0 } else { 0.0 },
                             frozen_fix_s: None,
                             held_jump_s: held,
+                            held_step_nis: 0.0,
                             reacquiring,
                         },
                         flag: FlagSignal::default(),

@@ -103,6 +103,14 @@ pub struct CriticalTest {
     /// this path).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub held_jump: Option<HeldOffsetTest>,
+    /// The same held jump tested by its arrival: critical at once when it has been held this long
+    /// and the step it arrived with was at least this gate against the vehicle's one-row noise
+    /// (the step test's NIS, `docs/detector.md` §4.2). The anchors' NIS of a jump is in their
+    /// levels, which start at their upper bound and learn a vehicle's noise over minutes; the step
+    /// test knows a quiet receiver from its first seconds. `None`: no such path (artifacts
+    /// before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub held_step: Option<HeldOffsetTest>,
     /// An offset held beyond the decisive gate however it arrived (a drift's, once it has grown
     /// past the dead-reckoning error): critical at once when held this long with its NIS still at or
     /// beyond this gate. Its holds are a drift's, tens of seconds, where [`CriticalTest::gate`]'s
@@ -203,6 +211,7 @@ impl CriticalTest {
         }
         for (path, field) in [
             (self.held_jump, ["held_jump.gate", "held_jump.hold_s"]),
+            (self.held_step, ["held_step.gate", "held_step.hold_s"]),
             (self.held_offset, ["held_offset.gate", "held_offset.hold_s"]),
         ] {
             if let Some(path) = path {
@@ -237,6 +246,8 @@ pub struct CriticalInput {
     /// Seconds since a jump that arrived in one step, while it is held beyond the decisive gate
     /// (`None`: no such jump).
     pub held_jump_s: Option<f64>,
+    /// That jump's arrival step against the vehicle's one-row noise (0 without one).
+    pub held_step_nis: f64,
     /// Seconds the offset has stayed beyond the decisive gate, however it arrived (`None`: below
     /// it).
     pub held_offset_s: Option<f64>,
@@ -285,10 +296,13 @@ impl CriticalEvidence {
         let jump = test
             .held_jump
             .is_some_and(|path| path.passes(input.held_jump_s, input.nis));
+        let step = test
+            .held_step
+            .is_some_and(|path| path.passes(input.held_jump_s, input.held_step_nis));
         let held = test
             .held_offset
             .is_some_and(|path| path.passes(input.held_offset_s, input.nis));
-        decisive || frozen || jump || held || self.accumulated >= test.threshold
+        decisive || frozen || jump || step || held || self.accumulated >= test.threshold
     }
 
     /// Forgets the evidence (an episode ended); the clock goes on.
@@ -365,6 +379,7 @@ mod tests {
         decisive_s: 3.0,
         frozen_fix_s: None,
         held_jump: None,
+        held_step: None,
         held_offset: None,
     };
 
@@ -376,6 +391,7 @@ mod tests {
             nis: 0.0,
             frozen_fix_s: None,
             held_jump_s: None,
+            held_step_nis: 0.0,
             held_offset_s: None,
         }
     }
@@ -583,6 +599,63 @@ mod tests {
         let json = serde_json::to_value(test).expect("serialises");
         assert_eq!(json["held_jump"]["gate"], 49.0);
         assert_eq!(json["held_jump"]["hold_s"], 2.0);
+    }
+
+    #[test]
+    fn a_held_jump_is_critical_by_its_arrival_step_where_the_test_has_that_path() {
+        // The anchors' NIS (in levels still at their upper bound) is below every gate; the step
+        // the jump arrived with, against the receiver's one-row noise, is not.
+        let test = CriticalTest {
+            gate: 1600.0,
+            held_step: Some(HeldOffsetTest {
+                gate: 100.0,
+                hold_s: 2.0,
+            }),
+            ..TEST
+        };
+        let jump = |held: Option<f64>, arrival: f64| CriticalInput {
+            nis: 30.0,
+            held_jump_s: held,
+            held_step_nis: arrival,
+            ..input(0.0, 0.5)
+        };
+        let critical = |input| CriticalEvidence::default().update(&test, &input);
+        assert!(critical(jump(Some(2.0), 100.0)));
+        assert!(!critical(jump(Some(1.9), 400.0)), "not held long enough");
+        assert!(!critical(jump(Some(8.0), 99.9)), "a step a receiver makes");
+        assert!(!critical(jump(None, 400.0)), "no longer held");
+        // The anchors' held-jump path does not read the arrival, nor this path the anchors' NIS.
+        let anchors_only = CriticalTest {
+            held_jump: Some(HeldOffsetTest {
+                gate: 100.0,
+                hold_s: 2.0,
+            }),
+            ..TEST
+        };
+        assert!(!CriticalEvidence::default().update(&anchors_only, &jump(Some(8.0), 400.0)));
+        assert!(!critical(CriticalInput {
+            nis: 400.0,
+            ..jump(Some(8.0), 0.0)
+        }));
+        let json = serde_json::to_value(test).expect("serialises");
+        assert_eq!(json["held_step"]["gate"], 100.0);
+        assert!(
+            serde_json::to_value(TEST)
+                .expect("serialises")
+                .get("held_step")
+                .is_none()
+        );
+        let bad = CriticalTest {
+            held_step: Some(HeldOffsetTest {
+                gate: 4.0,
+                hold_s: 2.0,
+            }),
+            ..TEST
+        };
+        assert_eq!(
+            bad.validate().map_err(|(field, _)| field),
+            Err("held_step.gate")
+        );
     }
 
     #[test]

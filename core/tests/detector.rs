@@ -90,6 +90,7 @@ fn artifact_of(
             decisive_s: 3.0,
             frozen_fix_s: None,
             held_jump: None,
+            held_step: None,
             held_offset: None,
         }),
         provenance: Provenance::default(),

@@ -475,6 +475,7 @@ pub const TEST_CRITICAL: CriticalTest = CriticalTest {
     decisive_s: 1.0,
     frozen_fix_s: None,
     held_jump: None,
+    held_step: None,
     held_offset: None,
 };
 

@@ -128,7 +128,7 @@ async fn corrupt_foreign_and_other_model_snapshots_start_afresh_with_their_reaso
     assert_eq!(
         foreign.snapshot_refused,
         format!(
-            "the stored session snapshot has schema version 99; this server reads versions 4 to \
+            "the stored session snapshot has schema version 99; this server reads version \
              {server_version}"
         )
     );

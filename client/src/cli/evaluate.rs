@@ -116,6 +116,7 @@ impl Offline {
                 critical_paths(
                     test.frozen_fix_s,
                     test.held_jump.map(|j| (j.gate, j.hold_s)),
+                    test.held_step.map(|s| (s.gate, s.hold_s)),
                     test.held_offset.map(|h| (h.gate, h.hold_s))
                 )
             ),
@@ -191,11 +192,12 @@ fn write_rows(path: &PathBuf, evaluation: &Evaluation) -> Result<()> {
 }
 
 /// The critical test's extra paths as printed after its other parameters: a frozen fix's hold
-/// (seconds beyond its first 2 s), a held jump's and a held offset's (gate NIS, hold in seconds);
-/// empty without any.
+/// (seconds beyond its first 2 s), a held jump's, a held jump's tested by its arrival step, and a
+/// held offset's (gate NIS, hold in seconds); empty without any.
 pub fn critical_paths(
     frozen_fix_s: Option<f64>,
     held_jump: Option<(f64, f64)>,
+    held_step: Option<(f64, f64)>,
     held_offset: Option<(f64, f64)>,
 ) -> String {
     let mut paths = String::new();
@@ -206,6 +208,11 @@ pub fn critical_paths(
     }
     if let Some((gate, hold)) = held_jump {
         paths.push_str(&format!(", a jump held {hold} s at NIS {gate} or more"));
+    }
+    if let Some((gate, hold)) = held_step {
+        paths.push_str(&format!(
+            ", a jump held {hold} s that arrived at a step NIS of {gate} or more"
+        ));
     }
     if let Some((gate, hold)) = held_offset {
         paths.push_str(&format!(", an offset held {hold} s at NIS {gate} or more"));

@@ -57,7 +57,7 @@ pub struct Args {
     /// The model whose alarms are measured (its θ and lifecycle are the warning level).
     #[arg(long, default_value = "models/default.json")]
     model: PathBuf,
-    /// Output directory (report.json, report.md, onsets.csv, drives.csv).
+    /// Output directory (report.json, report.md, onsets.csv).
     #[arg(long)]
     out: PathBuf,
     /// Seed of the drives.
@@ -584,6 +584,7 @@ fn render_markdown(report: &Report) -> String {
         spoofwatch_client::cli::evaluate::critical_paths(
             c.frozen_fix_s,
             c.held_jump.map(|j| (j.gate, j.hold_s)),
+            c.held_step.map(|s| (s.gate, s.hold_s)),
             c.held_offset.map(|h| (h.gate, h.hold_s))
         )
     );

@@ -246,6 +246,7 @@ pub fn critical_test_to_proto(test: &CriticalTest) -> v1::CriticalTest {
         frozen_fix_s: test.frozen_fix_s,
         held_jump: test.held_jump.map(held_offset_to_proto),
         held_offset: test.held_offset.map(held_offset_to_proto),
+        held_step: test.held_step.map(held_offset_to_proto),
     }
 }
 

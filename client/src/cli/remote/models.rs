@@ -109,6 +109,7 @@ pub fn severities(m: &v1::Model) -> String {
             crate::cli::evaluate::critical_paths(
                 c.frozen_fix_s,
                 c.held_jump.map(|j| (j.gate, j.hold_s)),
+                c.held_step.map(|s| (s.gate, s.hold_s)),
                 c.held_offset.map(|h| (h.gate, h.hold_s))
             )
         ),

@@ -38,6 +38,11 @@ pub(super) struct StepHold {
     /// as the vehicle stops holds it for as long as the stop lasts.
     #[serde(default)]
     pub(super) moved_s: f64,
+    /// The arrival's one-row residual against the vehicle's one-row noise (the step test's NIS,
+    /// with what a reacquiring receiver may still step): how far beyond a receiver's own step the
+    /// jump was. 0 for a hold saved before it was kept (it then pages only on the anchors' NIS).
+    #[serde(default)]
+    pub(super) arrival_nis: f64,
 }
 
 impl StepHold {
@@ -76,6 +81,7 @@ mod tests {
             offset: [20.0, 0.0],
             held_s: 0.0,
             moved_s: 0.0,
+            arrival_nis: 400.0,
         };
         // 2 m in 1 s (moving), 0.3 m in 0.5 s (below 1 m/s), then standing for 3 s.
         assert!(hold.advance([0.0, 0.0], [0.0, 2.0], 1.0));

@@ -175,6 +175,10 @@ pub struct OffsetEvidence {
     /// While a jump is held: the seconds since it arrived that the vehicle moved (0 without one).
     #[serde(default)]
     pub held_step_moved_s: f64,
+    /// While a jump is held: its arrival step's NIS against the vehicle's one-row noise (0
+    /// without one).
+    #[serde(default)]
+    pub held_step_nis: f64,
 }
 
 impl OffsetEvidence {
@@ -194,6 +198,7 @@ impl OffsetEvidence {
         anchor_age_s: 0.0,
         held_step_m: None,
         held_step_moved_s: 0.0,
+        held_step_nis: 0.0,
     };
 
     /// The larger of the anchors' NIS.

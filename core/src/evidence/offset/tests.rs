@@ -662,3 +662,36 @@ fn a_break_before_any_fix_places_the_anchors_as_a_fresh_session_does() {
     tracker.re_anchor();
     assert_eq!(tracker.anchors[ANCHOR_COUNT - 1].gap_m2, REACQUISITION_M2);
 }
+
+#[test]
+fn a_held_jump_keeps_its_arrival_step_test_only_when_it_left_a_followed_track() {
+    // Unit step noise, no levels: a 20 m jump from anchors that follow GNSS is a step NIS of 400,
+    // kept for as long as the jump is held.
+    let params = unit_params();
+    let mut tracker = trusted(&params);
+    let jump = tracker.push(&step([20.0, 0.0], 1.0));
+    assert_eq!(jump.held_step_m, Some([20.0, 0.0]));
+    assert_eq!(jump.held_step_nis, 400.0);
+    let held = tracker.push(&step([0.0; 2], 1.0));
+    assert_eq!(
+        (held.held_step_m, held.held_step_nis),
+        (Some([20.0, 0.0]), 400.0)
+    );
+
+    // An offset that built up froze the anchors, and came back: while the anchors wait out their
+    // agreement, a jump leaves a track they were not following. It is held, but with no arrival
+    // test (inside an offset already held, a fix that dipped back for one row and out again is no
+    // jump from the track either).
+    let mut tracker = trusted(&params);
+    for _ in 0..10 {
+        tracker.push(&step([1.0, 0.0], 1.0));
+    }
+    tracker.push(&step([-3.4, 0.0], 1.0));
+    tracker.push(&step([-3.3, 0.0], 1.0));
+    let back = tracker.push(&step([-3.3, 0.0], 1.0));
+    assert!(back.frozen && back.max_nis() < FOLLOW_GATE, "{back:?}");
+    let jump = tracker.push(&step([20.0, 0.0], 1.0));
+    assert_eq!(jump.held_step_m, Some([20.0, 0.0]), "{jump:?}");
+    assert_eq!(jump.held_step_nis, 0.0);
+    assert_eq!(OffsetEvidence::EMPTY.held_step_nis, 0.0);
+}

@@ -160,7 +160,7 @@ impl OffsetTracker {
             return self.place_again(step, &test, max_nis);
         }
         self.agreed_s = (self.agreed_s + step.delta_t).min(TRUST_S);
-        self.hold_decisive(step, max_nis, row.dead_reckoning_carries);
+        self.hold_decisive(step, max_nis, &row);
         self.count_share(max_nis, step.delta_t);
         self.last = self.evidence(step, &test);
         self.last
@@ -364,7 +364,7 @@ impl OffsetTracker {
     }
 
     /// Counts the time beyond the decisive gate, and holds a jump that arrived in one step.
-    fn hold_decisive(&mut self, step: &OffsetStep, max_nis: f64, dead_reckoning_carries: bool) {
+    fn hold_decisive(&mut self, step: &OffsetStep, max_nis: f64, row: &Row) {
         if max_nis < DECISIVE_GATE {
             self.held_s = f64::NAN;
             self.arrived_by_step = false;
@@ -377,14 +377,23 @@ impl OffsetTracker {
         self.held_s = 0.0;
         // Arrived in one step: beyond the gate now, and below the follow gate before.
         self.arrived_by_step = self.last.max_nis() < FOLLOW_GATE;
-        if self.arrived_by_step && self.step_hold.is_none() && dead_reckoning_carries {
+        if self.arrived_by_step && self.step_hold.is_none() && row.dead_reckoning_carries {
             // The fix before this row was trusted (below the follow gate): the jump is this
-            // row's residual.
+            // row's residual, tested as the step test tests one row.
             self.step_hold = Some(StepHold {
                 arrival: step.residual,
                 offset: step.residual,
                 held_s: 0.0,
                 moved_s: 0.0,
+                arrival_nis: if self.last.frozen {
+                    0.0
+                } else {
+                    nis(
+                        step.residual,
+                        row.step_test_m2 + row.reacquisition_m2,
+                        &row.step_share,
+                    )
+                },
             });
         }
     }
@@ -420,6 +429,7 @@ impl OffsetTracker {
             anchor_age_s: self.age_s,
             held_step_m: self.step_hold.map(|hold| hold.offset),
             held_step_moved_s: self.step_hold.map_or(0.0, |hold| hold.moved_s),
+            held_step_nis: self.step_hold.map_or(0.0, |hold| hold.arrival_nis),
         }
     }
 
