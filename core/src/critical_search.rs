@@ -149,29 +149,26 @@ pub fn choose_critical_within(
             search.consider(test, Some(&ceilings));
         }
     }
-    // The held-jump path on the test chosen so far: likewise.
-    if let Some(chosen) = search.chosen() {
-        let ceilings = search.silent_ceilings(&chosen);
-        for gate in HELD_JUMP_GATE_GRID {
-            for hold_s in HELD_JUMP_S_GRID {
-                let test = CriticalTest {
-                    held_jump: Some(HeldOffsetTest { gate, hold_s }),
-                    ..chosen
-                };
-                search.consider(test, Some(&ceilings));
-            }
-        }
-    }
-    // The held jump tested by its arrival step: likewise.
-    if let Some(chosen) = search.chosen() {
-        let ceilings = search.silent_ceilings(&chosen);
-        for gate in HELD_STEP_GATE_GRID {
-            for hold_s in HELD_JUMP_S_GRID {
-                let test = CriticalTest {
-                    held_step: Some(HeldOffsetTest { gate, hold_s }),
-                    ..chosen
-                };
-                search.consider(test, Some(&ceilings));
+    // The held jump on the test chosen so far, likewise: by the anchors' NIS, then by the step it
+    // arrived with.
+    let held_jump_paths: [(&[f64], WithPath); 2] = [
+        (&HELD_JUMP_GATE_GRID, |test, path| CriticalTest {
+            held_jump: Some(path),
+            ..test
+        }),
+        (&HELD_STEP_GATE_GRID, |test, path| CriticalTest {
+            held_step: Some(path),
+            ..test
+        }),
+    ];
+    for (gates, with_path) in held_jump_paths {
+        if let Some(chosen) = search.chosen() {
+            let ceilings = search.silent_ceilings(&chosen);
+            for &gate in gates {
+                for hold_s in HELD_JUMP_S_GRID {
+                    let test = with_path(chosen, HeldOffsetTest { gate, hold_s });
+                    search.consider(test, Some(&ceilings));
+                }
             }
         }
     }
@@ -207,6 +204,9 @@ pub fn choose_critical_within(
             .collect(),
     })
 }
+
+/// A test with one held path set.
+type WithPath = fn(CriticalTest, HeldOffsetTest) -> CriticalTest;
 
 /// One critical search: the validation rows under the warning's θ and lifecycle, the budget, and
 /// the best test found so far.
@@ -470,6 +470,32 @@ mod tests {
             .collect()
     }
 
+    /// Ten attacked trajectories of 300 s whose attack begins at `onset`, p̂ weak (logit 2.5) from
+    /// then and quiet before; `signal` gives each row's offset evidence from the seconds since the
+    /// onset (`None` before it).
+    fn weak_attacks(
+        onset: f64,
+        signal: impl Fn(Option<f64>) -> OffsetSignal,
+    ) -> (Vec<ScoredRow>, Vec<OffsetSignal>) {
+        let mut rows = Vec::new();
+        let mut offset = Vec::new();
+        for key in 0..10 {
+            let attack = trajectory(
+                key,
+                300,
+                |t| if t >= onset { 2.5 } else { -6.0 },
+                |t| t >= onset,
+            );
+            offset.extend(
+                attack
+                    .iter()
+                    .map(|row| signal((row.time_s >= onset).then_some(row.time_s - onset))),
+            );
+            rows.extend(attack);
+        }
+        (rows, offset)
+    }
+
     #[test]
     fn the_chosen_test_escalates_attacks_and_keeps_clean_hours_within_the_budget() {
         // Attacks: p̂ at logit 6 for 60 s. Clean hours: a false alarm every ten minutes at logit
@@ -538,31 +564,16 @@ mod tests {
         // NIS below every gate;
         // clean hours: blips at logit 3 for 20 s every ten minutes, so no k that escalates the
         // attacks on p̂ keeps the clean hours quiet.
-        let mut rows = Vec::new();
-        let mut offset = Vec::new();
-        let frozen_from = 100.0;
-        for key in 0..10 {
-            let attack = trajectory(
-                key,
-                300,
-                |t| if t >= frozen_from { 2.5 } else { -6.0 },
-                |t| t >= frozen_from,
-            );
-            offset.extend(attack.iter().map(|row| {
-                let held = (row.time_s >= frozen_from).then_some(row.time_s - frozen_from);
-                OffsetSignal {
-                    held_s: held,
-                    displaced: held.is_some(),
-                    anchored: true,
-                    nis: if held.is_some() { 20.0 } else { 0.0 },
-                    frozen_fix_s: held,
-                    held_jump_s: None,
-                    held_step_nis: 0.0,
-                    reacquiring: false,
-                }
-            }));
-            rows.extend(attack);
-        }
+        let (mut rows, mut offset) = weak_attacks(100.0, |held| OffsetSignal {
+            held_s: held,
+            displaced: held.is_some(),
+            anchored: true,
+            nis: if held.is_some() { 20.0 } else { 0.0 },
+            frozen_fix_s: held,
+            held_jump_s: None,
+            held_step_nis: 0.0,
+            reacquiring: false,
+        });
         for key in 100..103 {
             let clean = trajectory(
                 key,
@@ -620,23 +631,7 @@ mod tests {
             held_step_nis: 0.0,
             reacquiring: false,
         };
-        let mut rows = Vec::new();
-        let mut offset = Vec::new();
-        for key in 0..10 {
-            let attack = trajectory(
-                key,
-                300,
-                |t| if t >= jump_at { 2.5 } else { -6.0 },
-                |t| t >= jump_at,
-            );
-            offset.extend(attack.iter().map(|row| {
-                signal(
-                    (row.time_s >= jump_at).then_some(row.time_s - jump_at),
-                    true,
-                )
-            }));
-            rows.extend(attack);
-        }
+        let (mut rows, mut offset) = weak_attacks(jump_at, |held| signal(held, true));
         // Besides, every ten minutes an offset that builds up to the same NIS for 20 s (dead
         // reckoning), so that no plain gate escalates the jumps within the budget.
         let honest = |t: f64| (1000.0..1020.0).contains(&t).then_some(t - 1000.0);
@@ -678,31 +673,16 @@ mod tests {
         // Attacks: a jump at 100 s, held with a NIS of 60 while p̂ stays weak (logit 2.5). Clean
         // hours: every ten minutes an offset that builds up to the same NIS for 20 s (dead
         // reckoning), so no plain gate that escalates the jumps keeps the clean hours quiet.
-        let mut rows = Vec::new();
-        let mut offset = Vec::new();
-        let jump_at = 100.0;
-        for key in 0..10 {
-            let attack = trajectory(
-                key,
-                300,
-                |t| if t >= jump_at { 2.5 } else { -6.0 },
-                |t| t >= jump_at,
-            );
-            offset.extend(attack.iter().map(|row| {
-                let held = (row.time_s >= jump_at).then_some(row.time_s - jump_at);
-                OffsetSignal {
-                    held_s: held,
-                    displaced: held.is_some(),
-                    anchored: true,
-                    nis: if held.is_some() { 60.0 } else { 0.0 },
-                    frozen_fix_s: None,
-                    held_jump_s: held,
-                    held_step_nis: 0.0,
-                    reacquiring: false,
-                }
-            }));
-            rows.extend(attack);
-        }
+        let (mut rows, mut offset) = weak_attacks(100.0, |held| OffsetSignal {
+            held_s: held,
+            displaced: held.is_some(),
+            anchored: true,
+            nis: if held.is_some() { 60.0 } else { 0.0 },
+            frozen_fix_s: None,
+            held_jump_s: held,
+            held_step_nis: 0.0,
+            reacquiring: false,
+        });
         let built_up =
             |t: f64| (t % 600.0 >= 300.0 && t % 600.0 < 320.0).then_some(t % 600.0 - 300.0);
         for key in 100..103 {
@@ -764,24 +744,7 @@ mod tests {
             held_step_nis: if held.is_some() { arrival } else { 0.0 },
             reacquiring: false,
         };
-        let mut rows = Vec::new();
-        let mut offset = Vec::new();
-        let jump_at = 100.0;
-        for key in 0..10 {
-            let attack = trajectory(
-                key,
-                300,
-                |t| if t >= jump_at { 2.5 } else { -6.0 },
-                |t| t >= jump_at,
-            );
-            offset.extend(attack.iter().map(|row| {
-                signal(
-                    (row.time_s >= jump_at).then_some(row.time_s - jump_at),
-                    150.0,
-                )
-            }));
-            rows.extend(attack);
-        }
+        let (mut rows, mut offset) = weak_attacks(100.0, |held| signal(held, 150.0));
         let honest =
             |t: f64| (t % 600.0 >= 300.0 && t % 600.0 < 320.0).then_some(t % 600.0 - 300.0);
         for key in 100..103 {
