@@ -410,10 +410,11 @@ impl EvidenceBuilder {
         if !usable {
             return Some(offset.hold());
         }
-        let here = AnchorPoint {
+        let mut here = AnchorPoint {
             fix,
             velocity,
             time_s: sample.timestamp_s,
+            repeated: false,
         };
         let Some(from) = offset.point() else {
             offset.set_point(here);
@@ -446,6 +447,7 @@ impl EvidenceBuilder {
         if !(residual[0].is_finite() && residual[1].is_finite()) {
             return Some(offset.hold());
         }
+        here.repeated = fix == from.fix;
         offset.set_point(here);
         Some(offset.push(&OffsetStep {
             residual,
@@ -454,6 +456,7 @@ impl EvidenceBuilder {
             calibrated: in_use.is_some(),
             calibration_error: in_use.map_or([0.0; 3], |(_, error)| error),
             reports_placements: drift.is_some_and(DriftTracker::trusts_information),
+            leaves_held_fix: from.repeated,
         }))
     }
 

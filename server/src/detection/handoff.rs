@@ -18,7 +18,7 @@ use spoofwatch_core::detector::{DetectorState, RestoreError};
 /// The encoding this server writes, and the only one it reads. Bump it when [`SessionSnapshot`] or
 /// anything inside [`DetectorState`] changes shape: other versions are refused (fresh sessions),
 /// never misread. Version 9: a held jump keeps the test of the step it arrived with.
-pub const SNAPSHOT_SCHEMA: u16 = 9;
+pub const SNAPSHOT_SCHEMA: u16 = 10;
 
 /// Whether this server reads stored snapshots of schema version `version`.
 pub fn reads_schema(version: i64) -> bool {
@@ -228,7 +228,7 @@ mod tests {
         older[4] = 1;
         assert_eq!(
             refusal(&older).as_deref(),
-            Some("the stored session snapshot has schema version 1; this server reads version 9")
+            Some("the stored session snapshot has schema version 1; this server reads version 10")
         );
 
         // A well-formed envelope around a payload of another shape (checksum recomputed).

@@ -40,9 +40,11 @@ pub(super) struct StepHold {
     pub(super) moved_s: f64,
     /// The arrival's one-row residual against the vehicle's one-row noise (the step test's NIS,
     /// with what a reacquiring receiver may still step): how far beyond a receiver's own step the
-    /// jump was. 0 when an anchor was frozen on the row before (the fix left no followed track:
-    /// inside an offset already held, a one-row dip back within the follow gate is no jump from
-    /// the track), so that such a hold pages only on the anchors' NIS.
+    /// jump was. 0 when the fix left no followed track, so that such a hold pages only on the
+    /// anchors' NIS: when an anchor was frozen on the row before (inside an offset already held, a
+    /// one-row dip back within the follow gate is no jump from the track), or when the fix before
+    /// was one the receiver held (a receiver that holds its fix at standstill steps to where the
+    /// vehicle is once it moves off, by as far as its error wandered during the stop).
     #[serde(default)]
     pub(super) arrival_nis: f64,
 }

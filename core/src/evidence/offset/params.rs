@@ -135,6 +135,10 @@ pub struct OffsetStep {
     /// A row that places the anchors again reports what it found (the calibration is trusted from
     /// its information); otherwise it reports the fresh anchors' empty channels.
     pub reports_placements: bool,
+    /// The step starts from a fix the receiver was holding (it repeated the one before): a jump
+    /// here is where the receiver catches up with a vehicle that moved off, not a jump from a
+    /// track the anchors followed.
+    pub leaves_held_fix: bool,
 }
 
 /// The offset channels of one sample.

@@ -72,4 +72,8 @@ pub struct AnchorPoint {
     /// Onboard velocity east/north (m/s).
     pub velocity: [f64; 2],
     pub time_s: f64,
+    /// The fix repeated the previous usable sample's exactly: the receiver was holding it (at
+    /// standstill, most receivers do), so a step away from it is the receiver catching up.
+    #[serde(default)]
+    pub repeated: bool,
 }

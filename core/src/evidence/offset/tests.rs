@@ -24,6 +24,7 @@ fn step(residual: [f64; 2], delta_t: f64) -> OffsetStep {
         calibrated: false,
         calibration_error: [0.0; 3],
         reports_placements: false,
+        leaves_held_fix: false,
     }
 }
 
@@ -327,6 +328,7 @@ fn under_trust_from_information_a_row_that_places_the_anchors_again_reports_its_
     // start again from each of them; the clock's trust reports empty channels instead.
     let informed = |residual| OffsetStep {
         reports_placements: true,
+        leaves_held_fix: false,
         ..step(residual, 1.0)
     };
     let (mut reporting, mut silent) = (
@@ -382,6 +384,7 @@ fn the_uncertainty_grows_with_the_distance_carried() {
         calibrated: false,
         calibration_error: [0.0; 3],
         reports_placements: false,
+        leaves_held_fix: false,
     });
     for k in 0..ANCHOR_COUNT {
         let a = keep(1.0, k);
@@ -399,6 +402,7 @@ fn the_uncertainty_grows_with_the_distance_carried() {
         calibrated: true,
         calibration_error: [0.0; 3],
         reports_placements: false,
+        leaves_held_fix: false,
     });
     for k in 0..ANCHOR_COUNT {
         let a = keep(1.0, k);
@@ -656,6 +660,7 @@ fn a_break_before_any_fix_places_the_anchors_as_a_fresh_session_does() {
         },
         velocity: [0.0; 2],
         time_s: 0.0,
+        repeated: false,
     });
     tracker.re_anchor();
     assert_eq!(tracker.anchors[ANCHOR_COUNT - 1].gap_m2, REACQUISITION_M2);
@@ -694,4 +699,14 @@ fn a_held_jump_keeps_its_arrival_step_test_only_when_it_left_a_followed_track() 
     assert_eq!(jump.held_step_m, Some([20.0, 0.0]), "{jump:?}");
     assert_eq!(jump.held_step_nis, 0.0);
     assert_eq!(OffsetEvidence::EMPTY.held_step_nis, 0.0);
+
+    // A receiver that held its fix while the vehicle stood steps to where the vehicle is once it
+    // moves off: the same 20 m jump, leaving a held fix, is held with no arrival test.
+    let mut tracker = trusted(&params);
+    let caught_up = tracker.push(&OffsetStep {
+        leaves_held_fix: true,
+        ..step([20.0, 0.0], 1.0)
+    });
+    assert_eq!(caught_up.held_step_m, Some([20.0, 0.0]), "{caught_up:?}");
+    assert_eq!(caught_up.held_step_nis, 0.0);
 }

@@ -385,7 +385,7 @@ impl OffsetTracker {
                 offset: step.residual,
                 held_s: 0.0,
                 moved_s: 0.0,
-                arrival_nis: if self.last.frozen {
+                arrival_nis: if self.last.frozen || step.leaves_held_fix {
                     0.0
                 } else {
                     nis(
