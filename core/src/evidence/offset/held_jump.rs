@@ -42,9 +42,13 @@ pub(super) struct StepHold {
     /// with what a reacquiring receiver may still step): how far beyond a receiver's own step the
     /// jump was. 0 when the fix left no followed track, so that such a hold pages only on the
     /// anchors' NIS: when an anchor was frozen on the row before (inside an offset already held, a
-    /// one-row dip back within the follow gate is no jump from the track), or when the fix before
+    /// one-row dip back within the follow gate is no jump from the track); when the fix before
     /// was one the receiver held (a receiver that holds its fix at standstill steps to where the
-    /// vehicle is once it moves off, by as far as its error wandered during the stop).
+    /// vehicle is once it moves off, by as far as its error wandered during the stop); when the
+    /// row before was itself an outlier (a fix coming back from a multipath spike steps as far as
+    /// the spike did, and one step cannot tell which of the two was the track); and once the fix
+    /// has come back within the follow gate while the hold lasted (what arrives then is no longer
+    /// the step this hold arrived with).
     #[serde(default)]
     pub(super) arrival_nis: f64,
 }

@@ -51,6 +51,10 @@ pub struct OffsetTracker {
     pub(super) early_step: [f64; 2],
     #[serde(default)]
     pub(super) step_hold: Option<StepHold>,
+    /// The row before was an outlier (its one-row residual at or beyond the follow gate): a jump
+    /// that arrives now may be the fix coming back from that spike, which its step cannot tell.
+    #[serde(default)]
+    pub(super) after_spike: bool,
     /// Running mean of ln(1 + NIS/2) per shadow anchor, and the misfit in use (1 within the level's
     /// bound).
     pub(super) log_levels: [f64; ANCHOR_COUNT],

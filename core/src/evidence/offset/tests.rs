@@ -709,4 +709,33 @@ fn a_held_jump_keeps_its_arrival_step_test_only_when_it_left_a_followed_track() 
     });
     assert_eq!(caught_up.held_step_m, Some([20.0, 0.0]), "{caught_up:?}");
     assert_eq!(caught_up.held_step_nis, 0.0);
+
+    // A row whose one-row residual is an outlier marks the next row as after a spike, and a row
+    // within the step noise clears it.
+    let mut tracker = trusted(&params);
+    tracker.push(&step([10.0, 0.0], 1.0));
+    assert!(tracker.after_spike);
+    tracker.push(&step([0.0; 2], 1.0));
+    assert!(!tracker.after_spike);
+
+    // A fix coming back from a spike steps as far as the spike did: the same 20 m jump right after
+    // an outlier row is held with no arrival test.
+    let mut tracker = trusted(&params);
+    tracker.after_spike = true;
+    let back_from_spike = tracker.push(&step([20.0, 0.0], 1.0));
+    assert_eq!(back_from_spike.held_step_m, Some([20.0, 0.0]));
+    assert_eq!(back_from_spike.held_step_nis, 0.0);
+
+    // A held jump whose offset came back within the follow gate and arrived again keeps its hold
+    // but no longer its arrival test: what is held now is not the step it arrived with.
+    let mut tracker = trusted(&params);
+    assert_eq!(tracker.push(&step([20.0, 0.0], 1.0)).held_step_nis, 400.0);
+    tracker.last = OffsetEvidence::EMPTY;
+    tracker.held_s = f64::NAN;
+    let again = tracker.push(&step([0.0; 2], 1.0));
+    assert!(again.arrived_by_step, "{again:?}");
+    assert_eq!(
+        (again.held_step_m, again.held_step_nis),
+        (Some([20.0, 0.0]), 0.0)
+    );
 }

@@ -71,6 +71,7 @@ impl OffsetTracker {
             levels_in_use: [LEVEL_RANGE.1; LEVEL_COUNT],
             early_step: [0.0; 2],
             step_hold: None,
+            after_spike: false,
             log_levels: [POPULATION_LOG_LEVEL; ANCHOR_COUNT],
             misfit_in_use: [1.0; ANCHOR_COUNT],
             age_s: 0.0,
@@ -146,6 +147,7 @@ impl OffsetTracker {
             return self.last;
         }
         let row = self.row(step, levels);
+        let after_spike = std::mem::replace(&mut self.after_spike, row.outlier);
         if row.outlier && self.let_go(step) {
             return self.last;
         }
@@ -160,7 +162,7 @@ impl OffsetTracker {
             return self.place_again(step, &test, max_nis);
         }
         self.agreed_s = (self.agreed_s + step.delta_t).min(TRUST_S);
-        self.hold_decisive(step, max_nis, &row);
+        self.hold_decisive(step, max_nis, &row, after_spike);
         self.count_share(max_nis, step.delta_t);
         self.last = self.evidence(step, &test);
         self.last
@@ -364,7 +366,7 @@ impl OffsetTracker {
     }
 
     /// Counts the time beyond the decisive gate, and holds a jump that arrived in one step.
-    fn hold_decisive(&mut self, step: &OffsetStep, max_nis: f64, row: &Row) {
+    fn hold_decisive(&mut self, step: &OffsetStep, max_nis: f64, row: &Row, after_spike: bool) {
         if max_nis < DECISIVE_GATE {
             self.held_s = f64::NAN;
             self.arrived_by_step = false;
@@ -377,22 +379,31 @@ impl OffsetTracker {
         self.held_s = 0.0;
         // Arrived in one step: beyond the gate now, and below the follow gate before.
         self.arrived_by_step = self.last.max_nis() < FOLLOW_GATE;
-        if self.arrived_by_step && self.step_hold.is_none() && row.dead_reckoning_carries {
+        if !self.arrived_by_step {
+            return;
+        }
+        if let Some(hold) = &mut self.step_hold {
+            // The fix came back within the follow gate since that jump arrived: the offset held
+            // now is not the step it arrived with.
+            hold.arrival_nis = 0.0;
+        } else if row.dead_reckoning_carries {
             // The fix before this row was trusted (below the follow gate): the jump is this
-            // row's residual, tested as the step test tests one row.
+            // row's residual, tested as the step test tests one row, unless the fix before it
+            // left no followed track (see `StepHold::arrival_nis`).
+            let left_track = !(self.last.frozen || step.leaves_held_fix || after_spike);
             self.step_hold = Some(StepHold {
                 arrival: step.residual,
                 offset: step.residual,
                 held_s: 0.0,
                 moved_s: 0.0,
-                arrival_nis: if self.last.frozen || step.leaves_held_fix {
-                    0.0
-                } else {
+                arrival_nis: if left_track {
                     nis(
                         step.residual,
                         row.step_test_m2 + row.reacquisition_m2,
                         &row.step_share,
                     )
+                } else {
+                    0.0
                 },
             });
         }
@@ -488,6 +499,7 @@ impl OffsetTracker {
         self.held_s = f64::NAN;
         self.arrived_by_step = false;
         self.step_hold = None;
+        self.after_spike = false;
         self.age_s = 0.0;
         self.last = OffsetEvidence {
             share: self.share,
