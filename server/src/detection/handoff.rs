@@ -17,7 +17,9 @@ use spoofwatch_core::detector::{DetectorState, RestoreError};
 
 /// The encoding this server writes, and the only one it reads. Bump it when [`SessionSnapshot`] or
 /// anything inside [`DetectorState`] changes shape: other versions are refused (fresh sessions),
-/// never misread. Version 9: a held jump keeps the test of the step it arrived with.
+/// never misread. Version 9: a held jump keeps the test of the step it arrived with. Version 10:
+/// the offset tracker knows whether the last fix repeated the one before it and whether the last row
+/// was an outlier.
 pub const SNAPSHOT_SCHEMA: u16 = 10;
 
 /// Whether this server reads stored snapshots of schema version `version`.

@@ -328,7 +328,6 @@ fn under_trust_from_information_a_row_that_places_the_anchors_again_reports_its_
     // start again from each of them; the clock's trust reports empty channels instead.
     let informed = |residual| OffsetStep {
         reports_placements: true,
-        leaves_held_fix: false,
         ..step(residual, 1.0)
     };
     let (mut reporting, mut silent) = (
