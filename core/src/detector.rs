@@ -173,8 +173,9 @@ impl Detector {
 /// Warnings are unaffected, and the decisive gate and the frozen-fix path still page.
 pub const REACQUISITION_S: f64 = 30.0;
 
-/// Seconds the anchors must have stood before a jump for its hold to page: twice the agreement
-/// that makes a first fix trusted ([`TRUST_S`](crate::evidence::offset::TRUST_S)).
+/// Seconds the track the anchors stand on must have lasted before a jump for its hold to page
+/// (`OffsetEvidence::track_age_s`): twice the agreement that makes a first fix trusted
+/// ([`TRUST_S`](crate::evidence::offset::TRUST_S)).
 pub const JUMP_SETTLED_S: f64 = 10.0;
 
 /// The lifecycle's reading of the offset evidence (nothing without offset channels). A fix that
@@ -197,18 +198,19 @@ pub fn offset_signal(evidence: &Evidence) -> OffsetSignal {
             anchored: true,
             nis: o.max_nis(),
             frozen_fix_s: frozen_fix,
-            // A held jump pages only from anchors that had stood for a while before it (a fix
-            // placed on a reflection makes the next true fix look like a jump), and counts only
+            // A held jump pages only from a track the anchors had stood on for a while before it
+            // (a fix placed on a reflection makes the next true fix look like a jump; a spike
+            // that came back to the track places them again on the same track), and counts only
             // the seconds the vehicle moved with it (a receiver that latches a reflected fix as
             // the vehicle stops holds it for the whole stop).
             held_jump_s: (o.arrived_by_step
                 && o.held_step_m.is_some()
-                && o.anchor_age_s - o.held_s >= JUMP_SETTLED_S)
+                && o.track_age_s - o.held_s >= JUMP_SETTLED_S)
                 .then_some(beyond_gate.map(|held| held.min(o.held_step_moved_s)))
                 .flatten(),
             held_step_nis: o.held_step_nis,
-            // When the offset now held began: the anchors' age less its hold.
-            reacquiring: evidence.trajectory > 0 && o.anchor_age_s - o.held_s < REACQUISITION_S,
+            // When the offset now held began: the track's age less its hold.
+            reacquiring: evidence.trajectory > 0 && o.track_age_s - o.held_s < REACQUISITION_S,
         }
     })
 }
@@ -373,7 +375,7 @@ mod tests {
                 offset.arrived_by_step = arrived_by_step;
                 offset.held_step_m = held_step_m;
                 offset.held_step_moved_s = 4.0;
-                offset.anchor_age_s = 60.0;
+                offset.track_age_s = 60.0;
             }
             offset_signal(&e)
         };
@@ -390,13 +392,16 @@ mod tests {
 
     #[test]
     fn a_held_jump_counts_the_seconds_moved_from_anchors_that_had_stood() {
-        let jump = |anchor_age_s: f64, moved_s: f64| {
+        let jump = |track_age_s: f64, moved_s: f64| {
             let mut e = evidence(0.0, 400.0, 6.0);
             if let Some(offset) = e.offset.as_mut() {
                 offset.arrived_by_step = true;
                 offset.held_step_m = Some([20.0, 0.0]);
                 offset.held_step_moved_s = moved_s;
-                offset.anchor_age_s = anchor_age_s;
+                offset.track_age_s = track_age_s;
+                // The anchors themselves were placed again since (a spike that came back): the
+                // track they stand on is what counts.
+                offset.anchor_age_s = 1.0;
             }
             offset_signal(&e)
         };
@@ -413,11 +418,12 @@ mod tests {
 
     #[test]
     fn an_offset_that_began_while_the_receiver_reacquired_cannot_page_on_its_hold() {
-        let at = |trajectory: u32, anchor_age_s: f64, held_s: f64| {
+        let at = |trajectory: u32, track_age_s: f64, held_s: f64| {
             let mut e = evidence(0.0, 64.0, held_s);
             e.trajectory = trajectory;
             if let Some(offset) = e.offset.as_mut() {
-                offset.anchor_age_s = anchor_age_s;
+                offset.track_age_s = track_age_s;
+                offset.anchor_age_s = 1.0;
             }
             offset_signal(&e).reacquiring
         };

@@ -97,8 +97,8 @@ pub struct OffsetSignal {
     #[serde(default)]
     pub held_step_nis: f64,
     /// The offset held now began less than [`REACQUISITION_S`](crate::detector::REACQUISITION_S)
-    /// after the anchors were placed after an outage, while the receiver's fixes may still have
-    /// been converging: the critical test's held paths do not count it.
+    /// after the anchors' track began in a trajectory after an outage, while the receiver's fixes
+    /// may still have been converging: the critical test's held paths do not count it.
     #[serde(default)]
     pub reacquiring: bool,
 }

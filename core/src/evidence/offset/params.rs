@@ -172,6 +172,13 @@ pub struct OffsetEvidence {
     pub calibrated: bool,
     /// Seconds since the anchors were placed (at the stream's first fix, or after a long gap).
     pub anchor_age_s: f64,
+    /// Seconds since the track the anchors stand on began: since they were last placed on a fix
+    /// that nothing before it vouched for (a session's first, one after an outage or a break, one
+    /// placed again before trust or after a held jump let go). Anchors placed by a fix that
+    /// returned to where the vehicle's motion puts it (a spike gone back) resume the track they
+    /// came back to once they have agreed for [`TRUST_S`], and this goes on counting from it.
+    #[serde(default)]
+    pub track_age_s: f64,
     /// While a jump is held (`held_jump`): GNSS minus the dead reckoning from the last trusted
     /// fix before it, east/north (m).
     #[serde(default)]
@@ -200,6 +207,7 @@ impl OffsetEvidence {
         offset_norm_m: [0.0; ANCHOR_COUNT],
         calibrated: false,
         anchor_age_s: 0.0,
+        track_age_s: 0.0,
         held_step_m: None,
         held_step_moved_s: 0.0,
         held_step_nis: 0.0,

@@ -61,6 +61,13 @@ pub struct OffsetTracker {
     pub(super) misfit_in_use: [f64; ANCHOR_COUNT],
     /// Seconds since the anchors were last placed.
     pub(super) age_s: f64,
+    /// Seconds since the track they stand on began ([`OffsetEvidence::track_age_s`]).
+    #[serde(default)]
+    pub(super) track_age_s: f64,
+    /// Anchors placed by a return, not yet confirmed by agreement: the age of the track they
+    /// returned to.
+    #[serde(default)]
+    pub(super) returned_from_track_s: Option<f64>,
     /// Seconds the fix and the onboard motion have agreed since the anchors were placed, up to
     /// [`TRUST_S`]: from then on the anchors are trusted.
     pub(super) agreed_s: f64,

@@ -102,6 +102,29 @@ fn a_jump_freezes_the_anchors_and_is_held_while_a_spike_comes_back() {
     assert_eq!(back.nis, [0.0, 0.0]);
     assert!(!back.frozen && back.anchor_age_s == 0.0, "{back:?}");
     assert_eq!(back.held_s, 0.0);
+    // A return may still be metres off (a multipath burst): the anchors it places start a track
+    // of their own, and a jump 3 s later comes from a track 3 s old.
+    let mut early = tracker.clone();
+    for _ in 0..2 {
+        early.push(&step([0.0; 2], 1.0));
+    }
+    let jump = early.push(&step([0.0, 20.0], 1.0));
+    assert!(
+        jump.arrived_by_step && jump.held_step_m.is_some(),
+        "{jump:?}"
+    );
+    assert_eq!((jump.anchor_age_s, jump.track_age_s), (3.0, 3.0));
+    // After TRUST_S of agreement they are back on the track of the 31 rows before the return:
+    // a jump 6 s after it comes from a track 37 s old.
+    for _ in 0..5 {
+        tracker.push(&step([0.0; 2], 1.0));
+    }
+    let jump = tracker.push(&step([0.0, 20.0], 1.0));
+    assert!(
+        jump.arrived_by_step && jump.held_step_m.is_some(),
+        "{jump:?}"
+    );
+    assert_eq!((jump.anchor_age_s, jump.track_age_s), (6.0, 37.0));
     // The share of time beyond the follow gate: one row of the last 10 s.
     let share_after_out = 1.0 - keep(1.0, 0);
     assert!((out.share[0] - share_after_out).abs() < 1e-12);
@@ -175,6 +198,13 @@ fn a_held_jump_stays_displaced_after_the_anchors_lose_it_until_it_steps_back() {
     // The spoofer lets go: one step back to the track ends the hold and re-anchors.
     let back = tracker.push(&step([-19.0, 0.0], 1.0));
     assert!(!back.displaced() && back.held_step_m.is_none() && back.anchor_age_s == 0.0);
+    // Where the track is after 150 s of dead reckoning at 10 % is a guess: the anchors placed
+    // here start a track of their own, and agreement does not resume the old one.
+    for _ in 0..10 {
+        tracker.push(&step([0.0; 2], 1.0));
+    }
+    let later = tracker.push(&step([0.0; 2], 1.0));
+    assert_eq!((later.anchor_age_s, later.track_age_s), (11.0, 11.0));
 
     // The row after the jump on which the hold ends, with `residual` every second.
     let hold_ends = |residual: [f64; 2]| {
@@ -306,6 +336,8 @@ fn until_the_fix_and_the_motion_agree_a_disagreement_places_the_anchors_again() 
     let mut tracker = OffsetTracker::new(&unit_params());
     let first = tracker.push(&step([30.0, 0.0], 1.0));
     assert_eq!((first.nis, first.anchor_age_s), ([0.0, 0.0], 0.0));
+    // A fix that disagreed before trust starts a track of its own.
+    assert_eq!(first.track_age_s, 0.0);
     for _ in 0..4 {
         assert!(!tracker.push(&step([0.0; 2], 1.0)).displaced());
     }

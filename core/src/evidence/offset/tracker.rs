@@ -75,6 +75,8 @@ impl OffsetTracker {
             log_levels: [POPULATION_LOG_LEVEL; ANCHOR_COUNT],
             misfit_in_use: [1.0; ANCHOR_COUNT],
             age_s: 0.0,
+            track_age_s: 0.0,
+            returned_from_track_s: None,
             agreed_s: 0.0,
             last: OffsetEvidence::EMPTY,
             point: None,
@@ -156,8 +158,10 @@ impl OffsetTracker {
         let shadow_nis = self.follow_shadows(step, &row);
         self.learn_levels(&test.population_nis, &shadow_nis, step.delta_t);
         self.age_s += step.delta_t;
+        self.track_age_s += step.delta_t;
 
         let max_nis = test.nis[0].max(test.nis[1]);
+        self.resume_track(row.outlier, max_nis);
         if self.agreed_s < TRUST_S && (row.outlier || max_nis >= FOLLOW_GATE) {
             return self.place_again(step, &test, max_nis);
         }
@@ -227,7 +231,7 @@ impl OffsetTracker {
         if self.returns(step) {
             // The fix stepped back to where the onboard motion says the vehicle is: the spoofer
             // let go. Trust GNSS again from here (the rest of the offset is dead-reckoning error).
-            self.re_anchor_keeping_levels(0.0);
+            self.re_anchor_on_return();
             return true;
         }
         false
@@ -438,6 +442,7 @@ impl OffsetTracker {
             offset_norm_m: self.anchors.map(|a| norm_squared(a.offset).sqrt()),
             calibrated: step.calibrated,
             anchor_age_s: self.age_s,
+            track_age_s: self.track_age_s,
             held_step_m: self.step_hold.map(|hold| hold.offset),
             held_step_moved_s: self.step_hold.map_or(0.0, |hold| hold.moved_s),
             held_step_nis: self.step_hold.map_or(0.0, |hold| hold.arrival_nis),
@@ -485,6 +490,31 @@ impl OffsetTracker {
         self.anchors[ANCHOR_COUNT - 1].gap_m2.min(REACQUISITION_M2)
     }
 
+    /// Fresh anchors, trusted, at a fix that returned to where the frozen anchors' motion puts
+    /// the vehicle. Within a quarter of the offset is not on the track: a multipath burst's
+    /// return can still be metres off, and the next true fix then steps like a jump. So these
+    /// anchors start a track of their own, which resumes the one they came back to once they
+    /// have agreed for [`TRUST_S`] ([`OffsetTracker::resume_track`]).
+    fn re_anchor_on_return(&mut self) {
+        let track_age_s = self.track_age_s;
+        self.re_anchor_keeping_levels(0.0);
+        self.returned_from_track_s = Some(track_age_s);
+    }
+
+    /// After a return: a disagreement before [`TRUST_S`] leaves the anchors on a track of their
+    /// own; that much agreement puts them back on the track they returned to, whose age goes on.
+    fn resume_track(&mut self, outlier: bool, max_nis: f64) {
+        let Some(track_age_s) = self.returned_from_track_s else {
+            return;
+        };
+        if outlier || max_nis >= FOLLOW_GATE {
+            self.returned_from_track_s = None;
+        } else if self.age_s >= TRUST_S {
+            self.track_age_s = track_age_s + self.age_s;
+            self.returned_from_track_s = None;
+        }
+    }
+
     /// A fresh anchor at the current point, keeping the vehicle's levels, the shares and the
     /// trust (the fix is where the motion allows it to be). `placement_m2` (per axis) is how far
     /// the fix it stands on may be from the truth beyond the GNSS noise; like a gap's variance it is
@@ -501,6 +531,8 @@ impl OffsetTracker {
         self.step_hold = None;
         self.after_spike = false;
         self.age_s = 0.0;
+        self.track_age_s = 0.0;
+        self.returned_from_track_s = None;
         self.last = OffsetEvidence {
             share: self.share,
             ..OffsetEvidence::EMPTY
