@@ -102,29 +102,25 @@ fn a_jump_freezes_the_anchors_and_is_held_while_a_spike_comes_back() {
     assert_eq!(back.nis, [0.0, 0.0]);
     assert!(!back.frozen && back.anchor_age_s == 0.0, "{back:?}");
     assert_eq!(back.held_s, 0.0);
+    // The anchors' and the track's age at a 20 m jump after `rows` rows of agreement.
+    let ages_at_jump_after = |rows: usize| {
+        let mut tracker = tracker.clone();
+        for _ in 0..rows {
+            tracker.push(&step([0.0; 2], 1.0));
+        }
+        let jump = tracker.push(&step([0.0, 20.0], 1.0));
+        assert!(
+            jump.arrived_by_step && jump.held_step_m.is_some(),
+            "{jump:?}"
+        );
+        (jump.anchor_age_s, jump.track_age_s)
+    };
     // A return may still be metres off (a multipath burst): the anchors it places start a track
     // of their own, and a jump 3 s later comes from a track 3 s old.
-    let mut early = tracker.clone();
-    for _ in 0..2 {
-        early.push(&step([0.0; 2], 1.0));
-    }
-    let jump = early.push(&step([0.0, 20.0], 1.0));
-    assert!(
-        jump.arrived_by_step && jump.held_step_m.is_some(),
-        "{jump:?}"
-    );
-    assert_eq!((jump.anchor_age_s, jump.track_age_s), (3.0, 3.0));
+    assert_eq!(ages_at_jump_after(2), (3.0, 3.0));
     // After TRUST_S of agreement they are back on the track of the 31 rows before the return:
     // a jump 6 s after it comes from a track 37 s old.
-    for _ in 0..5 {
-        tracker.push(&step([0.0; 2], 1.0));
-    }
-    let jump = tracker.push(&step([0.0, 20.0], 1.0));
-    assert!(
-        jump.arrived_by_step && jump.held_step_m.is_some(),
-        "{jump:?}"
-    );
-    assert_eq!((jump.anchor_age_s, jump.track_age_s), (6.0, 37.0));
+    assert_eq!(ages_at_jump_after(5), (6.0, 37.0));
     // The share of time beyond the follow gate: one row of the last 10 s.
     let share_after_out = 1.0 - keep(1.0, 0);
     assert!((out.share[0] - share_after_out).abs() < 1e-12);
