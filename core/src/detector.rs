@@ -199,8 +199,8 @@ pub fn offset_signal(evidence: &Evidence) -> OffsetSignal {
             nis: o.max_nis(),
             frozen_fix_s: frozen_fix,
             // A held jump pages only from a track the anchors had stood on for a while before it
-            // (a fix placed on a reflection makes the next true fix look like a jump; a spike
-            // that came back to the track places them again on the same track), and counts only
+            // (a fix placed on a reflection makes the next true fix look like a jump; anchors
+            // placed by a spike that came back resume the track once they agree), and counts only
             // the seconds the vehicle moved with it (a receiver that latches a reflected fix as
             // the vehicle stops holds it for the whole stop).
             held_jump_s: (o.arrived_by_step
