@@ -230,7 +230,13 @@ mod tests {
         older[4] = 1;
         assert_eq!(
             refusal(&older).as_deref(),
-            Some("the stored session snapshot has schema version 1; this server reads version 10")
+            Some(
+                format!(
+                    "the stored session snapshot has schema version 1; this server reads version \
+                     {SNAPSHOT_SCHEMA}"
+                )
+                .as_str()
+            )
         );
 
         // A well-formed envelope around a payload of another shape (checksum recomputed).
