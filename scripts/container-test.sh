@@ -62,10 +62,7 @@ case $break_mode in ""|entrypoint|model|volume) ;; *) echo "--break: entrypoint,
 
 sudo=""; [ "$(id -u)" -eq 0 ] || sudo="sudo"
 step() { echo "== $(date +%T) $*"; }
-apt_install() { # package...
-  $sudo apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "$@" >/dev/null
-}
+apt_install() { scripts/apt-install.sh "$@"; } # package...
 
 step "tools: podman, runc, debootstrap (Debian packages)"
 missing=()

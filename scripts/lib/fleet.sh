@@ -14,11 +14,9 @@ fleet_setup() { # name-of-work-directory
     [ -x "$bin/$program" ] || { echo "no $bin/$program: build it first (cargo build, or cargo test --workspace)" >&2; exit 1; }
   done
   data="${SPOOFWATCH_AVGPS_DIR:-$root/../shared/data/av-gps}"
-  local sudo=""; [ "$(id -u)" -eq 0 ] || sudo="sudo"
   for package in postgresql:pg_ctl haproxy:haproxy; do
     if ! command -v "${package#*:}" >/dev/null && ! ls /usr/lib/postgresql/*/bin/"${package#*:}" /usr/sbin/"${package#*:}" >/dev/null 2>&1; then
-      $sudo apt-get update -qq
-      DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${package%%:*}" >/dev/null
+      "$root/scripts/apt-install.sh" "${package%%:*}"
     fi
   done
   haproxy=$(command -v haproxy || echo /usr/sbin/haproxy)
