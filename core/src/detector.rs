@@ -197,6 +197,8 @@ pub fn offset_signal(evidence: &Evidence) -> OffsetSignal {
             displaced: o.displaced(),
             anchored: true,
             nis: o.max_nis(),
+            anchors_age_s: o.anchor_age_s,
+            offset_m: o.offset_m,
             frozen_fix_s: frozen_fix,
             // A held jump pages only from a track the anchors had stood on for a while before it
             // (a fix placed on a reflection makes the next true fix look like a jump; anchors

@@ -82,6 +82,13 @@ pub struct OffsetSignal {
     /// The larger anchor NIS (§4.2), for the critical test's gate; 0 without offset evidence.
     #[serde(default)]
     pub nis: f64,
+    /// Seconds the anchors that NIS is measured from have stood, and the offset from the slow
+    /// one (east, north metres): a fix that came back to the track it left, measured from anchors
+    /// placed on the fix before it, does not hold the gate. 0 without offset evidence.
+    #[serde(default)]
+    pub anchors_age_s: f64,
+    #[serde(default)]
+    pub offset_m: [f64; 2],
     /// Seconds a fix frozen on a moving vehicle and displaced beyond the follow gate has been held
     /// beyond [`FROZEN_FIX_S`](crate::explain::FROZEN_FIX_S); `None` without one. For the
     /// critical test's frozen-fix path.
@@ -199,6 +206,8 @@ impl AlarmLifecycle {
                     probability: input.probability,
                     probability_counts: !settling || input.offset.displaced,
                     nis: input.offset.nis,
+                    anchors_age_s: input.offset.anchors_age_s,
+                    offset_m: input.offset.offset_m,
                     frozen_fix_s: input.offset.frozen_fix_s,
                     held_jump_s: input
                         .offset
@@ -297,6 +306,8 @@ mod tests {
                         displaced: displaced(time_s),
                         anchored: stream.anchored,
                         nis: 0.0,
+                        anchors_age_s: 3600.0,
+                        offset_m: [0.0, 0.0],
                         frozen_fix_s: None,
                         held_jump_s: None,
                         held_step_nis: 0.0,
@@ -431,6 +442,8 @@ mod tests {
                 displaced: false,
                 anchored: true,
                 nis: 0.0,
+                anchors_age_s: 3600.0,
+                offset_m: [0.0, 0.0],
                 frozen_fix_s: None,
                 held_jump_s: None,
                 held_step_nis: 0.0,
@@ -458,6 +471,8 @@ mod tests {
                 displaced,
                 anchored: true,
                 nis: 0.0,
+                anchors_age_s: 3600.0,
+                offset_m: [0.0, 0.0],
                 frozen_fix_s: None,
                 held_jump_s: None,
                 held_step_nis: 0.0,
@@ -503,6 +518,8 @@ mod tests {
                             displaced: false,
                             anchored: true,
                             nis: 0.0,
+                            anchors_age_s: 3600.0,
+                            offset_m: [0.0, 0.0],
                             frozen_fix_s: None,
                             held_jump_s: None,
                             held_step_nis: 0.0,
@@ -610,6 +627,8 @@ mod tests {
                             displaced: held_s.is_some() || flag(t),
                             anchored: false,
                             nis: if held_s.is_some() { 400.0 } else { 0.0 },
+                            anchors_age_s: 3600.0,
+                            offset_m: [0.0, 0.0],
                             frozen_fix_s: None,
                             held_jump_s: None,
                             held_step_nis: 0.0,
@@ -710,6 +729,8 @@ mod tests {
                             displaced: held.is_some(),
                             anchored: true,
                             nis: if held.is_some() { 64.0 } else { 0.0 },
+                            anchors_age_s: 3600.0,
+                            offset_m: [0.0, 0.0],
                             frozen_fix_s: None,
                             held_jump_s: held,
                             held_step_nis: 0.0,

@@ -241,6 +241,11 @@ pub struct CriticalInput {
     pub probability_counts: bool,
     /// The larger anchor NIS of the sample (0 without offset evidence).
     pub nis: f64,
+    /// Seconds the anchors that NIS is measured from have stood
+    /// ([`OffsetEvidence::anchor_age_s`](crate::evidence::OffsetEvidence::anchor_age_s)).
+    pub anchors_age_s: f64,
+    /// The offset from the slow anchor (east, north metres; 0 without offset evidence).
+    pub offset_m: [f64; 2],
     /// Seconds a frozen fix on a moving vehicle has been held (`None`: no frozen fix).
     pub frozen_fix_s: Option<f64>,
     /// Seconds since a jump that arrived in one step, while it is held beyond the decisive gate
@@ -253,13 +258,14 @@ pub struct CriticalInput {
     pub held_offset_s: Option<f64>,
 }
 
-/// The test's per-vehicle state: the accumulated evidence S, the time it was last fed, and since
-/// when the NIS has stayed at or beyond the gate.
+/// The test's per-vehicle state: the accumulated evidence S, the time it was last fed, since
+/// when the NIS has stayed at or beyond the gate, and the last sample's offset.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct CriticalEvidence {
     accumulated: f64,
     last_time_s: Option<f64>,
     beyond_gate_since: Option<f64>,
+    last_offset_m: [f64; 2],
 }
 
 impl CriticalEvidence {
@@ -281,11 +287,18 @@ impl CriticalEvidence {
             logit.min(0.0)
         };
         self.accumulated = (self.accumulated + delta_s * (counted - test.reference_logit)).max(0.0);
-        if input.nis >= test.gate {
-            self.beyond_gate_since.get_or_insert(input.time_s);
-        } else {
-            self.beyond_gate_since = None;
-        }
+        // Before the anchors are trusted, a fix that disagrees places them on itself, and the next
+        // row is measured from there. A fix that keeps running away from the vehicle's motion
+        // holds its offset through such placements; one that points back, against the offset
+        // that placed them, came back to the track it left (a one-row multipath spike as a
+        // receiver reacquires): a new offset, and the hold starts again with it.
+        let came_back =
+            input.anchors_age_s < 1.5 * delta_s && dot(input.offset_m, self.last_offset_m) < 0.0;
+        self.last_offset_m = input.offset_m;
+        self.beyond_gate_since = (input.nis >= test.gate).then(|| match self.beyond_gate_since {
+            Some(since) if !came_back => since,
+            _ => input.time_s,
+        });
         let decisive = self
             .beyond_gate_since
             .is_some_and(|since| input.time_s - since + TIME_SLACK_S >= test.decisive_s);
@@ -309,6 +322,10 @@ impl CriticalEvidence {
     pub fn clear(&mut self) {
         self.accumulated = 0.0;
     }
+}
+
+fn dot(a: [f64; 2], b: [f64; 2]) -> f64 {
+    a[0] * b[0] + a[1] * b[1]
 }
 
 /// An alarm episode's severity and the critical test's evidence, per vehicle. Kept apart from the
@@ -389,6 +406,9 @@ mod tests {
             probability,
             probability_counts: true,
             nis: 0.0,
+            // Anchors that have stood for an hour: every offset is held against them.
+            anchors_age_s: 3600.0,
+            offset_m: [0.0, 0.0],
             frozen_fix_s: None,
             held_jump_s: None,
             held_step_nis: 0.0,
@@ -501,6 +521,51 @@ mod tests {
             critical,
             [false, false, false, false, false, false, false, true]
         );
+    }
+
+    #[test]
+    fn a_fix_that_came_back_to_the_track_it_left_starts_a_new_hold() {
+        // Rows at 1 Hz beyond the gate (decisive after 3 s), each measured from anchors the row
+        // before placed (age 1 s), as before the anchors are trusted.
+        let at = |time_s: f64, offset_m| CriticalInput {
+            nis: 2800.0,
+            anchors_age_s: 1.0,
+            offset_m,
+            ..input(time_s, 0.0)
+        };
+        let run = |offsets: &[[f64; 2]]| {
+            let mut evidence = CriticalEvidence::default();
+            (0..offsets.len())
+                .map(|i| evidence.update(&TEST, &at(10.0 + i as f64, offsets[i])))
+                .collect::<Vec<_>>()
+        };
+        // A fix running away from the vehicle holds its offset through the placements.
+        let away = [[60.0, 190.0], [40.0, 120.0], [65.0, 180.0], [30.0, 95.0]];
+        assert_eq!(run(&away), [false, false, false, true]);
+        // A fix that swings back and forth is back on its track every other row: never held.
+        let swinging = [
+            [59.0, 0.0],
+            [-59.0, 0.0],
+            [58.0, 1.0],
+            [-58.0, -1.0],
+            [59.0, 0.0],
+        ];
+        assert_eq!(run(&swinging), [false; 5]);
+        // Anchors that stood through the hold keep it, whichever way the offset turns.
+        let mut evidence = CriticalEvidence::default();
+        let standing: Vec<bool> = swinging
+            .iter()
+            .enumerate()
+            .map(|(i, &offset_m)| {
+                let time_s = 10.0 + i as f64;
+                let input = CriticalInput {
+                    anchors_age_s: 60.0 + i as f64,
+                    ..at(time_s, offset_m)
+                };
+                evidence.update(&TEST, &input)
+            })
+            .collect();
+        assert_eq!(standing, [false, false, false, true, true]);
     }
 
     #[test]

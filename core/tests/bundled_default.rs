@@ -1,15 +1,20 @@
 //! The bundled default model on attacks that end: the alarm a frozen fix raised ends soon after the
 //! fix moves again, at every sample rate, on drives of the fleet distribution and on drives with
 //! clean onboard sensors. An alarm held open after its attack keeps paging someone for nothing; the
-//! detector must hand the vehicle back once its fix and its own motion agree again.
+//! detector must hand the vehicle back once its fix and its own motion agree again. And a one-row
+//! multipath spike as a receiver reacquires after an outage must not page, where the same offset
+//! held does.
 
 use std::sync::Arc;
 
 use spoofwatch_core::detector::Detector;
+use spoofwatch_core::geo::displace_fix;
 use spoofwatch_core::model::artifact::ModelArtifact;
+use spoofwatch_core::sample::Sample;
 use spoofwatch_core::scenario::{
     AttackKind, AttackSpec, DriveDistribution, DriveSpec, inject, simulate_drive,
 };
+use spoofwatch_core::severity::Severity;
 
 const BUNDLED_MODEL: &[u8] = include_bytes!("../../models/default.json");
 const ONSET_S: f64 = 100.0;
@@ -87,5 +92,47 @@ fn a_frozen_fix_alarm_ends_once_the_fix_moves_again() {
     assert!(
         2 * alarmed >= runs,
         "{alarmed} of {runs} frozen fixes alarmed"
+    );
+}
+
+/// A 1 Hz vehicle driving north at 6.7 m/s for 400 s with a 20 s GNSS outage from 300 s; its fixes
+/// carry a few decimetres of noise, and `extra_m(t)` metres east on top.
+fn drive_through_an_outage(extra_m: impl Fn(f64) -> f64) -> Vec<Sample> {
+    const SPEED_MPS: f64 = 6.7;
+    (0..400)
+        .map(f64::from)
+        .filter(|t| !(300.0..320.0).contains(t))
+        .map(|t| {
+            let noise = [0.3 * (1.3 * t).sin(), 0.3 * (0.7 * t).cos()];
+            let (lat, lon) =
+                displace_fix(48.0, 11.0, noise[0] + extra_m(t), SPEED_MPS * t + noise[1]);
+            Sample::new(t, lat, lon, SPEED_MPS, 0.0)
+        })
+        .collect()
+}
+
+/// The first time the bundled default's alarm is critical, if ever.
+fn first_critical_s(samples: &[Sample]) -> Option<f64> {
+    let artifact = Arc::new(ModelArtifact::from_slice(BUNDLED_MODEL).expect("the bundled model"));
+    let mut detector = Detector::new(artifact);
+    samples
+        .iter()
+        .find(|s| detector.step(s, false).severity == Some(Severity::Critical))
+        .map(|s| s.timestamp_s)
+}
+
+#[test]
+fn a_multipath_spike_as_the_receiver_reacquires_does_not_page_and_a_held_jump_does() {
+    // Four seconds after the outage, before the anchors trust the fix again, one fix lands 150 m
+    // off and places them on itself; the next, true fix is 150 m from there. Both rows are beyond
+    // the test's gate, and neither offset is held.
+    let spike = drive_through_an_outage(|t| if t == 324.0 { 150.0 } else { 0.0 });
+    assert_eq!(first_critical_s(&spike), None);
+    // The same 150 m held from trusted anchors is decisive within the test's hold.
+    let jump = drive_through_an_outage(|t| if t >= 360.0 { 150.0 } else { 0.0 });
+    let paged = first_critical_s(&jump);
+    assert!(
+        paged.is_some_and(|t| (360.0..=363.0).contains(&t)),
+        "a held 150 m jump paged at {paged:?}"
     );
 }
