@@ -295,10 +295,11 @@ impl CriticalEvidence {
         let came_back =
             input.anchors_age_s < 1.5 * delta_s && dot(input.offset_m, self.last_offset_m) < 0.0;
         self.last_offset_m = input.offset_m;
-        self.beyond_gate_since = (input.nis >= test.gate).then(|| match self.beyond_gate_since {
+        let since = match self.beyond_gate_since {
             Some(since) if !came_back => since,
             _ => input.time_s,
-        });
+        };
+        self.beyond_gate_since = (input.nis >= test.gate).then_some(since);
         let decisive = self
             .beyond_gate_since
             .is_some_and(|since| input.time_s - since + TIME_SLACK_S >= test.decisive_s);
