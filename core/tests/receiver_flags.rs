@@ -376,5 +376,7 @@ fn a_flag_raised_all_the_time_adds_few_alarms_on_clean_drives() {
         "50 h of clean realistic drives: {plain} alarms without the flag, {flagged} flagged throughout"
     );
     assert!(flagged >= plain);
-    assert!(flagged - plain <= 5, "{plain} → {flagged}");
+    // A receiver stuck flagging may cost at most a fifth of the warning budget (one per vehicle-hour):
+    // 10 alarms in 50 hours.
+    assert!(flagged - plain <= 10, "{plain} → {flagged}");
 }

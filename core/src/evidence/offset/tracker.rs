@@ -193,6 +193,9 @@ impl OffsetTracker {
         // spike comes back within the agreement time, a jump stays and is tested from there.
         let step_test_m2 = self.params.step_noise_m2 * levels[STEP_LEVEL];
         let step_share = calibration_covariance(step.motion, &step.calibration_error);
+        // A receiver that reacquired converges by steps of up to its remaining error: such a step
+        // is not an outlier (which would place untrusted anchors again, without the allowance).
+        let reacquisition_m2 = self.reacquisition_m2();
         Row {
             growth,
             levels,
@@ -201,14 +204,15 @@ impl OffsetTracker {
             step_test_m2,
             calibration_error: step.calibration_error,
             step_share,
-            outlier: nis(step.residual, step_test_m2, &step_share) >= FOLLOW_GATE,
+            outlier: nis(step.residual, step_test_m2 + reacquisition_m2, &step_share)
+                >= FOLLOW_GATE,
             // A held jump is tested against pure dead reckoning: on a vehicle whose dead
             // reckoning cannot carry an anchor (a misfit beyond the level's bound) it means
             // nothing.
             dead_reckoning_carries: misfits[ANCHOR_COUNT - 1] <= 1.0,
             // A receiver that held its first, unconverged fix while the vehicle stood releases it
             // in one step once the vehicle moves: the change since a freeze allows for it.
-            reacquisition_m2: self.reacquisition_m2(),
+            reacquisition_m2,
         }
     }
 
