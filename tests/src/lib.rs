@@ -498,6 +498,16 @@ pub fn artifact_without_critical_level() -> Vec<u8> {
         .expect("the artifact without a critical level is valid")
 }
 
+/// The bundled default model's artifact registered again under other notes: the same network and
+/// tests, so a server holding both decides every sample alike.
+pub fn artifact_registered_again() -> Vec<u8> {
+    let mut artifact = ModelArtifact::from_slice(BUNDLED_MODEL).expect("the bundled model");
+    artifact.provenance.notes = "the bundled model, registered again".into();
+    artifact
+        .to_vec()
+        .expect("the artifact registered again is valid")
+}
+
 /// Drains a server-streaming model export into the artifact's bytes.
 pub async fn export_model(
     models: &mut ModelServiceClient<AuthenticatedChannel>,

@@ -6,13 +6,12 @@
 
 use std::time::Duration;
 
-use spoofwatch_core::model::artifact::ModelArtifact;
 use spoofwatch_core::scenario::AttackKind;
 use spoofwatch_proto::v1;
-use spoofwatch_server::models::registry::BUNDLED_MODEL;
 use spoofwatch_tests::{
-    ADMIN_TOKEN, Clients, TestServer, attacked_drive, fingerprint, import_model, normal_drive,
-    start_server, start_stream, start_with_roles, test_config, token_sha256, track_samples,
+    ADMIN_TOKEN, Clients, TestServer, artifact_registered_again, attacked_drive, fingerprint,
+    import_model, normal_drive, start_server, start_stream, start_with_roles, test_config,
+    token_sha256, track_samples,
 };
 use tonic::Code;
 use tonic_types::StatusExt;
@@ -22,10 +21,9 @@ use tonic_types::StatusExt;
 /// the warning's hold), so only the same network and the same tests make every sample agree; the
 /// would-be alarms are still the candidate's own, listed apart.
 async fn candidate(clients: &mut Clients) -> String {
-    let mut artifact = ModelArtifact::from_slice(BUNDLED_MODEL).expect("the bundled model");
-    artifact.provenance.notes = "the bundled model, registered again as a shadow candidate".into();
-    let bytes = artifact.to_vec().expect("the candidate is valid");
-    import_model(clients, bytes, "candidate").await.name
+    import_model(clients, artifact_registered_again(), "candidate")
+        .await
+        .name
 }
 
 async fn start_shadow(
