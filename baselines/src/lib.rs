@@ -235,6 +235,7 @@ impl Fitted {
             rows,
             alarms,
             offset: Vec::new(),
+            speed_mps: Vec::new(),
         })
     }
 }

@@ -198,10 +198,13 @@ pub struct LifecycleSelection {
 /// Chooses θ from `thetas` and the lifecycle from [`ON_S_GRID`] × [`OFF_S_GRID`] ×
 /// [`DECISIVE_S_GRID`] by `rule`, with the objective and tie-breaks of [`choose_operating_point`]
 /// (then the shorter T_on, the longer decisive hold and the shorter T_off). A false-alarm budget
-/// holds pooled and at each sample rate ([`metrics::rate_groups`]) with room for one false alarm.
+/// holds pooled, at each sample rate, and at each rate on open roads and in town
+/// ([`metrics::rate_and_pace_groups`], from `speeds_mps`, each row's onboard speed), in every group
+/// with room for one false alarm.
 pub fn choose_lifecycle(
     rows: &[ScoredRow],
     offset: &[OffsetSignal],
+    speeds_mps: &[f64],
     thetas: &[f64],
     rules: EventRules,
     rule: OperatingPointRule,
@@ -209,9 +212,9 @@ pub fn choose_lifecycle(
     let budget = rule.budget();
     check_search(rows, thetas, 1)?;
     let normal_hours = metrics::normal_hours(rows);
-    // The budget holds pooled and at every sample rate with room for at least one false alarm
-    // (a rate with less attack-free time counts in the pooled budget only).
-    let rate_groups: Vec<_> = metrics::rate_groups(rows)
+    // The budget holds pooled and in every group of rate (and pace) with room for at least one
+    // false alarm (a group with less attack-free time counts in the pooled budget only).
+    let groups: Vec<_> = metrics::rate_and_pace_groups(rows, speeds_mps)
         .into_iter()
         .filter(|g| budget.is_some_and(|per_hour| per_hour * g.normal_hours >= 1.0))
         .collect();
@@ -233,7 +236,7 @@ pub fn choose_lifecycle(
                     fewest_onsets = fewest_onsets.min(candidate.false_alarm_onsets);
                     let within_budget = budget.is_none_or(|_| {
                         candidate.false_alarm_onsets as f64 <= rule.allowed_onsets(normal_hours)
-                            && rate_groups.iter().all(|g| {
+                            && groups.iter().all(|g| {
                                 g.false_alarm_onsets(rows, &alarms) as f64
                                     <= rule.allowed_onsets(g.normal_hours)
                             })

@@ -416,6 +416,7 @@ impl CusumComparator {
                 rows: scored_rows(&rows, &steps),
                 alarms: steps.iter().map(|s| s.alarm).collect(),
                 offset: Vec::new(),
+                speed_mps: Vec::new(),
             });
         }
         scored

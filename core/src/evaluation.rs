@@ -27,6 +27,9 @@ pub struct Scored {
     pub alarms: Vec<bool>,
     /// The offset evidence of each row, for the lifecycle search (empty for detectors without it).
     pub offset: Vec<OffsetSignal>,
+    /// Each row's onboard speed (m/s), for the lifecycle search's budget per pace (empty for
+    /// detectors that do not keep it).
+    pub speed_mps: Vec<f64>,
 }
 
 impl Scored {
@@ -53,6 +56,7 @@ impl Scored {
             rows: scored(self.rows, records),
             alarms: scored(self.alarms, records),
             offset: scored(self.offset, records),
+            speed_mps: scored(self.speed_mps, records),
         }
     }
 
@@ -61,6 +65,7 @@ impl Scored {
         self.rows.extend(other.rows);
         self.alarms.extend(other.alarms);
         self.offset.extend(other.offset);
+        self.speed_mps.extend(other.speed_mps);
     }
 }
 
@@ -108,6 +113,7 @@ fn scored_track(track_index: usize, records: &[Record], decisions: &[Decision]) 
             .iter()
             .map(|d| offset_signal(&d.evidence))
             .collect(),
+        speed_mps: records.iter().map(|r| r.sample.speed_mps).collect(),
     }
     .without_warmup(records)
 }

@@ -106,6 +106,7 @@ impl GlrComparator {
             rows,
             alarms,
             offset: Vec::new(),
+            speed_mps: Vec::new(),
         }
     }
 }

@@ -290,39 +290,117 @@ pub fn normal_hours(rows: &[ScoredRow]) -> f64 {
 /// trajectory's median sampling interval), with each group's attack-free hours. A false-alarm
 /// budget must hold at every rate, not only on average: persistence and noise differ with it.
 pub fn rate_groups(rows: &[ScoredRow]) -> Vec<RateGroup> {
+    grouped(rows, |range| (sample_rate_hz(&rows[range]), None))
+}
+
+/// [`rate_groups`], and each rate's trajectories again by [`Pace`] from `speeds_mps` (the onboard
+/// speed of each row; without one per row, the rate groups alone). A warning budget must hold on
+/// open roads as in town: the dead reckoning's error per sample grows with the distance covered,
+/// so a point that keeps the budget only on average pages the fleet's fast vehicles.
+pub fn rate_and_pace_groups(rows: &[ScoredRow], speeds_mps: &[f64]) -> Vec<RateGroup> {
+    let mut groups = rate_groups(rows);
+    if speeds_mps.len() == rows.len() {
+        groups.extend(grouped(rows, |range| {
+            let pace = Pace::of(&speeds_mps[range.clone()]);
+            (sample_rate_hz(&rows[range]), Some(pace))
+        }));
+    }
+    groups
+}
+
+/// A trajectory's sample rate (Hz, rounded, at least 1) from its median sampling interval;
+/// `None` for a trajectory without two timed rows.
+fn sample_rate_hz(rows: &[ScoredRow]) -> Option<u32> {
+    let mut steps: Vec<f64> = rows
+        .windows(2)
+        .map(|pair| pair[1].time_s - pair[0].time_s)
+        .filter(|step| step.is_finite() && *step > 0.0)
+        .collect();
+    steps.sort_by(f64::total_cmp);
+    let median = steps.get(steps.len() / 2)?;
+    Some((1.0 / median).round().max(1.0) as u32)
+}
+
+/// The trajectories of `rows` grouped by `key` (sample rate, pace), sorted by rate then pace;
+/// trajectories without a rate are left out.
+fn grouped(
+    rows: &[ScoredRow],
+    key: impl Fn(Range<usize>) -> (Option<u32>, Option<Pace>),
+) -> Vec<RateGroup> {
     let mut groups: Vec<RateGroup> = Vec::new();
     for range in trajectory_ranges(rows) {
-        let mut steps: Vec<f64> = rows[range.clone()]
-            .windows(2)
-            .map(|pair| pair[1].time_s - pair[0].time_s)
-            .filter(|step| step.is_finite() && *step > 0.0)
-            .collect();
-        steps.sort_by(f64::total_cmp);
-        let Some(&median) = steps.get(steps.len() / 2) else {
+        let (Some(rate_hz), pace) = key(range.clone()) else {
             continue;
         };
-        let rate_hz = (1.0 / median).round().max(1.0) as u32;
         let hours = normal_hours(&rows[range.clone()]);
-        match groups.iter_mut().find(|g| g.rate_hz == rate_hz) {
+        match groups
+            .iter_mut()
+            .find(|g| g.rate_hz == rate_hz && g.pace == pace)
+        {
             Some(group) => {
                 group.trajectories.push(range);
                 group.normal_hours += hours;
             }
             None => groups.push(RateGroup {
                 rate_hz,
+                pace,
                 trajectories: vec![range],
                 normal_hours: hours,
             }),
         }
     }
-    groups.sort_by_key(|g| g.rate_hz);
+    groups.sort_by_key(|g| (g.rate_hz, g.pace));
     groups
 }
 
-/// The trajectories of one sample rate ([`rate_groups`]).
+/// A trajectory whose median onboard speed while moving reaches this (m/s, 36 km/h) is driven at
+/// [`Pace::OpenRoad`]: highways and rural roads, where town traffic, with its stops, turns and
+/// queues, rarely keeps that median.
+pub const OPEN_ROAD_MEDIAN_SPEED_MPS: f64 = 10.0;
+/// Rows slower than this (m/s) are standing or creeping, and left out of a trajectory's pace.
+const MOVING_SPEED_MPS: f64 = 1.0;
+
+/// How fast a vehicle drives while it moves, for the false-alarm budget's groups.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Pace {
+    /// Median speed while moving below [`OPEN_ROAD_MEDIAN_SPEED_MPS`] (or never moving).
+    Town,
+    /// Median speed while moving at or above it.
+    OpenRoad,
+}
+
+impl Pace {
+    /// The pace of one trajectory's onboard speeds (m/s; non-finite ones are left out).
+    pub fn of(speeds_mps: &[f64]) -> Self {
+        let mut moving: Vec<f64> = speeds_mps
+            .iter()
+            .map(|s| s.abs())
+            .filter(|s| s.is_finite() && *s >= MOVING_SPEED_MPS)
+            .collect();
+        moving.sort_by(f64::total_cmp);
+        match moving.get(moving.len() / 2) {
+            Some(&median) if median >= OPEN_ROAD_MEDIAN_SPEED_MPS => Self::OpenRoad,
+            _ => Self::Town,
+        }
+    }
+
+    /// `town` or `open_road` (as serialised).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Town => "town",
+            Self::OpenRoad => "open_road",
+        }
+    }
+}
+
+/// The trajectories of one sample rate ([`rate_groups`]), or of one rate and pace
+/// ([`rate_and_pace_groups`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct RateGroup {
     pub rate_hz: u32,
+    /// `None` for every trajectory of the rate.
+    pub pace: Option<Pace>,
     /// Row ranges, one per trajectory.
     pub trajectories: Vec<Range<usize>>,
     pub normal_hours: f64,
@@ -524,6 +602,20 @@ fn count_false_alarm_onsets(rows: &[ScoredRow], alarms: &[bool]) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_trajectorys_pace_is_its_median_speed_while_moving() {
+        // Standing rows do not pull a highway drive into town: moving 9, 11, 12 → median 11.
+        assert_eq!(
+            Pace::of(&[0.0, 0.0, 0.0, 0.5, 9.0, 11.0, 12.0]),
+            Pace::OpenRoad
+        );
+        // Reversing counts by its magnitude; NaN is left out: moving 9.5, 9.9, 12 → 9.9.
+        assert_eq!(Pace::of(&[-9.5, f64::NAN, 9.9, 12.0]), Pace::Town);
+        assert_eq!(Pace::of(&[OPEN_ROAD_MEDIAN_SPEED_MPS]), Pace::OpenRoad);
+        assert_eq!(Pace::of(&[0.0, 0.2]), Pace::Town);
+        assert_eq!(Pace::of(&[]), Pace::Town);
+    }
 
     #[test]
     fn false_alarm_onsets_leave_out_an_alarm_that_outlasts_its_attack() {

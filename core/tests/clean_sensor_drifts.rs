@@ -151,14 +151,15 @@ fn early_drifts(artifact: ModelArtifact) -> ((usize, f64), (usize, f64)) {
 fn early_drifts_on_clean_sensors_are_found_and_toggles_do_not_shake_the_alarm_off() {
     let bundled = ModelArtifact::from_slice(BUNDLED_MODEL).expect("the bundled model");
     let ((ramp_found, ramp_coverage), (toggling_found, toggling_coverage)) = early_drifts(bundled);
-    // Measured: 17 of 20 ramps within 30 s, covering 0.60 of their rows on average (the bundled
-    // prior's 5° of compass doubt hides a drift the vehicle drives along or across until it turns);
-    // the same drifts with toggles to the truth every 3–15 s, 17 of 20 and 0.66.
+    // Measured: 16 of 20 ramps within 30 s, covering 0.55 of their rows on average (the bundled
+    // prior's 5° of compass doubt hides a drift the vehicle drives along or across until it turns,
+    // and the warning point holds its budget on open roads too, θ 0.95 held 4 s); the same drifts
+    // with toggles to the truth every 3–15 s, 16 of 20 and 0.58.
     assert!(
-        ramp_found >= 16,
+        ramp_found >= 15,
         "{ramp_found} of {DRIVES} early 1 m/s drifts alarmed within 30 s"
     );
-    assert!(ramp_coverage >= 0.55, "coverage {ramp_coverage:.2}");
+    assert!(ramp_coverage >= 0.5, "coverage {ramp_coverage:.2}");
     assert!(
         toggling_found + 1 >= ramp_found && toggling_coverage >= ramp_coverage - 0.05,
         "toggles shook the alarm off: {toggling_found} found, coverage {toggling_coverage:.2}, \

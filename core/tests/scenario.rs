@@ -1,10 +1,12 @@
 //! Subtle-attack scenarios: injection, simulated drives and scenario sets (SPEC §9).
 
 use spoofwatch_core::data::telemetry::write_tracks;
+use spoofwatch_core::metrics::Pace;
 use spoofwatch_core::sample::{Record, Sample, Track};
 use spoofwatch_core::scenario::{
-    AttackDuration, AttackKind, AttackSpec, DriveSpec, RAMP_SWEEP_VELOCITIES_MPS, ScenarioError,
-    ScenarioPlan, generate, inject, simulate_drive, simulate_drive_with_truth,
+    AttackDuration, AttackKind, AttackSpec, DriveDistribution, DriveSpec,
+    RAMP_SWEEP_VELOCITIES_MPS, RoadKind, ScenarioError, ScenarioPlan, generate, inject,
+    simulate_drive, simulate_drive_with_truth,
 };
 
 // ---- independent geodesy for the checks (WGS-84 local radii; the library keeps its own private copy) ----
@@ -878,4 +880,22 @@ fn written_csv_has_the_documented_header_and_one_row_per_record() {
         "{}",
         lines[12]
     );
+}
+
+#[test]
+fn the_pace_of_a_fleet_drive_agrees_with_its_road_kind() {
+    // The warning budget's groups read a trajectory's pace from its onboard speeds alone; on the
+    // fleet distribution's half-hour drives it names the simulator's road kind on at least 95 %.
+    let drives = 300_u64;
+    let mut agree = 0;
+    for i in 0..drives {
+        let mut spec = DriveDistribution::fleet().draw(777_000 + i);
+        spec.duration_s = 1800.0;
+        spec.rate_hz = 1.0;
+        let track = simulate_drive(&spec, "pace").expect("a fleet drive simulates");
+        let speeds: Vec<f64> = track.records.iter().map(|r| r.sample.speed_mps).collect();
+        let open_road = Pace::of(&speeds) == Pace::OpenRoad;
+        agree += u64::from(open_road == (spec.road_kind() == RoadKind::Highway));
+    }
+    assert!(agree * 100 >= drives * 95, "{agree} of {drives} agree");
 }

@@ -2,6 +2,7 @@
 //! tie-breaks, the false-alarm budget per rate and its margin) on rows whose best point is known.
 
 use super::*;
+use crate::metrics::Pace;
 
 const BEST_F1: OperatingPointRule = OperatingPointRule::BestValidationF1;
 
@@ -387,6 +388,7 @@ fn the_budget_holds_at_every_sample_rate_not_only_pooled() {
     let chosen = choose_lifecycle(
         &rows,
         &offset,
+        &[],
         &theta_grid(),
         EventRules::Spec,
         OperatingPointRule::WithinFalseAlarmBudget { per_hour: 1.0 },
@@ -395,6 +397,74 @@ fn the_budget_holds_at_every_sample_rate_not_only_pooled() {
     assert!(chosen.point.theta > 0.9, "{chosen:?}");
     assert_eq!(chosen.metrics.false_alarm_onsets, 0);
     assert_eq!(chosen.metrics.detected_events, 0);
+}
+
+#[test]
+fn the_budget_holds_on_open_roads_not_only_at_the_rate() {
+    // Both trajectories at 1 Hz. Trajectory 0 in town (8 m/s): ten attack-free hours, then a 60 s
+    // attack scored 0.85. Trajectory 1 on the open road (20 m/s): two attack-free hours with three
+    // 20 s bursts scored 0.9. Pooled and at 1 Hz, three false alarms in twelve hours buy the
+    // detection (θ ≤ 0.85); on the open road they are three in two hours, so with the speeds only a
+    // θ above the bursts is within the budget.
+    let row = |trajectory, time_s, label, score| ScoredRow {
+        trajectory,
+        time_s,
+        valid: true,
+        label,
+        score,
+    };
+    let town_s = 36_000;
+    let mut rows: Vec<ScoredRow> = (0..town_s + 60)
+        .map(|i| {
+            let attacked = i >= town_s;
+            row(0, f64::from(i), attacked, if attacked { 0.85 } else { 0.0 })
+        })
+        .collect();
+    rows.extend((0..7201).map(|i| {
+        let t = f64::from(i);
+        let burst = [1000.0, 3000.0, 5000.0]
+            .iter()
+            .any(|start| (*start..start + 20.0).contains(&t));
+        row(1, t, false, if burst { 0.9 } else { 0.0 })
+    }));
+    let speeds: Vec<f64> = rows
+        .iter()
+        .map(|r| if r.trajectory == 0 { 8.0 } else { 20.0 })
+        .collect();
+    let groups = metrics::rate_and_pace_groups(&rows, &speeds);
+    let summary: Vec<(u32, Option<Pace>, usize)> = groups
+        .iter()
+        .map(|g| (g.rate_hz, g.pace, g.trajectories.len()))
+        .collect();
+    assert_eq!(
+        summary,
+        vec![
+            (1, None, 2),
+            (1, Some(Pace::Town), 1),
+            (1, Some(Pace::OpenRoad), 1)
+        ]
+    );
+    let offset = vec![OffsetSignal::default(); rows.len()];
+    let budget = OperatingPointRule::WithinFalseAlarmBudget { per_hour: 1.0 };
+    let search = |speeds: &[f64]| {
+        choose_lifecycle(
+            &rows,
+            &offset,
+            speeds,
+            &theta_grid(),
+            EventRules::Spec,
+            budget,
+        )
+        .expect("a point within the budget")
+    };
+    let pooled = search(&[]);
+    assert!(pooled.point.theta <= 0.85, "{pooled:?}");
+    assert_eq!(pooled.metrics.detected_events, 1);
+    assert_eq!(pooled.metrics.false_alarm_onsets, 3);
+    let by_pace = search(&speeds);
+    assert!(by_pace.point.theta > 0.9, "{by_pace:?}");
+    assert_eq!(by_pace.metrics.false_alarm_onsets, 0);
+    assert_eq!(by_pace.metrics.detected_events, 0);
 }
 
 #[test]
@@ -422,10 +492,13 @@ fn the_lifecycle_search_finds_a_point_above_0_95_when_the_budget_needs_one() {
         .collect();
     let offset = vec![OffsetSignal::default(); rows.len()];
     let budget = OperatingPointRule::WithinFalseAlarmBudget { per_hour: 0.5 };
-    assert!(choose_lifecycle(&rows, &offset, &theta_grid(), EventRules::Spec, budget).is_err());
+    assert!(
+        choose_lifecycle(&rows, &offset, &[], &theta_grid(), EventRules::Spec, budget).is_err()
+    );
     let chosen = choose_lifecycle(
         &rows,
         &offset,
+        &[],
         &lifecycle_theta_grid(),
         EventRules::Spec,
         budget,
@@ -488,6 +561,7 @@ fn with_the_margin_the_search_takes_a_quieter_point_than_the_budget_alone() {
         choose_lifecycle(
             &rows,
             &offset,
+            &[],
             &lifecycle_theta_grid(),
             EventRules::Spec,
             rule,
@@ -505,6 +579,7 @@ fn with_the_margin_the_search_takes_a_quieter_point_than_the_budget_alone() {
     let error = choose_lifecycle(
         &rows,
         &offset,
+        &[],
         &theta_grid()[..10],
         EventRules::Spec,
         OperatingPointRule::WithinFalseAlarmBudgetWithMargin { per_hour: 1.0 },

@@ -230,6 +230,7 @@ fn train_candidate(
         let selection = choose_lifecycle(
             &scored.rows,
             &scored.offset,
+            &scored.speed_mps,
             &lifecycle_theta_grid(),
             spec.rules,
             spec.operating_point,

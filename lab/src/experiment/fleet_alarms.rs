@@ -545,6 +545,7 @@ fn scored_levels(
             .iter()
             .map(|d| offset_signal(&d.evidence))
             .collect(),
+        speed_mps: records.iter().map(|r| r.sample.speed_mps).collect(),
     }
 }
 

@@ -570,6 +570,7 @@ pub(super) fn within_budget(
         choose_lifecycle(
             rows,
             &scored.offset,
+            &scored.speed_mps,
             &lifecycle_theta_grid(),
             EventRules::Spec,
             BUDGET,
