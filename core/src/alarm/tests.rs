@@ -353,6 +353,17 @@ fn a_false_alarm_budget_excludes_points_that_exceed_it() {
     assert_eq!(strict.metrics.detected_events, 0);
 }
 
+/// One valid row of `trajectory`.
+fn valid_row(trajectory: u64, time_s: f64, label: bool, score: f64) -> ScoredRow {
+    ScoredRow {
+        trajectory,
+        time_s,
+        valid: true,
+        label,
+        score,
+    }
+}
+
 #[test]
 fn the_budget_holds_at_every_sample_rate_not_only_pooled() {
     // Trajectory 0 at 1 Hz: two attack-free hours, then a 60 s attack scored 0.85.
@@ -360,23 +371,16 @@ fn the_budget_holds_at_every_sample_rate_not_only_pooled() {
     // alarm) with two 20 s bursts scored 0.9 (longer than any T_on). Pooled, two
     // false alarms in three hours would be within 1/h and buy the detection (θ ≤ 0.85); at
     // 10 Hz they are two in one hour, so only a θ above the bursts is within the budget.
-    let row = |trajectory, time_s, label, score| ScoredRow {
-        trajectory,
-        time_s,
-        valid: true,
-        label,
-        score,
-    };
     let mut rows: Vec<ScoredRow> = (0..7260)
         .map(|i| {
             let attacked = i >= 7200;
-            row(0, f64::from(i), attacked, if attacked { 0.85 } else { 0.0 })
+            valid_row(0, f64::from(i), attacked, if attacked { 0.85 } else { 0.0 })
         })
         .collect();
     rows.extend((0..36_100).map(|i| {
         let t = f64::from(i) / 10.0;
         let burst = (1000.0..1020.0).contains(&t) || (2000.0..2020.0).contains(&t);
-        row(1, t, false, if burst { 0.9 } else { 0.0 })
+        valid_row(1, t, false, if burst { 0.9 } else { 0.0 })
     }));
     let groups = metrics::rate_groups(&rows);
     let summary: Vec<(u32, f64)> = groups
@@ -406,18 +410,11 @@ fn the_budget_holds_on_open_roads_not_only_at_the_rate() {
     // 20 s bursts scored 0.9. Pooled and at 1 Hz, three false alarms in twelve hours buy the
     // detection (θ ≤ 0.85); on the open road they are three in two hours, so with the speeds only a
     // θ above the bursts is within the budget.
-    let row = |trajectory, time_s, label, score| ScoredRow {
-        trajectory,
-        time_s,
-        valid: true,
-        label,
-        score,
-    };
     let town_s = 36_000;
     let mut rows: Vec<ScoredRow> = (0..town_s + 60)
         .map(|i| {
             let attacked = i >= town_s;
-            row(0, f64::from(i), attacked, if attacked { 0.85 } else { 0.0 })
+            valid_row(0, f64::from(i), attacked, if attacked { 0.85 } else { 0.0 })
         })
         .collect();
     rows.extend((0..7201).map(|i| {
@@ -425,7 +422,7 @@ fn the_budget_holds_on_open_roads_not_only_at_the_rate() {
         let burst = [1000.0, 3000.0, 5000.0]
             .iter()
             .any(|start| (*start..start + 20.0).contains(&t));
-        row(1, t, false, if burst { 0.9 } else { 0.0 })
+        valid_row(1, t, false, if burst { 0.9 } else { 0.0 })
     }));
     let speeds: Vec<f64> = rows
         .iter()
