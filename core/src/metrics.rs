@@ -290,22 +290,62 @@ pub fn normal_hours(rows: &[ScoredRow]) -> f64 {
 /// trajectory's median sampling interval), with each group's attack-free hours. A false-alarm
 /// budget must hold at every rate, not only on average: persistence and noise differ with it.
 pub fn rate_groups(rows: &[ScoredRow]) -> Vec<RateGroup> {
-    grouped(rows, |range| (sample_rate_hz(&rows[range]), None))
+    let mut groups: Vec<RateGroup> = Vec::new();
+    for range in trajectory_ranges(rows) {
+        let Some(rate_hz) = sample_rate_hz(&rows[range.clone()]) else {
+            continue;
+        };
+        let hours = normal_hours(&rows[range.clone()]);
+        match groups.iter_mut().find(|g| g.rate_hz == rate_hz) {
+            Some(group) => {
+                group.trajectories.push(range);
+                group.normal_hours += hours;
+            }
+            None => groups.push(RateGroup {
+                rate_hz,
+                pace: None,
+                trajectories: vec![range],
+                normal_hours: hours,
+            }),
+        }
+    }
+    groups.sort_by_key(|g| g.rate_hz);
+    groups
 }
 
-/// [`rate_groups`], and each rate's trajectories again by [`Pace`] from `speeds_mps` (the onboard
+/// [`rate_groups`], then each rate's trajectories again by [`Pace`] from `speeds_mps` (the onboard
 /// speed of each row; without one per row, the rate groups alone). A warning budget must hold on
 /// open roads as in town: the dead reckoning's error per sample grows with the distance covered,
 /// so a point that keeps the budget only on average pages the fleet's fast vehicles.
 pub fn rate_and_pace_groups(rows: &[ScoredRow], speeds_mps: &[f64]) -> Vec<RateGroup> {
-    let mut groups = rate_groups(rows);
-    if speeds_mps.len() == rows.len() {
-        groups.extend(grouped(rows, |range| {
-            let pace = Pace::of(&speeds_mps[range.clone()]);
-            (sample_rate_hz(&rows[range]), Some(pace))
-        }));
+    let by_rate = rate_groups(rows);
+    if speeds_mps.len() != rows.len() {
+        return by_rate;
     }
-    groups
+    let mut by_pace = Vec::new();
+    for group in &by_rate {
+        let (open_road, town): (Vec<_>, Vec<_>) = group
+            .trajectories
+            .iter()
+            .cloned()
+            .partition(|range| Pace::of(&speeds_mps[range.clone()]) == Pace::OpenRoad);
+        for (pace, trajectories) in [(Pace::Town, town), (Pace::OpenRoad, open_road)] {
+            if trajectories.is_empty() {
+                continue;
+            }
+            let hours = trajectories
+                .iter()
+                .map(|range| normal_hours(&rows[range.clone()]))
+                .sum();
+            by_pace.push(RateGroup {
+                rate_hz: group.rate_hz,
+                pace: Some(pace),
+                trajectories,
+                normal_hours: hours,
+            });
+        }
+    }
+    by_rate.into_iter().chain(by_pace).collect()
 }
 
 /// A trajectory's sample rate (Hz, rounded, at least 1) from its median sampling interval;
@@ -321,38 +361,6 @@ fn sample_rate_hz(rows: &[ScoredRow]) -> Option<u32> {
     Some((1.0 / median).round().max(1.0) as u32)
 }
 
-/// The trajectories of `rows` grouped by `key` (sample rate, pace), sorted by rate then pace;
-/// trajectories without a rate are left out.
-fn grouped(
-    rows: &[ScoredRow],
-    key: impl Fn(Range<usize>) -> (Option<u32>, Option<Pace>),
-) -> Vec<RateGroup> {
-    let mut groups: Vec<RateGroup> = Vec::new();
-    for range in trajectory_ranges(rows) {
-        let (Some(rate_hz), pace) = key(range.clone()) else {
-            continue;
-        };
-        let hours = normal_hours(&rows[range.clone()]);
-        match groups
-            .iter_mut()
-            .find(|g| g.rate_hz == rate_hz && g.pace == pace)
-        {
-            Some(group) => {
-                group.trajectories.push(range);
-                group.normal_hours += hours;
-            }
-            None => groups.push(RateGroup {
-                rate_hz,
-                pace,
-                trajectories: vec![range],
-                normal_hours: hours,
-            }),
-        }
-    }
-    groups.sort_by_key(|g| (g.rate_hz, g.pace));
-    groups
-}
-
 /// A trajectory whose median onboard speed while moving reaches this (m/s, 36 km/h) is driven at
 /// [`Pace::OpenRoad`]: highways and rural roads, where town traffic, with its stops, turns and
 /// queues, rarely keeps that median.
@@ -361,8 +369,7 @@ pub const OPEN_ROAD_MEDIAN_SPEED_MPS: f64 = 10.0;
 const MOVING_SPEED_MPS: f64 = 1.0;
 
 /// How fast a vehicle drives while it moves, for the false-alarm budget's groups.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Pace {
     /// Median speed while moving below [`OPEN_ROAD_MEDIAN_SPEED_MPS`] (or never moving).
     Town,
@@ -382,14 +389,6 @@ impl Pace {
         match moving.get(moving.len() / 2) {
             Some(&median) if median >= OPEN_ROAD_MEDIAN_SPEED_MPS => Self::OpenRoad,
             _ => Self::Town,
-        }
-    }
-
-    /// `town` or `open_road` (as serialised).
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::Town => "town",
-            Self::OpenRoad => "open_road",
         }
     }
 }
