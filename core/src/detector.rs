@@ -213,6 +213,7 @@ pub fn offset_signal(evidence: &Evidence) -> OffsetSignal {
             held_step_nis: o.held_step_nis,
             // When the offset now held began: the track's age less its hold.
             reacquiring: evidence.trajectory > 0 && o.track_age_s - o.held_s < REACQUISITION_S,
+            disputed: o.disputed,
         }
     })
 }

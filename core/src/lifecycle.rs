@@ -4,7 +4,8 @@
 //! evidence: an offset held beyond the decisive gate for `decisive_s` seconds, or the receiver's
 //! spoofing flag corroborated by a displaced fix (`receiver.rs`, §7.3). For the first
 //! [`SETTLE_S`] of a trajectory (a session's start, or the end of an outage) p̂ counts only where the
-//! fix is also displaced from the anchors: the rate channels' averages are still filling and the
+//! fix is also displaced from the anchors, or the anchors are disputed (the fix keeps disagreeing
+//! with anchors placed again on it): the rate channels' averages are still filling and the
 //! vehicle's noise levels are the population's, while the anchors were placed on the fix itself
 //! and are at their sharpest. It stays open while
 //! p̂ ≥ θ or the fix stays displaced from the anchors, and clears only after `off_s` seconds with
@@ -31,7 +32,8 @@ const TIME_SLACK_S: f64 = 1e-6;
 /// less persistence than a vehicle alone.
 pub const AREA_ON_S: f64 = 2.0;
 /// Seconds after a trajectory starts during which p̂ ≥ θ counts towards T_on only on a sample whose
-/// fix is displaced from the anchors (models with offset evidence only).
+/// fix is displaced from the anchors, or whose anchors are disputed (models with offset evidence
+/// only).
 pub const SETTLE_S: f64 = 30.0;
 
 /// The lifecycle's durations, chosen on validation data with θ.
@@ -108,6 +110,12 @@ pub struct OffsetSignal {
     /// may still have been converging: the critical test's held paths do not count it.
     #[serde(default)]
     pub reacquiring: bool,
+    /// The fix keeps disagreeing with anchors placed again on it before they earned trust
+    /// (`OffsetEvidence::disputed`): while a trajectory settles, p̂ counts on such a row as on a
+    /// displaced one, so a drift that starts as the receiver reacquires is not hidden by the
+    /// rows that follow each placement.
+    #[serde(default)]
+    pub disputed: bool,
 }
 
 /// One sample's inputs to the lifecycle.
@@ -180,7 +188,8 @@ impl AlarmLifecycle {
             && self
                 .trajectory_since
                 .is_some_and(|since| time - since + TIME_SLACK_S < SETTLE_S);
-        if input.positive && (!settling || input.offset.displaced || input.flag.counts) {
+        let vouched = input.offset.displaced || input.offset.disputed || input.flag.counts;
+        if input.positive && (!settling || vouched) {
             self.positive_since.get_or_insert(time);
         } else {
             self.positive_since = None;
@@ -250,17 +259,19 @@ mod tests {
         decisive_s: 2.0,
     };
 
-    /// How a hand-made stream is sampled: whether it has offset evidence, and when its trajectory
-    /// starts again (an outage) besides at 0.
+    /// How a hand-made stream is sampled: whether it has offset evidence, when its trajectory
+    /// starts again (an outage) besides at 0, and from when its anchors are disputed.
     #[derive(Clone, Copy)]
     struct Stream {
         anchored: bool,
         restart_s: f64,
+        disputed_since: f64,
     }
 
     const PLAIN: Stream = Stream {
         anchored: false,
         restart_s: f64::INFINITY,
+        disputed_since: f64::INFINITY,
     };
 
     /// Runs the lifecycle over samples every `step_s` from 0 to `end_s`; `positive(t)`,
@@ -312,6 +323,7 @@ mod tests {
                         held_jump_s: None,
                         held_step_nis: 0.0,
                         reacquiring: false,
+                        disputed: time_s >= stream.disputed_since,
                     },
                     flag: FlagSignal::default(),
                 },
@@ -400,6 +412,7 @@ mod tests {
         let stream = Stream {
             anchored: true,
             restart_s,
+            ..PLAIN
         };
         let (onsets, _) = run_stream(stream, step_s, end_s, |_| true, None, displaced);
         rounded(onsets)
@@ -429,6 +442,26 @@ mod tests {
     }
 
     #[test]
+    fn while_a_trajectory_settles_p_counts_on_rows_whose_anchors_are_disputed() {
+        // p̂ ≥ θ throughout, the fix displaced only on every other second (the anchors placed
+        // again on each displaced row): while settling the runs last a second and nothing opens
+        // before SETTLE_S + T_on; disputed from 10 s, p̂ counts on every row and opens T_on later.
+        let every_other = |t: f64| t >= 10.0 && (t as i64) % 2 == 0;
+        let alternating = Stream {
+            anchored: true,
+            ..PLAIN
+        };
+        let (onsets, _) = run_stream(alternating, 1.0, 50.0, |_| true, None, every_other);
+        assert_eq!(rounded(onsets), vec![33.0]);
+        let disputed = Stream {
+            disputed_since: 10.0,
+            ..alternating
+        };
+        let (onsets, _) = run_stream(disputed, 1.0, 50.0, |_| true, None, every_other);
+        assert_eq!(rounded(onsets), vec![13.0]);
+    }
+
+    #[test]
     fn a_state_saved_without_the_trajectory_start_is_settled() {
         let mut alarm = AlarmLifecycle::default();
         let positive_agreeing = |time_s: f64| LifecycleInput {
@@ -448,6 +481,7 @@ mod tests {
                 held_jump_s: None,
                 held_step_nis: 0.0,
                 reacquiring: false,
+                disputed: false,
             },
             flag: FlagSignal::default(),
         };
@@ -477,6 +511,7 @@ mod tests {
                 held_jump_s: None,
                 held_step_nis: 0.0,
                 reacquiring: false,
+                disputed: false,
             },
             flag: FlagSignal {
                 counts: true,
@@ -524,6 +559,7 @@ mod tests {
                             held_jump_s: None,
                             held_step_nis: 0.0,
                             reacquiring: false,
+                            disputed: false,
                         },
                         flag: FlagSignal {
                             counts: t >= flag_from_s,
@@ -633,6 +669,7 @@ mod tests {
                             held_jump_s: None,
                             held_step_nis: 0.0,
                             reacquiring: false,
+                            disputed: false,
                         },
                         flag: FlagSignal {
                             counts: flag(t),
@@ -735,6 +772,7 @@ mod tests {
                             held_jump_s: held,
                             held_step_nis: 0.0,
                             reacquiring,
+                            disputed: false,
                         },
                         flag: FlagSignal::default(),
                     },

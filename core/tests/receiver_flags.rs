@@ -88,11 +88,11 @@ fn median(values: &[f64]) -> f64 {
 
 /// The flag raised by an SBAS switch while the fix drifts away at 5 m/s (the PX4 report: the
 /// autopilot reacted after 34 s and 230 m). The default model alarms on the drift alone within
-/// seconds on 19 of 20 vehicles. The twentieth's drift starts 3 s after an outage: before trust
-/// every outlier places the anchors again, so the fix is displaced only on single rows, and while
-/// the trajectory settles p̂ counts only there; the drift alone waits for the settling to end
-/// (31 s, before the autopilot still). The flag never delays the alarm, corroborates the
-/// displacement a little before the decisive hold on most vehicles, and on that one within 4 s.
+/// seconds on every vehicle. One vehicle's drift starts 3 s after an outage: before trust every
+/// outlier places the anchors again, so the fix is displaced only on the rows that place them;
+/// placed again twice they are disputed, and p̂ counts on every row while the trajectory settles
+/// (7 s; without the dispute it waited for the settling to end, 31 s). The flag never delays the
+/// alarm, and corroborates the displacement a little before the decisive hold on most vehicles.
 #[test]
 fn a_false_flag_with_a_five_mps_drift_alarms_well_before_the_autopilot_and_sooner() {
     const ONSET_S: f64 = 600.0;
@@ -137,14 +137,9 @@ fn a_false_flag_with_a_five_mps_drift_alarms_well_before_the_autopilot_and_soone
         worst(&with),
         without.iter().zip(&with).filter(|(a, b)| b < a).count()
     );
-    // Well before 34 s / 230 m on every vehicle with the flag, and without it on all but the one
-    // whose drift starts as its trajectory settles; before 34 s on that one too.
+    // Well before 34 s / 230 m on every vehicle, with the flag and without it.
     assert!(worst(&with) <= 15.0, "{with:?}");
-    assert!(worst(&without) < 34.0, "{without:?}");
-    assert!(
-        without.iter().filter(|&&delay| delay > 15.0).count() <= 1,
-        "{without:?}"
-    );
+    assert!(worst(&without) <= 15.0, "{without:?}");
     assert!(mean(&with) < mean(&without), "{with:?} against {without:?}");
     assert!(without.iter().zip(&with).filter(|(a, b)| b < a).count() >= 10);
 }

@@ -138,6 +138,7 @@ fn a_frozen_fix_path_is_added_when_it_escalates_more_within_the_budget() {
         held_jump_s: None,
         held_step_nis: 0.0,
         reacquiring: false,
+        disputed: false,
     });
     for key in 100..103 {
         let clean = trajectory(
@@ -197,6 +198,7 @@ fn a_held_jump_path_that_fires_once_on_clean_hours_is_declined_even_within_the_b
         held_jump_s: held.filter(|_| jump),
         held_step_nis: 0.0,
         reacquiring: false,
+        disputed: false,
     };
     let (mut rows, mut offset) = weak_attacks(jump_at, |held| signal(held, true));
     // Besides, every ten minutes an offset that builds up to the same NIS for 20 s (dead
@@ -252,6 +254,7 @@ fn a_held_jump_path_is_added_when_it_escalates_more_within_the_budget() {
         held_jump_s: held,
         held_step_nis: 0.0,
         reacquiring: false,
+        disputed: false,
     });
     let built_up = |t: f64| (t % 600.0 >= 300.0 && t % 600.0 < 320.0).then_some(t % 600.0 - 300.0);
     for key in 100..103 {
@@ -274,6 +277,7 @@ fn a_held_jump_path_is_added_when_it_escalates_more_within_the_budget() {
                 held_jump_s: None,
                 held_step_nis: 0.0,
                 reacquiring: false,
+                disputed: false,
             }
         }));
         rows.extend(clean);
@@ -292,6 +296,7 @@ fn a_held_jump_path_is_added_when_it_escalates_more_within_the_budget() {
         .map(|o| OffsetSignal {
             held_jump_s: None,
             reacquiring: false,
+            disputed: false,
             ..*o
         })
         .collect();
@@ -316,6 +321,7 @@ fn a_held_step_path_is_added_at_the_quietest_gate_that_catches_every_jump() {
         held_jump_s: held,
         held_step_nis: if held.is_some() { arrival } else { 0.0 },
         reacquiring: false,
+        disputed: false,
     };
     let (mut rows, mut offset) = weak_attacks(100.0, |held| signal(held, 150.0));
     let honest = |t: f64| (t % 600.0 >= 300.0 && t % 600.0 < 320.0).then_some(t % 600.0 - 300.0);

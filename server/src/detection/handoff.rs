@@ -20,8 +20,10 @@ use spoofwatch_core::detector::{DetectorState, RestoreError};
 /// never misread. Version 9: a held jump keeps the test of the step it arrived with. Version 10:
 /// the offset tracker knows whether the last fix repeated the one before it and whether the last row
 /// was an outlier. Version 11: it knows how long the track its anchors stand on has lasted. Version
-/// 12: the critical test keeps the last sample's offset.
-pub const SNAPSHOT_SCHEMA: u16 = 12;
+/// 12: the critical test keeps the last sample's offset. Version 13: the offset tracker counts
+/// the anchors' placements on a disagreement before trust, and its last evidence says whether they
+/// are disputed.
+pub const SNAPSHOT_SCHEMA: u16 = 13;
 
 /// Whether this server reads stored snapshots of schema version `version`.
 pub fn reads_schema(version: i64) -> bool {

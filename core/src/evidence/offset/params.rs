@@ -23,6 +23,10 @@ pub const AGREEMENT_S: f64 = 5.0;
 /// Seconds the fix and the onboard motion must agree after the anchors are placed before the
 /// anchors are trusted: until then a disagreement places them again instead of freezing them.
 pub const TRUST_S: f64 = 5.0;
+/// Placements again on a disagreement, without trust earned in between, that make the anchors
+/// disputed ([`OffsetEvidence::disputed`]): one settles a reflected first fix; a second means the
+/// fix disagreed again with anchors placed on itself.
+pub const DISPUTED_PLACEMENTS: u32 = 2;
 /// Per-axis variance (m²) of a receiver's first fixes after an outage beyond its usual noise: a
 /// receiver reacquiring starts metres off (1–5 m per axis) and converges over seconds, so anchors
 /// placed on its first fix start this unsure of where they stand (3 m per axis, 1-σ). A jump of
@@ -190,6 +194,12 @@ pub struct OffsetEvidence {
     /// without one).
     #[serde(default)]
     pub held_step_nis: f64,
+    /// The anchors have been placed again on a disagreement [`DISPUTED_PLACEMENTS`] times or more
+    /// without earning trust in between: the fix keeps moving unlike the vehicle from where they
+    /// were placed (a drift from the moment of reacquisition), not one reflected fix, which the
+    /// first placement again settles.
+    #[serde(default)]
+    pub disputed: bool,
 }
 
 impl OffsetEvidence {
@@ -211,6 +221,7 @@ impl OffsetEvidence {
         held_step_m: None,
         held_step_moved_s: 0.0,
         held_step_nis: 0.0,
+        disputed: false,
     };
 
     /// The larger of the anchors' NIS.

@@ -71,6 +71,10 @@ pub struct OffsetTracker {
     /// Seconds the fix and the onboard motion have agreed since the anchors were placed, up to
     /// [`TRUST_S`]: from then on the anchors are trusted.
     pub(super) agreed_s: f64,
+    /// Times the anchors were placed again on a disagreement since they last earned trust or
+    /// the track began at a break ([`OffsetEvidence::disputed`]).
+    #[serde(default)]
+    pub(super) disputes: u32,
     pub(super) last: OffsetEvidence,
     /// The last usable sample the anchors moved to.
     pub(super) point: Option<AnchorPoint>,

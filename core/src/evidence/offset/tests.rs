@@ -412,6 +412,45 @@ fn under_trust_from_information_a_row_that_places_the_anchors_again_reports_its_
 }
 
 #[test]
+fn a_fix_that_disagrees_again_with_anchors_placed_on_it_disputes_them_until_trust_is_earned() {
+    // Under trust from information: one disagreement before trust (a reflected first fix) places
+    // the anchors again and is not a dispute; a second before trust is. The agreeing rows between
+    // placements stay disputed, and TRUST_S of agreement ends it. The clock's trust never disputes.
+    let informed = |residual| OffsetStep {
+        reports_placements: true,
+        ..step(residual, 1.0)
+    };
+    let mut tracker = OffsetTracker::new(&unit_params());
+    tracker.push(&informed([0.0; 2]));
+    let reflected = tracker.push(&informed([6.0, 0.0]));
+    assert!(reflected.displaced() && !reflected.disputed);
+    assert!(!tracker.push(&informed([0.0; 2])).disputed);
+    let again = tracker.push(&informed([6.0, 0.0]));
+    assert!(again.displaced() && again.disputed);
+    let agreeing: Vec<_> = (0..6).map(|_| tracker.push(&informed([0.0; 2]))).collect();
+    let disputed: Vec<bool> = agreeing.iter().map(|e| e.disputed).collect();
+    assert_eq!(disputed, [true, true, true, true, false, false]);
+    assert!(agreeing.iter().all(|e| !e.displaced()));
+    // Trusted now: the same disagreement is held as an offset, not a placement.
+    let held = tracker.push(&informed([6.0, 0.0]));
+    assert!(held.displaced() && !held.disputed && tracker.frozen());
+
+    let mut clock = OffsetTracker::new(&unit_params());
+    for residual in [[0.0; 2], [6.0, 0.0], [0.0; 2], [6.0, 0.0], [0.0; 2]] {
+        assert!(!clock.push(&step(residual, 1.0)).disputed);
+    }
+    // An outage's break starts a fresh track: a dispute does not carry over it.
+    let mut broken = OffsetTracker::new(&unit_params());
+    for residual in [[0.0; 2], [6.0, 0.0], [6.0, 0.0]] {
+        broken.push(&informed(residual));
+    }
+    assert!(broken.push(&informed([0.0; 2])).disputed);
+    broken.re_anchor();
+    broken.push(&informed([0.0; 2]));
+    assert!(!broken.push(&informed([0.0; 2])).disputed);
+}
+
+#[test]
 fn the_uncertainty_grows_with_the_distance_carried() {
     // R = 4 m², c² = 0.01: after carrying 100 m north with no offset, a 10 m offset is
     // NIS = 100·keep² / (4 + 0.01·‖U‖²) with U the carried distance (decayed like o).

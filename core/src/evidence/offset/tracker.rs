@@ -9,9 +9,9 @@ use super::anchors::{Anchor, gap_variance};
 use super::held_jump::{RETURN_SHARE, StepHold};
 use super::misfit::POPULATION_LOG_LEVEL;
 use super::params::{
-    AGREEMENT_S, ANCHOR_COUNT, DECISIVE_GATE, FOLLOW_GATE, FOLLOW_S, LEVEL_COUNT, LEVEL_RANGE,
-    OffsetEvidence, OffsetParams, OffsetStep, REACQUISITION_M2, SHARE_S, STEP_GROWTH_S, STEP_LEVEL,
-    TRUST_S, along, nis, norm_squared,
+    AGREEMENT_S, ANCHOR_COUNT, DECISIVE_GATE, DISPUTED_PLACEMENTS, FOLLOW_GATE, FOLLOW_S,
+    LEVEL_COUNT, LEVEL_RANGE, OffsetEvidence, OffsetParams, OffsetStep, REACQUISITION_M2, SHARE_S,
+    STEP_GROWTH_S, STEP_LEVEL, TRUST_S, along, nis, norm_squared,
 };
 use super::state::{AnchorPoint, LEVEL_SNAPSHOTS, LevelSnapshot, OffsetTracker};
 use crate::evidence::MAX_GAP_S;
@@ -78,6 +78,7 @@ impl OffsetTracker {
             track_age_s: 0.0,
             returned_from_track_s: None,
             agreed_s: 0.0,
+            disputes: 0,
             last: OffsetEvidence::EMPTY,
             point: None,
         }
@@ -110,6 +111,7 @@ impl OffsetTracker {
         };
         self.share = [0.0; 2];
         self.agreed_s = 0.0;
+        self.disputes = 0;
         self.re_anchor_keeping_levels(placement_m2);
         self.point = None;
     }
@@ -146,6 +148,7 @@ impl OffsetTracker {
             // converging, stays in the anchors' uncertainty until they have followed it away.
             self.re_anchor_keeping_levels(REACQUISITION_M2);
             self.agreed_s = 0.0;
+            self.disputes = 0;
             return self.last;
         }
         let row = self.row(step, levels);
@@ -166,6 +169,9 @@ impl OffsetTracker {
             return self.place_again(step, &test, max_nis);
         }
         self.agreed_s = (self.agreed_s + step.delta_t).min(TRUST_S);
+        if self.agreed_s >= TRUST_S {
+            self.disputes = 0;
+        }
         self.hold_decisive(step, max_nis, &row, after_spike);
         self.count_share(max_nis, step.delta_t);
         self.last = self.evidence(step, &test);
@@ -357,13 +363,17 @@ impl OffsetTracker {
     /// calibration trust by the clock, as before) or, under trust from information, what it
     /// found: a fix that keeps moving unlike the vehicle (a drift from the moment of
     /// reacquisition) never earns the anchors' trust, and its rows must still show the
-    /// disagreement, each counted beyond the follow gate in the shares.
+    /// disagreement, each counted beyond the follow gate in the shares, and the anchors are
+    /// disputed once it disagreed again with anchors placed on itself.
     fn place_again(
         &mut self,
         step: &OffsetStep,
         test: &AnchorTest,
         max_nis: f64,
     ) -> OffsetEvidence {
+        if step.reports_placements {
+            self.disputes = self.disputes.saturating_add(1);
+        }
         let found = step.reports_placements.then(|| {
             self.count_share(max_nis.max(FOLLOW_GATE), step.delta_t);
             self.evidence(step, test)
@@ -450,6 +460,7 @@ impl OffsetTracker {
             held_step_m: self.step_hold.map(|hold| hold.offset),
             held_step_moved_s: self.step_hold.map_or(0.0, |hold| hold.moved_s),
             held_step_nis: self.step_hold.map_or(0.0, |hold| hold.arrival_nis),
+            disputed: self.disputes >= DISPUTED_PLACEMENTS,
         }
     }
 
