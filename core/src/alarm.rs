@@ -13,7 +13,7 @@ use std::ops::RangeInclusive;
 use serde::{Deserialize, Serialize};
 
 use crate::lifecycle::{AlarmLifecycle, Lifecycle, LifecycleInput, OffsetSignal};
-use crate::metrics::{self, EventRules, Metrics, MetricsError, ScoredRow};
+use crate::metrics::{self, EventRules, Metrics, MetricsError, RateGroup, ScoredRow};
 use crate::receiver::FlagSignal;
 
 /// The alarm threshold θ on the score and the persistence N_p (consecutive valid steps).
@@ -186,6 +186,24 @@ pub(crate) fn lifecycle_input(
     }
 }
 
+/// Every (θ, lifecycle) of the lifecycle search, θ outermost (the search's order).
+fn lifecycle_grid(thetas: &[f64]) -> impl Iterator<Item = (OperatingPoint, Lifecycle)> + '_ {
+    thetas.iter().flat_map(|&theta| {
+        ON_S_GRID.into_iter().flat_map(move |on_s| {
+            OFF_S_GRID.into_iter().flat_map(move |off_s| {
+                DECISIVE_S_GRID.into_iter().map(move |decisive_s| {
+                    let lifecycle = Lifecycle {
+                        on_s,
+                        off_s,
+                        decisive_s,
+                    };
+                    (OperatingPoint { theta, n_p: 1 }, lifecycle)
+                })
+            })
+        })
+    })
+}
+
 /// A chosen θ and lifecycle with the validation metrics they achieve.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct LifecycleSelection {
@@ -200,7 +218,8 @@ pub struct LifecycleSelection {
 /// (then the shorter T_on, the longer decisive hold and the shorter T_off). A false-alarm budget
 /// holds pooled, at each sample rate, and at each rate on open roads and in town
 /// ([`metrics::rate_and_pace_groups`], from `speeds_mps`, each row's onboard speed), in every group
-/// with room for one false alarm.
+/// with room for one false alarm; a margin holds pooled and at each rate
+/// ([`OperatingPointRule::allowed_onsets_in`]).
 pub fn choose_lifecycle(
     rows: &[ScoredRow],
     offset: &[OffsetSignal],
@@ -221,42 +240,44 @@ pub fn choose_lifecycle(
     let mut best: Option<(OperatingPoint, Lifecycle, Metrics)> = None;
     let mut fewest_onsets = u64::MAX;
     let mut alarms = Vec::with_capacity(rows.len());
-    for &theta in thetas {
-        for on_s in ON_S_GRID {
-            for off_s in OFF_S_GRID {
-                for decisive_s in DECISIVE_S_GRID {
-                    let point = OperatingPoint { theta, n_p: 1 };
-                    let lifecycle = Lifecycle {
-                        on_s,
-                        off_s,
-                        decisive_s,
-                    };
-                    fill_lifecycle_alarms(rows, offset, theta, &lifecycle, &mut alarms);
-                    let candidate = metrics::alarm_metrics(rows, &alarms, rules);
-                    fewest_onsets = fewest_onsets.min(candidate.false_alarm_onsets);
-                    let within_budget = budget.is_none_or(|_| {
-                        candidate.false_alarm_onsets as f64 <= rule.allowed_onsets(normal_hours)
-                            && groups.iter().all(|g| {
-                                g.false_alarm_onsets(rows, &alarms) as f64
-                                    <= rule.allowed_onsets(g.normal_hours)
-                            })
-                    });
-                    let improves = best.as_ref().is_none_or(|(b_point, b_life, b_metrics)| {
-                        compare_candidates((&point, &candidate), (b_point, b_metrics))
-                            .then(b_life.on_s.total_cmp(&lifecycle.on_s))
-                            .then(lifecycle.decisive_s.total_cmp(&b_life.decisive_s))
-                            .then(b_life.off_s.total_cmp(&lifecycle.off_s))
-                            == Ordering::Greater
-                    });
-                    if within_budget && improves {
-                        best = Some((point, lifecycle, candidate));
-                    }
-                }
-            }
+    for (point, lifecycle) in lifecycle_grid(thetas) {
+        fill_lifecycle_alarms(rows, offset, point.theta, &lifecycle, &mut alarms);
+        let candidate = metrics::alarm_metrics(rows, &alarms, rules);
+        fewest_onsets = fewest_onsets.min(candidate.false_alarm_onsets);
+        let within_budget = budget.is_none_or(|_| {
+            candidate.false_alarm_onsets as f64 <= rule.allowed_onsets(normal_hours)
+                && groups.iter().all(|g| {
+                    g.false_alarm_onsets(rows, &alarms) as f64 <= rule.allowed_onsets_in(g)
+                })
+        });
+        let improves = best.as_ref().is_none_or(|(b_point, b_life, b_metrics)| {
+            compare_candidates((&point, &candidate), (b_point, b_metrics))
+                .then(b_life.on_s.total_cmp(&lifecycle.on_s))
+                .then(lifecycle.decisive_s.total_cmp(&b_life.decisive_s))
+                .then(b_life.off_s.total_cmp(&lifecycle.off_s))
+                == Ordering::Greater
+        });
+        if within_budget && improves {
+            best = Some((point, lifecycle, candidate));
         }
     }
     let Some((point, lifecycle, _)) = best else {
-        return Err(rule.over_budget(normal_hours, fewest_onsets));
+        // Only on failure: score the grid again to find the group no point kept within, so
+        // that the error names the drives to bring more of.
+        let mut fewest_by_group = vec![u64::MAX; groups.len()];
+        for (point, lifecycle) in lifecycle_grid(thetas) {
+            fill_lifecycle_alarms(rows, offset, point.theta, &lifecycle, &mut alarms);
+            for (fewest, g) in fewest_by_group.iter_mut().zip(&groups) {
+                *fewest = (*fewest).min(g.false_alarm_onsets(rows, &alarms));
+            }
+        }
+        let groups: Vec<&RateGroup> = groups.iter().collect();
+        return Err(rule.over_budget_in_groups(
+            normal_hours,
+            fewest_onsets,
+            &groups,
+            &fewest_by_group,
+        ));
     };
     let metrics = metrics::evaluate(
         rows,
@@ -296,20 +317,24 @@ pub enum AlarmError {
         /// Number of N_p values given.
         n_ps: usize,
     },
-    /// Every point of the grid raises more false alarms than the budget allows.
+    /// Every point of the grid raises more false alarms than the budget allows, in the drives
+    /// `scope` names (all of them, or the group of one rate, or of one rate and pace, that no
+    /// point kept within on its own).
     #[error(
-        "no operating point stays within {per_hour} false alarms per hour ({normal_hours:.2} \
-         attack-free hours allow at most {allowed_onsets} false-alarm onsets; the quietest point \
-         raised {fewest_onsets})"
+        "no operating point stays within {per_hour} false alarms per hour on {scope} \
+         ({normal_hours:.2} attack-free hours allow at most {allowed_onsets} false-alarm onsets; \
+         the quietest point raised {fewest_onsets} there)"
     )]
     OverBudget {
         /// The budget, false-alarm events per attack-free hour.
         per_hour: f64,
-        /// Attack-free hours of the selection rows.
+        /// Which drives the numbers count: "all drives", "5 Hz open-road drives", …
+        scope: String,
+        /// Attack-free hours of those drives.
         normal_hours: f64,
-        /// The most false-alarm onsets the rule allowed on them (pooled).
+        /// The most false-alarm onsets the rule allowed on them.
         allowed_onsets: u64,
-        /// The fewest false-alarm onsets any point of the grid raised (pooled).
+        /// The fewest false-alarm onsets any point of the grid raised on them.
         fewest_onsets: u64,
     },
     /// A served operating point is out of its range.
@@ -327,6 +352,9 @@ pub enum AlarmError {
         index: usize,
     },
 }
+
+/// The scope of a budget counted over every drive of the selection rows.
+const ALL_DRIVES: &str = "all drives";
 
 /// How (θ, N_p) is chosen on validation rows (SPEC §7 and the false-alarm budget of the subtle
 /// experiment). Used for the HO-LLN threshold and the CUSUM comparator's alike.
@@ -370,12 +398,65 @@ impl OperatingPointRule {
         }
     }
 
-    /// The error when no point of a search with this rule, the quietest raising `fewest_onsets`,
-    /// kept within it on `normal_hours`.
+    /// The most false-alarm onsets a point may raise in `group`. The margin guards the budget a
+    /// fleet counts, at each sample rate; a group of one rate and pace guards the mix (open-road
+    /// vehicles raising most of a rate's alarms) and holds the plain budget: with a margin there
+    /// too, a fleet whose open-road driving sits just within one alarm per hour, on the few hours
+    /// of it a validation part holds, could never be fitted.
+    pub(crate) fn allowed_onsets_in(self, group: &RateGroup) -> f64 {
+        match (self, group.pace) {
+            (Self::WithinFalseAlarmBudgetWithMargin { per_hour }, Some(_)) => {
+                Self::WithinFalseAlarmBudget { per_hour }.allowed_onsets(group.normal_hours)
+            }
+            _ => self.allowed_onsets(group.normal_hours),
+        }
+    }
+
+    /// The error when no point of a search with this rule, the quietest raising `fewest_onsets`
+    /// on all the drives' `normal_hours`, kept within it.
     pub(crate) fn over_budget(self, normal_hours: f64, fewest_onsets: u64) -> AlarmError {
+        self.over_budget_on(ALL_DRIVES.to_owned(), normal_hours, fewest_onsets)
+    }
+
+    /// The error when no point kept within this rule where the budget also holds in groups: all
+    /// the drives if even their quietest point was over, else the first group whose quietest
+    /// point (`fewest_by_group`, one per group) was over its own allowance, else all the drives
+    /// "and each rate and pace at once" (each alone had a point within; none held them all).
+    pub(crate) fn over_budget_in_groups(
+        self,
+        normal_hours: f64,
+        fewest_onsets: u64,
+        groups: &[&RateGroup],
+        fewest_by_group: &[u64],
+    ) -> AlarmError {
+        if fewest_onsets as f64 > self.allowed_onsets(normal_hours) {
+            return self.over_budget(normal_hours, fewest_onsets);
+        }
+        let over = groups
+            .iter()
+            .zip(fewest_by_group)
+            .find(|(group, fewest)| **fewest as f64 > self.allowed_onsets_in(group));
+        match over {
+            Some((group, &fewest)) => AlarmError::OverBudget {
+                per_hour: self.budget().unwrap_or(f64::INFINITY),
+                scope: group.describe(),
+                normal_hours: group.normal_hours,
+                allowed_onsets: self.allowed_onsets_in(group).floor() as u64,
+                fewest_onsets: fewest,
+            },
+            None => self.over_budget_on(
+                format!("{ALL_DRIVES} and each rate and pace at once"),
+                normal_hours,
+                fewest_onsets,
+            ),
+        }
+    }
+
+    fn over_budget_on(self, scope: String, normal_hours: f64, fewest_onsets: u64) -> AlarmError {
         let allowed = self.allowed_onsets(normal_hours);
         AlarmError::OverBudget {
             per_hour: self.budget().unwrap_or(f64::INFINITY),
+            scope,
             normal_hours,
             allowed_onsets: if allowed.is_finite() {
                 allowed.floor() as u64

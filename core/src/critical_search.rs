@@ -186,7 +186,12 @@ pub fn choose_critical_within(
         }
     }
     let Some(test) = search.chosen() else {
-        return Err(budget.over_budget(search.normal_hours, search.fewest_onsets));
+        return Err(budget.over_budget_in_groups(
+            search.normal_hours,
+            search.fewest_onsets,
+            &search.binding,
+            &search.fewest_by_rate,
+        ));
     };
     let critical = critical_rows(rows, offset, theta, lifecycle, &test);
     Ok(CriticalSelection {
@@ -226,6 +231,8 @@ struct Search<'a> {
     critical: Vec<bool>,
     /// The fewest false onsets any test raised (guarded: the more of a test's and its twin's).
     fewest_onsets: u64,
+    /// The same at each binding rate, for the error that names the rate no test kept within.
+    fewest_by_rate: Vec<u64>,
     best: Option<(CriticalTest, Metrics)>,
 }
 
@@ -239,6 +246,10 @@ impl<'a> Search<'a> {
         rate_groups: &'a [RateGroup],
     ) -> Self {
         let per_hour = budget.budget().unwrap_or(f64::INFINITY);
+        let binding: Vec<&RateGroup> = rate_groups
+            .iter()
+            .filter(|g| per_hour * g.normal_hours >= 1.0)
+            .collect();
         Self {
             rows,
             offset,
@@ -251,10 +262,8 @@ impl<'a> Search<'a> {
                 OperatingPointRule::WithinFalseAlarmBudgetWithMargin { .. }
             ),
             normal_hours: metrics::normal_hours(rows),
-            binding: rate_groups
-                .iter()
-                .filter(|g| per_hour * g.normal_hours >= 1.0)
-                .collect(),
+            fewest_by_rate: vec![u64::MAX; binding.len()],
+            binding,
             critical: Vec::with_capacity(rows.len()),
             fewest_onsets: u64::MAX,
             best: None,
@@ -309,12 +318,17 @@ impl<'a> Search<'a> {
         let (candidate, by_rate) = self.false_onsets(&test);
         let pooled = candidate.false_alarm_onsets;
         if !self.within(pooled, &by_rate, ceilings.map(|c| &c.test)) {
-            self.fewest_onsets = self.fewest_onsets.min(pooled);
+            self.count_quietest(pooled, &by_rate);
             return;
         }
         if self.guarded {
             let (twin, twin_by_rate) = self.false_onsets(&sensitive_twin(&test));
-            self.fewest_onsets = self.fewest_onsets.min(pooled.max(twin.false_alarm_onsets));
+            let louder: Vec<u64> = by_rate
+                .iter()
+                .zip(&twin_by_rate)
+                .map(|(test, twin)| *test.max(twin))
+                .collect();
+            self.count_quietest(pooled.max(twin.false_alarm_onsets), &louder);
             if !self.within(
                 twin.false_alarm_onsets,
                 &twin_by_rate,
@@ -323,13 +337,21 @@ impl<'a> Search<'a> {
                 return;
             }
         } else {
-            self.fewest_onsets = self.fewest_onsets.min(pooled);
+            self.count_quietest(pooled, &by_rate);
         }
         let improves = self.best.as_ref().is_none_or(|(b_test, b_metrics)| {
             compare((&test, &candidate), (b_test, b_metrics)) == Ordering::Greater
         });
         if improves {
             self.best = Some((test, candidate));
+        }
+    }
+
+    /// Keeps the fewest onsets seen, pooled and at each binding rate.
+    fn count_quietest(&mut self, pooled: u64, by_rate: &[u64]) {
+        self.fewest_onsets = self.fewest_onsets.min(pooled);
+        for (fewest, &onsets) in self.fewest_by_rate.iter_mut().zip(by_rate) {
+            *fewest = (*fewest).min(onsets);
         }
     }
 

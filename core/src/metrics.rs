@@ -406,6 +406,16 @@ pub struct RateGroup {
 }
 
 impl RateGroup {
+    /// The drives this group holds, for errors: "5 Hz drives", "5 Hz open-road drives".
+    pub fn describe(&self) -> String {
+        let pace = match self.pace {
+            None => "",
+            Some(Pace::Town) => " town",
+            Some(Pace::OpenRoad) => " open-road",
+        };
+        format!("{} Hz{pace} drives", self.rate_hz)
+    }
+
     /// False-alarm onsets of `alarms` in this group's trajectories (as [`Metrics::false_alarm_onsets`]).
     pub fn false_alarm_onsets(&self, rows: &[ScoredRow], alarms: &[bool]) -> u64 {
         self.trajectories

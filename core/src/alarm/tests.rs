@@ -462,6 +462,64 @@ fn the_budget_holds_on_open_roads_not_only_at_the_rate() {
     assert!(by_pace.point.theta > 0.9, "{by_pace:?}");
     assert_eq!(by_pace.metrics.false_alarm_onsets, 0);
     assert_eq!(by_pace.metrics.detected_events, 0);
+
+    // With no θ above the bursts, the pooled budget still holds (3 of 12 allowed) and the error
+    // names the drives that fail it on their own.
+    let thetas: Vec<f64> = theta_grid().into_iter().filter(|t| *t <= 0.85).collect();
+    let error = choose_lifecycle(&rows, &offset, &speeds, &thetas, EventRules::Spec, budget)
+        .expect_err("every θ alarms on the bursts");
+    assert_eq!(
+        error.to_string(),
+        "no operating point stays within 1 false alarms per hour on 1 Hz open-road drives \
+         (2.00 attack-free hours allow at most 2 false-alarm onsets; the quietest point raised 3 \
+         there)"
+    );
+}
+
+#[test]
+fn the_margin_holds_at_each_rate_and_the_plain_budget_at_each_pace() {
+    // At 1 Hz: a town trajectory of ten attack-free hours, then a 60 s attack scored 0.85, and an
+    // open-road one of two attack-free hours with two 20 s bursts scored 0.9. Two onsets in twelve
+    // hours keep the margin at the rate (12 − √12 = 8.5) and the plain budget on the open road
+    // (2 in 2 hours); with the margin there too (2 − √2 = 0.6) no θ that detects would be taken.
+    let town_s = 36_000;
+    let mut rows: Vec<ScoredRow> = (0..town_s + 60)
+        .map(|i| {
+            let attacked = i >= town_s;
+            valid_row(0, f64::from(i), attacked, if attacked { 0.85 } else { 0.0 })
+        })
+        .collect();
+    rows.extend((0..7201).map(|i| {
+        let t = f64::from(i);
+        let burst = [1000.0, 5000.0]
+            .iter()
+            .any(|start| (*start..start + 20.0).contains(&t));
+        valid_row(1, t, false, if burst { 0.9 } else { 0.0 })
+    }));
+    let speeds: Vec<f64> = rows
+        .iter()
+        .map(|r| if r.trajectory == 0 { 8.0 } else { 20.0 })
+        .collect();
+    let rule = OperatingPointRule::WithinFalseAlarmBudgetWithMargin { per_hour: 1.0 };
+    let groups = metrics::rate_and_pace_groups(&rows, &speeds);
+    let allowed: Vec<f64> = groups
+        .iter()
+        .map(|g| (rule.allowed_onsets_in(g) * 100.0).round() / 100.0)
+        .collect();
+    assert_eq!(allowed, vec![8.54, 10.0, 2.0]);
+    let offset = vec![OffsetSignal::default(); rows.len()];
+    let chosen = choose_lifecycle(
+        &rows,
+        &offset,
+        &speeds,
+        &theta_grid(),
+        EventRules::Spec,
+        rule,
+    )
+    .expect("a point within the margin at the rate");
+    assert!(chosen.point.theta <= 0.85, "{chosen:?}");
+    assert_eq!(chosen.metrics.detected_events, 1);
+    assert_eq!(chosen.metrics.false_alarm_onsets, 2);
 }
 
 #[test]
@@ -584,8 +642,9 @@ fn with_the_margin_the_search_takes_a_quieter_point_than_the_budget_alone() {
     .expect_err("θ ≤ 0.5 only");
     assert_eq!(
         error.to_string(),
-        "no operating point stays within 1 false alarms per hour (11.00 attack-free hours \
-         allow at most 7 false-alarm onsets; the quietest point raised 10)"
+        "no operating point stays within 1 false alarms per hour on all drives (11.00 \
+         attack-free hours allow at most 7 false-alarm onsets; the quietest point raised 10 \
+         there)"
     );
 }
 

@@ -479,3 +479,41 @@ fn no_test_within_the_budget_is_an_error() {
         .expect_err("over budget");
     assert!(matches!(error, AlarmError::OverBudget { .. }), "{error}");
 }
+
+#[test]
+fn the_error_names_the_rate_no_test_keeps_within() {
+    // Ten quiet hours at 1 Hz, and an hour and a half at 10 Hz with three 400 s blips at logit 8
+    // that every test escalates (the quietest accumulates 2 logits a second up to 640). Pooled, three onsets in 11.5 hours are within 1 per hour; at
+    // 10 Hz they are three where 1.5 hours allow one.
+    let mut rows = trajectory(0, 36_000, |_| -6.0, |_| false);
+    rows.extend(
+        trajectory(
+            1,
+            54_000,
+            |t| {
+                let s = t / 10.0;
+                if [600.0, 2400.0, 4200.0]
+                    .iter()
+                    .any(|start| (*start..start + 400.0).contains(&s))
+                {
+                    8.0
+                } else {
+                    -6.0
+                }
+            },
+            |_| false,
+        )
+        .into_iter()
+        .map(|row| ScoredRow {
+            time_s: row.time_s / 10.0,
+            ..row
+        }),
+    );
+    let error = choose_critical(&rows, &[], 0.8, &LIFECYCLE, 1.0, EventRules::Spec)
+        .expect_err("every test escalates the blips");
+    assert_eq!(
+        error.to_string(),
+        "no operating point stays within 1 false alarms per hour on 10 Hz drives (1.50 \
+         attack-free hours allow at most 1 false-alarm onsets; the quietest point raised 3 there)"
+    );
+}
