@@ -403,13 +403,10 @@ fn the_budget_holds_at_every_sample_rate_not_only_pooled() {
     assert_eq!(chosen.metrics.detected_events, 0);
 }
 
-#[test]
-fn the_budget_holds_on_open_roads_not_only_at_the_rate() {
-    // Both trajectories at 1 Hz. Trajectory 0 in town (8 m/s): ten attack-free hours, then a 60 s
-    // attack scored 0.85. Trajectory 1 on the open road (20 m/s): two attack-free hours with three
-    // 20 s bursts scored 0.9. Pooled and at 1 Hz, three false alarms in twelve hours buy the
-    // detection (θ ≤ 0.85); on the open road they are three in two hours, so with the speeds only a
-    // θ above the bursts is within the budget.
+/// Two 1 Hz trajectories and their onboard speeds: in town (8 m/s) ten attack-free hours, then a
+/// 60 s attack scored 0.85; on the open road (20 m/s) two attack-free hours with 20 s bursts scored
+/// 0.9 starting at `bursts_s`.
+fn town_and_open_road(bursts_s: &[f64]) -> (Vec<ScoredRow>, Vec<f64>) {
     let town_s = 36_000;
     let mut rows: Vec<ScoredRow> = (0..town_s + 60)
         .map(|i| {
@@ -419,15 +416,26 @@ fn the_budget_holds_on_open_roads_not_only_at_the_rate() {
         .collect();
     rows.extend((0..7201).map(|i| {
         let t = f64::from(i);
-        let burst = [1000.0, 3000.0, 5000.0]
+        let burst = bursts_s
             .iter()
             .any(|start| (*start..start + 20.0).contains(&t));
         valid_row(1, t, false, if burst { 0.9 } else { 0.0 })
     }));
-    let speeds: Vec<f64> = rows
+    let speeds = rows
         .iter()
         .map(|r| if r.trajectory == 0 { 8.0 } else { 20.0 })
         .collect();
+    (rows, speeds)
+}
+
+#[test]
+fn the_budget_holds_on_open_roads_not_only_at_the_rate() {
+    // Both trajectories at 1 Hz. Trajectory 0 in town (8 m/s): ten attack-free hours, then a 60 s
+    // attack scored 0.85. Trajectory 1 on the open road (20 m/s): two attack-free hours with three
+    // 20 s bursts scored 0.9. Pooled and at 1 Hz, three false alarms in twelve hours buy the
+    // detection (θ ≤ 0.85); on the open road they are three in two hours, so with the speeds only a
+    // θ above the bursts is within the budget.
+    let (rows, speeds) = town_and_open_road(&[1000.0, 3000.0, 5000.0]);
     let groups = metrics::rate_and_pace_groups(&rows, &speeds);
     let summary: Vec<(u32, Option<Pace>, usize)> = groups
         .iter()
@@ -482,24 +490,7 @@ fn the_margin_holds_at_each_rate_and_the_plain_budget_at_each_pace() {
     // open-road one of two attack-free hours with two 20 s bursts scored 0.9. Two onsets in twelve
     // hours keep the margin at the rate (12 − √12 = 8.5) and the plain budget on the open road
     // (2 in 2 hours); with the margin there too (2 − √2 = 0.6) no θ that detects would be taken.
-    let town_s = 36_000;
-    let mut rows: Vec<ScoredRow> = (0..town_s + 60)
-        .map(|i| {
-            let attacked = i >= town_s;
-            valid_row(0, f64::from(i), attacked, if attacked { 0.85 } else { 0.0 })
-        })
-        .collect();
-    rows.extend((0..7201).map(|i| {
-        let t = f64::from(i);
-        let burst = [1000.0, 5000.0]
-            .iter()
-            .any(|start| (*start..start + 20.0).contains(&t));
-        valid_row(1, t, false, if burst { 0.9 } else { 0.0 })
-    }));
-    let speeds: Vec<f64> = rows
-        .iter()
-        .map(|r| if r.trajectory == 0 { 8.0 } else { 20.0 })
-        .collect();
+    let (rows, speeds) = town_and_open_road(&[1000.0, 5000.0]);
     let rule = OperatingPointRule::WithinFalseAlarmBudgetWithMargin { per_hour: 1.0 };
     let groups = metrics::rate_and_pace_groups(&rows, &speeds);
     let allowed: Vec<f64> = groups
