@@ -415,7 +415,11 @@ impl OperatingPointRule {
     /// The error when no point of a search with this rule, the quietest raising `fewest_onsets`
     /// on all the drives' `normal_hours`, kept within it.
     pub(crate) fn over_budget(self, normal_hours: f64, fewest_onsets: u64) -> AlarmError {
-        self.over_budget_on(ALL_DRIVES.to_owned(), normal_hours, fewest_onsets)
+        self.over_budget_on(
+            ALL_DRIVES.to_owned(),
+            (normal_hours, self.allowed_onsets(normal_hours)),
+            fewest_onsets,
+        )
     }
 
     /// The error when no point kept within this rule where the budget also holds in groups: all
@@ -437,23 +441,27 @@ impl OperatingPointRule {
             .zip(fewest_by_group)
             .find(|(group, fewest)| **fewest as f64 > self.allowed_onsets_in(group));
         match over {
-            Some((group, &fewest)) => AlarmError::OverBudget {
-                per_hour: self.budget().unwrap_or(f64::INFINITY),
-                scope: group.describe(),
-                normal_hours: group.normal_hours,
-                allowed_onsets: self.allowed_onsets_in(group).floor() as u64,
-                fewest_onsets: fewest,
-            },
+            Some((group, &fewest)) => self.over_budget_on(
+                group.describe(),
+                (group.normal_hours, self.allowed_onsets_in(group)),
+                fewest,
+            ),
             None => self.over_budget_on(
                 format!("{ALL_DRIVES} and each rate and pace at once"),
-                normal_hours,
+                (normal_hours, self.allowed_onsets(normal_hours)),
                 fewest_onsets,
             ),
         }
     }
 
-    fn over_budget_on(self, scope: String, normal_hours: f64, fewest_onsets: u64) -> AlarmError {
-        let allowed = self.allowed_onsets(normal_hours);
+    /// The error for the drives `scope` names, with their attack-free hours and the onsets the
+    /// rule allowed on them.
+    fn over_budget_on(
+        self,
+        scope: String,
+        (normal_hours, allowed): (f64, f64),
+        fewest_onsets: u64,
+    ) -> AlarmError {
         AlarmError::OverBudget {
             per_hour: self.budget().unwrap_or(f64::INFINITY),
             scope,

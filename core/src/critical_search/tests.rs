@@ -483,8 +483,9 @@ fn no_test_within_the_budget_is_an_error() {
 #[test]
 fn the_error_names_the_rate_no_test_keeps_within() {
     // Ten quiet hours at 1 Hz, and an hour and a half at 10 Hz with three 400 s blips at logit 8
-    // that every test escalates (the quietest accumulates 2 logits a second up to 640). Pooled, three onsets in 11.5 hours are within 1 per hour; at
-    // 10 Hz they are three where 1.5 hours allow one.
+    // that every test escalates (the quietest accumulates 2 logits a second up to 640). Pooled,
+    // three onsets in 11.5 hours are within 1 per hour; at 10 Hz they are three where 1.5 hours
+    // allow one.
     let mut rows = trajectory(0, 36_000, |_| -6.0, |_| false);
     rows.extend(
         trajectory(
