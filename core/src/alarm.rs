@@ -231,11 +231,10 @@ pub fn choose_lifecycle(
     let budget = rule.budget();
     check_search(rows, thetas, 1)?;
     let normal_hours = metrics::normal_hours(rows);
-    // The budget holds pooled and in every group of rate (and pace) with room for at least one
-    // false alarm (a group with less attack-free time counts in the pooled budget only).
+    // The budget holds pooled and in every group of rate (and pace) where it binds.
     let groups: Vec<_> = metrics::rate_and_pace_groups(rows, speeds_mps)
         .into_iter()
-        .filter(|g| budget.is_some_and(|per_hour| per_hour * g.normal_hours >= 1.0))
+        .filter(|g| rule.binds(g))
         .collect();
     let mut best: Option<(OperatingPoint, Lifecycle, Metrics)> = None;
     let mut fewest_onsets = u64::MAX;
@@ -396,6 +395,13 @@ impl OperatingPointRule {
                 (expected - expected.sqrt()).max(0.0)
             }
         }
+    }
+
+    /// Whether the budget holds in `group` of its own: only where the group has room for at least
+    /// one false alarm (a group with less attack-free time counts in the pooled budget only).
+    pub(crate) fn binds(self, group: &RateGroup) -> bool {
+        self.budget()
+            .is_some_and(|per_hour| per_hour * group.normal_hours >= 1.0)
     }
 
     /// The most false-alarm onsets a point may raise in `group`. The margin guards the budget a

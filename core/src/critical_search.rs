@@ -245,11 +245,7 @@ impl<'a> Search<'a> {
         rules: EventRules,
         rate_groups: &'a [RateGroup],
     ) -> Self {
-        let per_hour = budget.budget().unwrap_or(f64::INFINITY);
-        let binding: Vec<&RateGroup> = rate_groups
-            .iter()
-            .filter(|g| per_hour * g.normal_hours >= 1.0)
-            .collect();
+        let binding: Vec<&RateGroup> = rate_groups.iter().filter(|g| budget.binds(g)).collect();
         Self {
             rows,
             offset,

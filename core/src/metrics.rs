@@ -369,7 +369,8 @@ pub const OPEN_ROAD_MEDIAN_SPEED_MPS: f64 = 10.0;
 const MOVING_SPEED_MPS: f64 = 1.0;
 
 /// How fast a vehicle drives while it moves, for the false-alarm budget's groups.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
 pub enum Pace {
     /// Median speed while moving below [`OPEN_ROAD_MEDIAN_SPEED_MPS`] (or never moving).
     Town,
@@ -391,6 +392,14 @@ impl Pace {
             _ => Self::Town,
         }
     }
+
+    /// How reports and errors name it: "town", "open-road".
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Town => "town",
+            Self::OpenRoad => "open-road",
+        }
+    }
 }
 
 /// The trajectories of one sample rate ([`rate_groups`]), or of one rate and pace
@@ -408,12 +417,10 @@ pub struct RateGroup {
 impl RateGroup {
     /// The drives this group holds, for errors: "5 Hz drives", "5 Hz open-road drives".
     pub fn describe(&self) -> String {
-        let pace = match self.pace {
-            None => "",
-            Some(Pace::Town) => " town",
-            Some(Pace::OpenRoad) => " open-road",
-        };
-        format!("{} Hz{pace} drives", self.rate_hz)
+        match self.pace {
+            None => format!("{} Hz drives", self.rate_hz),
+            Some(pace) => format!("{} Hz {} drives", self.rate_hz, pace.name()),
+        }
     }
 
     /// False-alarm onsets of `alarms` in this group's trajectories (as [`Metrics::false_alarm_onsets`]).

@@ -168,8 +168,21 @@ async fn fit_report_and_activate(clients: &mut Clients) {
         report.fitted.expect("fitted score"),
         report.starting.expect("starting score"),
     );
-    assert_eq!(fitted.clean.len(), 1);
-    assert!((fitted.clean[0].hours - 1_200.0 / 3_600.0).abs() < 0.01);
+    // One test drive: the rate's row, then the same drive again under its road kind.
+    assert_eq!(fitted.clean.len(), 2, "{:?}", fitted.clean);
+    let (rate, road) = (&fitted.clean[0], &fitted.clean[1]);
+    assert!((rate.hours - 1_200.0 / 3_600.0).abs() < 0.01);
+    assert_eq!(rate.road, "");
+    assert!(
+        ["town", "open-road"].contains(&road.road.as_str()),
+        "{road:?}"
+    );
+    assert_eq!(
+        (road.drives, road.hours, road.warning_onsets),
+        (rate.drives, rate.hours, rate.warning_onsets)
+    );
+    assert_eq!(starting.clean.len(), 2);
+    assert_eq!(starting.clean[1].road, road.road);
     let injected: Vec<u64> = fitted.detection.iter().map(|d| d.injected).collect();
     assert_eq!(
         injected,

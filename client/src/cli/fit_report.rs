@@ -59,13 +59,14 @@ pub fn render(report: &v1::FleetFitReport) -> String {
         report.starting.clone().unwrap_or_default(),
     );
     out.push_str(
-        "false alarms on the test part (onsets per vehicle-hour):\n  rate      hours   warning fitted  \
-         warning starting  critical fitted  critical starting\n",
+        "false alarms on the test part (onsets per vehicle-hour):\n  rate      road        hours   \
+         warning fitted  warning starting  critical fitted  critical starting\n",
     );
     for (f, s) in fitted.clean.iter().zip(&starting.clean) {
+        let road = if f.road.is_empty() { "all" } else { &f.road };
         let _ = writeln!(
             out,
-            "  {:>5} Hz {:>6.2}  {:>14.3}  {:>16.3}  {:>15.4}  {:>17.4}",
+            "  {:>5} Hz {road:<10} {:>6.2}  {:>14.3}  {:>16.3}  {:>15.4}  {:>17.4}",
             f.rate_hz,
             f.hours,
             f.warning_per_hour,

@@ -27,6 +27,7 @@ use spoofwatch_core::fleet_fit::attacks::detection_grid;
 use spoofwatch_core::fleet_fit::data::drives;
 use spoofwatch_core::fleet_fit::score::{ModelScore, score};
 use spoofwatch_core::fleet_fit::{FleetFitReport, FleetFitSpec, fit_fleet};
+use spoofwatch_core::metrics::Pace;
 use spoofwatch_core::rng::Rng;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::scenario::{DriveDistribution, simulate_drive};
@@ -239,24 +240,10 @@ fn wide_sensor_fleet(seed: u64, vehicles: u64, drives: u64, threads: usize) -> R
 
 /// The clean counts of several scores of the same rates, added up.
 fn merge(scores: Vec<(ModelScore, ModelScore)>) -> (ModelScore, ModelScore) {
-    let add = |into: &mut ModelScore, from: &ModelScore| {
-        if into.clean.is_empty() {
-            into.clean = from.clean.clone();
-            return;
-        }
-        for (a, b) in into.clean.iter_mut().zip(&from.clean) {
-            a.drives += b.drives;
-            a.hours += b.hours;
-            a.warning_onsets += b.warning_onsets;
-            a.critical_onsets += b.critical_onsets;
-            a.warning_per_hour = a.warning_onsets as f64 / a.hours.max(f64::MIN_POSITIVE);
-            a.critical_per_hour = a.critical_onsets as f64 / a.hours.max(f64::MIN_POSITIVE);
-        }
-    };
     let (mut fitted, mut starting) = (ModelScore::default(), ModelScore::default());
     for (f, s) in &scores {
-        add(&mut fitted, f);
-        add(&mut starting, s);
+        fitted.add_clean(f);
+        starting.add_clean(s);
     }
     (fitted, starting)
 }
@@ -286,14 +273,15 @@ fn render(report: &Report) -> String {
 
 fn clean_table(md: &mut String, fitted: &ModelScore, starting: &ModelScore) {
     md.push_str(
-        "| rate | drives | hours | warning fitted | warning bundled | critical fitted | critical \
-         bundled |\n|---|---|---|---|---|---|---|\n",
+        "| rate | road | drives | hours | warning fitted | warning bundled | critical fitted | \
+         critical bundled |\n|---|---|---|---|---|---|---|---|\n",
     );
     for (f, s) in fitted.clean.iter().zip(&starting.clean) {
         let _ = writeln!(
             md,
-            "| {} Hz | {} | {:.2} | {} ({:.3}/h) | {} ({:.3}/h) | {} ({:.4}/h) | {} ({:.4}/h) |",
+            "| {} Hz | {} | {} | {:.2} | {} ({:.3}/h) | {} ({:.3}/h) | {} ({:.4}/h) | {} ({:.4}/h) |",
             f.rate_hz,
+            f.pace.map_or("all", Pace::name),
             f.drives,
             f.hours,
             f.warning_onsets,

@@ -5,6 +5,7 @@
 use crate::v1;
 use spoofwatch_core::fleet_fit::score::{CleanRate, KindScore, ModelScore};
 use spoofwatch_core::fleet_fit::{FleetFitReport, PartSummary};
+use spoofwatch_core::metrics::Pace;
 
 /// The report on the wire (headings and spreads of the prior in degrees).
 pub fn fit_report_to_proto(report: &FleetFitReport) -> v1::FleetFitReport {
@@ -47,6 +48,7 @@ fn score(score: &ModelScore) -> v1::FitScore {
 fn clean(rate: &CleanRate) -> v1::FitCleanRate {
     v1::FitCleanRate {
         rate_hz: rate.rate_hz,
+        road: rate.pace.map_or("", Pace::name).to_owned(),
         drives: u32::try_from(rate.drives).unwrap_or(u32::MAX),
         hours: rate.hours,
         warning_onsets: rate.warning_onsets,
