@@ -67,6 +67,7 @@ fn params(
         calibrated_growth: [7.5e-4, 1e-4],
         step_noise_m2: 2.36,
         vehicle_levels: true,
+        rebase_on_calibration: false,
     });
     EvidenceParams {
         drift,

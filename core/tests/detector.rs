@@ -30,7 +30,7 @@ use spoofwatch_core::train::data::{
     sequences, split_chronologically, split_with_warmup, trajectory_ranges,
 };
 use spoofwatch_core::train::detector::{TrainDetectorError, TrainingData, train_detector};
-use spoofwatch_core::train::spec::{SplitFractions, TrainingSpec};
+use spoofwatch_core::train::spec::{AnchorRebase, SplitFractions, TrainingSpec};
 use spoofwatch_core::train::{TrainConfig, TrainError};
 
 fn drive(seed: u64, seconds: f64) -> Track {
@@ -574,4 +574,56 @@ fn the_levels_and_lifecycle_ablations_train_what_they_name() {
     let read = ModelArtifact::from_slice(&bytes).expect("parses");
     assert!(read.model.config().ablation.rows_lifecycle);
     assert!(read.model.config().ablation.no_vehicle_levels);
+}
+
+#[test]
+fn anchor_rebase_served_only_keeps_the_training_and_marks_the_artifact() {
+    let jump = |seed| attacked_with(seed, AttackKind::Jump { offset_m: 200.0 });
+    let train: Vec<Track> = (40..43).map(jump).chain([drive(44, 900.0)]).collect();
+    let validation: Vec<Track> = (50..52).map(jump).collect();
+    let trained = |anchor_rebase: AnchorRebase| {
+        let spec = TrainingSpec {
+            model: ModelConfig {
+                d_s: 4,
+                d_zeta: 4,
+                d_h: 4,
+                schema: FeatureSchema::V3,
+                ..ModelConfig::default()
+            },
+            train: TrainConfig {
+                max_epochs: 2,
+                ..TrainConfig::default()
+            },
+            anchor_rebase,
+            ..TrainingSpec::default()
+        };
+        let data = TrainingData::Explicit {
+            train: train.clone(),
+            validation: validation.clone(),
+        };
+        train_detector(&spec, data, &mut |_| {}, &AtomicBool::new(false))
+            .expect("trains")
+            .artifact
+    };
+    let rebases = |artifact: &ModelArtifact| {
+        artifact
+            .evidence
+            .offset
+            .expect("v3 has offsets")
+            .rebase_on_calibration
+    };
+    let off = trained(AnchorRebase::Off);
+    let served = trained(AnchorRebase::Serve);
+    let throughout = trained(AnchorRebase::TrainAndServe);
+    assert!(!rebases(&off));
+    assert!(rebases(&served) && rebases(&throughout));
+    // Served only, the network and its scaler are those trained without it.
+    assert_eq!(served.model, off.model);
+    assert_eq!(served.scaler, off.scaler);
+    // An artifact without it keeps the bytes it had before the option existed; with it, the option
+    // travels with the artifact.
+    let off_json = String::from_utf8(off.to_vec().expect("serialises")).expect("utf-8");
+    assert!(!off_json.contains("rebase_on_calibration"));
+    let read = ModelArtifact::from_slice(&served.to_vec().expect("serialises")).expect("parses");
+    assert!(rebases(&read));
 }

@@ -7,6 +7,7 @@ use std::sync::atomic::AtomicBool;
 
 use anyhow::{Context, Result, bail};
 use spoofwatch_core::fleet_fit::{FleetFitSpec, fit_fleet};
+use spoofwatch_core::train::spec::AnchorRebase;
 use spoofwatch_proto::v1;
 use spoofwatch_proto::wire::fit::fit_report_to_proto;
 
@@ -110,6 +111,7 @@ fn run_offline(args: &Args, out: &PathBuf) -> Result<()> {
         from_scratch: args.from_scratch,
         sample_rate_hz: args.sample_rate_hz,
         data_description: args.data.iter().map(|p| p.display().to_string()).collect(),
+        anchor_rebase: AnchorRebase::Off,
     };
     let bar = crate::progress::bar(u64::from(args.epochs), "fitting");
     let fitted = fit_fleet(

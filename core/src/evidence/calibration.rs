@@ -149,12 +149,12 @@ impl CalibrationTrust {
 
 /// Columns of H_t = [u, J u, −Δv], J(x, y) = (y, −x): to first order a speed scale error ε, a heading
 /// bias β and an onboard lag τ_L make r = −ε u − β J u + τ_L Δv = −H θ.
-pub(super) fn regressors(u: [f64; 2], dv: [f64; 2]) -> [[f64; 2]; 3] {
+pub(crate) fn regressors(u: [f64; 2], dv: [f64; 2]) -> [[f64; 2]; 3] {
     [u, [u[1], -u[0]], [-dv[0], -dv[1]]]
 }
 
 /// H θ.
-pub(super) fn apply(h: &[[f64; 2]; 3], theta: &[f64; 3]) -> [f64; 2] {
+pub(crate) fn apply(h: &[[f64; 2]; 3], theta: &[f64; 3]) -> [f64; 2] {
     [
         h[0][0] * theta[0] + h[1][0] * theta[1] + h[2][0] * theta[2],
         h[0][1] * theta[0] + h[1][1] * theta[1] + h[2][1] * theta[2],

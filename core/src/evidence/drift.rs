@@ -496,6 +496,11 @@ impl DriftTracker {
         }
     }
 
+    /// θ in use.
+    pub fn theta_in_use(&self) -> [f64; 3] {
+        self.theta_in_use
+    }
+
     /// The calibration is trusted from its own information, not by the clock.
     pub fn trusts_information(&self) -> bool {
         self.constants.trust == CalibrationTrust::Information

@@ -311,6 +311,10 @@ pub struct EvidenceOptions {
     pub trust: CalibrationTrust,
     /// The fleet's prior on the onboard calibration (`None`: the default prior).
     pub calibration_prior: Option<CalibrationPrior>,
+    /// The anchors re-base their dead reckoning when the calibration in use changes
+    /// ([`OffsetParams::rebase_on_calibration`]), in the scaler's fit and in the fitted evidence;
+    /// their noise and growth are fitted without it either way.
+    pub rebase_anchors: bool,
 }
 
 impl Default for EvidenceOptions {
@@ -319,6 +323,7 @@ impl Default for EvidenceOptions {
             vehicle_levels: true,
             trust: CalibrationTrust::Information,
             calibration_prior: None,
+            rebase_anchors: false,
         }
     }
 }
@@ -340,7 +345,10 @@ pub fn fit_evidence_with(
         .then(|| fit_drift_params(train, projection, options.trust, options.calibration_prior))
         .transpose()?;
     let offset = match drift {
-        Some(drift) if schema.has_offset() => Some(fit_offset_params(train, projection, drift)?),
+        Some(drift) if schema.has_offset() => Some(OffsetParams {
+            rebase_on_calibration: options.rebase_anchors,
+            ..fit_offset_params(train, projection, drift)?
+        }),
         _ => None,
     };
     let drift = drift.map(|d| DriftParams {

@@ -40,7 +40,7 @@ use crate::scenario::ScenarioError;
 use crate::severity::CriticalTest;
 use crate::train::EpochProgress;
 use crate::train::detector::{TrainDetectorError, TrainingData, train_detector};
-use crate::train::spec::{KappaRho, TrainingSpec};
+use crate::train::spec::{AnchorRebase, KappaRho, TrainingSpec};
 
 use self::data::{Drive, FitDataError};
 use self::prior::FittedPrior;
@@ -69,6 +69,9 @@ pub struct FleetFitSpec {
     pub sample_rate_hz: Option<f64>,
     /// Describes the data in the fitted model's provenance.
     pub data_description: Vec<String>,
+    /// Whether the fitted model's anchors re-base when the calibration in use changes (off in
+    /// the service's fits; the lab measures the others).
+    pub anchor_rebase: AnchorRebase,
 }
 
 /// The fitted model and its report.
@@ -264,6 +267,7 @@ fn training_spec(
         data_description: spec.data_description.clone(),
         calibration_prior: prior.kept_default.is_none().then_some(prior.prior),
         initial_model: (!spec.from_scratch).then(|| starting.model.clone()),
+        anchor_rebase: spec.anchor_rebase,
         ..TrainingSpec::with(
             spec.seed,
             spec.max_epochs,

@@ -22,7 +22,7 @@ use crate::metrics::{EventRules, Metrics};
 use crate::model::artifact::{ARTIFACT_SCHEMA_VERSION, ModelArtifact, Provenance};
 use crate::sample::Track;
 use crate::train::data::{sequences, split_chronologically};
-use crate::train::spec::TrainingSpec;
+use crate::train::spec::{AnchorRebase, TrainingSpec};
 use crate::train::{EpochProgress, TrainError, train, train_from};
 
 /// The labelled tracks of a training job and how validation data is obtained.
@@ -160,6 +160,7 @@ fn train_candidate(
                 CalibrationTrust::Information
             },
             calibration_prior: spec.calibration_prior,
+            rebase_anchors: spec.anchor_rebase == AnchorRebase::TrainAndServe,
         },
     )?;
     let mask_exits = !spec.model.ablation.no_exit_mask;
@@ -194,11 +195,16 @@ fn train_candidate(
     if outcome.cancelled {
         return Err(TrainError::Cancelled.into());
     }
+    // Under `Serve` the operating points below are chosen on the evidence the model serves.
+    let mut evidence = fit.params;
+    if let Some(offset) = evidence.offset.as_mut() {
+        offset.rebase_on_calibration = spec.anchor_rebase != AnchorRebase::Off;
+    }
     let mut artifact = ModelArtifact {
         schema_version: ARTIFACT_SCHEMA_VERSION,
         feature_names: ModelArtifact::feature_names_of(spec.model.schema),
         model: outcome.model,
-        evidence: fit.params,
+        evidence,
         scaler: fit.scaler,
         // Provisional: probabilities do not depend on it; replaced below.
         operating_point: OperatingPoint { theta: 0.5, n_p: 1 },

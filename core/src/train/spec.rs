@@ -25,6 +25,24 @@ pub const KAPPA_RHO_GRID: [(f64, f64); 6] = [
     (1.0, 0.99),
 ];
 
+/// Whether a trained model's offset anchors re-base the motion behind them when the calibration in
+/// use changes ([`OffsetParams::rebase_on_calibration`](crate::evidence::offset::OffsetParams),
+/// `docs/detector.md` §4.2). Off by default: at a fixed operating point re-basing removes false
+/// alarms, but each retrained search measured so far spent the room it made on sensitivity and
+/// landed at or over a budget on test hours (docs/experiments.md).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum AnchorRebase {
+    /// Neither in training nor in service (the bundled default).
+    #[default]
+    Off,
+    /// The network is trained, and the anchors' noise and growth fitted, on evidence without it;
+    /// the operating points are chosen, and the model serves, with it.
+    Serve,
+    /// Trained, chosen and served with it; the anchors' noise and growth are still fitted
+    /// without it, so the gates they set stay the wider ones.
+    TrainAndServe,
+}
+
 /// Fractions of each trajectory given to train and validation; the rest is test (SPEC §9).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SplitFractions {
@@ -156,6 +174,9 @@ pub struct TrainingSpec {
     /// Weights to start training from (a model of the same configuration, e.g. the bundled
     /// default); `None`: seeded initialisation.
     pub initial_model: Option<Model>,
+    /// Whether the trained model's offset anchors re-base their dead reckoning when the
+    /// calibration in use changes ([`AnchorRebase`]); off by default.
+    pub anchor_rebase: AnchorRebase,
 }
 
 impl Default for TrainingSpec {
@@ -172,6 +193,7 @@ impl Default for TrainingSpec {
             data_description: Vec::new(),
             calibration_prior: None,
             initial_model: None,
+            anchor_rebase: AnchorRebase::Off,
         }
     }
 }

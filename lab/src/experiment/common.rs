@@ -10,7 +10,7 @@ use spoofwatch_client::cli::json::write_json;
 use spoofwatch_client::input::load_file;
 use spoofwatch_core::sample::Track;
 use spoofwatch_core::train::data::{ChronologicalSplit, split_with_warmup};
-use spoofwatch_core::train::spec::SplitFractions;
+use spoofwatch_core::train::spec::{AnchorRebase, SplitFractions};
 use spoofwatch_core::train::{DEFAULT_MAX_EPOCHS, DEFAULT_SEED};
 
 /// Arguments every experiment takes.
@@ -31,6 +31,24 @@ pub struct CommonArgs {
     /// Worker threads for independent work (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
+}
+
+/// `--anchor-rebase`: [`AnchorRebase`] on the command line.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum AnchorRebaseArg {
+    Off,
+    Serve,
+    TrainAndServe,
+}
+
+impl From<AnchorRebaseArg> for AnchorRebase {
+    fn from(arg: AnchorRebaseArg) -> Self {
+        match arg {
+            AnchorRebaseArg::Off => Self::Off,
+            AnchorRebaseArg::Serve => Self::Serve,
+            AnchorRebaseArg::TrainAndServe => Self::TrainAndServe,
+        }
+    }
 }
 
 /// The two AV-GPS recordings the experiments use.

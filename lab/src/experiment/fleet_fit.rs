@@ -34,7 +34,7 @@ use spoofwatch_core::scenario::{DriveDistribution, simulate_drive};
 use spoofwatch_core::train::data::trajectory_ranges;
 use spoofwatch_proto::wire::fit::fit_report_to_proto;
 
-use super::common::{load_avgps, write_report};
+use super::common::{AnchorRebaseArg, load_avgps, write_report};
 use super::parallel::{default_threads, map_parallel};
 
 /// Sample rate of the simulated fleet (Hz).
@@ -73,6 +73,10 @@ pub struct Args {
     /// Train new weights instead of starting from the model's.
     #[arg(long)]
     from_scratch: bool,
+    /// Re-base the fitted model's offset anchors when the calibration in use changes (a measured
+    /// alternative; the service's fits do not).
+    #[arg(long, value_enum, default_value = "off")]
+    anchor_rebase: AnchorRebaseArg,
     /// Simulated fleet: vehicles, and half-hour drives per vehicle.
     #[arg(long, default_value_t = 24)]
     vehicles: u64,
@@ -138,6 +142,7 @@ pub fn run(args: Args) -> Result<()> {
         from_scratch: args.from_scratch,
         sample_rate_hz: None,
         data_description: vec![description],
+        anchor_rebase: args.anchor_rebase.into(),
     };
     eprintln!("fitting to {} recordings", recordings.len());
     let mut on_epoch = |e: &spoofwatch_core::train::EpochProgress| {

@@ -35,7 +35,7 @@ use spoofwatch_core::train::TrainConfig;
 use spoofwatch_core::train::detector::TrainingData;
 use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
 
-use super::common::{CommonArgs, prepare, seed_list, write_report};
+use super::common::{AnchorRebaseArg, CommonArgs, prepare, seed_list, write_report};
 use super::parallel::{default_threads, map_parallel};
 use super::subtle::{
     BUDGET, FALSE_ALARM_BUDGET_PER_HOUR, delay_and_coverage, operating_point_json, within_budget,
@@ -67,6 +67,11 @@ pub struct Args {
     /// uncertainty (a retrained ablation).
     #[arg(long)]
     timer_trust: bool,
+    /// Re-base the offset anchors when the calibration in use changes: in service and in the
+    /// operating point's search (`serve`), or in training too (`train-and-serve`); a measured
+    /// alternative to the bundled default's evidence.
+    #[arg(long, value_enum, default_value = "off")]
+    anchor_rebase: AnchorRebaseArg,
     /// Train the HO-LLN models with this many seeds (the training seed, + 1, …).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=20))]
     seeds: u64,
@@ -842,6 +847,7 @@ pub fn run(args: Args) -> Result<()> {
         .into_iter()
         .flatten()
         .collect(),
+        anchor_rebase: args.anchor_rebase.into(),
         ..TrainingSpec::with(
             training_seed,
             args.common.epochs,

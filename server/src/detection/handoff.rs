@@ -22,8 +22,9 @@ use spoofwatch_core::detector::{DetectorState, RestoreError};
 /// was an outlier. Version 11: it knows how long the track its anchors stand on has lasted. Version
 /// 12: the critical test keeps the last sample's offset. Version 13: the offset tracker counts
 /// the anchors' placements on a disagreement before trust, and its last evidence says whether they
-/// are disputed.
-pub const SNAPSHOT_SCHEMA: u16 = 13;
+/// are disputed. Version 14: each anchor keeps the calibration its offset is expressed in and the
+/// velocity change behind it.
+pub const SNAPSHOT_SCHEMA: u16 = 14;
 
 /// Whether this server reads stored snapshots of schema version `version`.
 pub fn reads_schema(version: i64) -> bool {

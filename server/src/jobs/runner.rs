@@ -13,7 +13,7 @@ use spoofwatch_core::fleet_fit::{FleetFitError, FleetFitSpec, fit_fleet};
 use spoofwatch_core::metrics::EventRules;
 use spoofwatch_core::model::artifact::ModelArtifact;
 use spoofwatch_core::train::detector::{TrainDetectorError, TrainingData, train_detector};
-use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
+use spoofwatch_core::train::spec::{AnchorRebase, KappaRho, TrainingSpec};
 use spoofwatch_core::train::{EpochProgress, TrainError};
 use spoofwatch_proto::wire::OperationName;
 use tokio::sync::{mpsc, watch};
@@ -232,6 +232,7 @@ impl Runner {
             from_scratch: fit.from_scratch,
             sample_rate_hz: fit.sample_rate_hz,
             data_description: request.datasets.iter().map(ToString::to_string).collect(),
+            anchor_rebase: AnchorRebase::Off,
         };
         let artifact = Arc::clone(&starting.artifact);
         let fitted = self

@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use super::params::{
     AGREEMENT_S, FOLLOW_GATE, GAP_ACCELERATION_MPS2, OffsetParams, OffsetStep, norm_squared,
 };
-use crate::evidence::calibration::calibration_covariance;
+use crate::evidence::calibration::{apply, calibration_covariance, regressors};
 use crate::evidence::linalg::Mat2;
 
 /// One anchor's state.
@@ -35,17 +35,67 @@ pub(super) struct Anchor {
     pub(super) frozen_s: f64,
     pub(super) carried_since_freeze: [f64; 2],
     pub(super) gap_since_freeze_m2: f64,
+    /// Σ keep·Δv behind the anchor, forgotten with U (m/s): the lag's share of a re-basing.
+    pub(super) velocity_change: [f64; 2],
+    /// The calibration θ the offset's dead reckoning is expressed in (when re-based).
+    pub(super) theta: [f64; 3],
 }
 
 impl Anchor {
     /// Moves the anchor by one step: U, the offset and the gaps' variance, each forgotten by
     /// `keep` (1 while frozen, the follow's share otherwise).
-    pub(super) fn advance(&mut self, step: &OffsetStep, keep: f64, gap_m2: f64) {
+    pub(super) fn advance(
+        &mut self,
+        params: &OffsetParams,
+        step: &OffsetStep,
+        keep: f64,
+        gap_m2: f64,
+    ) {
+        if params.rebase_on_calibration {
+            self.rebase(step.theta_in_use);
+        }
         self.carry(step, keep);
+        for axis in 0..2 {
+            self.velocity_change[axis] =
+                keep * (self.velocity_change[axis] + step.velocity_change[axis]);
+        }
         for axis in 0..2 {
             self.offset[axis] = keep * (self.offset[axis] + step.residual[axis]);
         }
         self.gap_m2 = keep * keep * (self.gap_m2 + gap_m2);
+    }
+
+    /// Re-expresses the dead reckoning carried behind the anchor in calibration `theta`. The
+    /// correction a calibration adds to the residual is linear in the motion and the velocity
+    /// change (H θ), so the offset under `theta` is the offset under the old θ plus H(U, ΣΔv)·Δθ,
+    /// U and ΣΔv forgotten as the offset is. A frozen anchor's origin moves by the share of the
+    /// motion carried before the freeze, so that the change since the freeze keeps its own.
+    pub(super) fn rebase(&mut self, theta: [f64; 3]) {
+        if theta == self.theta {
+            return;
+        }
+        let change = [
+            theta[0] - self.theta[0],
+            theta[1] - self.theta[1],
+            theta[2] - self.theta[2],
+        ];
+        let motion = [
+            self.carried[0] + self.carried_raw[0],
+            self.carried[1] + self.carried_raw[1],
+        ];
+        let shift = apply(&regressors(motion, self.velocity_change), &change);
+        let before_freeze = [
+            motion[0] - self.carried_since_freeze[0],
+            motion[1] - self.carried_since_freeze[1],
+        ];
+        let origin_shift = apply(&regressors(before_freeze, [0.0; 2]), &change);
+        for axis in 0..2 {
+            self.offset[axis] += shift[axis];
+            if self.frozen {
+                self.origin[axis] += origin_shift[axis];
+            }
+        }
+        self.theta = theta;
     }
 
     /// Adds one step's onboard motion to the part of U it was dead-reckoned with, and forgets

@@ -69,6 +69,14 @@ pub struct OffsetParams {
     pub step_noise_m2: f64,
     /// Normalise by the vehicle's own level; off only while fitting.
     pub vehicle_levels: bool,
+    /// Re-express the motion carried behind each anchor in the calibration now in use whenever it
+    /// changes ([`OffsetStep::theta_in_use`]), so that an offset the dead reckoning built under an
+    /// earlier calibration (the fleet's prior mean, before the vehicle's own was learnt) is not
+    /// then tested against the new calibration's smaller error. Off unless a training asks for it
+    /// ([`AnchorRebase`](crate::train::spec::AnchorRebase)); absent from artifacts without it, which
+    /// keep their bytes.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub rebase_on_calibration: bool,
 }
 
 impl OffsetParams {
@@ -81,6 +89,7 @@ impl OffsetParams {
             calibrated_growth: [0.0; ANCHOR_COUNT],
             step_noise_m2: NOISE_RANGE_M2.1,
             vehicle_levels: false,
+            rebase_on_calibration: false,
         }
     }
 
@@ -143,6 +152,11 @@ pub struct OffsetStep {
     /// here is where the receiver catches up with a vehicle that moved off, not a jump from a
     /// track the anchors followed.
     pub leaves_held_fix: bool,
+    /// The onboard velocity's change over the step (m/s): the lag's regressor.
+    pub velocity_change: [f64; 2],
+    /// The calibration θ whose correction `residual` holds (speed scale, heading bias in radians,
+    /// lag in seconds); 0 while none is in use.
+    pub theta_in_use: [f64; 3],
 }
 
 /// The offset channels of one sample.

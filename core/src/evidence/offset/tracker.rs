@@ -275,7 +275,7 @@ impl OffsetTracker {
             } else {
                 (-delta_t / FOLLOW_S[k]).exp()
             };
-            anchor.advance(step, keep, row.gap_m2);
+            anchor.advance(&self.params, step, keep, row.gap_m2);
             for axis in 0..2 {
                 anchor.carried_since_freeze[axis] += step.motion[axis];
             }
@@ -320,7 +320,12 @@ impl OffsetTracker {
         let delta_t = step.delta_t;
         let mut shadow_nis = [0.0; ANCHOR_COUNT];
         for (k, shadow) in self.shadows.iter_mut().enumerate() {
-            shadow.advance(step, (-delta_t / FOLLOW_S[k]).exp(), row.gap_m2);
+            shadow.advance(
+                &self.params,
+                step,
+                (-delta_t / FOLLOW_S[k]).exp(),
+                row.gap_m2,
+            );
             shadow_nis[k] = nis(
                 shadow.offset,
                 shadow.variance(&self.params, k),
