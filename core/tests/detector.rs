@@ -518,36 +518,38 @@ fn a_small_training_job_learns_a_frozen_position_attack_and_calibrates_an_operat
     assert_eq!(sequences(&fit, &train, true).len(), train.len());
 }
 
+/// A small v3 detector trained for 2 epochs on 200 m jumps and a clean drive long enough for the
+/// anchors' fit (three follow times after placement).
+fn small_v3_detector(ablation: Ablation, anchor_rebase: AnchorRebase) -> ModelArtifact {
+    let jump = |seed| attacked_with(seed, AttackKind::Jump { offset_m: 200.0 });
+    let spec = TrainingSpec {
+        model: ModelConfig {
+            d_s: 4,
+            d_zeta: 4,
+            d_h: 4,
+            schema: FeatureSchema::V3,
+            ablation,
+            ..ModelConfig::default()
+        },
+        train: TrainConfig {
+            max_epochs: 2,
+            ..TrainConfig::default()
+        },
+        anchor_rebase,
+        ..TrainingSpec::default()
+    };
+    let data = TrainingData::Explicit {
+        train: (40..43).map(jump).chain([drive(44, 900.0)]).collect(),
+        validation: (50..52).map(jump).collect(),
+    };
+    train_detector(&spec, data, &mut |_| {}, &AtomicBool::new(false))
+        .expect("trains")
+        .artifact
+}
+
 #[test]
 fn the_levels_and_lifecycle_ablations_train_what_they_name() {
-    let jump = |seed| attacked_with(seed, AttackKind::Jump { offset_m: 200.0 });
-    // Clean drives long enough for the anchors' fit (three follow times after placement).
-    let train: Vec<Track> = (40..43).map(jump).chain([drive(44, 900.0)]).collect();
-    let validation: Vec<Track> = (50..52).map(jump).collect();
-    let trained = |ablation: Ablation| {
-        let spec = TrainingSpec {
-            model: ModelConfig {
-                d_s: 4,
-                d_zeta: 4,
-                d_h: 4,
-                schema: FeatureSchema::V3,
-                ablation,
-                ..ModelConfig::default()
-            },
-            train: TrainConfig {
-                max_epochs: 2,
-                ..TrainConfig::default()
-            },
-            ..TrainingSpec::default()
-        };
-        let data = TrainingData::Explicit {
-            train: train.clone(),
-            validation: validation.clone(),
-        };
-        train_detector(&spec, data, &mut |_| {}, &AtomicBool::new(false))
-            .expect("trains")
-            .artifact
-    };
+    let trained = |ablation: Ablation| small_v3_detector(ablation, AnchorRebase::Off);
     let levels = |artifact: &ModelArtifact| {
         let evidence = &artifact.evidence;
         (
@@ -578,33 +580,7 @@ fn the_levels_and_lifecycle_ablations_train_what_they_name() {
 
 #[test]
 fn anchor_rebase_served_only_keeps_the_training_and_marks_the_artifact() {
-    let jump = |seed| attacked_with(seed, AttackKind::Jump { offset_m: 200.0 });
-    let train: Vec<Track> = (40..43).map(jump).chain([drive(44, 900.0)]).collect();
-    let validation: Vec<Track> = (50..52).map(jump).collect();
-    let trained = |anchor_rebase: AnchorRebase| {
-        let spec = TrainingSpec {
-            model: ModelConfig {
-                d_s: 4,
-                d_zeta: 4,
-                d_h: 4,
-                schema: FeatureSchema::V3,
-                ..ModelConfig::default()
-            },
-            train: TrainConfig {
-                max_epochs: 2,
-                ..TrainConfig::default()
-            },
-            anchor_rebase,
-            ..TrainingSpec::default()
-        };
-        let data = TrainingData::Explicit {
-            train: train.clone(),
-            validation: validation.clone(),
-        };
-        train_detector(&spec, data, &mut |_| {}, &AtomicBool::new(false))
-            .expect("trains")
-            .artifact
-    };
+    let trained = |anchor_rebase| small_v3_detector(Ablation::default(), anchor_rebase);
     let rebases = |artifact: &ModelArtifact| {
         artifact
             .evidence
