@@ -11,7 +11,8 @@
 //!    vehicle-hour at each level, per rate and road kind, with every onset's time.
 //! 3. **Detection**: the offsets suite's attacked test drives; per attack, onset and rate, the
 //!    share alarmed within the warning deadline, the share critical within the critical one, and the
-//!    critical episode's coverage of the attack.
+//!    critical episode's coverage of the attack; every drive's outcome in `drives.csv`, with what
+//!    explains a miss (the vehicle's speed and standing share, the anchors' track age at onset).
 //!
 //! Owns the fleet study's drives and report. Must not fit evidence, train or change the warning
 //! level (core and the offsets suite do).
@@ -57,7 +58,7 @@ pub struct Args {
     /// The model whose alarms are measured (its θ and lifecycle are the warning level).
     #[arg(long, default_value = "models/default.json")]
     model: PathBuf,
-    /// Output directory (report.json, report.md, onsets.csv).
+    /// Output directory (report.json, report.md, onsets.csv, drives.csv).
     #[arg(long)]
     out: PathBuf,
     /// Seed of the drives.
@@ -142,6 +143,36 @@ struct AttackRow {
     critical_coverage: Option<f64>,
 }
 
+/// One attacked test drive at both levels: a row of `drives.csv`, which says why a drive missed
+/// a deadline (the vehicle standing, or anchors placed only seconds before the attack).
+#[derive(Clone, Debug, Serialize)]
+struct DriveOutcome {
+    vehicle_id: String,
+    attack: String,
+    magnitude: Option<f64>,
+    rate_hz: f64,
+    early_onset: bool,
+    onset_s: f64,
+    /// This drive's deadlines (a fix frozen while standing counts from when the vehicle moves off).
+    warning_deadline_s: f64,
+    critical_deadline_s: f64,
+    /// Mean onboard speed from the onset to the warning deadline (m/s).
+    mean_speed_mps: f64,
+    /// Share of the rows from the onset to the critical deadline where the vehicle stands
+    /// (onboard speed below [`STANDING_MPS`]).
+    standing_share: f64,
+    /// Seconds the track the anchors stood on had lasted at the attack's first row (§4.2).
+    track_age_at_onset_s: Option<f64>,
+    warning_delay_s: Option<f64>,
+    warning_in_time: bool,
+    critical_delay_s: Option<f64>,
+    critical_in_time: bool,
+    critical_coverage: Option<f64>,
+}
+
+/// Below this onboard speed (m/s) a vehicle stands, for [`DriveOutcome::standing_share`].
+const STANDING_MPS: f64 = 0.5;
+
 #[derive(Debug, Serialize)]
 struct Report {
     protocol: &'static str,
@@ -160,6 +191,9 @@ struct Report {
     selection: Option<CriticalSelection>,
     clean: Vec<CleanCount>,
     attacks: Vec<AttackRow>,
+    /// Every attacked test drive's outcome (written to `drives.csv`, not to the report).
+    #[serde(skip)]
+    drives: Vec<DriveOutcome>,
     wall_time_s: f64,
 }
 
@@ -220,7 +254,7 @@ pub fn run(args: Args) -> Result<()> {
     eprintln!("clean fleets: {} h per rate", args.test_hours);
     let (clean, onsets) = clean_fleets(&artifact, &args, threads)?;
     eprintln!("attacked test drives");
-    let attacks = attack_rows(&artifact, &args, threads)?;
+    let (attacks, drives) = attack_rows(&artifact, &args, threads)?;
     let report = Report {
         protocol: "fleet-alarms: the critical test chosen on attack-free validation hours of the \
                    fleet distribution and the offsets suite's attacked validation drives; clean \
@@ -237,6 +271,7 @@ pub fn run(args: Args) -> Result<()> {
         selection,
         clean,
         attacks,
+        drives,
         wall_time_s: started.elapsed().as_secs_f64(),
     };
     write_outputs(&args.out, &report, &onsets)
@@ -448,23 +483,16 @@ fn critical_deadline_s(kind: &AttackKind, warning_deadline_s: f64) -> f64 {
     }
 }
 
-/// The offsets suite's attacked test drives at both levels.
+/// The offsets suite's attacked test drives at both levels: each kind, rate and onset's shares, and
+/// every drive's outcome.
 fn attack_rows(
     artifact: &Arc<ModelArtifact>,
     args: &Args,
     threads: usize,
-) -> Result<Vec<AttackRow>> {
+) -> Result<(Vec<AttackRow>, Vec<DriveOutcome>)> {
     let set = test_set((args.seed, args.distribution), args.repeats, 0, threads)?;
     let outcomes = map_parallel(&set.attacked, threads, |drive| {
-        let decisions = run_records(artifact, &drive.injected.track.records);
-        let warning = scored_levels(&drive.injected.track.records, &decisions, |d| d.alarm);
-        let critical = scored_levels(&drive.injected.track.records, &decisions, |d| {
-            d.severity == Some(Severity::Critical)
-        });
-        (
-            delay_and_coverage(&drive.injected, &warning),
-            delay_and_coverage(&drive.injected, &critical),
-        )
+        drive_outcome(artifact, drive, &set.kinds[drive.kind_index])
     });
     let mut rows = Vec::new();
     for (rate_index, &rate_hz) in RATES_HZ.iter().enumerate() {
@@ -474,36 +502,79 @@ fn attack_rows(
                     kind,
                     rate_hz,
                     early,
-                    set.attacked.iter().zip(&outcomes).filter(|(d, _)| {
-                        (d.rate_index, d.kind_index, d.early) == (rate_index, kind_index, early)
-                    }),
+                    set.attacked
+                        .iter()
+                        .zip(&outcomes)
+                        .filter(|(d, _)| {
+                            (d.rate_index, d.kind_index, d.early) == (rate_index, kind_index, early)
+                        })
+                        .map(|(_, outcome)| outcome),
                 ));
             }
         }
     }
-    Ok(rows)
+    Ok((rows, outcomes))
 }
 
-type Outcome = ((Option<f64>, Option<f64>), (Option<f64>, Option<f64>));
+/// One attacked drive run through the detector and scored at both levels.
+fn drive_outcome(
+    artifact: &Arc<ModelArtifact>,
+    drive: &TestDrive,
+    kind: &TestKind,
+) -> DriveOutcome {
+    let records = &drive.injected.track.records;
+    let decisions = run_records(artifact, records);
+    let warning = scored_levels(records, &decisions, |d| d.alarm);
+    let critical = scored_levels(records, &decisions, |d| {
+        d.severity == Some(Severity::Critical)
+    });
+    let (warning_delay_s, _) = delay_and_coverage(&drive.injected, &warning);
+    let (critical_delay_s, critical_coverage) = delay_and_coverage(&drive.injected, &critical);
+    // A drive's own deadline counts from when it moves off (a fix frozen while standing).
+    let extra_s = drive.deadline_s - kind.within_s;
+    let critical_deadline_s = critical_deadline_s(&kind.kind, kind.within_s) + extra_s;
+    let first = *drive.injected.attack_rows().start();
+    let onset_time = records[first].sample.timestamp_s;
+    let speeds: Vec<f64> = records[first..]
+        .iter()
+        .take_while(|r| r.sample.timestamp_s - onset_time <= critical_deadline_s)
+        .map(|r| r.sample.speed_mps)
+        .collect();
+    let standing = speeds.iter().filter(|s| s.abs() < STANDING_MPS).count();
+    DriveOutcome {
+        vehicle_id: drive.injected.track.vehicle_id.clone(),
+        attack: kind.label(),
+        magnitude: kind.kind.magnitude(),
+        rate_hz: RATES_HZ[drive.rate_index],
+        early_onset: drive.early,
+        onset_s: drive.onset_s,
+        warning_deadline_s: drive.deadline_s,
+        critical_deadline_s,
+        mean_speed_mps: drive.mean_speed_mps,
+        standing_share: standing as f64 / speeds.len().max(1) as f64,
+        track_age_at_onset_s: decisions[first].evidence.offset.map(|o| o.track_age_s),
+        warning_delay_s,
+        warning_in_time: warning_delay_s.is_some_and(|d| d <= drive.deadline_s),
+        critical_delay_s,
+        critical_in_time: critical_delay_s.is_some_and(|d| d <= critical_deadline_s),
+        critical_coverage,
+    }
+}
 
 fn attack_row<'a>(
     kind: &TestKind,
     rate_hz: f64,
     early: bool,
-    drives: impl Iterator<Item = (&'a TestDrive, &'a Outcome)>,
+    drives: impl Iterator<Item = &'a DriveOutcome>,
 ) -> AttackRow {
-    let critical_deadline = critical_deadline_s(&kind.kind, kind.within_s);
     let (mut count, mut warning_in_time, mut critical_in_time) = (0usize, 0usize, 0usize);
     let (mut delays, mut coverages) = (Vec::new(), Vec::new());
-    for (drive, ((warning_delay, _), (critical_delay, critical_coverage))) in drives {
+    for drive in drives {
         count += 1;
-        // A drive's own deadline counts from when it moves off (a fix frozen while standing).
-        let extra_s = drive.deadline_s - kind.within_s;
-        warning_in_time += usize::from(warning_delay.is_some_and(|d| d <= drive.deadline_s));
-        critical_in_time +=
-            usize::from(critical_delay.is_some_and(|d| d <= critical_deadline + extra_s));
-        delays.extend(*critical_delay);
-        coverages.extend(*critical_coverage);
+        warning_in_time += usize::from(drive.warning_in_time);
+        critical_in_time += usize::from(drive.critical_in_time);
+        delays.extend(drive.critical_delay_s);
+        coverages.extend(drive.critical_coverage);
     }
     let share = |n: usize| n as f64 / count.max(1) as f64;
     AttackRow {
@@ -513,7 +584,7 @@ fn attack_row<'a>(
         early_onset: early,
         drives: count,
         warning_deadline_s: kind.within_s,
-        critical_deadline_s: critical_deadline,
+        critical_deadline_s: critical_deadline_s(&kind.kind, kind.within_s),
         warning_in_time: share(warning_in_time),
         critical_in_time: share(critical_in_time),
         critical_median_delay_s: median(delays),
@@ -551,6 +622,13 @@ fn scored_levels(
 
 fn write_outputs(out: &std::path::Path, report: &Report, onsets: &[CleanOnset]) -> Result<()> {
     super::common::write_report(out, report, &render_markdown(report))?;
+    let path = out.join("drives.csv");
+    let mut writer =
+        csv::Writer::from_path(&path).with_context(|| format!("creating {}", path.display()))?;
+    for drive in &report.drives {
+        writer.serialize(drive)?;
+    }
+    writer.flush().context("writing drives.csv")?;
     let mut csv = String::from("vehicle_id,rate_hz,road,severity,time_s,since_resumed_s,why\n");
     for o in onsets {
         let _ = writeln!(
