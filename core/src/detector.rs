@@ -208,7 +208,7 @@ pub fn offset_signal(evidence: &Evidence) -> OffsetSignal {
             held_jump_s: (o.arrived_by_step
                 && o.held_step_m.is_some()
                 && o.track_age_s - o.held_s >= JUMP_SETTLED_S)
-                .then_some(beyond_gate.map(|held| held.min(o.held_step_moved_s)))
+                .then_some(beyond_gate.map(|held| held.min(o.held_step_confirmed_s)))
                 .flatten(),
             held_step_nis: o.held_step_nis,
             // When the offset now held began: the track's age less its hold.
@@ -377,7 +377,7 @@ mod tests {
             if let Some(offset) = e.offset.as_mut() {
                 offset.arrived_by_step = arrived_by_step;
                 offset.held_step_m = held_step_m;
-                offset.held_step_moved_s = 4.0;
+                offset.held_step_confirmed_s = 4.0;
                 offset.track_age_s = 60.0;
             }
             offset_signal(&e)
@@ -395,12 +395,12 @@ mod tests {
 
     #[test]
     fn a_held_jump_counts_the_seconds_moved_from_anchors_that_had_stood() {
-        let jump = |track_age_s: f64, moved_s: f64| {
+        let jump = |track_age_s: f64, confirmed_s: f64| {
             let mut e = evidence(0.0, 400.0, 6.0);
             if let Some(offset) = e.offset.as_mut() {
                 offset.arrived_by_step = true;
                 offset.held_step_m = Some([20.0, 0.0]);
-                offset.held_step_moved_s = moved_s;
+                offset.held_step_confirmed_s = confirmed_s;
                 offset.track_age_s = track_age_s;
                 // The anchors themselves were placed again since (a spike that came back): the
                 // track they stand on is what counts.

@@ -457,6 +457,7 @@ impl EvidenceBuilder {
             calibration_error: in_use.map_or([0.0; 3], |(_, error)| error),
             reports_placements: drift.is_some_and(DriftTracker::trusts_information),
             leaves_held_fix: from.repeated,
+            repeats_fix: here.repeated,
             velocity_change,
             theta_in_use: if in_use.is_some() {
                 drift.map_or([0.0; 3], DriftTracker::theta_in_use)

@@ -5,7 +5,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::params::norm_squared;
+use super::params::{OffsetStep, norm_squared};
 use crate::evidence::drift::MOVING_MPS;
 
 /// A held offset that one step brings back to within this share of itself ends: the spoofer let
@@ -33,11 +33,12 @@ pub(super) struct StepHold {
     pub(super) offset: [f64; 2],
     /// Seconds since the jump.
     pub(super) held_s: f64,
-    /// Of them, the seconds the vehicle moved (dead-reckoned at [`MOVING_MPS`] or faster): a
-    /// stationary vehicle's fix confirms nothing new, and a receiver that latches a reflected fix
-    /// as the vehicle stops holds it for as long as the stop lasts.
+    /// Of them, the seconds that confirmed the jump: the vehicle moved (dead-reckoned at
+    /// [`MOVING_MPS`] or faster), or the receiver computed a new fix. A receiver that latches a
+    /// reflected fix as the vehicle stops repeats it exactly for as long as the stop lasts, which
+    /// confirms nothing new; a receiver that keeps fixing a standing vehicle where it jumped does.
     #[serde(default)]
-    pub(super) moved_s: f64,
+    pub(super) confirmed_s: f64,
     /// The arrival's one-row residual against the vehicle's one-row noise (the step test's NIS,
     /// with what a reacquiring receiver may still step): how far beyond a receiver's own step the
     /// jump was. 0 when the fix left no followed track, so that such a hold pages only on the
@@ -66,13 +67,13 @@ impl StepHold {
     }
 
     /// Adds one step's residual and dead-reckoned motion; returns whether the jump still holds.
-    pub(super) fn advance(&mut self, residual: [f64; 2], motion: [f64; 2], delta_t: f64) -> bool {
-        for (offset, change) in self.offset.iter_mut().zip(residual) {
+    pub(super) fn advance(&mut self, step: &OffsetStep) -> bool {
+        for (offset, change) in self.offset.iter_mut().zip(step.residual) {
             *offset += change;
         }
-        self.held_s += delta_t;
-        if norm_squared(motion).sqrt() >= MOVING_MPS * delta_t {
-            self.moved_s += delta_t;
+        self.held_s += step.delta_t;
+        if !step.repeats_fix || norm_squared(step.motion).sqrt() >= MOVING_MPS * step.delta_t {
+            self.confirmed_s += step.delta_t;
         }
         self.held_s <= MAX_STEP_HOLD_S && !self.nearer_track(self.offset)
     }
@@ -82,22 +83,52 @@ impl StepHold {
 mod tests {
     use super::*;
 
-    #[test]
-    fn a_held_jump_counts_the_seconds_the_vehicle_moved() {
-        let mut hold = StepHold {
+    fn step(motion: [f64; 2], delta_t: f64, repeats_fix: bool) -> OffsetStep {
+        OffsetStep {
+            residual: [0.0; 2],
+            motion,
+            delta_t,
+            calibrated: false,
+            calibration_error: [0.0; 3],
+            reports_placements: false,
+            leaves_held_fix: false,
+            repeats_fix,
+            velocity_change: [0.0; 2],
+            theta_in_use: [0.0; 3],
+        }
+    }
+
+    fn hold() -> StepHold {
+        StepHold {
             arrival: [20.0, 0.0],
             offset: [20.0, 0.0],
             held_s: 0.0,
-            moved_s: 0.0,
+            confirmed_s: 0.0,
             arrival_nis: 400.0,
-        };
-        // 2 m in 1 s (moving), 0.3 m in 0.5 s (below 1 m/s), then standing for 3 s.
-        assert!(hold.advance([0.0, 0.0], [0.0, 2.0], 1.0));
-        assert!(hold.advance([0.0, 0.0], [0.3, 0.0], 0.5));
-        assert!(hold.advance([0.0, 0.0], [0.0, 0.0], 3.0));
-        assert_eq!((hold.held_s, hold.moved_s), (4.5, 1.0));
+        }
+    }
+
+    #[test]
+    fn a_held_jump_repeated_by_a_receiver_holding_its_fix_counts_only_the_seconds_moved() {
+        let mut hold = hold();
+        // 2 m in 1 s (moving), 0.3 m in 0.5 s (below 1 m/s), then standing for 3 s, every fix a
+        // repeat of the one before.
+        assert!(hold.advance(&step([0.0, 2.0], 1.0, true)));
+        assert!(hold.advance(&step([0.3, 0.0], 0.5, true)));
+        assert!(hold.advance(&step([0.0, 0.0], 3.0, true)));
+        assert_eq!((hold.held_s, hold.confirmed_s), (4.5, 1.0));
         // Exactly 1 m/s counts as moving.
-        assert!(hold.advance([0.0, 0.0], [0.6, 0.8], 1.0));
-        assert_eq!(hold.moved_s, 2.0);
+        assert!(hold.advance(&step([0.6, 0.8], 1.0, true)));
+        assert_eq!(hold.confirmed_s, 2.0);
+    }
+
+    #[test]
+    fn a_new_fix_confirms_a_held_jump_on_a_standing_vehicle() {
+        let mut hold = hold();
+        // Standing: two new fixes count, a repeated one does not.
+        assert!(hold.advance(&step([0.0, 0.0], 1.0, false)));
+        assert!(hold.advance(&step([0.0, 0.0], 0.5, true)));
+        assert!(hold.advance(&step([0.1, 0.0], 2.0, false)));
+        assert_eq!((hold.held_s, hold.confirmed_s), (3.5, 3.0));
     }
 }

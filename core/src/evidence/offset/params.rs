@@ -152,6 +152,9 @@ pub struct OffsetStep {
     /// here is where the receiver catches up with a vehicle that moved off, not a jump from a
     /// track the anchors followed.
     pub leaves_held_fix: bool,
+    /// The step's fix repeats the one before exactly (a receiver holding its fix): a held jump
+    /// that it repeats is not confirmed by it.
+    pub repeats_fix: bool,
     /// The onboard velocity's change over the step (m/s): the lag's regressor.
     pub velocity_change: [f64; 2],
     /// The calibration θ whose correction `residual` holds (speed scale, heading bias in radians,
@@ -201,9 +204,10 @@ pub struct OffsetEvidence {
     /// fix before it, east/north (m).
     #[serde(default)]
     pub held_step_m: Option<[f64; 2]>,
-    /// While a jump is held: the seconds since it arrived that the vehicle moved (0 without one).
+    /// While a jump is held: the seconds since it arrived that confirmed it, moving or with a new
+    /// fix (0 without one).
     #[serde(default)]
-    pub held_step_moved_s: f64,
+    pub held_step_confirmed_s: f64,
     /// While a jump is held: its arrival step's NIS against the vehicle's one-row noise (0
     /// without one).
     #[serde(default)]
@@ -233,7 +237,7 @@ impl OffsetEvidence {
         anchor_age_s: 0.0,
         track_age_s: 0.0,
         held_step_m: None,
-        held_step_moved_s: 0.0,
+        held_step_confirmed_s: 0.0,
         held_step_nis: 0.0,
         disputed: false,
     };

@@ -250,8 +250,7 @@ impl OffsetTracker {
     /// Carries a held jump by this row's residual, and ends it where it no longer holds.
     fn advance_step_hold(&mut self, step: &OffsetStep, row: &Row) {
         if let Some(hold) = &mut self.step_hold
-            && (!row.dead_reckoning_carries
-                || !hold.advance(step.residual, step.motion, step.delta_t))
+            && (!row.dead_reckoning_carries || !hold.advance(step))
         {
             self.step_hold = None;
         }
@@ -418,7 +417,7 @@ impl OffsetTracker {
                 arrival: step.residual,
                 offset: step.residual,
                 held_s: 0.0,
-                moved_s: 0.0,
+                confirmed_s: 0.0,
                 arrival_nis: if left_track {
                     nis(
                         step.residual,
@@ -463,7 +462,7 @@ impl OffsetTracker {
             anchor_age_s: self.age_s,
             track_age_s: self.track_age_s,
             held_step_m: self.step_hold.map(|hold| hold.offset),
-            held_step_moved_s: self.step_hold.map_or(0.0, |hold| hold.moved_s),
+            held_step_confirmed_s: self.step_hold.map_or(0.0, |hold| hold.confirmed_s),
             held_step_nis: self.step_hold.map_or(0.0, |hold| hold.arrival_nis),
             disputed: self.disputes >= DISPUTED_PLACEMENTS,
         }

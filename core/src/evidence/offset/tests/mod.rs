@@ -26,6 +26,7 @@ fn step(residual: [f64; 2], delta_t: f64) -> OffsetStep {
         calibration_error: [0.0; 3],
         reports_placements: false,
         leaves_held_fix: false,
+        repeats_fix: false,
         velocity_change: [0.0; 2],
         theta_in_use: [0.0; 3],
     }
@@ -474,6 +475,7 @@ fn the_uncertainty_grows_with_the_distance_carried() {
         calibration_error: [0.0; 3],
         reports_placements: false,
         leaves_held_fix: false,
+        repeats_fix: false,
         velocity_change: [0.0; 2],
         theta_in_use: [0.0; 3],
     });
@@ -494,6 +496,7 @@ fn the_uncertainty_grows_with_the_distance_carried() {
         calibration_error: [0.0; 3],
         reports_placements: false,
         leaves_held_fix: false,
+        repeats_fix: false,
         velocity_change: [0.0; 2],
         theta_in_use: [0.0; 3],
     });
