@@ -468,16 +468,8 @@ fn the_uncertainty_grows_with_the_distance_carried() {
     };
     let mut tracker = OffsetTracker::new(&params);
     let e = tracker.push(&OffsetStep {
-        residual: [10.0, 0.0],
         motion: [0.0, 100.0],
-        delta_t: 1.0,
-        calibrated: false,
-        calibration_error: [0.0; 3],
-        reports_placements: false,
-        leaves_held_fix: false,
-        repeats_fix: false,
-        velocity_change: [0.0; 2],
-        theta_in_use: [0.0; 3],
+        ..step([10.0, 0.0], 1.0)
     });
     for k in 0..ANCHOR_COUNT {
         let a = keep(1.0, k);
@@ -489,16 +481,9 @@ fn the_uncertainty_grows_with_the_distance_carried() {
     // Then 100 m east with the warm calibration (c² = 0.0001): each part of U grows the
     // variance with its own c², and both are forgotten with the offset.
     let e = tracker.push(&OffsetStep {
-        residual: [0.0, 0.0],
         motion: [100.0, 0.0],
-        delta_t: 1.0,
         calibrated: true,
-        calibration_error: [0.0; 3],
-        reports_placements: false,
-        leaves_held_fix: false,
-        repeats_fix: false,
-        velocity_change: [0.0; 2],
-        theta_in_use: [0.0; 3],
+        ..step([0.0, 0.0], 1.0)
     });
     for k in 0..ANCHOR_COUNT {
         let a = keep(1.0, k);
