@@ -203,8 +203,8 @@ pub fn offset_signal(evidence: &Evidence) -> OffsetSignal {
             // A held jump pages only from a track the anchors had stood on for a while before it
             // (a fix placed on a reflection makes the next true fix look like a jump; anchors
             // placed by a spike that came back resume the track once they agree), and counts only
-            // the seconds the vehicle moved with it (a receiver that latches a reflected fix as
-            // the vehicle stops holds it for the whole stop).
+            // the seconds that confirmed it, moving or with a new fix (a receiver that latches a
+            // reflected fix as the vehicle stops repeats it for the whole stop).
             held_jump_s: (o.arrived_by_step
                 && o.held_step_m.is_some()
                 && o.track_age_s - o.held_s >= JUMP_SETTLED_S)
