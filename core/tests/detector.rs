@@ -591,8 +591,17 @@ fn anchor_rebase_served_only_keeps_the_training_and_marks_the_artifact() {
     let off = trained(AnchorRebase::Off);
     let served = trained(AnchorRebase::Serve);
     let throughout = trained(AnchorRebase::TrainAndServe);
+    let margin = trained(AnchorRebase::Margin);
     assert!(!rebases(&off));
-    assert!(rebases(&served) && rebases(&throughout));
+    assert!(rebases(&served) && rebases(&throughout) && rebases(&margin));
+    // As a margin, the operating point is the one chosen without it: only the evidence's switch
+    // differs from the model trained without it.
+    let mut margin_off = margin.clone();
+    margin_off.set_anchor_rebasing(false);
+    assert_eq!(margin_off.model, off.model);
+    assert_eq!(margin_off.operating_point, off.operating_point);
+    assert_eq!(margin_off.lifecycle, off.lifecycle);
+    assert_eq!(margin_off.evidence, off.evidence);
     // Served only, the network and its scaler are those trained without it.
     assert_eq!(served.model, off.model);
     assert_eq!(served.scaler, off.scaler);

@@ -111,7 +111,7 @@ fn run_offline(args: &Args, out: &PathBuf) -> Result<()> {
         from_scratch: args.from_scratch,
         sample_rate_hz: args.sample_rate_hz,
         data_description: args.data.iter().map(|p| p.display().to_string()).collect(),
-        anchor_rebase: AnchorRebase::Off,
+        anchor_rebase: AnchorRebase::Margin,
     };
     let bar = crate::progress::bar(u64::from(args.epochs), "fitting");
     let fitted = fit_fleet(

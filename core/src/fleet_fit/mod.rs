@@ -69,8 +69,8 @@ pub struct FleetFitSpec {
     pub sample_rate_hz: Option<f64>,
     /// Describes the data in the fitted model's provenance.
     pub data_description: Vec<String>,
-    /// Whether the fitted model's anchors re-base when the calibration in use changes (off in
-    /// the service's fits; the lab measures the others).
+    /// Whether the fitted model's anchors re-base when the calibration in use changes (in
+    /// service only, `Margin`, in the service's fits; the lab measures the others).
     pub anchor_rebase: AnchorRebase,
 }
 
@@ -202,8 +202,12 @@ pub fn fit_fleet(
             reason: "the fit was cancelled".to_string(),
         }
     } else {
+        // Chosen on the evidence the warning point was chosen on (without re-basing under
+        // `Margin`), then served as the artifact says.
+        let mut chosen_on = artifact.clone();
+        chosen_on.set_anchor_rebasing(spec.anchor_rebase.when_choosing());
         choose_critical_level(
-            &artifact,
+            &chosen_on,
             starting,
             &[validation_tracks, injected_validation.clone()].concat(),
         )

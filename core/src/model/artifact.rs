@@ -421,6 +421,14 @@ impl ModelArtifact {
         self.model.config().schema
     }
 
+    /// Switches the offset anchors' re-basing on a calibration change on or off (`docs/detector.md`
+    /// §4.2); a model without offset evidence has none to switch.
+    pub fn set_anchor_rebasing(&mut self, on: bool) {
+        if let Some(offset) = self.evidence.offset.as_mut() {
+            offset.rebase_on_calibration = on;
+        }
+    }
+
     /// Parses an artifact: JSON syntax, then the schema version (before anything else, so a newer
     /// artifact gets a clear message instead of a field-level parse error), then every field's type
     /// and each part's own ranges. The parts' cross-checks and the canary drive are left to

@@ -195,10 +195,11 @@ fn train_candidate(
     if outcome.cancelled {
         return Err(TrainError::Cancelled.into());
     }
-    // Under `Serve` the operating points below are chosen on the evidence the model serves.
+    // Under `Serve` the operating points below are chosen on the evidence the model serves; under
+    // `Margin` on the evidence without re-basing, which the model serves with once they are chosen.
     let mut evidence = fit.params;
     if let Some(offset) = evidence.offset.as_mut() {
-        offset.rebase_on_calibration = spec.anchor_rebase != AnchorRebase::Off;
+        offset.rebase_on_calibration = spec.anchor_rebase.when_choosing();
     }
     let mut artifact = ModelArtifact {
         schema_version: ARTIFACT_SCHEMA_VERSION,
@@ -260,6 +261,7 @@ fn train_candidate(
     };
     artifact.operating_point = point;
     artifact.lifecycle = lifecycle;
+    artifact.set_anchor_rebasing(spec.anchor_rebase.when_serving());
     artifact.provenance.validation_metrics = Some(metrics.clone());
     Ok(TrainedDetector {
         artifact,

@@ -27,20 +27,37 @@ pub const KAPPA_RHO_GRID: [(f64, f64); 6] = [
 
 /// Whether a trained model's offset anchors re-base the motion behind them when the calibration in
 /// use changes ([`OffsetParams::rebase_on_calibration`](crate::evidence::offset::OffsetParams),
-/// `docs/detector.md` §4.2). Off by default: at a fixed operating point re-basing removes false
-/// alarms, but each retrained search measured so far spent the room it made on sensitivity and
-/// landed at or over a budget on test hours (docs/experiments.md).
+/// `docs/detector.md` §4.2). At a fixed operating point re-basing removes false alarms; each search
+/// measured so far that chose its points on re-based evidence spent the room it made on
+/// sensitivity and landed at or over a budget on test hours (docs/experiments.md). `Margin` keeps
+/// that room as a margin instead.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum AnchorRebase {
-    /// Neither in training nor in service (the bundled default).
-    #[default]
+    /// Neither in training nor in service.
     Off,
+    /// Trained, and both operating points chosen, on evidence without it; served with it (the
+    /// bundled default's, and every training path's unless asked otherwise). The false alarms it
+    /// removes stay below the budgets the points were chosen for.
+    #[default]
+    Margin,
     /// The network is trained, and the anchors' noise and growth fitted, on evidence without it;
     /// the operating points are chosen, and the model serves, with it.
     Serve,
     /// Trained, chosen and served with it; the anchors' noise and growth are still fitted
     /// without it, so the gates they set stay the wider ones.
     TrainAndServe,
+}
+
+impl AnchorRebase {
+    /// Whether the operating points are chosen on re-based evidence.
+    pub fn when_choosing(self) -> bool {
+        matches!(self, Self::Serve | Self::TrainAndServe)
+    }
+
+    /// Whether the finished model serves with re-basing.
+    pub fn when_serving(self) -> bool {
+        self != Self::Off
+    }
 }
 
 /// Fractions of each trajectory given to train and validation; the rest is test (SPEC §9).
@@ -175,7 +192,7 @@ pub struct TrainingSpec {
     /// default); `None`: seeded initialisation.
     pub initial_model: Option<Model>,
     /// Whether the trained model's offset anchors re-base their dead reckoning when the
-    /// calibration in use changes ([`AnchorRebase`]); off by default.
+    /// calibration in use changes ([`AnchorRebase`]); in service only by default.
     pub anchor_rebase: AnchorRebase,
 }
 
@@ -193,7 +210,7 @@ impl Default for TrainingSpec {
             data_description: Vec::new(),
             calibration_prior: None,
             initial_model: None,
-            anchor_rebase: AnchorRebase::Off,
+            anchor_rebase: AnchorRebase::default(),
         }
     }
 }

@@ -37,6 +37,7 @@ pub struct CommonArgs {
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 pub enum AnchorRebaseArg {
     Off,
+    Margin,
     Serve,
     TrainAndServe,
 }
@@ -45,6 +46,7 @@ impl From<AnchorRebaseArg> for AnchorRebase {
     fn from(arg: AnchorRebaseArg) -> Self {
         match arg {
             AnchorRebaseArg::Off => Self::Off,
+            AnchorRebaseArg::Margin => Self::Margin,
             AnchorRebaseArg::Serve => Self::Serve,
             AnchorRebaseArg::TrainAndServe => Self::TrainAndServe,
         }

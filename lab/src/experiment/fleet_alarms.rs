@@ -85,6 +85,11 @@ pub struct Args {
     /// (`docs/detector.md` §12.3).
     #[arg(long, conflicts_with = "keep_critical")]
     guard_band: bool,
+    /// Choose the critical test on evidence whose anchors do not re-base when the calibration in
+    /// use changes, then write and measure the model with re-basing on: the warning point's
+    /// choice under `offsets --anchor-rebase margin` (`docs/detector.md` §4.2).
+    #[arg(long, conflicts_with = "keep_critical")]
+    serve_rebased: bool,
     /// Write the model with the chosen critical test to this file (without its training wall time,
     /// so that retraining writes the same bytes).
     #[arg(long)]
@@ -183,6 +188,8 @@ struct Report {
     validation_hours_per_rate: u64,
     /// Whether the critical test was chosen with the guard band.
     guard_band: bool,
+    /// Whether the critical test was chosen without re-basing and the model measured with it.
+    serve_rebased: bool,
     test_hours_per_rate: u64,
     /// Error sources of the fleet distribution left out of the clean drives.
     without: Vec<String>,
@@ -213,6 +220,9 @@ pub fn run(args: Args) -> Result<()> {
         None
     } else {
         eprintln!("choosing the critical test on validation drives");
+        if args.serve_rebased {
+            artifact.set_anchor_rebasing(false);
+        }
         let (rows, offset) = validation_rows(&artifact, &args, threads)?;
         let budget = if args.guard_band {
             OperatingPointRule::WithinFalseAlarmBudgetWithMargin {
@@ -227,6 +237,9 @@ pub fn run(args: Args) -> Result<()> {
             choose_critical_within(&rows, &offset, theta, &lifecycle, budget, EventRules::Spec)
                 .context("choosing the critical test")?;
         artifact.critical = Some(selection.test);
+        if args.serve_rebased {
+            artifact.set_anchor_rebasing(true);
+        }
         Some(selection)
     };
     let Some(critical) = artifact.critical else {
@@ -265,6 +278,7 @@ pub fn run(args: Args) -> Result<()> {
         warning_budget_per_hour: WARNING_BUDGET_PER_HOUR,
         validation_hours_per_rate: args.validation_hours,
         guard_band: args.guard_band,
+        serve_rebased: args.serve_rebased,
         test_hours_per_rate: args.test_hours,
         without: args.without.clone(),
         critical,

@@ -73,9 +73,10 @@ pub struct Args {
     /// Train new weights instead of starting from the model's.
     #[arg(long)]
     from_scratch: bool,
-    /// Re-base the fitted model's offset anchors when the calibration in use changes (a measured
-    /// alternative; the service's fits do not).
-    #[arg(long, value_enum, default_value = "off")]
+    /// Re-base the fitted model's offset anchors when the calibration in use changes: in service
+    /// only, both operating points chosen without it (`margin`, as the service's fits do), in the
+    /// search too (`serve`), in training too (`train-and-serve`), or not at all (`off`).
+    #[arg(long, value_enum, default_value = "margin")]
     anchor_rebase: AnchorRebaseArg,
     /// Simulated fleet: vehicles, and half-hour drives per vehicle.
     #[arg(long, default_value_t = 24)]

@@ -33,7 +33,7 @@ use spoofwatch_core::scenario::{
 };
 use spoofwatch_core::train::TrainConfig;
 use spoofwatch_core::train::detector::TrainingData;
-use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
+use spoofwatch_core::train::spec::{AnchorRebase, KappaRho, TrainingSpec};
 
 use super::common::{AnchorRebaseArg, CommonArgs, prepare, seed_list, write_report};
 use super::parallel::{default_threads, map_parallel};
@@ -67,9 +67,9 @@ pub struct Args {
     /// uncertainty (a retrained ablation).
     #[arg(long)]
     timer_trust: bool,
-    /// Re-base the offset anchors when the calibration in use changes: in service and in the
-    /// operating point's search (`serve`), or in training too (`train-and-serve`); a measured
-    /// alternative to the bundled default's evidence.
+    /// Re-base the offset anchors when the calibration in use changes: in service only, the
+    /// operating point chosen without it (`margin`, the bundled default's), in the operating
+    /// point's search too (`serve`), or in training too (`train-and-serve`).
     #[arg(long, value_enum, default_value = "off")]
     anchor_rebase: AnchorRebaseArg,
     /// Train the HO-LLN models with this many seeds (the training seed, + 1, …).
@@ -896,8 +896,17 @@ pub fn run(args: Args) -> Result<()> {
             "offsets: {name} (seed {training_seed}) trained in {:.1} s",
             job_started.elapsed().as_secs_f64()
         );
-        let (artifact, _) = within_budget(&name, trained.artifact, &validation);
-        Ok((name, training_seed, artifact.map(Arc::new)))
+        // The lab chooses the point again, on the validation drives of every rate, and on the
+        // evidence the training chose it on.
+        let rebase = AnchorRebase::from(args.anchor_rebase);
+        let mut chosen_on = trained.artifact;
+        chosen_on.set_anchor_rebasing(rebase.when_choosing());
+        let (artifact, _) = within_budget(&name, chosen_on, &validation);
+        let served = artifact.map(|mut artifact| {
+            artifact.set_anchor_rebasing(rebase.when_serving());
+            Arc::new(artifact)
+        });
+        Ok((name, training_seed, served))
     });
     let mut detectors = Vec::new();
     for result in trained {

@@ -35,7 +35,7 @@ use spoofwatch_core::scenario::{
 };
 use spoofwatch_core::train::TrainConfig;
 use spoofwatch_core::train::detector::TrainingData;
-use spoofwatch_core::train::spec::{KappaRho, TrainingSpec};
+use spoofwatch_core::train::spec::{AnchorRebase, KappaRho, TrainingSpec};
 
 use super::common::{CommonArgs, prepare, seed_list, write_report};
 use super::parallel::{default_threads, map_parallel};
@@ -661,6 +661,8 @@ pub fn run(args: Args) -> Result<()> {
                 args.drives
             ),
         ],
+        // Measured without re-basing, as this experiment's documented runs were.
+        anchor_rebase: AnchorRebase::Off,
         ..TrainingSpec::with(
             args.training_seed.unwrap_or(seed),
             args.common.epochs,

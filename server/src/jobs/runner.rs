@@ -232,7 +232,7 @@ impl Runner {
             from_scratch: fit.from_scratch,
             sample_rate_hz: fit.sample_rate_hz,
             data_description: request.datasets.iter().map(ToString::to_string).collect(),
-            anchor_rebase: AnchorRebase::Off,
+            anchor_rebase: AnchorRebase::Margin,
         };
         let artifact = Arc::clone(&starting.artifact);
         let fitted = self
