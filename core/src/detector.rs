@@ -168,9 +168,9 @@ impl Detector {
 }
 
 /// Seconds after an outage (a new trajectory) during which an offset that begins to be held cannot
-/// page on its hold, however long it lasts: a receiver reacquiring converges over seconds, by steps
-/// of metres that the young anchors, with little dead reckoning behind them, test as held jumps.
-/// Warnings are unaffected, and the decisive gate and the frozen-fix path still page.
+/// open an alarm or page on its hold, however long it lasts: a receiver reacquiring converges over
+/// seconds, by steps of metres that the young anchors, with little dead reckoning behind them, test
+/// as held jumps. p̂, the decisive gate and the frozen-fix path still alarm and page.
 pub const REACQUISITION_S: f64 = 30.0;
 
 /// Seconds the track the anchors stand on must have lasted before a jump for its hold to page

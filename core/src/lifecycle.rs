@@ -1,8 +1,9 @@
 //! The alarm lifecycle in seconds, with hysteresis (`docs/detector.md` §7.1).
 //!
 //! An alarm opens after p̂ has stayed at or above θ for `on_s` seconds, or at once on decisive
-//! evidence: an offset held beyond the decisive gate for `decisive_s` seconds, or the receiver's
-//! spoofing flag corroborated by a displaced fix (`receiver.rs`, §7.3). For the first
+//! evidence: an offset held beyond the decisive gate for `decisive_s` seconds (unless it began as
+//! the receiver reacquired after an outage), or the receiver's spoofing flag corroborated by a
+//! displaced fix (`receiver.rs`, §7.3). For the first
 //! [`SETTLE_S`] of a trajectory (a session's start, or the end of an outage) p̂ counts only where the
 //! fix is also displaced from the anchors, or the anchors are disputed (the fix keeps disagreeing
 //! with anchors placed again on it): the rate channels' averages are still filling and the
@@ -107,7 +108,8 @@ pub struct OffsetSignal {
     pub held_step_nis: f64,
     /// The offset held now began less than [`REACQUISITION_S`](crate::detector::REACQUISITION_S)
     /// after the anchors' track began in a trajectory after an outage, while the receiver's fixes
-    /// may still have been converging: the critical test's held paths do not count it.
+    /// may still have been converging: neither the decisive hold nor the critical test's held
+    /// paths count it.
     #[serde(default)]
     pub reacquiring: bool,
     /// The fix keeps disagreeing with anchors placed again on it before they earned trust
@@ -194,9 +196,12 @@ impl AlarmLifecycle {
         } else {
             self.positive_since = None;
         }
+        // An offset that began while the receiver reacquired is a receiver converging as often as
+        // a spoofer: neither level opens on its hold alone (p̂ and the critical gates still can).
         let decisive = input
             .offset
             .held_s
+            .filter(|_| !input.offset.reacquiring)
             .is_some_and(|held| held + TIME_SLACK_S >= lifecycle.decisive_s);
         let on_s = if input.flag.in_incident_area {
             lifecycle.on_s.min(AREA_ON_S)
@@ -735,8 +740,8 @@ mod tests {
     }
 
     #[test]
-    fn a_held_jump_pages_unless_it_began_while_the_receiver_reacquired() {
-        use crate::severity::{HeldOffsetTest, Severity::Critical};
+    fn a_held_jump_alarms_unless_it_began_while_the_receiver_reacquired() {
+        use crate::severity::{HeldOffsetTest, Severity, Severity::Critical};
         // A jump held from 10 s with a NIS of 64, far below the decisive gate of 100, and p̂ weak:
         // only the held-jump path (gate 49, 2 s) can page it.
         let test = CriticalTest {
@@ -746,42 +751,52 @@ mod tests {
             }),
             ..CRITICAL
         };
-        let first_critical = |reacquiring: bool| {
+        // The first warning and the first page.
+        let first_alarms = |reacquiring: bool| {
             let mut alarm = AlarmLifecycle::default();
             let mut escalation = Escalation::default();
-            (0..=30).map(f64::from).find(|&t| {
-                let held = (t >= 10.0).then_some(t - 10.0);
-                let open = alarm.update_graded(
-                    &LIFECYCLE,
-                    Some(&test),
-                    &mut escalation,
-                    &LifecycleInput {
-                        time_s: t,
-                        valid: true,
-                        trajectory_start: t == 0.0,
-                        positive: false,
-                        probability: 0.5,
-                        offset: OffsetSignal {
-                            held_s: held,
-                            displaced: held.is_some(),
-                            anchored: true,
-                            nis: if held.is_some() { 64.0 } else { 0.0 },
-                            anchors_age_s: 3600.0,
-                            offset_m: [0.0, 0.0],
-                            frozen_fix_s: None,
-                            held_jump_s: held,
-                            held_step_nis: 0.0,
-                            reacquiring,
-                            disputed: false,
+            let severities: Vec<_> = (0..=30)
+                .map(f64::from)
+                .map(|t| {
+                    let held = (t >= 10.0).then_some(t - 10.0);
+                    let open = alarm.update_graded(
+                        &LIFECYCLE,
+                        Some(&test),
+                        &mut escalation,
+                        &LifecycleInput {
+                            time_s: t,
+                            valid: true,
+                            trajectory_start: t == 0.0,
+                            positive: false,
+                            probability: 0.5,
+                            offset: OffsetSignal {
+                                held_s: held,
+                                displaced: held.is_some(),
+                                anchored: true,
+                                nis: if held.is_some() { 64.0 } else { 0.0 },
+                                anchors_age_s: 3600.0,
+                                offset_m: [0.0, 0.0],
+                                frozen_fix_s: None,
+                                held_jump_s: held,
+                                held_step_nis: 0.0,
+                                reacquiring,
+                                disputed: false,
+                            },
+                            flag: FlagSignal::default(),
                         },
-                        flag: FlagSignal::default(),
-                    },
-                );
-                escalation.severity(open) == Some(Critical)
-            })
+                    );
+                    (t, escalation.severity(open))
+                })
+                .collect();
+            let first = |wanted: fn(Option<Severity>) -> bool| {
+                severities.iter().find(|(_, s)| wanted(*s)).map(|(t, _)| *t)
+            };
+            (first(|s| s.is_some()), first(|s| s == Some(Critical)))
         };
-        assert_eq!(first_critical(false), Some(12.0));
-        // Begun while the receiver reacquired: the warning (decisive after 2 s) but no page.
-        assert_eq!(first_critical(true), None);
+        // Decisive for the warning after 2 s, and paged by the held jump's hold at the same time.
+        assert_eq!(first_alarms(false), (Some(12.0), Some(12.0)));
+        // Begun while the receiver reacquired: a receiver converging holds offsets like this, and
+        // neither level opens on the hold alone.
+        assert_eq!(first_alarms(true), (None, None));
     }
 }
