@@ -741,7 +741,7 @@ mod tests {
 
     #[test]
     fn a_held_jump_alarms_unless_it_began_while_the_receiver_reacquired() {
-        use crate::severity::{HeldOffsetTest, Severity, Severity::Critical};
+        use crate::severity::{HeldOffsetTest, Severity, Severity::Critical, Severity::Warning};
         // A jump held from 10 s with a NIS of 64, far below the decisive gate of 100, and p̂ weak:
         // only the held-jump path (gate 49, 2 s) can page it.
         let test = CriticalTest {
@@ -775,12 +775,9 @@ mod tests {
                                 anchored: true,
                                 nis: if held.is_some() { 64.0 } else { 0.0 },
                                 anchors_age_s: 3600.0,
-                                offset_m: [0.0, 0.0],
-                                frozen_fix_s: None,
                                 held_jump_s: held,
-                                held_step_nis: 0.0,
                                 reacquiring,
-                                disputed: false,
+                                ..OffsetSignal::default()
                             },
                             flag: FlagSignal::default(),
                         },
@@ -788,10 +785,13 @@ mod tests {
                     (t, escalation.severity(open))
                 })
                 .collect();
-            let first = |wanted: fn(Option<Severity>) -> bool| {
-                severities.iter().find(|(_, s)| wanted(*s)).map(|(t, _)| *t)
+            let first_from = |level: Severity| {
+                severities
+                    .iter()
+                    .find(|(_, s)| s.is_some_and(|s| s >= level))
+                    .map(|(t, _)| *t)
             };
-            (first(|s| s.is_some()), first(|s| s == Some(Critical)))
+            (first_from(Warning), first_from(Critical))
         };
         // Decisive for the warning after 2 s, and paged by the held jump's hold at the same time.
         assert_eq!(first_alarms(false), (Some(12.0), Some(12.0)));
