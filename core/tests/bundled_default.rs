@@ -3,7 +3,8 @@
 //! clean onboard sensors. An alarm held open after its attack keeps paging someone for nothing; the
 //! detector must hand the vehicle back once its fix and its own motion agree again. And a one-row
 //! multipath spike as a receiver reacquires after an outage must not page, where the same offset
-//! held does, while a drift that captures the receiver as it reacquires is alarmed.
+//! held does, while a drift that captures the receiver as it reacquires is alarmed. A spike that
+//! came back leaves the track it left, and a jump seconds later pages as one from that track.
 
 use std::sync::Arc;
 
@@ -134,6 +135,22 @@ fn a_multipath_spike_as_the_receiver_reacquires_does_not_page_and_a_held_jump_do
     assert!(
         paged.is_some_and(|t| (360.0..=363.0).contains(&t)),
         "a held 150 m jump paged at {paged:?}"
+    );
+}
+
+#[test]
+fn a_jump_seconds_after_a_multipath_spike_came_back_pages_as_one_from_the_track() {
+    // One fix 50 m off at 200 s, the next back where the one before it was: the track the anchors
+    // stood on goes on, and a 20 m jump held from 203 s pages within 10 s.
+    let extra_m = |t: f64| match t {
+        200.0 => 50.0,
+        t if t >= 203.0 => 20.0,
+        _ => 0.0,
+    };
+    let paged = first_critical_s(&drive_through_an_outage(extra_m));
+    assert!(
+        paged.is_some_and(|t| (203.0..=213.0).contains(&t)),
+        "a 20 m jump 3 s after a spike paged at {paged:?}"
     );
 }
 

@@ -153,7 +153,7 @@ impl OffsetTracker {
         }
         let row = self.row(step, levels);
         let after_spike = std::mem::replace(&mut self.after_spike, row.outlier);
-        if row.outlier && self.let_go(step) {
+        if row.outlier && self.let_go(step, &row, after_spike) {
             return self.last;
         }
         self.advance_step_hold(step, &row);
@@ -224,7 +224,8 @@ impl OffsetTracker {
 
     /// On an outlier row: whether the fix let go of a jump, so that the anchors were placed again
     /// here and the row tests nothing.
-    fn let_go(&mut self, step: &OffsetStep) -> bool {
+    fn let_go(&mut self, step: &OffsetStep, row: &Row, after_spike: bool) -> bool {
+        let spike_came_back = after_spike && self.spike_came_back(step, row);
         if self
             .step_hold
             .is_some_and(|hold| hold.stepped_back(step.residual))
@@ -241,7 +242,7 @@ impl OffsetTracker {
         if self.returns(step) {
             // The fix stepped back to where the onboard motion says the vehicle is: the spoofer
             // let go. Trust GNSS again from here (the rest of the offset is dead-reckoning error).
-            self.re_anchor_on_return();
+            self.re_anchor_on_return(spike_came_back);
             return true;
         }
         false
@@ -510,14 +511,39 @@ impl OffsetTracker {
     }
 
     /// Fresh anchors, trusted, at a fix that returned to where the frozen anchors' motion puts
-    /// the vehicle. Within a quarter of the offset is not on the track: a multipath burst's
-    /// return can still be metres off, and the next true fix then steps like a jump. So these
-    /// anchors start a track of their own, which resumes the one they came back to once they
-    /// have agreed for [`TRUST_S`] ([`OffsetTracker::resume_track`]).
-    fn re_anchor_on_return(&mut self) {
+    /// the vehicle. A one-row spike whose next fix is back where the fix before it was leaves
+    /// no doubt about the track, and it goes on at once. Otherwise, within a quarter of the
+    /// offset is not on the track: a multipath burst's return can still be metres off, and the
+    /// next true fix then steps like a jump. So such anchors start a track of their own, which
+    /// resumes the one they came back to once they have agreed for [`TRUST_S`]
+    /// ([`OffsetTracker::resume_track`]).
+    fn re_anchor_on_return(&mut self, on_track: bool) {
         let track_age_s = self.track_age_s;
         self.re_anchor_keeping_levels(0.0);
-        self.returned_from_track_s = Some(track_age_s);
+        if on_track {
+            self.track_age_s = track_age_s;
+        } else {
+            self.returned_from_track_s = Some(track_age_s);
+        }
+    }
+
+    /// Right after a one-row spike that arrived as a jump: whether this fix is back where the fix
+    /// before the spike, carried by the vehicle's motion, puts it. The two rows' residuals are
+    /// tested together as the step test tests one row: a reflection gone back, not a fix that
+    /// lands nearer the dead reckoning than the track GNSS was on.
+    fn spike_came_back(&self, step: &OffsetStep, row: &Row) -> bool {
+        self.step_hold.is_some_and(|hold| {
+            let over_both = [
+                hold.offset[0] + step.residual[0],
+                hold.offset[1] + step.residual[1],
+            ];
+            hold.held_s == 0.0
+                && nis(
+                    over_both,
+                    row.step_test_m2 + row.reacquisition_m2,
+                    &row.step_share,
+                ) < FOLLOW_GATE
+        })
     }
 
     /// After a return: a disagreement before [`TRUST_S`] leaves the anchors on a track of their

@@ -100,15 +100,15 @@ fn a_jump_freezes_the_anchors_and_is_held_while_a_spike_comes_back() {
     }
     let out = tracker.push(&step([30.0, 0.0], 1.0));
     assert_eq!(out.held_s, 0.0);
-    // Back to within a quarter of the held offset: the fix is where the motion puts it, and
-    // the anchors are placed there again.
-    let back = tracker.push(&step([-30.0, 0.0], 1.0));
-    assert_eq!(back.nis, [0.0, 0.0]);
-    assert!(!back.frozen && back.anchor_age_s == 0.0, "{back:?}");
-    assert_eq!(back.held_s, 0.0);
-    // The anchors' and the track's age at a 20 m jump after `rows` rows of agreement.
-    let ages_at_jump_after = |rows: usize| {
+    // The anchors' and the track's age at a 20 m jump `rows` rows after a fix that came back
+    // `back_m` short of the spike.
+    let ages_at_jump_after = |back_m: f64, rows: usize| {
         let mut tracker = tracker.clone();
+        let back = tracker.push(&step([-back_m, 0.0], 1.0));
+        // Back to within a quarter of the held offset: the fix is where the motion puts it, and
+        // the anchors are placed there again.
+        assert_eq!((back.nis, back.held_s), ([0.0, 0.0], 0.0));
+        assert!(!back.frozen && back.anchor_age_s == 0.0, "{back:?}");
         for _ in 0..rows {
             tracker.push(&step([0.0; 2], 1.0));
         }
@@ -119,12 +119,28 @@ fn a_jump_freezes_the_anchors_and_is_held_while_a_spike_comes_back() {
         );
         (jump.anchor_age_s, jump.track_age_s)
     };
-    // A return may still be metres off (a multipath burst): the anchors it places start a track
-    // of their own, and a jump 3 s later comes from a track 3 s old.
-    assert_eq!(ages_at_jump_after(2), (3.0, 3.0));
-    // After TRUST_S of agreement they are back on the track of the 31 rows before the return:
-    // a jump 6 s after it comes from a track 37 s old.
-    assert_eq!(ages_at_jump_after(5), (6.0, 37.0));
+    // Back on the track (within the follow gate): it goes on at once, and a jump 3 s later
+    // comes from the track of the 31 rows before the return.
+    assert_eq!(ages_at_jump_after(30.0, 2), (3.0, 34.0));
+    // Back to 6 m off (NIS 36): within a quarter of the spike, but a multipath burst's return
+    // may be metres off. The anchors it places start a track of their own, and a jump 3 s
+    // later comes from a track 3 s old; after TRUST_S of agreement they are back on the track
+    // they returned to.
+    assert_eq!(ages_at_jump_after(24.0, 2), (3.0, 3.0));
+    assert_eq!(ages_at_jump_after(24.0, 5), (6.0, 37.0));
+    // Back exactly, but after the offset was held for 2 s: not a one-row spike, and its anchors
+    // start a track of their own too.
+    let mut held = tracker.clone();
+    for _ in 0..2 {
+        held.push(&step([0.0; 2], 1.0));
+    }
+    let back = held.push(&step([-30.0, 0.0], 1.0));
+    assert_eq!((back.nis, back.anchor_age_s), ([0.0, 0.0], 0.0));
+    for _ in 0..2 {
+        held.push(&step([0.0; 2], 1.0));
+    }
+    let jump = held.push(&step([0.0, 20.0], 1.0));
+    assert_eq!((jump.anchor_age_s, jump.track_age_s), (3.0, 3.0));
     // The share of time beyond the follow gate: one row of the last 10 s.
     let share_after_out = 1.0 - keep(1.0, 0);
     assert!((out.share[0] - share_after_out).abs() < 1e-12);
