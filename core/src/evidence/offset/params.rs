@@ -196,8 +196,9 @@ pub struct OffsetEvidence {
     /// Seconds since the track the anchors stand on began: since they were last placed on a fix
     /// that nothing before it vouched for (a session's first, one after an outage or a break, one
     /// placed again before trust or after a held jump let go). Anchors placed by a fix that
-    /// returned to where the vehicle's motion puts it (a spike gone back) resume the track they
-    /// came back to once they have agreed for [`TRUST_S`], and this goes on counting from it.
+    /// returned to where the vehicle's motion puts it stay on the track they came back to when a
+    /// one-row spike's next fix is back where the fix before it was; after any other return they
+    /// resume it once they have agreed for [`TRUST_S`]. Either way this goes on counting from it.
     #[serde(default)]
     pub track_age_s: f64,
     /// While a jump is held (`held_jump`): GNSS minus the dead reckoning from the last trusted
