@@ -4,7 +4,7 @@
 //! detector must hand the vehicle back once its fix and its own motion agree again. And a one-row
 //! multipath spike as a receiver reacquires after an outage must not page, where the same offset
 //! held does, while a drift that captures the receiver as it reacquires is alarmed. A spike that
-//! came back leaves the track it left, and a jump seconds later pages as one from that track.
+//! came back keeps the track it left, and a jump seconds later pages as one from that track.
 
 use std::sync::Arc;
 

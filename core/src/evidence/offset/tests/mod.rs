@@ -119,7 +119,7 @@ fn a_jump_freezes_the_anchors_and_is_held_while_a_spike_comes_back() {
         );
         (jump.anchor_age_s, jump.track_age_s)
     };
-    // Back on the track (within the follow gate): it goes on at once, and a jump 3 s later
+    // Back where the fix before the spike was: the track goes on at once, and a jump 3 s later
     // comes from the track of the 31 rows before the return.
     assert_eq!(ages_at_jump_after(30.0, 2), (3.0, 34.0));
     // Back to 6 m off (NIS 36): within a quarter of the spike, but a multipath burst's return
